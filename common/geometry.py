@@ -1,0 +1,119 @@
+"""Rotation and rigid-transform helpers (pure numpy; SO(3), SE(3), quaternions).
+
+Conventions: ``R_a_b`` rotates vectors from frame ``b`` into frame ``a``; ``T_a_b`` (4, 4)
+maps homogeneous points from ``b`` to ``a``. Quaternions are Hamilton, stored ``(w, x, y, z)``
+as EuRoC writes them unless a name says ``xyzw`` (TUM order).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from common.errors import RecslamError
+
+
+class GeometryError(RecslamError):
+    """Input is not a valid rotation, transform or quaternion."""
+
+
+def hat(w: np.ndarray) -> np.ndarray:
+    """(3,) vector -> (3, 3) skew-symmetric matrix with ``hat(a) @ b == cross(a, b)``."""
+    x, y, z = np.asarray(w, dtype=np.float64).reshape(3)
+    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+
+
+def check_rotation(R: np.ndarray, atol: float = 1e-6) -> np.ndarray:
+    """Return ``R`` as float (3, 3) or raise GeometryError if it is not a proper rotation."""
+    R = np.asarray(R, dtype=np.float64)
+    if R.shape != (3, 3):
+        raise GeometryError(f"rotation must be (3, 3), got {R.shape}")
+    if not np.allclose(R.T @ R, np.eye(3), atol=atol) or np.linalg.det(R) < 0:
+        raise GeometryError("matrix is not a proper rotation (R^T R != I or det < 0)")
+    return R
+
+
+def so3_exp(w: np.ndarray) -> np.ndarray:
+    """Rodrigues: rotation vector (3,) [rad] -> (3, 3) rotation."""
+    w = np.asarray(w, dtype=np.float64).reshape(3)
+    theta = float(np.linalg.norm(w))
+    K = hat(w)
+    if theta < 1e-8:
+        return np.eye(3) + K + 0.5 * K @ K
+    a = np.sin(theta) / theta
+    b = (1.0 - np.cos(theta)) / theta**2
+    return np.eye(3) + a * K + b * K @ K
+
+
+def so3_log(R: np.ndarray) -> np.ndarray:
+    """(3, 3) rotation -> rotation vector (3,) [rad], angle in [0, pi]."""
+    R = check_rotation(R)
+    cos = np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)
+    theta = float(np.arccos(cos))
+    if theta < 1e-8:
+        return np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]]) / 2.0
+    if np.pi - theta < 1e-6:
+        # Near pi: take the axis from the symmetric part.
+        M = (R + np.eye(3)) / 2.0
+        axis = np.sqrt(np.clip(np.diag(M), 0.0, None))
+        i = int(np.argmax(axis))
+        axis = M[:, i] / np.sqrt(M[i, i])
+        return axis * theta
+    w = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    return w * theta / (2.0 * np.sin(theta))
+
+
+def make_T(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Build a (4, 4) transform from a (3, 3) rotation and a (3,) translation."""
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = np.asarray(t, dtype=np.float64).reshape(3)
+    return T
+
+
+def inverse_T(T: np.ndarray) -> np.ndarray:
+    """Inverse of a (4, 4) rigid transform (or a stack (N, 4, 4))."""
+    T = np.asarray(T, dtype=np.float64)
+    R = T[..., :3, :3]
+    t = T[..., :3, 3]
+    Rt = np.swapaxes(R, -1, -2)
+    out = np.zeros_like(T)
+    out[..., :3, :3] = Rt
+    out[..., :3, 3] = -np.einsum("...ij,...j->...i", Rt, t)
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def transform_points(T: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """Apply a (4, 4) transform to points (N, 3) -> (N, 3)."""
+    p = np.asarray(p, dtype=np.float64).reshape(-1, 3)
+    return p @ T[:3, :3].T + T[:3, 3]
+
+
+def quat_wxyz_to_R(q: np.ndarray) -> np.ndarray:
+    """Hamilton quaternion(s) (..., 4) in (w, x, y, z) -> rotation(s) (..., 3, 3). Normalises."""
+    q = np.asarray(q, dtype=np.float64)
+    n = np.linalg.norm(q, axis=-1, keepdims=True)
+    if np.any(n < 1e-12):
+        raise GeometryError("zero-norm quaternion")
+    w, x, y, z = np.moveaxis(q / n, -1, 0)
+    R = np.stack(
+        [
+            1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w),
+            2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w),
+            2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y),
+        ],
+        axis=-1,
+    )  # fmt: skip
+    return R.reshape(*q.shape[:-1], 3, 3)
+
+
+def R_to_quat_wxyz(R: np.ndarray) -> np.ndarray:
+    """Rotation(s) (..., 3, 3) -> unit quaternion(s) (..., 4) (w, x, y, z) with w >= 0."""
+    from scipy.spatial.transform import Rotation
+
+    R = np.asarray(R, dtype=np.float64)
+    flat = R.reshape(-1, 3, 3)
+    xyzw = Rotation.from_matrix(flat).as_quat()
+    wxyz = np.concatenate([xyzw[:, 3:], xyzw[:, :3]], axis=1)
+    wxyz *= np.where(wxyz[:, :1] < 0, -1.0, 1.0)
+    return wxyz.reshape(*R.shape[:-2], 4)

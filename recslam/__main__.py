@@ -1,0 +1,3 @@
+from recslam.cli import main
+
+raise SystemExit(main())

@@ -1,0 +1,55 @@
+"""``recslam`` entry point: builds the argument parser from the command modules.
+
+Each module in ``recslam.commands`` exposes ``register(subparsers)``, which adds its parser(s)
+and sets ``func`` (``Namespace -> int`` exit code). Heavy imports happen inside ``func`` so
+``--help`` stays fast.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import sys
+
+from common.errors import RecslamError
+
+# Order is the order shown by ``recslam --help``.
+COMMAND_MODULES = ("demo", "dataset", "evaluate")
+
+log = logging.getLogger(__name__)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="recslam",
+        description="Robot-edge-cloud collaborative visual-inertial SLAM.",
+    )
+    parser.add_argument(
+        "-v", "--verbose", action="count", default=0, help="more logging (-v info, -vv debug)"
+    )
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    for name in COMMAND_MODULES:
+        importlib.import_module(f"recslam.commands.{name}").register(sub)
+    return parser
+
+
+def setup_logging(verbosity: int) -> None:
+    level = logging.WARNING - 10 * min(verbosity, 2)
+    logging.basicConfig(
+        level=level, format="%(asctime)s %(levelname)-7s %(name)s: %(message)s", stream=sys.stderr
+    )
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    setup_logging(args.verbose)
+    try:
+        return int(args.func(args) or 0)
+    except RecslamError as exc:
+        print(f"recslam {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130

@@ -1,0 +1,1 @@
+"""Subcommands of ``recslam``; each module exposes ``register(subparsers)``."""

@@ -1,0 +1,1 @@
+"""The three tiers: ``robot``, ``edge`` and ``cloud``. No service imports another."""
