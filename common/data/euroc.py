@@ -1,0 +1,580 @@
+"""Reader for sequences in the EuRoC ASL layout (real downloads and our synthetic sets).
+
+Layout (the sequence root may be given, or ``mav0`` itself)::
+
+    <root>/mav0/cam0/{sensor.yaml, data.csv, data/<ts>.png}
+    <root>/mav0/cam1/...                                   (optional)
+    <root>/mav0/imu0/{sensor.yaml, data.csv}
+    <root>/mav0/state_groundtruth_estimate0/data.csv       (optional)
+
+Frames: EuRoC's ``T_BS`` is ``T_body_sensor``; ground truth ``p_RS_R``/``q_RS`` is the pose
+of the body (= IMU) frame in the world frame, i.e. ``T_world_body``. Timestamps are int64
+nanoseconds. Every malformed input raises :class:`EurocError` as ``<file>:<line>: <what>``.
+
+IMU samples are kept in memory (numpy, read-only); images are decoded lazily.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+import yaml
+
+from common.calibration import CameraCalibration, ImuCalibration
+from common.errors import RecslamError
+
+logger = logging.getLogger(__name__)
+
+CAMERA_CSV_HEADER = "#timestamp [ns],filename"
+IMU_CSV_HEADER = (
+    "#timestamp [ns],w_RS_S_x [rad s^-1],w_RS_S_y [rad s^-1],w_RS_S_z [rad s^-1],"
+    "a_RS_S_x [m s^-2],a_RS_S_y [m s^-2],a_RS_S_z [m s^-2]"
+)
+GROUNDTRUTH_CSV_HEADER = (
+    "#timestamp, p_RS_R_x [m], p_RS_R_y [m], p_RS_R_z [m], "
+    "q_RS_w [], q_RS_x [], q_RS_y [], q_RS_z [], "
+    "v_RS_R_x [m s^-1], v_RS_R_y [m s^-1], v_RS_R_z [m s^-1], "
+    "b_w_RS_S_x [rad s^-1], b_w_RS_S_y [rad s^-1], b_w_RS_S_z [rad s^-1], "
+    "b_a_RS_S_x [m s^-2], b_a_RS_S_y [m s^-2], b_a_RS_S_z [m s^-2]"
+)
+GROUNDTRUTH_DIR = "state_groundtruth_estimate0"
+
+
+class EurocError(RecslamError):
+    """A sequence on disk is missing, malformed or inconsistent."""
+
+
+def _readonly(a: np.ndarray, dtype: type, shape_tail: tuple[int, ...], what: str) -> np.ndarray:
+    arr = np.array(a, dtype=dtype)
+    if arr.ndim != 1 + len(shape_tail) or arr.shape[1:] != shape_tail:
+        raise ValueError(f"{what}: expected shape (K, {shape_tail}), got {arr.shape}")
+    arr.setflags(write=False)
+    return arr
+
+
+@dataclass(frozen=True, eq=False)
+class ImuBatch:
+    """IMU samples: ``timestamps_ns`` (K,) int64, ``gyro`` (K, 3) rad/s, ``accel`` (K, 3) m/s²,
+    both in the IMU sensor frame."""
+
+    timestamps_ns: np.ndarray
+    gyro: np.ndarray
+    accel: np.ndarray
+
+    def __post_init__(self) -> None:
+        ts = _readonly(self.timestamps_ns, np.int64, (), "timestamps_ns")
+        object.__setattr__(self, "timestamps_ns", ts)
+        for name in ("gyro", "accel"):
+            arr = _readonly(getattr(self, name), np.float64, (3,), name)
+            if len(arr) != len(ts):
+                raise ValueError(f"{name} has {len(arr)} rows, timestamps_ns {len(ts)}")
+            object.__setattr__(self, name, arr)
+
+    def __len__(self) -> int:
+        return len(self.timestamps_ns)
+
+
+@dataclass(frozen=True, eq=False)
+class GroundTruth:
+    """EuRoC ``state_groundtruth_estimate0``: body (IMU) state in the world frame.
+
+    ``timestamps_ns`` (K,) int64; ``p_world_body`` (K, 3) m; ``q_world_body_wxyz`` (K, 4)
+    Hamilton (w, x, y, z) as stored (not renormalised); ``v_world_body`` (K, 3) m/s;
+    ``bias_gyro`` (K, 3) rad/s; ``bias_accel`` (K, 3) m/s². Pose-only files (8 columns)
+    give NaN velocities and biases.
+    """
+
+    timestamps_ns: np.ndarray
+    p_world_body: np.ndarray
+    q_world_body_wxyz: np.ndarray
+    v_world_body: np.ndarray
+    bias_gyro: np.ndarray
+    bias_accel: np.ndarray
+
+    def __post_init__(self) -> None:
+        ts = _readonly(self.timestamps_ns, np.int64, (), "timestamps_ns")
+        object.__setattr__(self, "timestamps_ns", ts)
+        dims = {"p_world_body": 3, "q_world_body_wxyz": 4, "v_world_body": 3}
+        for name in (
+            "p_world_body",
+            "q_world_body_wxyz",
+            "v_world_body",
+            "bias_gyro",
+            "bias_accel",
+        ):
+            arr = _readonly(getattr(self, name), np.float64, (dims.get(name, 3),), name)
+            if len(arr) != len(ts):
+                raise ValueError(f"{name} has {len(arr)} rows, timestamps_ns {len(ts)}")
+            object.__setattr__(self, name, arr)
+
+    def __len__(self) -> int:
+        return len(self.timestamps_ns)
+
+    def T_world_body(self) -> np.ndarray:
+        """(K, 4, 4) body-to-world transforms (quaternions normalised)."""
+        from common.geometry import quat_wxyz_to_R
+
+        T = np.tile(np.eye(4), (len(self), 1, 1))
+        T[:, :3, :3] = quat_wxyz_to_R(self.q_world_body_wxyz)
+        T[:, :3, 3] = self.p_world_body
+        return T
+
+
+@dataclass(frozen=True, eq=False)
+class CameraStream:
+    """One camera's ``data.csv``: ``timestamps_ns`` (N,) int64, absolute ``image_paths`` and
+    the 1-based ``csv_lines`` each row came from (for error messages)."""
+
+    csv_path: Path
+    timestamps_ns: np.ndarray
+    image_paths: tuple[Path, ...]
+    csv_lines: tuple[int, ...]
+
+    def __len__(self) -> int:
+        return len(self.timestamps_ns)
+
+
+@dataclass(frozen=True, eq=False)
+class Frame:
+    """One camera frame with the IMU samples ``previous_frame_ts < t <= timestamp_ns``
+    (for frame 0: every IMU sample up to and including its timestamp).
+    ``image`` is uint8 (H, W) grayscale, or None when iterated with ``load_images=False``."""
+
+    index: int
+    timestamp_ns: int
+    image: np.ndarray | None
+    imu: ImuBatch
+
+
+# ---------------------------------------------------------------------------- CSV parsing
+
+
+def _read_text(path: Path) -> str:
+    if not path.is_file():
+        raise EurocError(f"{path}: missing file")
+    try:
+        return path.read_bytes().decode("utf-8-sig")
+    except UnicodeDecodeError as e:
+        raise EurocError(f"{path}: not UTF-8 text ({e.reason} at byte {e.start})") from None
+
+
+def _csv_rows(path: Path, ncols: tuple[int, ...]) -> tuple[list[list[str]], list[int]]:
+    """Split a CSV into rows of fields, skipping '#' comments and blank lines.
+
+    Returns (rows, 1-based line numbers). Every row must have one of ``ncols`` fields.
+    """
+    rows: list[list[str]] = []
+    lines: list[int] = []
+    for lineno, line in enumerate(_read_text(path).splitlines(), start=1):
+        if not line.strip() or line.lstrip().startswith("#"):
+            continue
+        rows.append(line.split(","))
+        lines.append(lineno)
+    if not rows:
+        raise EurocError(f"{path}: no data rows")
+    want = len(rows[0]) if len(rows[0]) in ncols else None
+    for row, lineno in zip(rows, lines, strict=True):
+        if len(row) != want:
+            expected = " or ".join(str(n) for n in ncols) if want is None else str(want)
+            raise EurocError(f"{path}:{lineno}: expected {expected} columns, found {len(row)}")
+    return rows, lines
+
+
+def _parse_timestamps(path: Path, rows: list[list[str]], lines: list[int]) -> np.ndarray:
+    """Column 0 as strictly increasing int64 nanoseconds."""
+    try:
+        ts = np.array([int(r[0]) for r in rows], dtype=np.int64)
+    except (ValueError, OverflowError):
+        for row, lineno in zip(rows, lines, strict=True):
+            try:
+                v = int(row[0])
+            except ValueError:
+                raise EurocError(
+                    f"{path}:{lineno}: timestamp {row[0].strip()!r} is not an integer [ns]"
+                ) from None
+            if not -(2**63) <= v < 2**63:
+                raise EurocError(f"{path}:{lineno}: timestamp {v} overflows int64") from None
+        raise
+    bad = np.flatnonzero(np.diff(ts) <= 0)
+    if len(bad):
+        i = int(bad[0]) + 1
+        kind = "duplicate" if ts[i] == ts[i - 1] else "decreasing"
+        raise EurocError(
+            f"{path}:{lines[i]}: {kind} timestamp {ts[i]} "
+            f"(previous row, line {lines[i - 1]}, has {ts[i - 1]})"
+        )
+    return ts
+
+
+def _parse_floats(path: Path, rows: list[list[str]], lines: list[int]) -> np.ndarray:
+    """Columns 1.. as finite float64, shape (N, ncols - 1)."""
+    ncols = len(rows[0]) - 1
+    try:
+        flat = [float(x) for r in rows for x in r[1:]]
+        values = np.array(flat, dtype=np.float64).reshape(len(rows), ncols)
+        finite = bool(np.isfinite(values).all())
+    except ValueError:
+        finite = False
+    if finite:
+        return values
+    for row, lineno in zip(rows, lines, strict=True):
+        for col, field in enumerate(row[1:], start=2):
+            try:
+                v = float(field)
+            except ValueError:
+                v = math.nan
+            if not math.isfinite(v):
+                raise EurocError(
+                    f"{path}:{lineno}: column {col} value {field.strip()!r} is not a finite number"
+                )
+    raise AssertionError("unreachable: a non-finite value was detected but not located")
+
+
+def read_imu_csv(path: Path | str) -> ImuBatch:
+    """Read ``imu0/data.csv`` (timestamp, gyro xyz [rad/s], accel xyz [m/s²])."""
+    path = Path(path)
+    rows, lines = _csv_rows(path, (7,))
+    ts = _parse_timestamps(path, rows, lines)
+    values = _parse_floats(path, rows, lines)
+    return ImuBatch(timestamps_ns=ts, gyro=values[:, 0:3], accel=values[:, 3:6])
+
+
+def read_groundtruth(csv_path: Path | str) -> GroundTruth:
+    """Read ``state_groundtruth_estimate0/data.csv`` (17 columns: t, p, q_wxyz, v, b_w, b_a).
+
+    Pose-only files with 8 columns (t, p, q_wxyz) are accepted too; their velocities and
+    biases are NaN. Quaternion norms must be within 1e-2 of 1 (they are stored unmodified).
+    """
+    path = Path(csv_path)
+    rows, lines = _csv_rows(path, (17, 8))
+    ts = _parse_timestamps(path, rows, lines)
+    values = _parse_floats(path, rows, lines)
+    norms = np.linalg.norm(values[:, 3:7], axis=1)
+    bad = np.flatnonzero(np.abs(norms - 1.0) > 1e-2)
+    if len(bad):
+        i = int(bad[0])
+        raise EurocError(f"{path}:{lines[i]}: quaternion norm {norms[i]:.6g} is not 1")
+    if values.shape[1] == 7:
+        values = np.concatenate([values, np.full((len(values), 9), np.nan)], axis=1)
+    return GroundTruth(
+        timestamps_ns=ts,
+        p_world_body=values[:, 0:3],
+        q_world_body_wxyz=values[:, 3:7],
+        v_world_body=values[:, 7:10],
+        bias_gyro=values[:, 10:13],
+        bias_accel=values[:, 13:16],
+    )
+
+
+def read_camera_csv(path: Path | str, image_dir: Path | str | None = None) -> CameraStream:
+    """Read ``camN/data.csv`` (timestamp, filename); images live in ``image_dir``
+    (default: ``data/`` next to the CSV) and must exist."""
+    path = Path(path)
+    image_dir = path.parent / "data" if image_dir is None else Path(image_dir)
+    rows, lines = _csv_rows(path, (2,))
+    ts = _parse_timestamps(path, rows, lines)
+    try:
+        present = set(os.listdir(image_dir))
+    except OSError:
+        raise EurocError(f"{image_dir}: missing image folder (for {path})") from None
+    names = [r[1].strip() for r in rows]
+    for name, lineno in zip(names, lines, strict=True):
+        if not name or name not in present:
+            raise EurocError(f"{path}:{lineno}: image {name!r} not found in {image_dir}")
+    return CameraStream(
+        csv_path=path,
+        timestamps_ns=_readonly(ts, np.int64, (), "timestamps_ns"),
+        image_paths=tuple(image_dir / n for n in names),
+        csv_lines=tuple(lines),
+    )
+
+
+# ---------------------------------------------------------------------------- YAML parsing
+
+
+class _YamlLoader(yaml.SafeLoader):
+    """SafeLoader that also reads OpenCV ``!!opencv-matrix`` nodes as plain mappings."""
+
+
+_YamlLoader.add_constructor(
+    "tag:yaml.org,2002:opencv-matrix",
+    lambda loader, node: loader.construct_mapping(node, deep=True),
+)
+
+
+class _Yaml:
+    """A parsed ``sensor.yaml``: values by key plus the line each key is on."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        lines = _read_text(path).splitlines()
+        if lines and lines[0].startswith("%YAML"):
+            lines[0] = ""  # OpenCV's "%YAML:1.0" directive; keep line numbers stable
+        loader = _YamlLoader("\n".join(lines))
+        try:
+            node = loader.get_single_node()
+            data = loader.construct_document(node) if node is not None else None
+        except yaml.YAMLError as e:
+            mark = getattr(e, "problem_mark", None)
+            where = f"{path}:{mark.line + 1}" if mark is not None else str(path)
+            problem = getattr(e, "problem", None) or str(e)
+            raise EurocError(f"{where}: invalid YAML: {problem}") from None
+        finally:
+            loader.dispose()
+        if not isinstance(data, dict):
+            raise EurocError(f"{path}: expected a YAML mapping at top level")
+        self.data = data
+        self.lines = {k.value: k.start_mark.line + 1 for k, _ in node.value}
+
+    def where(self, key: str) -> str:
+        return f"{self.path}:{self.lines[key]}" if key in self.lines else str(self.path)
+
+    def get(self, key: str) -> object:
+        if key not in self.data:
+            raise EurocError(f"{self.path}: missing field {key!r}")
+        return self.data[key]
+
+    def number(self, key: str, positive: bool = False) -> float:
+        value = self.get(key)
+        try:
+            if isinstance(value, bool):
+                raise TypeError
+            x = float(value)  # PyYAML reads "1e-3" (no dot) as a string
+        except (TypeError, ValueError):
+            raise EurocError(f"{self.where(key)}: {key} must be a number, got {value!r}") from None
+        if not math.isfinite(x) or x < 0 or (positive and x == 0):
+            sign = "positive" if positive else "non-negative"
+            raise EurocError(f"{self.where(key)}: {key} must be a finite {sign} number, got {x}")
+        return x
+
+    def numbers(self, key: str, n: int, value: object = None) -> list[float]:
+        value = self.get(key) if value is None else value
+        try:
+            if not isinstance(value, list) or len(value) != n:
+                raise TypeError
+            xs = [float(v) for v in value if not isinstance(v, bool)]
+            if len(xs) != n or not all(math.isfinite(x) for x in xs):
+                raise TypeError
+        except (TypeError, ValueError):
+            raise EurocError(
+                f"{self.where(key)}: {key} must be a list of {n} finite numbers, got {value!r}"
+            ) from None
+        return xs
+
+    def transform(self, key: str = "T_BS") -> np.ndarray:
+        value = self.get(key)
+        if not isinstance(value, dict) or value.get("rows") != 4 or value.get("cols") != 4:
+            raise EurocError(f"{self.where(key)}: {key} must be a mapping with rows: 4, cols: 4")
+        T = np.array(self.numbers(key, 16, value.get("data"))).reshape(4, 4)
+        R = T[:3, :3]
+        if not np.allclose(T[3], [0, 0, 0, 1]) or not np.allclose(R.T @ R, np.eye(3), atol=1e-4):
+            raise EurocError(f"{self.where(key)}: {key} is not a rigid transform: {T.tolist()}")
+        if np.linalg.det(R) < 0:
+            raise EurocError(f"{self.where(key)}: {key} rotation is a reflection (det < 0)")
+        return T
+
+    def expect(self, key: str, allowed: tuple[str, ...]) -> None:
+        if key in self.data and self.data[key] not in allowed:
+            raise EurocError(
+                f"{self.where(key)}: {key} is {self.data[key]!r}, supported: {', '.join(allowed)}"
+            )
+
+
+def read_camera_yaml(path: Path | str) -> CameraCalibration:
+    """``camN/sensor.yaml`` -> pinhole + radial-tangential :class:`CameraCalibration`."""
+    y = _Yaml(Path(path))
+    y.expect("sensor_type", ("camera",))
+    y.expect("camera_model", ("pinhole",))
+    y.expect("distortion_model", ("radial-tangential", "radtan"))
+    width, height = y.numbers("resolution", 2)
+    if width != int(width) or height != int(height) or width < 1 or height < 1:
+        raise EurocError(f"{y.where('resolution')}: resolution must be two positive integers")
+    fx, fy, cx, cy = y.numbers("intrinsics", 4)
+    if fx <= 0 or fy <= 0:
+        raise EurocError(f"{y.where('intrinsics')}: focal lengths must be positive")
+    return CameraCalibration(
+        width=int(width),
+        height=int(height),
+        fx=fx,
+        fy=fy,
+        cx=cx,
+        cy=cy,
+        distortion=tuple(y.numbers("distortion_coefficients", 4)),
+        T_body_cam=y.transform(),
+        rate_hz=y.number("rate_hz", positive=True),
+    )
+
+
+def read_imu_yaml(path: Path | str) -> ImuCalibration:
+    """``imu0/sensor.yaml`` -> :class:`ImuCalibration` (continuous-time noise densities)."""
+    y = _Yaml(Path(path))
+    y.expect("sensor_type", ("imu",))
+    return ImuCalibration(
+        gyro_noise_density=y.number("gyroscope_noise_density"),
+        gyro_random_walk=y.number("gyroscope_random_walk"),
+        accel_noise_density=y.number("accelerometer_noise_density"),
+        accel_random_walk=y.number("accelerometer_random_walk"),
+        rate_hz=y.number("rate_hz", positive=True),
+        T_body_imu=y.transform(),
+    )
+
+
+# ---------------------------------------------------------------------------- sequence
+
+
+def find_mav0(root: Path | str) -> Path:
+    """The ``mav0`` folder of a sequence given by its root or by ``mav0`` itself."""
+    root = Path(root)
+    if not root.is_dir():
+        raise EurocError(f"{root}: sequence folder does not exist")
+    if (root / "mav0").is_dir():
+        return root / "mav0"
+    if (root / "imu0").is_dir() or (root / "cam0").is_dir():
+        return root
+    raise EurocError(f"{root}: no mav0 folder (nor cam0/imu0 inside it): not an EuRoC sequence")
+
+
+class EurocSequence:
+    """One EuRoC-layout sequence: calibrations, timestamps and IMU in memory, lazy images.
+
+    Attributes: ``name``; ``cam0``/``cam1`` (:class:`CameraCalibration`, cam1 may be None);
+    ``imu`` (:class:`ImuCalibration`); ``frame_timestamps_ns`` (N,) int64 and ``image_paths``
+    of cam0; ``imu_timestamps_ns`` (M,) int64, ``gyro`` (M, 3) rad/s, ``accel`` (M, 3) m/s²;
+    ``groundtruth`` (:class:`GroundTruth` or None).
+    """
+
+    def __init__(self, root: Path | str) -> None:
+        self.mav0 = find_mav0(root)
+        self.root = self.mav0.parent if self.mav0.name == "mav0" else self.mav0
+        self.name = self.root.resolve().name
+        self._streams: dict[int, CameraStream] = {}
+        self._calibs: dict[int, CameraCalibration] = {}
+        for cam in (0, 1):
+            folder = self.mav0 / f"cam{cam}"
+            if cam == 1 and not folder.exists():
+                break
+            if not folder.is_dir():
+                raise EurocError(f"{folder}: missing camera folder")
+            self._calibs[cam] = read_camera_yaml(folder / "sensor.yaml")
+            self._streams[cam] = read_camera_csv(folder / "data.csv")
+        imu_dir = self.mav0 / "imu0"
+        if not imu_dir.is_dir():
+            raise EurocError(f"{imu_dir}: missing IMU folder")
+        self.imu: ImuCalibration = read_imu_yaml(imu_dir / "sensor.yaml")
+        self._imu = read_imu_csv(imu_dir / "data.csv")
+        gt_csv = self.mav0 / GROUNDTRUTH_DIR / "data.csv"
+        self.groundtruth: GroundTruth | None = (
+            read_groundtruth(gt_csv) if (self.mav0 / GROUNDTRUTH_DIR).exists() else None
+        )
+        self.cam0: CameraCalibration = self._calibs[0]
+        self.cam1: CameraCalibration | None = self._calibs.get(1)
+        self.frame_timestamps_ns: np.ndarray = self._streams[0].timestamps_ns
+        self.image_paths: tuple[Path, ...] = self._streams[0].image_paths
+        self.imu_timestamps_ns: np.ndarray = self._imu.timestamps_ns
+        self.gyro: np.ndarray = self._imu.gyro
+        self.accel: np.ndarray = self._imu.accel
+        ts = self.frame_timestamps_ns
+        if self.imu_timestamps_ns[-1] < ts[0] or self.imu_timestamps_ns[0] > ts[-1]:
+            logger.warning("%s: IMU does not overlap the images in time", self.name)
+        logger.info(
+            "%s: %d frames, %d IMU samples, cameras %s, ground truth %s",
+            self.name, len(self), len(self._imu), self.cameras, self.groundtruth is not None,
+        )  # fmt: skip
+
+    def __len__(self) -> int:
+        return len(self.frame_timestamps_ns)
+
+    def __repr__(self) -> str:
+        return f"EurocSequence({str(self.root)!r}, frames={len(self)})"
+
+    @property
+    def cameras(self) -> list[str]:
+        """Camera folder names present, e.g. ``["cam0", "cam1"]``."""
+        return [f"cam{c}" for c in self._streams]
+
+    def stream(self, cam: int = 0) -> CameraStream:
+        """Timestamps and image paths of camera ``cam``."""
+        if cam not in self._streams:
+            raise EurocError(f"{self.mav0}: sequence has no cam{cam}")
+        return self._streams[cam]
+
+    def calibration(self, cam: int = 0) -> CameraCalibration:
+        self.stream(cam)
+        return self._calibs[cam]
+
+    def load_image(self, i: int, cam: int = 0) -> np.ndarray:
+        """Decode image ``i`` of camera ``cam`` -> uint8 (H, W) grayscale."""
+        stream = self.stream(cam)
+        path = stream.image_paths[i]
+        image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+        if image is None:
+            raise EurocError(
+                f"{path}: image does not decode (listed at {stream.csv_path}:{stream.csv_lines[i]})"
+            )
+        calib = self._calibs[cam]
+        if image.shape != (calib.height, calib.width):
+            raise EurocError(
+                f"{path}: image is {image.shape[1]}x{image.shape[0]}, "
+                f"sensor.yaml says {calib.width}x{calib.height}"
+            )
+        return image
+
+    def imu_between(self, t0_ns: int | None, t1_ns: int) -> ImuBatch:
+        """IMU samples with ``t0_ns < t <= t1_ns`` (``t0_ns=None``: from the first sample)."""
+        ts = self.imu_timestamps_ns
+        a = 0 if t0_ns is None else int(np.searchsorted(ts, t0_ns, side="right"))
+        b = int(np.searchsorted(ts, t1_ns, side="right"))
+        b = max(a, b)
+        return ImuBatch(ts[a:b], self.gyro[a:b], self.accel[a:b])
+
+    def frames(
+        self, start: int = 0, stop: int | None = None, cam: int = 0, load_images: bool = True
+    ) -> Iterator[Frame]:
+        """Yield frames ``start..stop-1`` of camera ``cam`` with their IMU batches.
+
+        Frame ``i`` carries the IMU samples in ``(t[i-1], t[i]]``, whatever ``start`` is, so
+        batches tile the IMU timeline; frame 0 carries every sample up to ``t[0]`` (all of the
+        pre-roll of real recordings: drop what you do not need). Samples after the last
+        frame are never yielded.
+        """
+        ts = self.stream(cam).timestamps_ns
+        stop = len(ts) if stop is None else stop
+        if not 0 <= start <= stop <= len(ts):
+            raise IndexError(f"frames({start}, {stop}) outside 0..{len(ts)}")
+        ends = np.searchsorted(self.imu_timestamps_ns, ts, side="right")
+        for i in range(start, stop):
+            a = 0 if i == 0 else int(ends[i - 1])
+            b = int(ends[i])
+            yield Frame(
+                index=i,
+                timestamp_ns=int(ts[i]),
+                image=self.load_image(i, cam) if load_images else None,
+                imu=ImuBatch(self.imu_timestamps_ns[a:b], self.gyro[a:b], self.accel[a:b]),
+            )
+
+    def summary(self) -> dict[str, object]:
+        """Plain facts for CLI display: frames, durations [s], rates [Hz], cameras, ground truth."""
+        ts, its = self.frame_timestamps_ns, self.imu_timestamps_ns
+        frame_span = float(ts[-1] - ts[0]) * 1e-9
+        imu_span = float(its[-1] - its[0]) * 1e-9
+        return {
+            "name": self.name,
+            "path": str(self.root),
+            "frames": len(self),
+            "duration_s": frame_span,
+            "camera_rate_hz": (len(ts) - 1) / frame_span if frame_span > 0 else float("nan"),
+            "imu_samples": len(its),
+            "imu_duration_s": imu_span,
+            "imu_rate_hz": (len(its) - 1) / imu_span if imu_span > 0 else float("nan"),
+            "cameras": self.cameras,
+            "resolution": [self.cam0.width, self.cam0.height],
+            "has_groundtruth": self.groundtruth is not None,
+            "groundtruth_samples": 0 if self.groundtruth is None else len(self.groundtruth),
+        }
