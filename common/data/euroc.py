@@ -451,9 +451,9 @@ class EurocSequence:
     """
 
     def __init__(self, root: Path | str) -> None:
-        self.mav0 = find_mav0(root)
+        self.mav0 = find_mav0(Path(root).resolve())
         self.root = self.mav0.parent if self.mav0.name == "mav0" else self.mav0
-        self.name = self.root.resolve().name
+        self.name = self.root.name
         self._streams: dict[int, CameraStream] = {}
         self._calibs: dict[int, CameraCalibration] = {}
         for cam in (0, 1):

@@ -218,7 +218,7 @@ def small(tmp_path: Path) -> Path:
         shutil.copy(src / "cam0" / "data" / name, dst / "cam0" / "data" / name)
     imu_lines = (src / "imu0" / "data.csv").read_text().splitlines()[:201]
     (dst / "imu0" / "data.csv").write_text("\n".join(imu_lines) + "\n")
-    return tmp_path / "seq"
+    return (tmp_path / "seq").resolve()  # messages name resolved paths
 
 
 def _edit_line(path: Path, lineno: int, new: str | None) -> None:
@@ -338,7 +338,7 @@ def test_wrong_image_size(small: Path) -> None:
         ("imu0/sensor.yaml", "missing file"),
         ("cam0/data.csv", "missing file"),
         ("cam0/data", "missing image folder"),
-        ("cam0", "no mav0"),  # neither cam0 nor imu0 -> not a sequence at all when both gone
+        ("cam0", "no mav0"),  # then imu0 too: mav0 given directly is no sequence at all
     ],
 )
 def test_missing_parts(small: Path, remove: str, needle: str) -> None:
