@@ -1,0 +1,219 @@
+"""Evaluate a result folder against ground truth and write ``ate.json``, ``ate.md`` and plots.
+
+:func:`evaluate_run` is what ``recslam eval`` calls: read ``RESULT_DIR/trajectories`` (see
+:mod:`common.evaluation.results`), load ground truth, compute joint and per-agent ATE and
+per-agent RPE, write the report files into the output folder.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from common.evaluation.alignment import AlignMode
+from common.evaluation.errors import MetricsError
+from common.evaluation.metrics import (
+    AteConfig,
+    AteResult,
+    DeltaUnit,
+    JointAteResult,
+    RpeConfig,
+    RpeResult,
+    compute_joint_ate,
+    compute_rpe,
+)
+from common.evaluation.results import EVAL_DIR, load_groundtruth, read_result_trajectories
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class EvalConfig:
+    """Settings of a run evaluation.
+
+    ``ate``: alignment and association for ATE (default SE(3), 10 ms). ``rpe``: RPE settings
+    (default 1 m consecutive pairs, no alignment beyond ``ate.align``'s scale if Sim(3));
+    ``rpe_enabled`` turns RPE off. ``plots``: write PNGs.
+    """
+
+    ate: AteConfig = field(default_factory=AteConfig)
+    rpe: RpeConfig = field(default_factory=lambda: RpeConfig(delta=1.0, unit=DeltaUnit.METERS))
+    rpe_enabled: bool = True
+    plots: bool = True
+
+
+@dataclass(frozen=True)
+class EvalReport:
+    """What :func:`evaluate_run` computed and where it wrote it."""
+
+    joint: JointAteResult
+    rpe: dict[str, RpeResult | None]
+    groundtruth_files: dict[str, Path]
+    out_dir: Path
+    files: list[Path]
+
+
+def _ate_block(res: AteResult) -> dict[str, object]:
+    return {
+        "stats_m": res.stats.as_dict(),
+        "rot_stats_deg": res.rot_stats.as_dict(),
+        "transform": res.transform.as_dict(),
+        "scale_error": res.scale_error,
+    }
+
+
+def _rpe_block(res: RpeResult | None) -> dict[str, object] | None:
+    if res is None:
+        return None
+    return {
+        "delta": res.delta,
+        "unit": res.unit.value,
+        "pairs": int(res.pairs.shape[0]),
+        "trans_stats_m": res.trans_stats.as_dict(),
+        "rot_stats_deg": res.rot_stats.as_dict(),
+    }
+
+
+def report_dict(
+    joint: JointAteResult,
+    rpe: dict[str, RpeResult | None] | None = None,
+    config: EvalConfig | None = None,
+    sources: dict[str, str] | None = None,
+) -> dict[str, object]:
+    """JSON-ready summary (schema in the module docstring of ``recslam.commands.evaluate``)."""
+    cfg = config or EvalConfig()
+    rpe = rpe or {}
+    agents = {}
+    for agent, ind in joint.individual.items():
+        agents[agent] = {
+            "n_est": ind.n_est,
+            "n_ref": ind.n_ref,
+            "n_matched": ind.stats.count,
+            "individual": _ate_block(ind),
+            "under_joint": {
+                "stats_m": joint.under_joint[agent].stats.as_dict(),
+                "rot_stats_deg": joint.under_joint[agent].rot_stats.as_dict(),
+            },
+            "rpe": _rpe_block(rpe.get(agent)),
+        }
+    return {
+        "align": joint.mode.value,
+        "n_align": cfg.ate.n_align,
+        "max_diff_ns": cfg.ate.association.max_diff_ns,
+        "offset_ns": cfg.ate.association.offset_ns,
+        "sources": sources or {},
+        "joint": {
+            "agents": list(joint.under_joint),
+            "stats_m": joint.stats.as_dict(),
+            "rot_stats_deg": joint.rot_stats.as_dict(),
+            "transform": joint.transform.as_dict(),
+            "scale_error": joint.scale_error,
+        },
+        "agents": agents,
+    }
+
+
+def _f(x: float) -> str:
+    return f"{x:.4f}"
+
+
+def markdown_table(joint: JointAteResult, rpe: dict[str, RpeResult | None] | None = None) -> str:
+    """ATE table (one row per agent aligned alone, then the joint row) in markdown."""
+    rpe = rpe or {}
+    mode = joint.mode.value
+    lines = [
+        f"ATE [m] after {mode} alignment; 'joint' = all agents aligned with one transform.",
+        "",
+        "| agent | poses est/gt/matched | RMSE | mean | median | max | std | scale err "
+        "| RMSE under joint | rot RMSE [deg] | RPE trans RMSE [m] | RPE rot RMSE [deg] |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for agent, ind in joint.individual.items():
+        s = ind.stats
+        r = rpe.get(agent)
+        rpe_t = _f(r.trans_stats.rmse) if r else "-"
+        rpe_r = _f(r.rot_stats.rmse) if r else "-"
+        lines.append(
+            f"| {agent} | {ind.n_est}/{ind.n_ref}/{s.count} | {_f(s.rmse)} | {_f(s.mean)} "
+            f"| {_f(s.median)} | {_f(s.max)} | {_f(s.std)} | {ind.scale_error:+.4f} "
+            f"| {_f(joint.under_joint[agent].stats.rmse)} | {_f(ind.rot_stats.rmse)} "
+            f"| {rpe_t} | {rpe_r} |"
+        )
+    s = joint.stats
+    n_est = sum(r.n_est for r in joint.under_joint.values())
+    n_ref = sum(r.n_ref for r in joint.under_joint.values())
+    lines.append(
+        f"| **joint** | {n_est}/{n_ref}/{s.count} | {_f(s.rmse)} | {_f(s.mean)} "
+        f"| {_f(s.median)} | {_f(s.max)} | {_f(s.std)} | {joint.scale_error:+.4f} "
+        f"| {_f(s.rmse)} | {_f(joint.rot_stats.rmse)} | - | - |"
+    )
+    return "\n".join(lines) + "\n"
+
+
+def evaluate_run(
+    result_dir: Path | str,
+    groundtruth: Path | str | None = None,
+    out_dir: Path | str | None = None,
+    config: EvalConfig | None = None,
+) -> EvalReport:
+    """Evaluate ``RESULT_DIR`` and write ``ate.json``, ``ate.md`` and PNGs into ``out_dir``.
+
+    ``out_dir`` defaults to ``RESULT_DIR/eval``. Raises EvaluationError (ResultFolderError,
+    AssociationError, ...) with a message naming the offending file or agent.
+    """
+    cfg = config or EvalConfig()
+    root = Path(result_dir)
+    out = Path(out_dir) if out_dir is not None else root / EVAL_DIR
+    estimates = read_result_trajectories(root)
+    references, gt_files = load_groundtruth(list(estimates), groundtruth, root)
+    joint = compute_joint_ate(references, estimates, cfg.ate)
+    rpe: dict[str, RpeResult | None] = {}
+    if cfg.rpe_enabled:
+        rpe_cfg = dataclasses.replace(
+            cfg.rpe, association=cfg.ate.association, align=_rpe_align(cfg)
+        )
+        for agent, est in estimates.items():
+            try:
+                rpe[agent] = compute_rpe(references[agent], est, rpe_cfg)
+            except MetricsError as exc:
+                log.warning("RPE of %s skipped: %s", agent, exc)
+                rpe[agent] = None
+    out.mkdir(parents=True, exist_ok=True)
+    sources = {a: str(p) for a, p in gt_files.items()}
+    files = [out / "ate.json", out / "ate.md"]
+    files[0].write_text(json.dumps(report_dict(joint, rpe, cfg, sources), indent=2) + "\n")
+    files[1].write_text(f"# Trajectory evaluation of `{root}`\n\n" + markdown_table(joint, rpe))
+    if cfg.plots:
+        from common.evaluation.plots import plot_ate_over_time, plot_trajectories
+
+        mode = joint.mode.value
+        files.append(
+            plot_trajectories(
+                joint.under_joint,
+                out / "trajectories_joint.png",
+                f"joint {mode} alignment: ATE RMSE {joint.stats.rmse:.4f} m",
+            )
+        )
+        files.append(
+            plot_trajectories(
+                joint.individual, out / "trajectories_individual.png", f"per-agent {mode} alignment"
+            )
+        )
+        files.append(
+            plot_ate_over_time(
+                {"joint alignment": joint.under_joint, "per-agent alignment": joint.individual},
+                out / "ate_over_time.png",
+                f"ATE over time ({mode})",
+            )
+        )
+    return EvalReport(joint, rpe, gt_files, out, files)
+
+
+def _rpe_align(cfg: EvalConfig) -> AlignMode:
+    """RPE uses the ATE alignment only for its scale (rigid parts cancel in RPE)."""
+    if cfg.ate.align in (AlignMode.SIM3, AlignMode.SCALE):
+        return AlignMode.SCALE
+    return AlignMode.NONE
