@@ -1,0 +1,155 @@
+"""Options of the robot's front end (IMU-assisted LK tracking, ORB keyframes, keyframe decision).
+
+Every options struct is a frozen dataclass with documented defaults; one
+:class:`FrontEndConfig` is built once and handed down. Baselines of the paper's comparisons are
+flags here, so that the same code runs both sides of every figure.
+"""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass, field
+
+
+class PredictionMode(enum.Enum):
+    """Initial guess for LK in the new frame."""
+
+    IMU = "imu"
+    """Gyro rotation before VI initialisation, propagated edge state after it (the paper)."""
+    NONE = "none"
+    """Plain LK baseline: the initial guess is the previous position."""
+
+
+class TrackingMode(enum.Enum):
+    """How correspondences between consecutive frames are found."""
+
+    OPTICAL_FLOW = "optical_flow"
+    """Pyramidal LK on non-keyframes, ORB only on keyframes (the paper)."""
+    ORB_MATCHING = "orb_matching"
+    """Baseline: ORB extracted on every frame and matched by descriptor to the previous one."""
+
+
+@dataclass(frozen=True)
+class OrbConfig:
+    """ORB extraction on keyframes (defaults as ORB-SLAM3 on EuRoC).
+
+    The image is split into ``grid_cols`` × ``grid_rows`` cells; OpenCV's ORB detects
+    ``oversample`` × ``n_features`` candidates and each cell keeps its strongest share, so the
+    features spread over the image as ORB-SLAM's quadtree intends.
+    """
+
+    n_features: int = 1000
+    """Features per keyframe."""
+    n_levels: int = 8
+    """Scale pyramid levels (keypoint level σ in 0..n_levels-1)."""
+    scale_factor: float = 1.2
+    """Scale between pyramid levels."""
+    fast_threshold: int = 20
+    """FAST threshold (OpenCV ORB's ``fastThreshold``)."""
+    edge_threshold: int = 19
+    """Border in pixels where no feature is detected (ORB-SLAM uses 19)."""
+    grid_cols: int = 16
+    """Cells across the image for the even distribution."""
+    grid_rows: int = 10
+    """Cells down the image for the even distribution."""
+    oversample: float = 2.0
+    """Candidates detected per kept feature before the grid selection."""
+
+
+@dataclass(frozen=True)
+class LkConfig:
+    """Pyramidal Lucas–Kanade and the checks after it (Algorithm 1)."""
+
+    win_size: int = 15
+    """LK window side in pixels (odd)."""
+    max_level: int = 3
+    """Top level of the LK pyramid (OpenCV pyramids halve per level: 4 levels, 1/8 scale)."""
+    fb_max_level: int = 1
+    """Top pyramid level of the backward pass (it starts at the previous position)."""
+    max_iterations: int = 30
+    """LK iterations per level at most."""
+    epsilon: float = 0.01
+    """LK stops when the update is below this many pixels."""
+    fb_threshold_px: float = 1.0
+    """Forward–backward check: tracks whose round trip misses by more are dropped."""
+    check_forward_backward: bool = True
+    """Run the backward LK pass and its check."""
+    imu_residual_min_px: float = 20.0
+    """IMU-consistency bound: a track is dropped when its offset from the IMU prediction exceeds
+    ``max(imu_residual_min_px, imu_residual_factor × median offset)`` (the rest's parallax)."""
+    imu_residual_factor: float = 6.0
+    """See ``imu_residual_min_px``."""
+    ransac: bool = True
+    """Drop outliers with a RANSAC essential matrix on undistorted points."""
+    ransac_threshold_px: float = 1.0
+    """RANSAC inlier threshold in pixels (converted to normalised units with the focal)."""
+    ransac_confidence: float = 0.99
+    """RANSAC confidence."""
+    min_ransac_points: int = 8
+    """Below this many tracks RANSAC is skipped."""
+
+
+@dataclass(frozen=True)
+class TopUpConfig:
+    """New corners on non-keyframes where tracks are sparse (grid of cells)."""
+
+    enabled: bool = True
+    """Add corners on non-keyframes; they get new track ids and keyframe index -1."""
+    cell_px: int = 48
+    """Cell side in pixels; a cell with fewer than ``min_per_cell`` tracks gets new corners."""
+    min_per_cell: int = 1
+    """Tracks wanted per cell."""
+    max_new_per_frame: int = 100
+    """Cap of new corners per frame."""
+    fast_threshold: int = 20
+    """FAST threshold of the new corners (the strongest corner of each sparse cell is kept)."""
+    min_distance_px: int = 12
+    """Minimum distance between a new corner and any tracked point."""
+
+
+@dataclass(frozen=True)
+class KeyframeDecisionConfig:
+    """Keyframe decision of the paper's Fig. 4.
+
+    A frame becomes a keyframe when the tracks continuing the last keyframe's features fall
+    below ``min_tracked`` or below ``min_tracked_fraction`` of that keyframe's features, or when
+    more than ``max_interval_s`` have passed since it. ``min_interval_s`` holds the decision
+    back right after a keyframe (except when tracking is lost: fewer than ``lost_tracked``).
+    """
+
+    min_tracked: int = 150
+    """Absolute floor of tracked keyframe features."""
+    min_tracked_fraction: float = 0.5
+    """Floor of tracked features relative to the last keyframe's feature count."""
+    max_interval_s: float = 1.0
+    """Longest time between keyframes."""
+    min_interval_s: float = 0.0
+    """Shortest time between keyframes (unless tracking is lost)."""
+    lost_tracked: int = 30
+    """Below this many tracks a keyframe is taken regardless of ``min_interval_s``."""
+    every_frame: bool = False
+    """Baseline: every frame is a keyframe (the paper's reference [55] intra mode)."""
+
+
+@dataclass(frozen=True)
+class FrontEndConfig:
+    """Everything the robot's front end needs (one object, handed down)."""
+
+    orb: OrbConfig = field(default_factory=OrbConfig)
+    lk: LkConfig = field(default_factory=LkConfig)
+    top_up: TopUpConfig = field(default_factory=TopUpConfig)
+    keyframe: KeyframeDecisionConfig = field(default_factory=KeyframeDecisionConfig)
+    prediction: PredictionMode = PredictionMode.IMU
+    """Initial guess of LK (IMU-assisted or the plain-LK baseline)."""
+    tracking: TrackingMode = TrackingMode.OPTICAL_FLOW
+    """Optical flow (the paper) or ORB matching on every frame (baseline)."""
+    quantisation_px: float = 0.25
+    """Output keypoints lie on this grid; the tracker continues from the quantised values."""
+    keyframe_association_radius_px: float = 3.0
+    """A surviving track continues as the nearest keyframe ORB keypoint within this radius."""
+    orb_match_max_hamming: int = 64
+    """ORB-matching baseline: largest Hamming distance of an accepted match."""
+    orb_match_ratio: float = 0.8
+    """ORB-matching baseline: Lowe ratio between best and second-best distance."""
+    imu_buffer_s: float = 2.0
+    """IMU history kept for re-propagating late inertial states from the edge."""

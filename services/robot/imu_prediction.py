@@ -1,0 +1,337 @@
+"""IMU prediction of keypoint positions for LK (Algorithm 1, first half).
+
+Before visual-inertial initialisation the rotation between two frames comes from the mean
+angular velocity over the IMU samples between them (the paper's uniform-motion model,
+equation 2): ``R_imu0_imu1 = Exp((ω_mean − b_g) Δt)``. It is carried into the camera frame with
+the extrinsic ``R_imu_cam`` and applied to undistorted normalised points as the infinite
+homography ``K R_cur_prev K⁻¹``; the result is re-distorted into pixels.
+
+After initialisation the edge sends an :class:`InertialState` (pose, velocity, biases,
+gravity) for some past frame; it is propagated through the buffered IMU samples (on-manifold
+integration with the bias-corrected measurements, as preintegration does) to the previous
+and the current frame. Tracks with a 3D point from the edge are predicted by reprojection;
+the rest by the rotation of the propagated states.
+
+Frames: ``R_a_b`` rotates vectors from ``b`` into ``a``; ``T_a_b`` maps points from ``b`` to
+``a``; ``imu`` is the IMU sensor frame, ``cam`` the camera frame, ``world`` the edge's world.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from common.calibration import CameraCalibration, ImuCalibration
+from common.errors import RecslamError
+from common.geometry import inverse_T, so3_exp
+
+logger = logging.getLogger(__name__)
+
+GRAVITY_WORLD = (0.0, 0.0, -9.81)
+
+
+class ImuPredictionError(RecslamError):
+    """Invalid IMU data or inertial state given to the predictor."""
+
+
+def _vec3(a: Sequence[float] | np.ndarray, name: str) -> np.ndarray:
+    arr = np.array(a, dtype=np.float64).reshape(-1)
+    if arr.shape != (3,) or not np.all(np.isfinite(arr)):
+        raise ImuPredictionError(f"{name} must be 3 finite numbers, got {a!r}")
+    arr.setflags(write=False)
+    return arr
+
+
+@dataclass(frozen=True, eq=False)
+class InertialState:
+    """IMU state at ``timestamp_ns`` as the edge estimates it after VI initialisation.
+
+    ``R_world_imu`` (3, 3) and ``p_world_imu`` (3,) [m]: pose of the IMU frame in the world;
+    ``v_world_imu`` (3,) [m/s]; ``bias_gyro`` (3,) [rad/s]; ``bias_accel`` (3,) [m/s²];
+    ``gravity_world`` (3,) [m/s²], the gravity vector in the world frame.
+    """
+
+    timestamp_ns: int
+    R_world_imu: np.ndarray
+    p_world_imu: np.ndarray
+    v_world_imu: np.ndarray
+    bias_gyro: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    bias_accel: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    gravity_world: np.ndarray = field(default_factory=lambda: np.array(GRAVITY_WORLD))
+
+    def __post_init__(self) -> None:
+        R = np.array(self.R_world_imu, dtype=np.float64)
+        if R.shape != (3, 3) or not np.allclose(R.T @ R, np.eye(3), atol=1e-5):
+            raise ImuPredictionError("InertialState.R_world_imu is not a (3, 3) rotation")
+        R.setflags(write=False)
+        object.__setattr__(self, "R_world_imu", R)
+        for name in ("p_world_imu", "v_world_imu", "bias_gyro", "bias_accel", "gravity_world"):
+            object.__setattr__(self, name, _vec3(getattr(self, name), f"InertialState.{name}"))
+        object.__setattr__(self, "timestamp_ns", int(self.timestamp_ns))
+
+
+# ---------------------------------------------------------------------------- IMU samples
+
+
+class ImuBuffer:
+    """Time-ordered IMU samples kept for ``horizon_s`` seconds (gyro, accel in the IMU frame)."""
+
+    def __init__(self, horizon_s: float = 2.0) -> None:
+        self.horizon_ns = int(horizon_s * 1e9)
+        self.timestamps_ns = np.zeros(0, dtype=np.int64)
+        self.gyro = np.zeros((0, 3))
+        self.accel = np.zeros((0, 3))
+
+    def __len__(self) -> int:
+        return len(self.timestamps_ns)
+
+    def extend(self, timestamps_ns: np.ndarray, gyro: np.ndarray, accel: np.ndarray) -> None:
+        """Append samples newer than the last one held; older or repeated ones are ignored."""
+        ts = np.asarray(timestamps_ns, dtype=np.int64).reshape(-1)
+        gyro = np.asarray(gyro, dtype=np.float64).reshape(-1, 3)
+        accel = np.asarray(accel, dtype=np.float64).reshape(-1, 3)
+        if len(gyro) != len(ts) or len(accel) != len(ts):
+            raise ImuPredictionError(
+                f"IMU batch has {len(ts)} timestamps, {len(gyro)} gyro, {len(accel)} accel rows"
+            )
+        if len(ts) > 1 and np.any(np.diff(ts) <= 0):
+            raise ImuPredictionError("IMU batch timestamps are not strictly increasing")
+        if len(self.timestamps_ns):
+            keep = ts > self.timestamps_ns[-1]
+            ts, gyro, accel = ts[keep], gyro[keep], accel[keep]
+        self.timestamps_ns = np.concatenate([self.timestamps_ns, ts])
+        self.gyro = np.concatenate([self.gyro, gyro])
+        self.accel = np.concatenate([self.accel, accel])
+        if len(self.timestamps_ns):
+            start = np.searchsorted(self.timestamps_ns, self.timestamps_ns[-1] - self.horizon_ns)
+            start = max(0, int(start) - 1)
+            self.timestamps_ns = self.timestamps_ns[start:]
+            self.gyro = self.gyro[start:]
+            self.accel = self.accel[start:]
+
+    def segments(self, t0_ns: int, t1_ns: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Split ``[t0, t1]`` at the sample times; per piece its duration (M,) [s] and the mean
+        gyro (M, 3) and accel (M, 3) over it (samples linearly interpolated, held at the ends)."""
+        if t1_ns < t0_ns:
+            raise ImuPredictionError(f"IMU interval ends before it starts ({t0_ns} > {t1_ns})")
+        if len(self) == 0:
+            raise ImuPredictionError("no IMU samples buffered")
+        ts = self.timestamps_ns
+        inner = ts[(ts > t0_ns) & (ts < t1_ns)]
+        knots = np.concatenate([[t0_ns], inner, [t1_ns]]).astype(np.int64)
+        rel = (knots - ts[0]).astype(np.float64)
+        rel_ts = (ts - ts[0]).astype(np.float64)
+        g = np.stack([np.interp(rel, rel_ts, self.gyro[:, k]) for k in range(3)], axis=1)
+        a = np.stack([np.interp(rel, rel_ts, self.accel[:, k]) for k in range(3)], axis=1)
+        dt = np.diff(knots).astype(np.float64) * 1e-9
+        return dt, 0.5 * (g[1:] + g[:-1]), 0.5 * (a[1:] + a[:-1])
+
+
+def mean_angular_velocity(buffer: ImuBuffer, t0_ns: int, t1_ns: int) -> np.ndarray:
+    """Time-weighted mean gyro reading (3,) [rad/s] over ``[t0, t1]`` (the paper's eq. 2)."""
+    dt, gyro, _ = buffer.segments(t0_ns, t1_ns)
+    total = float(dt.sum())
+    if total <= 0.0:
+        return gyro.mean(axis=0) if len(gyro) else np.zeros(3)
+    return (dt[:, None] * gyro).sum(axis=0) / total
+
+
+def gyro_rotation(
+    buffer: ImuBuffer, t0_ns: int, t1_ns: int, bias_gyro: np.ndarray | None = None
+) -> np.ndarray:
+    """``R_imu0_imu1`` (3, 3): rotation of the IMU frame at ``t1`` seen from ``t0``, from the
+    mean angular velocity (uniform-motion model): ``Exp((ω_mean − b_g) Δt)``."""
+    w = mean_angular_velocity(buffer, t0_ns, t1_ns)
+    if bias_gyro is not None:
+        w = w - np.asarray(bias_gyro, dtype=np.float64)
+    return so3_exp(w * (t1_ns - t0_ns) * 1e-9)
+
+
+def propagate(state: InertialState, buffer: ImuBuffer, t1_ns: int) -> InertialState:
+    """Integrate ``state`` forward to ``t1_ns`` with the buffered IMU (bias-corrected, midpoint
+    samples, exact rotation per piece). Biases and gravity are kept."""
+    if t1_ns == state.timestamp_ns:
+        return state
+    dt, gyro, accel = buffer.segments(state.timestamp_ns, t1_ns)
+    R = state.R_world_imu.copy()
+    p = state.p_world_imu.copy()
+    v = state.v_world_imu.copy()
+    g = state.gravity_world
+    for h, w, a in zip(dt, gyro - state.bias_gyro, accel - state.bias_accel, strict=True):
+        acc_world = R @ a + g
+        p = p + v * h + 0.5 * acc_world * h * h
+        v = v + acc_world * h
+        R = R @ so3_exp(w * h)
+    return InertialState(t1_ns, R, p, v, state.bias_gyro, state.bias_accel, g)
+
+
+# ---------------------------------------------------------------------------- camera model
+
+
+def R_imu_cam_from(camera: CameraCalibration, imu: ImuCalibration) -> np.ndarray:
+    """Extrinsic rotation ``R_imu_cam`` (3, 3) from the two body-frame calibrations."""
+    return T_imu_cam_from(camera, imu)[:3, :3]
+
+
+def T_imu_cam_from(camera: CameraCalibration, imu: ImuCalibration) -> np.ndarray:
+    """Extrinsic ``T_imu_cam`` (4, 4) = ``T_body_imu⁻¹ T_body_cam``."""
+    return inverse_T(imu.T_body_imu) @ camera.T_body_cam
+
+
+def undistort_normalised(camera: CameraCalibration, pts_px: np.ndarray) -> np.ndarray:
+    """Distorted pixels (N, 2) -> undistorted normalised image coordinates (N, 2)."""
+    pts = np.asarray(pts_px, dtype=np.float64).reshape(-1, 1, 2)
+    if len(pts) == 0:
+        return np.zeros((0, 2))
+    return cv2.undistortPoints(pts, camera.K, camera.dist_coeffs).reshape(-1, 2)
+
+
+def distort_to_pixels(camera: CameraCalibration, xy: np.ndarray) -> np.ndarray:
+    """Undistorted normalised coordinates (N, 2) -> distorted pixels (N, 2) (radtan model)."""
+    xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+    k1, k2, p1, p2 = camera.distortion
+    x, y = xy[:, 0], xy[:, 1]
+    r2 = x * x + y * y
+    radial = 1.0 + k1 * r2 + k2 * r2 * r2
+    xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
+    yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
+    return np.stack([camera.fx * xd + camera.cx, camera.fy * yd + camera.cy], axis=1)
+
+
+def project_points(camera: CameraCalibration, p_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Camera-frame points (N, 3) -> distorted pixels (N, 2) and a mask (N,) of points in
+    front of the camera (pixels of the others are NaN)."""
+    p_cam = np.asarray(p_cam, dtype=np.float64).reshape(-1, 3)
+    front = p_cam[:, 2] > 1e-6
+    out = np.full((len(p_cam), 2), np.nan)
+    if np.any(front):
+        xy = p_cam[front, :2] / p_cam[front, 2:3]
+        out[front] = distort_to_pixels(camera, xy)
+    return out, front
+
+
+def predict_rotation(
+    camera: CameraCalibration, pts_px: np.ndarray, R_cur_prev: np.ndarray
+) -> np.ndarray:
+    """Infinite-homography prediction: distorted pixels (N, 2) of the previous frame -> their
+    positions (N, 2) in the current one under the camera rotation ``R_cur_prev`` (vectors of
+    the previous camera frame into the current). Points turning behind the camera keep their
+    previous position."""
+    pts_px = np.asarray(pts_px, dtype=np.float64).reshape(-1, 2)
+    xy = undistort_normalised(camera, pts_px)
+    rays = np.concatenate([xy, np.ones((len(xy), 1))], axis=1) @ np.asarray(R_cur_prev).T
+    out, front = project_points(camera, rays)
+    out[~front] = pts_px[~front]
+    return out
+
+
+# ---------------------------------------------------------------------------- predictor
+
+
+@dataclass(frozen=True, eq=False)
+class MotionPrediction:
+    """Relative camera motion between the previous and the current frame.
+
+    ``R_cur_prev`` (3, 3) rotates vectors of the previous camera frame into the current one;
+    ``T_cam_world`` (4, 4) is the current camera pose (world -> camera) when an inertial state
+    is available, else None; ``source`` is ``"gyro"`` or ``"preintegration"``.
+    """
+
+    R_cur_prev: np.ndarray
+    T_cam_world: np.ndarray | None
+    source: str
+
+
+class MotionPredictor:
+    """Keeps the IMU buffer and the edge's inertial feedback; predicts frame-to-frame motion."""
+
+    def __init__(
+        self, camera: CameraCalibration, imu: ImuCalibration, buffer_horizon_s: float = 2.0
+    ) -> None:
+        self.camera = camera
+        self.T_imu_cam = T_imu_cam_from(camera, imu)
+        self.T_cam_imu = inverse_T(self.T_imu_cam)
+        self.R_imu_cam = self.T_imu_cam[:3, :3]
+        self.buffer = ImuBuffer(buffer_horizon_s)
+        self._base: InertialState | None = None
+        self._at_prev: InertialState | None = None
+        self._landmarks: dict[int, np.ndarray] = {}
+
+    @property
+    def initialised(self) -> bool:
+        """True once an inertial state from the edge has been applied."""
+        return self._base is not None
+
+    def add_imu(self, timestamps_ns: np.ndarray, gyro: np.ndarray, accel: np.ndarray) -> None:
+        """Buffer IMU samples (IMU frame)."""
+        self.buffer.extend(timestamps_ns, gyro, accel)
+
+    def set_inertial_state(
+        self,
+        state: InertialState,
+        track_ids: np.ndarray | None = None,
+        p_world: np.ndarray | None = None,
+    ) -> None:
+        """Apply the edge's state; optionally 3D points (M, 3) [m, world] of tracks (M,)."""
+        if len(self.buffer) and state.timestamp_ns < self.buffer.timestamps_ns[0]:
+            raise ImuPredictionError(
+                f"inertial state at {state.timestamp_ns} ns is older than the IMU buffer "
+                f"(starts {int(self.buffer.timestamps_ns[0])} ns); raise imu_buffer_s"
+            )
+        self._base = state
+        self._at_prev = None
+        if track_ids is not None and p_world is not None:
+            ids = np.asarray(track_ids, dtype=np.int64).reshape(-1)
+            pts = np.asarray(p_world, dtype=np.float64).reshape(-1, 3)
+            if len(ids) != len(pts):
+                raise ImuPredictionError(f"{len(ids)} track ids but {len(pts)} points")
+            self._landmarks = {int(i): p for i, p in zip(ids, pts, strict=True)}
+
+    def state_at(self, t_ns: int) -> InertialState | None:
+        """The edge's state propagated to ``t_ns`` (None before VI initialisation)."""
+        if self._base is None:
+            return None
+        start = self._base
+        if self._at_prev is not None and self._at_prev.timestamp_ns <= t_ns:
+            start = self._at_prev
+        return propagate(start, self.buffer, t_ns)
+
+    def predict_motion(self, t_prev_ns: int, t_cur_ns: int) -> MotionPrediction:
+        """Camera motion from ``t_prev`` to ``t_cur`` (IMU samples must be buffered)."""
+        if self._base is None:
+            R_imu0_imu1 = gyro_rotation(self.buffer, t_prev_ns, t_cur_ns)
+            R_cam0_cam1 = self.R_imu_cam.T @ R_imu0_imu1 @ self.R_imu_cam
+            return MotionPrediction(R_cam0_cam1.T, None, "gyro")
+        prev = self.state_at(t_prev_ns)
+        cur = self.state_at(t_cur_ns)
+        assert prev is not None and cur is not None
+        self._at_prev = cur
+        R_imu1_imu0 = cur.R_world_imu.T @ prev.R_world_imu
+        R_cur_prev = self.R_imu_cam.T @ R_imu1_imu0 @ self.R_imu_cam
+        T_world_imu = np.eye(4)
+        T_world_imu[:3, :3] = cur.R_world_imu
+        T_world_imu[:3, 3] = cur.p_world_imu
+        T_cam_world = self.T_cam_imu @ inverse_T(T_world_imu)
+        return MotionPrediction(R_cur_prev, T_cam_world, "preintegration")
+
+    def predict_points(
+        self, motion: MotionPrediction, pts_px: np.ndarray, track_ids: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Predicted pixels (N, 2) of tracks at ``pts_px`` (N, 2) in the previous frame, and a
+        mask (N,) of the tracks predicted by reprojecting their 3D point."""
+        pred = predict_rotation(self.camera, pts_px, motion.R_cur_prev)
+        by_point = np.zeros(len(pred), dtype=bool)
+        if motion.T_cam_world is not None and self._landmarks:
+            rows = [i for i, t in enumerate(np.asarray(track_ids)) if int(t) in self._landmarks]
+            if rows:
+                p_world = np.stack([self._landmarks[int(track_ids[i])] for i in rows])
+                p_cam = p_world @ motion.T_cam_world[:3, :3].T + motion.T_cam_world[:3, 3]
+                px, front = project_points(self.camera, p_cam)
+                idx = np.asarray(rows)[front]
+                pred[idx] = px[front]
+                by_point[idx] = True
+        return pred, by_point
