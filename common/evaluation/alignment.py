@@ -95,7 +95,8 @@ def umeyama(p_src: np.ndarray, p_dst: np.ndarray, with_scale: bool = False) -> S
     sigma_x = float(np.sum(xc * xc)) / n
     cov = (yc.T @ xc) / n
     U, d, Vt = np.linalg.svd(cov)
-    if np.count_nonzero(d > np.finfo(d.dtype).eps) < 2:
+    # Rank < 2 (relative to the largest singular value): the rotation about the line is free.
+    if not d[1] > 1e-10 * d[0]:
         raise AlignmentError(
             f"degenerate alignment: the {n} positions are (nearly) collinear or identical, "
             f"singular values of the cross-covariance {d.tolist()}"

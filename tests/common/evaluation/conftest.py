@@ -28,8 +28,11 @@ def smooth_trajectory(
     for k in range(3):
         for _ in range(3):
             f = rng.uniform(0.05, 0.4)
-            p[:, k] += extent_m / 3 * rng.uniform(0.3, 1.0) * np.sin(
-                2 * np.pi * f * t + rng.uniform(0, 2 * np.pi)
+            p[:, k] += (
+                extent_m
+                / 3
+                * rng.uniform(0.3, 1.0)
+                * np.sin(2 * np.pi * f * t + rng.uniform(0, 2 * np.pi))
             )
             angles[:, k] += rng.uniform(0.1, 0.6) * np.sin(
                 2 * np.pi * f * t + rng.uniform(0, 2 * np.pi)
