@@ -5,6 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from evo.core import sync
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from common.evaluation.association import AssociationConfig, associate, match_timestamps
 from common.evaluation.errors import AssociationError, EvaluationError
@@ -91,3 +93,27 @@ def test_offset_shifts_the_matching(tools, rng):
     np.testing.assert_array_equal(fixed.ref_indices, fixed.est_indices)
     assert len(fixed) == len(ref)
     assert np.all(fixed.dt_ns == 0)
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    a=st.lists(st.integers(0, 2_000), min_size=0, max_size=40, unique=True),
+    b=st.lists(st.integers(0, 2_000), min_size=1, max_size=40, unique=True),
+    max_diff=st.integers(0, 60),
+)
+def test_match_timestamps_is_evo_made_one_to_one(a, b, max_diff):
+    s1 = np.array(sorted(a), dtype=np.int64)
+    s2 = np.array(sorted(b), dtype=np.int64)
+    i1, i2 = match_timestamps(s1, s2, max_diff)
+    # evo's matcher is unit-agnostic; integer-valued floats keep ties exact.
+    e1, e2 = sync.matching_time_indices(s1.astype(float), s2.astype(float), float(max_diff))
+    e1, e2 = np.asarray(e1, dtype=np.int64), np.asarray(e2, dtype=np.int64)
+    assert len(np.unique(i2)) == len(i2)  # one-to-one
+    assert np.all(np.abs(s1[i1] - s2[i2]) <= max_diff)
+    expected = {}
+    for j1, j2 in zip(e1.tolist(), e2.tolist(), strict=True):
+        d = abs(int(s1[j1]) - int(s2[j2]))
+        if j2 not in expected or d < expected[j2][1]:
+            expected[j2] = (j1, d)
+    want = sorted((j1, j2) for j2, (j1, _) in expected.items())
+    assert list(zip(i1.tolist(), i2.tolist(), strict=True)) == want
