@@ -1,0 +1,71 @@
+"""Wire protocol: sans-I/O framing, messages, session/reliability, auth, accounting.
+
+No sockets, clocks or asyncio in here; ``common.transport`` drives it over TCP.
+"""
+
+import logging
+
+from common.protocol.accounting import TrafficCounters
+from common.protocol.config import SessionConfig
+from common.protocol.errors import (
+    AuthenticationError,
+    LocalProtocolError,
+    OutboxFullError,
+    PeerTimeoutError,
+    ProtocolError,
+    RemoteProtocolError,
+)
+from common.protocol.events import (
+    Acknowledged,
+    CloseCode,
+    HandshakeComplete,
+    MessageReceived,
+    PeerAuthenticated,
+    PeerClosed,
+)
+from common.protocol.framing import HEADER_SIZE, PROTOCOL_VERSION, FrameDecoder, encode_frame
+from common.protocol.link import Link, LinkLimits, OutboundState
+from common.protocol.messages import SCHEMA_VERSION, Blob, Message, message
+from common.protocol.session import Session, State
+from common.protocol.store import (
+    DeliveryStore,
+    FileDeliveryStore,
+    InboundPosition,
+    MemoryDeliveryStore,
+)
+
+logging.getLogger(__name__).addHandler(logging.NullHandler())
+
+__all__ = [
+    "HEADER_SIZE",
+    "PROTOCOL_VERSION",
+    "SCHEMA_VERSION",
+    "Acknowledged",
+    "AuthenticationError",
+    "Blob",
+    "CloseCode",
+    "DeliveryStore",
+    "FileDeliveryStore",
+    "FrameDecoder",
+    "HandshakeComplete",
+    "InboundPosition",
+    "Link",
+    "LinkLimits",
+    "LocalProtocolError",
+    "MemoryDeliveryStore",
+    "Message",
+    "MessageReceived",
+    "OutboundState",
+    "OutboxFullError",
+    "PeerAuthenticated",
+    "PeerClosed",
+    "PeerTimeoutError",
+    "ProtocolError",
+    "RemoteProtocolError",
+    "Session",
+    "SessionConfig",
+    "State",
+    "TrafficCounters",
+    "encode_frame",
+    "message",
+]
