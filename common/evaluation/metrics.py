@@ -109,7 +109,8 @@ class AteResult:
 
     ``ref`` and ``est_aligned`` are the associated poses (M each), the estimate already mapped
     into the reference frame; ``errors_m`` (M,) [m]; ``rot_errors_deg`` (M,) [deg];
-    ``n_ref`` / ``n_est`` the pose counts before association.
+    ``n_ref`` / ``n_est`` the pose counts before association (the associated count M when
+    computed by :func:`ate_from_association`, which never saw the full trajectories).
     """
 
     name: str
@@ -181,8 +182,8 @@ def _errors_under(
         rot_errors_deg=rot,
         stats=ErrorStats.from_errors(errors),
         rot_stats=ErrorStats.from_errors(rot),
-        n_ref=0,
-        n_est=0,
+        n_ref=len(assoc.ref),
+        n_est=len(assoc.est),
     )
 
 
