@@ -1,0 +1,603 @@
+"""The cloud's atlas: every agent's map, merged maps, covisibility graph and spanning tree.
+
+Keyframes and map points arrive from the edges in their agent's map frame (a gravity-aligned
+visual-inertial map). Each agent starts in its own map (``map_id == agent_id``); when two maps
+are merged the atlas re-expresses the absorbed map in the kept map's frame and remembers
+``T_map_agent`` for every agent, so later keyframes of that agent land in the right frame.
+
+Identifiers: keyframe and map-point ids are only unique per agent, so the atlas keys them by
+``key = agent_id << 32 | local_id`` (see :func:`make_key`). Keys are plain ``int``.
+
+Covisibility (ORB-SLAM): the weight between two keyframes is the number of map points both
+observe; it is kept up to date as observations arrive in any order (a map point may reference
+a keyframe that has not arrived yet; the observation is linked when it does). The spanning
+tree attaches every keyframe to its strongest covisible keyframe already in the tree; each
+agent's first keyframe is a root.
+
+Nothing mutable leaves this module: :meth:`Atlas.keyframe` returns a frozen copy and
+:meth:`Atlas.snapshot` plain read-only arrays for the dashboard.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from common.geometry import inverse_T, transform_points
+from services.cloud.map_types import (
+    AtlasError,
+    AtlasSnapshot,
+    AtlasState,
+    KeyframeInput,
+    KeyframeView,
+    LoopEdge,
+    MapPointInput,
+    MapPointView,
+    MergeRecord,
+    make_key,
+    ro,
+    split_key,
+)
+
+__all__ = [
+    "Atlas",
+    "AtlasError",
+    "AtlasSnapshot",
+    "AtlasState",
+    "KeyframeInput",
+    "KeyframeView",
+    "LoopEdge",
+    "MapPointInput",
+    "MapPointView",
+    "MergeRecord",
+    "make_key",
+    "split_key",
+]
+
+log = logging.getLogger(__name__)
+
+
+class _Keyframe:
+    __slots__ = (
+        "T_map_body",
+        "agent_id",
+        "bias_accel",
+        "bias_gyro",
+        "descriptors",
+        "key",
+        "keyframe_id",
+        "keypoints",
+        "levels",
+        "map_id",
+        "mp_keys",
+        "timestamp",
+        "velocity",
+        "virtual",
+        "word_ids",
+    )  # fmt: skip
+
+
+class _MapPoint:
+    __slots__ = ("agent_id", "key", "map_id", "map_point_id", "obs", "p_map", "pending", "ref_kf")
+
+    def __init__(self, key: int, agent_id: int, map_point_id: int, map_id: int) -> None:
+        self.key = key
+        self.agent_id = agent_id
+        self.map_point_id = map_point_id
+        self.map_id = map_id
+        self.p_map = np.zeros(3)
+        self.obs: dict[int, int] = {}  # linked keyframe key -> keypoint index
+        self.pending: dict[int, int] = {}  # keyframe not arrived yet -> keypoint index
+        self.ref_kf = -1
+
+
+class Atlas:
+    """All maps of the cloud. Not thread-safe: one owner mutates it (the service's app)."""
+
+    def __init__(self) -> None:
+        self._kfs: dict[int, _Keyframe] = {}
+        self._mps: dict[int, _MapPoint] = {}
+        self._covis: dict[int, dict[int, int]] = {}
+        self._parent: dict[int, int] = {}  # child -> parent; roots map to -1
+        self._map_of_agent: dict[int, int] = {}
+        self._T_map_agent: dict[int, np.ndarray] = {}
+        self._merges: list[MergeRecord] = []
+        self._loops: list[LoopEdge] = []
+        self._removed_kfs: set[int] = set()
+        self._waiting: dict[int, list[_MapPoint]] = {}  # keyframe not arrived -> its points
+        self._alias: dict[int, int] = {}  # fused map point -> surviving map point
+
+    # ------------------------------------------------------------------ agents and maps
+    def _ensure_agent(self, agent_id: int) -> None:
+        if agent_id not in self._map_of_agent:
+            self._map_of_agent[agent_id] = agent_id
+            self._T_map_agent[agent_id] = np.eye(4)
+
+    def map_of_agent(self, agent_id: int) -> int:
+        """Map id that currently holds ``agent_id``'s keyframes."""
+        if agent_id not in self._map_of_agent:
+            raise AtlasError(f"unknown agent {agent_id}")
+        return self._map_of_agent[agent_id]
+
+    def T_map_agent(self, agent_id: int) -> np.ndarray:
+        """(4, 4) transform from the agent's own map frame into its current map's frame."""
+        self.map_of_agent(agent_id)
+        return self._T_map_agent[agent_id].copy()
+
+    def agents(self) -> list[int]:
+        return sorted(self._map_of_agent)
+
+    def maps(self) -> list[int]:
+        return sorted(set(self._map_of_agent.values()))
+
+    def agents_in_map(self, map_id: int) -> list[int]:
+        return sorted(a for a, m in self._map_of_agent.items() if m == map_id)
+
+    # ------------------------------------------------------------------ ingest
+    def add_keyframe(self, kf: KeyframeInput) -> int:
+        """Insert (or update the state of) a keyframe; returns its key.
+
+        An update (same agent and id) replaces the pose, velocity and biases and links any new
+        map point ids; keypoints and descriptors must stay the same size."""
+        self._ensure_agent(kf.agent_id)
+        key = make_key(kf.agent_id, kf.keyframe_id)
+        if key in self._removed_kfs:
+            log.debug("ignoring update of pruned keyframe %d/%d", kf.agent_id, kf.keyframe_id)
+            return key
+        T_ma = self._T_map_agent[kf.agent_id]
+        new = key not in self._kfs
+        if new:
+            k = _Keyframe()
+            k.key, k.agent_id, k.keyframe_id = key, kf.agent_id, kf.keyframe_id
+            k.map_id = self._map_of_agent[kf.agent_id]
+            k.keypoints = kf.keypoints
+            k.levels = kf.levels
+            k.descriptors = kf.descriptors
+            k.word_ids = kf.word_ids
+            k.mp_keys = np.full(kf.keypoints.shape[0], -1, dtype=np.int64)
+            k.virtual = np.zeros(kf.keypoints.shape[0], dtype=bool)
+            self._kfs[key] = k
+            self._covis[key] = {}
+            if not any(p.agent_id == kf.agent_id for p in self._kfs.values() if p is not k):
+                self._parent[key] = -1  # first keyframe of the agent: a root
+        else:
+            k = self._kfs[key]
+            n_real = int((~k.virtual).sum())
+            if kf.keypoints.shape[0] != n_real:
+                raise AtlasError(f"keyframe {kf.agent_id}/{kf.keyframe_id}: update changes the "
+                                 f"keypoint count {n_real} -> {kf.keypoints.shape[0]}")  # fmt: skip
+        k.timestamp = float(kf.timestamp)
+        k.T_map_body = T_ma @ kf.T_world_body
+        k.velocity = T_ma[:3, :3] @ kf.velocity
+        k.bias_gyro = kf.bias_gyro.copy()
+        k.bias_accel = kf.bias_accel.copy()
+        for idx in np.flatnonzero(kf.map_point_ids >= 0):
+            mkey = make_key(kf.agent_id, int(kf.map_point_ids[idx]))
+            mkey = self._alias.get(mkey, mkey)
+            mp = self._mps.get(mkey)
+            if mp is None:
+                mp = self._new_map_point(mkey, kf.agent_id)
+            mp.pending.setdefault(key, int(idx))
+            self._link_pending(mp)
+        if new:
+            # Map points that referenced this keyframe before it arrived.
+            for mp in self._waiting.pop(key, ()):
+                self._link_pending(mp)
+            self._try_attach(key)
+        return key
+
+    def _new_map_point(self, mkey: int, agent_id: int) -> _MapPoint:
+        mp = _MapPoint(mkey, agent_id, split_key(mkey)[1], self._map_of_agent[agent_id])
+        self._mps[mkey] = mp
+        return mp
+
+    def add_map_point(self, mp_in: MapPointInput) -> int:
+        """Insert or update a map point (position and observations); returns its key."""
+        self._ensure_agent(mp_in.agent_id)
+        mkey = make_key(mp_in.agent_id, mp_in.map_point_id)
+        fused_into = self._alias.get(mkey)
+        if fused_into is not None:
+            mkey = fused_into  # fused at a merge: keep the survivor's position, link new obs
+        mp = self._mps.get(mkey)
+        if mp is None:
+            mp = self._new_map_point(mkey, mp_in.agent_id)
+        if fused_into is None:
+            mp.p_map = transform_points(self._T_map_agent[mp_in.agent_id], mp_in.p_world)[0]
+        for kf_id, kp_idx in mp_in.observations:
+            kkey = make_key(mp_in.agent_id, int(kf_id))
+            if kkey not in mp.obs and kkey not in self._removed_kfs:
+                mp.pending.setdefault(kkey, int(kp_idx))
+        self._link_pending(mp)
+        return mkey
+
+    def _link_pending(self, mp: _MapPoint) -> None:
+        for kkey in list(mp.pending):
+            k = self._kfs.get(kkey)
+            if k is None:
+                waiting = self._waiting.setdefault(kkey, [])
+                if mp not in waiting:
+                    waiting.append(mp)
+                continue
+            idx = mp.pending.pop(kkey)
+            if idx >= k.keypoints.shape[0]:
+                log.warning("map point %d: keypoint index %d out of range", mp.key, idx)
+                continue
+            self._link(mp, k, idx)
+
+    def _link(self, mp: _MapPoint, k: _Keyframe, idx: int) -> None:
+        if k.key in mp.obs:
+            return
+        old = int(k.mp_keys[idx])
+        if old >= 0 and old != mp.key:
+            return  # keypoint already bound to another point; keep the first binding
+        k.mp_keys[idx] = mp.key
+        for other in mp.obs:
+            self._add_covis(k.key, other, 1)
+        mp.obs[k.key] = idx
+        if mp.ref_kf < 0:
+            mp.ref_kf = k.key
+        if k.key not in self._parent:
+            self._try_attach(k.key)
+
+    def _add_covis(self, a: int, b: int, w: int) -> None:
+        if a == b:
+            return
+        ca, cb = self._covis[a], self._covis[b]
+        na = ca.get(b, 0) + w
+        if na <= 0:
+            ca.pop(b, None)
+            cb.pop(a, None)
+        else:
+            ca[b] = na
+            cb[a] = na
+
+    def _try_attach(self, key: int) -> None:
+        """Attach ``key`` (and, transitively, waiting neighbours) to the spanning tree."""
+        stack = [key]
+        while stack:
+            k = stack.pop()
+            if k in self._parent:
+                continue
+            in_tree = [(w, o) for o, w in self._covis[k].items() if o in self._parent]
+            if not in_tree:
+                continue
+            self._parent[k] = max(in_tree)[1]
+            stack.extend(o for o in self._covis[k] if o not in self._parent)
+
+    # ------------------------------------------------------------------ queries
+    def has_keyframe(self, key: int) -> bool:
+        return key in self._kfs
+
+    def n_keyframes(self, map_id: int | None = None) -> int:
+        if map_id is None:
+            return len(self._kfs)
+        return sum(1 for k in self._kfs.values() if k.map_id == map_id)
+
+    def n_map_points(self, map_id: int | None = None) -> int:
+        if map_id is None:
+            return len(self._mps)
+        return sum(1 for m in self._mps.values() if m.map_id == map_id)
+
+    def keyframe_keys(self, map_id: int | None = None, agent_id: int | None = None) -> list[int]:
+        """Keys sorted ascending (so per agent in keyframe-id order)."""
+        return sorted(
+            k.key
+            for k in self._kfs.values()
+            if (map_id is None or k.map_id == map_id)
+            and (agent_id is None or k.agent_id == agent_id)
+        )
+
+    def map_point_keys(self, map_id: int | None = None) -> list[int]:
+        return sorted(m.key for m in self._mps.values() if map_id is None or m.map_id == map_id)
+
+    def keyframe(self, key: int) -> KeyframeView:
+        k = self._kf(key)
+        return KeyframeView(
+            key=k.key, agent_id=k.agent_id, keyframe_id=k.keyframe_id, map_id=k.map_id,
+            timestamp=k.timestamp, T_map_body=ro(k.T_map_body), velocity=ro(k.velocity),
+            bias_gyro=ro(k.bias_gyro), bias_accel=ro(k.bias_accel), keypoints=ro(k.keypoints),
+            levels=ro(k.levels), descriptors=ro(k.descriptors), word_ids=ro(k.word_ids),
+            map_point_keys=ro(k.mp_keys), virtual=ro(k.virtual),
+        )  # fmt: skip
+
+    def _kf(self, key: int) -> _Keyframe:
+        k = self._kfs.get(key)
+        if k is None:
+            raise AtlasError(f"unknown keyframe {split_key(key)}")
+        return k
+
+    def map_id_of_keyframe(self, key: int) -> int:
+        return self._kf(key).map_id
+
+    def T_map_body(self, key: int) -> np.ndarray:
+        return self._kf(key).T_map_body.copy()
+
+    def covisible(self, key: int, min_weight: int = 1) -> list[tuple[int, int]]:
+        """``[(keyframe key, weight)]`` sorted by decreasing weight (then key)."""
+        self._kf(key)
+        items = [(o, w) for o, w in self._covis[key].items() if w >= min_weight]
+        return sorted(items, key=lambda t: (-t[1], t[0]))
+
+    def best_covisible(self, key: int, n: int) -> list[int]:
+        return [o for o, _ in self.covisible(key)[:n]]
+
+    def spanning_parent(self, key: int) -> int | None:
+        """Parent in the spanning tree, -1 for a root, None if not attached yet."""
+        self._kf(key)
+        return self._parent.get(key)
+
+    def map_point_positions(self, keys: np.ndarray) -> np.ndarray:
+        """Positions (N, 3) in their map's frame of the given map point keys (must exist)."""
+        out = np.empty((len(keys), 3))
+        for i, mk in enumerate(np.asarray(keys).tolist()):
+            out[i] = self._mp(mk).p_map
+        return out
+
+    def _mp(self, key: int) -> _MapPoint:
+        m = self._mps.get(key)
+        if m is None:
+            raise AtlasError(f"unknown map point {split_key(key)}")
+        return m
+
+    def has_map_point(self, key: int) -> bool:
+        return key in self._mps
+
+    def map_point_observations(self, key: int) -> dict[int, int]:
+        """``{keyframe key: keypoint index}`` of one map point (a copy)."""
+        return dict(self._mp(key).obs)
+
+    def map_point_descriptor(self, key: int) -> np.ndarray:
+        """(32,) uint8 descriptor of the point, taken from its reference keyframe."""
+        m = self._mp(key)
+        if m.ref_kf < 0:
+            raise AtlasError(f"map point {split_key(key)} has no observation")
+        k = self._kfs[m.ref_kf]
+        return k.descriptors[m.obs[m.ref_kf]].copy()
+
+    def loops(self) -> list[LoopEdge]:
+        return list(self._loops)
+
+    def merges(self) -> list[MergeRecord]:
+        return list(self._merges)
+
+    def removed_keyframes(self) -> set[int]:
+        return set(self._removed_kfs)
+
+    # ------------------------------------------------------------------ corrections
+    def add_loop(self, key_a: int, key_b: int, T_a_b: np.ndarray) -> LoopEdge:
+        """Record a verified constraint ``T_a_b`` (body a <- body b); both in one map."""
+        ka, kb = self._kf(key_a), self._kf(key_b)
+        if ka.map_id != kb.map_id:
+            raise AtlasError("a loop edge needs both keyframes in one map (merge first)")
+        edge = LoopEdge(key_a, key_b, ro(T_a_b), ka.agent_id != kb.agent_id)
+        self._loops.append(edge)
+        return edge
+
+    def merge_maps(
+        self,
+        target_map: int,
+        source_map: int,
+        T_target_source: np.ndarray,
+        query_key: int = -1,
+        candidate_key: int = -1,
+        fused_points: int = 0,
+    ) -> MergeRecord:
+        """Re-express every keyframe and map point of ``source_map`` in ``target_map``'s frame."""
+        maps = self.maps()
+        if target_map not in maps or source_map not in maps or target_map == source_map:
+            raise AtlasError(f"cannot merge map {source_map} into {target_map} (maps: {maps})")
+        T = np.asarray(T_target_source, dtype=np.float64)
+        scale = float(np.cbrt(np.linalg.det(T[:3, :3])))
+        R = T[:3, :3] / scale
+        for k in self._kfs.values():
+            if k.map_id == source_map:
+                k.map_id = target_map
+                Tk = k.T_map_body.copy()
+                k.T_map_body = np.eye(4)
+                k.T_map_body[:3, :3] = R @ Tk[:3, :3]
+                k.T_map_body[:3, 3] = T[:3, :3] @ Tk[:3, 3] + T[:3, 3]
+                k.velocity = scale * (R @ k.velocity)
+        for m in self._mps.values():
+            if m.map_id == source_map:
+                m.map_id = target_map
+                m.p_map = T[:3, :3] @ m.p_map + T[:3, 3]
+        for a, mid in self._map_of_agent.items():
+            if mid == source_map:
+                self._map_of_agent[a] = target_map
+                self._T_map_agent[a] = T @ self._T_map_agent[a]
+        rec = MergeRecord(target_map, source_map, ro(T), query_key, candidate_key, fused_points)
+        self._merges.append(rec)
+        log.info("merged map %d into %d", source_map, target_map)
+        return rec
+
+    def fuse_map_points(self, keep_key: int, drop_key: int) -> None:
+        """Move every observation of ``drop_key`` onto ``keep_key`` and delete ``drop_key``.
+
+        Where a keyframe already observes ``keep_key`` the duplicate observation is dropped."""
+        if keep_key == drop_key:
+            return
+        keep, drop = self._mp(keep_key), self._mp(drop_key)
+        obs = dict(drop.obs)
+        self.remove_map_point(drop_key)
+        for kkey, idx in obs.items():
+            k = self._kfs[kkey]
+            if kkey not in keep.obs:
+                k.mp_keys[idx] = -1
+                self._link(keep, k, idx)
+        self._alias[drop_key] = keep_key
+
+    def set_keyframe_poses(self, poses: dict[int, np.ndarray]) -> None:
+        """Replace keyframe poses (map frame) and move each map point with its reference
+        keyframe (``p' = T'_ref @ T_ref^-1 @ p``)."""
+        old = {}
+        for key, T in poses.items():
+            k = self._kf(key)
+            old[key] = k.T_map_body
+            k.T_map_body = np.array(T, dtype=np.float64)
+        for m in self._mps.values():
+            if m.ref_kf in old:
+                corr = self._kfs[m.ref_kf].T_map_body @ inverse_T(old[m.ref_kf])
+                m.p_map = corr[:3, :3] @ m.p_map + corr[:3, 3]
+
+    def set_map_point_positions(self, positions: dict[int, np.ndarray]) -> None:
+        for key, p in positions.items():
+            self._mp(key).p_map = np.asarray(p, dtype=np.float64).reshape(3).copy()
+
+    # ------------------------------------------------------------------ removal (MBP)
+    def remove_map_point(self, key: int) -> None:
+        m = self._mp(key)
+        keys = list(m.obs)
+        for i, a in enumerate(keys):
+            self._kfs[a].mp_keys[m.obs[a]] = -1
+            for b in keys[i + 1 :]:
+                self._add_covis(a, b, -1)
+        for lst in self._waiting.values():
+            if m in lst:
+                lst.remove(m)
+        del self._mps[key]
+
+    def remove_observation(self, mp_key: int, kf_key: int) -> None:
+        m = self._mp(mp_key)
+        idx = m.obs.pop(kf_key, None)
+        if idx is None:
+            return
+        self._kfs[kf_key].mp_keys[idx] = -1
+        for other in m.obs:
+            self._add_covis(kf_key, other, -1)
+        if m.ref_kf == kf_key:
+            m.ref_kf = min(m.obs) if m.obs else -1
+
+    def remove_keyframe(self, key: int) -> None:
+        """Delete a keyframe, its observations and covisibility; its spanning-tree children are
+        re-attached to its parent (or become roots). Later updates of it are ignored."""
+        k = self._kf(key)
+        for mk in np.unique(k.mp_keys[k.mp_keys >= 0]).tolist():
+            self.remove_observation(int(mk), key)
+        parent = self._parent.pop(key, None)
+        for child, p in list(self._parent.items()):
+            if p == key:
+                self._parent[child] = -1 if parent is None else parent
+        for other in list(self._covis[key]):
+            self._covis[other].pop(key, None)
+        del self._covis[key]
+        del self._kfs[key]
+        self._removed_kfs.add(key)
+        self._loops = [e for e in self._loops if key not in (e.key_a, e.key_b)]
+
+    def add_virtual_observations(
+        self,
+        key: int,
+        keypoints: np.ndarray,
+        levels: np.ndarray,
+        descriptors: np.ndarray,
+        word_ids: np.ndarray,
+        map_point_keys: np.ndarray,
+    ) -> int:
+        """Append virtual observations (MBP) of existing map points to keyframe ``key``.
+
+        keypoints (M, 2) distorted px in this keyframe; returns how many were linked."""
+        k = self._kf(key)
+        n0 = k.keypoints.shape[0]
+        m = int(np.asarray(map_point_keys).size)
+        if m == 0:
+            return 0
+        k.keypoints = np.concatenate([k.keypoints, np.asarray(keypoints, np.float64).reshape(m, 2)])
+        k.levels = np.concatenate([k.levels, np.asarray(levels, np.int16).reshape(m)])
+        k.descriptors = np.concatenate([k.descriptors, np.asarray(descriptors, np.uint8)])
+        k.word_ids = np.concatenate([k.word_ids, np.asarray(word_ids, np.int32).reshape(m)])
+        k.mp_keys = np.concatenate([k.mp_keys, np.full(m, -1, np.int64)])
+        k.virtual = np.concatenate([k.virtual, np.ones(m, bool)])
+        linked = 0
+        for i, mk in enumerate(np.asarray(map_point_keys).tolist()):
+            mp = self._mps.get(int(mk))
+            if mp is not None and key not in mp.obs:
+                self._link(mp, k, n0 + i)
+                linked += 1
+        return linked
+
+    def map_point(self, key: int) -> MapPointView:
+        m = self._mp(key)
+        items = sorted(m.obs.items())
+        return MapPointView(
+            key=m.key, agent_id=m.agent_id, map_point_id=m.map_point_id, map_id=m.map_id,
+            p_map=ro(m.p_map), obs_keyframes=ro(np.array([a for a, _ in items], np.int64)),
+            obs_indices=ro(np.array([b for _, b in items], np.int64)), ref_kf=m.ref_kf,
+        )  # fmt: skip
+
+    def state(self) -> AtlasState:
+        return AtlasState(
+            map_of_agent=dict(self._map_of_agent),
+            T_map_agent={a: ro(T) for a, T in self._T_map_agent.items()},
+            merges=tuple(self._merges),
+            loops=tuple(self._loops),
+            removed_keyframes=frozenset(self._removed_kfs),
+            aliases=dict(self._alias),
+        )
+
+    @classmethod
+    def restore(
+        cls, keyframes: list[KeyframeView], map_points: list[MapPointView], state: AtlasState
+    ) -> Atlas:
+        """Rebuild an atlas from views (as :meth:`keyframe`, :meth:`map_point`, :meth:`state`
+        return them); covisibility and spanning tree are recomputed from the observations."""
+        atlas = cls()
+        atlas._map_of_agent = dict(state.map_of_agent)
+        atlas._T_map_agent = {a: np.array(T) for a, T in state.T_map_agent.items()}
+        for v in sorted(keyframes, key=lambda v: v.key):
+            k = _Keyframe()
+            k.key, k.agent_id, k.keyframe_id, k.map_id = v.key, v.agent_id, v.keyframe_id, v.map_id
+            k.timestamp = float(v.timestamp)
+            k.T_map_body = np.array(v.T_map_body)
+            k.velocity, k.bias_gyro = np.array(v.velocity), np.array(v.bias_gyro)
+            k.bias_accel = np.array(v.bias_accel)
+            k.keypoints, k.levels = np.array(v.keypoints), np.array(v.levels)
+            k.descriptors, k.word_ids = np.array(v.descriptors), np.array(v.word_ids)
+            k.mp_keys = np.full(k.keypoints.shape[0], -1, np.int64)
+            k.virtual = np.array(v.virtual, dtype=bool)
+            atlas._kfs[k.key] = k
+            atlas._covis[k.key] = {}
+            if not any(p.agent_id == k.agent_id for p in atlas._kfs.values() if p is not k):
+                atlas._parent[k.key] = -1
+        for v in map_points:
+            m = _MapPoint(v.key, v.agent_id, v.map_point_id, v.map_id)
+            m.p_map = np.array(v.p_map)
+            atlas._mps[m.key] = m
+            for kk, idx in zip(v.obs_keyframes.tolist(), v.obs_indices.tolist(), strict=True):
+                if kk in atlas._kfs:
+                    atlas._link(m, atlas._kfs[kk], idx)
+            if v.ref_kf in m.obs:
+                m.ref_kf = v.ref_kf
+        for key in atlas._kfs:
+            atlas._try_attach(key)
+        atlas._merges = list(state.merges)
+        atlas._loops = [e for e in state.loops if e.key_a in atlas._kfs and e.key_b in atlas._kfs]
+        atlas._removed_kfs = set(state.removed_keyframes)
+        atlas._alias = dict(state.aliases)
+        return atlas
+
+    # ------------------------------------------------------------------ snapshot
+    def snapshot(self) -> AtlasSnapshot:
+        kfs = [self._kfs[k] for k in sorted(self._kfs)]
+        mps = [self._mps[k] for k in sorted(self._mps)]
+        cov = [(a, b, w) for a, d in self._covis.items() for b, w in d.items() if a < b]
+        cov.sort()
+        tree = sorted((c, p) for c, p in self._parent.items() if p >= 0)
+        i64 = np.int64
+        return AtlasSnapshot(
+            keyframe_keys=ro(np.array([k.key for k in kfs], i64)),
+            keyframe_agent=ro(np.array([k.agent_id for k in kfs], i64)),
+            keyframe_map=ro(np.array([k.map_id for k in kfs], i64)),
+            keyframe_timestamp=ro(np.array([k.timestamp for k in kfs], np.float64)),
+            T_map_body=ro(np.array([k.T_map_body for k in kfs]).reshape(-1, 4, 4)),
+            point_keys=ro(np.array([m.key for m in mps], i64)),
+            point_map=ro(np.array([m.map_id for m in mps], i64)),
+            p_map=ro(np.array([m.p_map for m in mps]).reshape(-1, 3)),
+            covisibility=ro(np.array([(a, b) for a, b, _ in cov], i64).reshape(-1, 2)),
+            covisibility_weight=ro(np.array([w for _, _, w in cov], i64)),
+            spanning_tree=ro(np.array(tree, i64).reshape(-1, 2)),
+            loops=ro(np.array([(e.key_a, e.key_b) for e in self._loops], i64).reshape(-1, 2)),
+            map_of_agent=dict(self._map_of_agent),
+            T_map_agent={a: ro(T) for a, T in self._T_map_agent.items()},
+            merges=tuple(self._merges),
+        )

@@ -1,0 +1,172 @@
+"""Options of the cloud tier's domain code (paper Section VI.B), one frozen dataclass per block.
+
+Every default is documented where it is declared; :class:`CloudConfig` bundles them so a
+service builds one object and hands the parts down.
+"""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass, field
+
+
+class AlignmentMode(enum.Enum):
+    """Degrees of freedom of the transform that aligns one map onto another.
+
+    YAW_TRANSLATION: 4-DoF (rotation about gravity + translation), right for gravity-aligned
+    visual-inertial maps. SE3: full 6-DoF rigid. SIM3: 7-DoF similarity (monocular maps).
+    """
+
+    YAW_TRANSLATION = "yaw_translation"
+    SE3 = "se3"
+    SIM3 = "sim3"
+
+
+@dataclass(frozen=True)
+class PlaceRecognitionConfig:
+    """Place-recognition options (DBoW2 / ORB-SLAM loop detection).
+
+    min_score_floor: lowest BoW L1 score a candidate may have, used alone when the query has
+        no covisible keyframe yet (default 0.015).
+    min_common_words_ratio: candidates must share at least this fraction of the best
+        candidate's shared-word count (ORB-SLAM: 0.8).
+    group_size: covisible keyframes per candidate whose scores are accumulated (ORB-SLAM: 10).
+    group_score_ratio: groups scoring below this fraction of the best group are dropped
+        (ORB-SLAM: 0.75).
+    min_consistency: consecutive query keyframes of the same agent whose candidate groups
+        must overlap before a candidate is accepted (ORB-SLAM: 3).
+    recent_window_s: keyframes of the query's own agent within this many seconds of the
+        query are never candidates (default 10 s).
+    exclude_covisible: never return keyframes covisible with the query (default True).
+    max_candidates: at most this many accepted candidates per query (default 3).
+    """
+
+    min_score_floor: float = 0.015
+    min_common_words_ratio: float = 0.8
+    group_size: int = 10
+    group_score_ratio: float = 0.75
+    min_consistency: int = 3
+    recent_window_s: float = 10.0
+    exclude_covisible: bool = True
+    max_candidates: int = 3
+
+
+@dataclass(frozen=True)
+class VerificationConfig:
+    """Geometric verification options (strict: a false merge is never acceptable).
+
+    max_hamming: largest descriptor distance of a match, bits (default 50, ORB-SLAM TH_LOW).
+    ratio: best / second-best distance ratio test (default 0.75).
+    group_level: words are matched within their vocabulary ancestor at this tree level
+        (DBoW2 direct index); None matches within the same word only (default None).
+    min_initial_matches: putative 3D–2D matches needed before RANSAC (default 20).
+    reprojection_px: RANSAC / inlier reprojection threshold, pixels (default 4.0).
+    min_inliers: inliers of the final 3D–2D pose required (default 30).
+    min_inlier_ratio: inliers / putative matches of the initial RANSAC (default 0.4).
+    projection_radius_px: search radius of the guided projection search that expands the
+        matches with the candidate's covisible map points (default 8.0).
+    covisible_expansion: covisible keyframes of the candidate whose map points are projected
+        (default 10).
+    max_tilt_deg: for gravity-aligned maps, the relative rotation between the two map frames
+        must be a rotation about gravity up to this many degrees of roll/pitch; None turns the
+        check off (default 5.0).
+    min_3d3d_agreement: when the query keypoints have their own map points, this fraction of
+        inlier pairs must agree in 3D after alignment (default 0.5).
+    agreement_distance_m: 3D agreement distance, metres (default 0.25).
+    seed: RANSAC random seed (default 0; deterministic).
+    """
+
+    max_hamming: int = 50
+    ratio: float = 0.75
+    group_level: int | None = None
+    min_initial_matches: int = 20
+    reprojection_px: float = 4.0
+    min_inliers: int = 30
+    min_inlier_ratio: float = 0.4
+    projection_radius_px: float = 8.0
+    covisible_expansion: int = 10
+    max_tilt_deg: float | None = 5.0
+    min_3d3d_agreement: float = 0.5
+    agreement_distance_m: float = 0.25
+    seed: int = 0
+
+
+@dataclass(frozen=True)
+class MergeConfig:
+    """Map-merging options.
+
+    mode: degrees of freedom of the map-to-map transform (default 4-DoF yaw + translation).
+    min_3d_pairs: 3D–3D pairs needed to estimate the transform from points; with fewer the
+        verified 6-DoF pose is projected onto ``mode`` (default 10).
+    fuse_distance_m: duplicate map points closer than this after alignment are fused
+        (default 0.05 m).
+    fuse_max_hamming: ... and whose descriptors differ by at most this many bits (default 50).
+    """
+
+    mode: AlignmentMode = AlignmentMode.YAW_TRANSLATION
+    min_3d_pairs: int = 10
+    fuse_distance_m: float = 0.05
+    fuse_max_hamming: int = 50
+
+
+@dataclass(frozen=True)
+class GlobalOptimizationConfig:
+    """Pose-graph options (paper Eq. 20, pose-graph stage).
+
+    odometry_sigma_rot_rad / odometry_sigma_trans_m: standard deviation of a relative pose
+        between consecutive keyframes of one agent at the reference covisibility weight
+        (defaults 0.01 rad, 0.02 m).
+    reference_weight: covisibility weight (shared map points) at which the odometry sigmas
+        apply; information scales linearly with weight, clamped to [0.25, 4] (default 50).
+    covisibility_min_weight: extra relative-pose edges between keyframes sharing at least this
+        many map points (ORB-SLAM essential graph: 100; default 100). 0 disables them.
+    loop_sigma_rot_rad / loop_sigma_trans_m: loop / merge constraint sigmas (defaults 0.02 rad,
+        0.05 m).
+    loop_robust_kernel: "cauchy", "huber" or "none" (default "cauchy").
+    loop_kernel_scale: kernel scale on the whitened error (default 1.0).
+    prior_sigma: sigma of the prior on the first keyframe (default 1e-6).
+    max_iterations: Levenberg–Marquardt iterations (default 100).
+    """
+
+    odometry_sigma_rot_rad: float = 0.01
+    odometry_sigma_trans_m: float = 0.02
+    reference_weight: float = 50.0
+    covisibility_min_weight: int = 100
+    loop_sigma_rot_rad: float = 0.02
+    loop_sigma_trans_m: float = 0.05
+    loop_robust_kernel: str = "cauchy"
+    loop_kernel_scale: float = 1.0
+    prior_sigma: float = 1e-6
+    max_iterations: int = 100
+
+
+@dataclass(frozen=True)
+class MbpConfig:
+    """Map backbone profiling options.
+
+    enabled: run MBP at all (default True).
+    min_shared: two keyframes are "strongly covisible" when they share at least this many map
+        points ... (default 15)
+    cover_ratio: ... and at least this fraction of the smaller keyframe's map points
+        (default 0.5). A removed keyframe must be strongly covisible with a kept one.
+    max_virtual_reprojection_px: an observation of a removed keyframe is "good" (and folded
+        into the absorbing keyframe) if it reprojects within this many pixels (default 3.0).
+    min_observations: map points left with fewer observations are removed (default 2).
+    """
+
+    enabled: bool = True
+    min_shared: int = 15
+    cover_ratio: float = 0.5
+    max_virtual_reprojection_px: float = 3.0
+    min_observations: int = 2
+
+
+@dataclass(frozen=True)
+class CloudConfig:
+    """All cloud domain options (built once by the service, handed down)."""
+
+    place_recognition: PlaceRecognitionConfig = field(default_factory=PlaceRecognitionConfig)
+    verification: VerificationConfig = field(default_factory=VerificationConfig)
+    merge: MergeConfig = field(default_factory=MergeConfig)
+    optimization: GlobalOptimizationConfig = field(default_factory=GlobalOptimizationConfig)
+    mbp: MbpConfig = field(default_factory=MbpConfig)

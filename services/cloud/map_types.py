@@ -1,0 +1,221 @@
+"""Plain data the atlas takes in and hands out: inputs from the edges, read-only views,
+snapshots and records of merges and loops. Keys: ``key = agent_id << 32 | local_id``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from common.errors import RecslamError
+
+_LOCAL_BITS = 32
+_LOCAL_MASK = (1 << _LOCAL_BITS) - 1
+
+
+class AtlasError(RecslamError):
+    """Malformed keyframe / map point input or misuse of the atlas."""
+
+
+def make_key(agent_id: int, local_id: int) -> int:
+    """Global key of an agent's keyframe or map point id (both non-negative, local < 2**32)."""
+    if agent_id < 0 or not 0 <= local_id <= _LOCAL_MASK:
+        raise AtlasError(f"bad id: agent {agent_id}, local {local_id}")
+    return (int(agent_id) << _LOCAL_BITS) | int(local_id)
+
+
+def split_key(key: int) -> tuple[int, int]:
+    """Inverse of :func:`make_key`: ``(agent_id, local_id)``."""
+    return int(key) >> _LOCAL_BITS, int(key) & _LOCAL_MASK
+
+
+def ro(a: np.ndarray) -> np.ndarray:
+    a = np.array(a, copy=True)
+    a.setflags(write=False)
+    return a
+
+
+def _check(arr: object, shape: tuple[int | None, ...], dtype: type, what: str) -> np.ndarray:
+    a = np.asarray(arr)
+    ok = a.ndim == len(shape) and all(
+        s is None or s == d for s, d in zip(shape, a.shape, strict=False)
+    )
+    if not ok:
+        raise AtlasError(f"{what} must have shape {shape}, got {a.shape}")
+    if np.issubdtype(a.dtype, np.floating) and not np.all(np.isfinite(a)):
+        raise AtlasError(f"{what} contains non-finite values")
+    return np.array(a, dtype=dtype, copy=True)
+
+
+@dataclass(frozen=True, eq=False)
+class KeyframeInput:
+    """A keyframe as the edge sends it.
+
+    T_world_body (4, 4): body pose in the agent's map frame. velocity (3,) m/s in that frame;
+    bias_gyro (3,) rad/s, bias_accel (3,) m/s². keypoints (N, 2): distorted pixels at level 0;
+    levels (N,) pyramid level; descriptors (N, 32) uint8 ORB; word_ids (N,) visual word of each
+    keypoint; map_point_ids (N,) the agent's map point id observed at that keypoint or -1.
+    """
+
+    agent_id: int
+    keyframe_id: int
+    timestamp: float
+    T_world_body: np.ndarray
+    keypoints: np.ndarray
+    levels: np.ndarray
+    descriptors: np.ndarray
+    word_ids: np.ndarray
+    map_point_ids: np.ndarray
+    velocity: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    bias_gyro: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    bias_accel: np.ndarray = field(default_factory=lambda: np.zeros(3))
+
+    def __post_init__(self) -> None:
+        what = f"keyframe {self.agent_id}/{self.keyframe_id}"
+        kp = _check(self.keypoints, (None, 2), np.float64, f"{what}: keypoints")
+        n = kp.shape[0]
+        fields = {
+            "T_world_body": _check(self.T_world_body, (4, 4), np.float64, f"{what}: T_world_body"),
+            "keypoints": kp,
+            "levels": _check(self.levels, (n,), np.int16, f"{what}: levels"),
+            "word_ids": _check(self.word_ids, (n,), np.int32, f"{what}: word_ids"),
+            "map_point_ids": _check(self.map_point_ids, (n,), np.int64, f"{what}: map_point_ids"),
+            "velocity": _check(self.velocity, (3,), np.float64, f"{what}: velocity"),
+            "bias_gyro": _check(self.bias_gyro, (3,), np.float64, f"{what}: bias_gyro"),
+            "bias_accel": _check(self.bias_accel, (3,), np.float64, f"{what}: bias_accel"),
+        }
+        desc = np.asarray(self.descriptors)
+        if desc.shape != (n, 32) or desc.dtype != np.uint8:
+            raise AtlasError(f"{what}: descriptors must be ({n}, 32) uint8, got {desc.shape} "
+                             f"{desc.dtype}")  # fmt: skip
+        fields["descriptors"] = np.array(desc, copy=True)
+        R = fields["T_world_body"][:3, :3]
+        if not np.allclose(R.T @ R, np.eye(3), atol=1e-5):
+            raise AtlasError(f"{what}: T_world_body rotation is not orthonormal")
+        for name, value in fields.items():
+            value.setflags(write=False)
+            object.__setattr__(self, name, value)
+
+
+@dataclass(frozen=True, eq=False)
+class MapPointInput:
+    """A map point as the edge sends it: ``p_world (3,)`` metres in the agent's map frame,
+    ``observations (M, 2)`` int rows ``(keyframe_id, keypoint_index)`` of the same agent."""
+
+    agent_id: int
+    map_point_id: int
+    p_world: np.ndarray
+    observations: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), np.int64))
+
+    def __post_init__(self) -> None:
+        what = f"map point {self.agent_id}/{self.map_point_id}"
+        p = _check(self.p_world, (3,), np.float64, f"{what}: p_world")
+        obs = _check(np.asarray(self.observations).reshape(-1, 2), (None, 2), np.int64,
+                     f"{what}: observations")  # fmt: skip
+        for v in (p, obs):
+            v.setflags(write=False)
+        object.__setattr__(self, "p_world", p)
+        object.__setattr__(self, "observations", obs)
+
+
+@dataclass(frozen=True, eq=False)
+class KeyframeView:
+    """Read-only copy of one keyframe as the atlas holds it (pose in its map's frame).
+
+    ``map_point_keys (N,)`` global map point keys or -1; ``virtual (N,)`` marks observations
+    folded in by map backbone profiling (they have no real keypoint in this image).
+    """
+
+    key: int
+    agent_id: int
+    keyframe_id: int
+    map_id: int
+    timestamp: float
+    T_map_body: np.ndarray
+    velocity: np.ndarray
+    bias_gyro: np.ndarray
+    bias_accel: np.ndarray
+    keypoints: np.ndarray
+    levels: np.ndarray
+    descriptors: np.ndarray
+    word_ids: np.ndarray
+    map_point_keys: np.ndarray
+    virtual: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class MapPointView:
+    """Read-only copy of one map point: ``p_map (3,)`` in its map's frame, observations as
+    ``obs_keyframes (M,)`` keys with ``obs_indices (M,)`` keypoint indices."""
+
+    key: int
+    agent_id: int
+    map_point_id: int
+    map_id: int
+    p_map: np.ndarray
+    obs_keyframes: np.ndarray
+    obs_indices: np.ndarray
+    ref_kf: int
+
+
+@dataclass(frozen=True, eq=False)
+class AtlasState:
+    """Everything besides keyframes and map points needed to rebuild an atlas."""
+
+    map_of_agent: dict[int, int]
+    T_map_agent: dict[int, np.ndarray]
+    merges: tuple[MergeRecord, ...]
+    loops: tuple[LoopEdge, ...]
+    removed_keyframes: frozenset[int]
+    aliases: dict[int, int]
+
+
+@dataclass(frozen=True)
+class MergeRecord:
+    """One map merge: ``source_map`` absorbed into ``target_map`` with ``T_target_source``."""
+
+    target_map: int
+    source_map: int
+    T_target_source: np.ndarray
+    query_key: int
+    candidate_key: int
+    fused_points: int
+
+
+@dataclass(frozen=True)
+class LoopEdge:
+    """A verified loop / merge constraint: measured ``T_a_b`` between keyframe bodies."""
+
+    key_a: int
+    key_b: int
+    T_a_b: np.ndarray
+    inter_agent: bool
+
+
+@dataclass(frozen=True, eq=False)
+class AtlasSnapshot:
+    """Plain read-only arrays describing the atlas (for the dashboard and reports).
+
+    keyframe_keys (K,), keyframe_agent (K,), keyframe_map (K,), keyframe_timestamp (K,),
+    T_map_body (K, 4, 4); point_keys (P,), point_map (P,), p_map (P, 3);
+    covisibility (E, 2) keyframe keys with covisibility_weight (E,);
+    spanning_tree (T, 2) rows (child, parent); loops (L, 2) keyframe keys;
+    map_of_agent {agent: map}; T_map_agent {agent: (4, 4)}; merges tuple of MergeRecord.
+    """
+
+    keyframe_keys: np.ndarray
+    keyframe_agent: np.ndarray
+    keyframe_map: np.ndarray
+    keyframe_timestamp: np.ndarray
+    T_map_body: np.ndarray
+    point_keys: np.ndarray
+    point_map: np.ndarray
+    p_map: np.ndarray
+    covisibility: np.ndarray
+    covisibility_weight: np.ndarray
+    spanning_tree: np.ndarray
+    loops: np.ndarray
+    map_of_agent: dict[int, int]
+    T_map_agent: dict[int, np.ndarray]
+    merges: tuple[MergeRecord, ...]

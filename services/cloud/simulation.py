@@ -1,0 +1,199 @@
+"""A small synthetic world for the cloud's tests and benchmarks (like OpenVINS' simulator).
+
+Landmarks lie on the walls of a rectangular room; each has a random ORB-like descriptor and a
+visual word. Robots move with a gravity-aligned body (z up) and a forward-looking camera;
+keyframes see the landmarks in view (projected with the radial-tangential model, pixel noise),
+observed descriptors are the landmark's with a few bits flipped, and every keyframe also holds
+clutter features without map points. Each agent's map frame differs from the world by a known
+yaw + translation, exactly what the cloud must recover when it merges maps.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from common.calibration import CameraCalibration
+from common.geometry import inverse_T, make_T, transform_points
+from services.cloud.atlas import KeyframeInput, MapPointInput
+
+# Camera z = body x (forward), camera x = -body y, camera y = -body z.
+R_BODY_CAM = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+
+
+def default_camera() -> CameraCalibration:
+    """EuRoC-like 752×480 camera with radial-tangential distortion, forward-looking."""
+    return CameraCalibration(
+        width=752, height=480, fx=458.654, fy=457.296, cx=367.215, cy=248.375,
+        distortion=(-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05),
+        T_body_cam=make_T(R_BODY_CAM, [0.05, 0.0, 0.0]),
+    )  # fmt: skip
+
+
+def yaw_T(yaw: float, t: np.ndarray) -> np.ndarray:
+    """(4, 4) rotation about z by ``yaw`` rad followed by translation ``t (3,)``."""
+    c, s = np.cos(yaw), np.sin(yaw)
+    return make_T(np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]), t)
+
+
+@dataclass(frozen=True, eq=False)
+class World:
+    """Landmarks ``points (P, 3)`` world metres, ``descriptors (P, 32) uint8``, ``words (P,)``;
+    ``n_words`` vocabulary size and ``idf (n_words,)``."""
+
+    points: np.ndarray
+    descriptors: np.ndarray
+    words: np.ndarray
+    n_words: int
+    idf: np.ndarray
+
+
+def make_world(
+    seed: int = 0, n_points: int = 4000, size: float = 12.0, n_words: int = 20000
+) -> World:
+    """Landmarks on the four walls (height 0–3 m) of a ``size`` × ``size`` room centred at 0."""
+    rng = np.random.default_rng(seed)
+    half = size / 2
+    side = rng.integers(0, 4, n_points)
+    along = rng.uniform(-half, half, n_points)
+    z = rng.uniform(0.0, 3.0, n_points)
+    x = np.where(side == 0, half, np.where(side == 1, -half, along))
+    y = np.where(side == 2, half, np.where(side == 3, -half, along))
+    pts = np.stack([x, y, z], axis=1)
+    desc = rng.integers(0, 256, (n_points, 32), dtype=np.uint8)
+    words = rng.integers(0, n_words, n_points).astype(np.int32)
+    idf = np.log(n_words / 10.0) * np.ones(n_words)
+    return World(pts, desc, words, n_words, idf)
+
+
+def circle_poses(n: int, radius: float = 2.0, height: float = 1.5, turns: float = 1.0,
+                 phase: float = 0.0) -> np.ndarray:  # fmt: skip
+    """(n, 4, 4) T_world_body on a circle, looking outwards (yaw = position angle)."""
+    ang = phase + np.linspace(0.0, 2 * np.pi * turns, n, endpoint=False)
+    return np.stack([yaw_T(a, [radius * np.cos(a), radius * np.sin(a), height]) for a in ang])
+
+
+def observe(
+    world: World,
+    cam: CameraCalibration,
+    T_world_body: np.ndarray,
+    rng: np.random.Generator,
+    pixel_noise: float = 0.5,
+    flip_bits: int = 4,
+    n_clutter: int = 100,
+    max_range: float = 12.0,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """What a keyframe at ``T_world_body`` sees: (keypoints (N, 2) distorted px, levels (N,),
+    descriptors (N, 32), words (N,), landmark index (N,) or -1 for clutter)."""
+    T_cam_world = inverse_T(T_world_body @ cam.T_body_cam)
+    p_cam = transform_points(T_cam_world, world.points)
+    front = (p_cam[:, 2] > 0.3) & (np.linalg.norm(p_cam, axis=1) < max_range)
+    idx = np.flatnonzero(front)
+    uv, _ = cv2.projectPoints(p_cam[idx], np.zeros(3), np.zeros(3), cam.K, cam.dist_coeffs)
+    uv = uv.reshape(-1, 2)
+    # Undistorted normalised coordinates must be in a sane range for the model to hold.
+    xn = p_cam[idx, :2] / p_cam[idx, 2:3]
+    inside = (
+        (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
+        & (np.abs(xn[:, 0]) < 1.0) & (np.abs(xn[:, 1]) < 0.8)
+    )  # fmt: skip
+    idx, uv = idx[inside], uv[inside] + rng.normal(0.0, pixel_noise, (int(inside.sum()), 2))
+    desc = world.descriptors[idx].copy()
+    bits = np.unpackbits(desc, axis=1)
+    for row in range(bits.shape[0]):
+        bits[row, rng.choice(256, flip_bits, replace=False)] ^= 1
+    desc = np.packbits(bits, axis=1)
+    words = world.words[idx]
+    c_uv = rng.uniform([0, 0], [cam.width, cam.height], (n_clutter, 2))
+    c_desc = rng.integers(0, 256, (n_clutter, 32), dtype=np.uint8)
+    c_words = rng.integers(0, world.n_words, n_clutter).astype(np.int32)
+    kps = np.concatenate([uv, c_uv])
+    levels = rng.integers(0, 3, kps.shape[0]).astype(np.int16)
+    return (
+        kps,
+        levels,
+        np.concatenate([desc, c_desc]),
+        np.concatenate([words, c_words]),
+        np.concatenate([idx, np.full(n_clutter, -1)]),
+    )
+
+
+def make_session(
+    world: World,
+    cam: CameraCalibration,
+    agent_id: int,
+    T_world_body: np.ndarray,
+    T_agent_world: np.ndarray,
+    seed: int = 0,
+    dt: float = 0.5,
+    point_noise: float = 0.0,
+    drift_T: np.ndarray | None = None,
+    keyframe_id0: int = 0,
+    t0: float = 0.0,
+    track_gap: int = 3,
+) -> tuple[list[KeyframeInput], list[MapPointInput]]:
+    """Keyframes and map points of one agent flying ``T_world_body (K, 4, 4)``, expressed in
+    the agent's map frame ``T_agent_world``.
+
+    As in a real odometry front end, a landmark keeps its map point only while it is tracked:
+    unseen for more than ``track_gap`` keyframes, it gets a new map point when seen again, so
+    a revisit is *not* already closed in the map. ``landmark_of_point`` is returned implicitly
+    nowhere: tests compare geometry, not ids.
+
+    drift_T (4, 4): per-keyframe odometry error composed onto the estimated poses (the
+    estimate of keyframe i is the truth with i-fold accumulated drift); None = no drift.
+    """
+    rng = np.random.default_rng(seed)
+    kfs: list[KeyframeInput] = []
+    obs: dict[int, list[tuple[int, int]]] = {}
+    T_est = None
+    last_seen: dict[int, int] = {}
+    current: dict[int, int] = {}
+    landmark: dict[int, int] = {}
+    next_id = [0]
+    for i, T in enumerate(T_world_body):
+        kps, lv, desc, words, lm = observe(world, cam, T, rng)
+        kid = keyframe_id0 + i
+        if drift_T is None or T_est is None:
+            T_est = T_agent_world @ T
+        else:
+            T_rel = inverse_T(T_world_body[i - 1]) @ T
+            T_est = T_est @ T_rel @ drift_T
+        mp_ids = np.full(lm.shape[0], -1, np.int64)
+        for j in np.flatnonzero(lm >= 0):
+            L = int(lm[j])
+            if L not in last_seen or i - last_seen[L] > track_gap:
+                current[L] = next_id[0]
+                landmark[next_id[0]] = L
+                next_id[0] += 1
+            last_seen[L] = i
+            mp_ids[j] = current[L]
+            obs.setdefault(current[L], []).append((kid, int(j)))
+        kfs.append(
+            KeyframeInput(
+                agent_id=agent_id, keyframe_id=kid, timestamp=t0 + i * dt, T_world_body=T_est,
+                keypoints=kps, levels=lv, descriptors=desc, word_ids=words, map_point_ids=mp_ids,
+            )
+        )  # fmt: skip
+    mps = []
+    for mp_id, o in sorted(obs.items()):
+        if len(o) < 2:
+            continue
+        p = transform_points(T_agent_world, world.points[landmark[mp_id]])[0]
+        p = p + rng.normal(0.0, point_noise, 3) if point_noise > 0 else p
+        mps.append(MapPointInput(agent_id, mp_id, p, np.array(o, np.int64)))
+    # Keypoints whose landmark has fewer than two observations carry no map point.
+    kept = {m.map_point_id for m in mps}
+    out = []
+    for k in kfs:
+        ids = np.array([i if i in kept else -1 for i in k.map_point_ids.tolist()], np.int64)
+        out.append(
+            KeyframeInput(
+                agent_id=k.agent_id, keyframe_id=k.keyframe_id, timestamp=k.timestamp,
+                T_world_body=k.T_world_body, keypoints=k.keypoints, levels=k.levels,
+                descriptors=k.descriptors, word_ids=k.word_ids, map_point_ids=ids,
+            )
+        )  # fmt: skip
+    return out, mps

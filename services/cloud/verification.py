@@ -1,0 +1,240 @@
+"""Geometric verification of a place-recognition candidate (strict: no false merge).
+
+1. Word-guided matching (DBoW2 direct index / ORB-SLAM ``SearchByBoW``): a query keypoint is
+   matched only to candidate keypoints with a map point that share its word (or its vocabulary
+   ancestor at a chosen level), Hamming ≤ ``max_hamming``, best/second ratio test, one-to-one.
+2. Robust 3D–2D pose: the candidate's map points against the query's distorted keypoints with
+   pycolmap's LO-RANSAC P3P + non-linear refinement on the OPENCV camera model.
+3. Guided expansion (ORB-SLAM ``SearchByProjection``): the map points of the candidate's
+   covisible keyframes are projected with that pose, matched within a radius, and the pose is
+   re-estimated on all matches; the final inlier count must reach ``min_inliers``.
+4. Sanity checks: the map-to-map rotation of gravity-aligned maps must be (almost) a yaw, and
+   where the query keypoints have their own map points, the inlier pairs must agree in 3D.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+import pycolmap
+from scipy.spatial import cKDTree
+
+from common.calibration import CameraCalibration
+from common.errors import RecslamError
+from common.geometry import inverse_T, transform_points
+from services.cloud.atlas import Atlas
+from services.cloud.config import VerificationConfig
+
+log = logging.getLogger(__name__)
+
+
+class VerificationError(RecslamError):
+    """Bad inputs to geometric verification (not a rejected candidate, which is a result)."""
+
+
+@dataclass(frozen=True, eq=False)
+class VerificationResult:
+    """Outcome of verifying ``candidate_key`` for ``query_key``.
+
+    accepted: the match passed every test; reason: why not (or "ok").
+    T_cmap_qmap (4, 4): query map frame -> candidate map frame (6-DoF, from the pose).
+    T_cbody_qbody (4, 4): relative pose of the query body in the candidate body frame.
+    n_inliers / inlier_ratio: of the final pose; point_pairs (K, 2) int64 rows
+    (query map point key, candidate-side map point key) of inlier 3D–3D pairs;
+    matches (M, 2): inlier (query keypoint index, candidate-side map point key).
+    """
+
+    query_key: int
+    candidate_key: int
+    accepted: bool
+    reason: str
+    T_cmap_qmap: np.ndarray
+    T_cbody_qbody: np.ndarray
+    n_inliers: int
+    inlier_ratio: float
+    point_pairs: np.ndarray
+    matches: np.ndarray
+
+
+def colmap_camera(cam: CameraCalibration) -> pycolmap.Camera:
+    """pycolmap OPENCV camera (fx, fy, cx, cy, k1, k2, p1, p2) of a calibration."""
+    k1, k2, p1, p2 = cam.distortion
+    return pycolmap.Camera(
+        model="OPENCV", width=cam.width, height=cam.height,
+        params=[cam.fx, cam.fy, cam.cx, cam.cy, k1, k2, p1, p2],
+    )  # fmt: skip
+
+
+def hamming(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Hamming distances ``(N, M) int32`` between descriptor sets ``(N, 32)`` and ``(M, 32)``."""
+    a64 = np.ascontiguousarray(a, dtype=np.uint8).view(np.uint64)
+    b64 = np.ascontiguousarray(b, dtype=np.uint8).view(np.uint64)
+    return np.bitwise_count(a64[:, None, :] ^ b64[None, :, :]).sum(axis=2, dtype=np.int32)
+
+
+def match_by_words(
+    desc_a: np.ndarray,
+    group_a: np.ndarray,
+    desc_b: np.ndarray,
+    group_b: np.ndarray,
+    max_hamming: int,
+    ratio: float,
+) -> np.ndarray:
+    """One-to-one matches ``(K, 2)`` (index in a, index in b) between descriptors sharing a
+    group id (word or vocabulary node), with distance ≤ ``max_hamming`` and the ratio test
+    against the second-best candidate of the same group."""
+    if desc_a.shape[0] == 0 or desc_b.shape[0] == 0:
+        return np.zeros((0, 2), np.int64)
+    big = 1 << 16
+    D = hamming(desc_a, desc_b)
+    D[np.asarray(group_a)[:, None] != np.asarray(group_b)[None, :]] = big
+    if D.shape[1] == 1:
+        best, d1, d2 = np.zeros(D.shape[0], np.int64), D[:, 0], np.full(D.shape[0], big)
+    else:
+        part = np.argpartition(D, 1, axis=1)[:, :2]
+        rows = np.arange(D.shape[0])
+        d_two = D[rows[:, None], part]
+        first = np.argmin(d_two, axis=1)
+        best = part[rows, first]
+        d1 = d_two[rows, first]
+        d2 = d_two[rows, 1 - first]
+    ok = (d1 <= max_hamming) & ((d2 >= big) | (d1 < ratio * d2))
+    a_idx = np.flatnonzero(ok)
+    b_idx = best[a_idx]
+    # One-to-one: for each b keep the a with the smallest distance.
+    order = np.lexsort((d1[a_idx], b_idx))
+    a_idx, b_idx = a_idx[order], b_idx[order]
+    first_of_b = np.ones(b_idx.size, bool)
+    first_of_b[1:] = b_idx[1:] != b_idx[:-1]
+    return np.stack([a_idx[first_of_b], b_idx[first_of_b]], axis=1).astype(np.int64)
+
+
+def _pose(uv: np.ndarray, p: np.ndarray, camera: pycolmap.Camera, cfg: VerificationConfig):
+    opts = pycolmap.AbsolutePoseEstimationOptions()
+    opts.ransac.max_error = cfg.reprojection_px
+    opts.ransac.random_seed = cfg.seed
+    opts.ransac.min_inlier_ratio = 0.05
+    res = pycolmap.estimate_and_refine_absolute_pose(uv, p, camera, opts)
+    if res is None:
+        return None, None
+    T = np.eye(4)
+    T[:3, :] = res["cam_from_world"].matrix()
+    return T, np.asarray(res["inlier_mask"], bool)
+
+
+def _reject(q: int, c: int, reason: str, n: int = 0, ratio: float = 0.0) -> VerificationResult:
+    log.debug("candidate %d for %d rejected: %s", c, q, reason)
+    eye = np.eye(4)
+    empty = np.zeros((0, 2), np.int64)
+    return VerificationResult(q, c, False, reason, eye, eye, n, ratio, empty, empty)
+
+
+def verify_candidate(
+    atlas: Atlas,
+    query_key: int,
+    candidate_key: int,
+    camera: CameraCalibration,
+    config: VerificationConfig,
+    word_group: np.ndarray | None = None,
+) -> VerificationResult:
+    """Verify ``candidate_key`` for ``query_key``. ``word_group (S,)`` optionally maps each
+    word to the id of the vocabulary node whose members may match (e.g.
+    ``Vocabulary.ancestor_at_level(np.arange(S), level)``); None = same word only."""
+    cfg = config
+    Q = atlas.keyframe(query_key)
+    C = atlas.keyframe(candidate_key)
+    col_cam = colmap_camera(camera)
+    qi = np.flatnonzero(~Q.virtual)
+    ci = np.flatnonzero(C.map_point_keys >= 0)
+
+    def grp(words: np.ndarray) -> np.ndarray:
+        return words if word_group is None else np.asarray(word_group)[words]
+
+    m = match_by_words(
+        Q.descriptors[qi], grp(Q.word_ids[qi]), C.descriptors[ci], grp(C.word_ids[ci]),
+        cfg.max_hamming, cfg.ratio,
+    )  # fmt: skip
+    n_put = m.shape[0]
+    if n_put < cfg.min_initial_matches:
+        return _reject(query_key, candidate_key, f"{n_put} word matches", n_put)
+    q_idx = qi[m[:, 0]]
+    mp_keys = C.map_point_keys[ci[m[:, 1]]]
+    T_cam_cmap, inl = _pose(Q.keypoints[q_idx], atlas.map_point_positions(mp_keys), col_cam, cfg)
+    if T_cam_cmap is None:
+        return _reject(query_key, candidate_key, "no 3D-2D pose")
+    ratio = float(inl.sum()) / n_put
+    if ratio < cfg.min_inlier_ratio or inl.sum() < cfg.min_initial_matches:
+        return _reject(query_key, candidate_key, f"initial inliers {inl.sum()}/{n_put}",
+                       int(inl.sum()), ratio)  # fmt: skip
+
+    # Guided expansion with the map points of the candidate's covisible group.
+    group = [candidate_key, *atlas.best_covisible(candidate_key, cfg.covisible_expansion)]
+    keys = set()
+    for g in group:
+        mk = atlas.keyframe(g).map_point_keys
+        keys.update(mk[mk >= 0].tolist())
+    keys_arr = np.array(sorted(keys), np.int64)
+    P = atlas.map_point_positions(keys_arr)
+    p_cam = transform_points(T_cam_cmap, P)
+    front = p_cam[:, 2] > 0.1
+    keys_arr, P, p_cam = keys_arr[front], P[front], p_cam[front]
+    uv = col_cam.img_from_cam(p_cam)
+    inside = (
+        (uv[:, 0] >= 0) & (uv[:, 0] < camera.width) & (uv[:, 1] >= 0) & (uv[:, 1] < camera.height)
+    )
+    keys_arr, P, uv = keys_arr[inside], P[inside], uv[inside]
+    tree = cKDTree(Q.keypoints[qi])
+    pairs: dict[int, tuple[int, int]] = {}  # query keypoint -> (distance, point row)
+    for row, near in enumerate(tree.query_ball_point(uv, cfg.projection_radius_px)):
+        if not near:
+            continue
+        d = hamming(atlas.map_point_descriptor(int(keys_arr[row]))[None], Q.descriptors[qi[near]])[
+            0
+        ]
+        j = int(np.argmin(d))
+        if d[j] <= cfg.max_hamming:
+            qk = int(qi[near[j]])
+            if qk not in pairs or d[j] < pairs[qk][0]:
+                pairs[qk] = (int(d[j]), row)
+    if len(pairs) < cfg.min_inliers:
+        return _reject(query_key, candidate_key, f"{len(pairs)} projected matches", len(pairs))
+    q_idx = np.array(sorted(pairs), np.int64)
+    rows = np.array([pairs[k][1] for k in q_idx.tolist()], np.int64)
+    T_cam_cmap, inl = _pose(Q.keypoints[q_idx], P[rows], col_cam, cfg)
+    if T_cam_cmap is None:
+        return _reject(query_key, candidate_key, "no refined pose")
+    n_inl = int(inl.sum())
+    ratio = n_inl / len(q_idx)
+    if n_inl < cfg.min_inliers or ratio < cfg.min_inlier_ratio:
+        return _reject(
+            query_key, candidate_key, f"final inliers {n_inl}/{len(q_idx)}", n_inl, ratio
+        )
+
+    T_cmap_qbody = inverse_T(T_cam_cmap) @ inverse_T(np.asarray(camera.T_body_cam))
+    T_cmap_qmap = T_cmap_qbody @ inverse_T(Q.T_map_body)
+    T_cbody_qbody = inverse_T(C.T_map_body) @ T_cmap_qbody
+    if cfg.max_tilt_deg is not None:
+        z = T_cmap_qmap[:3, :3] @ np.array([0.0, 0.0, 1.0])
+        tilt = float(np.degrees(np.arccos(np.clip(z[2], -1.0, 1.0))))
+        if tilt > cfg.max_tilt_deg:
+            return _reject(query_key, candidate_key, f"tilt {tilt:.1f} deg", n_inl, ratio)
+    inl_q = q_idx[inl]
+    inl_keys = keys_arr[rows[inl]]
+    q_mp = Q.map_point_keys[inl_q]
+    has = q_mp >= 0
+    point_pairs = np.stack([q_mp[has], inl_keys[has]], axis=1).astype(np.int64)
+    if has.sum() >= 5:
+        p_q = transform_points(T_cmap_qmap, atlas.map_point_positions(point_pairs[:, 0]))
+        dist = np.linalg.norm(p_q - atlas.map_point_positions(point_pairs[:, 1]), axis=1)
+        agree = dist < cfg.agreement_distance_m
+        if agree.mean() < cfg.min_3d3d_agreement:
+            return _reject(
+                query_key, candidate_key, f"3D agreement {agree.mean():.2f}", n_inl, ratio
+            )
+        point_pairs = point_pairs[agree]
+    return VerificationResult(
+        query_key, candidate_key, True, "ok", T_cmap_qmap, T_cbody_qbody, n_inl, ratio,
+        point_pairs, np.stack([inl_q, inl_keys], axis=1).astype(np.int64),
+    )  # fmt: skip
