@@ -1,0 +1,263 @@
+"""The asyncio transport on real loopback TCP: delivery, auth, hostility, limits, TLS."""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import shutil
+import ssl
+import subprocess
+
+import pytest
+
+from common.protocol import Blob, OutboxFullError, SessionConfig
+from common.protocol.framing import encode_frame
+from common.protocol.messages import encode_payload
+from common.transport import Client, Delivery, Server, TransportConfig, run
+
+SECRET = b"transport-test-secret-0123"
+FAST = TransportConfig(reconnect_initial_delay=0.01, reconnect_max_delay=0.2)
+
+
+def scfg(agent: str = "edge-0", role: str = "edge", **kw) -> SessionConfig:
+    return SessionConfig(role=role, agent_id=agent, secret=kw.pop("secret", SECRET), **kw)
+
+
+class Sink:
+    """Collects deliveries; optional failure injection."""
+
+    def __init__(self) -> None:
+        self.items: list[Delivery] = []
+        self.fail_once_at: int | None = None
+        self.changed = asyncio.Event()
+
+    async def __call__(self, d: Delivery) -> None:
+        if self.fail_once_at is not None and d.message.channel == self.fail_once_at:
+            self.fail_once_at = None
+            raise RuntimeError("injected handler failure")
+        self.items.append(d)
+        self.changed.set()
+
+    async def wait_for(self, n: int, timeout: float = 10.0) -> None:
+        async def loop() -> None:
+            while len(self.items) < n:
+                self.changed.clear()
+                await self.changed.wait()
+
+        await asyncio.wait_for(loop(), timeout)
+
+
+async def _pair(server_kw=None, client_kw=None, ccfg=None):
+    server_sink, client_sink = Sink(), Sink()
+    server = Server(scfg(), server_sink, transport=FAST, **(server_kw or {}))
+    host, port = await server.start()
+    client = Client(
+        ccfg or scfg("robot-1", "robot"),
+        client_sink,
+        host,
+        port,
+        transport=FAST,
+        **(client_kw or {}),
+    )
+    await client.start()
+    return server, server_sink, client, client_sink
+
+
+def test_both_directions_in_order_and_counters():
+    async def main():
+        server, ssink, client, csink = await _pair()
+        try:
+            for i in range(200):
+                await client.send(Blob(i, bytes(i)))
+            await client.flush()
+            await asyncio.wait_for(client.wait_connected(), 5)
+            for i in range(50):
+                await server.send("robot-1", Blob(i, b"down"))
+            await server.peer("robot-1").flush()
+            await csink.wait_for(50)
+            assert [d.message.channel for d in ssink.items] == list(range(200))
+            assert [d.seq for d in ssink.items] == list(range(1, 201))
+            assert {d.peer for d in ssink.items} == {"robot-1"}
+            assert [d.message.channel for d in csink.items] == list(range(50))
+            assert csink.items[0].peer == "edge-0" and csink.items[0].role == "edge"
+            cc, sc = client.counters(), server.counters()["robot-1"]
+            assert cc["tx"]["by_type"]["Blob"]["messages"] == 200
+            assert sc["rx"]["by_type"]["Blob"]["bytes"] == cc["tx"]["by_type"]["Blob"]["bytes"]
+            assert cc["outbox_messages"] == 0 and cc["connected"]
+        finally:
+            await client.close()
+            await server.close()
+
+    run(main())
+
+
+def test_wrong_secret_is_refused_and_server_keeps_serving(caplog):
+    async def main():
+        server, ssink, good, _ = await _pair()
+        bad = Client(
+            scfg("mallory", "robot", secret=b"not-the-secret-at-all"),
+            Sink(),
+            *server.address,
+            transport=FAST,
+        )
+        await bad.start()
+        try:
+            await good.send(Blob(1, b"before"))
+            await asyncio.sleep(0.3)  # the impostor tries (and retries) meanwhile
+            await good.send(Blob(2, b"after"))
+            await good.flush()
+            assert [d.message.channel for d in ssink.items] == [1, 2]
+            assert "mallory" not in server.peers
+            assert not bad.peer.connected and bad.connections >= 2
+        finally:
+            await bad.close()
+            await good.close()
+            await server.close()
+
+    with caplog.at_level(logging.INFO):
+        run(main())
+    assert "failed authentication" in caplog.text
+
+
+@pytest.mark.parametrize(
+    "garbage",
+    [
+        b"GET / HTTP/1.1\r\nHost: x\r\n\r\n",  # bad magic
+        encode_frame(0x100, encode_payload(Blob(0, b"x")), seq=1),  # unauthenticated app frame
+        encode_frame(0x0001, b"\x93\x01\x02"),  # malformed Hello
+        encode_frame(0x4242, b""),  # unknown type
+        encode_frame(0x0001, b"\x90")[:-3] + b"\xff\xff\xff",  # bad CRC
+        b"RS\x01\x00\x00\x01" + b"\0" * 8 + b"\xff\xff\xff\xff" + b"\0" * 4,  # oversized
+    ],
+)
+def test_hostile_connection_closed_alone(garbage, caplog):
+    async def main():
+        server, ssink, client, _ = await _pair()
+        try:
+            await client.wait_connected(5)
+            reader, writer = await asyncio.open_connection(*server.address)
+            writer.write(garbage)
+            await writer.drain()
+            rest = await asyncio.wait_for(reader.read(), 5)  # server closes us (maybe a Close)
+            assert rest == b"" or rest[:2] == b"RS"
+            writer.close()
+            await client.send(Blob(9, b"still fine"))
+            await client.flush()
+            assert [d.message.channel for d in ssink.items] == [9]
+            assert client.peer.connected
+        finally:
+            await client.close()
+            await server.close()
+
+    with caplog.at_level(logging.WARNING):
+        run(main())
+    assert "unauthenticated" in caplog.text and "closed" in caplog.text
+
+
+def test_max_peers_and_accept_roles():
+    async def main():
+        server = Server(
+            scfg(),
+            Sink(),
+            transport=TransportConfig(max_peers=1, accept_roles=("robot",)),
+        )
+        host, port = await server.start()
+        one = Client(scfg("r1", "robot"), Sink(), host, port, transport=FAST)
+        two = Client(scfg("r2", "robot"), Sink(), host, port, transport=FAST)
+        cloud = Client(scfg("c", "cloud"), Sink(), host, port, transport=FAST)
+        try:
+            await one.start()
+            await one.wait_connected(5)
+            await two.start()
+            await asyncio.sleep(0.3)
+            assert not two.peer.connected and two.connections >= 1
+            await one.close()
+            await two.wait_connected(5)  # room again: r2 joins
+            await two.close()
+            await cloud.start()
+            await asyncio.sleep(0.3)
+            assert not cloud.peer.connected and "c" not in server.peers
+        finally:
+            await cloud.close()
+            await server.close()
+
+    run(main())
+
+
+def test_failed_handler_is_not_acked_and_message_is_redelivered():
+    async def main():
+        server, ssink, client, _ = await _pair()
+        ssink.fail_once_at = 3
+        try:
+            for i in range(6):
+                await client.send(Blob(i, b"m"))
+            await client.flush()
+            assert [d.message.channel for d in ssink.items] == list(range(6))
+            assert client.connections >= 2  # the failure dropped the connection once
+        finally:
+            await client.close()
+            await server.close()
+
+    run(main())
+
+
+def test_send_waits_while_outbox_full_and_disconnected():
+    async def main():
+        sink = Sink()
+        server = Server(scfg(), sink, transport=FAST)
+        host, port = await server.start()
+        await server.close()  # nobody listening: the client cannot deliver
+        client = Client(
+            scfg("r", "robot", max_outbox_messages=3), Sink(), host, port, transport=FAST
+        )
+        await client.start()
+        try:
+            for i in range(3):
+                await client.send(Blob(i, b"q"))
+            with pytest.raises(OutboxFullError):
+                client.peer.send_nowait(Blob(99, b"q"))
+            blocked = asyncio.create_task(client.send(Blob(3, b"q")))
+            await asyncio.sleep(0.2)
+            assert not blocked.done()  # backpressure, not a drop
+            server2 = Server(scfg(), sink, transport=FAST)
+            await server2.start(host, port)
+            try:
+                assert await asyncio.wait_for(blocked, 10) == 4
+                await client.flush()
+                assert [d.message.channel for d in sink.items] == [0, 1, 2, 3]
+            finally:
+                await client.close()
+                await server2.close()
+        finally:
+            await client.close()
+
+    run(main())
+
+
+@pytest.mark.skipif(shutil.which("openssl") is None, reason="openssl CLI not installed")
+def test_tls_link(tmp_path):
+    key, cert = tmp_path / "key.pem", tmp_path / "cert.pem"
+    subprocess.run(
+        ["openssl", "req", "-x509", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:prime256v1",
+         "-nodes", "-keyout", str(key), "-out", str(cert), "-days", "1", "-subj", "/CN=localhost",
+         "-addext", "subjectAltName=DNS:localhost"],
+        check=True, capture_output=True,
+    )  # fmt: skip
+    server_ctx = ssl.create_default_context(ssl.Purpose.CLIENT_AUTH)
+    server_ctx.load_cert_chain(cert, key)
+    client_ctx = ssl.create_default_context(cafile=str(cert))
+
+    async def main():
+        server, ssink, client, _ = await _pair(
+            server_kw={"ssl": server_ctx},
+            client_kw={"ssl": client_ctx, "server_hostname": "localhost"},
+        )
+        try:
+            await client.send(Blob(1, b"secret payload" * 100))
+            await client.flush()
+            assert ssink.items[0].message.data == b"secret payload" * 100
+        finally:
+            await client.close()
+            await server.close()
+
+    run(main())
