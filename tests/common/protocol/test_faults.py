@@ -103,11 +103,15 @@ def test_exactly_once_in_order_across_100_cuts():
 
         async def chaos():
             cut_rng = random.Random(13)
+            loop = asyncio.get_running_loop()
             while not (up_rec.done.is_set() and down_rec.done.is_set()):
+                # cut after 5..40 more deliveries, or after 50..150 ms, whichever comes first
                 mark = len(up_rec.channels) + len(down_rec.channels)
                 step = cut_rng.randint(5, 40)
+                deadline = loop.time() + cut_rng.uniform(0.05, 0.15)
                 while (
                     len(up_rec.channels) + len(down_rec.channels) < mark + step
+                    and loop.time() < deadline
                     and not up_rec.done.is_set()
                 ):
                     await asyncio.sleep(0.005)
