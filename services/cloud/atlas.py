@@ -411,6 +411,16 @@ class Atlas:
         log.info("merged map %d into %d", source_map, target_map)
         return rec
 
+    def record_fused_points(self, n: int) -> MergeRecord:
+        """Store how many points the last merge fused (set by the merge step)."""
+        if not self._merges:
+            raise AtlasError("no merge to annotate")
+        m = self._merges[-1]
+        self._merges[-1] = MergeRecord(
+            m.target_map, m.source_map, m.T_target_source, m.query_key, m.candidate_key, n
+        )
+        return self._merges[-1]
+
     def fuse_map_points(self, keep_key: int, drop_key: int) -> None:
         """Move every observation of ``drop_key`` onto ``keep_key`` and delete ``drop_key``.
 

@@ -101,10 +101,11 @@ def observe(
     )  # fmt: skip
     idx, uv = idx[inside], uv[inside] + rng.normal(0.0, pixel_noise, (int(inside.sum()), 2))
     desc = world.descriptors[idx].copy()
-    bits = np.unpackbits(desc, axis=1)
-    for row in range(bits.shape[0]):
-        bits[row, rng.choice(256, flip_bits, replace=False)] ^= 1
-    desc = np.packbits(bits, axis=1)
+    if flip_bits > 0 and desc.shape[0]:
+        bits = np.unpackbits(desc, axis=1)
+        flip = np.argpartition(rng.random((desc.shape[0], 256)), flip_bits, axis=1)[:, :flip_bits]
+        bits[np.arange(desc.shape[0])[:, None], flip] ^= 1
+        desc = np.packbits(bits, axis=1)
     words = world.words[idx]
     c_uv = rng.uniform([0, 0], [cam.width, cam.height], (n_clutter, 2))
     c_desc = rng.integers(0, 256, (n_clutter, 32), dtype=np.uint8)

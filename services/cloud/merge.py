@@ -1,0 +1,172 @@
+"""Map merging and loop bookkeeping after a verified place-recognition match.
+
+Between two maps, the transform of the query's map into the candidate's map is estimated from
+the verified 3D–3D point pairs in closed form — 4-DoF (yaw about gravity + translation, the
+default for gravity-aligned visual-inertial maps), 6-DoF (Umeyama 1991 without scale) or Sim(3)
+(with scale) — with one pass of residual-based outlier removal; with too few pairs the verified
+6-DoF pose is projected onto the chosen degrees of freedom. The query's map is re-expressed
+in the candidate's frame, duplicate map points are fused (the verified pairs, then any point
+within ``fuse_distance_m`` whose descriptor agrees), and the relative pose of the two
+keyframes is recorded as a loop constraint for the global optimisation.
+
+Within one map the match only adds the loop constraint; the pose graph corrects the drift.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from common.errors import RecslamError
+from common.geometry import make_T, transform_points
+from services.cloud.atlas import Atlas, LoopEdge, MergeRecord
+from services.cloud.config import AlignmentMode, MergeConfig
+from services.cloud.verification import VerificationResult, hamming
+
+log = logging.getLogger(__name__)
+
+
+class MergeError(RecslamError):
+    """Too few correspondences or a misuse (merging an unverified match)."""
+
+
+def yaw_of(R: np.ndarray) -> float:
+    """Heading (rotation about z) of a rotation matrix, rad."""
+    return float(np.arctan2(R[1, 0], R[0, 0]))
+
+
+def _rot_z(yaw: float) -> np.ndarray:
+    c, s = np.cos(yaw), np.sin(yaw)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def align_points(p_src: np.ndarray, p_tgt: np.ndarray, mode: AlignmentMode) -> np.ndarray:
+    """Least-squares ``T_tgt_src (4, 4)`` with ``p_tgt ≈ T @ p_src`` for point pairs (N, 3).
+
+    YAW_TRANSLATION: rotation about z only (closed form); SE3 / SIM3: Umeyama (1991)."""
+    src = np.asarray(p_src, dtype=np.float64).reshape(-1, 3)
+    tgt = np.asarray(p_tgt, dtype=np.float64).reshape(-1, 3)
+    if src.shape != tgt.shape or src.shape[0] < 3:
+        raise MergeError(f"need >= 3 point pairs of equal count, got {src.shape} / {tgt.shape}")
+    cs, ct = src.mean(0), tgt.mean(0)
+    a, b = src - cs, tgt - ct
+    if mode is AlignmentMode.YAW_TRANSLATION:
+        yaw = np.arctan2(np.sum(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]),
+                         np.sum(a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1]))  # fmt: skip
+        R = _rot_z(float(yaw))
+        return make_T(R, ct - R @ cs)
+    U, S, Vt = np.linalg.svd(b.T @ a / src.shape[0])
+    D = np.eye(3)
+    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
+        D[2, 2] = -1.0
+    R = U @ D @ Vt
+    s = 1.0
+    if mode is AlignmentMode.SIM3:
+        s = float(np.trace(np.diag(S) @ D) / (a**2).sum(axis=1).mean())
+    T = np.eye(4)
+    T[:3, :3] = s * R
+    T[:3, 3] = ct - s * R @ cs
+    return T
+
+
+def project_transform(T: np.ndarray, mode: AlignmentMode) -> np.ndarray:
+    """Keep only the degrees of freedom of ``mode`` of a rigid ``T (4, 4)``."""
+    if mode is AlignmentMode.YAW_TRANSLATION:
+        return make_T(_rot_z(yaw_of(T[:3, :3])), T[:3, 3])
+    return np.array(T, dtype=np.float64)
+
+
+def robust_align(
+    p_src: np.ndarray, p_tgt: np.ndarray, mode: AlignmentMode, min_residual: float = 0.02
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`align_points`, then again on pairs within ``max(3 × median, min_residual)``.
+    Returns ``(T_tgt_src, inlier mask (N,))``."""
+    T = align_points(p_src, p_tgt, mode)
+    r = np.linalg.norm(transform_points(T, p_src) - p_tgt, axis=1)
+    keep = r <= max(3.0 * float(np.median(r)), min_residual)
+    if keep.sum() >= 3 and not keep.all():
+        T = align_points(p_src[keep], p_tgt[keep], mode)
+    return T, keep
+
+
+@dataclass(frozen=True)
+class MatchOutcome:
+    """What :func:`apply_match` did: the loop edge added, and the merge if maps differed."""
+
+    loop: LoopEdge
+    merge: MergeRecord | None
+    fused_points: int
+
+
+def fuse_duplicates(
+    atlas: Atlas,
+    map_id: int,
+    source_points: list[int],
+    distance_m: float,
+    max_hamming: int,
+) -> int:
+    """Fuse each of ``source_points`` into the nearest other point of ``map_id`` within
+    ``distance_m`` whose descriptor is within ``max_hamming``; returns how many were fused."""
+    src = [k for k in source_points if atlas.has_map_point(k)]
+    src_set = set(src)
+    others = [k for k in atlas.map_point_keys(map_id) if k not in src_set]
+    if not src or not others:
+        return 0
+    P_o = atlas.map_point_positions(np.array(others))
+    tree = cKDTree(P_o)
+    dist, idx = tree.query(
+        atlas.map_point_positions(np.array(src)), distance_upper_bound=distance_m
+    )
+    fused = 0
+    for k, d, j in zip(src, dist, idx, strict=True):
+        if not np.isfinite(d):
+            continue
+        keep = others[int(j)]
+        if not (atlas.has_map_point(keep) and atlas.has_map_point(k)):
+            continue
+        hd = hamming(atlas.map_point_descriptor(keep)[None], atlas.map_point_descriptor(k)[None])
+        if int(hd[0, 0]) <= max_hamming:
+            atlas.fuse_map_points(keep, k)
+            fused += 1
+    return fused
+
+
+def apply_match(atlas: Atlas, result: VerificationResult, config: MergeConfig) -> MatchOutcome:
+    """Act on an accepted verification: merge the query's map into the candidate's map when
+    they differ, and record the loop constraint between the two keyframes."""
+    if not result.accepted:
+        raise MergeError(f"refusing to act on a rejected match ({result.reason})")
+    q_map = atlas.map_id_of_keyframe(result.query_key)
+    c_map = atlas.map_id_of_keyframe(result.candidate_key)
+    merge = None
+    fused = 0
+    if q_map != c_map:
+        pairs = result.point_pairs
+        pairs = pairs[
+            [atlas.has_map_point(int(a)) and atlas.has_map_point(int(b)) for a, b in pairs]
+        ]
+        if pairs.shape[0] >= config.min_3d_pairs:
+            T, keep = robust_align(
+                atlas.map_point_positions(pairs[:, 0]),
+                atlas.map_point_positions(pairs[:, 1]),
+                config.mode,
+            )
+            pairs = pairs[keep]
+        else:
+            T = project_transform(result.T_cmap_qmap, config.mode)
+        src_points = atlas.map_point_keys(q_map)
+        atlas.merge_maps(c_map, q_map, T, result.query_key, result.candidate_key)
+        for a, b in pairs.tolist():
+            if atlas.has_map_point(a) and atlas.has_map_point(b):
+                atlas.fuse_map_points(b, a)
+                fused += 1
+        fused += fuse_duplicates(
+            atlas, c_map, src_points, config.fuse_distance_m, config.fuse_max_hamming
+        )
+        merge = atlas.record_fused_points(fused)
+        log.info("merged map %d into %d, fused %d points", q_map, c_map, fused)
+    loop = atlas.add_loop(result.candidate_key, result.query_key, result.T_cbody_qbody)
+    return MatchOutcome(loop, merge, fused)

@@ -1,0 +1,256 @@
+"""Durable cloud state in SQLite (stdlib ``sqlite3``, WAL journal, ``synchronous=FULL``).
+
+The store holds keyframes and map points as the atlas has them (poses in their map's frame),
+the atlas bookkeeping (agents' maps and transforms, merges, loops, fused-point aliases,
+pruned keyframes) and, per edge link, the last delivered message sequence. A service calls
+:meth:`CloudStore.commit` with what a batch of messages changed *and* the new sequence
+numbers in one transaction, and acknowledges to the edge only after it returns: what was
+acknowledged is on disk. :meth:`CloudStore.load` rebuilds an :class:`Atlas` from it.
+
+Arrays are stored as ``.npy`` payloads (``numpy.save``, no pickle) inside an uncompressed
+``.npz`` blob per row.
+"""
+
+from __future__ import annotations
+
+import io
+import logging
+import sqlite3
+from collections.abc import Iterable, Mapping
+from pathlib import Path
+
+import numpy as np
+
+from common.errors import RecslamError
+from services.cloud.atlas import (
+    Atlas,
+    AtlasState,
+    KeyframeView,
+    LoopEdge,
+    MapPointView,
+    MergeRecord,
+)
+
+log = logging.getLogger(__name__)
+
+DB_NAME = "cloud.sqlite"
+SCHEMA_VERSION = 1
+
+_SCHEMA = """
+CREATE TABLE IF NOT EXISTS meta (name TEXT PRIMARY KEY, value INTEGER NOT NULL);
+CREATE TABLE IF NOT EXISTS keyframes (
+    key INTEGER PRIMARY KEY, agent INTEGER NOT NULL, keyframe_id INTEGER NOT NULL,
+    map_id INTEGER NOT NULL, timestamp REAL NOT NULL, data BLOB NOT NULL);
+CREATE TABLE IF NOT EXISTS map_points (
+    key INTEGER PRIMARY KEY, agent INTEGER NOT NULL, map_point_id INTEGER NOT NULL,
+    map_id INTEGER NOT NULL, ref_kf INTEGER NOT NULL, data BLOB NOT NULL);
+CREATE TABLE IF NOT EXISTS agents (agent INTEGER PRIMARY KEY, map_id INTEGER NOT NULL,
+    T_map_agent BLOB NOT NULL);
+CREATE TABLE IF NOT EXISTS merges (seq INTEGER PRIMARY KEY, target_map INTEGER NOT NULL,
+    source_map INTEGER NOT NULL, T BLOB NOT NULL, query_key INTEGER NOT NULL,
+    candidate_key INTEGER NOT NULL, fused INTEGER NOT NULL);
+CREATE TABLE IF NOT EXISTS loops (seq INTEGER PRIMARY KEY, key_a INTEGER NOT NULL,
+    key_b INTEGER NOT NULL, T BLOB NOT NULL, inter_agent INTEGER NOT NULL);
+CREATE TABLE IF NOT EXISTS aliases (dropped INTEGER PRIMARY KEY, kept INTEGER NOT NULL);
+CREATE TABLE IF NOT EXISTS removed_keyframes (key INTEGER PRIMARY KEY);
+CREATE TABLE IF NOT EXISTS edge_sequences (edge_id TEXT PRIMARY KEY, last_seq INTEGER NOT NULL);
+"""
+
+
+class PersistenceError(RecslamError):
+    """Unreadable or incompatible state directory."""
+
+
+def _pack(**arrays: np.ndarray) -> bytes:
+    buf = io.BytesIO()
+    np.savez(buf, **arrays)
+    return buf.getvalue()
+
+
+def _unpack(blob: bytes) -> dict[str, np.ndarray]:
+    with np.load(io.BytesIO(blob), allow_pickle=False) as z:
+        return {k: z[k] for k in z.files}
+
+
+def _arr(blob: bytes) -> np.ndarray:
+    return _unpack(blob)["a"]
+
+
+class CloudStore:
+    """The cloud's state directory (``<state_dir>/cloud.sqlite``)."""
+
+    def __init__(self, state_dir: str | Path) -> None:
+        self.path = Path(state_dir) / DB_NAME
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self._db = sqlite3.connect(self.path, isolation_level=None)
+            self._db.execute("PRAGMA journal_mode=WAL")
+            self._db.execute("PRAGMA synchronous=FULL")
+            self._db.executescript(_SCHEMA)
+            row = self._db.execute("SELECT value FROM meta WHERE name='schema'").fetchone()
+        except sqlite3.DatabaseError as exc:
+            raise PersistenceError(
+                f"{self.path}: not a usable cloud state database ({exc})"
+            ) from exc
+        if row is None:
+            self._db.execute("INSERT INTO meta VALUES ('schema', ?)", (SCHEMA_VERSION,))
+        elif row[0] != SCHEMA_VERSION:
+            raise PersistenceError(f"{self.path}: schema {row[0]}, expected {SCHEMA_VERSION}")
+
+    def close(self) -> None:
+        self._db.close()
+
+    def __enter__(self) -> CloudStore:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # ------------------------------------------------------------------ writing
+    def commit(
+        self,
+        atlas: Atlas,
+        keyframes: Iterable[int] = (),
+        map_points: Iterable[int] = (),
+        edge_sequences: Mapping[str, int] | None = None,
+    ) -> None:
+        """In one transaction: write the given keyframes and map points as the atlas holds them
+        (rows of keys no longer in the atlas are deleted), the atlas bookkeeping, and the last
+        delivered sequence of each edge. Returns once the data is durable."""
+        db = self._db
+        db.execute("BEGIN IMMEDIATE")
+        try:
+            self._write_points(atlas, keyframes, map_points)
+            self._write_state(atlas.state())
+            for edge_id, seq in (edge_sequences or {}).items():
+                db.execute(
+                    "INSERT INTO edge_sequences VALUES (?, ?) ON CONFLICT(edge_id) DO UPDATE "
+                    "SET last_seq = max(last_seq, excluded.last_seq)",
+                    (str(edge_id), int(seq)),
+                )
+            db.execute("COMMIT")
+        except BaseException:
+            db.execute("ROLLBACK")
+            raise
+
+    def save_all(self, atlas: Atlas, edge_sequences: Mapping[str, int] | None = None) -> None:
+        """Write the whole atlas (after a merge, an optimisation or MBP), deleting stale rows."""
+        kf_keys = atlas.keyframe_keys()
+        mp_keys = atlas.map_point_keys()
+        stale_kf = {r[0] for r in self._db.execute("SELECT key FROM keyframes")} - set(kf_keys)
+        stale_mp = {r[0] for r in self._db.execute("SELECT key FROM map_points")} - set(mp_keys)
+        self.commit(atlas, [*kf_keys, *stale_kf], [*mp_keys, *stale_mp], edge_sequences)
+
+    def _write_points(
+        self, atlas: Atlas, keyframes: Iterable[int], map_points: Iterable[int]
+    ) -> None:
+        db = self._db
+        for key in keyframes:
+            key = int(key)
+            if not atlas.has_keyframe(key):
+                db.execute("DELETE FROM keyframes WHERE key = ?", (key,))
+                continue
+            v = atlas.keyframe(key)
+            blob = _pack(
+                T_map_body=v.T_map_body, velocity=v.velocity, bias_gyro=v.bias_gyro,
+                bias_accel=v.bias_accel, keypoints=v.keypoints, levels=v.levels,
+                descriptors=v.descriptors, word_ids=v.word_ids, map_point_keys=v.map_point_keys,
+                virtual=v.virtual,
+            )  # fmt: skip
+            db.execute(
+                "INSERT OR REPLACE INTO keyframes VALUES (?, ?, ?, ?, ?, ?)",
+                (key, v.agent_id, v.keyframe_id, v.map_id, v.timestamp, blob),
+            )
+        for key in map_points:
+            key = int(key)
+            if not atlas.has_map_point(key):
+                db.execute("DELETE FROM map_points WHERE key = ?", (key,))
+                continue
+            m = atlas.map_point(key)
+            blob = _pack(p_map=m.p_map, obs_keyframes=m.obs_keyframes, obs_indices=m.obs_indices)
+            db.execute(
+                "INSERT OR REPLACE INTO map_points VALUES (?, ?, ?, ?, ?, ?)",
+                (key, m.agent_id, m.map_point_id, m.map_id, m.ref_kf, blob),
+            )
+
+    def _write_state(self, st: AtlasState) -> None:
+        db = self._db
+        for table in ("agents", "merges", "loops", "aliases"):
+            db.execute(f"DELETE FROM {table}")  # noqa: S608 - fixed table names
+        db.executemany(
+            "INSERT INTO agents VALUES (?, ?, ?)",
+            [(a, st.map_of_agent[a], _pack(a=st.T_map_agent[a])) for a in st.map_of_agent],
+        )
+        db.executemany(
+            "INSERT INTO merges VALUES (?, ?, ?, ?, ?, ?, ?)",
+            [
+                (i, m.target_map, m.source_map, _pack(a=m.T_target_source), m.query_key,
+                 m.candidate_key, m.fused_points)
+                for i, m in enumerate(st.merges)
+            ],
+        )  # fmt: skip
+        db.executemany(
+            "INSERT INTO loops VALUES (?, ?, ?, ?, ?)",
+            [
+                (i, e.key_a, e.key_b, _pack(a=e.T_a_b), int(e.inter_agent))
+                for i, e in enumerate(st.loops)
+            ],
+        )
+        db.executemany("INSERT INTO aliases VALUES (?, ?)", list(st.aliases.items()))
+        db.executemany(
+            "INSERT OR IGNORE INTO removed_keyframes VALUES (?)",
+            [(k,) for k in st.removed_keyframes],
+        )
+
+    # ------------------------------------------------------------------ reading
+    def last_sequences(self) -> dict[str, int]:
+        """Last delivered (and durable) message sequence per edge id."""
+        return {e: s for e, s in self._db.execute("SELECT edge_id, last_seq FROM edge_sequences")}
+
+    def load(self) -> Atlas:
+        """Rebuild the atlas stored in this directory (empty atlas for a new directory)."""
+        db = self._db
+        try:
+            kfs = []
+            for key, agent, kf_id, map_id, ts, blob in db.execute(
+                "SELECT key, agent, keyframe_id, map_id, timestamp, data FROM keyframes ORDER BY key"
+            ):
+                d = _unpack(blob)
+                kfs.append(KeyframeView(key=key, agent_id=agent, keyframe_id=kf_id, map_id=map_id,
+                                        timestamp=ts, **d))  # fmt: skip
+            mps = []
+            for key, agent, mp_id, map_id, ref, blob in db.execute(
+                "SELECT key, agent, map_point_id, map_id, ref_kf, data FROM map_points"
+            ):
+                d = _unpack(blob)
+                mps.append(MapPointView(key=key, agent_id=agent, map_point_id=mp_id, map_id=map_id,
+                                        ref_kf=ref, **d))  # fmt: skip
+            agents = list(db.execute("SELECT agent, map_id, T_map_agent FROM agents"))
+            merges = tuple(
+                MergeRecord(t, s, _arr(T), q, c, f)
+                for t, s, T, q, c, f in db.execute(
+                    "SELECT target_map, source_map, T, query_key, candidate_key, fused "
+                    "FROM merges ORDER BY seq"
+                )
+            )
+            loops = tuple(
+                LoopEdge(a, b, _arr(T), bool(i))
+                for a, b, T, i in db.execute(
+                    "SELECT key_a, key_b, T, inter_agent FROM loops ORDER BY seq"
+                )
+            )
+            state = AtlasState(
+                map_of_agent={a: m for a, m, _ in agents},
+                T_map_agent={a: _arr(T) for a, _, T in agents},
+                merges=merges,
+                loops=loops,
+                removed_keyframes=frozenset(
+                    r[0] for r in db.execute("SELECT key FROM removed_keyframes")
+                ),
+                aliases=dict(db.execute("SELECT dropped, kept FROM aliases")),
+            )
+        except (sqlite3.DatabaseError, ValueError, KeyError, TypeError) as exc:
+            raise PersistenceError(f"{self.path}: corrupt cloud state ({exc})") from exc
+        atlas = Atlas.restore(kfs, mps, state)
+        log.info("loaded %d keyframes, %d map points from %s", len(kfs), len(mps), self.path)
+        return atlas

@@ -1,0 +1,167 @@
+"""Atlas: ingest in any order, covisibility, spanning tree, merge bookkeeping, snapshots."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from common.geometry import inverse_T, transform_points
+from services.cloud.atlas import Atlas, AtlasError, KeyframeInput, make_key, split_key
+from services.cloud.simulation import circle_poses, default_camera, make_session, make_world, yaw_T
+
+
+@pytest.fixture(scope="module")
+def session():
+    world = make_world(3, n_points=1500)
+    kfs, mps = make_session(
+        world, default_camera(), 0, circle_poses(16, turns=0.5), np.eye(4), seed=2
+    )
+    return kfs, mps
+
+
+def _expected_covisibility(kfs, mps):
+    obs_of = {}
+    for m in mps:
+        obs_of[m.map_point_id] = {int(k) for k, _ in m.observations}
+    w = {}
+    for kfs_set in obs_of.values():
+        s = sorted(kfs_set)
+        for i, a in enumerate(s):
+            for b in s[i + 1 :]:
+                w[(a, b)] = w.get((a, b), 0) + 1
+    return w
+
+
+def _covis_dict(atlas):
+    snap = atlas.snapshot()
+    return {
+        (split_key(a)[1], split_key(b)[1]): int(w)
+        for (a, b), w in zip(
+            snap.covisibility.tolist(), snap.covisibility_weight.tolist(), strict=True
+        )
+    }
+
+
+def test_covisibility_counts_shared_points_in_any_arrival_order(session):
+    kfs, mps = session
+    expected = _expected_covisibility(kfs, mps)
+    in_order = Atlas()
+    for k in kfs:
+        in_order.add_keyframe(k)
+    for m in mps:
+        in_order.add_map_point(m)
+    reverse = Atlas()
+    for m in mps[::-1]:
+        reverse.add_map_point(m)
+    for k in kfs[::-1]:
+        reverse.add_keyframe(k)
+    assert _covis_dict(in_order) == expected
+    assert _covis_dict(reverse) == expected
+    assert in_order.n_map_points() == len(mps)
+
+
+def test_spanning_tree_is_a_tree_rooted_at_first_keyframe(session):
+    kfs, mps = session
+    atlas = Atlas()
+    for m in mps:
+        atlas.add_map_point(m)
+    for k in kfs:
+        atlas.add_keyframe(k)
+    root = make_key(0, kfs[0].keyframe_id)
+    assert atlas.spanning_parent(root) == -1
+    for key in atlas.keyframe_keys():
+        seen = {key}
+        node = key
+        while atlas.spanning_parent(node) != -1:
+            node = atlas.spanning_parent(node)
+            assert node not in seen, "cycle in spanning tree"
+            seen.add(node)
+        assert node == root
+
+
+def test_snapshot_is_a_read_only_copy(session):
+    kfs, mps = session
+    atlas = Atlas()
+    for k in kfs:
+        atlas.add_keyframe(k)
+    for m in mps:
+        atlas.add_map_point(m)
+    snap = atlas.snapshot()
+    with pytest.raises(ValueError):
+        snap.T_map_body[0, 0, 3] = 5.0
+    view = atlas.keyframe(snap.keyframe_keys[0])
+    with pytest.raises(ValueError):
+        view.map_point_keys[0] = 7
+    before = snap.T_map_body.copy()
+    atlas.set_keyframe_poses({int(snap.keyframe_keys[0]): yaw_T(0.3, [1.0, 0.0, 0.0])})
+    np.testing.assert_array_equal(snap.T_map_body, before)
+    assert snap.p_map.shape == (len(mps), 3)
+
+
+def test_merge_moves_source_map_and_routes_later_keyframes():
+    world = make_world(4, n_points=1500)
+    cam = default_camera()
+    poses = circle_poses(8, turns=0.25)
+    T_a1_world = yaw_T(0.7, [1.0, -2.0, 0.3])
+    k0, m0 = make_session(world, cam, 0, poses, np.eye(4), seed=1)
+    k1, m1 = make_session(world, cam, 1, poses, T_a1_world, seed=2)
+    atlas = Atlas()
+    for k in k0 + k1[:-1]:
+        atlas.add_keyframe(k)
+    for m in m0 + m1:
+        atlas.add_map_point(m)
+    assert atlas.maps() == [0, 1]
+    T_0_1 = inverse_T(T_a1_world)
+    atlas.merge_maps(0, 1, T_0_1)
+    assert atlas.maps() == [0]
+    assert atlas.map_of_agent(1) == 0
+    np.testing.assert_allclose(atlas.T_map_agent(1), T_0_1, atol=1e-12)
+    for i, k in enumerate(k1[:-1]):
+        np.testing.assert_allclose(
+            atlas.T_map_body(make_key(1, k.keyframe_id)), poses[i], atol=1e-9
+        )
+    # A keyframe of agent 1 arriving after the merge lands in map 0's frame.
+    key = atlas.add_keyframe(k1[-1])
+    np.testing.assert_allclose(atlas.T_map_body(key), poses[-1], atol=1e-9)
+    mk = make_key(1, m1[0].map_point_id)
+    np.testing.assert_allclose(
+        atlas.map_point_positions(np.array([mk]))[0],
+        transform_points(T_0_1, m1[0].p_world)[0],
+        atol=1e-9,
+    )
+    assert len(atlas.merges()) == 1
+
+
+def test_bad_keyframe_input_names_the_field():
+    with pytest.raises(AtlasError, match="descriptors"):
+        KeyframeInput(
+            agent_id=0, keyframe_id=1, timestamp=0.0, T_world_body=np.eye(4),
+            keypoints=np.zeros((3, 2)), levels=np.zeros(3), descriptors=np.zeros((3, 31), np.uint8),
+            word_ids=np.zeros(3), map_point_ids=-np.ones(3),
+        )  # fmt: skip
+    with pytest.raises(AtlasError, match="T_world_body"):
+        KeyframeInput(
+            agent_id=0, keyframe_id=1, timestamp=0.0, T_world_body=np.eye(3),
+            keypoints=np.zeros((3, 2)), levels=np.zeros(3), descriptors=np.zeros((3, 32), np.uint8),
+            word_ids=np.zeros(3), map_point_ids=-np.ones(3),
+        )  # fmt: skip
+
+
+def test_remove_keyframe_clears_observations_and_covisibility(session):
+    kfs, mps = session
+    atlas = Atlas()
+    for k in kfs:
+        atlas.add_keyframe(k)
+    for m in mps:
+        atlas.add_map_point(m)
+    key = make_key(0, kfs[3].keyframe_id)
+    neighbours = [b for b, _ in atlas.covisible(key)]
+    atlas.remove_keyframe(key)
+    assert not atlas.has_keyframe(key)
+    for b in neighbours:
+        assert key not in dict(atlas.covisible(b))
+    for mk in atlas.map_point_keys():
+        assert key not in atlas.map_point_observations(mk)
+    # A late update of the pruned keyframe is ignored.
+    atlas.add_keyframe(kfs[3])
+    assert not atlas.has_keyframe(key)
