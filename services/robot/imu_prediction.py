@@ -232,6 +232,30 @@ def predict_rotation(
 # ---------------------------------------------------------------------------- predictor
 
 
+class StaticGyroBias:
+    """Running mean of gyro readings over standstill intervals (bias before VI init)."""
+
+    def __init__(self, min_frames: int) -> None:
+        self.min_frames = min_frames
+        self.n_frames = 0
+        self._sum = np.zeros(3)
+        self._seconds = 0.0
+
+    def add_standstill(self, buffer: ImuBuffer, t0_ns: int, t1_ns: int) -> None:
+        """Count ``[t0, t1]`` as standstill: its mean gyro reading is bias."""
+        dt, gyro, _ = buffer.segments(t0_ns, t1_ns)
+        self._sum += (dt[:, None] * gyro).sum(axis=0)
+        self._seconds += float(dt.sum())
+        self.n_frames += 1
+
+    @property
+    def bias(self) -> np.ndarray | None:
+        """Learnt gyro bias (3,) [rad/s], or None before ``min_frames`` standstill frames."""
+        if self.n_frames < self.min_frames or self._seconds <= 0.0:
+            return None
+        return self._sum / self._seconds
+
+
 @dataclass(frozen=True, eq=False)
 class MotionPrediction:
     """Relative camera motion between the previous and the current frame.
@@ -250,9 +274,14 @@ class MotionPredictor:
     """Keeps the IMU buffer and the edge's inertial feedback; predicts frame-to-frame motion."""
 
     def __init__(
-        self, camera: CameraCalibration, imu: ImuCalibration, buffer_horizon_s: float = 2.0
+        self,
+        camera: CameraCalibration,
+        imu: ImuCalibration,
+        buffer_horizon_s: float = 2.0,
+        static_min_frames: int = 5,
     ) -> None:
         self.camera = camera
+        self.static_bias = StaticGyroBias(static_min_frames)
         self.T_imu_cam = T_imu_cam_from(camera, imu)
         self.T_cam_imu = inverse_T(self.T_imu_cam)
         self.R_imu_cam = self.T_imu_cam[:3, :3]
@@ -303,7 +332,7 @@ class MotionPredictor:
     def predict_motion(self, t_prev_ns: int, t_cur_ns: int) -> MotionPrediction:
         """Camera motion from ``t_prev`` to ``t_cur`` (IMU samples must be buffered)."""
         if self._base is None:
-            R_imu0_imu1 = gyro_rotation(self.buffer, t_prev_ns, t_cur_ns)
+            R_imu0_imu1 = gyro_rotation(self.buffer, t_prev_ns, t_cur_ns, self.static_bias.bias)
             R_cam0_cam1 = self.R_imu_cam.T @ R_imu0_imu1 @ self.R_imu_cam
             return MotionPrediction(R_cam0_cam1.T, None, "gyro")
         prev = self.state_at(t_prev_ns)
@@ -335,3 +364,20 @@ class MotionPredictor:
                 pred[idx] = px[front]
                 by_point[idx] = True
         return pred, by_point
+
+
+def warp_by_rotation(
+    camera: CameraCalibration, image: np.ndarray, R_cur_prev: np.ndarray
+) -> np.ndarray:
+    """Render what the (distorted) camera sees after rotating by ``R_cur_prev``: each output
+    pixel's ray ``x_cur`` is looked up at ``R_cur_prev⁻¹ x_cur`` in ``image`` (bilinear, black
+    outside). Used to test and benchmark the rotation prediction on real images."""
+    h, w = image.shape[:2]
+    u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
+    xy = undistort_normalised(camera, np.stack([u.ravel(), v.ravel()], axis=1))
+    rays = np.concatenate([xy, np.ones((len(xy), 1))], axis=1) @ np.asarray(R_cur_prev)
+    src, front = project_points(camera, rays)
+    src[~front] = -1.0
+    map_x = src[:, 0].reshape(h, w).astype(np.float32)
+    map_y = src[:, 1].reshape(h, w).astype(np.float32)
+    return cv2.remap(image, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)

@@ -30,6 +30,7 @@ from typing import Protocol
 
 import cv2
 import numpy as np
+from scipy.spatial import cKDTree
 
 from common.calibration import CameraCalibration, ImuCalibration
 from common.errors import RecslamError
@@ -252,8 +253,6 @@ def associate_nearest(
     pairs first). Returns index arrays ``(ia, ib)`` of equal length."""
     if len(pts_a) == 0 or len(pts_b) == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    from scipy.spatial import cKDTree
-
     tree = cKDTree(pts_b)
     pairs = tree.sparse_distance_matrix(cKDTree(pts_a), radius_px, output_type="ndarray")
     if len(pairs) == 0:
@@ -289,17 +288,19 @@ def top_up_corners(
     sparse = occ < cfg.min_per_cell
     if not sparse.any():
         return np.zeros((0, 2))
-    mask = np.kron(sparse, np.ones((cfg.cell_px, cfg.cell_px), np.uint8))[:h, :w]
-    mask = (mask * 255).astype(np.uint8)
+    mask = np.repeat(np.repeat(sparse, cfg.cell_px, axis=0), cfg.cell_px, axis=1)[:h, :w]
+    mask = mask.astype(np.uint8) * 255
     border = config.lk.win_size // 2 + 1
     mask[:border], mask[-border:], mask[:, :border], mask[:, -border:] = 0, 0, 0, 0
-    for x, y in pts:
-        cv2.circle(mask, (round(float(x)), round(float(y))), cfg.min_distance_px, 0, -1)
     kps = detector.detect(image, mask)
     if not kps:
         return np.zeros((0, 2))
     cand = np.array([k.pt for k in kps], dtype=np.float64)
     resp = np.array([k.response for k in kps], dtype=np.float64)
+    if len(pts):
+        dist, _ = cKDTree(pts).query(cand, distance_upper_bound=cfg.min_distance_px)
+        far = ~np.isfinite(dist)
+        cand, resp = cand[far], resp[far]
     cell = (cand[:, 1] // cfg.cell_px).astype(np.int64) * cols + (cand[:, 0] // cfg.cell_px)
     order = np.lexsort((-resp, cell))
     first = np.ones(len(order), dtype=bool)
@@ -318,7 +319,9 @@ class FrontEnd:
     ) -> None:
         self.config = config
         self.camera = camera
-        self.predictor = MotionPredictor(camera, imu, config.imu_buffer_s)
+        self.predictor = MotionPredictor(
+            camera, imu, config.imu_buffer_s, config.static_bias.min_static_frames
+        )
         self.orb = OrbExtractor(config.orb)
         self._fast = cv2.FastFeatureDetector_create(threshold=config.top_up.fast_threshold)
         self._matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
@@ -334,6 +337,8 @@ class FrontEnd:
         self._kf_id = -1
         self._kf_t: int | None = None
         self._kf_n: int | None = None
+        self._lost_since_top_up = 0
+        self._frames_since_top_up = 0
         logger.info("front end options: %s", config)
 
     @property
@@ -406,6 +411,7 @@ class FrontEnd:
             )
             survived = res.keep
             cur_pts = quantise(res.cur_pts[survived], cfg.quantisation_px)
+            self._learn_static_bias(self._pts[survived], cur_pts, timestamp_ns)
             stats.update(
                 n_predicted=0 if source == "none" else n_prev,
                 n_predicted_3d=n_3d,
@@ -433,8 +439,14 @@ class FrontEnd:
                 timestamp_ns, decision.reason, feats, cur_pts, ids, survived, stats, t_start
             )
         new_pts = np.zeros((0, 2))
-        if cfg.top_up.enabled:
+        self._lost_since_top_up += n_prev - len(cur_pts)
+        self._frames_since_top_up += 1
+        if cfg.top_up.enabled and (
+            self._lost_since_top_up >= cfg.top_up.min_lost
+            or self._frames_since_top_up >= cfg.top_up.max_interval_frames
+        ):
             new_pts = quantise(top_up_corners(image, cur_pts, cfg, self._fast), cfg.quantisation_px)
+            self._lost_since_top_up = self._frames_since_top_up = 0
         n_new = len(new_pts)
         self._ids = np.concatenate([ids, self._new_ids(n_new)])
         self._kf_index = np.concatenate([kf_index, np.full(n_new, -1, np.int32)])
@@ -444,6 +456,19 @@ class FrontEnd:
         return self._emit(
             timestamp_ns, False, decision.reason, survived, None, None, stats, t_start
         )
+
+    def _learn_static_bias(self, prev: np.ndarray, cur: np.ndarray, timestamp_ns: int) -> None:
+        """Feed standstill frames (median track motion below the bound) to the gyro bias."""
+        cfg = self.config.static_bias
+        if not cfg.enabled or self.vi_initialised or len(cur) < cfg.min_tracks:
+            return
+        if len(self.predictor.buffer) == 0 or self._prev_t is None:
+            return
+        flow = float(np.median(np.linalg.norm(cur - prev, axis=1)))
+        if flow < cfg.max_median_flow_px:
+            self.predictor.static_bias.add_standstill(
+                self.predictor.buffer, self._prev_t, timestamp_ns
+            )
 
     def _predict(self, timestamp_ns: int) -> tuple[np.ndarray, str, int]:
         """Initial LK guess (N, 2) for the current tracks, its source, and how many came from
@@ -481,6 +506,7 @@ class FrontEnd:
         self._kf_id += 1
         self._kf_t = timestamp_ns
         self._kf_n = n
+        self._lost_since_top_up = self._frames_since_top_up = 0
         self._ids = ids
         self._kf_index = np.arange(n, dtype=np.int32)
         self._pts = kps
