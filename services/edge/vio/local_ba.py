@@ -1,0 +1,238 @@
+"""Local bundle adjustment with gtsam (paper Eq. 15–18, Fig. 5b).
+
+Variables: pose ``X`` (T_world_body), velocity ``V`` and bias ``B`` of every keyframe of the
+window, and the map points ``L`` they observe. Factors: reprojection of every observation on
+undistorted normalised coordinates (unit-focal Cal3_S2 with the camera extrinsic as
+``body_P_sensor``) under a Cauchy kernel; a CombinedImuFactor (preintegration + bias random
+walk) under a Huber kernel between consecutive keyframes. Keyframes outside the window that
+observe window points, and the keyframe just before the window, are held fixed by tight priors.
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+from dataclasses import dataclass
+
+import gtsam
+import numpy as np
+from gtsam.symbol_shorthand import B, L, V, X
+
+from services.edge.vio.imu import make_bias, preintegrate
+from services.edge.vio.state import PinholeUndistorter, VioMap, project
+from services.edge.vio.types import LocalBAOptions, MappingOptions
+
+logger = logging.getLogger(__name__)
+
+_UNIT_K = gtsam.Cal3_S2(1.0, 1.0, 0.0, 0.0, 0.0)
+
+
+@dataclass(frozen=True)
+class BAStats:
+    """Summary of one bundle adjustment (errors are gtsam graph errors, 0.5·Σ robust cost)."""
+
+    n_keyframes: int
+    n_fixed: int
+    n_points: int
+    n_observations: int
+    error_before: float
+    error_after: float
+    culled_observations: int
+    culled_points: int
+
+
+def _pose(T: np.ndarray) -> gtsam.Pose3:
+    return gtsam.Pose3(np.asarray(T, dtype=np.float64))
+
+
+class _NoiseCache:
+    def __init__(self, cauchy_k: float) -> None:
+        self._k = cauchy_k
+        self._cache: dict[float, gtsam.noiseModel.Base] = {}
+
+    def __call__(self, sigma: float) -> gtsam.noiseModel.Base:
+        key = round(float(sigma), 12)
+        m = self._cache.get(key)
+        if m is None:
+            m = gtsam.noiseModel.Robust.Create(
+                gtsam.noiseModel.mEstimator.Cauchy.Create(self._k),
+                gtsam.noiseModel.Isotropic.Sigma(2, key),
+            )
+            self._cache[key] = m
+        return m
+
+
+def bundle_adjust(
+    vmap: VioMap,
+    window_ids: list[int],
+    camera: PinholeUndistorter,
+    imu_params: gtsam.PreintegrationCombinedParams | None,
+    options: LocalBAOptions,
+    mapping: MappingOptions,
+    gauge_ids: tuple[int, ...] = (),
+    max_iterations: int | None = None,
+) -> BAStats:
+    """Optimise the keyframes ``window_ids`` (time order) and their points in place.
+
+    ``imu_params`` None gives a visual-only BA (before VI initialisation). ``gauge_ids`` are
+    window keyframes whose pose is held fixed when nothing outside the window anchors the map.
+    """
+    window = [vmap.keyframes[k] for k in window_ids if k in vmap.keyframes]
+    in_window = {kf.id for kf in window}
+    point_ids = sorted({pid for kf in window for pid in kf.row_of if pid in vmap.points})
+    points = [vmap.points[p] for p in point_ids]
+    observers: set[int] = set()
+    for mp in points:
+        observers.update(mp.observations)
+    fixed = sorted(observers - in_window, key=lambda k: vmap.keyframes[k].timestamp_ns)
+    fixed = fixed[-options.max_fixed_observers :]
+    use_imu = imu_params is not None
+    prev_fixed: int | None = None
+    if use_imu and window and window[0].previous_id in vmap.keyframes:
+        prev_fixed = window[0].previous_id
+        if prev_fixed not in fixed:
+            fixed.append(prev_fixed)
+    fixed_set = set(fixed)
+    if not fixed_set:
+        fixed_set = {k for k in gauge_ids if k in in_window}
+    graph = gtsam.NonlinearFactorGraph()
+    values = gtsam.Values()
+    tight6 = gtsam.noiseModel.Isotropic.Sigma(6, options.fixed_sigma)
+    tight3 = gtsam.noiseModel.Isotropic.Sigma(3, options.fixed_sigma)
+    variables = [kf.id for kf in window] + [k for k in fixed if k not in in_window]
+    for k in variables:
+        kf = vmap.keyframes[k]
+        values.insert(X(k), _pose(kf.T_world_body))
+        if k in fixed_set:
+            graph.add(gtsam.PriorFactorPose3(X(k), _pose(kf.T_world_body), tight6))
+    n_imu = 0
+    if use_imu:
+        huber = gtsam.noiseModel.mEstimator.Huber.Create(options.imu_huber_k)
+        chain = ([vmap.keyframes[prev_fixed]] if prev_fixed is not None else []) + window
+        for kf in chain:
+            values.insert(V(kf.id), np.asarray(kf.v_world, float))
+            values.insert(B(kf.id), make_bias(kf.bias_accel, kf.bias_gyro))
+        first = chain[0]
+        if first.id == prev_fixed:  # outside the window: its whole state is held
+            graph.add(gtsam.PriorFactorVector(V(first.id), first.v_world, tight3))
+            graph.add(
+                gtsam.PriorFactorConstantBias(
+                    B(first.id),
+                    make_bias(first.bias_accel, first.bias_gyro),
+                    gtsam.noiseModel.Isotropic.Sigma(6, options.fixed_sigma),
+                )
+            )
+        else:  # weak prior for conditioning only
+            graph.add(
+                gtsam.PriorFactorConstantBias(
+                    B(first.id),
+                    make_bias(first.bias_accel, first.bias_gyro),
+                    gtsam.noiseModel.Diagonal.Sigmas(np.array([1.0, 1.0, 1.0, 0.1, 0.1, 0.1])),
+                )
+            )
+        for a, b in itertools.pairwise(chain):
+            if b.previous_id != a.id or b.imu_from_previous is None:
+                continue
+            pim = preintegrate(imu_params, b.imu_from_previous, a.bias_accel, a.bias_gyro)
+            f = gtsam.CombinedImuFactor(X(a.id), V(a.id), X(b.id), V(b.id), B(a.id), B(b.id), pim)
+            noise = gtsam.noiseModel.Robust.Create(
+                huber, gtsam.noiseModel.Gaussian.Covariance(pim.preintMeasCov())
+            )
+            graph.add(f.cloneWithNewNoiseModel(noise))
+            n_imu += 1
+    body_P_cam = _pose(camera.T_body_cam)
+    noise_of = _NoiseCache(options.cauchy_k)
+    var_set = set(variables)
+    n_obs = 0
+    used_points = []
+    for mp in points:
+        obs = [(k, r) for k, r in mp.observations.items() if k in var_set]
+        if len(obs) < 2:
+            continue
+        used_points.append(mp)
+        values.insert(L(mp.id), np.asarray(mp.p_world, float))
+        for k, r in obs:
+            kf = vmap.keyframes[k]
+            graph.add(
+                gtsam.GenericProjectionFactorCal3_S2(
+                    gtsam.Point2(*kf.xy[r]), noise_of(kf.sigma[r]), X(k), L(mp.id), _UNIT_K,
+                    body_P_cam,
+                )
+            )  # fmt: skip
+            n_obs += 1
+    if n_obs == 0:
+        return BAStats(len(window), len(fixed_set), 0, 0, 0.0, 0.0, 0, 0)
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(max_iterations or options.max_iterations)
+    params.setVerbosityLM("SILENT")
+    err0 = graph.error(values)
+    try:
+        result = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
+    except RuntimeError as exc:  # indeterminant system: keep the old estimate
+        logger.warning("local BA failed (%s); estimate kept", exc)
+        return BAStats(len(window), len(fixed_set), len(used_points), n_obs, err0, err0, 0, 0)
+    err1 = graph.error(result)
+    for kf in window:
+        if kf.id in fixed_set:
+            continue
+        kf.T_world_body = result.atPose3(X(kf.id)).matrix()
+        if use_imu:
+            kf.v_world = np.asarray(result.atVector(V(kf.id)), float)
+            bias = result.atConstantBias(B(kf.id))
+            kf.bias_accel = np.asarray(bias.accelerometer(), float)
+            kf.bias_gyro = np.asarray(bias.gyroscope(), float)
+    for mp in used_points:
+        mp.p_world = np.asarray(result.atPoint3(L(mp.id)), float)
+    vmap.mark_dirty([kf.id for kf in window], [mp.id for mp in used_points])
+    n_cobs, n_cpts = cull_observations(vmap, used_points, camera, mapping)
+    return BAStats(len(window), len(fixed_set), len(used_points), n_obs, err0, err1, n_cobs, n_cpts)
+
+
+def cull_observations(
+    vmap: VioMap, points: list, camera: PinholeUndistorter, mapping: MappingOptions
+) -> tuple[int, int]:
+    """Remove observations with chi2 above ``mapping.cull_chi2`` or behind the camera, then
+    points left with fewer than ``mapping.min_observations``. Returns (observations, points)."""
+    n_obs = 0
+    n_pts = 0
+    by_kf: dict[int, list[tuple[int, int]]] = {}
+    for mp in points:
+        for k, r in mp.observations.items():
+            by_kf.setdefault(k, []).append((mp.id, r))
+    for k, items in by_kf.items():
+        kf = vmap.keyframes.get(k)
+        if kf is None:
+            continue
+        pids = [p for p, _ in items if p in vmap.points]
+        if not pids:
+            continue
+        rows = np.array([r for p, r in items if p in vmap.points])
+        P = np.array([vmap.points[p].p_world for p in pids])
+        xy, z = project(kf.T_world_body, camera.T_body_cam, P)
+        chi2 = np.sum((xy - kf.xy[rows]) ** 2, axis=1) / kf.sigma[rows] ** 2
+        bad = ~(z > 0) | ~(chi2 < mapping.cull_chi2)
+        for pid in np.asarray(pids)[bad].tolist():
+            vmap.remove_observation(pid, k)
+            n_obs += 1
+    for mp in points:
+        if mp.id in vmap.points and len(mp.observations) < mapping.min_observations:
+            vmap.remove_point(mp.id, ban=True)
+            n_pts += 1
+    return n_obs, n_pts
+
+
+def reprojection_chi2(vmap: VioMap, keyframe_ids: list[int], camera: PinholeUndistorter) -> float:
+    """Mean whitened squared reprojection error of every observation made by these keyframes."""
+    total, n = 0.0, 0
+    for k in keyframe_ids:
+        kf = vmap.keyframes[k]
+        items = [(pid, r) for pid, r in kf.row_of.items() if pid in vmap.points
+                 and k in vmap.points[pid].observations]  # fmt: skip
+        if not items:
+            continue
+        P = np.array([vmap.points[p].p_world for p, _ in items])
+        rows = np.array([r for _, r in items])
+        xy, _ = project(kf.T_world_body, camera.T_body_cam, P)
+        total += float(np.sum(np.sum((xy - kf.xy[rows]) ** 2, 1) / kf.sigma[rows] ** 2))
+        n += len(items)
+    return total / max(n, 1)

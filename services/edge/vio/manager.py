@@ -1,0 +1,479 @@
+"""The front object of one robot's VIO: ``feed_imu`` / ``feed_frame`` / ``get_state``.
+
+Pipeline per frame: undistort → (no map) monocular initialisation on robot keyframes →
+tracking (IMU-predicted, PnP RANSAC fallback, motion-only optimisation) → on a robot keyframe:
+keyframe insertion, association, triangulation, local BA, and the scheduled visual-inertial
+initialisations (first at ``vi_init.first_after_s``, re-runs at ``vi_init.refine_after_s``).
+Tracking loss starts a new map (new ``map_id``). Everything runs synchronously in the caller.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from common.calibration import CameraCalibration, ImuCalibration
+from common.geometry import inverse_T, make_T
+from services.edge.vio.imu import (
+    ImuBuffer,
+    integrate_gyro,
+    make_preintegration_params,
+    predict_state,
+    preintegrate,
+)
+from services.edge.vio.local_ba import BAStats, bundle_adjust
+from services.edge.vio.local_mapping import associate_keyframe, triangulate_new_points
+from services.edge.vio.mono_init import two_view_geometry
+from services.edge.vio.state import Keyframe, MapPoint, PinholeUndistorter, VioMap, project
+from services.edge.vio.tracking import ImuPrior, track_frame
+from services.edge.vio.types import (
+    FrameObservation,
+    FrameResult,
+    InertialState,
+    MapUpdate,
+    TrackingStatus,
+    VioError,
+    VioOptions,
+)
+from services.edge.vio.vi_init import inertial_only_map, subsample_keyframes
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass
+class VioStats:
+    """Wall-clock durations [s] of the stages, for benchmarks (not used by the estimator)."""
+
+    track_s: list[float] = field(default_factory=list)
+    local_ba_s: list[float] = field(default_factory=list)
+    vi_init_s: list[float] = field(default_factory=list)
+    maps_started: int = 0
+
+
+@dataclass(frozen=True, eq=False)
+class _Frame:
+    obs: FrameObservation
+    xy: np.ndarray
+    sigma: np.ndarray
+
+
+class VioManager:
+    """Monocular-inertial VIO of one robot (ORB-SLAM3-style, gtsam back end)."""
+
+    def __init__(
+        self,
+        camera: CameraCalibration,
+        imu: ImuCalibration,
+        options: VioOptions | None = None,
+        robot_name: str = "robot",
+    ) -> None:
+        self.options = options or VioOptions()
+        self.camera = PinholeUndistorter(camera)
+        if not np.allclose(imu.T_body_imu, np.eye(4)):
+            # Body frame = IMU frame: express the camera extrinsic relative to the IMU.
+            self.camera.T_body_cam = inverse_T(np.array(imu.T_body_imu)) @ self.camera.T_body_cam
+            self.camera.T_cam_body = inverse_T(self.camera.T_body_cam)
+        self.imu_params = make_preintegration_params(
+            imu, self.options.gravity_mps2, self.options.integration_sigma
+        )
+        self.name = robot_name
+        self.stats = VioStats()
+        self._imu = ImuBuffer()
+        self._map: VioMap | None = None
+        self._next_map_id = 0
+        self._next_kf_id = 0
+        self._ref: _Frame | None = None
+        self._last_T: np.ndarray | None = None
+        self._prev_T: np.ndarray | None = None
+        self._last_t: int | None = None
+        self._last_v: np.ndarray | None = None
+        self._last_bias: tuple[np.ndarray, np.ndarray] | None = None
+        self._bias_guess = (np.zeros(3), np.zeros(3))  # (accel, gyro) carried to new maps
+        self._pending_updates: list[MapUpdate] = []
+        self.last_local_ba: BAStats | None = None
+        logger.info("VIO %s options: %s", robot_name, self.options)
+
+    # ------------------------------------------------------------------ public API
+    @property
+    def initialized(self) -> bool:
+        """True once the current map is metric and gravity-aligned (VI init done)."""
+        return self._map is not None and self._map.vi_initialized
+
+    @property
+    def map_id(self) -> int:
+        return self._map.map_id if self._map is not None else self._next_map_id
+
+    @property
+    def current_map(self) -> VioMap | None:
+        return self._map
+
+    def feed_imu(self, timestamps_ns: np.ndarray, gyro: np.ndarray, accel: np.ndarray) -> None:
+        """Append IMU samples: (K,) int64 ns, (K, 3) rad/s, (K, 3) m/s² in the IMU frame."""
+        self._imu.append(timestamps_ns, gyro, accel)
+
+    def feed_frame(self, obs: FrameObservation) -> FrameResult:
+        """Process one frame (feed its IMU samples first) and return its estimate."""
+        if not isinstance(obs, FrameObservation):
+            raise VioError(f"feed_frame expects a FrameObservation, got {type(obs).__name__}")
+        if self._last_t is not None and obs.timestamp_ns <= self._last_t:
+            raise VioError(
+                f"feed_frame: timestamp {obs.timestamp_ns} not after previous {self._last_t}"
+            )
+        xy = self.camera.normalise(obs.keypoints_px)
+        sigma = (
+            self.options.pixel_sigma
+            * self.options.level_scale ** obs.levels.astype(np.float64)
+            / self.camera.focal
+        )
+        frame = _Frame(obs, xy, sigma)
+        if self._map is None:
+            result = self._initialise_mono(frame)
+        else:
+            result = self._track(frame)
+        self._last_t = obs.timestamp_ns
+        self._trim_imu()
+        return result
+
+    def get_state(self) -> InertialState | None:
+        """Latest inertial state for feedback to the robot, or None before VI initialisation."""
+        if not self.initialized or self._last_T is None or self._last_v is None:
+            return None
+        ba, bg = self._last_bias if self._last_bias is not None else self._bias_guess
+        g_world = np.array([0.0, 0.0, -self.options.gravity_mps2])
+        return InertialState(
+            timestamp_ns=int(self._last_t or 0),
+            map_id=self.map_id,
+            T_world_body=self._last_T.copy(),
+            v_world=self._last_v.copy(),
+            bias_gyro=bg.copy(),
+            bias_accel=ba.copy(),
+            gravity_body=self._last_T[:3, :3].T @ g_world,
+        )
+
+    def pop_map_updates(self) -> list[MapUpdate]:
+        """Changes of keyframes and map points (per map) since the previous call."""
+        out = self._pending_updates
+        self._pending_updates = []
+        if self._map is not None:
+            upd = self._collect_update(self._map)
+            if upd.keyframes or upd.points or upd.removed_point_ids:
+                out.append(upd)
+        return out
+
+    # ------------------------------------------------------------------ helpers
+    def _collect_update(self, vmap: VioMap) -> MapUpdate:
+        kfs, pts, removed = vmap.pop_changes()
+        return MapUpdate(
+            map_id=vmap.map_id,
+            vi_initialized=vmap.vi_initialized,
+            keyframes=tuple(vmap.keyframe_snapshot(vmap.keyframes[k]) for k in kfs),
+            points=tuple(vmap.point_snapshot(vmap.points[p]) for p in pts),
+            removed_point_ids=tuple(removed),
+        )
+
+    def _trim_imu(self) -> None:
+        keep = []
+        if self._map is not None and self._map.keyframes:
+            keep.append(self._map.last_keyframe().timestamp_ns)
+        if self._ref is not None:
+            keep.append(self._ref.obs.timestamp_ns)
+        if self._last_t is not None:
+            keep.append(self._last_t)
+        if keep:
+            self._imu.drop_before(min(keep) - 1)
+
+    def _result(self, frame: _Frame, T, status, n_inl, is_kf, reason="") -> FrameResult:
+        T = np.eye(4) if T is None else np.array(T)
+        return FrameResult(frame.obs.timestamp_ns, T, status, self.map_id, n_inl, is_kf, reason)
+
+    def _new_keyframe(self, frame: _Frame, T_world_body: np.ndarray, previous: Keyframe | None):
+        seg = None
+        if previous is not None:
+            seg = self._imu.segment(previous.timestamp_ns, frame.obs.timestamp_ns)
+        kf = Keyframe(
+            id=self._next_kf_id,
+            timestamp_ns=frame.obs.timestamp_ns,
+            T_world_body=np.array(T_world_body, dtype=np.float64),
+            track_ids=frame.obs.track_ids,
+            xy=frame.xy,
+            sigma=frame.sigma,
+            keypoints_px=frame.obs.keypoints_px,
+            levels=frame.obs.levels,
+            descriptors=frame.obs.descriptors,
+            previous_id=None if previous is None else previous.id,
+            imu_from_previous=seg,
+        )
+        self._next_kf_id += 1
+        return kf
+
+    def _start_new_map(self, frame: _Frame | None, reason: str) -> None:
+        if self._map is not None:
+            if self._map.vi_initialized and self._last_bias is not None:
+                self._bias_guess = self._last_bias
+            self._pending_updates.append(self._collect_update(self._map))
+            logger.warning(
+                "%s: map %d lost (%s); starting map %d", self.name, self._map.map_id, reason,
+                self._next_map_id,
+            )  # fmt: skip
+        self._map = None
+        self._ref = frame if frame is not None and frame.obs.is_keyframe else None
+        self._last_T = self._prev_T = self._last_v = None
+        self._last_bias = None
+        self.stats.maps_started += 1
+
+    # ------------------------------------------------------------------ mono init
+    def _initialise_mono(self, frame: _Frame) -> FrameResult:
+        opt = self.options.mono_init
+        st = TrackingStatus.INITIALIZING
+        if not frame.obs.is_keyframe:
+            return self._result(frame, None, st, 0, False, "waiting for a robot keyframe")
+        ref = self._ref
+        too_old = (
+            ref is not None
+            and (frame.obs.timestamp_ns - ref.obs.timestamp_ns) * 1e-9 > opt.max_reference_age_s
+        )
+        if ref is None or len(ref.obs.track_ids) < opt.min_tracks or too_old:
+            self._ref = frame
+            return self._result(frame, None, st, 0, False, "reference keyframe set")
+        _, i_ref, i_cur = np.intersect1d(
+            ref.obs.track_ids, frame.obs.track_ids, assume_unique=True, return_indices=True
+        )
+        tv, reason = two_view_geometry(ref.xy[i_ref], frame.xy[i_cur], self.camera.focal, opt)
+        if tv is None:
+            if len(i_ref) < opt.min_tracks:
+                self._ref = frame
+            return self._result(frame, None, st, 0, False, f"mono init: {reason}")
+        # Build the first map: body of the reference keyframe at the origin.
+        vmap = VioMap(self._next_map_id)
+        self._next_map_id += 1
+        T_b_c = self.camera.T_body_cam
+        T_w_c0 = T_b_c.copy()
+        T_w_c1 = T_w_c0 @ inverse_T(make_T(tv.R_c1_c0, tv.t_c1_c0))
+        kf0 = self._new_keyframe(ref, np.eye(4), None)
+        vmap.add_keyframe(kf0)
+        kf1 = self._new_keyframe(frame, T_w_c1 @ self.camera.T_cam_body, kf0)
+        vmap.add_keyframe(kf1)
+        p_world = tv.p_c0 @ T_w_c0[:3, :3].T + T_w_c0[:3, 3]
+        for k in np.flatnonzero(tv.good):
+            tid = int(ref.obs.track_ids[i_ref[k]])
+            vmap.add_point(
+                MapPoint(tid, p_world[k], {kf0.id: int(i_ref[k]), kf1.id: int(i_cur[k])})
+            )
+        bundle_adjust(
+            vmap, [kf0.id, kf1.id], self.camera, None, self.options.local_ba,
+            self.options.mapping, gauge_ids=(kf0.id, kf1.id),
+        )  # fmt: skip
+        self._map = vmap
+        self._ref = None
+        self._prev_T = kf0.T_world_body.copy()
+        self._last_T = kf1.T_world_body.copy()
+        logger.info(
+            "%s: map %d initialised (%s, %d points, parallax %.1f deg)", self.name,
+            vmap.map_id, tv.model, len(vmap.points), tv.median_parallax_deg,
+        )  # fmt: skip
+        return self._result(
+            frame, kf1.T_world_body, st, len(vmap.points), True,
+            "visual map initialised; waiting for VI initialisation",
+        )  # fmt: skip
+
+    # ------------------------------------------------------------------ tracking
+    def _predict(self, frame: _Frame, vmap: VioMap):
+        """(T_pred, v_pred, ImuPrior | None) for the frame."""
+        t = frame.obs.timestamp_ns
+        last_kf = vmap.last_keyframe()
+        assert last_kf is not None and self._last_T is not None
+        if vmap.vi_initialized:
+            seg = self._imu.segment(last_kf.timestamp_ns, t)
+            if seg is not None:
+                pim = preintegrate(self.imu_params, seg, last_kf.bias_accel, last_kf.bias_gyro)
+                T, v = predict_state(
+                    pim, last_kf.T_world_body, last_kf.v_world, last_kf.bias_accel,
+                    last_kf.bias_gyro,
+                )  # fmt: skip
+                return T, v, ImuPrior(last_kf, pim)
+        # Constant velocity; rotation from the gyro when available.
+        T_pred = self._last_T.copy()
+        if self._prev_T is not None:
+            T_pred = self._last_T @ (inverse_T(self._prev_T) @ self._last_T)
+        if self._last_t is not None:
+            seg = self._imu.segment(self._last_t, t)
+            if seg is not None:
+                T_pred[:3, :3] = self._last_T[:3, :3] @ integrate_gyro(seg, self._bias_guess[1])
+        return T_pred, None, None
+
+    def _track(self, frame: _Frame) -> FrameResult:
+        vmap = self._map
+        assert vmap is not None
+        t_start = time.perf_counter()
+        ids = frame.obs.track_ids
+        has = np.array([int(t) in vmap.points for t in ids], dtype=bool)
+        P = np.array([vmap.points[int(t)].p_world for t in ids[has]]).reshape(-1, 3)
+        T_pred, v_pred, prior = self._predict(frame, vmap)
+        res, reason = track_frame(
+            P, frame.xy[has], frame.sigma[has], ids[has], self.camera, self.options.tracking,
+            T_pred, prior, v_pred,
+        )  # fmt: skip
+        if res is None and prior is not None:
+            # The IMU disagrees with the vision (bad inertial state): track visually alone.
+            logger.debug("%s: IMU-aided tracking failed (%s); visual only", self.name, reason)
+            res, reason = track_frame(
+                P, frame.xy[has], frame.sigma[has], ids[has], self.camera,
+                self.options.tracking, None, None, None,
+            )  # fmt: skip
+        self.stats.track_s.append(time.perf_counter() - t_start)
+        if res is None:
+            self._start_new_map(frame, reason)
+            return self._result(frame, None, TrackingStatus.LOST, 0, False, f"lost: {reason}")
+        self._prev_T, self._last_T = self._last_T, res.T_world_body
+        if res.v_world is not None:
+            self._last_v = res.v_world
+            self._last_bias = (res.bias_accel, res.bias_gyro)
+        n_inl = len(res.inlier_ids)
+        is_kf = False
+        T_out = res.T_world_body
+        last_kf = vmap.last_keyframe()
+        assert last_kf is not None
+        if frame.obs.is_keyframe and (
+            (frame.obs.timestamp_ns - last_kf.timestamp_ns) * 1e-9
+            >= self.options.min_keyframe_interval_s
+        ):
+            kf = self._insert_keyframe(frame, res, vmap, last_kf)
+            is_kf = True
+            T_out = kf.T_world_body
+            self._last_T = kf.T_world_body.copy()
+            if vmap.vi_initialized:
+                self._last_v = kf.v_world.copy()
+                self._last_bias = (kf.bias_accel.copy(), kf.bias_gyro.copy())
+        if vmap.vi_initialized:
+            return self._result(frame, T_out, TrackingStatus.TRACKING, n_inl, is_kf)
+        return self._result(
+            frame, T_out, TrackingStatus.INITIALIZING, n_inl, is_kf,
+            "visual-only map (arbitrary scale); VI initialisation pending",
+        )  # fmt: skip
+
+    # ------------------------------------------------------------------ local mapping
+    def _insert_keyframe(self, frame: _Frame, res, vmap: VioMap, last_kf: Keyframe) -> Keyframe:
+        kf = self._new_keyframe(frame, res.T_world_body, last_kf)
+        if res.v_world is not None:
+            kf.v_world = res.v_world.copy()
+            kf.bias_accel = res.bias_accel.copy()
+            kf.bias_gyro = res.bias_gyro.copy()
+        else:
+            kf.bias_accel, kf.bias_gyro = (b.copy() for b in self._bias_guess)
+        vmap.add_keyframe(kf)
+        mopt = self.options.mapping
+        associate_keyframe(vmap, kf, self.camera, mopt)
+        n_new = triangulate_new_points(vmap, kf, self.camera, mopt)
+        t0 = time.perf_counter()
+        window = [k.id for k in vmap.keyframe_list()[-self.options.local_ba.window_size :]]
+        first_ids = tuple(k.id for k in vmap.keyframe_list()[:2])
+        gauge = first_ids if not vmap.vi_initialized else first_ids[:1]
+        use_imu = vmap.vi_initialized and all(
+            vmap.keyframes[k].imu_from_previous is not None for k in window[1:]
+        )
+        self.last_local_ba = bundle_adjust(
+            vmap, window, self.camera, self.imu_params if use_imu else None,
+            self.options.local_ba, mopt, gauge_ids=gauge,
+        )  # fmt: skip
+        self.stats.local_ba_s.append(time.perf_counter() - t0)
+        logger.debug("%s: KF %d, %d new points, BA %s", self.name, kf.id, n_new, self.last_local_ba)
+        self._maybe_vi_init(vmap)
+        return kf
+
+    def _maybe_vi_init(self, vmap: VioMap) -> None:
+        vopt = self.options.vi_init
+        kfs = vmap.keyframe_list()
+        age = (kfs[-1].timestamp_ns - kfs[0].timestamp_ns) * 1e-9
+        runs = vmap.vi_init_runs
+        if runs == 0:
+            due = age >= vopt.first_after_s and len(kfs) >= vopt.min_keyframes
+        else:
+            due = runs <= len(vopt.refine_after_s) and age >= vopt.refine_after_s[runs - 1]
+        if due:
+            self.run_vi_init(vmap)
+
+    def _median_depth(self, vmap: VioMap) -> float:
+        """Median depth [map units] of the points seen by the newest keyframe."""
+        kf = vmap.last_keyframe()
+        assert kf is not None
+        P = np.array([vmap.points[t].p_world for t in kf.row_of if t in vmap.points])
+        if len(P) == 0:
+            return 1.0
+        _, z = project(kf.T_world_body, self.camera.T_body_cam, P)
+        return float(np.median(z[z > 0])) if np.any(z > 0) else 1.0
+
+    def run_vi_init(self, vmap: VioMap) -> bool:
+        """Inertial-only MAP + similarity to gravity-aligned metric frame + full VI BA."""
+        vopt = self.options.vi_init
+        t0 = time.perf_counter()
+        kfs = vmap.keyframe_list()
+        # Use the longest tail of keyframes connected by IMU segments.
+        start = 0
+        for i in range(1, len(kfs)):
+            if kfs[i].imu_from_previous is None or kfs[i].previous_id != kfs[i - 1].id:
+                start = i
+        kfs = kfs[start:]
+        first = vmap.vi_init_runs == 0
+        if not first:
+            # Re-runs: the map is already metric and gravity-aligned; the joint visual-inertial
+            # BA over every keyframe is the well-posed estimator of scale (the inertial-only
+            # problem with fixed, noisy visual poses would shift it by its own bias).
+            vmap.vi_init_runs += 1
+            ids = [k.id for k in kfs]
+            stats = bundle_adjust(
+                vmap, ids, self.camera, self.imu_params, self.options.local_ba,
+                self.options.mapping, gauge_ids=(ids[0],), max_iterations=vopt.full_ba_iterations,
+            )  # fmt: skip
+            self.stats.vi_init_s.append(time.perf_counter() - t0)
+            logger.info("%s: VI refinement #%d of map %d: %s", self.name, vmap.vi_init_runs,
+                        vmap.map_id, stats)  # fmt: skip
+            return True
+        ba0 = np.zeros(3) if first else kfs[-1].bias_accel
+        bg0 = self._bias_guess[1] if first else kfs[-1].bias_gyro
+        sub = subsample_keyframes(kfs, vopt.min_interval_s)
+        res, reason = inertial_only_map(
+            sub, self.imu_params, self.options.gravity_mps2, ba0, bg0,
+            vopt.accel_bias_prior_sigma_first if first else vopt.accel_bias_prior_sigma,
+            vopt.gyro_bias_prior_sigma_first if first else vopt.gyro_bias_prior_sigma,
+            vopt.visual_position_sigma_rel * self._median_depth(vmap),
+            np.radians(vopt.visual_rotation_sigma_deg),
+        )  # fmt: skip
+        vmap.vi_init_runs += 1
+        if res is None or not (vopt.min_scale <= res.scale <= vopt.max_scale):
+            why = reason or f"scale {res.scale if res else float('nan'):.3g} out of range"
+            logger.warning(
+                "%s: VI initialisation of map %d failed: %s", self.name, vmap.map_id, why
+            )
+            if first:
+                vmap.vi_init_runs = 0  # retry at the next keyframe
+            self.stats.vi_init_s.append(time.perf_counter() - t0)
+            return False
+        vmap.transform(make_T(res.R_world_v, np.zeros(3)), res.scale)
+        # Velocities at every keyframe: interpolated from the subsampled solution.
+        t_sub = np.array([k.timestamp_ns for k in sub], dtype=np.float64)
+        for kf in kfs:
+            kf.v_world = np.array(
+                [np.interp(float(kf.timestamp_ns), t_sub, res.velocities[:, c]) for c in range(3)]
+            )
+        for kf in vmap.keyframe_list():
+            kf.bias_gyro = res.bias_gyro.copy()
+            kf.bias_accel = res.bias_accel.copy()
+        vmap.vi_initialized = True
+        ids = [k.id for k in kfs]
+        stats = bundle_adjust(
+            vmap, ids, self.camera, self.imu_params, self.options.local_ba, self.options.mapping,
+            gauge_ids=(ids[0],), max_iterations=vopt.full_ba_iterations,
+        )  # fmt: skip
+        self.stats.vi_init_s.append(time.perf_counter() - t0)
+        last = vmap.last_keyframe()
+        assert last is not None
+        self._bias_guess = (last.bias_accel.copy(), last.bias_gyro.copy())
+        logger.info(
+            "%s: VI init #%d of map %d: scale %.4f, bg %s, ba %s, BA %s", self.name,
+            vmap.vi_init_runs, vmap.map_id, res.scale, np.round(last.bias_gyro, 4),
+            np.round(last.bias_accel, 3), stats,
+        )  # fmt: skip
+        return True

@@ -1,0 +1,323 @@
+"""Built-in simulator for the VIO (OpenVINS-style): tracks and IMU without images.
+
+A room of random landmarks (walls, floor, ceiling), a smooth trajectory with analytic
+derivatives, a pinhole + radial-tangential camera with EuRoC cam0 intrinsics and extrinsic,
+persistent track ids with robot-like keyframes (new tracks start only on keyframes, as ORB runs
+only there), and 200 Hz IMU with EuRoC ADIS16448 white noise and bias random walk.
+Deterministic per seed.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+import numpy as np
+
+from common.calibration import EUROC_IMU, CameraCalibration, ImuCalibration
+from common.geometry import inverse_T
+from services.edge.vio.types import FrameObservation
+
+EUROC_CAM0 = CameraCalibration(
+    width=752,
+    height=480,
+    fx=458.654,
+    fy=457.296,
+    cx=367.215,
+    cy=248.375,
+    distortion=(-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05),
+    T_body_cam=np.array(
+        [
+            [0.0148655429818, -0.999880929698, 0.00414029679422, -0.0216401454975],
+            [0.999557249008, 0.0149672133247, 0.025715529948, -0.064676986768],
+            [-0.0257744366974, 0.00375618835797, 0.999660727178, 0.00981073058949],
+            [0.0, 0.0, 0.0, 1.0],
+        ]
+    ),
+    rate_hz=20.0,
+)
+"""EuRoC cam0 (body = IMU frame in EuRoC)."""
+
+
+@dataclass(frozen=True)
+class SimOptions:
+    """Synthetic sequence parameters (defaults: a 20 s EuRoC-like hand-held/MAV motion)."""
+
+    duration_s: float = 20.0
+    camera_rate_hz: float = 20.0
+    imu_rate_hz: float = 200.0
+    n_landmarks: int = 3000
+    room_half_size_m: float = 5.0
+    room_height_m: float = 3.5
+    max_features: int = 150
+    keyframe_interval_s: float = 0.25  # robot keyframe at least this often
+    keyframe_track_ratio: float = 0.6  # or when fewer of the last keyframe's tracks survive
+    track_drop_prob: float = 0.01  # per frame, LK failure
+    pixel_noise_px: float = 0.5
+    motion_amplitude_m: tuple[float, float, float] = (1.2, 0.9, 0.3)
+    motion_freq_rad_s: tuple[float, float, float] = (0.6, 0.8, 1.1)
+    yaw_rate_rad_s: float = 0.15
+    bias_gyro: tuple[float, float, float] = (0.003, -0.002, 0.004)
+    bias_accel: tuple[float, float, float] = (0.02, -0.015, 0.03)
+    seed: int = 0
+
+
+@dataclass(frozen=True, eq=False)
+class SimSequence:
+    """Frames (time order), IMU ``imu_timestamps_ns`` (K,), ``gyro``/``accel`` (K, 3), and
+    ground truth at frame times: ``T_world_body`` (N, 4, 4), ``v_world`` (N, 3)."""
+
+    frames: tuple[FrameObservation, ...]
+    imu_timestamps_ns: np.ndarray
+    gyro: np.ndarray
+    accel: np.ndarray
+    gt_timestamps_ns: np.ndarray
+    gt_T_world_body: np.ndarray
+    gt_v_world: np.ndarray
+    landmarks_world: np.ndarray
+    camera: CameraCalibration
+    imu: ImuCalibration
+
+    def feed(self) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray, FrameObservation]]:
+        """Yield ``(imu_t, gyro, accel, frame)``: the IMU samples up to each frame, then it."""
+        j = 0
+        for fr in self.frames:
+            k = int(np.searchsorted(self.imu_timestamps_ns, fr.timestamp_ns, side="right"))
+            yield self.imu_timestamps_ns[j:k], self.gyro[j:k], self.accel[j:k], fr
+            j = k
+
+
+def _rot(axis: int, a: np.ndarray) -> np.ndarray:
+    c, s = np.cos(a), np.sin(a)
+    R = np.zeros((*np.shape(a), 3, 3))
+    i, j = [(1, 2), (0, 2), (0, 1)][axis]
+    R[..., axis, axis] = 1.0
+    R[..., i, i] = c
+    R[..., j, j] = c
+    R[..., i, j] = -s if axis != 1 else s
+    R[..., j, i] = s if axis != 1 else -s
+    return R
+
+
+_R0 = np.array([[0.0, 0.0, 1.0], [0.0, -1.0, 0.0], [1.0, 0.0, 0.0]])  # body x up, body z fwd
+
+
+def trajectory(t: np.ndarray, o: SimOptions):
+    """Analytic state at times ``t`` (K,) s: R_world_body (K,3,3), p (K,3), v (K,3),
+    a_world (K,3), omega_body (K,3)."""
+    A = np.array(o.motion_amplitude_m)
+    w = np.array(o.motion_freq_rad_s)
+    phi = np.array([0.0, 0.7, 1.9])
+    arg = t[:, None] * w + phi
+    p = np.array([0.0, 0.0, 1.5]) + A * np.sin(arg)
+    v = A * w * np.cos(arg)
+    acc = -A * w**2 * np.sin(arg)
+    yaw = o.yaw_rate_rad_s * t + 0.6 * np.sin(0.35 * t)
+    dyaw = o.yaw_rate_rad_s + 0.6 * 0.35 * np.cos(0.35 * t)
+    pitch = 0.08 * np.sin(1.7 * t)
+    dpitch = 0.08 * 1.7 * np.cos(1.7 * t)
+    roll = 0.1 * np.sin(1.3 * t)
+    droll = 0.1 * 1.3 * np.cos(1.3 * t)
+    Rz, Ry, Rx = _rot(2, yaw), _rot(1, pitch), _rot(0, roll)
+    R = Rz @ Ry @ Rx @ _R0
+    ez, ey, ex = np.eye(3)[2], np.eye(3)[1], np.eye(3)[0]
+    w_world = (
+        dyaw[:, None] * ez
+        + np.einsum("kij,j->ki", Rz, ey) * dpitch[:, None]
+        + np.einsum("kij,j->ki", Rz @ Ry, ex) * droll[:, None]
+    )
+    w_body = np.einsum("kji,kj->ki", R, w_world)
+    return R, p, v, acc, w_body
+
+
+def distort(xy: np.ndarray, camera: CameraCalibration) -> np.ndarray:
+    """Normalised (N, 2) -> distorted pixels (N, 2) (radial-tangential)."""
+    k1, k2, p1, p2 = camera.distortion
+    x, y = xy[:, 0], xy[:, 1]
+    r2 = x * x + y * y
+    radial = 1 + k1 * r2 + k2 * r2 * r2
+    xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+    yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+    return np.stack([camera.fx * xd + camera.cx, camera.fy * yd + camera.cy], axis=1)
+
+
+def _landmarks(o: SimOptions, rng: np.random.Generator) -> np.ndarray:
+    n = o.n_landmarks
+    h, H = o.room_half_size_m, o.room_height_m
+    n_walls = int(0.75 * n)
+    side = rng.integers(0, 4, n_walls)
+    u = rng.uniform(-h, h, n_walls)
+    z = rng.uniform(0.0, H, n_walls)
+    walls = np.zeros((n_walls, 3))
+    walls[:, 2] = z
+    walls[side == 0, 0], walls[side == 0, 1] = h, u[side == 0]
+    walls[side == 1, 0], walls[side == 1, 1] = -h, u[side == 1]
+    walls[side == 2, 1], walls[side == 2, 0] = h, u[side == 2]
+    walls[side == 3, 1], walls[side == 3, 0] = -h, u[side == 3]
+    walls[:, :2] += rng.normal(0, 0.1, (n_walls, 2))  # some relief
+    n_fc = n - n_walls
+    fc = np.c_[rng.uniform(-h, h, (n_fc, 2)), np.where(rng.random(n_fc) < 0.5, 0.0, H)]
+    return np.vstack([walls, fc])
+
+
+def simulate(
+    options: SimOptions | None = None,
+    camera: CameraCalibration = EUROC_CAM0,
+    imu: ImuCalibration = EUROC_IMU,
+) -> SimSequence:
+    """Generate one synthetic sequence (deterministic per ``options.seed``)."""
+    o = options or SimOptions()
+    rng = np.random.default_rng(o.seed)
+    lm = _landmarks(o, rng)
+    # ---------------------------------------------------------------- IMU
+    dt_imu = 1.0 / o.imu_rate_hz
+    t_imu = np.arange(0.0, o.duration_s + 0.1, dt_imu)
+    R, _, _, acc, w_body = trajectory(t_imu, o)
+    g = np.array([0.0, 0.0, -9.81])
+    f_body = np.einsum("kji,kj->ki", R, acc - g)
+    sq = np.sqrt(o.imu_rate_hz)
+    k = len(t_imu)
+    bg = np.array(o.bias_gyro) + np.cumsum(
+        rng.normal(0, imu.gyro_random_walk * np.sqrt(dt_imu), (k, 3)), axis=0
+    )
+    ba = np.array(o.bias_accel) + np.cumsum(
+        rng.normal(0, imu.accel_random_walk * np.sqrt(dt_imu), (k, 3)), axis=0
+    )
+    gyro = w_body + bg + rng.normal(0, imu.gyro_noise_density * sq, (k, 3))
+    accel = f_body + ba + rng.normal(0, imu.accel_noise_density * sq, (k, 3))
+    imu_ns = np.round(t_imu * 1e9).astype(np.int64)
+    # ---------------------------------------------------------------- frames
+    t_cam = np.arange(0.05, o.duration_s, 1.0 / o.camera_rate_hz)
+    Rc, pc, vc, _, _ = trajectory(t_cam, o)
+    T_wb = np.tile(np.eye(4), (len(t_cam), 1, 1))
+    T_wb[:, :3, :3] = Rc
+    T_wb[:, :3, 3] = pc
+    T_bc = np.array(camera.T_body_cam)
+    level_of = rng.choice(4, size=len(lm), p=[0.5, 0.25, 0.15, 0.1]).astype(np.uint8)
+    desc_of = rng.integers(0, 256, (len(lm), 32), dtype=np.uint8)
+    active: dict[int, int] = {}  # landmark -> track id
+    next_track = 0
+    last_kf_t = -1e9
+    last_kf_tracks: set[int] = set()
+    frames = []
+    margin = 10.0
+    for i, t in enumerate(t_cam):
+        T_cw = inverse_T(T_wb[i] @ T_bc)
+        p_c = lm @ T_cw[:3, :3].T + T_cw[:3, 3]
+        z = p_c[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            uv = distort(p_c[:, :2] / z[:, None], camera)
+        vis = (
+            (z > 0.2)
+            & (uv[:, 0] > margin)
+            & (uv[:, 0] < camera.width - margin)
+            & (uv[:, 1] > margin)
+            & (uv[:, 1] < camera.height - margin)
+        )
+        for li in list(active):
+            if not vis[li] or rng.random() < o.track_drop_prob:
+                del active[li]
+        surviving = len(last_kf_tracks & set(active.values()))
+        is_kf = (t - last_kf_t >= o.keyframe_interval_s - 1e-9) or (
+            surviving < o.keyframe_track_ratio * max(len(last_kf_tracks), 1)
+        )
+        if is_kf:
+            free = np.flatnonzero(vis & ~np.isin(np.arange(len(lm)), list(active)))
+            need = o.max_features - len(active)
+            if need > 0 and len(free):
+                for li in rng.choice(free, size=min(need, len(free)), replace=False):
+                    active[int(li)] = next_track
+                    next_track += 1
+            last_kf_t = t
+            last_kf_tracks = set(active.values())
+        lms = np.array(sorted(active), dtype=np.int64)
+        levels = level_of[lms]
+        noise = rng.normal(0, 1, (len(lms), 2)) * (o.pixel_noise_px * 1.2 ** levels[:, None])
+        frames.append(
+            FrameObservation(
+                timestamp_ns=round(t * 1e9),
+                track_ids=np.array([active[int(li)] for li in lms], dtype=np.int64),
+                keypoints_px=uv[lms] + noise,
+                levels=levels,
+                is_keyframe=bool(is_kf),
+                descriptors=desc_of[lms] if is_kf else None,
+            )
+        )
+    return SimSequence(
+        frames=tuple(frames),
+        imu_timestamps_ns=imu_ns,
+        gyro=gyro,
+        accel=accel,
+        gt_timestamps_ns=np.round(t_cam * 1e9).astype(np.int64),
+        gt_T_world_body=T_wb,
+        gt_v_world=vc,
+        landmarks_world=lm,
+        camera=camera,
+        imu=imu,
+    )
+
+
+def umeyama_alignment(
+    est: np.ndarray, gt: np.ndarray, with_scale: bool
+) -> tuple[np.ndarray, np.ndarray, float]:
+    """(R, t, s) minimising ``|gt - (s R est + t)|`` for points (N, 3) each (Umeyama 1991)."""
+    mu_e, mu_g = est.mean(0), gt.mean(0)
+    E, G = est - mu_e, gt - mu_g
+    U, D, Vt = np.linalg.svd(G.T @ E / len(est))
+    S = np.eye(3)
+    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
+        S[2, 2] = -1
+    R = U @ S @ Vt
+    s = float(np.trace(np.diag(D) @ S) / (E**2).sum(1).mean()) if with_scale else 1.0
+    return R, mu_g - s * R @ mu_e, s
+
+
+def ate_rmse(est: np.ndarray, gt: np.ndarray, with_scale: bool = False) -> tuple[float, float]:
+    """ATE RMSE [m] of positions (N, 3) after SE(3) (or Sim(3)) alignment, and the Sim(3)
+    scale factor (1 + scale error)."""
+    R, t, s = umeyama_alignment(est, gt, with_scale)
+    err = gt - (s * est @ R.T + t)
+    _, _, s_sim = umeyama_alignment(est, gt, True)
+    return float(np.sqrt((err**2).sum(1).mean())), s_sim
+
+
+def ground_truth_map(seq: SimSequence, max_keyframes: int, bias_from_options: SimOptions):
+    """A :class:`VioMap` built from the sequence's robot keyframes at their true states
+    (poses, velocities, initial biases), points triangulated from the noisy tracks.
+    For tests of the back end in isolation."""
+    from services.edge.vio.imu import ImuBuffer
+    from services.edge.vio.local_mapping import associate_keyframe, triangulate_new_points
+    from services.edge.vio.state import Keyframe, PinholeUndistorter, VioMap
+    from services.edge.vio.types import MappingOptions
+
+    cam = PinholeUndistorter(seq.camera)
+    buf = ImuBuffer()
+    buf.append(seq.imu_timestamps_ns, seq.gyro, seq.accel)
+    vmap = VioMap(0)
+    mopt = MappingOptions()
+    prev = None
+    kf_frames = [i for i, f in enumerate(seq.frames) if f.is_keyframe][:max_keyframes]
+    for k, i in enumerate(kf_frames):
+        f = seq.frames[i]
+        seg = None if prev is None else buf.segment(prev.timestamp_ns, f.timestamp_ns)
+        kf = Keyframe(
+            id=k,
+            timestamp_ns=f.timestamp_ns,
+            T_world_body=seq.gt_T_world_body[i].copy(),
+            track_ids=f.track_ids,
+            xy=cam.normalise(f.keypoints_px),
+            sigma=1.2 ** f.levels.astype(float) / cam.focal,
+            keypoints_px=f.keypoints_px,
+            levels=f.levels,
+            descriptors=f.descriptors,
+            previous_id=None if prev is None else prev.id,
+            imu_from_previous=seg,
+        )
+        kf.v_world = seq.gt_v_world[i].copy()
+        kf.bias_accel = np.array(bias_from_options.bias_accel)
+        kf.bias_gyro = np.array(bias_from_options.bias_gyro)
+        vmap.add_keyframe(kf)
+        associate_keyframe(vmap, kf, cam, mopt)
+        triangulate_new_points(vmap, kf, cam, mopt)
+        prev = kf
+    return vmap, cam

@@ -1,0 +1,192 @@
+"""Map state of one robot's VIO: keyframes, map points and their observations.
+
+A map point is born from one robot track, so its id is that track id (unique within a map).
+Observations are stored as undistorted normalised image coordinates ``xy = (X/Z, Y/Z)`` of the
+camera frame, with the pixel noise sigma converted to those units.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from common.calibration import CameraCalibration
+from common.geometry import inverse_T
+from services.edge.vio.imu import ImuSegment
+from services.edge.vio.types import KeyframeSnapshot, MapPointSnapshot
+
+
+class PinholeUndistorter:
+    """Distorted pixels -> undistorted normalised coordinates, plus the camera extrinsic."""
+
+    def __init__(self, camera: CameraCalibration) -> None:
+        self.camera = camera
+        self.K = camera.K
+        self.dist = camera.dist_coeffs
+        self.focal = 0.5 * (camera.fx + camera.fy)
+        self.T_body_cam = np.array(camera.T_body_cam)
+        self.T_cam_body = inverse_T(self.T_body_cam)
+
+    def normalise(self, keypoints_px: np.ndarray) -> np.ndarray:
+        """(N, 2) distorted px -> (N, 2) undistorted normalised coordinates."""
+        if len(keypoints_px) == 0:
+            return np.zeros((0, 2))
+        pts = np.ascontiguousarray(keypoints_px, dtype=np.float64).reshape(-1, 1, 2)
+        crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 20, 1e-10)
+        out = cv2.undistortPoints(pts, self.K, self.dist, None, None, None, crit)
+        return out.reshape(-1, 2)
+
+
+def project(
+    T_world_body: np.ndarray, T_body_cam: np.ndarray, p_world: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Points (N, 3) -> normalised coordinates (N, 2) and camera depths (N,)."""
+    T_cam_world = inverse_T(T_world_body @ T_body_cam)
+    p_cam = p_world @ T_cam_world[:3, :3].T + T_cam_world[:3, 3]
+    z = p_cam[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        xy = p_cam[:, :2] / z[:, None]
+    return xy, z
+
+
+@dataclass(eq=False)
+class Keyframe:
+    """A keyframe: state (``T_world_body`` (4, 4), ``v_world`` (3,), biases (3,)) and features.
+
+    ``xy`` (N, 2) normalised undistorted; ``sigma`` (N,) noise in normalised units;
+    ``imu_from_previous`` covers ``[previous.timestamp, timestamp]``.
+    """
+
+    id: int
+    timestamp_ns: int
+    T_world_body: np.ndarray
+    track_ids: np.ndarray
+    xy: np.ndarray
+    sigma: np.ndarray
+    keypoints_px: np.ndarray
+    levels: np.ndarray
+    descriptors: np.ndarray | None
+    previous_id: int | None
+    imu_from_previous: ImuSegment | None
+    v_world: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    bias_gyro: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    bias_accel: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    row_of: dict[int, int] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.row_of = {int(t): i for i, t in enumerate(self.track_ids)}
+
+
+@dataclass(eq=False)
+class MapPoint:
+    """``p_world`` (3,); ``observations`` keyframe id -> feature row in that keyframe."""
+
+    id: int
+    p_world: np.ndarray
+    observations: dict[int, int] = field(default_factory=dict)
+
+
+class VioMap:
+    """One map of one robot (a new one starts after tracking loss)."""
+
+    def __init__(self, map_id: int) -> None:
+        self.map_id = map_id
+        self.keyframes: dict[int, Keyframe] = {}  # insertion order = time order
+        self.points: dict[int, MapPoint] = {}
+        self.vi_initialized = False
+        self.vi_init_runs = 0
+        self.banned_tracks: set[int] = set()
+        self._dirty_keyframes: set[int] = set()
+        self._dirty_points: set[int] = set()
+        self._removed_points: set[int] = set()
+
+    # ------------------------------------------------------------------ access
+    @property
+    def first_timestamp_ns(self) -> int:
+        return next(iter(self.keyframes.values())).timestamp_ns
+
+    def keyframe_list(self) -> list[Keyframe]:
+        return list(self.keyframes.values())
+
+    def last_keyframe(self) -> Keyframe | None:
+        return next(reversed(self.keyframes.values())) if self.keyframes else None
+
+    # ------------------------------------------------------------------ edits
+    def add_keyframe(self, kf: Keyframe) -> None:
+        self.keyframes[kf.id] = kf
+        self._dirty_keyframes.add(kf.id)
+
+    def add_point(self, point: MapPoint) -> None:
+        self.points[point.id] = point
+        self._dirty_points.add(point.id)
+        self._removed_points.discard(point.id)
+
+    def remove_point(self, point_id: int, ban: bool = False) -> None:
+        if self.points.pop(point_id, None) is not None:
+            self._removed_points.add(point_id)
+            self._dirty_points.discard(point_id)
+        if ban:
+            self.banned_tracks.add(point_id)
+
+    def remove_observation(self, point_id: int, keyframe_id: int) -> None:
+        mp = self.points.get(point_id)
+        if mp is not None:
+            mp.observations.pop(keyframe_id, None)
+            self._dirty_points.add(point_id)
+
+    def mark_dirty(self, keyframe_ids: list[int] | None = None, point_ids: list[int] | None = None):
+        self._dirty_keyframes.update(keyframe_ids or [])
+        self._dirty_points.update(pid for pid in (point_ids or []) if pid in self.points)
+
+    def mark_all_dirty(self) -> None:
+        self.mark_dirty(list(self.keyframes), list(self.points))
+
+    def transform(self, T_new_old: np.ndarray, scale: float) -> None:
+        """Apply ``p_new = scale * R p_old + t`` to the whole map (VI initialisation)."""
+        R, t = T_new_old[:3, :3], T_new_old[:3, 3]
+        for kf in self.keyframes.values():
+            T = kf.T_world_body.copy()
+            T[:3, :3] = R @ T[:3, :3]
+            T[:3, 3] = scale * (R @ T[:3, 3]) + t
+            kf.T_world_body = T
+            kf.v_world = scale * (R @ kf.v_world)
+        for mp in self.points.values():
+            mp.p_world = scale * (R @ mp.p_world) + t
+        self.mark_all_dirty()
+
+    # ------------------------------------------------------------------ snapshots
+    def keyframe_snapshot(self, kf: Keyframe) -> KeyframeSnapshot:
+        point_ids = np.array(
+            [t if (t in self.points and kf.id in self.points[t].observations) else -1
+             for t in kf.track_ids.tolist()],
+            dtype=np.int64,
+        )  # fmt: skip
+        return KeyframeSnapshot(
+            keyframe_id=kf.id,
+            map_id=self.map_id,
+            timestamp_ns=kf.timestamp_ns,
+            T_world_body=kf.T_world_body.copy(),
+            v_world=kf.v_world.copy(),
+            bias_gyro=kf.bias_gyro.copy(),
+            bias_accel=kf.bias_accel.copy(),
+            track_ids=kf.track_ids.copy(),
+            point_ids=point_ids,
+            previous_keyframe_id=kf.previous_id,
+        )
+
+    def point_snapshot(self, mp: MapPoint) -> MapPointSnapshot:
+        kf_ids = np.array(list(mp.observations.keys()), dtype=np.int64)
+        rows = np.array(list(mp.observations.values()), dtype=np.int64)
+        return MapPointSnapshot(mp.id, self.map_id, mp.p_world.copy(), kf_ids, rows)
+
+    def pop_changes(self) -> tuple[list[int], list[int], list[int]]:
+        """(dirty keyframe ids, dirty point ids, removed point ids) since the last call."""
+        kfs = [k for k in self._dirty_keyframes if k in self.keyframes]
+        pts = [p for p in self._dirty_points if p in self.points]
+        removed = sorted(self._removed_points)
+        self._dirty_keyframes.clear()
+        self._dirty_points.clear()
+        self._removed_points.clear()
+        return sorted(kfs), sorted(pts), removed

@@ -1,0 +1,245 @@
+"""Plain data of the edge VIO: options (documented defaults), inputs and outputs.
+
+Frame rule: ``T_a_b`` maps points of frame ``b`` into frame ``a``. The body frame is the IMU
+frame; ``world`` is the map frame of one map (gravity-aligned, ``g_world = (0, 0, -g)``, once
+visual-inertial initialisation has run; an arbitrary first-keyframe frame before). Units: metres,
+seconds (timestamps in int64 nanoseconds), radians, pixels where a name says ``px``.
+"""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from common.errors import RecslamError
+
+
+class VioError(RecslamError):
+    """Invalid input given to the edge VIO (names the offending field)."""
+
+
+class TrackingStatus(enum.Enum):
+    """Per-frame state of one robot's VIO."""
+
+    INITIALIZING = "initializing"  # no metric map yet (mono or visual-inertial init pending)
+    TRACKING = "tracking"  # pose in a metric, gravity-aligned map
+    LOST = "lost"  # tracking failed on this frame; a new map is started
+
+
+# ------------------------------------------------------------------------------ options
+
+
+@dataclass(frozen=True)
+class MonoInitOptions:
+    """Two-view initialisation (ORB-SLAM-like model selection between E and H)."""
+
+    min_tracks: int = 60  # shared tracks needed between reference and current keyframe
+    min_triangulated: int = 40  # points with good parallax needed to accept
+    min_parallax_deg: float = 1.0  # per-point parallax for a point to count
+    min_median_parallax_deg: float = 1.5  # median parallax of the triangulated set
+    ransac_threshold_px: float = 1.5  # epipolar / homography RANSAC threshold
+    homography_ratio: float = 0.45  # choose H when S_H / (S_H + S_F) exceeds this
+    max_reference_age_s: float = 2.0  # replace the reference keyframe when older than this
+
+
+@dataclass(frozen=True)
+class ViInitOptions:
+    """Inertial-only MAP initialisation (ORB-SLAM3) and its later refinements."""
+
+    first_after_s: float = 2.0  # map age before the first VI initialisation
+    min_keyframes: int = 10  # keyframes needed for the first VI initialisation
+    refine_after_s: tuple[float, ...] = (5.0, 15.0)  # map ages of the re-runs (scale refinement)
+    gyro_bias_prior_sigma_first: float = 0.1  # rad/s (ORB-SLAM3 priorG = 1e2)
+    accel_bias_prior_sigma_first: float = 1e-5  # m/s² (ORB-SLAM3 priorA = 1e10: bias held at 0)
+    gyro_bias_prior_sigma: float = 1.0  # rad/s, re-runs (priorG = 1)
+    accel_bias_prior_sigma: float = 3.16e-3  # m/s², re-runs (priorA = 1e5)
+    min_interval_s: float = 0.5  # keyframes are subsampled to this spacing for the MAP problem
+    visual_position_sigma_rel: float = 0.002  # pose noise as a fraction of median scene depth
+    visual_rotation_sigma_deg: float = 0.1  # pose rotation noise of the visual map
+    min_scale: float = 1e-3  # a smaller/larger scale estimate is rejected
+    max_scale: float = 1e3
+    full_ba_iterations: int = 30  # joint visual-inertial refinement after each run
+
+
+@dataclass(frozen=True)
+class TrackingOptions:
+    """Per-frame pose tracking (PnP RANSAC, then motion-only optimisation)."""
+
+    min_inliers: int = 15  # fewer inliers: tracking lost, a new map is started
+    chi2_threshold: float = 5.991  # 2-DoF 95 % inlier gate on whitened reprojection error
+    ransac_threshold_px: float = 3.0
+    ransac_iterations: int = 100
+    prior_inlier_ratio: float = 0.6  # IMU-predicted pose is trusted (RANSAC skipped) above this
+    max_iterations: int = 8  # motion-only optimisation iterations
+
+
+@dataclass(frozen=True)
+class MappingOptions:
+    """Keyframe processing: triangulation of new map points and culling."""
+
+    min_parallax_deg: float = 1.0  # between the first and last observing keyframe
+    max_reprojection_chi2: float = 5.991  # a new point must reproject within this everywhere
+    min_depth_m: float = 0.05  # in map units (arbitrary before VI init)
+    cull_chi2: float = 9.21  # observations worse than this are removed after local BA
+    min_observations: int = 2  # points with fewer keyframe observations are removed
+
+
+@dataclass(frozen=True)
+class LocalBAOptions:
+    """Local bundle adjustment (paper Eq. 18, Fig. 5b)."""
+
+    window_size: int = 20  # newest keyframes optimised; older observers are fixed
+    cauchy_k: float = 2.4477  # on whitened reprojection error (sqrt(5.991))
+    imu_huber_k: float = 4.1134  # on whitened 15-DoF IMU error (sqrt(16.92), ORB-SLAM3)
+    max_iterations: int = 10
+    max_fixed_observers: int = 20  # observers outside the window kept as fixed poses
+    fixed_sigma: float = 1e-6  # prior sigma holding fixed variables
+
+
+@dataclass(frozen=True)
+class VioOptions:
+    """Every option of one robot's VIO. Defaults suit EuRoC-like data at 20 Hz."""
+
+    gravity_mps2: float = 9.81
+    pixel_sigma: float = 1.0  # px at pyramid level 0; level l uses pixel_sigma * 1.2**l
+    level_scale: float = 1.2
+    integration_sigma: float = 1e-4  # preintegration integration noise (m/s²/√Hz-like)
+    min_keyframe_interval_s: float = 0.05  # robot keyframes closer than this are not inserted
+    mono_init: MonoInitOptions = field(default_factory=MonoInitOptions)
+    vi_init: ViInitOptions = field(default_factory=ViInitOptions)
+    tracking: TrackingOptions = field(default_factory=TrackingOptions)
+    mapping: MappingOptions = field(default_factory=MappingOptions)
+    local_ba: LocalBAOptions = field(default_factory=LocalBAOptions)
+
+
+# ------------------------------------------------------------------------------ inputs
+
+
+def _readonly(a: object, dtype: type, shape_tail: tuple[int, ...], name: str) -> np.ndarray:
+    arr = np.asarray(a)
+    if arr.ndim != 1 + len(shape_tail) or arr.shape[1:] != shape_tail:
+        raise VioError(
+            f"FrameObservation.{name}: expected shape (N, *{shape_tail}), got {arr.shape}"
+        )
+    arr = np.array(arr, dtype=dtype)
+    arr.setflags(write=False)
+    return arr
+
+
+@dataclass(frozen=True, eq=False)
+class FrameObservation:
+    """One decoded robot frame.
+
+    ``track_ids`` (N,) int64, persistent per robot (same physical feature, same id while
+    tracked); ``keypoints_px`` (N, 2) float64 DISTORTED pixel coordinates; ``levels`` (N,)
+    uint8 pyramid level (noise sigma 1.2**level px); ``descriptors`` (N, 32) uint8 ORB on robot
+    keyframes, else None.
+    """
+
+    timestamp_ns: int
+    track_ids: np.ndarray
+    keypoints_px: np.ndarray
+    levels: np.ndarray
+    is_keyframe: bool = False
+    descriptors: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        ids = _readonly(self.track_ids, np.int64, (), "track_ids")
+        kps = _readonly(self.keypoints_px, np.float64, (2,), "keypoints_px")
+        lv = _readonly(self.levels, np.uint8, (), "levels")
+        n = len(ids)
+        if len(kps) != n or len(lv) != n:
+            raise VioError(
+                f"FrameObservation: track_ids has {n} rows, keypoints_px {len(kps)}, "
+                f"levels {len(lv)}"
+            )
+        if len(np.unique(ids)) != n:
+            raise VioError("FrameObservation.track_ids: duplicate track id in one frame")
+        if not np.all(np.isfinite(kps)):
+            raise VioError("FrameObservation.keypoints_px: non-finite coordinate")
+        object.__setattr__(self, "track_ids", ids)
+        object.__setattr__(self, "keypoints_px", kps)
+        object.__setattr__(self, "levels", lv)
+        object.__setattr__(self, "timestamp_ns", int(self.timestamp_ns))
+        object.__setattr__(self, "is_keyframe", bool(self.is_keyframe))
+        if self.descriptors is not None:
+            d = _readonly(self.descriptors, np.uint8, (32,), "descriptors")
+            if len(d) != n:
+                raise VioError(f"FrameObservation.descriptors has {len(d)} rows, expected {n}")
+            object.__setattr__(self, "descriptors", d)
+
+
+# ------------------------------------------------------------------------------ outputs
+
+
+@dataclass(frozen=True, eq=False)
+class FrameResult:
+    """Outcome of one ``feed_frame``. ``T_world_body`` (4, 4) is identity while no map exists;
+    before VI initialisation it is in the arbitrary-scale visual map frame."""
+
+    timestamp_ns: int
+    T_world_body: np.ndarray
+    status: TrackingStatus
+    map_id: int
+    n_inliers: int
+    is_new_keyframe: bool
+    reason: str = ""  # why INITIALIZING / LOST, for logs and reports
+
+
+@dataclass(frozen=True, eq=False)
+class InertialState:
+    """Feedback for the robot's IMU-aided tracker (only valid after VI initialisation).
+
+    ``v_world`` (3,) m/s; ``bias_gyro`` (3,) rad/s; ``bias_accel`` (3,) m/s²;
+    ``gravity_body`` (3,) m/s², gravity expressed in the body (IMU) frame at ``timestamp_ns``.
+    """
+
+    timestamp_ns: int
+    map_id: int
+    T_world_body: np.ndarray
+    v_world: np.ndarray
+    bias_gyro: np.ndarray
+    bias_accel: np.ndarray
+    gravity_body: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class KeyframeSnapshot:
+    """A keyframe for the uplink. ``track_ids`` (N,) are its features in robot order;
+    ``point_ids`` (N,) the map point of each feature or -1."""
+
+    keyframe_id: int
+    map_id: int
+    timestamp_ns: int
+    T_world_body: np.ndarray
+    v_world: np.ndarray
+    bias_gyro: np.ndarray
+    bias_accel: np.ndarray
+    track_ids: np.ndarray
+    point_ids: np.ndarray
+    previous_keyframe_id: int | None
+
+
+@dataclass(frozen=True, eq=False)
+class MapPointSnapshot:
+    """A map point for the uplink: ``p_world`` (3,) m; observed by ``keyframe_ids`` (K,) at
+    row ``feature_indices`` (K,) of each keyframe's features."""
+
+    point_id: int
+    map_id: int
+    p_world: np.ndarray
+    keyframe_ids: np.ndarray
+    feature_indices: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class MapUpdate:
+    """What changed in one map since the previous ``pop_map_update``."""
+
+    map_id: int
+    vi_initialized: bool
+    keyframes: tuple[KeyframeSnapshot, ...]
+    points: tuple[MapPointSnapshot, ...]
+    removed_point_ids: tuple[int, ...]
