@@ -119,11 +119,15 @@ class GlobalOptimizationConfig:
     reference_weight: covisibility weight (shared map points) at which the odometry sigmas
         apply; information scales linearly with weight, clamped to [0.25, 4] (default 50).
     covisibility_min_weight: extra relative-pose edges between keyframes sharing at least this
-        many map points (ORB-SLAM essential graph: 100; default 100). 0 disables them.
+        many map points (ORB-SLAM essential graph: 100). Measured from the current estimates
+        they make the graph stiff enough to resist loop corrections, so default 0 (off).
     loop_sigma_rot_rad / loop_sigma_trans_m: loop / merge constraint sigmas (defaults 0.02 rad,
         0.05 m).
     loop_robust_kernel: "cauchy", "huber" or "none" (default "cauchy").
-    loop_kernel_scale: kernel scale on the whitened error (default 1.0).
+    loop_kernel_scale: kernel scale on the whitened error (default 10: a loop that closes
+        half a metre of drift must still pull; gross outliers are removed afterwards).
+    loop_outlier_whitened: loop edges whose whitened error exceeds this after the robust
+        solve are dropped and the graph is solved again (default 5.0).
     prior_sigma: sigma of the prior on the first keyframe (default 1e-6).
     max_iterations: Levenberg–Marquardt iterations (default 100).
     """
@@ -131,11 +135,12 @@ class GlobalOptimizationConfig:
     odometry_sigma_rot_rad: float = 0.01
     odometry_sigma_trans_m: float = 0.02
     reference_weight: float = 50.0
-    covisibility_min_weight: int = 100
+    covisibility_min_weight: int = 0
     loop_sigma_rot_rad: float = 0.02
     loop_sigma_trans_m: float = 0.05
     loop_robust_kernel: str = "cauchy"
-    loop_kernel_scale: float = 1.0
+    loop_kernel_scale: float = 10.0
+    loop_outlier_whitened: float = 5.0
     prior_sigma: float = 1e-6
     max_iterations: int = 100
 

@@ -12,7 +12,9 @@ COVINS' pose graph do):
   ``e_imu``,
 - the same for strongly covisible pairs (weight ≥ ``covisibility_min_weight``),
 - loop and merge constraints (verified relative poses) under a robust kernel (Cauchy by
-  default) so a bad one cannot tear the map.
+  default); loop edges whose whitened error is still above ``loop_outlier_whitened`` after
+  the robust solve are dropped and the graph solved once more, so a bad one cannot tear the
+  map.
 
 Map points then move rigidly with their reference keyframe. Everything here is a pure
 function on plain arrays (:class:`PoseGraphProblem` in, :class:`PoseGraphResult` out), so a
@@ -63,13 +65,15 @@ class PoseGraphProblem:
 @dataclass(frozen=True, eq=False)
 class PoseGraphResult:
     """Optimised poses ``T_world_body (N, 4, 4)`` of ``keys (N,)``; graph errors before and
-    after; Levenberg–Marquardt iterations."""
+    after; Levenberg–Marquardt iterations; ``rejected_edges`` indices of loop edges dropped
+    as outliers."""
 
     keys: np.ndarray
     T_world_body: np.ndarray
     initial_error: float
     final_error: float
     iterations: int
+    rejected_edges: np.ndarray
 
 
 def _sigmas(rot: float, trans: float, scale: float) -> np.ndarray:
@@ -163,26 +167,52 @@ def optimize_pose_graph(
     }.get(config.loop_robust_kernel)
     if kernel is None and config.loop_robust_kernel != "none":
         raise GlobalOptimizationError(f"unknown robust kernel {config.loop_robust_kernel!r}")
-    for e in range(problem.edge_i.shape[0]):
-        noise = gtsam.noiseModel.Diagonal.Sigmas(problem.sigmas[e])
-        if problem.robust[e] and kernel is not None:
-            noise = gtsam.noiseModel.Robust.Create(kernel.Create(config.loop_kernel_scale), noise)
-        graph.add(
-            gtsam.BetweenFactorPose3(
-                int(problem.edge_i[e]), int(problem.edge_j[e]), _pose3(problem.T_i_j[e]), noise
+    base_graph = gtsam.NonlinearFactorGraph(graph)
+    use = np.ones(problem.edge_i.shape[0], bool)
+    rejected: list[int] = []
+    for _ in range(2):
+        graph = gtsam.NonlinearFactorGraph(base_graph)
+        for e in np.flatnonzero(use).tolist():
+            noise = gtsam.noiseModel.Diagonal.Sigmas(problem.sigmas[e])
+            if problem.robust[e] and kernel is not None:
+                noise = gtsam.noiseModel.Robust.Create(
+                    kernel.Create(config.loop_kernel_scale), noise
+                )
+            graph.add(
+                gtsam.BetweenFactorPose3(
+                    int(problem.edge_i[e]), int(problem.edge_j[e]), _pose3(problem.T_i_j[e]), noise
+                )
             )
-        )
-    params = gtsam.LevenbergMarquardtParams()
-    params.setMaxIterations(config.max_iterations)
-    optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
-    initial_error = float(graph.error(values))
-    result = optimizer.optimize()
+        params = gtsam.LevenbergMarquardtParams()
+        params.setMaxIterations(config.max_iterations)
+        optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
+        initial_error = float(graph.error(values))
+        result = optimizer.optimize()
+        # Loop edges still far off after the robust solve are outliers: drop them, solve again.
+        bad = [
+            e for e in np.flatnonzero(use & problem.robust).tolist()
+            if _whitened(problem, e, result) > config.loop_outlier_whitened
+        ]  # fmt: skip
+        if not bad:
+            break
+        use[bad] = False
+        rejected.extend(bad)
+        log.info("pose graph: dropped %d outlier loop constraints", len(bad))
     out = np.array([result.atPose3(i).matrix() for i in range(n)])
     final_error = float(graph.error(result))
     log.debug("pose graph %d nodes: error %.3g -> %.3g", n, initial_error, final_error)
     return PoseGraphResult(
-        problem.keys.copy(), out, initial_error, final_error, optimizer.iterations()
-    )
+        problem.keys.copy(), out, initial_error, final_error, optimizer.iterations(),
+        np.array(sorted(rejected), np.int64),
+    )  # fmt: skip
+
+
+def _whitened(problem: PoseGraphProblem, e: int, values: gtsam.Values) -> float:
+    """Norm of the whitened error of edge ``e`` at ``values``."""
+    pi = values.atPose3(int(problem.edge_i[e]))
+    pj = values.atPose3(int(problem.edge_j[e]))
+    err = gtsam.Pose3.Logmap(_pose3(problem.T_i_j[e]).between(pi.between(pj)))
+    return float(np.linalg.norm(np.asarray(err) / problem.sigmas[e]))
 
 
 def apply_pose_graph(atlas: Atlas, result: PoseGraphResult) -> int:

@@ -176,7 +176,7 @@ class CloudStore:
     def _write_state(self, st: AtlasState) -> None:
         db = self._db
         for table in ("agents", "merges", "loops", "aliases"):
-            db.execute(f"DELETE FROM {table}")  # noqa: S608 - fixed table names
+            db.execute(f"DELETE FROM {table}")
         db.executemany(
             "INSERT INTO agents VALUES (?, ?, ?)",
             [(a, st.map_of_agent[a], _pack(a=st.T_map_agent[a])) for a in st.map_of_agent],
@@ -213,7 +213,8 @@ class CloudStore:
         try:
             kfs = []
             for key, agent, kf_id, map_id, ts, blob in db.execute(
-                "SELECT key, agent, keyframe_id, map_id, timestamp, data FROM keyframes ORDER BY key"
+                "SELECT key, agent, keyframe_id, map_id, timestamp, data FROM keyframes "
+                "ORDER BY key"
             ):
                 d = _unpack(blob)
                 kfs.append(KeyframeView(key=key, agent_id=agent, keyframe_id=kf_id, map_id=map_id,

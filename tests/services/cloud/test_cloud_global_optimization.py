@@ -1,0 +1,89 @@
+"""Pose graph (paper Eq. 20, pose-graph stage): loop constraints remove injected drift."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from common.geometry import inverse_T
+from services.cloud.atlas import Atlas, make_key
+from services.cloud.config import GlobalOptimizationConfig
+from services.cloud.global_optimization import (
+    GlobalOptimizationError,
+    apply_pose_graph,
+    build_pose_graph,
+    optimize_pose_graph,
+)
+from services.cloud.simulation import circle_poses, default_camera, make_session, make_world, yaw_T
+
+
+def _rmse(atlas, poses, n):
+    est = np.array([atlas.T_map_body(make_key(0, i))[:3, 3] for i in range(n)])
+    return float(np.sqrt(np.mean(np.sum((est - poses[:n, :3, 3]) ** 2, axis=1))))
+
+
+@pytest.fixture(scope="module")
+def drifted():
+    world = make_world(21, n_points=2500)
+    n = 48
+    poses = circle_poses(n, turns=1.0)
+    drift = yaw_T(np.radians(0.4), [0.01, 0.005, 0.0])
+    kfs, mps = make_session(world, default_camera(), 0, poses, np.eye(4), seed=4, drift_T=drift)
+    return poses, kfs, mps
+
+
+def _atlas(kfs, mps, n_loops):
+    atlas = Atlas()
+    for k in kfs[:-1]:
+        atlas.add_keyframe(k)
+    for m in mps:
+        atlas.add_map_point(m)
+    return atlas
+
+
+def test_loop_constraints_reduce_drift(drifted):
+    poses, kfs, mps = drifted
+    n = len(kfs)
+    atlas = _atlas(kfs, mps, 3)
+    # Loop constraints between the end and the start of the lap, measured exactly.
+    for q, c in [(n - 2, 0), (n - 3, 1), (n - 4, 2), (n - 2, 1)]:
+        atlas.add_loop(make_key(0, c), make_key(0, q), inverse_T(poses[c]) @ poses[q])
+    before = _rmse(atlas, poses, n - 1)
+    mk = atlas.map_point_keys()[-1]
+    p_before = atlas.map_point_positions(np.array([mk]))[0]
+    cfg = GlobalOptimizationConfig()
+    problem = build_pose_graph(atlas, 0, cfg)
+    assert problem.robust.sum() == 4
+    result = optimize_pose_graph(problem, cfg)
+    assert result.final_error < result.initial_error
+    # A keyframe arriving while the optimisation ran is corrected like its predecessor.
+    late = atlas.add_keyframe(kfs[-1])
+    T_late_before = atlas.T_map_body(late)
+    assert apply_pose_graph(atlas, result) == n
+    after = _rmse(atlas, poses, n - 1)
+    assert before > 0.15
+    assert after < 0.25 * before, (before, after)
+    assert np.linalg.norm(atlas.T_map_body(late)[:3, 3] - poses[-1][:3, 3]) < np.linalg.norm(
+        T_late_before[:3, 3] - poses[-1][:3, 3]
+    )
+    # The first keyframe is held by the prior; map points moved with their keyframes.
+    np.testing.assert_allclose(atlas.T_map_body(make_key(0, 0)), poses[0], atol=1e-6)
+    assert not np.allclose(atlas.map_point_positions(np.array([mk]))[0], p_before)
+
+
+def test_robust_kernel_limits_a_wrong_loop(drifted):
+    poses, kfs, mps = drifted
+    n = len(kfs)
+    atlas = _atlas(kfs, mps, 0)
+    for q, c in [(n - 2, 0), (n - 3, 1), (n - 4, 2)]:
+        atlas.add_loop(make_key(0, c), make_key(0, q), inverse_T(poses[c]) @ poses[q])
+    # One gross outlier constraint (3 m off).
+    atlas.add_loop(make_key(0, 10), make_key(0, 30), yaw_T(1.0, [3.0, 0.0, 0.0]))
+    cfg = GlobalOptimizationConfig()
+    apply_pose_graph(atlas, optimize_pose_graph(build_pose_graph(atlas, 0, cfg), cfg))
+    assert _rmse(atlas, poses, n - 1) < 0.2
+
+
+def test_bad_problem_is_rejected():
+    with pytest.raises(GlobalOptimizationError, match="no keyframes"):
+        build_pose_graph(Atlas(), 0, GlobalOptimizationConfig())

@@ -1,0 +1,79 @@
+"""SQLite persistence: a restart resumes with the same keyframes, points, merges, sequences."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from common.geometry import inverse_T
+from services.cloud.atlas import Atlas
+from services.cloud.persistence import CloudStore, PersistenceError
+from services.cloud.simulation import circle_poses, default_camera, make_session, make_world, yaw_T
+
+
+def _covis(atlas):
+    snap = atlas.snapshot()
+    return {
+        tuple(p): int(w)
+        for p, w in zip(snap.covisibility.tolist(), snap.covisibility_weight.tolist(), strict=True)
+    }
+
+
+def test_restart_resumes_with_the_same_state(tmp_path):
+    world = make_world(41, n_points=1500)
+    cam = default_camera()
+    poses = circle_poses(10, turns=0.3)
+    T_a1 = yaw_T(0.5, [1.0, 0.0, 0.0])
+    k0, m0 = make_session(world, cam, 0, poses, np.eye(4), seed=1)
+    k1, m1 = make_session(world, cam, 1, poses, T_a1, seed=2)
+    atlas = Atlas()
+    with CloudStore(tmp_path) as store:
+        # Batches of messages from two edges, each committed before its acknowledgement.
+        for seq, (k, mps) in enumerate([(k0[:5], m0), (k0[5:], [])], start=1):
+            keys = [atlas.add_keyframe(x) for x in k]
+            pkeys = [atlas.add_map_point(x) for x in mps]
+            store.commit(atlas, keys, pkeys, {"edge-a": seq})
+        keys = [atlas.add_keyframe(x) for x in k1]
+        pkeys = [atlas.add_map_point(x) for x in m1]
+        store.commit(atlas, keys, pkeys, {"edge-b": 7})
+        atlas.merge_maps(0, 1, inverse_T(T_a1))
+        atlas.add_loop(
+            atlas.keyframe_keys(agent_id=0)[2], atlas.keyframe_keys(agent_id=1)[2], np.eye(4)
+        )
+        atlas.remove_keyframe(atlas.keyframe_keys(agent_id=0)[4])
+        store.save_all(atlas)
+    with CloudStore(tmp_path) as store:
+        restored = store.load()
+        assert store.last_sequences() == {"edge-a": 2, "edge-b": 7}
+    assert restored.keyframe_keys() == atlas.keyframe_keys()
+    assert restored.map_point_keys() == atlas.map_point_keys()
+    for key in atlas.keyframe_keys():
+        a, b = atlas.keyframe(key), restored.keyframe(key)
+        np.testing.assert_array_equal(a.T_map_body, b.T_map_body)
+        np.testing.assert_array_equal(a.descriptors, b.descriptors)
+        np.testing.assert_array_equal(a.map_point_keys, b.map_point_keys)
+    assert _covis(restored) == _covis(atlas)
+    assert restored.map_of_agent(1) == 0
+    np.testing.assert_allclose(restored.T_map_agent(1), inverse_T(T_a1))
+    assert len(restored.merges()) == 1 and len(restored.loops()) == 1
+    assert restored.removed_keyframes() == atlas.removed_keyframes()
+    # A late update of agent 1 still lands in the merged frame after the restart.
+    key = restored.add_keyframe(k1[-1])
+    np.testing.assert_allclose(restored.T_map_body(key), atlas.T_map_body(key), atol=1e-12)
+
+
+def test_sequences_never_go_backwards_and_failed_commit_rolls_back(tmp_path):
+    atlas = Atlas()
+    with CloudStore(tmp_path) as store:
+        store.commit(atlas, edge_sequences={"e": 5})
+        store.commit(atlas, edge_sequences={"e": 3})
+        assert store.last_sequences() == {"e": 5}
+        with pytest.raises(TypeError):
+            store.commit(atlas, keyframes=[object()], edge_sequences={"e": 9})
+        assert store.last_sequences() == {"e": 5}
+
+
+def test_corrupt_state_file_is_reported(tmp_path):
+    (tmp_path / "cloud.sqlite").write_bytes(b"this is not a database" * 100)
+    with pytest.raises(PersistenceError, match=r"cloud\.sqlite"):
+        CloudStore(tmp_path)

@@ -1,0 +1,168 @@
+"""Geometric verification (accept true revisits, reject wrong places and perceptual aliasing)
+and map merging to the right transform."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from common.geometry import inverse_T, so3_log
+from services.cloud.atlas import Atlas, make_key
+from services.cloud.config import (
+    AlignmentMode,
+    MergeConfig,
+    PlaceRecognitionConfig,
+    VerificationConfig,
+)
+from services.cloud.merge import MergeError, align_points, apply_match, yaw_of
+from services.cloud.place_recognition import KeyframeDatabase, PlaceRecognizer
+from services.cloud.simulation import (
+    World,
+    circle_poses,
+    default_camera,
+    make_session,
+    make_world,
+    yaw_T,
+)
+from services.cloud.verification import match_by_words, verify_candidate
+
+CAM = default_camera()
+
+
+@pytest.fixture(scope="module")
+def world():
+    return make_world(11)
+
+
+def _atlas(*sessions):
+    atlas = Atlas()
+    for kfs, mps in sessions:
+        for k in kfs:
+            atlas.add_keyframe(k)
+        for m in mps:
+            atlas.add_map_point(m)
+    return atlas
+
+
+def test_word_guided_matching_respects_groups_distance_and_uniqueness():
+    rng = np.random.default_rng(0)
+    a = rng.integers(0, 256, (5, 32), dtype=np.uint8)
+    b = a.copy()
+    b[4] = rng.integers(0, 256, 32, dtype=np.uint8)  # unrelated descriptor
+    ga = np.array([0, 1, 2, 3, 4])
+    gb = np.array([0, 1, 9, 3, 4])  # keypoint 2 is in another word
+    m = match_by_words(a, ga, b, gb, max_hamming=50, ratio=0.75)
+    assert sorted(map(tuple, m.tolist())) == [(0, 0), (1, 1), (3, 3)]
+    # Two query descriptors competing for one candidate: only the closer one survives.
+    a2 = np.stack([a[0], a[0] ^ np.uint8(1)])
+    m2 = match_by_words(a2, np.zeros(2), a[:1], np.zeros(1), 50, 0.75)
+    assert m2.tolist() == [[0, 0]]
+
+
+def test_revisit_is_verified_with_the_true_relative_pose(world):
+    poses = circle_poses(40, turns=2.0)
+    kfs, mps = make_session(world, CAM, 0, poses, np.eye(4), seed=3, dt=1.0)
+    atlas = _atlas((kfs, mps))
+    q, c = make_key(0, 25), make_key(0, 5)
+    res = verify_candidate(atlas, q, c, CAM, VerificationConfig())
+    assert res.accepted, res.reason
+    assert res.n_inliers >= 100
+    T_true = inverse_T(poses[5]) @ poses[25]
+    assert np.linalg.norm(res.T_cbody_qbody[:3, 3] - T_true[:3, 3]) < 0.02
+    assert np.degrees(np.linalg.norm(so3_log(res.T_cbody_qbody[:3, :3].T @ T_true[:3, :3]))) < 0.3
+
+
+def test_a_different_place_is_rejected(world):
+    poses = circle_poses(40, turns=2.0)
+    kfs, mps = make_session(world, CAM, 0, poses, np.eye(4), seed=3, dt=1.0)
+    atlas = _atlas((kfs, mps))
+    res = verify_candidate(atlas, make_key(0, 30), make_key(0, 0), CAM, VerificationConfig())
+    assert not res.accepted  # opposite wall: a half turn apart
+    assert "matches" in res.reason
+
+
+def test_perceptual_aliasing_is_rejected_by_geometry(world):
+    """Agent 1 flies in a room whose landmarks look exactly like agent 0's (same descriptors
+    and words) but sit elsewhere: BoW and descriptors agree, geometry must not."""
+    rng = np.random.default_rng(5)
+    perm = rng.permutation(world.points.shape[0])
+    alias = World(world.points[perm], world.descriptors, world.words, world.n_words, world.idf)
+    poses = circle_poses(12, turns=0.3)
+    s0 = make_session(world, CAM, 0, poses, np.eye(4), seed=1)
+    s1 = make_session(alias, CAM, 1, poses, np.eye(4), seed=2, t0=100.0)
+    atlas = _atlas(s0, s1)
+    results = [
+        verify_candidate(atlas, make_key(1, i), make_key(0, i), CAM, VerificationConfig())
+        for i in range(2, 10, 3)
+    ]
+    assert not any(r.accepted for r in results), [r.reason for r in results]
+    # Many descriptor matches were found, so the rejection really is geometric.
+    assert all("word matches" not in r.reason for r in results)
+
+
+def test_align_points_recovers_each_mode():
+    rng = np.random.default_rng(2)
+    p = rng.normal(size=(50, 3))
+    T = yaw_T(0.4, [1.0, 2.0, -0.5])
+    np.testing.assert_allclose(
+        align_points(p, p @ T[:3, :3].T + T[:3, 3], AlignmentMode.YAW_TRANSLATION), T, atol=1e-10
+    )
+    from common.geometry import so3_exp
+
+    T6 = np.eye(4)
+    T6[:3, :3], T6[:3, 3] = so3_exp([0.2, -0.1, 0.5]), [0.3, 0.0, 1.0]
+    np.testing.assert_allclose(
+        align_points(p, p @ T6[:3, :3].T + T6[:3, 3], AlignmentMode.SE3), T6, atol=1e-10
+    )
+    T7 = T6.copy()
+    T7[:3, :3] *= 1.7
+    np.testing.assert_allclose(
+        align_points(p, p @ T7[:3, :3].T + T7[:3, 3], AlignmentMode.SIM3), T7, atol=1e-10
+    )
+    with pytest.raises(MergeError):
+        align_points(p[:2], p[:2], AlignmentMode.SE3)
+
+
+def test_two_maps_with_known_offset_merge_to_the_right_transform(world):
+    T_a1_world = yaw_T(np.radians(35.0), [2.0, -1.0, 0.2])
+    poses0 = circle_poses(24, turns=1.0)
+    poses1 = circle_poses(12, turns=0.5, phase=np.radians(100.0))
+    s0 = make_session(world, CAM, 0, poses0, np.eye(4), seed=1)
+    s1 = make_session(world, CAM, 1, poses1, T_a1_world, seed=2, t0=100.0)
+    atlas = _atlas(s0, s1)
+    pr = PlaceRecognizer(KeyframeDatabase(world.idf), PlaceRecognitionConfig())
+    for key in atlas.keyframe_keys(agent_id=0):
+        pr.detect(atlas, key)
+        pr.add(atlas, key)
+    merge = None
+    n_points_before = atlas.n_map_points()
+    for key in atlas.keyframe_keys(agent_id=1):
+        for cand in pr.detect(atlas, key):
+            if atlas.map_id_of_keyframe(key) == atlas.map_id_of_keyframe(cand.candidate_key):
+                continue
+            res = verify_candidate(atlas, key, cand.candidate_key, CAM, VerificationConfig())
+            if res.accepted:
+                merge = apply_match(atlas, res, MergeConfig()).merge
+        pr.add(atlas, key)
+        if merge is not None:
+            break
+    assert merge is not None, "maps were not merged"
+    T_expected = inverse_T(T_a1_world)  # agent 1's map frame -> agent 0's (= world)
+    T = merge.T_target_source
+    assert np.linalg.norm(T[:3, 3] - T_expected[:3, 3]) < 0.01
+    assert abs(np.degrees(yaw_of(T[:3, :3]) - yaw_of(T_expected[:3, :3]))) < 0.1
+    assert atlas.maps() == [0] and atlas.map_of_agent(1) == 0
+    # Agent 1's keyframes now sit at their true poses in map 0, duplicates were fused.
+    for i, key in enumerate(atlas.keyframe_keys(agent_id=1)):
+        assert np.linalg.norm(atlas.T_map_body(key)[:3, 3] - poses1[i][:3, 3]) < 0.02
+    assert merge.fused_points > 100
+    assert atlas.n_map_points() == n_points_before - merge.fused_points
+    assert len(atlas.loops()) == 1 and atlas.loops()[0].inter_agent
+
+
+def test_rejected_match_cannot_be_merged(world):
+    poses = circle_poses(40, turns=2.0)
+    atlas = _atlas(make_session(world, CAM, 0, poses[:32], np.eye(4), seed=3, dt=1.0))
+    res = verify_candidate(atlas, make_key(0, 30), make_key(0, 0), CAM, VerificationConfig())
+    with pytest.raises(MergeError, match="rejected"):
+        apply_match(atlas, res, MergeConfig())
