@@ -1,0 +1,61 @@
+"""ORB on keyframes: ORB-SLAM3 settings, even spread over the image, level and angle kept."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from services.robot.config import OrbConfig
+from services.robot.orb_extractor import OrbExtractor, OrbExtractorError, select_grid
+
+EXCERPT = Path(__file__).resolve().parents[3].parent / "shared/datasets/euroc-micro-V1_01"
+
+
+@pytest.fixture(scope="module")
+def image() -> np.ndarray:
+    paths = sorted((EXCERPT / "mav0/cam0/data").glob("*.png"))
+    if not paths:
+        pytest.skip(f"EuRoC excerpt not found at {EXCERPT}")
+    return cv2.imread(str(paths[10]), cv2.IMREAD_GRAYSCALE)
+
+
+def _occupied_cells(pts: np.ndarray, shape: tuple[int, int], cols=16, rows=10) -> int:
+    h, w = shape
+    cells = (pts[:, 1] * rows // h).astype(int) * cols + (pts[:, 0] * cols // w).astype(int)
+    return len(np.unique(cells))
+
+
+def test_orb_slam3_defaults_and_fields(image: np.ndarray) -> None:
+    feats = OrbExtractor(OrbConfig()).extract(image)
+    assert len(feats) == 1000
+    assert feats.descriptors.shape == (1000, 32) and feats.descriptors.dtype == np.uint8
+    assert feats.levels.dtype == np.uint8 and feats.levels.max() <= 7
+    assert len(np.unique(feats.levels)) >= 5  # several scales are used
+    assert np.all((feats.angles >= 0) & (feats.angles < 360))
+    assert np.all(feats.keypoints >= 0)
+    assert np.all(feats.keypoints < [image.shape[1], image.shape[0]])
+
+
+def test_grid_spreads_features_more_than_plain_orb(image: np.ndarray) -> None:
+    ours = OrbExtractor(OrbConfig()).extract(image).keypoints
+    plain = cv2.ORB_create(1000, 1.2, 8).detect(image)
+    plain_pts = np.array([k.pt for k in plain])
+    assert _occupied_cells(ours, image.shape) > _occupied_cells(plain_pts, image.shape)
+
+
+def test_select_grid_round_robin() -> None:
+    # Cell 0 holds 10 strong points, cell 1 holds 2 weak ones: keeping 4 takes both weak ones.
+    pts = np.array([[0.5 + 0.9 * i, 1.0] for i in range(10)] + [[15.0, 1.0], [16.0, 1.0]])
+    resp = np.array([10.0 + i for i in range(10)] + [1.0, 2.0])
+    keep = select_grid(pts, resp, (10, 20), n_keep=4, grid_cols=2, grid_rows=1)
+    assert len(keep) == 4 and len(set(keep.tolist())) == 4
+    assert {10, 11} <= set(keep.tolist())
+    assert {9, 8} <= set(keep.tolist())  # the strongest two of the crowded cell
+
+
+def test_rejects_colour_image(image: np.ndarray) -> None:
+    with pytest.raises(OrbExtractorError):
+        OrbExtractor(OrbConfig()).extract(np.dstack([image] * 3))
