@@ -45,20 +45,21 @@ class LogStore:
         os.write(self.fd, RECORD.pack(d.stream_id, d.seq, d.message.channel, digest))
 
 
-async def main(port: int, log: str, secret: bytes) -> None:
+async def main(host: str, port: int, log: str, secret: bytes) -> None:
     store = LogStore(log)
     config = SessionConfig(
         role="edge", agent_id="edge-0", secret=secret, heartbeat_interval=0.2, idle_timeout=1.0
     )
     server = Server(config, store.handle, store=store, transport=TransportConfig())
-    await server.start("127.0.0.1", port)
+    await server.start(host, port)
     await asyncio.Event().wait()  # until killed
 
 
 if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--host", default="127.0.0.1")
     parser.add_argument("--port", type=int, required=True)
     parser.add_argument("--log", required=True)
     parser.add_argument("--secret", required=True)
     args = parser.parse_args()
-    run(main(args.port, args.log, args.secret.encode()))
+    run(main(args.host, args.port, args.log, args.secret.encode()))
