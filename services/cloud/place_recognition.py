@@ -7,9 +7,10 @@ L1 score ``1 - 0.5 |a - b|_1`` which for non-negative L1-normalised vectors equa
 ``sum_w min(a_w, b_w)`` — the form the inverted index accumulates.
 
 The inverted index is an append-only word-sorted structure of ``(word, keyframe, weight)``
-entries (a CSR matrix words × keyframes held as three arrays) plus a small unsorted tail that
-is merged in geometrically (amortised O(1) per entry); a query gathers the posting lists of its
-words with one vectorised range expansion and accumulates with ``np.bincount``.
+entries (a CSR matrix words × keyframes held as three arrays) plus a small unsorted tail of at
+most ``merge_min`` entries (scanned with ``np.isin``) that is merged into the sorted arrays
+when full (one O(n) ``np.insert``); a query gathers the posting lists of its words with one
+vectorised range expansion and accumulates with ``np.bincount``.
 
 Detection follows ORB-SLAM's ``LoopClosing::DetectLoop`` / ``KeyFrameDatabase::
 DetectLoopCandidates`` (Mur-Artal & Tardós 2017, after Gálvez-López & Tardós 2012, DBoW2):
@@ -142,7 +143,7 @@ class KeyframeDatabase:
         self._t_kf.append(np.full(vec.words.size, i, np.int32))
         self._t_w.append(vec.weights.astype(np.float32))
         self._t_size += vec.words.size
-        if self._t_size >= max(self._merge_min, self._m_kf.size // 4):
+        if self._t_size >= self._merge_min:
             self._merge_tail()
         return vec
 
