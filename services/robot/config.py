@@ -66,8 +66,9 @@ class LkConfig:
     the time (plain LK needs the larger window and pyramid)."""
     max_level: int = 2
     """Top level of the LK pyramid (OpenCV pyramids halve per level: 3 levels, 1/4 scale)."""
-    fb_max_level: int = 0
-    """Top pyramid level of the backward pass (it starts at the previous position)."""
+    fb_max_level: int = 1
+    """Top pyramid level of the backward pass when a motion model predicts where it ends (the
+    inverse IMU rotation); without one (plain LK) the backward pass uses ``max_level``."""
     max_iterations: int = 30
     """LK iterations per level at most."""
     epsilon: float = 0.01

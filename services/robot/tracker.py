@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -35,11 +36,21 @@ from scipy.spatial import cKDTree
 from common.calibration import CameraCalibration, ImuCalibration
 from common.errors import RecslamError
 from services.robot.config import FrontEndConfig, LkConfig, PredictionMode, TrackingMode
-from services.robot.imu_prediction import InertialState, MotionPredictor, undistort_normalised
+from services.robot.imu_prediction import (
+    InertialState,
+    MotionPredictor,
+    predict_rotation,
+    undistort_normalised,
+)
 from services.robot.keyframe_decision import KeyframeReason, decide_keyframe
 from services.robot.orb_extractor import OrbExtractor, OrbFeatures
 
 logger = logging.getLogger(__name__)
+
+
+BackPrediction = Callable[[np.ndarray, np.ndarray], np.ndarray]
+"""``(cur_pts (M, 2), rows (M,)) -> (M, 2)``: where tracks now at ``cur_pts`` were predicted to
+be in the previous image (the motion model run backwards), for the forward–backward check."""
 
 
 class FrontEndError(RecslamError):
@@ -180,10 +191,17 @@ def track_points(
     prev_pts: np.ndarray,
     guess_pts: np.ndarray,
     check_imu: bool,
+    back_prediction: BackPrediction | None = None,
 ) -> PointTrackResult:
     """Track ``prev_pts`` (N, 2) from the previous to the current uint8 (H, W) image, starting
     pyramidal LK at ``guess_pts`` (N, 2); then forward–backward check, IMU consistency (offset
     from the guess, if ``check_imu``) and RANSAC.
+
+    The backward pass tracks the forward results back into the previous image, starting where
+    the motion model maps them (``back_prediction(cur_pts, rows)``, e.g. the inverse IMU
+    rotation; over ``fb_max_level`` levels) or, without a model, at the forward results
+    themselves (over ``max_level`` levels). It never starts at the previous positions: a track
+    stuck in a wrong place would then pass by not moving.
 
     The images go to OpenCV as they are: its Python binding rejects the pyramids that
     ``cv2.buildOpticalFlowPyramid`` returns (``prevImg is not a numpy array``), and building
@@ -215,13 +233,18 @@ def track_points(
     n_lk = int(keep.sum())
     if config.check_forward_backward and n_lk:
         idx = np.flatnonzero(keep)
+        if back_prediction is None:
+            back_guess, fb_level = p1[idx].copy(), config.max_level
+        else:
+            back_guess = back_prediction(cur[idx], idx).astype(np.float32).reshape(-1, 1, 2)
+            fb_level = config.fb_max_level
         back, status_b, _ = cv2.calcOpticalFlowPyrLK(
             cur_image,
             prev_image,
             p1[idx].copy(),
-            p0[idx].copy(),
+            back_guess,
             winSize=win,
-            maxLevel=config.fb_max_level,
+            maxLevel=fb_level,
             criteria=_criteria(config),
             flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
         )
@@ -405,9 +428,16 @@ class FrontEnd:
         survived = np.zeros(n_prev, dtype=bool)
         cur_pts = np.zeros((0, 2))
         if self._prev_image is not None and n_prev:
-            guess, source, n_3d = self._predict(timestamp_ns)
+            guess, source, n_3d, back = self._predict(timestamp_ns)
             res = track_points(
-                cfg.lk, self.camera, self._prev_image, image, self._pts, guess, source != "none"
+                cfg.lk,
+                self.camera,
+                self._prev_image,
+                image,
+                self._pts,
+                guess,
+                source != "none",
+                back,
             )
             survived = res.keep
             cur_pts = quantise(res.cur_pts[survived], cfg.quantisation_px)
@@ -470,15 +500,25 @@ class FrontEnd:
                 self.predictor.buffer, self._prev_t, timestamp_ns
             )
 
-    def _predict(self, timestamp_ns: int) -> tuple[np.ndarray, str, int]:
-        """Initial LK guess (N, 2) for the current tracks, its source, and how many came from
-        3D points."""
+    def _predict(self, timestamp_ns: int) -> tuple[np.ndarray, str, int, BackPrediction | None]:
+        """Initial LK guess (N, 2) for the current tracks, its source, how many came from 3D
+        points, and the backward motion model for the forward–backward check."""
         assert self._prev_t is not None
         if self.config.prediction is PredictionMode.NONE or len(self.predictor.buffer) == 0:
-            return self._pts.copy(), "none", 0
+            return self._pts.copy(), "none", 0, None
         motion = self.predictor.predict_motion(self._prev_t, timestamp_ns)
         guess, by_point = self.predictor.predict_points(motion, self._pts, self._ids)
-        return guess, motion.source, int(by_point.sum())
+        R_prev_cur = motion.R_cur_prev.T
+        shift = guess - self._pts
+        camera = self.camera
+
+        def back(cur: np.ndarray, rows: np.ndarray) -> np.ndarray:
+            out = predict_rotation(camera, cur, R_prev_cur)
+            from_point = by_point[rows]
+            out[from_point] = cur[from_point] - shift[rows[from_point]]
+            return out
+
+        return guess, motion.source, int(by_point.sum()), back
 
     def _make_keyframe(
         self,
