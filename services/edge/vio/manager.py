@@ -93,6 +93,7 @@ class VioManager:
         self._last_bias: tuple[np.ndarray, np.ndarray] | None = None
         self._bias_guess = (np.zeros(3), np.zeros(3))  # (accel, gyro) carried to new maps
         self._pending_updates: list[MapUpdate] = []
+        self._last_init_reason = ""
         self.last_local_ba: BAStats | None = None
         logger.info("VIO %s options: %s", robot_name, self.options)
 
@@ -229,7 +230,10 @@ class VioManager:
         opt = self.options.mono_init
         st = TrackingStatus.INITIALIZING
         if not frame.obs.is_keyframe:
-            return self._result(frame, None, st, 0, False, "waiting for a robot keyframe")
+            why = "waiting for a robot keyframe"
+            if self._last_init_reason:
+                why += f" (last attempt: {self._last_init_reason})"
+            return self._result(frame, None, st, 0, False, why)
         ref = self._ref
         too_old = (
             ref is not None
@@ -242,6 +246,7 @@ class VioManager:
             ref.obs.track_ids, frame.obs.track_ids, assume_unique=True, return_indices=True
         )
         tv, reason = two_view_geometry(ref.xy[i_ref], frame.xy[i_cur], self.camera.focal, opt)
+        self._last_init_reason = f"mono init: {reason}" if reason else ""
         if tv is None:
             if len(i_ref) < opt.min_tracks:
                 self._ref = frame

@@ -321,3 +321,61 @@ def ground_truth_map(seq: SimSequence, max_keyframes: int, bias_from_options: Si
         triangulate_new_points(vmap, kf, cam, mopt)
         prev = kf
     return vmap, cam
+
+
+@dataclass(frozen=True)
+class RunMetrics:
+    """Accuracy of one run on a synthetic sequence (the latest map only).
+
+    ``ate_frames_m``: real-time per-frame poses of TRACKING frames, SE(3)-aligned;
+    ``ate_keyframes_m``: final keyframe poses after all optimisation, SE(3)-aligned;
+    ``scale_*``: Sim(3) scale factor (1 = perfect metric scale)."""
+
+    n_frames: int
+    n_tracking: int
+    n_maps: int
+    ate_frames_m: float
+    scale_frames: float
+    ate_keyframes_m: float
+    scale_keyframes: float
+
+
+def run_sequence(manager, seq: SimSequence) -> list:
+    """Feed a sequence to a VioManager; returns its FrameResults."""
+    out = []
+    for t, gyro, accel, frame in seq.feed():
+        manager.feed_imu(t, gyro, accel)
+        out.append(manager.feed_frame(frame))
+    return out
+
+
+def evaluate_run(manager, results: list, seq: SimSequence) -> RunMetrics:
+    """ATE and scale of a finished run against the sequence's ground truth."""
+    from services.edge.vio.types import TrackingStatus
+
+    last_map = results[-1].map_id
+    idx = [
+        i for i, r in enumerate(results)
+        if r.status == TrackingStatus.TRACKING and r.map_id == last_map
+    ]  # fmt: skip
+    nan = float("nan")
+    ate_f, s_f = nan, nan
+    if len(idx) >= 3:
+        est = np.array([results[i].T_world_body[:3, 3] for i in idx])
+        ate_f, s_f = ate_rmse(est, seq.gt_T_world_body[idx, :3, 3])
+    ate_k, s_k = nan, nan
+    vmap = manager.current_map
+    if vmap is not None and vmap.vi_initialized:
+        row = {int(t): i for i, t in enumerate(seq.gt_timestamps_ns)}
+        kfs = vmap.keyframe_list()
+        est = np.array([kf.T_world_body[:3, 3] for kf in kfs])
+        ate_k, s_k = ate_rmse(est, seq.gt_T_world_body[[row[k.timestamp_ns] for k in kfs], :3, 3])
+    return RunMetrics(
+        n_frames=len(results),
+        n_tracking=len(idx),
+        n_maps=len({r.map_id for r in results}),
+        ate_frames_m=ate_f,
+        scale_frames=s_f,
+        ate_keyframes_m=ate_k,
+        scale_keyframes=s_k,
+    )
