@@ -110,9 +110,13 @@ def fuse_duplicates(
 ) -> int:
     """Fuse each of ``source_points`` into the nearest other point of ``map_id`` within
     ``distance_m`` whose descriptor is within ``max_hamming``; returns how many were fused."""
-    src = [k for k in source_points if atlas.has_map_point(k)]
+
+    def observed(k: int) -> bool:  # points whose keyframes have not arrived carry no descriptor
+        return atlas.has_map_point(k) and bool(atlas.map_point_observations(k))
+
+    src = [k for k in source_points if observed(k)]
     src_set = set(src)
-    others = [k for k in atlas.map_point_keys(map_id) if k not in src_set]
+    others = [k for k in atlas.map_point_keys(map_id) if k not in src_set and observed(k)]
     if not src or not others:
         return 0
     P_o = atlas.map_point_positions(np.array(others))
@@ -125,7 +129,7 @@ def fuse_duplicates(
         if not np.isfinite(d):
             continue
         keep = others[int(j)]
-        if not (atlas.has_map_point(keep) and atlas.has_map_point(k)):
+        if not (observed(keep) and observed(k)):
             continue
         hd = hamming(atlas.map_point_descriptor(keep)[None], atlas.map_point_descriptor(k)[None])
         if int(hd[0, 0]) <= max_hamming:

@@ -1,0 +1,114 @@
+"""Map fusion (paper Section VI.B) as one front object over the cloud's domain blocks.
+
+:class:`MapFusion` owns the atlas, the keyframe database and the place recognizer. A service
+feeds what the edges send (:meth:`add_map_point`, :meth:`add_keyframe`); each new keyframe is
+queried for places seen before (intra- and inter-robot alike), candidates are verified, and a
+verified match merges two maps or adds a loop constraint. Maps that gained a constraint are
+reported in :attr:`FusionEvents.maps_to_optimize`; the service then runs
+:func:`~services.cloud.global_optimization.optimize_pose_graph` off its event loop on
+:meth:`pose_graph` and hands the result back with :meth:`apply_optimization`.
+Sans-I/O: no sockets, clocks or threads here.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from common.calibration import CameraCalibration
+from services.cloud.atlas import Atlas, KeyframeInput, MapPointInput
+from services.cloud.config import CloudConfig
+from services.cloud.global_optimization import (
+    PoseGraphProblem,
+    PoseGraphResult,
+    apply_pose_graph,
+    build_pose_graph,
+)
+from services.cloud.mbp import MbpReport, run_mbp
+from services.cloud.merge import MatchOutcome, apply_match
+from services.cloud.place_recognition import KeyframeDatabase, PlaceRecognizer
+from services.cloud.verification import VerificationResult, verify_candidate
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class FusionEvents:
+    """What one keyframe caused: verification results, loops / merges, maps to optimise."""
+
+    key: int
+    verifications: list[VerificationResult] = field(default_factory=list)
+    outcomes: list[MatchOutcome] = field(default_factory=list)
+    maps_to_optimize: set[int] = field(default_factory=set)
+
+
+class MapFusion:
+    """Atlas + place recognition + verification + merging for all agents.
+
+    idf (S,): the shared vocabulary's idf weights; word_group (S,) optional word -> vocabulary
+    node id for word-guided matching (see :func:`verify_candidate`)."""
+
+    def __init__(
+        self,
+        camera: CameraCalibration,
+        idf: np.ndarray,
+        config: CloudConfig,
+        atlas: Atlas | None = None,
+        word_group: np.ndarray | None = None,
+    ) -> None:
+        self.camera = camera
+        self.config = config
+        self.atlas = atlas if atlas is not None else Atlas()
+        self.word_group = word_group
+        self.recognizer = PlaceRecognizer(KeyframeDatabase(idf), config.place_recognition)
+        for key in self.atlas.keyframe_keys():  # restored atlas: rebuild the database
+            self.recognizer.add(self.atlas, key)
+
+    def add_map_point(self, mp: MapPointInput) -> int:
+        return self.atlas.add_map_point(mp)
+
+    def add_keyframe(self, kf: KeyframeInput, detect: bool = True) -> FusionEvents:
+        """Insert a keyframe (an update of a known one only refreshes its state), then detect,
+        verify and act on places seen before."""
+        known = self.atlas.has_keyframe((kf.agent_id << 32) | kf.keyframe_id)
+        key = self.atlas.add_keyframe(kf)
+        events = FusionEvents(key)
+        if known or not self.atlas.has_keyframe(key):
+            return events
+        if detect:
+            for cand in self.recognizer.detect(self.atlas, key):
+                same_map = self.atlas.map_id_of_keyframe(key) == self.atlas.map_id_of_keyframe(
+                    cand.candidate_key
+                )
+                if same_map and any(o.loop.key_b == key for o in events.outcomes):
+                    continue
+                res = verify_candidate(
+                    self.atlas, key, cand.candidate_key, self.camera, self.config.verification,
+                    self.word_group,
+                )  # fmt: skip
+                events.verifications.append(res)
+                if not res.accepted:
+                    continue
+                outcome = apply_match(self.atlas, res, self.config.merge)
+                events.outcomes.append(outcome)
+                events.maps_to_optimize.add(self.atlas.map_id_of_keyframe(key))
+                self.recognizer.reset_consistency(kf.agent_id)
+                break  # one accepted match per keyframe
+        self.recognizer.add(self.atlas, key)
+        return events
+
+    def pose_graph(self, map_id: int) -> PoseGraphProblem:
+        """Plain pose-graph problem of a map (give it to ``optimize_pose_graph`` elsewhere)."""
+        return build_pose_graph(self.atlas, map_id, self.config.optimization)
+
+    def apply_optimization(self, result: PoseGraphResult) -> int:
+        return apply_pose_graph(self.atlas, result)
+
+    def prune(self, map_id: int, keep_recent: int = 5) -> MbpReport:
+        """Run MBP on a map and drop the removed keyframes from the database."""
+        report = run_mbp(self.atlas, map_id, self.camera, self.config.mbp, keep_recent)
+        for key in report.removed_keyframes:
+            self.recognizer.db.remove(key)
+        return report

@@ -1,0 +1,49 @@
+"""MapFusion end to end: two robots with offset maps merge, optimise, prune and persist."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from common.geometry import inverse_T
+from services.cloud.config import CloudConfig
+from services.cloud.global_optimization import optimize_pose_graph
+from services.cloud.map_fusion import MapFusion
+from services.cloud.merge import yaw_of
+from services.cloud.persistence import CloudStore
+from services.cloud.simulation import circle_poses, default_camera, make_session, make_world, yaw_T
+
+
+def test_two_robots_merge_through_the_front_object(tmp_path):
+    world = make_world(51)
+    cam = default_camera()
+    T_a1_world = yaw_T(np.radians(-60.0), [-1.5, 0.5, 0.0])
+    s0 = make_session(world, cam, 0, circle_poses(24, turns=1.0), np.eye(4), seed=1)
+    s1 = make_session(
+        world, cam, 1, circle_poses(12, turns=0.5, phase=2.0), T_a1_world, seed=2, t0=50.0
+    )
+    cfg = CloudConfig()
+    fusion = MapFusion(cam, world.idf, cfg)
+    merged = []
+    for kfs, mps in (s0, s1):
+        for m in mps:
+            fusion.add_map_point(m)
+        for k in kfs:
+            ev = fusion.add_keyframe(k)
+            merged += [o.merge for o in ev.outcomes if o.merge is not None]
+            for map_id in ev.maps_to_optimize:
+                fusion.apply_optimization(
+                    optimize_pose_graph(fusion.pose_graph(map_id), cfg.optimization)
+                )
+    assert len(merged) == 1
+    T = merged[0].T_target_source
+    T_exp = inverse_T(T_a1_world)
+    assert np.linalg.norm(T[:3, 3] - T_exp[:3, 3]) < 0.01
+    assert abs(np.degrees(yaw_of(T[:3, :3]) - yaw_of(T_exp[:3, :3]))) < 0.1
+    assert fusion.atlas.maps() == [0]
+    report = fusion.prune(0)
+    assert report.keyframes_after < report.keyframes_before and report.connected_after
+    with CloudStore(tmp_path) as store:
+        store.save_all(fusion.atlas)
+        restored = MapFusion(cam, world.idf, cfg, atlas=store.load())
+    assert restored.atlas.keyframe_keys() == fusion.atlas.keyframe_keys()
+    assert len(restored.recognizer.db) == len(fusion.atlas.keyframe_keys())
