@@ -584,6 +584,18 @@ class Server:
         """Queue ``message`` for ``agent_id`` (waits while its outbox is full)."""
         return await self.peer(agent_id).send(message)
 
+    async def forget(self, agent_id: str) -> None:
+        """Drop a peer that left for good: close its connection, discard its link state
+        (unacknowledged messages to it are lost; its next connection starts afresh)."""
+        peer = self.peers.pop(agent_id, None)
+        if peer is None:
+            return
+        if peer._conn is not None:
+            peer._conn.close(CloseCode.NORMAL, "forgotten by the server")
+            with contextlib.suppress(asyncio.TimeoutError):
+                await asyncio.wait_for(asyncio.shield(peer._conn.finished), 2.0)
+        await peer._stop()
+
     def counters(self) -> dict[str, dict[str, Any]]:
         """Per-peer traffic counters, keyed by agent id (plain data)."""
         return {agent: peer.counters() for agent, peer in self.peers.items()}
@@ -624,7 +636,8 @@ class Server:
             logger.warning("refusing connection: %d peers connected", len(self._connections))
             reason = f"server full ({self.transport.max_peers} peers)"
             with contextlib.suppress(OSError, RuntimeError):
-                writer.write(encode_frame(Close.TYPE_ID, encode_payload(Close(4, reason))))
+                close = Close(int(CloseCode.REFUSED), reason)
+                writer.write(encode_frame(Close.TYPE_ID, encode_payload(close)))
                 writer.close()
                 await writer.wait_closed()
             return

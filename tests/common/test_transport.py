@@ -261,3 +261,38 @@ def test_tls_link(tmp_path):
             await server.close()
 
     run(main())
+
+
+def test_peers_join_leave_and_are_forgotten():
+    async def main():
+        sink = Sink()
+        server = Server(scfg(), sink, transport=FAST)
+        host, port = await server.start()
+        robots = [
+            Client(scfg(f"r{i}", "robot"), Sink(), host, port, transport=FAST) for i in range(3)
+        ]
+        try:
+            for i, robot in enumerate(robots):
+                await robot.start()
+                await robot.send(Blob(i, b"hi"))
+            for robot in robots:
+                await robot.flush()
+            await robots[1].close()  # leaves
+            await robots[0].send(Blob(10, b"still here"))
+            await robots[0].flush()
+            assert sorted(server.peers) == ["r0", "r1", "r2"]
+            assert not server.peers["r1"].connected and server.peers["r2"].connected
+            await server.forget("r1")
+            assert sorted(server.counters()) == ["r0", "r2"]
+            late = Client(scfg("r3", "robot"), Sink(), host, port, transport=FAST)
+            await late.start()  # joins at any time
+            await late.send(Blob(30, b"late"))
+            await late.flush()
+            await late.close()
+        finally:
+            for robot in robots:
+                await robot.close()
+            await server.close()
+        return sorted((d.peer, d.message.channel) for d in sink.items)
+
+    assert run(main()) == [("r0", 0), ("r0", 10), ("r1", 1), ("r2", 2), ("r3", 30)]
