@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from common.calibration import CameraCalibration
-from services.cloud.atlas import Atlas, KeyframeInput, MapPointInput
+from services.cloud.atlas import Atlas, KeyframeInput, MapPointInput, make_key
 from services.cloud.config import CloudConfig
 from services.cloud.global_optimization import (
     PoseGraphProblem,
@@ -72,7 +72,7 @@ class MapFusion:
     def add_keyframe(self, kf: KeyframeInput, detect: bool = True) -> FusionEvents:
         """Insert a keyframe (an update of a known one only refreshes its state), then detect,
         verify and act on places seen before."""
-        known = self.atlas.has_keyframe((kf.agent_id << 32) | kf.keyframe_id)
+        known = self.atlas.has_keyframe(make_key(kf.agent_id, kf.keyframe_id))
         key = self.atlas.add_keyframe(kf)
         events = FusionEvents(key)
         if known or not self.atlas.has_keyframe(key):
