@@ -30,6 +30,7 @@ from common.protocol.session import Session, State
 from common.protocol.store import (
     DeliveryStore,
     FileDeliveryStore,
+    FileOutboxStore,
     InboundPosition,
     MemoryDeliveryStore,
 )
@@ -46,6 +47,7 @@ __all__ = [
     "CloseCode",
     "DeliveryStore",
     "FileDeliveryStore",
+    "FileOutboxStore",
     "FrameDecoder",
     "HandshakeComplete",
     "InboundPosition",

@@ -15,9 +15,10 @@ atomic. Two ways to get that:
 - or make the handler idempotent per ``(stream_id, seq)`` and use :class:`FileDeliveryStore`,
   which saves after each handler return (a crash between the two re-delivers one message).
 
-The sending side may persist its unacknowledged outbox with ``Link.outbound_state()`` and
-restore it with ``Link(..., outbound=...)``; otherwise a restarted sender starts a new stream
-and the receiver resets its position for that peer (logged).
+The sending side may persist its unacknowledged outbox (``Link.outbound_state()``, e.g. into
+a :class:`FileOutboxStore`) and restore it with ``SessionConfig.new_link(outbound=...)``
+passed to ``Client(link=...)``; otherwise a restarted sender starts a new stream and the
+receiver resets its position for that peer (logged).
 """
 
 from __future__ import annotations
@@ -27,9 +28,14 @@ import os
 import re
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol
+
+import msgpack
 
 from common.protocol.errors import LocalProtocolError
+
+if TYPE_CHECKING:
+    from common.protocol.link import OutboundState
 
 
 @dataclass(frozen=True)
@@ -91,22 +97,63 @@ class FileDeliveryStore:
             raise LocalProtocolError(f"{path}: corrupt delivery position ({exc})") from exc
 
     def save(self, peer: str, position: InboundPosition) -> None:
-        path = self._path(peer)
-        tmp = path.with_suffix(".tmp")
         data = json.dumps(
             {"stream_id": position.stream_id.hex(), "last_delivered": position.last_delivered}
         ).encode()
-        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
-        try:
-            os.write(fd, data)
-            if self.fsync:
-                os.fsync(fd)
-        finally:
-            os.close(fd)
-        os.replace(tmp, path)
+        _atomic_write(self._path(peer), data, self.fsync)
         if self.fsync:
             dfd = os.open(self.directory, os.O_RDONLY)
             try:
                 os.fsync(dfd)
             finally:
                 os.close(dfd)
+
+
+def _atomic_write(path: Path, data: bytes, fsync: bool) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+    try:
+        os.write(fd, data)
+        if fsync:
+            os.fsync(fd)
+    finally:
+        os.close(fd)
+    os.replace(tmp, path)
+
+
+class FileOutboxStore:
+    """The sending side of one link in one file (msgpack), for a sender that must survive
+    its own restart without losing unacknowledged messages.
+
+    Save whenever the application needs a durability point (e.g. after queuing a batch, at
+    shutdown): messages queued after the last save are lost if the process dies, and the
+    restored link replays everything in the file that the peer has not delivered.
+    """
+
+    def __init__(self, path: str | Path, *, fsync: bool = True) -> None:
+        self.path = Path(path)
+        self.fsync = fsync
+
+    def save(self, state: OutboundState) -> None:
+        rows = [[seq, e.type_id, e.type_name, e.payload] for seq, e in state.pending]
+        data = msgpack.packb([1, state.stream_id, state.next_seq, rows], use_bin_type=True)
+        _atomic_write(self.path, data, self.fsync)
+
+    def load(self) -> OutboundState | None:
+        from common.protocol.link import OutboundState, OutboxEntry
+
+        try:
+            raw = self.path.read_bytes()
+        except FileNotFoundError:
+            return None
+        try:
+            version, stream_id, next_seq, rows = msgpack.unpackb(raw, raw=False)
+            if version != 1:
+                raise ValueError(f"unknown outbox file version {version}")
+            pending = tuple(
+                (int(seq), OutboxEntry(int(t), str(name), bytes(payload)))
+                for seq, t, name, payload in rows
+            )
+            return OutboundState(bytes(stream_id), int(next_seq), pending)
+        except (ValueError, TypeError, msgpack.UnpackException) as exc:
+            raise LocalProtocolError(f"{self.path}: corrupt outbox file ({exc})") from exc

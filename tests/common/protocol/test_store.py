@@ -9,6 +9,7 @@ import pytest
 from common.protocol import (
     Blob,
     FileDeliveryStore,
+    FileOutboxStore,
     InboundPosition,
     LocalProtocolError,
     MemoryDeliveryStore,
@@ -98,3 +99,21 @@ def test_server_restart_on_file_store_neither_loses_nor_repeats(tmp_path):
     # delivered-but-unacknowledged messages existed at the restart: without the store the new
     # server would have accepted them again as a new stream, and `got` would show repeats
     assert result["unacked_at_restart"] <= 50
+
+
+def test_outbox_file_restores_a_restarted_sender(tmp_path):
+    cfg = SessionConfig("robot", "r", SECRET)
+    link = cfg.new_link()
+    for i in range(3):
+        link.enqueue(Blob(i, bytes([i]) * 5))
+    link.acknowledge(1)
+    store = FileOutboxStore(tmp_path / "outbox.bin", fsync=False)
+    assert store.load() is None
+    store.save(link.outbound_state())
+    restored = cfg.new_link(outbound=store.load())
+    assert restored.out_stream_id == link.out_stream_id
+    assert list(restored.outbox) == [2, 3] and restored.next_seq == 4
+    assert restored.outbox[3].payload == link.outbox[3].payload
+    (tmp_path / "outbox.bin").write_bytes(b"\x93\x01")
+    with pytest.raises(LocalProtocolError, match="corrupt outbox file"):
+        store.load()
