@@ -23,6 +23,10 @@ Delivery is exactly-once and in order per link across reconnects. Across a resta
 receiving process it is exactly-once when a :class:`~common.protocol.store.DeliveryStore`
 gives back the saved position (see ``common/protocol/store.py``). A handler that raises
 does not ack: the connection is dropped and the message is redelivered after reconnect.
+A handler that replies to the same peer should use ``send_nowait`` (or a separate task)
+rather than await a full outbox: two handlers each waiting for the other to deliver would
+wait forever. Agent ids must be unique: a second connection with the same id replaces the
+first.
 """
 
 from __future__ import annotations
