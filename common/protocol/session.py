@@ -75,6 +75,8 @@ from common.protocol.messages import (
 
 logger = logging.getLogger(__name__)
 
+HANDSHAKE_MAX_FRAME = 4096  # bytes; handshake frames are < 300 B
+
 
 class State(enum.Enum):
     HELLO_SENT = "hello-sent"
@@ -116,7 +118,9 @@ class Session:
         self.peer_role: str | None = None
         self.peer_agent_id: str | None = None
         self.close_reason: str | None = None
-        self._decoder = FrameDecoder(config.max_frame_size)
+        # until the peer is authenticated only small handshake frames are accepted, so an
+        # unauthenticated connection can make us buffer at most HANDSHAKE_MAX_FRAME bytes
+        self._decoder = FrameDecoder(min(HANDSHAKE_MAX_FRAME, config.max_frame_size))
         self._events: deque[Event] = deque()
         self._out: list[bytes] = []
         self._nonce = nonce_factory()
@@ -482,6 +486,7 @@ class Session:
         assert self.link is not None
         self.state = State.ESTABLISHED
         self._handshake_deadline = None
+        self._decoder.max_frame_size = self.config.max_frame_size
         replay = self.link.next_seq - self.link.first_unacked
         self._events.append(
             HandshakeComplete(self.peer_role or "", self.peer_agent_id or "", replay)

@@ -317,3 +317,15 @@ def test_handshake_complete_reports_replay_count():
     p.c.receive_data(b"".join(p.s.data_to_send(0.0)), 0.0)
     done = p.c.next_event()
     assert isinstance(done, HandshakeComplete) and done.replay == 3
+
+
+def test_large_frames_refused_before_authentication():
+    s = Session(cfg("e", "edge"), client=False, now=0.0)
+    big = encode_frame(0x100, encode_payload(Blob(0, b"x" * 5000)), seq=1)
+    with pytest.raises(RemoteProtocolError, match="exceeds max_frame_size 4096"):
+        s.receive_data(big[:22], 0.0)  # refused on the header alone
+    p = Pair(cfg("r", "robot"), cfg("e", "edge"))
+    p.pump()
+    p.client_link.enqueue(Blob(0, b"x" * 100_000))  # fine once established
+    p.pump()
+    assert [len(d) for _, d in p.delivered_by_server] == [100_000]
