@@ -18,6 +18,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import logging
+import os
 import platform
 import time
 from pathlib import Path
@@ -111,12 +112,15 @@ def rotated_sequence(
 
 def run_front_end(
     seq: EurocSequence, images: list[np.ndarray], imus: list, frames: list, cfg: FrontEndConfig
-) -> list[TrackedFrame]:
+) -> tuple[list[TrackedFrame], np.ndarray]:
+    """Outputs and the CPU time [s] of each ``process`` call (this process, one thread)."""
     fe = FrontEnd(cfg, seq.cam0, seq.imu)
-    return [
-        fe.process(img, f.timestamp_ns, imu)
-        for img, imu, f in zip(images, imus, frames, strict=True)
-    ]
+    outs, cpu = [], []
+    for img, imu, f in zip(images, imus, frames, strict=True):
+        c0 = time.process_time()
+        outs.append(fe.process(img, f.timestamp_ns, imu))
+        cpu.append(time.process_time() - c0)
+    return outs, np.array(cpu)
 
 
 def timing_rows(
@@ -133,9 +137,12 @@ def timing_rows(
     }
     rows, outputs = [], {}
     for name, cfg in variants.items():
-        runs = [run_front_end(seq, images, imus, frames, cfg) for _ in range(repeats)]
+        results = [run_front_end(seq, images, imus, frames, cfg) for _ in range(repeats)]
+        runs = [r[0] for r in results]
+        cpu_frame = np.median([r[1] for r in results], axis=0)
         outputs[name] = runs[0]
         per_frame = np.median([[o.stats.total_time_s for o in run] for run in runs], axis=0)
+        lk_frame = np.median([[o.stats.lk_time_s for o in run] for run in runs], axis=0)
         is_kf = np.array([o.is_keyframe for o in runs[0]])
         non_kf = per_frame[~is_kf][1:] if (~is_kf).any() else np.zeros(0)
         kf = per_frame[is_kf][1:]  # the first keyframe pays for imports and warm-up
@@ -146,7 +153,16 @@ def timing_rows(
                 "frames": len(frames),
                 "keyframes": int(is_kf.sum()),
                 "non_kf_median_ms": 1e3 * float(np.median(non_kf)) if len(non_kf) else np.nan,
+                "non_kf_cpu_ms": 1e3 * float(np.median(cpu_frame[~is_kf][1:]))
+                if len(non_kf)
+                else np.nan,
+                "kf_cpu_ms": 1e3 * float(np.median(cpu_frame[is_kf][1:]))
+                if is_kf.sum() > 1
+                else np.nan,
                 "non_kf_p95_ms": 1e3 * float(np.percentile(non_kf, 95)) if len(non_kf) else np.nan,
+                "non_kf_lk_ms": 1e3 * float(np.median(lk_frame[~is_kf][1:]))
+                if len(non_kf)
+                else np.nan,
                 "kf_median_ms": 1e3 * float(np.median(kf)) if len(kf) else np.nan,
                 "kf_p95_ms": 1e3 * float(np.percentile(kf, 95)) if len(kf) else np.nan,
                 "tracked_mean": float(np.mean(tracked)) if tracked else np.nan,
@@ -200,12 +216,16 @@ def pair_study(
                 R_imu0_imu1 = gyro_rotation(buf, f0.timestamp_ns, f1.timestamp_ns, bias)
                 R_cur_prev = (R_imu_cam.T @ R_imu0_imu1 @ R_imu_cam).T
                 guess_imu = predict_rotation(cam, p0, R_cur_prev)
+
+                def back(cur: np.ndarray, rows: np.ndarray, R: np.ndarray = R_cur_prev.T):
+                    return predict_rotation(cam, cur, R)
+
                 for lk_name, lk in lk_variants.items():
-                    for method, guess, check in (
-                        ("plain", p0, False),
-                        ("imu", guess_imu, True),
+                    for method, guess, check, back_fn in (
+                        ("plain", p0, False, None),
+                        ("imu", guess_imu, True, back),
                     ):
-                        res = track_points(lk, cam, f0.image, img1, p0, guess, check)
+                        res = track_points(lk, cam, f0.image, img1, p0, guess, check, back_fn)
                         acc.setdefault((lk_name, method), []).append(
                             (res.n_lk, res.n_fb, res.n_inliers, res.lk_time_s)
                         )
@@ -282,6 +302,7 @@ def write_report(
     elapsed_s: float,
     lk_variants: dict[str, LkConfig],
     swing: tuple[float, float],
+    load_before: str,
 ) -> None:
     cfg = FrontEndConfig()
     lines = [
@@ -296,7 +317,7 @@ def write_report(
         "",
         f"Defaults: LK window {cfg.lk.win_size} px, {cfg.lk.max_level + 1} pyramid levels "
         f"(backward check {cfg.lk.fb_max_level + 1}), ≤ {cfg.lk.max_iterations} iterations, "
-        f"FB ≤ {cfg.lk.fb_threshold_px} px, RANSAC essential matrix at "
+        f"FB ≤ {cfg.lk.fb_threshold_px} px, RANSAC ({cfg.lk.ransac_model.value} matrix) at "
         f"{cfg.lk.ransac_threshold_px} px; ORB {cfg.orb.n_features} features, "
         f"{cfg.orb.n_levels} levels, scale {cfg.orb.scale_factor}; keypoints quantised to "
         f"{cfg.quantisation_px} px. Gyro bias learnt at standstill by the front end: "
@@ -304,6 +325,10 @@ def write_report(
         "initialisation).",
         "",
         "## Per-frame time, whole `FrontEnd.process` (median of repeats per frame)",
+        "",
+        f"Load average when the run started: {load_before}. The machine is shared: wall "
+        "times include waiting for the CPU; the CPU column is this process's own time "
+        "(`time.process_time`), the better measure of what one core needs.",
         "",
     ]
     for title, rows in (
@@ -313,24 +338,37 @@ def write_report(
         lines += [
             f"### {title}",
             "",
-            "| variant | KFs | non-KF median ms | non-KF p95 ms | KF median ms | KF p95 ms "
-            "| tracked/non-KF | features/frame |",
-            "|---|---|---|---|---|---|---|---|",
+            "| variant | KFs | non-KF CPU median ms | non-KF wall median ms | of which LK "
+            "(or matching) | non-KF wall p95 ms | KF CPU median ms | KF wall median ms "
+            "| KF wall p95 ms | tracked/non-KF | features/frame |",
+            "|---|---|---|---|---|---|---|---|---|---|---|",
         ]
         for r in rows:
             lines.append(
-                f"| {r['variant']} | {r['keyframes']}/{r['frames']} | {fmt(r['non_kf_median_ms'], 2)}"
-                f" | {fmt(r['non_kf_p95_ms'], 2)} | {fmt(r['kf_median_ms'], 2)} "
+                f"| {r['variant']} | {r['keyframes']}/{r['frames']} "
+                f"| {fmt(r['non_kf_cpu_ms'], 2)} "
+                f"| {fmt(r['non_kf_median_ms'], 2)} | {fmt(r['non_kf_lk_ms'], 2)} "
+                f"| {fmt(r['non_kf_p95_ms'], 2)} | {fmt(r['kf_cpu_ms'], 2)} "
+                f"| {fmt(r['kf_median_ms'], 2)} "
                 f"| {fmt(r['kf_p95_ms'], 2)} | {fmt(r['tracked_mean'], 0)} "
                 f"| {fmt(r['features_mean'], 0)} |"
             )
-        ours = rows[0]["non_kf_median_ms"]
-        verdict = (
-            f"met ({ours:.2f} ms ≤ {TARGET_NON_KF_MS} ms)"
-            if ours <= TARGET_NON_KF_MS
-            else f"MISSED by {ours - TARGET_NON_KF_MS:.2f} ms ({ours / TARGET_NON_KF_MS:.2f}×)"
-        )
-        lines += ["", f"Target non-keyframe median ≤ {TARGET_NON_KF_MS} ms: {verdict}.", ""]
+        verdicts = []
+        for kind, key in (("CPU", "non_kf_cpu_ms"), ("wall", "non_kf_median_ms")):
+            ours = rows[0][key]
+            verdicts.append(
+                f"{kind} {ours:.2f} ms: met"
+                if ours <= TARGET_NON_KF_MS
+                else f"{kind} {ours:.2f} ms: MISSED by {ours - TARGET_NON_KF_MS:.2f} ms "
+                f"({ours / TARGET_NON_KF_MS:.2f}×)"
+            )
+        lines += [
+            "",
+            f"Target non-keyframe median ≤ {TARGET_NON_KF_MS} ms (IMU-assisted): "
+            + "; ".join(verdicts)
+            + ".",
+            "",
+        ]
     lines += [
         "## Same frame pairs: IMU-assisted vs plain LK (paper Fig. 8)",
         "",
@@ -393,6 +431,7 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     cv2.setNumThreads(1)
     t0 = time.perf_counter()
+    load_before = ", ".join(f"{x:.2f}" for x in os.getloadavg())
     seq, frames = load(args.dataset)
     bias = learn_bias(seq, frames)
     timing, _ = timing_rows(
@@ -404,7 +443,10 @@ def main(argv: list[str] | None = None) -> int:
     default_lk = FrontEndConfig().lk
     lk_variants = {
         "defaults": default_lk,
-        "≤ 3 iterations": dataclasses.replace(default_lk, max_iterations=3),
+        "defaults, ≤ 3 iterations per level": dataclasses.replace(default_lk, max_iterations=3),
+        "large (OpenCV's default window, 4 levels)": dataclasses.replace(
+            default_lk, win_size=21, max_level=3, fb_max_level=3
+        ),
     }
     pairs = pair_study(seq, frames, bias, lk_variants, RATES_DEG_S, SKIPS, args.stride)
     args.out.mkdir(parents=True, exist_ok=True)
@@ -420,6 +462,7 @@ def main(argv: list[str] | None = None) -> int:
         time.perf_counter() - t0,
         lk_variants,
         swing,
+        load_before,
     )
     logger.info("wrote %s", args.out / "tracker.md")
     return 0

@@ -3,11 +3,11 @@
 Per frame: every track's position in the new frame is predicted from the IMU
 (:mod:`services.robot.imu_prediction`); LK refines the prediction
 (``OPTFLOW_USE_INITIAL_FLOW``); a backward LK pass checks the round trip; tracks whose offset
-from the IMU prediction is far larger than the rest's are dropped; a RANSAC essential matrix
-on undistorted points removes the remaining outliers. The keyframe decision (Fig. 4) then
-either keeps the frame as a non-keyframe (sparse cells get new FAST corners) or makes it a
-keyframe: ORB is extracted and the track set is re-seeded from the ORB keypoints, surviving
-tracks handing their identity to the nearest ORB keypoint.
+from the IMU prediction is far larger than the rest's are dropped; RANSAC (fundamental or
+essential matrix on undistorted points) removes the remaining outliers. The keyframe decision
+(Fig. 4) then either keeps the frame as a non-keyframe (sparse cells get new FAST corners)
+or makes it a keyframe: ORB is extracted and the track set is re-seeded from the ORB
+keypoints, surviving tracks handing their identity to the nearest ORB keypoint.
 
 Output contract (:class:`TrackedFrame`), relied on by the feature codec:
 
@@ -35,7 +35,13 @@ from scipy.spatial import cKDTree
 
 from common.calibration import CameraCalibration, ImuCalibration
 from common.errors import RecslamError
-from services.robot.config import FrontEndConfig, LkConfig, PredictionMode, TrackingMode
+from services.robot.config import (
+    FrontEndConfig,
+    LkConfig,
+    PredictionMode,
+    RansacModel,
+    TrackingMode,
+)
 from services.robot.imu_prediction import (
     InertialState,
     MotionPredictor,
@@ -161,23 +167,32 @@ def _criteria(config: LkConfig) -> tuple[int, int, float]:
 def ransac_inliers(
     camera: CameraCalibration, pts0: np.ndarray, pts1: np.ndarray, config: LkConfig
 ) -> np.ndarray:
-    """Mask (N,) of correspondences consistent with one essential matrix (undistorted)."""
+    """Mask (N,) of correspondences (N, 2) px consistent with one two-view model fitted by
+    RANSAC on undistorted points (``config.ransac_model``)."""
     n = len(pts0)
-    if n < max(config.min_ransac_points, 5):
+    if n < max(config.min_ransac_points, 8):
         return np.ones(n, dtype=bool)
     x0 = undistort_normalised(camera, pts0)
     x1 = undistort_normalised(camera, pts1)
     if np.max(np.abs(x1 - x0)) < 1e-9:
         return np.ones(n, dtype=bool)
-    focal = 0.5 * (camera.fx + camera.fy)
-    _, mask = cv2.findEssentialMat(
-        x0,
-        x1,
-        np.eye(3),
-        method=cv2.RANSAC,
-        prob=config.ransac_confidence,
-        threshold=config.ransac_threshold_px / focal,
-    )
+    if config.ransac_model is RansacModel.ESSENTIAL:
+        focal = 0.5 * (camera.fx + camera.fy)
+        _, mask = cv2.findEssentialMat(
+            x0,
+            x1,
+            np.eye(3),
+            method=cv2.RANSAC,
+            prob=config.ransac_confidence,
+            threshold=config.ransac_threshold_px / focal,
+        )
+    else:
+        K = camera.K
+        u0 = x0 @ K[:2, :2].T + K[:2, 2]
+        u1 = x1 @ K[:2, :2].T + K[:2, 2]
+        _, mask = cv2.findFundamentalMat(
+            u0, u1, cv2.FM_RANSAC, config.ransac_threshold_px, config.ransac_confidence
+        )
     if mask is None:
         return np.zeros(n, dtype=bool)
     return mask.reshape(-1).astype(bool)[:n]
