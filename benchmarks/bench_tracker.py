@@ -43,8 +43,9 @@ from services.robot.imu_prediction import (
     predict_rotation,
     warp_by_rotation,
 )
+from services.robot.optical_flow import track_points
 from services.robot.orb_extractor import OrbExtractor
-from services.robot.tracker import FrontEnd, TrackedFrame, track_points
+from services.robot.tracker import FrontEnd, TrackedFrame
 
 logger = logging.getLogger("bench_tracker")
 

@@ -305,7 +305,8 @@ class MotionPredictor:
         track_ids: np.ndarray | None = None,
         p_world: np.ndarray | None = None,
     ) -> None:
-        """Apply the edge's state; optionally 3D points (M, 3) [m, world] of tracks (M,)."""
+        """Apply the edge's state; optionally 3D points (M, 3) [m, world] of tracks (M,), which
+        replace the previous set (``None`` keeps it: points live in the world frame)."""
         if len(self.buffer) and state.timestamp_ns < self.buffer.timestamps_ns[0]:
             raise ImuPredictionError(
                 f"inertial state at {state.timestamp_ns} ns is older than the IMU buffer "

@@ -15,13 +15,12 @@ from common.geometry import so3_exp
 from services.robot.config import (
     FrontEndConfig,
     KeyframeDecisionConfig,
-    LkConfig,
     PredictionMode,
     TrackingMode,
 )
 from services.robot.imu_prediction import InertialState, R_imu_cam_from, warp_by_rotation
 from services.robot.keyframe_decision import KeyframeReason, decide_keyframe
-from services.robot.tracker import FrontEnd, FrontEndError, TrackedFrame, track_points
+from services.robot.tracker import FrontEnd, FrontEndError, TrackedFrame
 
 EXCERPT = Path(__file__).resolve().parents[3].parent / "shared/datasets/euroc-micro-V1_01"
 
@@ -121,57 +120,6 @@ def test_learns_gyro_bias_at_standstill(run, seq: EurocSequence, frames: list) -
     sel = (seq.imu_timestamps_ns > t0) & (seq.imu_timestamps_ns <= t1)
     np.testing.assert_allclose(bias, seq.gyro[sel].mean(axis=0), atol=2e-3)
     assert np.linalg.norm(bias) > 0.05  # the ADIS16448 bias is large (~4.6 deg/s)
-
-
-def _textured(seed: int, shape=(240, 320)) -> np.ndarray:
-    rng = np.random.default_rng(seed)
-    noise = rng.uniform(0, 255, shape).astype(np.float32)
-    return cv2.normalize(
-        cv2.GaussianBlur(noise, (0, 0), 2.0), None, 0, 255, cv2.NORM_MINMAX
-    ).astype(np.uint8)
-
-
-def test_forward_backward_rejects_planted_wrong_track() -> None:
-    from common.calibration import CameraCalibration
-
-    cam = CameraCalibration(320, 240, 300.0, 300.0, 160.0, 120.0)
-    prev = _textured(3)
-    shift = np.array([2.0, 1.0])
-    cur = cv2.warpAffine(prev, np.float32([[1, 0, shift[0]], [0, 1, shift[1]]]), (320, 240))
-    grid = np.stack(np.meshgrid(np.arange(40, 281, 40), np.arange(40, 201, 40)), -1).reshape(-1, 2)
-    pts = grid.astype(np.float64)
-    guess = pts + shift
-    planted = 7
-    guess[planted] = pts[planted] + [23.0, -17.0]  # an initial guess in the wrong place
-    lk = LkConfig(win_size=9, max_level=0, ransac=False)
-    no_fb = track_points(
-        dataclasses.replace(lk, check_forward_backward=False), cam, prev, cur, pts, guess, False
-    )
-    assert no_fb.keep[planted]  # LK alone accepts it ...
-    assert np.linalg.norm(no_fb.cur_pts[planted] - pts[planted] - shift) > 5.0  # ... wrongly
-    res = track_points(lk, cam, prev, cur, pts, guess, False)
-    assert not res.keep[planted]
-    good = np.delete(np.arange(len(pts)), planted)
-    assert res.keep[good].all()
-    np.testing.assert_allclose(res.cur_pts[good], pts[good] + shift, atol=0.1)
-
-
-def test_imu_consistency_rejects_track_far_from_prediction() -> None:
-    from common.calibration import CameraCalibration
-
-    cam = CameraCalibration(320, 240, 300.0, 300.0, 160.0, 120.0)
-    prev = _textured(4)
-    cur = prev.copy()
-    pts = np.stack(np.meshgrid(np.arange(40, 281, 40), np.arange(40, 201, 40)), -1)
-    pts = pts.reshape(-1, 2).astype(np.float64)
-    guess = pts.copy()
-    guess[5] += [12.0, 0.0]  # prediction says it moved 12 px; the image says it did not
-    lk = LkConfig(win_size=15, max_level=3, ransac=False, imu_residual_min_px=5.0)
-    unchecked = track_points(lk, cam, prev, cur, pts, guess, False)
-    assert unchecked.keep[5]  # LK found the true place despite the prediction
-    np.testing.assert_allclose(unchecked.cur_pts[5], pts[5], atol=0.1)
-    res = track_points(lk, cam, prev, cur, pts, guess, True)
-    assert not res.keep[5] and res.keep.sum() == len(pts) - 1
 
 
 def test_baselines(seq: EurocSequence, frames: list) -> None:
