@@ -18,8 +18,10 @@ File format: ``numpy.savez_compressed`` with arrays ``node_desc (M, 32) uint8``,
 ``parent (M,) int32`` (root has -1; children listed in slot order), ``idf (S,) float64``,
 ``word_count (S,) int64`` (training descriptors per word, used by the feature codec as a
 prior), ``residual_ones (256,) int64`` / ``residual_total`` (per-bit-position counts of ones
-in training XOR residuals) and ``meta`` (a JSON string: ``format``, ``k``, ``depth``,
-``n_words``, ``n_nodes``, ``trained_on``, ``n_descriptors``, ``n_images``, ``seed``).
+in training XOR residuals), ``bit_parents (256, P) int16`` / ``bit_p1 (256, 2**P)`` (the
+codec's context model of descriptor bits, see :func:`fit_bit_context_model`) and ``meta``
+(a JSON string: ``format``, ``k``, ``depth``, ``n_words``, ``n_nodes``, ``trained_on``,
+``n_descriptors``, ``n_images``, ``seed``).
 """
 
 from __future__ import annotations
@@ -125,6 +127,63 @@ def _kmajority(
     return c, labels
 
 
+def fit_bit_context_model(
+    descriptors: np.ndarray,
+    n_parents: int = 6,
+    n_candidates: int = 24,
+    max_samples: int = 20000,
+    seed: int = 0,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Context model of ORB descriptor bits for the feature codec.
+
+    For every bit ``j`` greedily picks ``n_parents`` earlier bits (among the ``n_candidates``
+    most correlated) that minimise the conditional entropy ``H(b_j | parents)``.
+    Returns ``parents (256, P) int16`` (bit 0 uses bit 0's own index as dummies, always
+    zero context) and ``p1 (256, 2**P) float64``: P(b_j = 1 | parent bits), context index
+    ``sum(b_parent[q] << (P - 1 - q))``.
+    """
+    d = _check_descriptors(descriptors)
+    rng = np.random.default_rng(seed)
+    if d.shape[0] > max_samples:
+        d = d[np.sort(rng.choice(d.shape[0], max_samples, replace=False))]
+    b = np.unpackbits(d, axis=1).astype(np.int64)
+    n = b.shape[0]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        corr = np.nan_to_num(np.corrcoef(b.T.astype(np.float64)))
+    parents = np.zeros((256, n_parents), dtype=np.int16)
+    p1 = np.full((256, 1 << n_parents), 0.5)
+
+    def cond_entropy(bj: np.ndarray, ctx: np.ndarray, size: int) -> float:
+        ones = np.bincount(ctx, weights=bj, minlength=size)
+        tot = np.bincount(ctx, minlength=size)
+        p = (ones + 0.5) / (tot + 1.0)
+        return float(-np.log2(np.where(bj == 1, p[ctx], 1.0 - p[ctx])).sum())
+
+    for j in range(256):
+        cands = [int(c) for c in np.argsort(-np.abs(corr[j, :j]), kind="stable")[:n_candidates]]
+        ctx = np.zeros(n, dtype=np.int64)
+        chosen: list[int] = []
+        for q in range(n_parents):
+            best, best_h = -1, np.inf
+            for c in cands:
+                if c in chosen:
+                    continue
+                h = cond_entropy(b[:, j], ctx * 2 + b[:, c], 2 << q)
+                if h < best_h:
+                    best, best_h = c, h
+            if best < 0:  # not enough earlier bits: a dummy parent that is always 0
+                best = -1
+                ctx = ctx * 2
+            else:
+                ctx = ctx * 2 + b[:, best]
+            chosen.append(best)
+        parents[j] = chosen
+        ones = np.bincount(ctx, weights=b[:, j], minlength=1 << n_parents)
+        tot = np.bincount(ctx, minlength=1 << n_parents)
+        p1[j] = (ones + 0.5) / (tot + 1.0)
+    return parents, p1
+
+
 class Vocabulary:
     """A trained vocabulary tree. Build with :meth:`train` or :meth:`load`.
 
@@ -143,6 +202,8 @@ class Vocabulary:
         residual_ones: np.ndarray,
         residual_total: int,
         meta: dict,
+        bit_parents: np.ndarray | None = None,
+        bit_p1: np.ndarray | None = None,
     ) -> None:
         self.node_desc = _check_descriptors(node_desc, "node descriptors")
         self.parent = np.asarray(parent, dtype=np.int32)
@@ -178,6 +239,16 @@ class Vocabulary:
         if self.residual_ones.shape != (256,):
             raise VocabularyError("residual_ones must be (256,)")
         self._desc64 = self.node_desc.view(np.uint64)
+        if bit_parents is None or bit_p1 is None:
+            bit_parents = np.full((256, 0), -1, dtype=np.int16)
+            bit_p1 = np.full((256, 1), 0.5)
+        self.bit_parents = np.asarray(bit_parents, dtype=np.int16)
+        self.bit_p1 = np.asarray(bit_p1, dtype=np.float64)
+        n_par = self.bit_parents.shape[1] if self.bit_parents.ndim == 2 else -1
+        if self.bit_parents.shape[0] != 256 or self.bit_p1.shape != (256, 1 << max(n_par, 0)):
+            raise VocabularyError("bit_parents must be (256, P) and bit_p1 (256, 2**P)")
+        if np.any(self.bit_parents >= np.arange(256)[:, None]) or np.any(self.bit_parents < -1):
+            raise VocabularyError("bit_parents must name earlier bits (or -1)")
 
     # ------------------------------------------------------------------ properties
     @property
@@ -355,7 +426,18 @@ class Vocabulary:
         residual = np.unpackbits(desc ^ tmp.words[words], axis=1)
         meta["n_words"] = int(leaves.size)
         meta["n_nodes"] = int(m)
-        return cls(node_desc_a, parent_a, idf, word_count, residual.sum(0), desc.shape[0], meta)
+        parents, p1 = fit_bit_context_model(desc, seed=config.seed)
+        return cls(
+            node_desc_a,
+            parent_a,
+            idf,
+            word_count,
+            residual.sum(0),
+            desc.shape[0],
+            meta,
+            parents,
+            p1,
+        )
 
     # ------------------------------------------------------------------ persistence
     def save(self, path: str | Path) -> None:
@@ -369,6 +451,8 @@ class Vocabulary:
                 word_count=self.word_count,
                 residual_ones=self.residual_ones,
                 residual_total=np.int64(self.residual_total),
+                bit_parents=self.bit_parents,
+                bit_p1=self.bit_p1,
                 meta=np.array(json.dumps(self.meta, sort_keys=True)),
             )
 

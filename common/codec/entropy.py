@@ -15,7 +15,7 @@ Models:
 - ``uniform``: integers in ``[0, size)``; ``size`` up to 2**24.
 - ``raw``: unsigned integers of up to 64 bits (16-bit uniform chunks).
 - ``signed``: discrete Laplace (two-sided geometric) of scale ``2**(scale_index/4 - 3)``
-  over ``[-R, R]`` plus an escape symbol followed by a raw 32-bit zig-zag value.
+  over ``[-R, R]`` plus an escape symbol followed by a raw zig-zag value (32 or 64 bits).
 - ``geometric``: one-sided geometric of the given mean over ``[0, R)`` plus escape.
 - ``count``: an unsigned integer of unknown size (6-bit length, then the bits).
 """
@@ -101,6 +101,9 @@ def geometric_cost(values: np.ndarray, scale_index: int) -> float:
     return float(-np.log2(p[sym]).sum() + 32 * esc.sum())
 
 
+_POS = np.int64((1 << 63) - 1)
+
+
 def zigzag(v: np.ndarray) -> np.ndarray:
     v = np.asarray(v, dtype=np.int64)
     return np.where(v >= 0, 2 * v, -2 * v - 1)
@@ -167,7 +170,9 @@ class BitWriter:
         if n > 1:
             self.put_raw(np.array([value - (1 << (n - 1))], dtype=np.uint64), n - 1, part)
 
-    def put_signed(self, values: np.ndarray, scale_index: int, part: str) -> None:
+    def put_signed(
+        self, values: np.ndarray, scale_index: int, part: str, escape_bits: int = 32
+    ) -> None:
         v = np.asarray(values, dtype=np.int64).ravel()
         if v.size == 0:
             return
@@ -175,7 +180,10 @@ class BitWriter:
         esc = _escape_split(v, -r, r)
         self.put_categorical(np.where(esc, 2 * r + 1, v + r), p, part)
         if esc.any():
-            self.put_raw(zigzag(v[esc]).astype(np.uint64), 32, part)
+            z = zigzag(v[esc]).astype(np.uint64)
+            if escape_bits < 64 and np.any(z >> np.uint64(escape_bits)):
+                raise ValueError(f"value too large for a {escape_bits}-bit escape")
+            self.put_raw(z, escape_bits, part)
 
     def put_geometric(self, values: np.ndarray, scale_index: int, part: str) -> None:
         v = np.asarray(values, dtype=np.int64).ravel()
@@ -249,7 +257,7 @@ class BitReader:
             raise CodecError(f"count {value} exceeds the limit {limit}")
         return value
 
-    def get_signed(self, n: int, scale_index: int) -> np.ndarray:
+    def get_signed(self, n: int, scale_index: int, escape_bits: int = 32) -> np.ndarray:
         if n == 0:
             return np.zeros(0, dtype=np.int64)
         p, r = signed_table(scale_index)
@@ -257,7 +265,7 @@ class BitReader:
         v = sym - r
         esc = sym == 2 * r + 1
         if esc.any():
-            v[esc] = unzigzag(self.get_raw(int(esc.sum()), 32).astype(np.int64))
+            v[esc] = unzigzag(self.get_raw(int(esc.sum()), escape_bits).view(np.int64) & _POS)
         return v
 
     def get_geometric(self, n: int, scale_index: int) -> np.ndarray:

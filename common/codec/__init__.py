@@ -1,0 +1,31 @@
+"""Lossless feature codec: keyframes (keypoints, word, XOR residual / inter), non-keyframes
+(predicted keypoints, survival), IMU. See ``frames.py`` for the payload layout and state."""
+
+from common.codec.errors import CodecError, CodecUsageError
+from common.codec.frames import FeatureCodecState, FeatureDecoder, FeatureEncoder
+from common.codec.imu import ImuCodecConfig, ImuDecoder, ImuEncoder
+from common.codec.types import (
+    CodecConfig,
+    ImuChunk,
+    KeyframeFeatures,
+    NonKeyframeFeatures,
+    angle_to_bin,
+    quantise_uv,
+)
+
+__all__ = [
+    "CodecConfig",
+    "CodecError",
+    "CodecUsageError",
+    "FeatureCodecState",
+    "FeatureDecoder",
+    "FeatureEncoder",
+    "ImuChunk",
+    "ImuCodecConfig",
+    "ImuDecoder",
+    "ImuEncoder",
+    "KeyframeFeatures",
+    "NonKeyframeFeatures",
+    "angle_to_bin",
+    "quantise_uv",
+]

@@ -1,0 +1,308 @@
+"""Whole-frame feature coding: a sans-I/O encoder/decoder pair with explicit per-robot state.
+
+Payload layout (little endian)::
+
+    u8  magic 0xF5
+    u8  version << 4 | kind        (kind 1 = keyframe, 2 = non-keyframe)
+    u16 frame sequence number      (mod 2**16; the decoder rejects gaps)
+    u16 vocabulary fingerprint     (low 16 bits of Vocabulary.fingerprint())
+    ... range-coded body (whole 32-bit words)
+    u32 CRC-32 of everything before it
+
+Keyframe body: keypoints (see ``keypoints.py``), continuation links, descriptors (see
+``descriptors.py``). Non-keyframe body: survival flags, predicted positions, new tracks.
+
+State both ends hold after every frame (:class:`FeatureCodecState`): the active tracks
+(quarter-pixel positions, levels, last descriptor if any), the adaptive descriptor tables and
+the adaptive flag counts. The decoder works on a copy and commits it only after a payload
+decoded completely, so a rejected payload leaves it untouched.
+"""
+
+from __future__ import annotations
+
+import struct
+import zlib
+from dataclasses import dataclass
+
+import numpy as np
+
+from common.codec import keypoints as kpc
+from common.codec.descriptors import DescriptorCoder, DescriptorModelState
+from common.codec.entropy import BitReader, BitWriter
+from common.codec.errors import CodecError, CodecUsageError
+from common.codec.types import CodecConfig, KeyframeFeatures, NonKeyframeFeatures
+from common.vocabulary import Vocabulary
+
+MAGIC = 0xF5
+VERSION = 1
+KIND_KEYFRAME = 1
+KIND_NON_KEYFRAME = 2
+HEADER = struct.Struct("<BBHH")
+
+
+@dataclass
+class FeatureCodecState:
+    """Per-robot state shared (identically) by encoder and decoder.
+
+    tracks_q: (T, 2) int64 level-0 positions in 1/subpixel px. tracks_level: (T,) int64.
+    tracks_desc: (T, 32) uint8 last descriptor; tracks_has_desc: (T,) bool.
+    """
+
+    seq: int
+    tracks_q: np.ndarray
+    tracks_level: np.ndarray
+    tracks_desc: np.ndarray
+    tracks_has_desc: np.ndarray
+    descriptors: DescriptorModelState
+    survival_counts: np.ndarray
+    link_counts: np.ndarray
+
+    @classmethod
+    def initial(cls, vocab: Vocabulary, config: CodecConfig) -> FeatureCodecState:
+        return cls(
+            seq=0,
+            tracks_q=np.zeros((0, 2), np.int64),
+            tracks_level=np.zeros(0, np.int64),
+            tracks_desc=np.zeros((0, 32), np.uint8),
+            tracks_has_desc=np.zeros(0, bool),
+            descriptors=DescriptorModelState.initial(vocab, config.prior_weight),
+            survival_counts=np.array([9.0, 10.0]),
+            link_counts=np.array([1.0, 2.0, 1.0, 2.0]),
+        )
+
+    def copy(self) -> FeatureCodecState:
+        return FeatureCodecState(
+            self.seq,
+            self.tracks_q.copy(),
+            self.tracks_level.copy(),
+            self.tracks_desc.copy(),
+            self.tracks_has_desc.copy(),
+            self.descriptors.copy(),
+            self.survival_counts.copy(),
+            self.link_counts.copy(),
+        )
+
+
+def _header(kind: int, seq: int, vocab_fp: int) -> bytes:
+    return HEADER.pack(MAGIC, (VERSION << 4) | kind, seq & 0xFFFF, vocab_fp & 0xFFFF)
+
+
+def _seal(head: bytes, body: bytes) -> bytes:
+    payload = head + body
+    return payload + struct.pack("<I", zlib.crc32(payload))
+
+
+class _Base:
+    def __init__(self, vocabulary: Vocabulary, config: CodecConfig | None = None) -> None:
+        config = CodecConfig() if config is None else config
+        self.vocab = vocabulary
+        self.config = config
+        self.state = FeatureCodecState.initial(vocabulary, config)
+        self._desc = DescriptorCoder(vocabulary, config.descriptor_block)
+        self._vocab_fp = vocabulary.fingerprint() & 0xFFFF
+
+    def _apply_keyframe(self, st: FeatureCodecState, kf: KeyframeFeatures) -> None:
+        st.tracks_q = kpc.kf_track_q(kf.keypoints, self.config)
+        st.tracks_level = kf.keypoints[:, 2].astype(np.int64)
+        st.tracks_desc = kf.descriptors.copy()
+        st.tracks_has_desc = np.ones(len(kf), dtype=bool)
+
+    @staticmethod
+    def _apply_non_keyframe(
+        st: FeatureCodecState, survived: np.ndarray, q: np.ndarray, levels: np.ndarray
+    ) -> None:
+        n_surv = int(survived.sum())
+        n_new = q.shape[0] - n_surv
+        st.tracks_q = q
+        st.tracks_level = levels
+        st.tracks_desc = np.concatenate([st.tracks_desc[survived], np.zeros((n_new, 32), np.uint8)])
+        st.tracks_has_desc = np.concatenate(
+            [st.tracks_has_desc[survived], np.zeros(n_new, dtype=bool)]
+        )
+
+
+class FeatureEncoder(_Base):
+    """Robot side. ``encode_keyframe`` / ``encode_non_keyframe`` return payload bytes.
+
+    ``last_bits`` holds the information content per part of the last payload
+    (``keypoint``, ``link``, ``mode``, ``word``, ``residual``, ``survival``, ``new``, ``side``)
+    and ``last_overhead_bits`` the framing (header, CRC, coder termination).
+    """
+
+    last_bits: dict[str, float]
+    last_overhead_bits: float
+
+    def _validate_keyframe(self, kf: KeyframeFeatures) -> None:
+        cfg = self.config
+        kp = kf.keypoints
+        if len(kf) > cfg.max_features:
+            raise CodecUsageError(f"{len(kf)} features exceed max_features={cfg.max_features}")
+        if len(kf) == 0:
+            return
+        lev = kp[:, 2]
+        if lev.min() < 0 or lev.max() >= cfg.n_levels:
+            raise CodecUsageError(f"keypoint levels must be in [0, {cfg.n_levels})")
+        if kp[:, 3].min() < 0 or kp[:, 3].max() >= cfg.angle_bins:
+            raise CodecUsageError(f"angle bins must be in [0, {cfg.angle_bins})")
+        for level in np.unique(lev):
+            w, h = cfg.level_size(int(level))
+            sel = kp[lev == level]
+            if sel[:, :2].min() < 0 or sel[:, 0].max() >= w or sel[:, 1].max() >= h:
+                raise CodecUsageError(f"keypoint outside the {w}x{h} image of level {level}")
+        n_prev = self.state.tracks_q.shape[0]
+        if kf.links.min() < -1 or kf.links.max() >= n_prev:
+            raise CodecUsageError(f"links must be -1 or in [0, {n_prev}) (previous tracks)")
+        if not kf.is_canonical():
+            raise CodecUsageError(
+                "keyframe features must be in canonical order: encode kf.canonical() and use "
+                "that order on the robot too"
+            )
+
+    def encode_keyframe(self, kf: KeyframeFeatures) -> bytes:
+        self._validate_keyframe(kf)
+        st = self.state.copy()
+        w = BitWriter()
+        kpc.encode_kf_keypoints(w, kf.keypoints, self.config)
+        q = kpc.kf_track_q(kf.keypoints, self.config)
+        kpc.encode_links(
+            w,
+            kf.links,
+            q,
+            kf.keypoints[:, 2].astype(np.int64),
+            st.tracks_q,
+            st.tracks_level,
+            st.link_counts,
+            self.config,
+        )
+        links = kf.links.astype(np.int64)
+        has_prev = np.zeros(len(kf), dtype=bool)
+        prev_desc = np.zeros((len(kf), 32), np.uint8)
+        linked = links >= 0
+        has_prev[linked] = st.tracks_has_desc[links[linked]]
+        prev_desc[linked] = st.tracks_desc[links[linked]]
+        self._desc.encode(w, st.descriptors, kf.descriptors, prev_desc, has_prev)
+        self._apply_keyframe(st, kf)
+        return self._finish(st, w, KIND_KEYFRAME)
+
+    def encode_non_keyframe(self, nkf: NonKeyframeFeatures) -> bytes:
+        cfg = self.config
+        n_prev = self.state.tracks_q.shape[0]
+        if nkf.survived.shape[0] != n_prev:
+            raise CodecUsageError(
+                f"survived has {nkf.survived.shape[0]} entries but there are {n_prev} tracks"
+            )
+        if len(nkf) > cfg.max_features:
+            raise CodecUsageError(f"{len(nkf)} keypoints exceed max_features")
+        kp = nkf.keypoints
+        scaled = kp[:, :2] * cfg.subpixel
+        if not np.all(np.isfinite(kp)) or not np.array_equal(scaled, np.round(scaled)):
+            raise CodecUsageError(
+                f"keypoints must lie on the 1/{cfg.subpixel} px grid (use quantise_uv)"
+            )
+        lev = kp[:, 2]
+        if len(nkf) and (not np.array_equal(lev, np.round(lev)) or lev.min() < 0
+                         or lev.max() >= cfg.n_levels):  # fmt: skip
+            raise CodecUsageError(f"levels must be integers in [0, {cfg.n_levels})")
+        n_surv = int(nkf.survived.sum())
+        w_img, h_img = cfg.image_width, cfg.image_height
+        new = kp[n_surv:]
+        if new.size and (new[:, :2].min() < 0 or new[:, 0].max() >= w_img
+                         or new[:, 1].max() >= h_img):  # fmt: skip
+            raise CodecUsageError(f"new keypoints must lie inside the {w_img}x{h_img} image")
+        old = kp[:n_surv]
+        if old.size and (old[:, 0].min() < -w_img or old[:, 0].max() >= 2 * w_img
+                         or old[:, 1].min() < -h_img or old[:, 1].max() >= 2 * h_img):  # fmt: skip
+            raise CodecUsageError("tracked keypoints far outside the image")
+        st = self.state.copy()
+        w = BitWriter()
+        kpc.encode_non_keyframe(
+            w, nkf.survived, kp, st.tracks_q, st.tracks_level, st.survival_counts, cfg
+        )
+        q = np.floor(kp[:, :2] * cfg.subpixel + 0.5).astype(np.int64)
+        self._apply_non_keyframe(st, nkf.survived, q, lev.astype(np.int64))
+        return self._finish(st, w, KIND_NON_KEYFRAME)
+
+    def _finish(self, st: FeatureCodecState, w: BitWriter, kind: int) -> bytes:
+        payload = _seal(_header(kind, st.seq, self._vocab_fp), w.finish())
+        st.seq += 1
+        self.state = st
+        self.last_bits = dict(w.bits)
+        self.last_overhead_bits = 8 * len(payload) - sum(w.bits.values())
+        return payload
+
+
+class FeatureDecoder(_Base):
+    """Edge/cloud side: ``decode(payload)`` -> KeyframeFeatures | NonKeyframeFeatures."""
+
+    def decode(self, payload: bytes) -> KeyframeFeatures | NonKeyframeFeatures:
+        payload = bytes(payload)
+        if len(payload) < HEADER.size + 4:
+            raise CodecError(f"feature payload of {len(payload)} bytes is too short")
+        (crc,) = struct.unpack("<I", payload[-4:])
+        if zlib.crc32(payload[:-4]) != crc:
+            raise CodecError("feature payload checksum mismatch (corrupted or truncated)")
+        return self.decode_unchecked(payload[:-4])
+
+    def decode_unchecked(self, framed: bytes) -> KeyframeFeatures | NonKeyframeFeatures:
+        """Decode header + body without the CRC (used by robustness tests)."""
+        if len(framed) < HEADER.size:
+            raise CodecError("feature payload too short")
+        magic, vk, seq, fp = HEADER.unpack(framed[: HEADER.size])
+        if magic != MAGIC or vk >> 4 != VERSION:
+            raise CodecError(f"not a feature payload (magic {magic:#x}, version {vk >> 4})")
+        if fp != self._vocab_fp:
+            raise CodecError("payload was coded with a different vocabulary")
+        st = self.state.copy()
+        if seq != st.seq & 0xFFFF:
+            raise CodecError(f"feature payload {seq} out of order (expected {st.seq & 0xFFFF})")
+        r = BitReader(framed[HEADER.size :])
+        kind = vk & 0xF
+        if kind == KIND_KEYFRAME:
+            out = self._decode_keyframe(r, st)
+        elif kind == KIND_NON_KEYFRAME:
+            out = self._decode_non_keyframe(r, st)
+        else:
+            raise CodecError(f"unknown frame kind {kind}")
+        st.seq += 1
+        self.state = st
+        return out
+
+    def _decode_keyframe(self, r: BitReader, st: FeatureCodecState) -> KeyframeFeatures:
+        kp = kpc.decode_kf_keypoints(r, self.config)
+        q = kpc.kf_track_q(kp, self.config)
+        links = kpc.decode_links(
+            r,
+            kp.shape[0],
+            q,
+            kp[:, 2].astype(np.int64),
+            st.tracks_q,
+            st.tracks_level,
+            st.link_counts,
+            self.config,
+        )
+        n = kp.shape[0]
+        has_prev = np.zeros(n, dtype=bool)
+        prev_desc = np.zeros((n, 32), np.uint8)
+        linked = links >= 0
+        has_prev[linked] = st.tracks_has_desc[links[linked]]
+        prev_desc[linked] = st.tracks_desc[links[linked]]
+        desc = self._desc.decode(r, st.descriptors, prev_desc, has_prev)
+        kf = KeyframeFeatures(kp, desc, links.astype(np.int32))
+        self._apply_keyframe(st, kf)
+        return kf
+
+    def _decode_non_keyframe(self, r: BitReader, st: FeatureCodecState) -> NonKeyframeFeatures:
+        cfg = self.config
+        survived, q, levels = kpc.decode_non_keyframe(
+            r, st.tracks_q, st.tracks_level, st.survival_counts, cfg
+        )
+        if q.size and (
+            q[:, 0].min() < -cfg.image_width * cfg.subpixel
+            or q[:, 0].max() >= 2 * cfg.image_width * cfg.subpixel
+            or q[:, 1].min() < -cfg.image_height * cfg.subpixel
+            or q[:, 1].max() >= 2 * cfg.image_height * cfg.subpixel
+        ):
+            raise CodecError("decoded keypoint far outside the image")
+        kp = np.concatenate([q / cfg.subpixel, levels[:, None].astype(np.float64)], axis=1)
+        self._apply_non_keyframe(st, survived, q, levels)
+        return NonKeyframeFeatures(survived, kp)

@@ -1,0 +1,285 @@
+"""Keypoint coding for keyframes (intra) and non-keyframes (predictive).
+
+Keyframe keypoints ``[x_l, y_l, l, angle_bin]`` arrive in canonical order (level, then
+raster order in the level image). Per level: the feature count, then the gaps between
+consecutive raster indices ``y_l * W_l + x_l`` with a geometric model whose mean the encoder
+picks (sent as a scale index), then the angle bins (uniform). Sorting removes the
+``log2(N!)`` bits of an arbitrary order, which is most of a keypoint's cost.
+
+Continuation links (which previous track a keyframe feature continues): a binary flag per
+feature (adaptive across frames), then for linked features the *rank* of the linked track
+among all previous tracks sorted by squared distance (quarter-pixel integers, ties by
+index; tracks of another pyramid level rank after all of the same level) from the keyframe
+keypoint (rank 0 has its own adaptive flag), after moving the previous tracks by an affine
+flow model fitted to the links (sent as 6 integers): almost always 0.
+
+Non-keyframes: survival flags of the previous tracks (adaptive binary), then the survivors'
+new positions predicted from their previous positions by a per-frame affine flow model in
+fixed point (sent: 6 integers), residuals coded with per-axis discrete Laplace models
+(scales sent), levels inherited from the track (one flag says so; otherwise coded), then
+new tracks (count, level, position uniform over the grid).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from common.codec.entropy import N_SCALES, P_MIN, BitReader, BitWriter, best_scale_index
+from common.codec.errors import CodecError
+from common.codec.types import CodecConfig
+
+AFFINE_SHIFT = 14  # linear terms of the flow model in units of 2**-14
+AFFINE_SCALE_INDEX = 40  # Laplace scale 128 for the model's integers
+MAX_RANK_ROWS = 1024
+
+
+def kf_track_q(kp: np.ndarray, config: CodecConfig) -> np.ndarray:
+    """Quarter-pixel (1/subpixel) integer level-0 positions ``(N, 2) int64`` of KF keypoints."""
+    s = config.level_scale(kp[:, 2])
+    return np.floor(kp[:, :2].astype(np.float64) * s[:, None] * config.subpixel + 0.5).astype(
+        np.int64
+    )
+
+
+def _adaptive_p(counts: np.ndarray) -> float:
+    return float(np.clip(counts[0] / counts[1], P_MIN, 1.0 - P_MIN))
+
+
+# ---------------------------------------------------------------------- keyframe keypoints
+def encode_kf_keypoints(w: BitWriter, kp: np.ndarray, config: CodecConfig) -> None:
+    for level in range(config.n_levels):
+        sel = kp[kp[:, 2] == level]
+        w.put_count(sel.shape[0], "keypoint")
+        if sel.shape[0] == 0:
+            continue
+        width, _ = config.level_size(level)
+        lin = sel[:, 1].astype(np.int64) * width + sel[:, 0]
+        gaps = np.diff(lin, prepend=0)
+        si = best_scale_index(gaps, signed=False)
+        w.put_uniform(np.array([si]), N_SCALES, "keypoint")
+        w.put_geometric(gaps, si, "keypoint")
+        w.put_uniform(sel[:, 3], config.angle_bins, "keypoint")
+
+
+def decode_kf_keypoints(r: BitReader, config: CodecConfig) -> np.ndarray:
+    parts = []
+    total = 0
+    for level in range(config.n_levels):
+        n = r.get_count(config.max_features - total)
+        total += n
+        if n == 0:
+            continue
+        width, height = config.level_size(level)
+        si = int(r.get_uniform(1, N_SCALES)[0])
+        lin = np.cumsum(r.get_geometric(n, si))
+        if lin[-1] >= width * height:
+            raise CodecError(f"keypoint outside the level-{level} image")
+        ang = r.get_uniform(n, config.angle_bins)
+        parts.append(np.stack([lin % width, lin // width, np.full(n, level), ang], axis=1))
+    if not parts:
+        return np.zeros((0, 4), dtype=np.int32)
+    return np.concatenate(parts).astype(np.int32)
+
+
+# ---------------------------------------------------------------------- links
+def _link_key(q: np.ndarray, lev: np.ndarray, tracks_q: np.ndarray, tracks_lev) -> np.ndarray:
+    """Sort key of previous tracks for each query: other levels last, then squared distance."""
+    d = q[:, None, :] - tracks_q[None, :, :]
+    other = (lev[:, None] != tracks_lev[None, :]).astype(np.int64) << 50
+    return (d * d).sum(axis=2) + other
+
+
+def encode_links(
+    w: BitWriter,
+    links: np.ndarray,
+    q: np.ndarray,
+    lev: np.ndarray,
+    tracks_q: np.ndarray,
+    tracks_lev: np.ndarray,
+    counts: np.ndarray,
+    config: CodecConfig,
+) -> None:
+    """``counts``: adaptive ``[linked, total, rank0, total_linked]``, updated in place."""
+    n_prev = tracks_q.shape[0]
+    if n_prev == 0 or links.size == 0:
+        return
+    linked = links >= 0
+    w.put_bernoulli(linked.astype(np.int64), np.full(links.size, _adaptive_p(counts)), "link")
+    counts[:2] += [float(linked.sum()), float(links.size)]
+    idx = np.flatnonzero(linked)
+    if idx.size == 0:
+        return
+    a = fit_affine(tracks_q[links[idx]], q[idx], config)
+    w.put_signed(a, AFFINE_SCALE_INDEX, "link")
+    pred = _affine_predict(tracks_q, a, config)
+    ranks = np.zeros(idx.size, dtype=np.int64)
+    for s in range(0, idx.size, MAX_RANK_ROWS):
+        rows = idx[s : s + MAX_RANK_ROWS]
+        d2 = _link_key(q[rows], lev[rows], pred, tracks_lev)
+        tgt = links[rows].astype(np.int64)
+        dl = d2[np.arange(rows.size), tgt][:, None]
+        before = (d2 < dl) | ((d2 == dl) & (np.arange(n_prev)[None, :] < tgt[:, None]))
+        ranks[s : s + rows.size] = before.sum(axis=1)
+    zero = ranks == 0
+    w.put_bernoulli(zero.astype(np.int64), np.full(ranks.size, _adaptive_p(counts[2:])), "link")
+    counts[2:] += [float(zero.sum()), float(ranks.size)]
+    if not zero.all():
+        si = best_scale_index(ranks[~zero] - 1, signed=False)
+        w.put_uniform(np.array([si]), N_SCALES, "link")
+        w.put_geometric(ranks[~zero] - 1, si, "link")
+
+
+def decode_links(
+    r: BitReader,
+    n: int,
+    q: np.ndarray,
+    lev: np.ndarray,
+    tracks_q: np.ndarray,
+    tracks_lev: np.ndarray,
+    counts: np.ndarray,
+    config: CodecConfig,
+) -> np.ndarray:
+    links = np.full(n, -1, dtype=np.int64)
+    n_prev = tracks_q.shape[0]
+    if n_prev == 0 or n == 0:
+        return links
+    linked = r.get_bernoulli(np.full(n, _adaptive_p(counts))).astype(bool)
+    counts[:2] += [float(linked.sum()), float(n)]
+    idx = np.flatnonzero(linked)
+    if idx.size == 0:
+        return links
+    a = r.get_signed(6, AFFINE_SCALE_INDEX)
+    if np.abs(a).max() > (1 << 28):
+        raise CodecError("link flow model out of range")
+    pred = _affine_predict(tracks_q, a, config)
+    zero = r.get_bernoulli(np.full(idx.size, _adaptive_p(counts[2:]))).astype(bool)
+    counts[2:] += [float(zero.sum()), float(idx.size)]
+    ranks = np.zeros(idx.size, dtype=np.int64)
+    if not zero.all():
+        si = int(r.get_uniform(1, N_SCALES)[0])
+        ranks[~zero] = r.get_geometric(int((~zero).sum()), si) + 1
+    if ranks.max() >= n_prev:
+        raise CodecError(f"link rank {int(ranks.max())} beyond {n_prev} previous tracks")
+    for s in range(0, idx.size, MAX_RANK_ROWS):
+        rows = idx[s : s + MAX_RANK_ROWS]
+        key = _link_key(q[rows], lev[rows], pred, tracks_lev)
+        order = np.argsort(key, axis=1, kind="stable")
+        links[rows] = order[np.arange(rows.size), ranks[s : s + rows.size]]
+    return links
+
+
+# ---------------------------------------------------------------------- non-keyframes
+def _affine_predict(prev_q: np.ndarray, a: np.ndarray, config: CodecConfig) -> np.ndarray:
+    """Predicted positions (fixed point): ``prev + ((A @ [xc, yc]) >> 14) + t``."""
+    cx = config.image_width * config.subpixel // 2
+    cy = config.image_height * config.subpixel // 2
+    xc, yc = prev_q[:, 0] - cx, prev_q[:, 1] - cy
+    half = 1 << (AFFINE_SHIFT - 1)
+    dx = (a[0] * xc + a[1] * yc + half) >> AFFINE_SHIFT
+    dy = (a[3] * xc + a[4] * yc + half) >> AFFINE_SHIFT
+    return prev_q + np.stack([dx + a[2], dy + a[5]], axis=1)
+
+
+def fit_affine(prev_q: np.ndarray, cur_q: np.ndarray, config: CodecConfig) -> np.ndarray:
+    """Robust least-squares affine flow in fixed point: ``(6,) int64``."""
+    a = np.zeros(6, dtype=np.int64)
+    n = prev_q.shape[0]
+    if n == 0:
+        return a
+    d = (cur_q - prev_q).astype(np.float64)
+    if n < 6:
+        a[2], a[5] = np.round(np.median(d, axis=0)).astype(np.int64)
+        return a
+    cx = config.image_width * config.subpixel / 2
+    cy = config.image_height * config.subpixel / 2
+    m = np.stack([prev_q[:, 0] - cx, prev_q[:, 1] - cy, np.ones(n)], axis=1)
+    keep = np.ones(n, dtype=bool)
+    coef = np.zeros((3, 2))
+    for _ in range(3):
+        coef, *_ = np.linalg.lstsq(m[keep], d[keep], rcond=None)
+        res = np.abs(d - m @ coef).sum(axis=1)
+        thr = max(3.0 * np.median(res), 2.0)
+        new_keep = res <= thr
+        if new_keep.sum() < 6 or np.array_equal(new_keep, keep):
+            break
+        keep = new_keep
+    scale = float(1 << AFFINE_SHIFT)
+    lim = 1 << 28
+    vals = [coef[0, 0] * scale, coef[1, 0] * scale, coef[2, 0], coef[0, 1] * scale,
+            coef[1, 1] * scale, coef[2, 1]]  # fmt: skip
+    return np.clip(np.round(np.nan_to_num(vals)), -lim, lim).astype(np.int64)
+
+
+def encode_non_keyframe(
+    w: BitWriter,
+    survived: np.ndarray,
+    keypoints: np.ndarray,
+    tracks_q: np.ndarray,
+    tracks_level: np.ndarray,
+    survival_counts: np.ndarray,
+    config: CodecConfig,
+) -> None:
+    n_prev = tracks_q.shape[0]
+    w.put_bernoulli(
+        survived.astype(np.int64), np.full(n_prev, _adaptive_p(survival_counts)), "survival"
+    )
+    survival_counts += [float(survived.sum()), float(n_prev)]
+    n_surv = int(survived.sum())
+    n_new = keypoints.shape[0] - n_surv
+    w.put_count(n_new, "new")
+    cur_q = np.floor(keypoints[:, :2] * config.subpixel + 0.5).astype(np.int64)
+    levels = keypoints[:, 2].astype(np.int64)
+    prev_q = tracks_q[survived]
+    if n_surv:
+        a = fit_affine(prev_q, cur_q[:n_surv], config)
+        w.put_signed(a, AFFINE_SCALE_INDEX, "side")
+        res = cur_q[:n_surv] - _affine_predict(prev_q, a, config)
+        for axis in range(2):
+            si = best_scale_index(res[:, axis], signed=True)
+            w.put_uniform(np.array([si]), N_SCALES, "side")
+            w.put_signed(res[:, axis], si, "keypoint")
+        same = bool(np.array_equal(levels[:n_surv], tracks_level[survived]))
+        w.put_bernoulli(np.array([int(same)]), np.array([0.5]), "side")
+        if not same:
+            w.put_uniform(levels[:n_surv], config.n_levels, "keypoint")
+    if n_new:
+        w.put_uniform(levels[n_surv:], config.n_levels, "new")
+        w.put_uniform(cur_q[n_surv:, 0], config.image_width * config.subpixel, "new")
+        w.put_uniform(cur_q[n_surv:, 1], config.image_height * config.subpixel, "new")
+
+
+def decode_non_keyframe(
+    r: BitReader,
+    tracks_q: np.ndarray,
+    tracks_level: np.ndarray,
+    survival_counts: np.ndarray,
+    config: CodecConfig,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Returns (survived (P,) bool, positions (N, 2) int64 quarter px, levels (N,))."""
+    n_prev = tracks_q.shape[0]
+    survived = r.get_bernoulli(np.full(n_prev, _adaptive_p(survival_counts))).astype(bool)
+    survival_counts += [float(survived.sum()), float(n_prev)]
+    n_surv = int(survived.sum())
+    n_new = r.get_count(config.max_features - n_surv)
+    q = np.zeros((n_surv + n_new, 2), dtype=np.int64)
+    levels = np.zeros(n_surv + n_new, dtype=np.int64)
+    if n_surv:
+        a = r.get_signed(6, AFFINE_SCALE_INDEX)
+        if np.abs(a).max() > (1 << 28):
+            raise CodecError("flow model out of range")
+        pred = _affine_predict(tracks_q[survived], a, config)
+        for axis in range(2):
+            si = int(r.get_uniform(1, N_SCALES)[0])
+            q[:n_surv, axis] = pred[:, axis] + r.get_signed(n_surv, si)
+        same = bool(r.get_bernoulli(np.array([0.5]))[0])
+        if same:
+            levels[:n_surv] = tracks_level[survived]
+        else:
+            levels[:n_surv] = r.get_uniform(n_surv, config.n_levels)
+    if n_new:
+        levels[n_surv:] = r.get_uniform(n_new, config.n_levels)
+        q[n_surv:, 0] = r.get_uniform(n_new, config.image_width * config.subpixel)
+        q[n_surv:, 1] = r.get_uniform(n_new, config.image_height * config.subpixel)
+    if np.abs(q).max(initial=0) > (1 << 40):
+        raise CodecError("decoded keypoint out of range")
+    return survived, q, levels
