@@ -1,0 +1,134 @@
+"""GUI panels: map counts, agents table (with live ATE), per-link bandwidth plots (uPlot).
+
+:func:`bandwidth_series` (pure) bins bandwidth samples into kbit/s per link, direction and
+message type; :class:`Panels` shows a :class:`StatsSnapshot` in the viser GUI.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import viser
+import viser.uplot as uplot
+
+from common.map_view import BandwidthSample, Direction, StatsSnapshot
+
+log = logging.getLogger(__name__)
+
+SERIES_COLORS = ("#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2")
+
+
+@dataclass(frozen=True, eq=False)
+class LinkSeries:
+    """kbit/s of one link over time: ``t_s (B,)`` bin starts relative to the newest sample
+    (≤ 0), and for each label (``"keyframe ↑"``, ...) a ``(B,)`` array."""
+
+    link: str
+    t_s: np.ndarray
+    kbit_s: dict[str, np.ndarray]
+
+
+def bandwidth_series(
+    samples: tuple[BandwidthSample, ...], window_s: float = 60.0, bin_s: float = 1.0
+) -> list[LinkSeries]:
+    """Bin samples of the last ``window_s`` seconds into ``bin_s`` bins, per link (sorted:
+    robot links first, then the rest), one series per message type and direction."""
+    if not samples:
+        return []
+    t = np.array([s.time for s in samples])
+    t_end = float(t.max())
+    n_bins = max(int(np.ceil(window_s / bin_s)), 1)
+    t0 = t_end - n_bins * bin_s
+    out = []
+    links = sorted({s.link for s in samples}, key=lambda name: (not name.startswith("robot"), name))
+    for link in links:
+        series: dict[str, np.ndarray] = {}
+        for s in samples:
+            if s.link != link or s.time <= t0:
+                continue
+            arrow = "↑" if s.direction is Direction.UP else "↓"
+            label = f"{s.message_type} {arrow}"
+            arr = series.setdefault(label, np.zeros(n_bins))
+            b = min(int((s.time - t0) / bin_s), n_bins - 1)
+            arr[b] += s.n_bytes * 8 / 1000.0 / bin_s
+        edges = t0 + bin_s * np.arange(n_bins) - t_end
+        out.append(LinkSeries(link, edges, dict(sorted(series.items()))))
+    return out
+
+
+def counts_markdown(stats: StatsSnapshot) -> str:
+    c = stats.counts
+    return (
+        "| | all | with MBP |\n|---|---:|---:|\n"
+        f"| Keyframes | {c.keyframes} | {c.keyframes_kept} |\n"
+        f"| Map points | {c.map_points} | {c.map_points_kept} |\n"
+        f"| Loops | {c.loops} | |\n| Merges | {c.merges} | |\n"
+    )
+
+
+def agents_markdown(stats: StatsSnapshot, ate_m: dict[int, float | None]) -> str:
+    """Agents table; ``ate_m`` supplies the live ATE where the source gave none."""
+    rows = ["| Agent | Status | Frames | KFs | Last seen | ATE |", "|---|---|---:|---:|---:|---:|"]
+    for a in stats.agents:
+        ate = a.ate_rmse_m if a.ate_rmse_m is not None else ate_m.get(a.agent_id)
+        ate_txt = f"{ate:.3f} m" if ate is not None else "–"
+        ago = max(stats.time - a.last_seen, 0.0)
+        rows.append(
+            f"| robot {a.agent_id} | {a.status.value} | {a.frames} | {a.keyframes} "
+            f"| {ago:.1f} s ago | {ate_txt} |"
+        )
+    if not stats.agents:
+        rows.append("| – | no agents yet | | | | |")
+    return "\n".join(rows) + "\n"
+
+
+class Panels:
+    """The GUI side: toggles are added by the viewer; this class owns the stats panels."""
+
+    def __init__(self, server: viser.ViserServer, window_s: float = 60.0) -> None:
+        self._server = server
+        self._window_s = window_s
+        gui = server.gui
+        with gui.add_folder("Map"):
+            self.counts = gui.add_markdown("*waiting for the map…*")
+        with gui.add_folder("Agents"):
+            self.agents = gui.add_markdown("*waiting for agents…*")
+        self._bw_folder = gui.add_folder("Bandwidth (kbit/s)")
+        self._plots: dict[str, tuple[tuple[str, ...], viser.GuiUplotHandle]] = {}
+        self.last_update = 0.0
+
+    def update(self, stats: StatsSnapshot, ate_m: dict[int, float | None]) -> None:
+        """Refresh every panel from one stats snapshot."""
+        with self._server.atomic():
+            self.counts.content = counts_markdown(stats)
+            self.agents.content = agents_markdown(stats, ate_m)
+            for ls in bandwidth_series(stats.bandwidth, self._window_s):
+                self._update_plot(ls)
+        self.last_update = time.monotonic()
+
+    def _update_plot(self, ls: LinkSeries) -> None:
+        labels = tuple(ls.kbit_s)
+        data = (ls.t_s, *(ls.kbit_s[k] for k in labels))
+        known = self._plots.get(ls.link)
+        if known is not None and known[0] == labels:
+            known[1].data = data
+            return
+        if known is not None:
+            known[1].remove()
+        series: list[uplot.Series] = [uplot.Series(label="t [s]")]
+        for i, lab in enumerate(labels):
+            series.append(
+                uplot.Series(label=lab, stroke=SERIES_COLORS[i % len(SERIES_COLORS)], width=1.5)
+            )
+        with self._bw_folder:
+            handle = self._server.gui.add_uplot(
+                data,
+                tuple(series),
+                title=ls.link,
+                aspect=2.0,
+                scales={"x": uplot.Scale(time=False, auto=True), "y": uplot.Scale(auto=True)},
+            )
+        self._plots[ls.link] = (labels, handle)
