@@ -71,15 +71,21 @@ def bundle_adjust(
     mapping: MappingOptions,
     gauge_ids: tuple[int, ...] = (),
     max_iterations: int | None = None,
+    bias_prior_sigmas: tuple[float, float] = (1.0, 0.1),
 ) -> BAStats:
     """Optimise the keyframes ``window_ids`` (time order) and their points in place.
 
     ``imu_params`` None gives a visual-only BA (before VI initialisation). ``gauge_ids`` are
     window keyframes whose pose is held fixed when nothing outside the window anchors the map.
+    ``bias_prior_sigmas`` (accel m/s², gyro rad/s) is the prior on the first window keyframe's
+    bias around its current value when no fixed keyframe precedes the window (ORB-SLAM3's
+    priorA / priorG of the full inertial BA; the default only conditions the problem).
     """
     window = [vmap.keyframes[k] for k in window_ids if k in vmap.keyframes]
     in_window = {kf.id for kf in window}
-    point_ids = sorted({pid for kf in window for pid in kf.row_of if pid in vmap.points})
+    point_ids = sorted(
+        {mp.id for kf in window for t in kf.row_of if (mp := vmap.point_of(t)) is not None}
+    )
     points = [vmap.points[p] for p in point_ids]
     observers: set[int] = set()
     for mp in points:
@@ -122,12 +128,13 @@ def bundle_adjust(
                     gtsam.noiseModel.Isotropic.Sigma(6, options.fixed_sigma),
                 )
             )
-        else:  # weak prior for conditioning only
+        else:
+            sa, sg = bias_prior_sigmas
             graph.add(
                 gtsam.PriorFactorConstantBias(
                     B(first.id),
                     make_bias(first.bias_accel, first.bias_gyro),
-                    gtsam.noiseModel.Diagonal.Sigmas(np.array([1.0, 1.0, 1.0, 0.1, 0.1, 0.1])),
+                    gtsam.noiseModel.Diagonal.Sigmas(np.array([sa, sa, sa, sg, sg, sg])),
                 )
             )
         for a, b in itertools.pairwise(chain):
@@ -226,8 +233,11 @@ def reprojection_chi2(vmap: VioMap, keyframe_ids: list[int], camera: PinholeUndi
     total, n = 0.0, 0
     for k in keyframe_ids:
         kf = vmap.keyframes[k]
-        items = [(pid, r) for pid, r in kf.row_of.items() if pid in vmap.points
-                 and k in vmap.points[pid].observations]  # fmt: skip
+        items = []
+        for t, r in kf.row_of.items():
+            mp = vmap.point_of(t)
+            if mp is not None and mp.observations.get(k) == r:
+                items.append((mp.id, r))
         if not items:
             continue
         P = np.array([vmap.points[p].p_world for p, _ in items])

@@ -20,11 +20,15 @@ def associate_keyframe(
 ) -> int:
     """Add ``kf``'s observation to the map point of each of its tracks that reprojects well.
     Returns the number of observations added."""
-    ids = [t for t in kf.row_of if t in vmap.points]
+    ids = []
+    for t in kf.row_of:
+        mp = vmap.point_of(t)
+        if mp is not None:
+            ids.append(mp.id)
     if not ids:
         return 0
-    P = np.array([vmap.points[t].p_world for t in ids])
-    rows = np.array([kf.row_of[t] for t in ids])
+    P = np.array([vmap.points[p].p_world for p in ids])
+    rows = np.array([kf.row_of[t] for t in kf.row_of if vmap.point_of(t) is not None])
     xy, z = project(kf.T_world_body, camera.T_body_cam, P)
     chi2 = np.sum((xy - kf.xy[rows]) ** 2, 1) / kf.sigma[rows] ** 2
     good = (z > 0) & (chi2 < options.cull_chi2)
@@ -35,6 +39,60 @@ def associate_keyframe(
             n += 1
     vmap.mark_dirty(point_ids=[t for t, g in zip(ids, good.tolist(), strict=True) if g])
     return n
+
+
+def match_by_projection(
+    vmap: VioMap, kf: Keyframe, camera: PinholeUndistorter, options: MappingOptions
+) -> int:
+    """Bind ``kf``'s features that have no map point (new robot tracks) to existing map points
+    that project near them with a close ORB descriptor (ORB-SLAM's search by projection):
+    re-detections of known structure then reuse the map instead of duplicating it. Only the
+    local map (points of the newest ``match_keyframes`` keyframes) is searched: older, drifted
+    structure is the cloud's loop closure to fix, not the local BA's.
+    Returns the number of features bound."""
+    if kf.descriptors is None or not vmap.points:
+        return 0
+    free = [(t, r) for t, r in kf.row_of.items()
+            if t not in vmap.track_point and t not in vmap.banned_tracks]  # fmt: skip
+    if not free:
+        return 0
+    seen = {mp.id for t in kf.row_of if (mp := vmap.point_of(t)) is not None}
+    local = {mp.id for k in vmap.keyframe_list()[-options.match_keyframes - 1 :]
+             for t in k.row_of if (mp := vmap.point_of(t)) is not None}  # fmt: skip
+    cands = [vmap.points[p] for p in sorted(local - seen) if vmap.points[p].descriptor is not None]
+    if not cands:
+        return 0
+    xy_c, z = project(kf.T_world_body, camera.T_body_cam, np.array([mp.p_world for mp in cands]))
+    front = z > options.min_depth_m
+    if not np.any(front):
+        return 0
+    cands = [mp for mp, f in zip(cands, front.tolist(), strict=True) if f]
+    xy_c = xy_c[front]
+    desc_c = np.stack([mp.descriptor for mp in cands])
+    rows = np.array([r for _, r in free])
+    radius = options.match_radius_px * 1.2 ** kf.levels[rows].astype(float) / camera.focal
+    d2 = np.sum((kf.xy[rows][:, None, :] - xy_c[None, :, :]) ** 2, axis=2)
+    best_for_point: dict[int, tuple[int, int]] = {}  # candidate index -> (hamming, free index)
+    for i in range(len(free)):
+        js = np.flatnonzero(d2[i] < radius[i] ** 2)
+        if len(js) == 0:
+            continue
+        ham = np.unpackbits(np.bitwise_xor(desc_c[js], kf.descriptors[rows[i]]), axis=1).sum(1)
+        order = np.argsort(ham)
+        h0 = int(ham[order[0]])
+        if h0 > options.match_max_hamming:
+            continue
+        if len(order) > 1 and h0 >= options.match_ratio * int(ham[order[1]]):
+            continue
+        j = int(js[order[0]])
+        if j not in best_for_point or h0 < best_for_point[j][0]:
+            best_for_point[j] = (h0, i)
+    for j, (_, i) in best_for_point.items():
+        track, row = free[i]
+        mp = cands[j]
+        vmap.bind_track(track, mp.id)
+        mp.observations[kf.id] = row
+    return len(best_for_point)
 
 
 def triangulate_multiview(T_cam_worlds: np.ndarray, xy: np.ndarray) -> np.ndarray:
@@ -66,7 +124,7 @@ def triangulate_new_points(
     T_cam_world = {k.id: inverse_T(k.T_world_body @ camera.T_body_cam) for k in [*recent, kf]}
     n_new = 0
     for track, row in kf.row_of.items():
-        if track in vmap.points or track in vmap.banned_tracks:
+        if track in vmap.track_point or track in vmap.banned_tracks:
             continue
         views = [(k, k.row_of[track]) for k in recent if track in k.row_of]
         if not views:
@@ -91,6 +149,7 @@ def triangulate_new_points(
         chi2 = np.sum((p_cam[:, :2] / z[:, None] - xys) ** 2, 1) / sig**2
         if np.any(chi2 > options.max_reprojection_chi2):
             continue
-        vmap.add_point(MapPoint(track, p, {k.id: r for k, r in views}))
+        desc = next((k.descriptors[r] for k, r in views if k.descriptors is not None), None)
+        vmap.add_point(MapPoint(track, p, {k.id: r for k, r in views}, desc))
         n_new += 1
     return n_new

@@ -25,7 +25,11 @@ from services.edge.vio.imu import (
     preintegrate,
 )
 from services.edge.vio.local_ba import BAStats, bundle_adjust
-from services.edge.vio.local_mapping import associate_keyframe, triangulate_new_points
+from services.edge.vio.local_mapping import (
+    associate_keyframe,
+    match_by_projection,
+    triangulate_new_points,
+)
 from services.edge.vio.mono_init import two_view_geometry
 from services.edge.vio.state import Keyframe, MapPoint, PinholeUndistorter, VioMap, project
 from services.edge.vio.tracking import ImuPrior, track_frame
@@ -264,9 +268,9 @@ class VioManager:
         p_world = tv.p_c0 @ T_w_c0[:3, :3].T + T_w_c0[:3, 3]
         for k in np.flatnonzero(tv.good):
             tid = int(ref.obs.track_ids[i_ref[k]])
-            vmap.add_point(
-                MapPoint(tid, p_world[k], {kf0.id: int(i_ref[k]), kf1.id: int(i_cur[k])})
-            )
+            obs = {kf0.id: int(i_ref[k]), kf1.id: int(i_cur[k])}
+            desc = None if ref.obs.descriptors is None else ref.obs.descriptors[i_ref[k]]
+            vmap.add_point(MapPoint(tid, p_world[k], obs, desc))
         bundle_adjust(
             vmap, [kf0.id, kf1.id], self.camera, None, self.options.local_ba,
             self.options.mapping, gauge_ids=(kf0.id, kf1.id),
@@ -314,8 +318,9 @@ class VioManager:
         assert vmap is not None
         t_start = time.perf_counter()
         ids = frame.obs.track_ids
-        has = np.array([int(t) in vmap.points for t in ids], dtype=bool)
-        P = np.array([vmap.points[int(t)].p_world for t in ids[has]]).reshape(-1, 3)
+        mps = [vmap.point_of(t) for t in ids.tolist()]
+        has = np.array([mp is not None for mp in mps], dtype=bool)
+        P = np.array([mp.p_world for mp in mps if mp is not None]).reshape(-1, 3)
         T_pred, v_pred, prior = self._predict(frame, vmap)
         res, reason = track_frame(
             P, frame.xy[has], frame.sigma[has], ids[has], self.camera, self.options.tracking,
@@ -371,6 +376,8 @@ class VioManager:
         vmap.add_keyframe(kf)
         mopt = self.options.mapping
         associate_keyframe(vmap, kf, self.camera, mopt)
+        if mopt.match_by_projection:
+            match_by_projection(vmap, kf, self.camera, mopt)
         n_new = triangulate_new_points(vmap, kf, self.camera, mopt)
         t0 = time.perf_counter()
         window = [k.id for k in vmap.keyframe_list()[-self.options.local_ba.window_size :]]
@@ -404,7 +411,7 @@ class VioManager:
         """Median depth [map units] of the points seen by the newest keyframe."""
         kf = vmap.last_keyframe()
         assert kf is not None
-        P = np.array([vmap.points[t].p_world for t in kf.row_of if t in vmap.points])
+        P = np.array([mp.p_world for t in kf.row_of if (mp := vmap.point_of(t)) is not None])
         if len(P) == 0:
             return 1.0
         _, z = project(kf.T_world_body, self.camera.T_body_cam, P)
@@ -431,6 +438,7 @@ class VioManager:
             stats = bundle_adjust(
                 vmap, ids, self.camera, self.imu_params, self.options.local_ba,
                 self.options.mapping, gauge_ids=(ids[0],), max_iterations=vopt.full_ba_iterations,
+                bias_prior_sigmas=(vopt.accel_bias_prior_sigma, vopt.gyro_bias_prior_sigma),
             )  # fmt: skip
             self.stats.vi_init_s.append(time.perf_counter() - t0)
             logger.info("%s: VI refinement #%d of map %d: %s", self.name, vmap.vi_init_runs,
@@ -471,6 +479,9 @@ class VioManager:
         stats = bundle_adjust(
             vmap, ids, self.camera, self.imu_params, self.options.local_ba, self.options.mapping,
             gauge_ids=(ids[0],), max_iterations=vopt.full_ba_iterations,
+            bias_prior_sigmas=(
+                vopt.accel_bias_prior_sigma_first, vopt.gyro_bias_prior_sigma_first
+            ),
         )  # fmt: skip
         self.stats.vi_init_s.append(time.perf_counter() - t0)
         last = vmap.last_keyframe()

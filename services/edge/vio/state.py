@@ -81,11 +81,15 @@ class Keyframe:
 
 @dataclass(eq=False)
 class MapPoint:
-    """``p_world`` (3,); ``observations`` keyframe id -> feature row in that keyframe."""
+    """``p_world`` (3,); ``observations`` keyframe id -> feature row in that keyframe;
+    ``descriptor`` (32,) uint8 ORB of its first keyframe observation with one; ``tracks`` the
+    robot track ids bound to it (its birth track, plus tracks matched to it later)."""
 
     id: int
     p_world: np.ndarray
     observations: dict[int, int] = field(default_factory=dict)
+    descriptor: np.ndarray | None = None
+    tracks: set[int] = field(default_factory=set)
 
 
 class VioMap:
@@ -98,6 +102,7 @@ class VioMap:
         self.vi_initialized = False
         self.vi_init_runs = 0
         self.banned_tracks: set[int] = set()
+        self.track_point: dict[int, int] = {}  # robot track id -> map point id
         self._dirty_keyframes: set[int] = set()
         self._dirty_points: set[int] = set()
         self._removed_points: set[int] = set()
@@ -110,6 +115,11 @@ class VioMap:
     def keyframe_list(self) -> list[Keyframe]:
         return list(self.keyframes.values())
 
+    def point_of(self, track_id: int) -> MapPoint | None:
+        """The map point a track is bound to, if any."""
+        pid = self.track_point.get(int(track_id))
+        return None if pid is None else self.points.get(pid)
+
     def last_keyframe(self) -> Keyframe | None:
         return next(reversed(self.keyframes.values())) if self.keyframes else None
 
@@ -119,12 +129,25 @@ class VioMap:
         self._dirty_keyframes.add(kf.id)
 
     def add_point(self, point: MapPoint) -> None:
+        """Add a point born from track ``point.id``."""
         self.points[point.id] = point
+        point.tracks.add(point.id)
+        self.track_point[point.id] = point.id
         self._dirty_points.add(point.id)
         self._removed_points.discard(point.id)
 
+    def bind_track(self, track_id: int, point_id: int) -> None:
+        """Bind another track (e.g. a re-detection matched by descriptor) to a point."""
+        self.track_point[int(track_id)] = point_id
+        self.points[point_id].tracks.add(int(track_id))
+        self._dirty_points.add(point_id)
+
     def remove_point(self, point_id: int, ban: bool = False) -> None:
-        if self.points.pop(point_id, None) is not None:
+        mp = self.points.pop(point_id, None)
+        if mp is not None:
+            for t in mp.tracks:
+                if self.track_point.get(t) == point_id:
+                    del self.track_point[t]
             self._removed_points.add(point_id)
             self._dirty_points.discard(point_id)
         if ban:
@@ -158,11 +181,11 @@ class VioMap:
 
     # ------------------------------------------------------------------ snapshots
     def keyframe_snapshot(self, kf: Keyframe) -> KeyframeSnapshot:
-        point_ids = np.array(
-            [t if (t in self.points and kf.id in self.points[t].observations) else -1
-             for t in kf.track_ids.tolist()],
-            dtype=np.int64,
-        )  # fmt: skip
+        ids = []
+        for t in kf.track_ids.tolist():
+            mp = self.point_of(t)
+            ids.append(mp.id if mp is not None and kf.id in mp.observations else -1)
+        point_ids = np.array(ids, dtype=np.int64)
         return KeyframeSnapshot(
             keyframe_id=kf.id,
             map_id=self.map_id,

@@ -84,6 +84,11 @@ class MappingOptions:
     min_depth_m: float = 0.05  # in map units (arbitrary before VI init)
     cull_chi2: float = 9.21  # observations worse than this are removed after local BA
     min_observations: int = 2  # points with fewer keyframe observations are removed
+    match_by_projection: bool = True  # bind new keyframe features to existing map points
+    match_radius_px: float = 15.0  # search radius at level 0 (× 1.2^level)
+    match_max_hamming: int = 50  # ORB descriptor distance accepted (of 256 bits)
+    match_ratio: float = 0.8  # best / second-best descriptor distance
+    match_keyframes: int = 20  # local map searched: points seen by this many newest keyframes
 
 
 @dataclass(frozen=True)
@@ -92,7 +97,7 @@ class LocalBAOptions:
 
     window_size: int = 20  # newest keyframes optimised; older observers are fixed
     cauchy_k: float = 2.4477  # on whitened reprojection error (sqrt(5.991))
-    imu_huber_k: float = 4.1134  # on whitened 15-DoF IMU error (sqrt(16.92), ORB-SLAM3)
+    imu_huber_k: float = 5.0  # whitened 15-DoF IMU error: sqrt(chi2_15(0.95)) = sqrt(25.0)
     max_iterations: int = 10
     max_fixed_observers: int = 20  # observers outside the window kept as fixed poses
     fixed_sigma: float = 1e-6  # prior sigma holding fixed variables
