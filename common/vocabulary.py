@@ -55,12 +55,14 @@ class VocabularyTrainingConfig:
     depth: number of levels below the root (DBoW2's L), default 5.
     max_iterations: k-majority iterations per node, default 10.
     seed: seed of the random generator (k-means++ seeding), default 0.
+    bit_context_parents: parents per bit of the codec's descriptor-bit context model, 6.
     """
 
     k: int = 10
     depth: int = 5
     max_iterations: int = 10
     seed: int = 0
+    bit_context_parents: int = 6
 
 
 @dataclass(frozen=True)
@@ -426,7 +428,9 @@ class Vocabulary:
         residual = np.unpackbits(desc ^ tmp.words[words], axis=1)
         meta["n_words"] = int(leaves.size)
         meta["n_nodes"] = int(m)
-        parents, p1 = fit_bit_context_model(desc, seed=config.seed)
+        parents, p1 = fit_bit_context_model(
+            desc, n_parents=config.bit_context_parents, seed=config.seed
+        )
         return cls(
             node_desc_a,
             parent_a,
@@ -472,6 +476,8 @@ class Vocabulary:
                     z["residual_ones"],
                     int(z["residual_total"]),
                     meta,
+                    z["bit_parents"],
+                    z["bit_p1"],
                 )
         except VocabularyError as exc:
             raise VocabularyError(f"{path}: {exc}") from exc

@@ -67,7 +67,7 @@ class DescriptorCoder:
         self.n_par = par.shape[1]
         self.parents = np.where(par < 0, 0, par)
         self.parent_valid = (par >= 0).astype(np.int64)
-        self.weights = (1 << np.arange(self.n_par, 0, -1)).astype(np.int64)  # ctx*2 + ref
+        self.weights = (1 << np.arange(self.n_par - 1, -1, -1)).astype(np.int64)
         wc = vocab.word_count.astype(np.float64) + 0.5
         self.word_p = wc / wc.sum()
         self.word_bits = -np.log2(self.word_p)

@@ -117,7 +117,8 @@ class ImuEncoder:
             steps = _steps(self.config)
             for c in range(6):
                 x = values[:, c]
-                ok = bool(np.all(np.isfinite(x)) and np.all(np.abs(x / steps[c]) < 2.0**40))
+                with np.errstate(over="ignore", invalid="ignore"):
+                    ok = bool(np.all(np.abs(x / steps[c]) < 2.0**40))  # False for NaN / inf
                 if ok:
                     q = np.round(x / steps[c]).astype(np.int64)
                     corr = _ord(x) - _ord(q * steps[c])
