@@ -368,14 +368,20 @@ class MotionPredictor:
 
 
 def warp_by_rotation(
-    camera: CameraCalibration, image: np.ndarray, R_cur_prev: np.ndarray
+    camera: CameraCalibration,
+    image: np.ndarray,
+    R_cur_prev: np.ndarray,
+    out_camera: CameraCalibration | None = None,
 ) -> np.ndarray:
-    """Render what the (distorted) camera sees after rotating by ``R_cur_prev``: each output
-    pixel's ray ``x_cur`` is looked up at ``R_cur_prev⁻¹ x_cur`` in ``image`` (bilinear, black
-    outside). Used to test and benchmark the rotation prediction on real images."""
-    h, w = image.shape[:2]
+    """Render what a camera rotated by ``R_cur_prev`` sees: each output pixel's ray ``x_cur``
+    (through ``out_camera``, default ``camera``) is looked up at ``R_cur_prev⁻¹ x_cur`` in
+    ``image`` taken by ``camera`` (bilinear, black outside). Used to test and benchmark the
+    rotation prediction on real images; an ``out_camera`` with a longer focal length renders a
+    narrower view that stays inside the source image (no black borders)."""
+    out = camera if out_camera is None else out_camera
+    h, w = out.height, out.width
     u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
-    xy = undistort_normalised(camera, np.stack([u.ravel(), v.ravel()], axis=1))
+    xy = undistort_normalised(out, np.stack([u.ravel(), v.ravel()], axis=1))
     rays = np.concatenate([xy, np.ones((len(xy), 1))], axis=1) @ np.asarray(R_cur_prev)
     src, front = project_points(camera, rays)
     src[~front] = -1.0
