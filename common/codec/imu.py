@@ -1,15 +1,17 @@
 """Lossless IMU coding: every float64 and timestamp is reproduced bit for bit.
 
-Sensor resolution assumed (defaults, :class:`ImuCodecConfig`): gyro 0.02 deg/s
-(``pi / 180 * 0.02`` rad/s), accel ``9.80665 / 1200`` m/s^2 (1/1.2 mg) — the lattices the
-EuRoC ADIS16448 values lie on. Each value ``x`` is split into a lattice index
-``q = round(x / step)`` and an *ulp correction* ``c = ord(x) - ord(q * step)`` (``ord`` maps
-float64 bit patterns to integers monotonically), so ``x`` is recovered exactly even when the
-writer of the data computed ``q * step`` slightly differently (EuRoC's CSVs differ from
-``q * step`` by 0-2 ulp). Lattice indices are coded as differences to the previous sample of
-the channel (discrete Laplace, scale per chunk and channel), corrections with their own
-Laplace model. A channel whose values are off the lattice (ulp correction beyond 2**20, or
-non-finite values) falls back to raw 64-bit patterns for that chunk.
+Sensor resolution assumed (defaults, :class:`ImuCodecConfig`): gyro 1/50 deg/s, accel
+1/1200 g (g = 9.80665 m/s^2) — the lattices the EuRoC ADIS16448 values lie on. Each value
+``x`` is split into a lattice index ``q = round(x / step)`` and an *ulp correction*
+``c = ord(x) - ord(dequant(q))`` (``ord`` maps float64 bit patterns to integers
+monotonically), so any float64 is recovered exactly. ``dequant`` is the float expression that
+reproduces EuRoC's CSVs bit for bit (``q / 50 / 180 * pi`` rad/s, ``q / 1200 * 9.80665``
+m/s^2: 100 % of the excerpt's values, so ``c`` is 0 and costs ~nothing); a robot that uses
+:func:`dequantise_imu` values gets the same. Lattice indices are coded as differences to the
+previous sample of the channel (discrete Laplace; its scale index per chunk and channel is
+coded as a difference to the previous chunk's), corrections with their own Laplace model.
+A channel whose values are off the lattice (ulp correction beyond 2**20, or non-finite
+values) falls back to raw 64-bit patterns for that chunk.
 
 Timestamps: the first of a stream raw (64 bits), then differences of consecutive time steps
 (second differences) divided by their largest common power of two, coded with a Laplace
@@ -38,10 +40,40 @@ _MASK = np.int64((1 << 63) - 1)
 
 @dataclass(frozen=True)
 class ImuCodecConfig:
-    """gyro_step: rad/s per lattice step (0.02 deg/s). accel_step: m/s^2 per step (1/1.2 mg)."""
+    """gyro_lsb_per_deg_s: gyro lattice steps per deg/s (50 -> 0.02 deg/s).
+    accel_lsb_per_g: accel lattice steps per g (1200). gravity: m/s^2 per g (9.80665)."""
 
-    gyro_step: float = float(np.pi / 180.0 * 0.02)
-    accel_step: float = 9.80665 / 1200.0
+    gyro_lsb_per_deg_s: float = 50.0
+    accel_lsb_per_g: float = 1200.0
+    gravity: float = 9.80665
+
+    @property
+    def gyro_step(self) -> float:
+        return float(np.pi / 180.0 / self.gyro_lsb_per_deg_s)
+
+    @property
+    def accel_step(self) -> float:
+        return self.gravity / self.accel_lsb_per_g
+
+
+def dequantise(q: np.ndarray, channel: int, config: ImuCodecConfig) -> np.ndarray:
+    """float64 value of lattice indices ``q`` of channel 0-2 (gyro) or 3-5 (accel)."""
+    q = np.asarray(q, dtype=np.float64)
+    if channel < 3:
+        return q / config.gyro_lsb_per_deg_s / 180.0 * np.pi
+    return q / config.accel_lsb_per_g * config.gravity
+
+
+def dequantise_imu(chunk: ImuChunk, config: ImuCodecConfig | None = None) -> ImuChunk:
+    """Snap a chunk to the sensor lattice (what a robot should use to make IMU coding cheap)."""
+    config = ImuCodecConfig() if config is None else config
+    v = np.concatenate([chunk.gyro, chunk.accel], axis=1)
+    steps = _steps(config)
+    out = np.stack([dequantise(np.round(v[:, c] / steps[c]), c, config) for c in range(6)], 1)
+    return ImuChunk(chunk.timestamps_ns, out[:, :3], out[:, 3:])
+
+
+SCALE_DELTA_INDEX = 8  # Laplace scale 1 for chunk-to-chunk changes of scale indices
 
 
 def _ord(x: np.ndarray) -> np.ndarray:
@@ -61,9 +93,11 @@ class ImuState:
     last_dt: int = 0
     last_q: np.ndarray = field(default_factory=lambda: np.zeros(6, dtype=np.int64))
     seq: int = 0
+    last_si: np.ndarray = field(default_factory=lambda: np.full(12, 24, dtype=np.int64))
 
     def copy(self) -> ImuState:
-        return ImuState(self.last_ts, self.last_dt, self.last_q.copy(), self.seq)
+        return ImuState(self.last_ts, self.last_dt, self.last_q.copy(), self.seq,
+                        self.last_si.copy())  # fmt: skip
 
 
 def _steps(config: ImuCodecConfig) -> np.ndarray:
@@ -121,7 +155,7 @@ class ImuEncoder:
                     ok = bool(np.all(np.abs(x / steps[c]) < 2.0**40))  # False for NaN / inf
                 if ok:
                     q = np.round(x / steps[c]).astype(np.int64)
-                    corr = _ord(x) - _ord(q * steps[c])
+                    corr = _ord(x) - _ord(dequantise(q, c, self.config))
                     ok = bool(np.all(np.abs(corr) < MAX_CORR))
                 w.put_bernoulli(np.array([int(ok)]), np.array([0.5]), "imu_side")
                 if not ok:
@@ -129,11 +163,13 @@ class ImuEncoder:
                     continue
                 dq = np.diff(np.concatenate([[st.last_q[c]], q]))
                 si = best_scale_index(dq, signed=True)
-                w.put_uniform(np.array([si]), N_SCALES, "imu_side")
+                w.put_signed(np.array([si - st.last_si[c]]), SCALE_DELTA_INDEX, "imu_side")
                 w.put_signed(dq, si, "imu_value", escape_bits=64)
+                st.last_si[c] = si
                 si = best_scale_index(corr, signed=True)
-                w.put_uniform(np.array([si]), N_SCALES, "imu_side")
+                w.put_signed(np.array([si - st.last_si[6 + c]]), SCALE_DELTA_INDEX, "imu_side")
                 w.put_signed(corr, si, "imu_ulp")
+                st.last_si[6 + c] = si
                 st.last_q[c] = q[-1]
         body = w.finish()
         head = struct.pack("<BBH", MAGIC, VERSION, st.seq & 0xFFFF)
@@ -184,22 +220,27 @@ class ImuDecoder:
                     ts[start:] = prev_ts + np.cumsum(dts)
                 prev_dt = int(dts[-1])
             st.last_ts, st.last_dt = int(ts[-1]), prev_dt
-            steps = _steps(self.config)
             for c in range(6):
                 ok = bool(r.get_bernoulli(np.array([0.5]))[0])
                 if not ok:
                     values[:, c] = r.get_raw(m, 64).view(np.float64)
                     continue
-                si = int(r.get_uniform(1, N_SCALES)[0])
+                si = int(st.last_si[c] + r.get_signed(1, SCALE_DELTA_INDEX)[0])
+                if not 0 <= si < N_SCALES:
+                    raise CodecError("IMU scale index out of range")
+                st.last_si[c] = si
                 dq = r.get_signed(m, si, escape_bits=64)
                 with np.errstate(over="ignore"):
                     q = st.last_q[c] + np.cumsum(dq)
                 if np.abs(q).max() >= 2**40:
                     raise CodecError("IMU lattice index out of range")
-                si = int(r.get_uniform(1, N_SCALES)[0])
+                si = int(st.last_si[6 + c] + r.get_signed(1, SCALE_DELTA_INDEX)[0])
+                if not 0 <= si < N_SCALES:
+                    raise CodecError("IMU scale index out of range")
+                st.last_si[6 + c] = si
                 corr = r.get_signed(m, si)
                 with np.errstate(over="ignore", invalid="ignore"):
-                    values[:, c] = _unord(_ord(q * steps[c]) + corr)
+                    values[:, c] = _unord(_ord(dequantise(q, c, self.config)) + corr)
                 st.last_q[c] = q[-1]
         st.seq += 1
         self.state = st
