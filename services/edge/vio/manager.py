@@ -224,6 +224,7 @@ class VioManager:
                 self._next_map_id,
             )  # fmt: skip
         self._map = None
+        self._last_init_reason = ""
         self._ref = frame if frame is not None and frame.obs.is_keyframe else None
         self._last_T = self._prev_T = self._last_v = None
         self._last_bias = None
@@ -359,10 +360,10 @@ class VioManager:
                 self._last_bias = (kf.bias_accel.copy(), kf.bias_gyro.copy())
         if vmap.vi_initialized:
             return self._result(frame, T_out, TrackingStatus.TRACKING, n_inl, is_kf)
-        return self._result(
-            frame, T_out, TrackingStatus.INITIALIZING, n_inl, is_kf,
-            "visual-only map (arbitrary scale); VI initialisation pending",
-        )  # fmt: skip
+        why = "visual-only map (arbitrary scale); VI initialisation pending"
+        if self._last_init_reason.startswith("VI init"):
+            why += f" ({self._last_init_reason})"
+        return self._result(frame, T_out, TrackingStatus.INITIALIZING, n_inl, is_kf, why)
 
     # ------------------------------------------------------------------ local mapping
     def _insert_keyframe(self, frame: _Frame, res, vmap: VioMap, last_kf: Keyframe) -> Keyframe:
@@ -382,7 +383,7 @@ class VioManager:
         t0 = time.perf_counter()
         window = [k.id for k in vmap.keyframe_list()[-self.options.local_ba.window_size :]]
         first_ids = tuple(k.id for k in vmap.keyframe_list()[:2])
-        gauge = first_ids if not vmap.vi_initialized else first_ids[:1]
+        gauge = first_ids[:1]  # scale gauge before VI init: held by LM damping only
         use_imu = vmap.vi_initialized and all(
             vmap.keyframes[k].imu_from_previous is not None for k in window[1:]
         )
@@ -429,6 +430,9 @@ class VioManager:
                 start = i
         kfs = kfs[start:]
         first = vmap.vi_init_runs == 0
+        if first:
+            t_last = kfs[-1].timestamp_ns
+            kfs = [k for k in kfs if (t_last - k.timestamp_ns) * 1e-9 <= vopt.max_span_s]
         if not first:
             # Re-runs: the map is already metric and gravity-aligned; the joint visual-inertial
             # BA over every keyframe is the well-posed estimator of scale (the inertial-only
@@ -455,8 +459,15 @@ class VioManager:
             np.radians(vopt.visual_rotation_sigma_deg),
         )  # fmt: skip
         vmap.vi_init_runs += 1
+        if res is not None and res.cost_per_residual > vopt.max_cost_per_residual:
+            reason = (
+                f"IMU and visual poses disagree (cost/residual {res.cost_per_residual:.2f} "
+                f"> {vopt.max_cost_per_residual})"
+            )
+            res = None
         if res is None or not (vopt.min_scale <= res.scale <= vopt.max_scale):
             why = reason or f"scale {res.scale if res else float('nan'):.3g} out of range"
+            self._last_init_reason = f"VI init rejected: {why}"
             logger.warning(
                 "%s: VI initialisation of map %d failed: %s", self.name, vmap.map_id, why
             )
@@ -475,6 +486,7 @@ class VioManager:
             kf.bias_gyro = res.bias_gyro.copy()
             kf.bias_accel = res.bias_accel.copy()
         vmap.vi_initialized = True
+        self._last_init_reason = ""
         ids = [k.id for k in kfs]
         stats = bundle_adjust(
             vmap, ids, self.camera, self.imu_params, self.options.local_ba, self.options.mapping,

@@ -167,8 +167,11 @@ def simulate(
 ) -> SimSequence:
     """Generate one synthetic sequence (deterministic per ``options.seed``)."""
     o = options or SimOptions()
-    rng = np.random.default_rng(o.seed)
-    lm = _landmarks(o, rng)
+    # One stream per component: a shorter sequence is a prefix of a longer one (same seed).
+    rng_lm, rng_g, rng_a, rng_bg, rng_ba, rng = (
+        np.random.default_rng([o.seed, k]) for k in range(6)
+    )
+    lm = _landmarks(o, rng_lm)
     # ---------------------------------------------------------------- IMU
     dt_imu = 1.0 / o.imu_rate_hz
     t_imu = np.arange(0.0, o.duration_s + 0.1, dt_imu)
@@ -178,13 +181,13 @@ def simulate(
     sq = np.sqrt(o.imu_rate_hz)
     k = len(t_imu)
     bg = np.array(o.bias_gyro) + np.cumsum(
-        rng.normal(0, imu.gyro_random_walk * np.sqrt(dt_imu), (k, 3)), axis=0
+        rng_bg.normal(0, imu.gyro_random_walk * np.sqrt(dt_imu), (k, 3)), axis=0
     )
     ba = np.array(o.bias_accel) + np.cumsum(
-        rng.normal(0, imu.accel_random_walk * np.sqrt(dt_imu), (k, 3)), axis=0
+        rng_ba.normal(0, imu.accel_random_walk * np.sqrt(dt_imu), (k, 3)), axis=0
     )
-    gyro = w_body + bg + rng.normal(0, imu.gyro_noise_density * sq, (k, 3))
-    accel = f_body + ba + rng.normal(0, imu.accel_noise_density * sq, (k, 3))
+    gyro = w_body + bg + rng_g.normal(0, imu.gyro_noise_density * sq, (k, 3))
+    accel = f_body + ba + rng_a.normal(0, imu.accel_noise_density * sq, (k, 3))
     imu_ns = np.round(t_imu * 1e9).astype(np.int64)
     # ---------------------------------------------------------------- frames
     t_cam = np.arange(0.05, o.duration_s, 1.0 / o.camera_rate_hz)

@@ -36,9 +36,9 @@ class MonoInitOptions:
     """Two-view initialisation (ORB-SLAM-like model selection between E and H)."""
 
     min_tracks: int = 60  # shared tracks needed between reference and current keyframe
-    min_triangulated: int = 40  # points with good parallax needed to accept
+    min_triangulated: int = 50  # points with good parallax needed to accept
     min_parallax_deg: float = 1.0  # per-point parallax for a point to count
-    min_median_parallax_deg: float = 1.5  # median parallax of the triangulated set
+    min_median_parallax_deg: float = 3.0  # median parallax of the triangulated set
     ransac_threshold_px: float = 1.5  # epipolar / homography RANSAC threshold
     homography_ratio: float = 0.45  # choose H when S_H / (S_H + S_F) exceeds this
     max_reference_age_s: float = 2.0  # replace the reference keyframe when older than this
@@ -58,6 +58,8 @@ class ViInitOptions:
     min_interval_s: float = 0.5  # keyframes are subsampled to this spacing for the MAP problem
     visual_position_sigma_rel: float = 0.002  # pose noise as a fraction of median scene depth
     visual_rotation_sigma_deg: float = 0.1  # pose rotation noise of the visual map
+    max_span_s: float = 4.0  # the inertial-only problem uses the newest keyframes of this span
+    max_cost_per_residual: float = 0.5  # reject (retry at the next keyframe) above this
     min_scale: float = 1e-3  # a smaller/larger scale estimate is rejected
     max_scale: float = 1e3
     full_ba_iterations: int = 30  # joint visual-inertial refinement after each run

@@ -36,6 +36,7 @@ class ViInitResult:
     bias_gyro: np.ndarray
     bias_accel: np.ndarray
     cost: float
+    cost_per_residual: float  # whitened; about 1 or below when IMU and poses agree
 
 
 def _rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -222,4 +223,5 @@ def inertial_only_map(
         x = sol.x
     assert sol is not None
     R_wv, s, v, ba, bg = unpack(x)
-    return ViInitResult(s, R_wv, v, bg, ba, float(2.0 * sol.cost)), ""
+    cost = float(2.0 * sol.cost)
+    return ViInitResult(s, R_wv, v, bg, ba, cost, cost / (9 * m)), ""
