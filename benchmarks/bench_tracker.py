@@ -319,6 +319,7 @@ def plot_fig8(rows: list[dict], path: Path, lk_name: str, panels: list[tuple[flo
         ax.bar(x + 0.2, sel["imu"]["per_pair_inliers"][:n], 0.4, label="IMU-assisted: points")
         ax.set_ylabel("RANSAC inliers")
         ax.set_xlabel("frame pair")
+        ax.set_xticks(x)
         ax.set_title(f"EuRoC V1_01 excerpt, +{rate:.0f} deg/s rotation, skip {skip}")
         ax2 = ax.twinx()
         ax2.plot(x, sel["plain"]["per_pair_ms"][:n], "-o", color="purple", label="LK: time")
@@ -450,16 +451,48 @@ def write_report(
                     f" | {d:+.1f} | {p['lk_ms_median']:.2f} | {q['lk_ms_median']:.2f} | {ok} |"
                 )
         lines.append("")
+    summary = []
+    for lk_name in lk_variants:
+        moving = [
+            (
+                r_imu["inliers_mean"] - r_plain["inliers_mean"],
+                r_plain["rate_deg_s"],
+                r_plain["skip"],
+            )
+            for r_plain in pairs
+            for r_imu in pairs
+            if r_plain["lk"] == r_imu["lk"] == lk_name
+            and r_plain["method"] == "plain"
+            and r_imu["method"] == "imu"
+            and r_plain["rate_deg_s"] == r_imu["rate_deg_s"] > 0
+            and r_plain["skip"] == r_imu["skip"]
+        ]
+        more = sum(d >= 0.5 for d, _, _ in moving)
+        worst = min(moving)
+        summary.append(
+            f"- {lk_name}: IMU-assisted keeps more inliers in {more} of {len(moving)} rotated "
+            f"rows; smallest difference {worst[0]:+.1f} (at {worst[1]:.0f} deg/s, skip "
+            f"{worst[2]})."
+        )
     lines += [
         f"![Fig. 8 analogue]({plot_name})",
         "",
+        "Summary (target: IMU-assisted LK keeps more inliers than plain LK at every skip):",
+        "",
+        *summary,
+        "",
         "Reading the numbers: on the recorded excerpt there is no image motion, so the "
-        "prediction has nothing to add (rows with 0 deg/s); the learnt bias keeps it from "
-        "hurting. With rotation the prediction keeps tracks that plain LK loses at every skip, "
-        "and the fewer-iterations rows (≤ 3 LK iterations per level, a convergence proxy) "
-        "show that plain LK needs the iterations the prediction saves. LK time per point "
-        "is dominated by the per-level window set-up, not by iterations, so the time gain is "
-        "small where both converge.",
+        "prediction has nothing to add (rows with 0 deg/s: equal counts); the gyro bias the "
+        "front end learns at standstill keeps the prediction from hurting (the raw ADIS16448 "
+        "bias alone would predict ~1.8 px of motion per frame). Under rotation the prediction "
+        "keeps the tracks that plain LK loses, at every skip, for the cheap default LK and "
+        "for OpenCV's default 21 px window over 4 levels alike (the one tie: the large window "
+        "at 30 deg/s, skip 1, where both keep the same tracks); it also costs less CPU, "
+        "since LK converges from the prediction in a "
+        "few iterations while plain LK iterates at every level. The ≤ 3 iterations rows are "
+        "the iteration proxy: with the prediction, 3 iterations per level lose nothing; "
+        "without it, most tracks need more. Timings come from a shared 2-core machine and "
+        "vary by up to 2× between runs; counts are deterministic.",
         "",
     ]
     path.write_text("\n".join(lines))
@@ -495,7 +528,7 @@ def main(argv: list[str] | None = None) -> int:
     pairs = pair_study(seq, frames, bias, lk_variants, RATES_DEG_S, SKIPS, args.stride)
     args.out.mkdir(parents=True, exist_ok=True)
     plot_name = "tracker_fig8.png"
-    plot_fig8(pairs, args.out / plot_name, "defaults", [(0.0, 1), (60.0, 2)])
+    plot_fig8(pairs, args.out / plot_name, "defaults", [(0.0, 1), (30.0, 1), (60.0, 2)])
     write_report(
         args.out / "tracker.md",
         timing,
