@@ -332,8 +332,11 @@ class MotionPredictor:
 
     def predict_motion(self, t_prev_ns: int, t_cur_ns: int) -> MotionPrediction:
         """Camera motion from ``t_prev`` to ``t_cur`` (IMU samples must be buffered)."""
-        if self._base is None:
-            R_imu0_imu1 = gyro_rotation(self.buffer, t_prev_ns, t_cur_ns, self.static_bias.bias)
+        if self._base is None or self._base.timestamp_ns > t_prev_ns:
+            # Before VI init; or the edge's state is newer than the previous frame (it cannot be
+            # propagated backwards): rotation from the gyro, with the best bias known.
+            bias = self.static_bias.bias if self._base is None else self._base.bias_gyro
+            R_imu0_imu1 = gyro_rotation(self.buffer, t_prev_ns, t_cur_ns, bias)
             R_cam0_cam1 = self.R_imu_cam.T @ R_imu0_imu1 @ self.R_imu_cam
             return MotionPrediction(R_cam0_cam1.T, None, "gyro")
         prev = self.state_at(t_prev_ns)

@@ -235,3 +235,18 @@ def test_bad_input_is_rejected() -> None:
     predictor.add_imu(np.array([100, 200]), np.zeros((2, 3)), np.zeros((2, 3)))
     with pytest.raises(ImuPredictionError, match="older than the IMU buffer"):
         predictor.set_inertial_state(InertialState(50, np.eye(3), np.zeros(3), np.zeros(3)))
+
+
+def test_state_newer_than_previous_frame_falls_back_to_gyro_with_its_bias() -> None:
+    predictor = MotionPredictor(EUROC_CAM, EUROC_IMU)
+    w_imu = np.array([0.1, 0.2, 0.3])
+    t0, t1 = 1_000_000_000, 1_050_000_000
+    buf = constant_rate_buffer(w_imu, t0, t1)
+    predictor.add_imu(buf.timestamps_ns, buf.gyro, buf.accel)
+    bias = np.array([0.1, 0.2, 0.3])  # the whole reading is bias: no rotation
+    predictor.set_inertial_state(
+        InertialState(t0 + 10_000_000, np.eye(3), np.zeros(3), np.zeros(3), bias_gyro=bias)
+    )
+    motion = predictor.predict_motion(t0, t1)
+    assert motion.source == "gyro"
+    np.testing.assert_allclose(motion.R_cur_prev, np.eye(3), atol=1e-12)
