@@ -408,6 +408,18 @@ class VioManager:
         if due:
             self.run_vi_init(vmap)
 
+    def _reanchor(self, vmap: VioMap, newest: Keyframe, T_before: np.ndarray) -> None:
+        """Undo the gauge motion (yaw and translation, unobservable) a full BA gave the newest
+        keyframe, so that corrections land behind the robot and its pose stays continuous."""
+        D = T_before[:3, :3] @ newest.T_world_body[:3, :3].T
+        yaw = np.arctan2(D[1, 0] - D[0, 1], D[0, 0] + D[1, 1])
+        c, s = np.cos(yaw), np.sin(yaw)
+        R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+        t = T_before[:3, 3] - R @ newest.T_world_body[:3, 3]
+        vmap.transform(make_T(R, t), 1.0)
+        if self._last_T is not None:
+            self._last_T = make_T(R, t) @ self._last_T
+
     def _median_depth(self, vmap: VioMap) -> float:
         """Median depth [map units] of the points seen by the newest keyframe."""
         kf = vmap.last_keyframe()
@@ -439,11 +451,13 @@ class VioManager:
             # problem with fixed, noisy visual poses would shift it by its own bias).
             vmap.vi_init_runs += 1
             ids = [k.id for k in kfs]
+            T_newest_before = kfs[-1].T_world_body.copy()
             stats = bundle_adjust(
                 vmap, ids, self.camera, self.imu_params, self.options.local_ba,
                 self.options.mapping, gauge_ids=(ids[0],), max_iterations=vopt.full_ba_iterations,
                 bias_prior_sigmas=(vopt.accel_bias_prior_sigma, vopt.gyro_bias_prior_sigma),
             )  # fmt: skip
+            self._reanchor(vmap, kfs[-1], T_newest_before)
             self.stats.vi_init_s.append(time.perf_counter() - t0)
             logger.info("%s: VI refinement #%d of map %d: %s", self.name, vmap.vi_init_runs,
                         vmap.map_id, stats)  # fmt: skip
