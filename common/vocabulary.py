@@ -55,14 +55,14 @@ class VocabularyTrainingConfig:
     depth: number of levels below the root (DBoW2's L), default 5.
     max_iterations: k-majority iterations per node, default 10.
     seed: seed of the random generator (k-means++ seeding), default 0.
-    bit_context_parents: parents per bit of the codec's descriptor-bit context model, 6.
+    bit_context_parents: parents per bit of the codec's descriptor-bit context model, 10.
     """
 
     k: int = 10
     depth: int = 5
     max_iterations: int = 10
     seed: int = 0
-    bit_context_parents: int = 6
+    bit_context_parents: int = 10
 
 
 @dataclass(frozen=True)
@@ -131,7 +131,7 @@ def _kmajority(
 
 def fit_bit_context_model(
     descriptors: np.ndarray,
-    n_parents: int = 6,
+    n_parents: int = 10,
     n_candidates: int = 24,
     max_samples: int = 20000,
     seed: int = 0,
@@ -245,7 +245,8 @@ class Vocabulary:
             bit_parents = np.full((256, 0), -1, dtype=np.int16)
             bit_p1 = np.full((256, 1), 0.5)
         self.bit_parents = np.asarray(bit_parents, dtype=np.int16)
-        self.bit_p1 = np.asarray(bit_p1, dtype=np.float64)
+        # stored as float32 in files: round here too so trained == saved-and-loaded
+        self.bit_p1 = np.asarray(bit_p1, dtype=np.float32).astype(np.float64)
         n_par = self.bit_parents.shape[1] if self.bit_parents.ndim == 2 else -1
         if self.bit_parents.shape[0] != 256 or self.bit_p1.shape != (256, 1 << max(n_par, 0)):
             raise VocabularyError("bit_parents must be (256, P) and bit_p1 (256, 2**P)")
@@ -456,7 +457,7 @@ class Vocabulary:
                 residual_ones=self.residual_ones,
                 residual_total=np.int64(self.residual_total),
                 bit_parents=self.bit_parents,
-                bit_p1=self.bit_p1,
+                bit_p1=self.bit_p1.astype(np.float32),
                 meta=np.array(json.dumps(self.meta, sort_keys=True)),
             )
 

@@ -2,8 +2,14 @@
 (predicted keypoints, survival), IMU. See ``frames.py`` for the payload layout and state."""
 
 from common.codec.errors import CodecError, CodecUsageError
-from common.codec.frames import FeatureCodecState, FeatureDecoder, FeatureEncoder
-from common.codec.imu import ImuCodecConfig, ImuDecoder, ImuEncoder
+from common.codec.frames import (
+    FeatureCodecState,
+    FeatureDecoder,
+    FeatureEncoder,
+    decode_standalone_keyframe,
+    encode_standalone_keyframe,
+)
+from common.codec.imu import ImuCodecConfig, ImuDecoder, ImuEncoder, dequantise_imu
 from common.codec.types import (
     CodecConfig,
     ImuChunk,
@@ -27,5 +33,8 @@ __all__ = [
     "KeyframeFeatures",
     "NonKeyframeFeatures",
     "angle_to_bin",
+    "decode_standalone_keyframe",
+    "dequantise_imu",
+    "encode_standalone_keyframe",
     "quantise_uv",
 ]

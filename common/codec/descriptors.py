@@ -15,8 +15,8 @@ separate tables.
 
 Mode choice. A feature whose track already carries a descriptor may be coded inter; the
 encoder picks the cheaper of intra (word + residual) and inter (residual only) under the
-current tables, and sends the choice with an adaptive binary flag. Intra words use a fitted
-categorical from the vocabulary's training word counts.
+current tables, and sends the choice with an adaptive binary flag. Intra words use an
+adaptive categorical that starts from the vocabulary's training word frequencies.
 """
 
 from __future__ import annotations
@@ -34,27 +34,37 @@ INTRA, INTER = 0, 1
 
 @dataclass
 class DescriptorModelState:
-    """Adaptive counts ``ones/total (2, 256, 2**(P+1))`` (mode, bit, context) and the mode
-    flag counts ``[inter, total]``."""
+    """Adaptive counts ``ones/total (2, 256, 2**(P+1)) float32`` (mode, bit, context), the
+    mode flag counts ``[inter, total]`` and the word counts ``(S,)`` (the vocabulary's
+    training frequencies scaled to ``word_prior_weight`` pseudo-samples, plus every intra
+    word coded). float32 keeps the per-robot state at 8 MB for P=10; both ends do the same
+    float32 operations, so their probabilities are identical."""
 
     ones: np.ndarray
     total: np.ndarray
     mode_counts: np.ndarray
+    word_counts: np.ndarray
 
     @classmethod
-    def initial(cls, vocab: Vocabulary, prior_weight: float) -> DescriptorModelState:
+    def initial(
+        cls, vocab: Vocabulary, prior_weight: float, word_prior_weight: float = 5000.0
+    ) -> DescriptorModelState:
         p1 = vocab.bit_p1  # P(b_j = 1 | parents)
         nctx = 2 * p1.shape[1]
-        ones = np.zeros((2, 256, nctx))
-        total = np.full((2, 256, nctx), float(prior_weight))
+        ones = np.zeros((2, 256, nctx), dtype=np.float32)
+        total = np.full((2, 256, nctx), prior_weight, dtype=np.float32)
         # intra: P(r=1 | ref=0) = P(b=1), P(r=1 | ref=1) = P(b=0)
         ones[INTRA, :, 0::2] = prior_weight * p1
         ones[INTRA, :, 1::2] = prior_weight * (1.0 - p1)
         ones[INTER] = prior_weight * 0.15  # residuals against a matched descriptor are sparse
-        return cls(ones, total, np.array([1.0, 2.0]))
+        wc = vocab.word_count.astype(np.float64) + 0.5
+        word_counts = wc * (word_prior_weight / wc.sum())
+        return cls(ones, total, np.array([1.0, 2.0]), word_counts)
 
     def copy(self) -> DescriptorModelState:
-        return DescriptorModelState(self.ones.copy(), self.total.copy(), self.mode_counts.copy())
+        return DescriptorModelState(
+            self.ones.copy(), self.total.copy(), self.mode_counts.copy(), self.word_counts.copy()
+        )
 
 
 class DescriptorCoder:
@@ -68,9 +78,6 @@ class DescriptorCoder:
         self.parents = np.where(par < 0, 0, par)
         self.parent_valid = (par >= 0).astype(np.int64)
         self.weights = (1 << np.arange(self.n_par - 1, -1, -1)).astype(np.int64)
-        wc = vocab.word_count.astype(np.float64) + 0.5
-        self.word_p = wc / wc.sum()
-        self.word_bits = -np.log2(self.word_p)
 
     # ------------------------------------------------------------------ helpers
     def _contexts(self, bits: np.ndarray) -> np.ndarray:
@@ -82,15 +89,15 @@ class DescriptorCoder:
 
     @staticmethod
     def _p1(state: DescriptorModelState, mode: np.ndarray, j, idx: np.ndarray) -> np.ndarray:
-        p = state.ones[mode, j, idx] / state.total[mode, j, idx]
+        p = (state.ones[mode, j, idx] / state.total[mode, j, idx]).astype(np.float64)
         return np.clip(p, P_MIN, 1.0 - P_MIN)
 
     def _update(self, state: DescriptorModelState, mode, idx, resid) -> None:
         n = mode.shape[0]
         jj = np.broadcast_to(np.arange(256), (n, 256))
         mm = np.broadcast_to(mode[:, None], (n, 256))
-        np.add.at(state.ones, (mm, jj, idx), resid)
-        np.add.at(state.total, (mm, jj, idx), 1.0)
+        np.add.at(state.ones, (mm, jj, idx), resid.astype(np.float32))
+        np.add.at(state.total, (mm, jj, idx), np.float32(1.0))
 
     def _mode_p(self, state: DescriptorModelState) -> float:
         return float(np.clip(state.mode_counts[0] / state.mode_counts[1], P_MIN, 1 - P_MIN))
@@ -124,13 +131,15 @@ class DescriptorCoder:
             p_a = self._p1(state, np.zeros((m, 1), np.int64), jj, idx_intra)
             p_e = self._p1(state, np.ones((m, 1), np.int64), jj, idx_inter)
             pm = self._mode_p(state)
+            word_p = state.word_counts / state.word_counts.sum()
             cost_a = -np.log2(np.where(r_intra == 1, p_a, 1 - p_a)).sum(1)
-            cost_a += self.word_bits[words[sl]] - np.log2(1 - pm)
+            cost_a += -np.log2(word_p[words[sl]]) - np.log2(1 - pm)
             cost_e = -np.log2(np.where(r_inter == 1, p_e, 1 - p_e)).sum(1) - np.log2(pm)
             mode = np.where(hp & (cost_e < cost_a), INTER, INTRA).astype(np.int64)
             w.put_bernoulli(mode[hp], np.full(int(hp.sum()), pm), "mode")
             intra = mode == INTRA
-            w.put_categorical(words[sl][intra], self.word_p, "word")
+            w.put_categorical(words[sl][intra], word_p, "word")
+            state.word_counts += np.bincount(words[sl][intra], minlength=word_p.size)
             resid = np.where(intra[:, None], r_intra, r_inter)
             idx = np.where(intra[:, None], idx_intra, idx_inter)
             p = np.where(intra[:, None], p_a, p_e)
@@ -159,9 +168,11 @@ class DescriptorCoder:
             mode = np.zeros(m, dtype=np.int64)
             mode[hp] = r.get_bernoulli(np.full(int(hp.sum()), pm))
             intra = mode == INTRA
-            words = r.get_categorical(self.word_p, int(intra.sum()))
+            word_p = state.word_counts / state.word_counts.sum()
+            words = r.get_categorical(word_p, int(intra.sum()))
             if words.size and (words.min() < 0 or words.max() >= self.vocab.n_words):
                 raise CodecError("decoded word index out of range")
+            state.word_counts += np.bincount(words, minlength=word_p.size)
             ref = pbits[sl].copy()
             ref[intra] = np.unpackbits(self.vocab.words[words], axis=1)
             b = np.zeros((m, 256), dtype=np.int64)

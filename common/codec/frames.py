@@ -70,14 +70,16 @@ class FeatureCodecState:
             link_counts=np.array([1.0, 2.0, 1.0, 2.0]),
         )
 
-    def copy(self) -> FeatureCodecState:
+    def copy(self, descriptors: bool = True) -> FeatureCodecState:
+        """Deep copy; ``descriptors=False`` shares the (large) descriptor tables, for
+        non-keyframes, which never touch them."""
         return FeatureCodecState(
             self.seq,
             self.tracks_q.copy(),
             self.tracks_level.copy(),
             self.tracks_desc.copy(),
             self.tracks_has_desc.copy(),
-            self.descriptors.copy(),
+            self.descriptors.copy() if descriptors else self.descriptors,
             self.survival_counts.copy(),
             self.link_counts.copy(),
         )
@@ -213,7 +215,7 @@ class FeatureEncoder(_Base):
         if old.size and (old[:, 0].min() < -w_img or old[:, 0].max() >= 2 * w_img
                          or old[:, 1].min() < -h_img or old[:, 1].max() >= 2 * h_img):  # fmt: skip
             raise CodecUsageError("tracked keypoints far outside the image")
-        st = self.state.copy()
+        st = self.state.copy(descriptors=False)
         w = BitWriter()
         kpc.encode_non_keyframe(
             w, nkf.survived, kp, st.tracks_q, st.tracks_level, st.survival_counts, cfg
@@ -252,11 +254,13 @@ class FeatureDecoder(_Base):
             raise CodecError(f"not a feature payload (magic {magic:#x}, version {vk >> 4})")
         if fp != self._vocab_fp:
             raise CodecError("payload was coded with a different vocabulary")
-        st = self.state.copy()
-        if seq != st.seq & 0xFFFF:
-            raise CodecError(f"feature payload {seq} out of order (expected {st.seq & 0xFFFF})")
+        if seq != self.state.seq & 0xFFFF:
+            raise CodecError(
+                f"feature payload {seq} out of order (expected {self.state.seq & 0xFFFF})"
+            )
         r = BitReader(framed[HEADER.size :])
         kind = vk & 0xF
+        st = self.state.copy(descriptors=kind == KIND_KEYFRAME)
         if kind == KIND_KEYFRAME:
             out = self._decode_keyframe(r, st)
         elif kind == KIND_NON_KEYFRAME:
@@ -306,3 +310,23 @@ class FeatureDecoder(_Base):
         kp = np.concatenate([q / cfg.subpixel, levels[:, None].astype(np.float64)], axis=1)
         self._apply_non_keyframe(st, survived, q, levels)
         return NonKeyframeFeatures(survived, kp)
+
+
+def encode_standalone_keyframe(
+    vocabulary: Vocabulary, kf: KeyframeFeatures, config: CodecConfig | None = None
+) -> bytes:
+    """A self-contained keyframe payload (fresh state, links dropped), e.g. edge -> cloud,
+    where the receiver has not seen the robot's stream. Costs more than the stream's
+    keyframes (the adaptive tables start from the vocabulary's prior)."""
+    plain = KeyframeFeatures(kf.keypoints, kf.descriptors, np.full(len(kf), -1, np.int32))
+    return FeatureEncoder(vocabulary, config).encode_keyframe(plain)
+
+
+def decode_standalone_keyframe(
+    vocabulary: Vocabulary, payload: bytes, config: CodecConfig | None = None
+) -> KeyframeFeatures:
+    """Inverse of :func:`encode_standalone_keyframe`; raises CodecError on bad input."""
+    out = FeatureDecoder(vocabulary, config).decode(payload)
+    if not isinstance(out, KeyframeFeatures):
+        raise CodecError("standalone payload is not a keyframe")
+    return out

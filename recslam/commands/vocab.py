@@ -115,7 +115,9 @@ def _train(args: argparse.Namespace) -> int:
     descs, what = collect_descriptors(args.images, args.stride)
     n = sum(d.shape[0] for d in descs)
     print(f"training on {n} descriptors from {len(descs)} images: {what}")
-    cfg = VocabularyTrainingConfig(k=args.k, depth=args.depth, seed=args.seed)
+    cfg = VocabularyTrainingConfig(
+        k=args.k, depth=args.depth, seed=args.seed, bit_context_parents=args.context_parents
+    )
     voc = Vocabulary.train(descs, cfg, trained_on=f"ORB(1000, 1.2, 8) on {what}")
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -141,6 +143,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     t.add_argument("--k", type=int, default=10, help="branching factor (default 10)")
     t.add_argument("--depth", type=int, default=5, help="tree depth L (default 5)")
     t.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    t.add_argument(
+        "--context-parents",
+        type=int,
+        default=10,
+        help="parents per descriptor bit in the codec's context model (default 10)",
+    )
     t.add_argument("--stride", type=int, default=1, help="use every n-th image of folders")
     t.add_argument("--out", required=True, help="output .npz file")
     t.set_defaults(func=_train)

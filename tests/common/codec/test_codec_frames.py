@@ -234,3 +234,14 @@ def test_garbage_body_with_valid_header_never_crashes(vocab, stream, body, kind)
     except CodecError:
         return
     assert isinstance(out, (KeyframeFeatures, NonKeyframeFeatures))
+
+
+def test_standalone_keyframe(vocab, orb_kf):
+    from common.codec import decode_standalone_keyframe, encode_standalone_keyframe
+
+    linked = KeyframeFeatures(orb_kf.keypoints, orb_kf.descriptors, np.zeros(len(orb_kf)))
+    payload = encode_standalone_keyframe(vocab, linked)
+    out = decode_standalone_keyframe(vocab, payload)
+    assert np.array_equal(out.descriptors, orb_kf.descriptors)
+    assert np.all(out.links == -1)
+    assert decode_standalone_keyframe(vocab, payload).equals(out)  # no hidden state
