@@ -1,0 +1,370 @@
+"""The robot service's lifecycle: connect to the edge, play a sequence, flush, shut down.
+
+:class:`RobotService` plays an EuRoC-layout sequence (real download or synthetic robot
+folder) frame by frame: the image is read, tracked and coded in one worker thread
+(``run_in_executor``: OpenCV releases the GIL, so heartbeats and acks keep flowing on the
+event loop), the :class:`~common.protocol.messages.RobotFrame` goes to the protocol
+:class:`~common.transport.Client`, and the edge's ``InertialFeedback`` is applied by
+:class:`~services.robot.app.RobotApp`. ``rate=realtime`` paces frames at their camera
+timestamps, ``rate=max`` plays as fast as the front end runs. At the end a
+``RobotSequenceEnd`` is sent and the service waits until the edge's application has taken
+every message (``Client.flush``).
+
+Backlog while the edge is away: the client keeps reconnecting with backoff and queues in its
+outbox, which is sized for ``backlog_s`` seconds of frames at the camera rate (default 30
+minutes: ``max_outbox_messages = ceil(backlog_s * rate)``) and at most
+``max_backlog_bytes`` bytes (default 256 MiB, ~1.7 h at the measured ~40 KB/s of the EuRoC
+excerpt). Frames keep being tracked and queued in real time while the edge is away; on
+reconnect the protocol replays the backlog in order, exactly once. Beyond the bound the send
+waits (back-pressure, logged once per outage): frames are delayed, never dropped. The
+backlog lives in memory, so it does not survive a restart of the robot process.
+
+Shared secret (:func:`load_secret`): ``--secret-file`` (contents, trailing newline stripped),
+else the environment variable ``RECSLAM_SECRET``, else a development default with a logged
+warning. At least 16 bytes.
+
+Signals: SIGINT/SIGTERM stop the playback after the current frame; the sequence end is still
+sent and flushed (bounded by ``flush_timeout_s`` if set); a second signal cancels the flush.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import enum
+import logging
+import math
+import os
+import signal
+import time
+from collections.abc import Iterator, Mapping
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from common.data.euroc import EurocSequence, Frame
+from common.errors import RecslamError
+from common.protocol import SessionConfig
+from common.protocol.auth import MIN_SECRET_SIZE
+from common.protocol.messages import RobotFrame
+from common.transport import Client, TransportConfig
+from common.vocabulary import DEFAULT_VOCABULARY_PATH, Vocabulary
+from services.robot.app import RobotApp
+from services.robot.config import FrontEndConfig
+
+logger = logging.getLogger(__name__)
+
+SECRET_ENV = "RECSLAM_SECRET"
+DEV_SECRET = b"recslam-development-secret-do-not-deploy"
+
+
+class RobotConfigError(RecslamError):
+    """The robot service was configured wrongly (dataset, address, secret, options)."""
+
+
+class Rate(enum.Enum):
+    """Playback pace."""
+
+    REALTIME = "realtime"
+    """Frames are handed to the front end at their camera timestamps."""
+    MAX = "max"
+    """As fast as the front end runs."""
+
+
+@dataclass(frozen=True)
+class RobotServiceConfig:
+    """Everything the robot service needs (built once, handed down).
+
+    Attributes:
+        dataset: EuRoC-layout sequence folder (``mav0`` inside or the folder itself).
+        edge_host, edge_port: the edge's address.
+        agent_id: this robot's id on the link (unique per edge).
+        secret: shared secret (>= 16 bytes); see :func:`load_secret`.
+        rate: playback pace (realtime default).
+        start_frame: first frame played (0).
+        max_frames: frames played at most (None = to the end).
+        backlog_s: outage the outbox absorbs at the camera rate before back-pressure (1800 s).
+        max_backlog_bytes: byte bound of the outbox (256 MiB).
+        flush_timeout_s: longest wait for the edge to take the rest at the end (None = wait).
+        heartbeat_interval_s, idle_timeout_s: protocol liveness (2 s, 10 s).
+        front_end: front-end options.
+        vocabulary: ORB vocabulary file (the repository's default).
+        record: keep what the pipeline used per frame in memory (tests).
+    """
+
+    dataset: Path
+    edge_host: str
+    edge_port: int
+    agent_id: str
+    secret: bytes = field(repr=False)
+    rate: Rate = Rate.REALTIME
+    start_frame: int = 0
+    max_frames: int | None = None
+    backlog_s: float = 1800.0
+    max_backlog_bytes: int = 256 * 1024 * 1024
+    flush_timeout_s: float | None = None
+    heartbeat_interval_s: float = 2.0
+    idle_timeout_s: float = 10.0
+    front_end: FrontEndConfig = field(default_factory=FrontEndConfig)
+    vocabulary: Path = DEFAULT_VOCABULARY_PATH
+    record: bool = False
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.rate, Rate):
+            raise RobotConfigError(f"rate must be one of {[r.value for r in Rate]}")
+        if not self.edge_host:
+            raise RobotConfigError("edge host is empty")
+        if not 0 < int(self.edge_port) < 65536:
+            raise RobotConfigError(f"edge port {self.edge_port} outside 1..65535")
+        if not self.agent_id or len(self.agent_id) > 64:
+            raise RobotConfigError("agent id must be 1..64 characters")
+        if not isinstance(self.secret, bytes) or len(self.secret) < MIN_SECRET_SIZE:
+            raise RobotConfigError(f"shared secret must be at least {MIN_SECRET_SIZE} bytes")
+        if self.start_frame < 0 or (self.max_frames is not None and self.max_frames < 0):
+            raise RobotConfigError("start_frame and max_frames must be >= 0")
+        if self.backlog_s <= 0 or self.max_backlog_bytes <= 0:
+            raise RobotConfigError("backlog_s and max_backlog_bytes must be positive")
+        if self.flush_timeout_s is not None and self.flush_timeout_s <= 0:
+            raise RobotConfigError("flush_timeout_s must be positive (or None to wait)")
+        if self.idle_timeout_s <= self.heartbeat_interval_s:
+            raise RobotConfigError("idle_timeout_s must exceed heartbeat_interval_s")
+
+
+def parse_address(text: str) -> tuple[str, int]:
+    """``HOST:PORT`` (``[v6]:PORT`` for IPv6) -> (host, port); RobotConfigError if malformed."""
+    host, sep, port = text.rpartition(":")
+    host = host[1:-1] if host.startswith("[") and host.endswith("]") else host
+    if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
+        raise RobotConfigError(f"edge address {text!r} is not HOST:PORT (port 1..65535)")
+    return host, int(port)
+
+
+def load_secret(secret_file: str | Path | None, environ: Mapping[str, str] = os.environ) -> bytes:
+    """The shared secret: file contents (trailing newline stripped), else ``$RECSLAM_SECRET``,
+    else the development default (logged as a warning)."""
+    if secret_file is not None:
+        path = Path(secret_file)
+        try:
+            secret = path.read_bytes().rstrip(b"\r\n")
+        except OSError as exc:
+            raise RobotConfigError(f"{path}: cannot read the secret file ({exc})") from None
+        if len(secret) < MIN_SECRET_SIZE:
+            raise RobotConfigError(
+                f"{path}: secret is {len(secret)} bytes, need at least {MIN_SECRET_SIZE}"
+            )
+        return secret
+    env = environ.get(SECRET_ENV)
+    if env is not None:
+        secret = env.encode()
+        if len(secret) < MIN_SECRET_SIZE:
+            raise RobotConfigError(
+                f"${SECRET_ENV} is {len(secret)} bytes, need at least {MIN_SECRET_SIZE}"
+            )
+        return secret
+    logger.warning(
+        "no --secret-file and no $%s: using the development secret (never in deployment)",
+        SECRET_ENV,
+    )
+    return DEV_SECRET
+
+
+def open_sequence(path: Path) -> EurocSequence:
+    """Open the dataset, turning a missing folder into a clear RobotConfigError."""
+    if not Path(path).exists():
+        raise RobotConfigError(f"{path}: dataset folder does not exist")
+    return EurocSequence(path)  # EurocError (a RecslamError) names the malformed file
+
+
+@dataclass(frozen=True)
+class RobotRunResult:
+    """Outcome of one run: frames and keyframes sent, whether a signal stopped it, whether
+    the edge took everything, wall time [s], link counters (``Client.counters()``)."""
+
+    frames: int
+    keyframes: int
+    interrupted: bool
+    flushed: bool
+    wall_s: float
+    feedback_applied: int
+    counters: dict[str, Any]
+
+
+class RobotService:
+    """One robot: ``await run()`` plays the sequence; ``request_stop()`` ends it early."""
+
+    def __init__(self, config: RobotServiceConfig, transport: TransportConfig | None = None):
+        self.config = config
+        self.transport = transport
+        self.sequence = open_sequence(config.dataset)
+        stop = len(self.sequence)
+        if config.max_frames is not None:
+            stop = min(stop, config.start_frame + config.max_frames)
+        if config.start_frame >= stop:
+            raise RobotConfigError(
+                f"{config.dataset}: start frame {config.start_frame} leaves no frames "
+                f"({len(self.sequence)} in the sequence)"
+            )
+        self._stop_index = stop
+        self.app = RobotApp(
+            config.front_end,
+            self.sequence.cam0,
+            self.sequence.imu,
+            Vocabulary.load(config.vocabulary),
+            record=config.record,
+        )
+        self.client: Client | None = None
+        self._stop = asyncio.Event()
+        self._abort = asyncio.Event()
+        self._signals = 0
+
+    def session_config(self) -> SessionConfig:
+        cfg = self.config
+        summary = self.sequence.summary()
+        rate = float(summary["camera_rate_hz"])
+        rate = 20.0 if not math.isfinite(rate) or rate <= 0 else rate
+        return SessionConfig(
+            role="robot",
+            agent_id=cfg.agent_id,
+            secret=cfg.secret,
+            heartbeat_interval=cfg.heartbeat_interval_s,
+            idle_timeout=cfg.idle_timeout_s,
+            max_outbox_messages=math.ceil(cfg.backlog_s * rate) + 16,
+            max_outbox_bytes=cfg.max_backlog_bytes,
+        )
+
+    def request_stop(self) -> None:
+        """Stop after the current frame (first call); cancel the final flush (second)."""
+        self._signals += 1
+        if self._stop.is_set():
+            self._abort.set()
+        self._stop.set()
+
+    async def run(self) -> RobotRunResult:
+        cfg = self.config
+        t_start = time.monotonic()
+        self.client = Client(
+            self.session_config(),
+            self.app.on_message,
+            cfg.edge_host,
+            cfg.edge_port,
+            transport=self.transport,
+            server_name="edge",
+        )
+        await self.client.start()
+        logger.info(
+            "robot %s: playing %s frames %d..%d to %s:%d (%s)",
+            cfg.agent_id, self.sequence.name, cfg.start_frame, self._stop_index - 1,
+            cfg.edge_host, cfg.edge_port, cfg.rate.value,
+        )  # fmt: skip
+        executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix=f"robot-{cfg.agent_id}")
+        try:
+            await self._play(executor)
+            await self.client.send(self.app.end_message())
+            flushed = await self._flush()
+            self.app.apply_pending()
+        finally:
+            executor.shutdown(wait=True)
+            counters = self.client.counters()
+            await self.client.close()
+        wall = time.monotonic() - t_start
+        logger.info(
+            "robot %s: %d frames (%d keyframes) in %.1f s, %d B sent, flushed=%s",
+            cfg.agent_id, self.app.frames, self.app.keyframes, wall,
+            counters["tx"]["bytes"], flushed,
+        )  # fmt: skip
+        return RobotRunResult(
+            frames=self.app.frames,
+            keyframes=self.app.keyframes,
+            interrupted=self._signals > 0,
+            flushed=flushed,
+            wall_s=wall,
+            feedback_applied=self.app.feedback_applied,
+            counters=counters,
+        )
+
+    async def _play(self, executor: ThreadPoolExecutor) -> None:
+        assert self.client is not None
+        loop = asyncio.get_running_loop()
+        frames = self.sequence.frames(self.config.start_frame, self._stop_index)
+        t0_wall: float | None = None
+        t0_ns = 0
+        blocked = False
+        while not self._stop.is_set():
+            frame = await loop.run_in_executor(executor, _next_frame, frames)
+            if frame is None:
+                break
+            if self.config.rate is Rate.REALTIME:
+                if t0_wall is None:
+                    t0_wall, t0_ns = loop.time(), frame.timestamp_ns
+                due = t0_wall + (frame.timestamp_ns - t0_ns) * 1e-9
+                if due > loop.time():
+                    with contextlib.suppress(TimeoutError):
+                        await asyncio.wait_for(self._stop.wait(), due - loop.time())
+                    if self._stop.is_set():
+                        break
+            assert frame.image is not None
+            msg: RobotFrame = await loop.run_in_executor(
+                executor, self.app.process, frame.timestamp_ns, frame.image, frame.imu
+            )
+            if not self.client.peer.link.has_room(len(msg.features) + len(msg.imu) + 64):
+                if not blocked:
+                    c = self.client.counters()
+                    logger.warning(
+                        "robot %s: backlog full (%d messages, %d B): waiting for the edge; "
+                        "frames are delayed, not dropped",
+                        self.config.agent_id, c["outbox_messages"], c["outbox_bytes"],
+                    )  # fmt: skip
+                blocked = True
+            else:
+                blocked = False
+            await self.client.send(msg)
+
+    async def _flush(self) -> bool:
+        assert self.client is not None
+        flush = asyncio.ensure_future(self.client.flush())
+        stop_wait = asyncio.ensure_future(self._abort.wait())
+        try:
+            done, _ = await asyncio.wait(
+                {flush, stop_wait},
+                timeout=self.config.flush_timeout_s,
+                return_when=asyncio.FIRST_COMPLETED,
+            )
+        finally:
+            for fut in (flush, stop_wait):
+                fut.cancel()
+                with contextlib.suppress(asyncio.CancelledError):
+                    await fut
+        if flush not in done:
+            c = self.client.counters()
+            logger.warning(
+                "robot %s: the edge did not take %d queued messages before shutdown",
+                self.config.agent_id, c["outbox_messages"],
+            )  # fmt: skip
+            return False
+        return True
+
+
+def _next_frame(frames: Iterator[Frame]) -> Frame | None:
+    """Read (and decode) the next frame; runs in the worker thread."""
+    return next(frames, None)
+
+
+async def serve(config: RobotServiceConfig, transport: TransportConfig | None = None) -> int:
+    """Run the service with SIGINT/SIGTERM handlers; exit code 0, or 130 if interrupted, or
+    1 if the edge did not take everything before ``flush_timeout_s``."""
+    service = RobotService(config, transport)
+    loop = asyncio.get_running_loop()
+    installed = []
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        with contextlib.suppress(NotImplementedError, RuntimeError):
+            loop.add_signal_handler(sig, service.request_stop)
+            installed.append(sig)
+    try:
+        result = await service.run()
+    finally:
+        for sig in installed:
+            loop.remove_signal_handler(sig)
+    if result.interrupted:
+        return 130
+    return 0 if result.flushed else 1
