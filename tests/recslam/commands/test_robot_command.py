@@ -1,0 +1,97 @@
+"""``recslam robot`` argument handling: clear errors for malformed configuration."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+from pathlib import Path
+
+import pytest
+
+from common.errors import RecslamError
+from recslam.commands import robot
+from services.robot.server import (
+    DEV_SECRET,
+    Rate,
+    RobotConfigError,
+    RobotService,
+    load_secret,
+    parse_address,
+)
+
+EXCERPT = Path(__file__).resolve().parents[3].parent / "shared/datasets/euroc-micro-V1_01"
+
+
+def parse(argv: list[str]) -> argparse.Namespace:
+    parser = argparse.ArgumentParser()
+    robot.register(parser.add_subparsers(dest="command", required=True))
+    return parser.parse_args(["robot", *argv])
+
+
+def test_arguments_build_the_service_config(tmp_path, monkeypatch):
+    secret = tmp_path / "secret"
+    secret.write_bytes(b"0123456789abcdef-robot\n")
+    monkeypatch.delenv("RECSLAM_SECRET", raising=False)
+    args = parse(
+        ["--dataset", str(tmp_path), "--edge", "edge.local:7000", "--agent-id", "r1",
+         "--rate", "max", "--secret-file", str(secret), "--backlog-minutes", "2"]
+    )  # fmt: skip
+    assert args.func is robot.run
+    cfg = robot.build_config(args)
+    assert (cfg.edge_host, cfg.edge_port, cfg.agent_id) == ("edge.local", 7000, "r1")
+    assert cfg.rate is Rate.MAX and cfg.backlog_s == 120.0
+    assert cfg.secret == b"0123456789abcdef-robot"  # trailing newline stripped
+    assert "0123456789abcdef" not in repr(cfg)
+
+
+@pytest.mark.parametrize("text", ["localhost", "host:", ":7000", "host:70000", "host:x1"])
+def test_malformed_edge_address_is_named(text):
+    with pytest.raises(RobotConfigError, match="HOST:PORT"):
+        parse_address(text)
+
+
+def test_ipv6_address():
+    assert parse_address("[::1]:7000") == ("::1", 7000)
+
+
+def test_secret_sources(tmp_path, caplog):
+    short = tmp_path / "short"
+    short.write_bytes(b"abc\n")
+    with pytest.raises(RobotConfigError, match=f"{short}.*at least 16"):
+        load_secret(short, {})
+    with pytest.raises(RobotConfigError, match="cannot read"):
+        load_secret(tmp_path / "missing", {})
+    with pytest.raises(RobotConfigError, match="RECSLAM_SECRET"):
+        load_secret(None, {"RECSLAM_SECRET": "short"})
+    assert load_secret(None, {"RECSLAM_SECRET": "x" * 20}) == b"x" * 20
+    with caplog.at_level(logging.WARNING):
+        assert load_secret(None, {}) == DEV_SECRET
+    assert "development secret" in caplog.text
+
+
+def test_bad_dataset_is_a_clear_error(tmp_path):
+    args = parse(["--dataset", str(tmp_path / "nope"), "--edge", "127.0.0.1:1", "--agent-id", "r"])
+    cfg = robot.build_config(args)
+    with pytest.raises(RobotConfigError, match="nope: dataset folder does not exist"):
+        RobotService(cfg)
+    (tmp_path / "empty").mkdir()
+    cfg = robot.build_config(
+        parse(["--dataset", str(tmp_path / "empty"), "--edge", "h:1", "--agent-id", "r"])
+    )
+    with pytest.raises(RecslamError, match="not an EuRoC sequence"):
+        RobotService(cfg)
+
+
+@pytest.mark.skipif(not EXCERPT.exists(), reason="EuRoC excerpt not available")
+def test_start_beyond_the_sequence_is_a_clear_error():
+    args = parse(["--dataset", str(EXCERPT), "--edge", "h:1", "--agent-id", "r", "--start", "500"])
+    with pytest.raises(RobotConfigError, match="start frame 500 leaves no frames"):
+        RobotService(robot.build_config(args))
+
+
+def test_nonpositive_backlog_is_refused(tmp_path):
+    args = parse(
+        ["--dataset", str(tmp_path), "--edge", "h:1", "--agent-id", "r", "--backlog-minutes", "0"]
+    )
+    with pytest.raises(RobotConfigError, match="--backlog-minutes"):
+        robot.build_config(args)
