@@ -175,3 +175,37 @@ class CloudConfig:
     merge: MergeConfig = field(default_factory=MergeConfig)
     optimization: GlobalOptimizationConfig = field(default_factory=GlobalOptimizationConfig)
     mbp: MbpConfig = field(default_factory=MbpConfig)
+
+
+@dataclass(frozen=True)
+class CloudServiceConfig:
+    """Options of the cloud network service (``services/cloud/server.py``).
+
+    optimize_every_keyframes: a map is optimised after this many new keyframes even without a
+        loop or merge (default 25); a verified loop or merge schedules it at once.
+    debounce_s: after a trigger, wait this long so that a burst of triggers costs one
+        optimisation (default 0.5 s).
+    mbp_every_keyframes: MBP runs on a map (when ``domain.mbp.enabled``) after this many new
+        keyframes since its last pass, right after an optimisation (default 100).
+    mbp_keep_recent: each agent's newest keyframes MBP never removes (default 5).
+    word_group_level: verification matches words within their vocabulary ancestor at this
+        tree level (None = same word only; default 3 of a k=10, L=4 vocabulary, so that a
+        few flipped descriptor bits that change the leaf do not lose the match).
+    output_every_s: trajectories (and the ATE report) are rewritten this often (default 30 s;
+        0 = only at shutdown).
+    publish_every_s: the dashboard's map view is refreshed this often (default 0.5 s).
+    bandwidth_window_s: bandwidth samples kept for the dashboard (default 120 s).
+    display_spacing_m: in the dashboard, maps that are not merged yet are shown side by side,
+        this far apart along x (default 0 m: each in its own frame, overlapping).
+    """
+
+    domain: CloudConfig = field(default_factory=CloudConfig)
+    optimize_every_keyframes: int = 25
+    debounce_s: float = 0.5
+    mbp_every_keyframes: int = 100
+    mbp_keep_recent: int = 5
+    word_group_level: int | None = 3
+    output_every_s: float = 30.0
+    publish_every_s: float = 0.5
+    bandwidth_window_s: float = 120.0
+    display_spacing_m: float = 0.0

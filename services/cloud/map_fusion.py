@@ -99,6 +99,12 @@ class MapFusion:
         self.recognizer.add(self.atlas, key)
         return events
 
+    def remove_keyframe(self, key: int) -> None:
+        """Drop a keyframe the edge culled (atlas and keyframe database)."""
+        self.atlas.remove_keyframe(key)
+        if key in self.recognizer.db:
+            self.recognizer.db.remove(key)
+
     def pose_graph(self, map_id: int) -> PoseGraphProblem:
         """Plain pose-graph problem of a map (give it to ``optimize_pose_graph`` elsewhere)."""
         return build_pose_graph(self.atlas, map_id, self.config.optimization)

@@ -7,6 +7,11 @@ pruned keyframes) and, per edge link, the last delivered message sequence. A ser
 numbers in one transaction, and acknowledges to the edge only after it returns: what was
 acknowledged is on disk. :meth:`CloudStore.load` rebuilds an :class:`Atlas` from it.
 
+Two tables serve the network service: ``edge_positions`` (the transport's inbound position
+per edge link: the edge's stream id and last delivered sequence, overwritten when the edge
+starts a new stream, see :meth:`CloudStore.positions`) and ``agent_names`` (the robots'
+names, their integer agent ids in the atlas, and the edge and edge map that serve them).
+
 Arrays are stored as ``.npy`` payloads (``numpy.save``, no pickle) inside an uncompressed
 ``.npz`` blob per row.
 """
@@ -54,6 +59,10 @@ CREATE TABLE IF NOT EXISTS loops (seq INTEGER PRIMARY KEY, key_a INTEGER NOT NUL
 CREATE TABLE IF NOT EXISTS aliases (dropped INTEGER PRIMARY KEY, kept INTEGER NOT NULL);
 CREATE TABLE IF NOT EXISTS removed_keyframes (key INTEGER PRIMARY KEY);
 CREATE TABLE IF NOT EXISTS edge_sequences (edge_id TEXT PRIMARY KEY, last_seq INTEGER NOT NULL);
+CREATE TABLE IF NOT EXISTS edge_positions (edge_id TEXT PRIMARY KEY, stream_id BLOB NOT NULL,
+    last_seq INTEGER NOT NULL);
+CREATE TABLE IF NOT EXISTS agent_names (name TEXT PRIMARY KEY, agent INTEGER UNIQUE NOT NULL,
+    edge_id TEXT NOT NULL, edge_map INTEGER NOT NULL);
 """
 
 
@@ -113,10 +122,14 @@ class CloudStore:
         keyframes: Iterable[int] = (),
         map_points: Iterable[int] = (),
         edge_sequences: Mapping[str, int] | None = None,
+        positions: Mapping[str, tuple[bytes, int]] | None = None,
+        agents: Mapping[str, tuple[int, str, int]] | None = None,
     ) -> None:
         """In one transaction: write the given keyframes and map points as the atlas holds them
-        (rows of keys no longer in the atlas are deleted), the atlas bookkeeping, and the last
-        delivered sequence of each edge. Returns once the data is durable."""
+        (rows of keys no longer in the atlas are deleted), the atlas bookkeeping, the last
+        delivered sequence of each edge, the transport ``positions`` ``{edge: (stream id,
+        last delivered seq)}`` (replacing the stored ones) and ``agents`` ``{name: (agent id,
+        edge id, edge map id)}``. Returns once the data is durable."""
         db = self._db
         db.execute("BEGIN IMMEDIATE")
         try:
@@ -128,18 +141,36 @@ class CloudStore:
                     "SET last_seq = max(last_seq, excluded.last_seq)",
                     (str(edge_id), int(seq)),
                 )
+            for edge_id, (stream_id, seq) in (positions or {}).items():
+                db.execute(
+                    "INSERT OR REPLACE INTO edge_positions VALUES (?, ?, ?)",
+                    (str(edge_id), bytes(stream_id), int(seq)),
+                )
+            for name, (agent, edge_id, edge_map) in (agents or {}).items():
+                db.execute(
+                    "INSERT OR REPLACE INTO agent_names VALUES (?, ?, ?, ?)",
+                    (str(name), int(agent), str(edge_id), int(edge_map)),
+                )
             db.execute("COMMIT")
         except BaseException:
             db.execute("ROLLBACK")
             raise
 
-    def save_all(self, atlas: Atlas, edge_sequences: Mapping[str, int] | None = None) -> None:
+    def save_all(
+        self,
+        atlas: Atlas,
+        edge_sequences: Mapping[str, int] | None = None,
+        positions: Mapping[str, tuple[bytes, int]] | None = None,
+        agents: Mapping[str, tuple[int, str, int]] | None = None,
+    ) -> None:
         """Write the whole atlas (after a merge, an optimisation or MBP), deleting stale rows."""
         kf_keys = atlas.keyframe_keys()
         mp_keys = atlas.map_point_keys()
         stale_kf = {r[0] for r in self._db.execute("SELECT key FROM keyframes")} - set(kf_keys)
         stale_mp = {r[0] for r in self._db.execute("SELECT key FROM map_points")} - set(mp_keys)
-        self.commit(atlas, [*kf_keys, *stale_kf], [*mp_keys, *stale_mp], edge_sequences)
+        self.commit(
+            atlas, [*kf_keys, *stale_kf], [*mp_keys, *stale_mp], edge_sequences, positions, agents
+        )
 
     def _write_points(
         self, atlas: Atlas, keyframes: Iterable[int], map_points: Iterable[int]
@@ -206,6 +237,16 @@ class CloudStore:
     def last_sequences(self) -> dict[str, int]:
         """Last delivered (and durable) message sequence per edge id."""
         return {e: s for e, s in self._db.execute("SELECT edge_id, last_seq FROM edge_sequences")}
+
+    def positions(self) -> dict[str, tuple[bytes, int]]:
+        """Transport inbound position per edge: ``{edge: (stream id, last delivered seq)}``."""
+        rows = self._db.execute("SELECT edge_id, stream_id, last_seq FROM edge_positions")
+        return {e: (bytes(s), int(q)) for e, s, q in rows}
+
+    def agents(self) -> dict[str, tuple[int, str, int]]:
+        """Known robots: ``{name: (agent id, edge id, edge map id)}``."""
+        rows = self._db.execute("SELECT name, agent, edge_id, edge_map FROM agent_names")
+        return {n: (int(a), str(e), int(m)) for n, a, e, m in rows}
 
     def load(self) -> Atlas:
         """Rebuild the atlas stored in this directory (empty atlas for a new directory)."""

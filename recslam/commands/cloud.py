@@ -1,0 +1,208 @@
+"""``recslam cloud``: run the cloud tier (map fusion, global optimisation, MBP, dashboard).
+
+    recslam cloud --listen 0.0.0.0:7100 --state-dir state/cloud --results out/ \\
+        --groundtruth datasets/synthetic --secret-file secret.txt
+
+Edges connect with role "edge" and their edge id as agent id. The state directory is a
+SQLite database: a restarted cloud with the same ``--state-dir`` resumes with every keyframe
+it had acknowledged. SIGINT / SIGTERM stop it cleanly: connections are closed, trajectories
+(``RESULT_DIR/trajectories/<robot>.tum``) and, with ``--groundtruth``, the ATE report
+(``RESULT_DIR/eval/``) are written.
+
+The shared secret comes from ``--secret-file`` or the ``RECSLAM_SECRET`` environment
+variable (at least 16 bytes). The camera calibration comes from ``--camera`` (an EuRoC
+``sensor.yaml``), else from the first ``<robot>/mav0/cam0/sensor.yaml`` of
+``--groundtruth``, else the synthetic dataset's EuRoC-like camera.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+from pathlib import Path
+
+log = logging.getLogger(__name__)
+
+SECRET_ENV = "RECSLAM_SECRET"
+
+
+def _host_port(text: str) -> tuple[str, int]:
+    host, sep, port = text.rpartition(":")
+    if not sep or not port.isdigit() or not 0 <= int(port) < 65536:
+        raise argparse.ArgumentTypeError(f"expected HOST:PORT, got {text!r}")
+    return host or "0.0.0.0", int(port)
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser(
+        "cloud",
+        help="run the cloud service (map fusion, global optimisation, MBP, dashboard)",
+        description=__doc__.split("\n\n")[0],
+    )
+    p.add_argument(
+        "--listen",
+        type=_host_port,
+        default=("0.0.0.0", 7100),
+        metavar="HOST:PORT",
+        help="address edges connect to (default 0.0.0.0:7100)",
+    )
+    p.add_argument(
+        "--state-dir",
+        type=Path,
+        required=True,
+        metavar="DIR",
+        help="SQLite state directory (created; resumed when it exists)",
+    )
+    p.add_argument(
+        "--dashboard-port",
+        type=int,
+        default=8080,
+        metavar="PORT",
+        help="viser dashboard port, 0 disables it (default 8080)",
+    )
+    p.add_argument(
+        "--results",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="result folder for trajectories/ and eval/ (default: none)",
+    )
+    p.add_argument(
+        "--groundtruth",
+        type=Path,
+        default=None,
+        metavar="DATASET",
+        help="ground truth for the ATE report (dataset folder or file)",
+    )
+    p.add_argument(
+        "--secret-file",
+        type=Path,
+        default=None,
+        metavar="F",
+        help=f"shared secret file (default: ${SECRET_ENV})",
+    )
+    p.add_argument(
+        "--camera",
+        type=Path,
+        default=None,
+        metavar="SENSOR_YAML",
+        help="EuRoC cam0 sensor.yaml of the robots' camera",
+    )
+    p.add_argument(
+        "--vocabulary",
+        type=Path,
+        default=None,
+        metavar="NPZ",
+        help="vocabulary file (default: common/assets/orb_vocabulary.npz)",
+    )
+    p.add_argument(
+        "--mbp",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="map backbone profiling on/off (default on)",
+    )
+    p.add_argument("--agent-id", default="cloud", help="this service's agent id (default cloud)")
+    p.add_argument(
+        "--output-every",
+        type=float,
+        default=30.0,
+        metavar="S",
+        help="rewrite outputs every S seconds, 0 = only at exit (default 30)",
+    )
+    p.set_defaults(func=handle)
+
+
+def read_secret(path: Path | None) -> bytes:
+    """The shared secret from ``path`` (stripped) or ``$RECSLAM_SECRET``."""
+    from common.errors import RecslamError
+
+    if path is not None:
+        try:
+            secret = path.read_bytes().strip()
+        except OSError as exc:
+            raise RecslamError(f"{path}: cannot read the secret file ({exc})") from exc
+        what = str(path)
+    else:
+        secret = os.environ.get(SECRET_ENV, "").encode()
+        what = f"${SECRET_ENV}"
+        if not secret:
+            raise RecslamError(f"no shared secret: pass --secret-file or set ${SECRET_ENV}")
+    if len(secret) < 16:
+        raise RecslamError(f"{what}: the shared secret must be at least 16 bytes")
+    return secret
+
+
+def find_camera(camera: Path | None, groundtruth: Path | None):
+    """The robots' camera (see the module docstring)."""
+    from common.data.euroc import read_camera_yaml
+    from services.cloud.simulation import default_camera
+
+    if camera is not None:
+        return read_camera_yaml(camera)
+    if groundtruth is not None and groundtruth.is_dir():
+        for yaml in sorted(groundtruth.glob("*/mav0/cam0/sensor.yaml")) + sorted(
+            groundtruth.glob("mav0/cam0/sensor.yaml")
+        ):
+            log.info("camera calibration from %s", yaml)
+            return read_camera_yaml(yaml)
+    log.warning("no --camera: using the synthetic dataset's EuRoC-like camera")
+    return default_camera()
+
+
+def handle(args: argparse.Namespace) -> int:
+    import asyncio
+    import dataclasses
+    import signal
+
+    from common.errors import RecslamError
+    from common.protocol import SessionConfig
+    from common.transport import run
+    from common.vocabulary import DEFAULT_VOCABULARY_PATH, Vocabulary
+    from services.cloud.config import CloudConfig, CloudServiceConfig, MbpConfig
+    from services.cloud.server import CloudServer
+
+    try:
+        secret = read_secret(args.secret_file)
+        camera = find_camera(args.camera, args.groundtruth)
+        vocab = Vocabulary.load(args.vocabulary or DEFAULT_VOCABULARY_PATH)
+    except RecslamError as exc:
+        log.error("%s", exc)
+        return 2
+    domain = CloudConfig(mbp=dataclasses.replace(MbpConfig(), enabled=args.mbp))
+    config = CloudServiceConfig(domain=domain, output_every_s=args.output_every)
+    session = SessionConfig("cloud", args.agent_id, secret)
+
+    async def main() -> int:
+        cloud = CloudServer(
+            session,
+            args.state_dir,
+            camera,
+            vocab,
+            config,
+            results_dir=args.results,
+            groundtruth=args.groundtruth,
+        )
+        stop = asyncio.Event()
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            loop.add_signal_handler(sig, stop.set)
+        host, port = await cloud.start(*args.listen)
+        print(f"cloud listening on {host}:{port}, state {args.state_dir}", flush=True)
+        dashboard = None
+        if args.dashboard_port:
+            from dashboard.viewer import Dashboard, DashboardConfig
+
+            dashboard = Dashboard(cloud.map_source, DashboardConfig(port=args.dashboard_port))
+            dashboard.start()
+            print(f"dashboard at {dashboard.url}", flush=True)
+        try:
+            await stop.wait()
+        finally:
+            print("cloud stopping", flush=True)
+            if dashboard is not None:
+                dashboard.stop()
+            await cloud.stop()
+        return 0
+
+    return run(main())

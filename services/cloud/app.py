@@ -1,0 +1,378 @@
+"""The cloud's application: reacts to the edges' messages with the map-fusion blocks.
+
+:class:`CloudApp` is synchronous and owns every mutable piece of the cloud: the
+:class:`~services.cloud.map_fusion.MapFusion` (atlas, keyframe database) and the
+:class:`~services.cloud.persistence.CloudStore`. The network service runs all of its methods
+on one worker thread (so the atlas has a single owner and the event loop never blocks on
+decoding, verification, SQLite or MBP); only the pure pose-graph solve runs elsewhere.
+
+Per message (:meth:`CloudApp.handle`): decode (``services.cloud.uplink``), apply to the
+atlas, then commit what changed *together with the edge link's delivered position* in one
+SQLite transaction. The transport acknowledges after the handler returns, so an
+acknowledged keyframe is durable, and a restarted cloud tells the edge where to resume:
+nothing acknowledged is lost and nothing is applied twice (:class:`PositionStore`).
+
+Robots are named by strings on the wire (``KeyframeUpdate.agent_id``); the atlas numbers
+them 0, 1, ... in order of appearance. The name table, with the edge serving each robot and
+the edge's map id, is persisted with the keyframes.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from common.evaluation.trajectory import Trajectory
+from common.geometry import R_to_quat_wxyz, inverse_T
+from common.protocol.messages import (
+    AgentStatus,
+    CullEvent,
+    KeyframeUpdate,
+    MapPointUpdate,
+    Message,
+    PoseCorrection,
+)
+from common.protocol.store import InboundPosition
+from common.vocabulary import Vocabulary
+from services.cloud.atlas import Atlas, KeyframeInput, make_key
+from services.cloud.config import CloudServiceConfig
+from services.cloud.global_optimization import PoseGraphProblem, PoseGraphResult
+from services.cloud.map_fusion import MapFusion
+from services.cloud.map_source import AgentInfo, CloudView
+from services.cloud.mbp import MbpReport
+from services.cloud.persistence import CloudStore
+from services.cloud.uplink import (
+    UplinkError,
+    decode_cull_event,
+    decode_keyframe_update,
+    decode_map_point_update,
+    pose_correction,
+)
+
+log = logging.getLogger(__name__)
+
+
+class PositionStore:
+    """The transport's ``DeliveryStore`` over the cloud's SQLite positions.
+
+    ``load`` answers from a cache that :class:`CloudApp` fills from the database at start and
+    updates after each commit (so the event-loop thread never touches SQLite); ``save`` does
+    nothing: the position is written by the app in the same transaction as the message's
+    effect, which is what makes delivery exactly-once across a cloud crash."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._positions: dict[str, InboundPosition] = {}
+
+    def load(self, peer: str) -> InboundPosition | None:
+        with self._lock:
+            return self._positions.get(peer)
+
+    def save(self, peer: str, position: InboundPosition) -> None:
+        """No-op (see the class docstring)."""
+
+    def set(self, peer: str, position: InboundPosition) -> None:
+        with self._lock:
+            self._positions[peer] = position
+
+
+@dataclass
+class Reaction:
+    """What one message changed: maps that need an optimisation now (loop / merge), new
+    keyframes per map, and whether maps were merged."""
+
+    urgent_maps: set[int] = field(default_factory=set)
+    new_keyframes: dict[int, int] = field(default_factory=dict)
+    merged: bool = False
+
+
+@dataclass
+class _Agent:
+    agent_id: int
+    edge_id: str
+    edge_map: int
+    status: str = "initializing"
+    frames: int = 0
+    last_seen: float = 0.0
+    link_counters: dict[str, int] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class Correction:
+    """A pose correction to send: the edge serving the robot, and the message."""
+
+    edge_id: str
+    message: PoseCorrection
+
+
+class CloudApp:
+    """Message handling, optimisation hand-off, MBP and outputs over one atlas.
+
+    Not thread-safe: call everything from one thread (the service's worker).
+    """
+
+    def __init__(
+        self,
+        fusion: MapFusion,
+        store: CloudStore,
+        vocabulary: Vocabulary,
+        config: CloudServiceConfig,
+        positions: PositionStore | None = None,
+    ) -> None:
+        self.fusion = fusion
+        self.store = store
+        self.vocabulary = vocabulary
+        self.config = config
+        self.positions = positions or PositionStore()
+        self._agents: dict[str, _Agent] = {}
+        for name, (aid, edge, edge_map) in store.agents().items():
+            self._agents[name] = _Agent(aid, edge, edge_map)
+        for edge, (stream, seq) in store.positions().items():
+            self.positions.set(edge, InboundPosition(stream, seq))
+        self._mbp_done: dict[int, int] = {}  # map -> keyframes at its last MBP pass
+        self._pruned_points: set[int] = set()  # removed by MBP (not by the edge's culling)
+        self._pruned_keyframes: set[int] = set()
+        self.messages = 0
+        self.rejected = 0
+
+    @property
+    def atlas(self) -> Atlas:
+        return self.fusion.atlas
+
+    # ------------------------------------------------------------------ agents
+    def _agent(self, name: str, edge_id: str, edge_map: int) -> tuple[_Agent, bool]:
+        a = self._agents.get(name)
+        if a is None:
+            next_id = max((x.agent_id for x in self._agents.values()), default=-1) + 1
+            a = self._agents[name] = _Agent(next_id, edge_id, edge_map)
+            log.info("new robot %r (agent %d) served by edge %r", name, next_id, edge_id)
+            return a, True
+        changed = (a.edge_id, a.edge_map) != (edge_id, edge_map)
+        a.edge_id, a.edge_map = edge_id, edge_map
+        return a, changed
+
+    def agent_names(self) -> dict[int, str]:
+        return {a.agent_id: n for n, a in self._agents.items()}
+
+    def _agent_rows(self, names: list[str]) -> dict[str, tuple[int, str, int]]:
+        return {n: (self._agents[n].agent_id, self._agents[n].edge_id,
+                    self._agents[n].edge_map) for n in names}  # fmt: skip
+
+    # ------------------------------------------------------------------ messages
+    def handle(self, edge_id: str, message: Message, stream_id: bytes, seq: int) -> Reaction:
+        """Apply one message from ``edge_id`` and make it durable with its position.
+
+        Raises :class:`UplinkError` for a malformed message (nothing is applied)."""
+        self.messages += 1
+        position = {edge_id: (stream_id, seq)}
+        if isinstance(message, KeyframeUpdate):
+            reaction = self._keyframe(edge_id, message, position)
+        elif isinstance(message, MapPointUpdate):
+            reaction = self._map_points(edge_id, message, position)
+        elif isinstance(message, CullEvent):
+            reaction = self._cull(edge_id, message, position)
+        elif isinstance(message, AgentStatus):
+            a, changed = self._agent(message.agent_id, edge_id, message.map_id)
+            a.status, a.frames = message.state, message.frames
+            a.link_counters = dict(message.link_counters)
+            # Status is not durable state: its position is saved with the next effect.
+            if changed:
+                self.store.commit(self.atlas, positions=position,
+                                  agents=self._agent_rows([message.agent_id]))  # fmt: skip
+            else:
+                return Reaction()
+            reaction = Reaction()
+        else:
+            log.warning("ignoring %s from edge %s", type(message).__name__, edge_id)
+            return Reaction()
+        self.positions.set(edge_id, InboundPosition(stream_id, seq))
+        return reaction
+
+    def _keyframe(
+        self, edge_id: str, msg: KeyframeUpdate, position: dict[str, tuple[bytes, int]]
+    ) -> Reaction:
+        a, _ = self._agent(msg.agent_id, edge_id, msg.map_id)
+        try:
+            d = decode_keyframe_update(msg, a.agent_id, self.vocabulary)
+        except UplinkError:
+            self.rejected += 1
+            raise
+        key = make_key(a.agent_id, d.keyframe_id)
+        kf = d.keyframe
+        if kf is None:  # pose-only update of a keyframe the cloud has
+            if not self.atlas.has_keyframe(key):
+                log.warning("pose update of unknown keyframe %s/%d", msg.agent_id, d.keyframe_id)
+                self.store.commit(self.atlas, positions=position,
+                                  agents=self._agent_rows([msg.agent_id]))  # fmt: skip
+                return Reaction()
+            v = self.atlas.keyframe(key)
+            real = ~v.virtual
+            ids = d.map_point_ids if d.map_point_ids.size == real.sum() else None
+            kf = KeyframeInput(
+                agent_id=a.agent_id, keyframe_id=d.keyframe_id, timestamp=v.timestamp,
+                T_world_body=d.T_world_body, keypoints=v.keypoints[real], levels=v.levels[real],
+                descriptors=v.descriptors[real], word_ids=v.word_ids[real],
+                map_point_ids=ids if ids is not None else np.full(int(real.sum()), -1),
+                velocity=d.velocity, bias_gyro=d.bias_gyro, bias_accel=d.bias_accel,
+            )  # fmt: skip
+        is_new = not self.atlas.has_keyframe(key) and key not in self.atlas.removed_keyframes()
+        events = self.fusion.add_keyframe(kf)
+        a.last_seen = d.timestamp_ns * 1e-9
+        reaction = Reaction(urgent_maps=set(events.maps_to_optimize))
+        merged = any(o.merge is not None for o in events.outcomes)
+        agents = self._agent_rows([msg.agent_id])
+        if merged or events.outcomes:
+            self.store.save_all(self.atlas, positions=position, agents=agents)
+            reaction.merged = merged
+        else:
+            mps: list[int] = []
+            if self.atlas.has_keyframe(key):
+                mk = self.atlas.keyframe(key).map_point_keys
+                mps = np.unique(mk[mk >= 0]).tolist()
+            self.store.commit(self.atlas, [key], mps, positions=position, agents=agents)
+        if is_new and self.atlas.has_keyframe(key):
+            reaction.new_keyframes[self.atlas.map_id_of_keyframe(key)] = 1
+        return reaction
+
+    def _map_points(
+        self, edge_id: str, msg: MapPointUpdate, position: dict[str, tuple[bytes, int]]
+    ) -> Reaction:
+        a, _ = self._agent(msg.agent_id, edge_id, msg.map_id)
+        try:
+            points = decode_map_point_update(msg, a.agent_id)
+        except UplinkError:
+            self.rejected += 1
+            raise
+        keys = [self.fusion.add_map_point(p) for p in points]
+        self.store.commit(self.atlas, [], keys, positions=position,
+                          agents=self._agent_rows([msg.agent_id]))  # fmt: skip
+        return Reaction()
+
+    def _cull(
+        self, edge_id: str, msg: CullEvent, position: dict[str, tuple[bytes, int]]
+    ) -> Reaction:
+        a, _ = self._agent(msg.agent_id, edge_id, msg.map_id)
+        try:
+            kf_ids, mp_ids = decode_cull_event(msg)
+        except UplinkError:
+            self.rejected += 1
+            raise
+        kf_keys = [make_key(a.agent_id, int(i)) for i in kf_ids]
+        mp_keys = [make_key(a.agent_id, int(i)) for i in mp_ids]
+        touched: set[int] = set()
+        for k in kf_keys:
+            if self.atlas.has_keyframe(k):
+                mk = self.atlas.keyframe(k).map_point_keys
+                touched.update(mk[mk >= 0].tolist())
+                self.fusion.remove_keyframe(k)
+        for m in mp_keys:
+            if self.atlas.has_map_point(m):
+                self.atlas.remove_map_point(m)
+        self.store.commit(self.atlas, kf_keys, [*mp_keys, *touched], positions=position,
+                          agents=self._agent_rows([msg.agent_id]))  # fmt: skip
+        return Reaction()
+
+    # ------------------------------------------------------------------ optimisation
+    def optimization_problem(self, map_id: int) -> tuple[PoseGraphProblem, int] | None:
+        """The pose graph of ``map_id`` and a token of the atlas' merge state (None if the map
+        is gone or too small)."""
+        if map_id not in self.atlas.maps() or self.atlas.n_keyframes(map_id) < 2:
+            return None
+        return self.fusion.pose_graph(map_id), len(self.atlas.merges())
+
+    def apply_optimization(
+        self, map_id: int, result: PoseGraphResult, token: int
+    ) -> list[Correction] | None:
+        """Write an optimisation back (None if maps were merged meanwhile: then the poses are
+        in a stale frame and the caller should optimise again); returns the corrections."""
+        if token != len(self.atlas.merges()) or map_id not in self.atlas.maps():
+            return None
+        n = self.fusion.apply_optimization(result)
+        self.store.save_all(self.atlas)
+        log.info("map %d: applied optimisation of %d keyframes (error %.3g -> %.3g)",
+                 map_id, n, result.initial_error, result.final_error)  # fmt: skip
+        return self.corrections(map_id)
+
+    def corrections(self, map_id: int) -> list[Correction]:
+        """Current keyframe poses of every robot in ``map_id``, each in its own map frame."""
+        names = self.agent_names()
+        out = []
+        for agent in self.atlas.agents_in_map(map_id):
+            name = names.get(agent)
+            keys = self.atlas.keyframe_keys(map_id=map_id, agent_id=agent)
+            if name is None or not keys:
+                continue
+            T_agent_map = inverse_T(self.atlas.T_map_agent(agent))
+            ids = np.array([self.atlas.keyframe(k).keyframe_id for k in keys], np.int64)
+            T = np.array([T_agent_map @ self.atlas.T_map_body(k) for k in keys])
+            info = self._agents[name]
+            out.append(Correction(info.edge_id, pose_correction(name, info.edge_map, ids, T)))
+        return out
+
+    def prune_due(self, map_id: int) -> bool:
+        if not self.config.domain.mbp.enabled or map_id not in self.atlas.maps():
+            return False
+        n = self.atlas.n_keyframes(map_id)
+        return n - self._mbp_done.get(map_id, 0) >= self.config.mbp_every_keyframes
+
+    def prune(self, map_id: int) -> MbpReport:
+        """MBP on ``map_id`` (then the whole atlas is saved)."""
+        before = set(self.atlas.map_point_keys(map_id))
+        report = self.fusion.prune(map_id, self.config.mbp_keep_recent)
+        self._pruned_points |= before - set(self.atlas.map_point_keys(map_id))
+        self._pruned_keyframes.update(report.removed_keyframes)
+        self._mbp_done[map_id] = self.atlas.n_keyframes(map_id)
+        self.store.save_all(self.atlas)
+        log.info("MBP map %d: keyframes %d -> %d, map points %d -> %d", map_id,
+                 report.keyframes_before, report.keyframes_after, report.map_points_before,
+                 report.map_points_after)  # fmt: skip
+        return report
+
+    # ------------------------------------------------------------------ outputs
+    def trajectories(self) -> tuple[dict[str, Trajectory], dict[str, int]]:
+        """Keyframe trajectories ``T_map_body`` per robot name, and each robot's map id."""
+        names = self.agent_names()
+        trajs: dict[str, Trajectory] = {}
+        maps: dict[str, int] = {}
+        for agent, name in sorted(names.items()):
+            if agent not in self.atlas.agents():
+                continue
+            keys = self.atlas.keyframe_keys(agent_id=agent)
+            if not keys:
+                continue
+            views = sorted((self.atlas.keyframe(k) for k in keys), key=lambda v: v.timestamp)
+            ts = np.array([round(v.timestamp * 1e9) for v in views], np.int64)
+            keep = np.concatenate([[True], np.diff(ts) > 0])
+            views = [v for v, k in zip(views, keep, strict=True) if k]
+            T = np.array([v.T_map_body for v in views])
+            q = np.array([R_to_quat_wxyz(t[:3, :3]) for t in T])
+            trajs[name] = Trajectory(ts[keep], T[:, :3, 3], q, name)
+            maps[name] = self.atlas.map_of_agent(agent)
+        return trajs, maps
+
+    def view(self, counters: dict[str, dict] | None = None) -> CloudView:
+        """Plain data for the dashboard's map source (built on the worker thread)."""
+        agents = tuple(
+            AgentInfo(
+                agent_id=a.agent_id, name=n, edge_id=a.edge_id, status=a.status, frames=a.frames,
+                keyframes=len(self.atlas.keyframe_keys(agent_id=a.agent_id)),
+                last_seen=a.last_seen,
+                map_id=self.atlas.map_of_agent(a.agent_id)
+                if a.agent_id in self.atlas.agents() else a.agent_id,
+                link_counters=dict(a.link_counters),
+            )
+            for n, a in sorted(self._agents.items())
+        )  # fmt: skip
+        return CloudView(
+            atlas=self.atlas.snapshot(),
+            agents=agents,
+            pruned_keyframes=frozenset(self._pruned_keyframes),
+            pruned_points=frozenset(self._pruned_points),
+            edge_counters=counters or {},
+        )
+
+    def close(self) -> None:
+        self.store.close()

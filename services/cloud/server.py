@@ -1,0 +1,339 @@
+"""The cloud network service: edges connect, keyframes flow in, corrections flow back.
+
+:class:`CloudServer` runs on an asyncio loop and owns the lifecycle:
+
+- a :class:`common.transport.Server` accepts any number of edges (each serving several
+  robots; the connection's agent id is the edge id, ``KeyframeUpdate.agent_id`` the robot);
+- every message goes to :class:`~services.cloud.app.CloudApp` on a single *worker* thread
+  (decode, place recognition, verification, merging, SQLite commit). The transport
+  acknowledges after the handler returns, i.e. after the commit: acknowledged = durable.
+  A malformed message makes the handler raise, which closes that edge's connection only;
+  a message that fails ``max_failures`` times in a row is logged and skipped so that one
+  bad message cannot wedge an edge's stream forever;
+- global optimisation is debounced: a map is scheduled at once after a loop or merge and
+  after every ``optimize_every_keyframes`` new keyframes; ``debounce_s`` later the pose
+  graph is built on the worker, solved on a separate *optimizer* thread (gtsam releases the
+  GIL while it solves, see ``benchmarks/bench_cloud.py``), written back on the worker, and
+  the corrected poses go to the edges as ``PoseCorrection`` in each robot's own map frame;
+- MBP runs on the worker right after an optimisation when due (it mutates the atlas);
+- the dashboard's :class:`~services.cloud.map_source.CloudMapSource` is refreshed every
+  ``publish_every_s``; trajectories (and the ATE report with ground truth) are written every
+  ``output_every_s`` and at :meth:`CloudServer.stop`.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, TypeVar
+
+from common.calibration import CameraCalibration
+from common.protocol import OutboxFullError, SessionConfig
+from common.protocol.errors import LocalProtocolError
+from common.transport import Delivery, Server, TransportConfig
+from common.vocabulary import Vocabulary
+from services.cloud.app import CloudApp, Correction, PositionStore, Reaction
+from services.cloud.config import CloudServiceConfig
+from services.cloud.global_optimization import optimize_pose_graph
+from services.cloud.map_fusion import MapFusion
+from services.cloud.map_source import CloudMapSource
+from services.cloud.output import OutputWriter
+from services.cloud.persistence import CloudStore
+from services.cloud.uplink import UplinkError
+
+log = logging.getLogger(__name__)
+
+T = TypeVar("T")
+
+
+@dataclass(frozen=True)
+class CloudStats:
+    """Counters of a running service (plain data)."""
+
+    messages: int
+    rejected: int
+    optimizations: int
+    corrections_sent: int
+    mbp_passes: int
+    keyframes: int
+    map_points: int
+    maps: tuple[int, ...]
+    merges: int
+    loops: int
+
+
+class CloudServer:
+    """The cloud service. ``await start(host, port)`` ... ``await stop()``.
+
+    Args:
+        session: protocol settings (role "cloud", the cloud's agent id, shared secret).
+        state_dir: SQLite state directory (resumed if it holds a previous run).
+        camera: the robots' camera (verification projects with it).
+        vocabulary: the shared vocabulary (word ids and idf).
+        config: service options.
+        results_dir: where trajectories/eval go (None: no output files).
+        groundtruth: ground-truth source for the ATE report (see common.evaluation.results).
+        transport: socket settings.
+        max_failures: a message whose handler failed this many times is skipped.
+    """
+
+    def __init__(
+        self,
+        session: SessionConfig,
+        state_dir: str | Path,
+        camera: CameraCalibration,
+        vocabulary: Vocabulary,
+        config: CloudServiceConfig | None = None,
+        results_dir: str | Path | None = None,
+        groundtruth: str | Path | None = None,
+        transport: TransportConfig | None = None,
+        max_failures: int = 3,
+    ) -> None:
+        self.session = session
+        self.config = config or CloudServiceConfig()
+        self.state_dir = Path(state_dir)
+        self.camera = camera
+        self.vocabulary = vocabulary
+        self.map_source = CloudMapSource(
+            self.config.display_spacing_m, self.config.bandwidth_window_s
+        )
+        self.output = (
+            OutputWriter(Path(results_dir), groundtruth) if results_dir is not None else None
+        )
+        self.positions = PositionStore()
+        self._worker = ThreadPoolExecutor(1, thread_name_prefix="cloud-worker")
+        self._optimizer = ThreadPoolExecutor(1, thread_name_prefix="cloud-optimizer")
+        self._app: CloudApp | None = None
+        self._server = Server(session, self._on_message, transport=transport, store=self.positions)
+        self._max_failures = max_failures
+        self._failures: dict[tuple[str, bytes, int], int] = {}
+        self._dirty: set[int] = set()
+        self._since_opt: dict[int, int] = {}
+        self._trigger = asyncio.Event()
+        self._tasks: list[asyncio.Task[None]] = []
+        self._optimizations = 0
+        self._corrections = 0
+        self._mbp_passes = 0
+        self.address: tuple[str, int] | None = None
+
+    # ------------------------------------------------------------------ lifecycle
+    async def _on_worker(self, fn: Callable[..., T], *args: Any) -> T:
+        return await asyncio.get_running_loop().run_in_executor(self._worker, fn, *args)
+
+    def _open(self) -> CloudApp:
+        store = CloudStore(self.state_dir)
+        atlas = store.load()
+        wg = None
+        if self.config.word_group_level is not None:
+            words = range(self.vocabulary.n_words)
+            wg = self.vocabulary.ancestor_at_level(list(words), self.config.word_group_level)
+        fusion = MapFusion(self.camera, self.vocabulary.idf, self.config.domain, atlas, wg)
+        return CloudApp(fusion, store, self.vocabulary, self.config, self.positions)
+
+    async def start(self, host: str = "127.0.0.1", port: int = 0) -> tuple[str, int]:
+        """Load the state directory, then listen; returns the bound address."""
+        self._app = await self._on_worker(self._open)
+        n = self._app.atlas.n_keyframes()
+        log.info("cloud state %s: %d keyframes, %d map points, maps %s", self.state_dir, n,
+                 self._app.atlas.n_map_points(), self._app.atlas.maps())  # fmt: skip
+        self._dirty.update(self._app.atlas.maps())  # a restart re-sends fresh corrections
+        if self._dirty:
+            self._trigger.set()
+        self.address = await self._server.start(host, port)
+        self._tasks = [
+            asyncio.create_task(self._optimize_loop(), name="cloud-optimize"),
+            asyncio.create_task(self._publish_loop(), name="cloud-publish"),
+        ]
+        if self.output is not None and self.config.output_every_s > 0:
+            self._tasks.append(asyncio.create_task(self._output_loop(), name="cloud-output"))
+        return self.address
+
+    async def stop(self, write_output: bool = True) -> None:
+        """Close the edges' connections, write the outputs, close the state directory."""
+        await self._server.close()
+        for t in self._tasks:
+            t.cancel()
+        for t in self._tasks:
+            with contextlib.suppress(asyncio.CancelledError):
+                await t
+        self._tasks = []
+        if self._app is not None:
+            if write_output and self.output is not None:
+                await self.write_output(evaluate=True)
+            await self._on_worker(self._app.close)
+            self._app = None
+        self._worker.shutdown(wait=True)
+        self._optimizer.shutdown(wait=True)
+
+    async def __aenter__(self) -> CloudServer:
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.stop()
+
+    # ------------------------------------------------------------------ messages
+    async def _on_message(self, d: Delivery) -> None:
+        app = self._app
+        if app is None:
+            raise LocalProtocolError("cloud is not running")
+        key = (d.peer, d.stream_id, d.seq)
+        try:
+            reaction = await self._on_worker(app.handle, d.peer, d.message, d.stream_id, d.seq)
+        except UplinkError as exc:
+            n = self._failures.get(key, 0) + 1
+            self._failures[key] = n
+            if n >= self._max_failures:
+                log.error("edge %s: skipping message %d after %d failures: %s", d.peer, d.seq,
+                          n, exc)  # fmt: skip
+                self._failures.pop(key, None)
+                return
+            log.warning("edge %s: malformed %s (seq %d): %s; closing its connection", d.peer,
+                        type(d.message).__name__, d.seq, exc)  # fmt: skip
+            raise
+        self._failures.pop(key, None)
+        self._react(reaction)
+
+    def _react(self, reaction: Reaction) -> None:
+        trigger = bool(reaction.urgent_maps)
+        self._dirty.update(reaction.urgent_maps)
+        for m, n in reaction.new_keyframes.items():
+            self._since_opt[m] = self._since_opt.get(m, 0) + n
+            if self._since_opt[m] >= self.config.optimize_every_keyframes:
+                self._dirty.add(m)
+                trigger = True
+        if trigger:
+            self._trigger.set()
+
+    # ------------------------------------------------------------------ optimisation
+    async def _optimize_loop(self) -> None:
+        while True:
+            await self._trigger.wait()
+            await asyncio.sleep(self.config.debounce_s)
+            self._trigger.clear()
+            maps, self._dirty = sorted(self._dirty), set()
+            for m in maps:
+                try:
+                    await self.optimize_map(m)
+                except asyncio.CancelledError:
+                    raise
+                except Exception:
+                    log.exception("optimisation of map %d failed", m)
+
+    async def optimize_map(self, map_id: int) -> bool:
+        """Optimise one map now (off the event loop), apply, send corrections, run MBP if
+        due. Returns False if the map changed shape meanwhile (it is rescheduled)."""
+        app = self._app
+        assert app is not None
+        self._since_opt[map_id] = 0
+        built = await self._on_worker(app.optimization_problem, map_id)
+        if built is None:
+            return True
+        problem, token = built
+        loop = asyncio.get_running_loop()
+        result = await loop.run_in_executor(
+            self._optimizer, optimize_pose_graph, problem, self.config.domain.optimization
+        )
+        corrections = await self._on_worker(app.apply_optimization, map_id, result, token)
+        if corrections is None:
+            log.info("map %d merged while optimising; rescheduling", map_id)
+            self._dirty.add(map_id)
+            self._trigger.set()
+            return False
+        self._optimizations += 1
+        self._send(corrections)
+        if await self._on_worker(app.prune_due, map_id):
+            await self._on_worker(app.prune, map_id)
+            self._mbp_passes += 1
+        return True
+
+    def _send(self, corrections: list[Correction]) -> None:
+        for c in corrections:
+            try:
+                self._server.peer(c.edge_id).send_nowait(c.message)
+                self._corrections += 1
+            except LocalProtocolError:
+                log.info("edge %s not connected; correction of %s dropped (next one follows)",
+                         c.edge_id, c.message.agent_id)  # fmt: skip
+            except OutboxFullError:
+                log.warning("edge %s outbox full; correction of %s dropped", c.edge_id,
+                            c.message.agent_id)  # fmt: skip
+
+    async def flush_optimizations(self) -> None:
+        """Optimise every map that is scheduled, now (tests, shutdown)."""
+        maps, self._dirty = sorted(self._dirty), set()
+        for m in maps:
+            await self.optimize_map(m)
+
+    async def optimize_all(self) -> None:
+        """Optimise every map now (tests, benchmarks)."""
+        app = self._app
+        assert app is not None
+        for m in await self._on_worker(app.atlas.maps):
+            await self.optimize_map(m)
+
+    # ------------------------------------------------------------------ dashboard, output
+    async def publish(self) -> int:
+        """Refresh the dashboard's map view now; returns its version."""
+        app = self._app
+        assert app is not None
+        counters = self._server.counters()
+        view = await self._on_worker(app.view, counters)
+        return self.map_source.publish(view)
+
+    async def _publish_loop(self) -> None:
+        while True:
+            try:
+                await self.publish()
+            except asyncio.CancelledError:
+                raise
+            except Exception:
+                log.exception("map view refresh failed")
+            await asyncio.sleep(self.config.publish_every_s)
+
+    async def write_output(self, evaluate: bool = True) -> list[Path]:
+        """Write trajectories (and the ATE report when ground truth is known)."""
+        app, out = self._app, self.output
+        if app is None or out is None:
+            return []
+        trajs, maps = await self._on_worker(app.trajectories)
+        loop = asyncio.get_running_loop()
+        return await loop.run_in_executor(self._optimizer, out.write, trajs, maps, evaluate)
+
+    async def _output_loop(self) -> None:
+        while True:
+            await asyncio.sleep(self.config.output_every_s)
+            try:
+                await self.write_output(evaluate=True)
+            except asyncio.CancelledError:
+                raise
+            except Exception:
+                log.exception("writing outputs failed")
+
+    async def stats(self) -> CloudStats:
+        app = self._app
+        assert app is not None
+
+        def collect() -> CloudStats:
+            a = app.atlas
+            return CloudStats(
+                app.messages, app.rejected, self._optimizations, self._corrections,
+                self._mbp_passes, a.n_keyframes(), a.n_map_points(), tuple(a.maps()),
+                len(a.merges()), len(a.loops()),
+            )  # fmt: skip
+
+        return await self._on_worker(collect)
+
+    async def call(self, fn: Callable[[CloudApp], T]) -> T:
+        """Run ``fn(app)`` on the worker thread (read the state safely from outside)."""
+        app = self._app
+        assert app is not None
+        return await self._on_worker(fn, app)
+
+    @property
+    def transport(self) -> Server:
+        return self._server

@@ -1,0 +1,294 @@
+"""The cloud service on real loopback TCP: two edges' robots merge, corrections flow back,
+trajectories are written, a restart resumes without duplicates, a bad edge is isolated."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import socket
+
+import numpy as np
+import pytest
+
+from common.evaluation.tum import read_tum
+from common.geometry import inverse_T, transform_points
+from common.protocol import SessionConfig
+from common.protocol.arrays import pack_array
+from common.protocol.messages import PoseCorrection
+from common.transport import Client, Delivery, TransportConfig, run
+from common.vocabulary import Vocabulary
+from services.cloud.config import CloudServiceConfig
+from services.cloud.map_source import CloudMapSource
+from services.cloud.merge import yaw_of
+from services.cloud.server import CloudServer
+from services.cloud.simulation import circle_poses, default_camera, make_session, make_world, yaw_T
+from services.cloud.uplink import (
+    decode_pose_correction,
+    encode_keyframe_update,
+    encode_map_point_update,
+)
+
+SECRET = b"cloud-service-test-secret"
+FAST = TransportConfig(reconnect_initial_delay=0.01, reconnect_max_delay=0.2)
+T_A1_WORLD = yaw_T(np.radians(-60.0), np.array([-1.5, 0.5, 0.0]))
+
+
+@pytest.fixture(scope="module")
+def vocab() -> Vocabulary:
+    return Vocabulary.load()
+
+
+@pytest.fixture(scope="module")
+def scenario(vocab):
+    """Two robots in one room (robot r1's map offset by a known yaw + translation), coded as
+    an edge sends them: per robot a list of messages (keyframe, then its new map points)."""
+    world = make_world(51)
+    cam = default_camera()
+    poses0 = circle_poses(24, turns=1.0)
+    poses1 = circle_poses(12, turns=0.5, phase=2.0)
+    sessions = {
+        "r0": (make_session(world, cam, 0, poses0, np.eye(4), seed=1), poses0, np.eye(4)),
+        "r1": (make_session(world, cam, 1, poses1, T_A1_WORLD, seed=2, t0=50.0), poses1,
+               T_A1_WORLD),
+    }  # fmt: skip
+    out = {}
+    for name, ((kfs, mps), poses, T_agent_world) in sessions.items():
+        inv: dict[int, np.ndarray] = {}
+        msgs = []
+        first_obs = {m.map_point_id: int(m.observations[:, 0].min()) for m in mps}
+        coded = {}
+        for k in kfs:  # code every keyframe first: observations need the coded indices
+            coded[k.keyframe_id], order = encode_keyframe_update(k, name, vocab, edge_map_id=7)
+            inv[k.keyframe_id] = np.argsort(order)
+        for k in kfs:
+            msgs.append(coded[k.keyframe_id])
+            new = [m for m in mps if first_obs[m.map_point_id] == k.keyframe_id]
+            if new:
+                msgs.append(encode_map_point_update(new, name, 7, coded_index=inv))
+        out[name] = {"messages": msgs, "truth": poses, "T_agent_world": T_agent_world,
+                     "n_keyframes": len(kfs)}  # fmt: skip
+    return out
+
+
+class Edge:
+    """An edge-like client: sends messages, collects PoseCorrections."""
+
+    def __init__(self, name: str, port: int, **session_kw) -> None:
+        self.corrections: list[PoseCorrection] = []
+        self.client = Client(
+            SessionConfig("edge", name, SECRET, **session_kw), self._on, "127.0.0.1", port,
+            transport=FAST,
+        )  # fmt: skip
+
+    async def _on(self, d: Delivery) -> None:
+        assert isinstance(d.message, PoseCorrection)
+        self.corrections.append(d.message)
+
+    async def start(self) -> Edge:
+        await self.client.start()
+        return self
+
+    async def send_all(self, messages) -> None:
+        for m in messages:
+            await self.client.send(m)
+
+
+async def _until(predicate, timeout: float = 30.0) -> None:
+    async def loop() -> None:
+        while not await predicate():
+            await asyncio.sleep(0.05)
+
+    await asyncio.wait_for(loop(), timeout)
+
+
+def _cloud(tmp_path, vocab, **kw) -> CloudServer:
+    cfg = CloudServiceConfig(debounce_s=0.2, output_every_s=0, publish_every_s=0.2)
+    session = SessionConfig("cloud", "cloud", SECRET, **kw.pop("session", {}))
+    return CloudServer(session, tmp_path / "state", default_camera(), vocab, cfg,
+                       results_dir=tmp_path / "results", transport=FAST, **kw)  # fmt: skip
+
+
+def test_two_edges_merge_send_corrections_and_write_trajectories(tmp_path, vocab, scenario):
+    T_map_world = np.eye(4)
+
+    async def main():
+        cloud = _cloud(tmp_path, vocab)
+        _, port = await cloud.start()
+        a, b = await Edge("edge-a", port).start(), await Edge("edge-b", port).start()
+        try:
+            await asyncio.gather(a.send_all(scenario["r0"]["messages"]),
+                                 b.send_all(scenario["r1"]["messages"]))  # fmt: skip
+            await asyncio.gather(a.client.flush(), b.client.flush())
+            stats = await cloud.stats()
+            assert stats.keyframes == 36 and stats.merges == 1 and len(stats.maps) == 1
+            assert stats.rejected == 0
+            # Either map may absorb the other; the merged map has that robot's frame.
+            T_map_world[:] = np.eye(4) if stats.maps == (0,) else T_A1_WORLD
+
+            # The merge scheduled an optimisation; both edges get their robots' poses back.
+            async def both_corrected() -> bool:
+                return bool(a.corrections) and bool(b.corrections)
+
+            await _until(both_corrected)
+            merge = await cloud.call(lambda app: app.atlas.merges()[0])
+            T_exp = inverse_T(T_A1_WORLD) if merge.target_map == 0 else T_A1_WORLD
+            assert np.linalg.norm(merge.T_target_source[:3, 3] - T_exp[:3, 3]) < 0.02
+            yaw_err = yaw_of(merge.T_target_source[:3, :3]) - yaw_of(T_exp[:3, :3])
+            assert abs(np.degrees(yaw_err)) < 0.2
+            for edge, name in ((a, "r0"), (b, "r1")):
+                c = edge.corrections[-1]
+                assert c.agent_id == name and c.map_id == 7
+                ids, T = decode_pose_correction(c)
+                sc = scenario[name]
+                # In the robot's OWN map frame: its truth expressed in that frame.
+                p_true = transform_points(sc["T_agent_world"], sc["truth"][ids, :3, 3])
+                assert np.max(np.linalg.norm(T[:, :3, 3] - p_true, axis=1)) < 0.05
+
+            # Dashboard view: a full snapshot, then an empty incremental one.
+            v = await cloud.publish()
+            full = cloud.map_source.snapshot(-1)
+            assert full.full and len(full.keyframes) == 36 and len(full.merges) == 1
+            assert not full.keyframes.T_world_body.flags.writeable
+            assert set(full.current_pose) == {0, 1}
+            assert cloud.map_source.snapshot(v).empty
+            st = cloud.map_source.stats()
+            assert {r.status.value for r in st.agents} == {"merged"}
+            assert any(s.link == "edge-a→cloud" for s in st.bandwidth)
+        finally:
+            await a.client.close()
+            await b.client.close()
+            await cloud.stop()
+        # Trajectories of both robots in the merged map's frame (= r0's = the world).
+        for name in ("r0", "r1"):
+            traj = read_tum(tmp_path / "results" / "trajectories" / f"{name}.tum")
+            assert len(traj.timestamps_ns) == scenario[name]["n_keyframes"]
+            p_true = transform_points(T_map_world, scenario[name]["truth"][:, :3, 3])
+            err = np.linalg.norm(traj.p_world_body - p_true, axis=1)
+            assert err.max() < 0.05
+        maps = json.loads((tmp_path / "results" / "cloud_maps.json").read_text())
+        assert maps["joint_frame"] is True
+
+    run(main())
+
+
+def test_restart_resumes_acknowledged_keyframes_without_duplicates(tmp_path, vocab, scenario):
+    msgs = scenario["r0"]["messages"]
+    half = len(msgs) // 2
+
+    async def main():
+        # The first cloud never acknowledges (huge ack delay, no heartbeats): when it stops,
+        # the edge still holds every message as unacknowledged and replays them all.
+        slow_acks = {"ack_delay": 1000.0, "ack_every": 100000, "heartbeat_interval": 100.0,
+                     "idle_timeout": 200.0}  # fmt: skip
+        cloud = _cloud(tmp_path, vocab, session=slow_acks)
+        _, port = await cloud.start()
+        edge = await Edge("edge-a", port).start()
+        try:
+            await edge.send_all(msgs[:half])
+
+            async def all_in() -> bool:
+                return (await cloud.stats()).messages == half
+
+            await _until(all_in)
+            n_before = (await cloud.stats()).keyframes
+            keys_before = await cloud.call(lambda app: app.atlas.keyframe_keys())
+            assert edge.client.peer.link.first_unacked == 1  # nothing acknowledged yet
+            await cloud.stop(write_output=False)
+
+            cloud2 = _cloud(tmp_path, vocab)
+            await cloud2.start("127.0.0.1", port)
+            try:
+                assert await cloud2.call(lambda app: app.atlas.keyframe_keys()) == keys_before
+                await edge.send_all(msgs[half:])
+                await edge.client.flush()
+                stats = await cloud2.stats()
+                # Only the messages after the durable position reached the new cloud.
+                assert stats.messages == len(msgs) - half
+                assert stats.keyframes == scenario["r0"]["n_keyframes"] > n_before
+            finally:
+                await cloud2.stop(write_output=False)
+        finally:
+            await edge.client.close()
+
+    run(main())
+
+
+def test_malformed_message_closes_only_that_edge(tmp_path, vocab, scenario):
+    good_msgs = scenario["r1"]["messages"]
+
+    async def main():
+        cloud = _cloud(tmp_path, vocab, max_failures=2)
+        _, port = await cloud.start()
+        good, bad = await Edge("edge-good", port).start(), await Edge("edge-bad", port).start()
+        try:
+            # Garbage bytes on a raw socket: the cloud closes that connection (EOF or reset).
+            assert await asyncio.to_thread(_garbage_connection, port) == "closed"
+            # A well-framed KeyframeUpdate whose pose has 3 numbers instead of 16.
+            bad_msg = scenario["r0"]["messages"][0]
+            broken = type(bad_msg)(**{**{f: getattr(bad_msg, f) for f in bad_msg.__slots__},
+                                      "T_world_body": pack_array(np.zeros(3), "<f8")})  # fmt: skip
+            await bad.client.send(broken)
+            await good.send_all(good_msgs)
+            await good.client.flush()
+            await bad.client.flush()  # skipped after max_failures: the stream moves on
+            stats = await cloud.stats()
+            assert stats.rejected == 2
+            assert bad.client.connections >= 2  # its connection was closed and resumed
+            assert good.client.connections == 1  # the good edge was never disturbed
+            assert stats.keyframes == scenario["r1"]["n_keyframes"]
+        finally:
+            await good.client.close()
+            await bad.client.close()
+            await cloud.stop(write_output=False)
+
+    run(main())
+
+
+def _garbage_connection(port: int) -> str:
+    with socket.create_connection(("127.0.0.1", port), timeout=5) as s:
+        s.sendall(b"\x00garbage" * 64)
+        try:
+            while s.recv(1 << 16):
+                pass
+        except ConnectionResetError:
+            pass
+        except TimeoutError:
+            return "still open"
+    return "closed"
+
+
+def test_map_source_versions_and_pruned_items():
+    from common.map_view import MapSource
+    from services.cloud.atlas import Atlas
+    from services.cloud.map_source import CloudView
+    from services.cloud.simulation import default_camera as cam
+
+    world = make_world(3, n_points=800)
+    kfs, mps = make_session(world, cam(), 0, circle_poses(6, turns=0.3), np.eye(4), seed=4)
+    atlas = Atlas()
+    for m in mps:
+        atlas.add_map_point(m)
+    for k in kfs:
+        atlas.add_keyframe(k)
+    src = CloudMapSource()
+    assert isinstance(src, MapSource)
+    v1 = src.publish(CloudView(atlas.snapshot(), (), frozenset(), frozenset()))
+    d1 = src.snapshot(-1)
+    assert d1.full and len(d1.keyframes) == 6 and d1.version == v1
+    # Nothing changed: same version, empty delta.
+    assert src.publish(CloudView(atlas.snapshot(), (), frozenset(), frozenset())) == v1
+    # Move one keyframe, prune another: only those two are in the delta.
+    keys = atlas.keyframe_keys()
+    atlas.set_keyframe_poses({keys[1]: atlas.T_map_body(keys[1]) @ yaw_T(0.1, np.zeros(3))})
+    atlas.remove_keyframe(keys[4])
+    v2 = src.publish(CloudView(atlas.snapshot(), (), frozenset({keys[4]}), frozenset()))
+    d2 = src.snapshot(v1)
+    assert not d2.full and v2 == v1 + 1
+    assert sorted(d2.keyframes.ids.tolist()) == [keys[1], keys[4]]
+    assert d2.keyframes.pruned.tolist() == [False, True]
+    assert d2.removed_keyframe_ids.size == 0
+    # An edge cull (not MBP) removes it for good.
+    atlas.remove_keyframe(keys[2])
+    v3 = src.publish(CloudView(atlas.snapshot(), (), frozenset({keys[4]}), frozenset()))
+    assert src.snapshot(v2).removed_keyframe_ids.tolist() == [keys[2]]
+    assert len(src.snapshot(-1).keyframes) == 5 and src.snapshot(-1).version == v3
