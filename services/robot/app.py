@@ -68,6 +68,7 @@ class RobotApp:
         record: keep every :class:`UsedFrame` in :attr:`recorded`.
         preroll_imu_s: IMU samples older than this before the first frame are not used or
             sent (EuRoC's first frame carries the whole pre-roll).
+        code_links: code keyframe continuation links (False: the intra-only baseline).
     """
 
     def __init__(
@@ -79,11 +80,12 @@ class RobotApp:
         *,
         record: bool = False,
         preroll_imu_s: float = 1.0,
+        code_links: bool = True,
     ) -> None:
         self.front_end = FrontEnd(config, camera, imu)
         self.codec_config = codec_config_for(config, camera.width, camera.height)
         install_codec_grid(self.front_end, self.codec_config)
-        self.frame_coder = FrameCoder(vocabulary, self.codec_config)
+        self.frame_coder = FrameCoder(vocabulary, self.codec_config, links=code_links)
         self.imu_coder = ImuCoder()
         self.record = record
         self.recorded: list[UsedFrame] = []

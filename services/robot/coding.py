@@ -161,10 +161,13 @@ class FrameCoder:
     """Robot side of the feature codec for one front end (stateful, frame by frame).
 
     ``encode(frame)`` must see every :class:`TrackedFrame` of the front end in order.
+    ``links=False`` codes every keyframe on its own (no continuation links, so no inter
+    coding of descriptors either): the all-frames intra baseline of the paper's [55].
     """
 
-    def __init__(self, vocabulary: Vocabulary, config: CodecConfig) -> None:
+    def __init__(self, vocabulary: Vocabulary, config: CodecConfig, *, links: bool = True):
         self.config = config
+        self.links = links
         self.encoder = FeatureEncoder(vocabulary, config)
         self.track_ids = np.zeros(0, np.int64)
         """Codec order of the active tracks (the tracker's ids)."""
@@ -222,6 +225,8 @@ class FrameCoder:
                     "(install_codec_grid() missing?)"
                 )
         links = self._positions(frame.track_ids)
+        if not self.links:
+            links[:] = -1
         kf = KeyframeFeatures(kp, frame.descriptors, links.astype(np.int32))
         order = kf.canonical_order()
         coded = KeyframeFeatures(kf.keypoints[order], kf.descriptors[order], kf.links[order])

@@ -123,3 +123,17 @@ def test_codec_config_refuses_what_it_cannot_code():
         codec_config_for(FrontEndConfig(quantisation_px=0.3), 752, 480)
     cc = codec_config_for(FrontEndConfig(quantisation_px=0.125), 640, 400)
     assert (cc.subpixel, cc.image_width, cc.image_height) == (8, 640, 400)
+
+
+def test_intra_only_coder_sends_no_links(seq, vocabulary):
+    config = FrontEndConfig(keyframe=KeyframeDecisionConfig(every_frame=True))
+    cc = codec_config_for(config, seq.cam0.width, seq.cam0.height)
+    fe = FrontEnd(config, seq.cam0, seq.imu)
+    install_codec_grid(fe, cc)
+    coder = FrameCoder(vocabulary, cc, links=False)
+    decoder = FeatureDecoder(vocabulary, cc)
+    for fr in seq.frames(0, 3):
+        tracked = fe.process(fr.image, fr.timestamp_ns, fr.imu)
+        decoded = decoder.decode(coder.encode(tracked).payload)
+        assert isinstance(decoded, KeyframeFeatures) and (decoded.links == -1).all()
+        assert sorted(map(bytes, decoded.descriptors)) == sorted(map(bytes, tracked.descriptors))
