@@ -218,16 +218,19 @@ class Vocabulary:
         if np.any(self.parent[1:] < 0) or np.any(self.parent[1:] >= np.arange(1, m)):
             raise VocabularyError("parent array must point to earlier nodes")
         self.children = np.full((m, self.k), -1, dtype=np.int32)
-        slot = np.zeros(m, dtype=np.int64)
-        for node in range(1, m):  # children in slot order = node order
-            p = self.parent[node]
-            if slot[p] >= self.k:
-                raise VocabularyError(f"node {p} has more than k={self.k} children")
-            self.children[p, slot[p]] = node
-            slot[p] += 1
+        par = self.parent[1:].astype(np.int64)
+        order = np.argsort(par, kind="stable")  # children in slot order = node order
+        sp = par[order]
+        rank = np.arange(sp.size) - np.searchsorted(sp, sp, side="left")
+        if rank.size and rank.max() >= self.k:
+            raise VocabularyError(f"a node has more than k={self.k} children")
+        self.children[sp, rank] = order + 1
+        slot = np.bincount(par, minlength=m)
         self.node_level = np.zeros(m, dtype=np.int32)
-        for node in range(1, m):
-            self.node_level[node] = self.node_level[self.parent[node]] + 1
+        for _ in range(self.depth + 1):  # parents precede children: converges in depth steps
+            self.node_level[1:] = self.node_level[par] + 1
+        if m > 1 and self.node_level.max() > self.depth:
+            raise VocabularyError(f"tree deeper than depth={self.depth}")
         leaves = np.flatnonzero(slot == 0)
         self.node_of_word = leaves.astype(np.int32)
         self.word_of_node = np.full(m, -1, dtype=np.int32)
