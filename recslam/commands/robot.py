@@ -5,7 +5,9 @@ Example::
     recslam robot --dataset datasets/V1_01_easy --edge 127.0.0.1:7000 --agent-id robot-1
 
 The shared secret comes from ``--secret-file`` or the environment variable
-``RECSLAM_SECRET`` (a development default is used with a warning otherwise). Exit code 0 once
+``RECSLAM_SECRET`` (a development default is used with a warning otherwise). For containers,
+``--dataset``, ``--edge`` and ``--agent-id`` default to ``$RECSLAM_DATASET``,
+``$RECSLAM_EDGE`` and ``$RECSLAM_AGENT_ID``. Exit code 0 once
 the edge has taken every frame, 130 when interrupted, 1 when ``--flush-timeout`` expired,
 2 on a configuration error.
 """
@@ -13,7 +15,14 @@ the edge has taken every frame, 130 when interrupted, 1 when ``--flush-timeout``
 from __future__ import annotations
 
 import argparse
+import os
 from pathlib import Path
+
+ENV_DEFAULTS = {
+    "dataset": "RECSLAM_DATASET",
+    "edge": "RECSLAM_EDGE",
+    "agent_id": "RECSLAM_AGENT_ID",
+}
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -23,9 +32,27 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("--dataset", required=True, type=Path, help="EuRoC-layout sequence folder")
-    p.add_argument("--edge", required=True, metavar="HOST:PORT", help="the edge's address")
-    p.add_argument("--agent-id", required=True, help="this robot's id (unique per edge)")
+    env = {k: os.environ.get(v) for k, v in ENV_DEFAULTS.items()}
+    p.add_argument(
+        "--dataset",
+        type=Path,
+        default=env["dataset"],
+        required=env["dataset"] is None,
+        help="EuRoC-layout sequence folder ($RECSLAM_DATASET)",
+    )
+    p.add_argument(
+        "--edge",
+        metavar="HOST:PORT",
+        default=env["edge"],
+        required=env["edge"] is None,
+        help="the edge's address ($RECSLAM_EDGE)",
+    )
+    p.add_argument(
+        "--agent-id",
+        default=env["agent_id"],
+        required=env["agent_id"] is None,
+        help="this robot's id, unique per edge ($RECSLAM_AGENT_ID)",
+    )
     p.add_argument(
         "--rate",
         choices=("realtime", "max"),

@@ -6,7 +6,8 @@ folder) frame by frame: the image is read, tracked and coded in one worker threa
 event loop), the :class:`~common.protocol.messages.RobotFrame` goes to the protocol
 :class:`~common.transport.Client`, and the edge's ``InertialFeedback`` is applied by
 :class:`~services.robot.app.RobotApp`. ``rate=realtime`` paces frames at their camera
-timestamps, ``rate=max`` plays as fast as the front end runs. At the end a
+timestamps (when the front end falls behind, frames are processed late, never skipped),
+``rate=max`` plays as fast as the front end runs. At the end a
 ``RobotSequenceEnd`` is sent and the service waits until the edge's application has taken
 every message (``Client.flush``).
 

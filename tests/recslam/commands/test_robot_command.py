@@ -95,3 +95,21 @@ def test_nonpositive_backlog_is_refused(tmp_path):
     )
     with pytest.raises(RobotConfigError, match="--backlog-minutes"):
         robot.build_config(args)
+
+
+def test_environment_supplies_missing_arguments(monkeypatch, tmp_path):
+    monkeypatch.setenv("RECSLAM_DATASET", str(tmp_path))
+    monkeypatch.setenv("RECSLAM_EDGE", "edge:7001")
+    monkeypatch.setenv("RECSLAM_AGENT_ID", "robot-9")
+    monkeypatch.setenv("RECSLAM_SECRET", "s" * 16)
+    cfg = robot.build_config(parse([]))
+    assert (cfg.dataset, cfg.edge_host, cfg.edge_port, cfg.agent_id) == (
+        tmp_path,
+        "edge",
+        7001,
+        "robot-9",
+    )
+    assert cfg.secret == b"s" * 16
+    monkeypatch.delenv("RECSLAM_EDGE")
+    with pytest.raises(SystemExit):
+        parse([])  # --edge is required again
