@@ -14,11 +14,12 @@ every message (``Client.flush``).
 Backlog while the edge is away: the client keeps reconnecting with backoff and queues in its
 outbox, which is sized for ``backlog_s`` seconds of frames at the camera rate (default 30
 minutes: ``max_outbox_messages = ceil(backlog_s * rate)``) and at most
-``max_backlog_bytes`` bytes (default 256 MiB, ~1.7 h at the measured ~40 KB/s of the EuRoC
-excerpt). Frames keep being tracked and queued in real time while the edge is away; on
-reconnect the protocol replays the backlog in order, exactly once. Beyond the bound the send
-waits (back-pressure, logged once per outage): frames are delayed, never dropped. The
-backlog lives in memory, so it does not survive a restart of the robot process.
+``max_backlog_bytes`` bytes (default 256 MiB; the EuRoC excerpt streams ~26 KB/s, so 30
+minutes take ~47 MB of memory: see ``benchmarks/results/link_rate.md``). Frames keep being
+tracked and queued in real time while the edge is away; on reconnect the protocol replays the
+backlog in order, exactly once. Beyond the bound the send waits (back-pressure, logged once
+per outage): frames are delayed, never dropped. The backlog lives in memory, so it does not
+survive a restart of the robot process.
 
 Shared secret (:func:`load_secret`): ``--secret-file`` (contents, trailing newline stripped),
 else the environment variable ``RECSLAM_SECRET``, else a development default with a logged
