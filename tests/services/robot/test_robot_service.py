@@ -205,7 +205,7 @@ def test_frames_decode_to_what_the_robot_used_and_feedback_is_applied(vocabulary
 
 
 @pytest.mark.parametrize("rate,backlog_s", [(Rate.REALTIME, 1800.0), (Rate.MAX, 0.05)])
-def test_edge_outage_loses_nothing(vocabulary, rate, backlog_s):
+def test_edge_outage_loses_nothing(vocabulary, rate, backlog_s, caplog):
     """The edge vanishes (black hole + cut) mid-run: the robot keeps tracking and queueing
     (realtime), or waits on a tiny backlog (back-pressure); it catches up; nothing is lost."""
     seq = EurocSequence(EXCERPT)
@@ -225,8 +225,14 @@ def test_edge_outage_loses_nothing(vocabulary, rate, backlog_s):
                         if app.frames >= marks["frozen_at"] + 10:
                             break
                         await asyncio.sleep(0.05)
-                else:  # a second: the tiny backlog fills and the robot waits
-                    await asyncio.sleep(1.0)
+                else:  # until the 17-message backlog is full, then a little longer
+                    client = service_box[0].client
+                    for _ in range(400):
+                        if client.counters()["outbox_messages"] >= 17:
+                            break
+                        await asyncio.sleep(0.05)
+                    marks["full_at"] = app.frames
+                    await asyncio.sleep(0.5)
                 marks["thawed_at"] = app.frames
                 proxy.thaw()
 
@@ -259,6 +265,8 @@ def test_edge_outage_loses_nothing(vocabulary, rate, backlog_s):
         assert kept_going >= 10  # tracked and queued while the edge was away
     else:
         assert kept_going <= 19  # blocked on the 17-message backlog (+1 sending, +1 tracking)
+        assert marks["thawed_at"] - marks["full_at"] <= 2  # stalled while full
+        assert "backlog full" in caplog.text
 
 
 def test_robot_process_runs_to_the_end_and_stops_on_sigterm(vocabulary, tmp_path):
