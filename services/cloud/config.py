@@ -197,6 +197,9 @@ class CloudServiceConfig:
     bandwidth_window_s: bandwidth samples kept for the dashboard (default 120 s).
     display_spacing_m: in the dashboard, maps that are not merged yet are shown side by side,
         this far apart along x (default 0 m: each in its own frame, overlapping).
+    optimizer_process: solve pose graphs in a separate process (default True: gtsam holds the
+        GIL during most of a solve, which would stall the event loop's thread); False uses a
+        thread (no process start-up, fine for small maps).
     """
 
     domain: CloudConfig = field(default_factory=CloudConfig)
@@ -209,3 +212,4 @@ class CloudServiceConfig:
     publish_every_s: float = 0.5
     bandwidth_window_s: float = 120.0
     display_spacing_m: float = 0.0
+    optimizer_process: bool = True

@@ -12,8 +12,10 @@ per edge link: the edge's stream id and last delivered sequence, overwritten whe
 starts a new stream, see :meth:`CloudStore.positions`) and ``agent_names`` (the robots'
 names, their integer agent ids in the atlas, and the edge and edge map that serve them).
 
-Arrays are stored as ``.npy`` payloads (``numpy.save``, no pickle) inside an uncompressed
-``.npz`` blob per row.
+Keyframe arrays are stored as ``.npy`` payloads (``numpy.save``, no pickle) inside an
+uncompressed ``.npz`` blob per row. Map point rows (many, small, rewritten whenever an
+observation is added) use a flat little-endian blob instead, ~40x cheaper to write:
+``p_map`` as 3 ``<f8`` followed by ``(M, 2)`` ``<i8`` rows ``(keyframe key, keypoint index)``.
 """
 
 from __future__ import annotations
@@ -39,7 +41,7 @@ from services.cloud.atlas import (
 log = logging.getLogger(__name__)
 
 DB_NAME = "cloud.sqlite"
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS meta (name TEXT PRIMARY KEY, value INTEGER NOT NULL);
@@ -79,6 +81,22 @@ def _pack(**arrays: np.ndarray) -> bytes:
 def _unpack(blob: bytes) -> dict[str, np.ndarray]:
     with np.load(io.BytesIO(blob), allow_pickle=False) as z:
         return {k: z[k] for k in z.files}
+
+
+def _pack_point(p_map: np.ndarray, obs_keyframes: np.ndarray, obs_indices: np.ndarray) -> bytes:
+    obs = np.stack([obs_keyframes, obs_indices], axis=1).astype("<i8")
+    return np.asarray(p_map, "<f8").tobytes() + obs.tobytes()
+
+
+def _unpack_point(blob: bytes) -> dict[str, np.ndarray]:
+    if len(blob) < 24 or (len(blob) - 24) % 16:
+        raise ValueError(f"map point blob of {len(blob)} bytes")
+    obs = np.frombuffer(blob, "<i8", offset=24).reshape(-1, 2).astype(np.int64)
+    return {
+        "p_map": np.frombuffer(blob, "<f8", 3).astype(np.float64),
+        "obs_keyframes": obs[:, 0].copy(),
+        "obs_indices": obs[:, 1].copy(),
+    }
 
 
 def _arr(blob: bytes) -> np.ndarray:
@@ -198,7 +216,7 @@ class CloudStore:
                 db.execute("DELETE FROM map_points WHERE key = ?", (key,))
                 continue
             m = atlas.map_point(key)
-            blob = _pack(p_map=m.p_map, obs_keyframes=m.obs_keyframes, obs_indices=m.obs_indices)
+            blob = _pack_point(m.p_map, m.obs_keyframes, m.obs_indices)
             db.execute(
                 "INSERT OR REPLACE INTO map_points VALUES (?, ?, ?, ?, ?, ?)",
                 (key, m.agent_id, m.map_point_id, m.map_id, m.ref_kf, blob),
@@ -264,7 +282,7 @@ class CloudStore:
             for key, agent, mp_id, map_id, ref, blob in db.execute(
                 "SELECT key, agent, map_point_id, map_id, ref_kf, data FROM map_points"
             ):
-                d = _unpack(blob)
+                d = _unpack_point(blob)
                 mps.append(MapPointView(key=key, agent_id=agent, map_point_id=mp_id, map_id=map_id,
                                         ref_kf=ref, **d))  # fmt: skip
             agents = list(db.execute("SELECT agent, map_id, T_map_agent FROM agents"))

@@ -12,9 +12,11 @@
   bad message cannot wedge an edge's stream forever;
 - global optimisation is debounced: a map is scheduled at once after a loop or merge and
   after every ``optimize_every_keyframes`` new keyframes; ``debounce_s`` later the pose
-  graph is built on the worker, solved on a separate *optimizer* thread (gtsam releases the
-  GIL while it solves, see ``benchmarks/bench_cloud.py``), written back on the worker, and
-  the corrected poses go to the edges as ``PoseCorrection`` in each robot's own map frame;
+  graph is built on the worker, solved in a separate *optimizer* process (gtsam holds the
+  GIL for most of a solve, so a thread would starve the event loop: measured in
+  ``benchmarks/results/cloud_service.md``; ``optimizer_process=False`` uses a thread),
+  written back on the worker, and the corrected poses go to the edges as
+  ``PoseCorrection`` in each robot's own map frame;
 - MBP runs on the worker right after an optimisation when due (it mutates the atlas);
 - the dashboard's :class:`~services.cloud.map_source.CloudMapSource` is refreshed every
   ``publish_every_s``; trajectories (and the ATE report with ground truth) are written every
@@ -26,8 +28,9 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import multiprocessing
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Executor, ProcessPoolExecutor, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TypeVar
@@ -65,6 +68,11 @@ class CloudStats:
     maps: tuple[int, ...]
     merges: int
     loops: int
+
+
+def _warm_up() -> None:
+    """Runs in the optimizer process once: pay the gtsam import before the first merge."""
+    import services.cloud.global_optimization  # noqa: F401
 
 
 class CloudServer:
@@ -107,7 +115,13 @@ class CloudServer:
         )
         self.positions = PositionStore()
         self._worker = ThreadPoolExecutor(1, thread_name_prefix="cloud-worker")
-        self._optimizer = ThreadPoolExecutor(1, thread_name_prefix="cloud-optimizer")
+        self._io = ThreadPoolExecutor(1, thread_name_prefix="cloud-io")
+        self._optimizer: Executor
+        if self.config.optimizer_process:
+            ctx = multiprocessing.get_context("spawn")
+            self._optimizer = ProcessPoolExecutor(1, mp_context=ctx)
+        else:
+            self._optimizer = ThreadPoolExecutor(1, thread_name_prefix="cloud-optimizer")
         self._app: CloudApp | None = None
         self._server = Server(session, self._on_message, transport=transport, store=self.positions)
         self._max_failures = max_failures
@@ -137,6 +151,7 @@ class CloudServer:
 
     async def start(self, host: str = "127.0.0.1", port: int = 0) -> tuple[str, int]:
         """Load the state directory, then listen; returns the bound address."""
+        self._optimizer.submit(_warm_up)  # import gtsam in the optimizer now, not at a merge
         self._app = await self._on_worker(self._open)
         n = self._app.atlas.n_keyframes()
         log.info("cloud state %s: %d keyframes, %d map points, maps %s", self.state_dir, n,
@@ -168,6 +183,7 @@ class CloudServer:
             await self._on_worker(self._app.close)
             self._app = None
         self._worker.shutdown(wait=True)
+        self._io.shutdown(wait=True)
         self._optimizer.shutdown(wait=True)
 
     async def __aenter__(self) -> CloudServer:
@@ -302,7 +318,7 @@ class CloudServer:
             return []
         trajs, maps = await self._on_worker(app.trajectories)
         loop = asyncio.get_running_loop()
-        return await loop.run_in_executor(self._optimizer, out.write, trajs, maps, evaluate)
+        return await loop.run_in_executor(self._io, out.write, trajs, maps, evaluate)
 
     async def _output_loop(self) -> None:
         while True:
