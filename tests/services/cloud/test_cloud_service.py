@@ -292,3 +292,65 @@ def test_map_source_versions_and_pruned_items():
     v3 = src.publish(CloudView(atlas.snapshot(), (), frozenset({keys[4]}), frozenset()))
     assert src.snapshot(v2).removed_keyframe_ids.tolist() == [keys[2]]
     assert len(src.snapshot(-1).keyframes) == 5 and src.snapshot(-1).version == v3
+
+
+def test_cloud_command_in_a_subprocess_stops_on_sigterm_and_writes_results(
+    tmp_path, vocab, scenario
+):
+    """``recslam cloud`` as a real process: an edge feeds it, SIGTERM stops it cleanly, and
+    the trajectories and the ATE report (ground truth given) are in the result folder."""
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    from common.evaluation.trajectory import Trajectory
+    from common.evaluation.tum import write_tum
+    from common.geometry import R_to_quat_wxyz
+
+    truth = scenario["r0"]["truth"]
+    n = scenario["r0"]["n_keyframes"]
+    ts = np.round(np.arange(n) * 0.5 * 1e9).astype(np.int64)
+    q = np.array([R_to_quat_wxyz(T[:3, :3]) for T in truth])
+    (tmp_path / "gt").mkdir()
+    write_tum(tmp_path / "gt" / "r0.tum", Trajectory(ts, truth[:, :3, 3], q, "r0"))
+    code = (
+        "import argparse, logging, sys\n"
+        "from recslam.commands import cloud\n"
+        "logging.basicConfig(level=logging.INFO)\n"
+        "p = argparse.ArgumentParser(); cloud.register(p.add_subparsers())\n"
+        "a = p.parse_args(sys.argv[1:]); sys.exit(a.func(a))\n"
+    )
+    args = ["cloud", "--listen", "127.0.0.1:0", "--state-dir", str(tmp_path / "state"),
+            "--dashboard-port", "0", "--results", str(tmp_path / "res"),
+            "--groundtruth", str(tmp_path / "gt"), "--no-mbp", "--output-every", "0"]  # fmt: skip
+    env = {**os.environ, "RECSLAM_SECRET": SECRET.decode()}
+    log_path = tmp_path / "cloud.log"
+    with (
+        open(log_path, "w") as log_file,
+        subprocess.Popen([sys.executable, "-c", code, *args], stdout=subprocess.PIPE,
+                         stderr=log_file, text=True, env=env) as proc,
+    ):  # fmt: skip
+        try:
+            line = proc.stdout.readline()
+            assert line.startswith("cloud listening on 127.0.0.1:"), line + log_path.read_text()
+            port = int(line.split(",")[0].rsplit(":", 1)[1])
+
+            async def feed() -> None:
+                edge = await Edge("edge-a", port).start()
+                await edge.send_all(scenario["r0"]["messages"])
+                await edge.client.flush()
+                await edge.client.close()
+
+            run(feed())
+            proc.send_signal(signal.SIGTERM)
+            assert proc.wait(timeout=60) == 0, log_path.read_text()
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+    traj = read_tum(tmp_path / "res" / "trajectories" / "r0.tum")
+    assert len(traj.timestamps_ns) == n
+    report = json.loads((tmp_path / "res" / "eval" / "ate.json").read_text())
+    assert report["joint"]["stats_m"]["rmse"] < 0.05
+    assert (tmp_path / "res" / "eval" / "ate.md").is_file()
