@@ -178,18 +178,22 @@ class CloudApp:
             a, changed = self._agent(message.agent_id, edge_id, message.map_id)
             a.status, a.frames = message.state, message.frames
             a.link_counters = dict(message.link_counters)
-            # Status is not durable state: its position is saved with the next effect.
-            if changed:
-                self.store.commit(self.atlas, positions=position,
-                                  agents=self._agent_rows([message.agent_id]))  # fmt: skip
-            else:
-                return Reaction()
+            # Its position is saved too: a stale position would make the edge's replay
+            # start at messages it no longer holds.
+            agents = self._agent_rows([message.agent_id]) if changed else None
+            self.store.commit(self.atlas, positions=position, agents=agents)
             reaction = Reaction()
         else:
             log.warning("ignoring %s from edge %s", type(message).__name__, edge_id)
+            self.skip(edge_id, stream_id, seq)
             return Reaction()
         self.positions.set(edge_id, InboundPosition(stream_id, seq))
         return reaction
+
+    def skip(self, edge_id: str, stream_id: bytes, seq: int) -> None:
+        """Record a message as delivered without effect (ignored or given up on)."""
+        self.store.commit(self.atlas, positions={edge_id: (stream_id, seq)})
+        self.positions.set(edge_id, InboundPosition(stream_id, seq))
 
     def _keyframe(
         self, edge_id: str, msg: KeyframeUpdate, position: dict[str, tuple[bytes, int]]

@@ -7,7 +7,8 @@
 - every message goes to :class:`~services.cloud.app.CloudApp` on a single *worker* thread
   (decode, place recognition, verification, merging, SQLite commit). The transport
   acknowledges after the handler returns, i.e. after the commit: acknowledged = durable.
-  A malformed message makes the handler raise, which closes that edge's connection only;
+  A malformed message (any ``RecslamError`` but a storage failure) makes the handler raise,
+  which closes that edge's connection only;
   a message that fails ``max_failures`` times in a row is logged and skipped so that one
   bad message cannot wedge an edge's stream forever;
 - global optimisation is debounced: a map is scheduled at once after a loop or merge and
@@ -36,6 +37,7 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 from common.calibration import CameraCalibration
+from common.errors import RecslamError
 from common.protocol import OutboxFullError, SessionConfig
 from common.protocol.errors import LocalProtocolError
 from common.transport import Delivery, Server, TransportConfig
@@ -46,8 +48,7 @@ from services.cloud.global_optimization import optimize_pose_graph
 from services.cloud.map_fusion import MapFusion
 from services.cloud.map_source import CloudMapSource
 from services.cloud.output import OutputWriter
-from services.cloud.persistence import CloudStore
-from services.cloud.uplink import UplinkError
+from services.cloud.persistence import CloudStore, PersistenceError
 
 log = logging.getLogger(__name__)
 
@@ -200,13 +201,16 @@ class CloudServer:
         key = (d.peer, d.stream_id, d.seq)
         try:
             reaction = await self._on_worker(app.handle, d.peer, d.message, d.stream_id, d.seq)
-        except UplinkError as exc:
+        except PersistenceError:
+            raise  # not the message's fault: no ack, it is redelivered
+        except RecslamError as exc:  # malformed or inconsistent input (UplinkError, AtlasError)
             n = self._failures.get(key, 0) + 1
             self._failures[key] = n
             if n >= self._max_failures:
                 log.error("edge %s: skipping message %d after %d failures: %s", d.peer, d.seq,
                           n, exc)  # fmt: skip
                 self._failures.pop(key, None)
+                await self._on_worker(app.skip, d.peer, d.stream_id, d.seq)
                 return
             log.warning("edge %s: malformed %s (seq %d): %s; closing its connection", d.peer,
                         type(d.message).__name__, d.seq, exc)  # fmt: skip
