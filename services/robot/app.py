@@ -97,7 +97,8 @@ class RobotApp:
         self.feedback_rejected = 0
         self._map_id: int | None = None
         self._pending: InertialFeedback | None = None
-        self._lock = threading.Lock()
+        self._pending_lock = threading.Lock()  # guards _pending (loop vs worker thread)
+        self._lock = threading.Lock()  # held while the front end is in use
 
     # ------------------------------------------------------------------ worker thread
     def process(self, timestamp_ns: int, image: np.ndarray, imu: ImuSamples) -> RobotFrame:
@@ -137,7 +138,8 @@ class RobotApp:
         msg = delivery.message
         if isinstance(msg, InertialFeedback):
             self.feedback_received += 1
-            self._pending = msg
+            with self._pending_lock:
+                self._pending = msg
             if self._lock.acquire(blocking=False):  # no frame in progress: apply now
                 try:
                     self._apply_pending_locked()
@@ -152,7 +154,8 @@ class RobotApp:
             self._apply_pending_locked()
 
     def _apply_pending_locked(self) -> None:
-        msg, self._pending = self._pending, None
+        with self._pending_lock:
+            msg, self._pending = self._pending, None
         if msg is None:
             return
         try:
