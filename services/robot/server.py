@@ -26,7 +26,8 @@ else the environment variable ``RECSLAM_SECRET``, else a development default wit
 warning. At least 16 bytes.
 
 Signals: SIGINT/SIGTERM stop the playback after the current frame; the sequence end is still
-sent and flushed (bounded by ``flush_timeout_s`` if set); a second signal cancels the flush.
+sent and flushed (bounded by ``flush_timeout_s`` if set); a second signal gives up waiting for
+the edge (a blocked send or the flush) and exits.
 """
 
 from __future__ import annotations
@@ -49,7 +50,7 @@ from common.data.euroc import EurocSequence, Frame
 from common.errors import RecslamError
 from common.protocol import SessionConfig
 from common.protocol.auth import MIN_SECRET_SIZE
-from common.protocol.messages import RobotFrame
+from common.protocol.messages import Message, RobotFrame
 from common.transport import Client, TransportConfig
 from common.vocabulary import DEFAULT_VOCABULARY_PATH, Vocabulary
 from services.robot.app import RobotApp
@@ -262,8 +263,7 @@ class RobotService:
         executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix=f"robot-{cfg.agent_id}")
         try:
             await self._play(executor)
-            await self.client.send(self.app.end_message())
-            flushed = await self._flush()
+            flushed = await self._send(self.app.end_message()) and await self._flush()
             self.app.apply_pending()
         finally:
             executor.shutdown(wait=True)
@@ -320,7 +320,29 @@ class RobotService:
                 blocked = True
             else:
                 blocked = False
-            await self.client.send(msg)
+            if not await self._send(msg):
+                break
+
+    async def _send(self, msg: Message) -> bool:
+        """Queue ``msg`` (waiting while the backlog is full); False if a second signal
+        aborted the wait."""
+        assert self.client is not None
+        if self._abort.is_set():
+            return False
+        send = asyncio.ensure_future(self.client.send(msg))
+        abort = asyncio.ensure_future(self._abort.wait())
+        try:
+            await asyncio.wait({send, abort}, return_when=asyncio.FIRST_COMPLETED)
+        finally:
+            for fut in (send, abort):
+                if not fut.done():
+                    fut.cancel()
+                    with contextlib.suppress(asyncio.CancelledError):
+                        await fut
+        if send.done() and not send.cancelled():
+            send.result()  # re-raise a send error
+            return True
+        return False
 
     async def _flush(self) -> bool:
         assert self.client is not None

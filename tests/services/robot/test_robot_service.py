@@ -7,6 +7,7 @@ import asyncio
 import dataclasses
 import os
 import signal
+import socket
 import sys
 from pathlib import Path
 
@@ -322,3 +323,26 @@ def test_config_dataclass_rejects_nonsense():
     ]:
         with pytest.raises(RobotConfigError, match=what):
             dataclasses.replace(ok, **change)
+
+
+def test_unreachable_edge_keeps_frames_until_a_second_stop(vocabulary):
+    """No edge at all: every frame is tracked and queued; a first stop request waits for the
+    edge, a second gives up (interrupted, not flushed)."""
+    with socket.socket() as sock:  # a port nobody listens on
+        sock.bind(("127.0.0.1", 0))
+        port = sock.getsockname()[1]
+
+    async def main():
+        service = RobotService(robot_config(port, max_frames=6, flush_timeout_s=None), FAST)
+        task = asyncio.ensure_future(service.run())
+        while service.client is None or service.client.counters()["outbox_messages"] < 7:
+            await asyncio.sleep(0.05)  # 6 frames + the sequence end, queued
+        service.request_stop()
+        await asyncio.sleep(0.3)
+        assert not task.done()  # still waiting for the edge to take the backlog
+        service.request_stop()
+        return await asyncio.wait_for(task, 10)
+
+    result = run(main())
+    assert result.interrupted and not result.flushed and result.frames == 6
+    assert result.counters["outbox_messages"] == 7
