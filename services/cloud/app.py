@@ -12,9 +12,11 @@ SQLite transaction. The transport acknowledges after the handler returns, so an
 acknowledged keyframe is durable, and a restarted cloud tells the edge where to resume:
 nothing acknowledged is lost and nothing is applied twice (:class:`PositionStore`).
 
-Robots are named by strings on the wire (``KeyframeUpdate.agent_id``); the atlas numbers
-them 0, 1, ... in order of appearance. The name table, with the edge serving each robot and
-the edge's map id, is persisted with the keyframes.
+Robots are named by strings on the wire (``KeyframeUpdate.agent_id``) and each robot's edge
+may start a new map for it (``map_id``, e.g. after tracking was lost): every (robot, edge
+map) pair has its own frame, so it is one *atlas agent*, numbered 0, 1, ... in order of
+appearance. The table of agents (robot name, edge, edge map) is persisted with the
+keyframes. Corrections go back per atlas agent, in that edge map's frame.
 """
 
 from __future__ import annotations
@@ -92,6 +94,7 @@ class Reaction:
 @dataclass
 class _Agent:
     agent_id: int
+    name: str
     edge_id: str
     edge_map: int
     status: str = "initializing"
@@ -127,9 +130,9 @@ class CloudApp:
         self.vocabulary = vocabulary
         self.config = config
         self.positions = positions or PositionStore()
-        self._agents: dict[str, _Agent] = {}
-        for name, (aid, edge, edge_map) in store.agents().items():
-            self._agents[name] = _Agent(aid, edge, edge_map)
+        self._agents: dict[tuple[str, int], _Agent] = {}  # (robot, edge map) -> agent
+        for aid, (name, edge, edge_map) in store.agents().items():
+            self._agents[name, edge_map] = _Agent(aid, name, edge, edge_map)
         for edge, (stream, seq) in store.positions().items():
             self.positions.set(edge, InboundPosition(stream, seq))
         self._mbp_done: dict[int, int] = {}  # map -> keyframes at its last MBP pass
@@ -144,22 +147,22 @@ class CloudApp:
 
     # ------------------------------------------------------------------ agents
     def _agent(self, name: str, edge_id: str, edge_map: int) -> tuple[_Agent, bool]:
-        a = self._agents.get(name)
+        a = self._agents.get((name, edge_map))
         if a is None:
             next_id = max((x.agent_id for x in self._agents.values()), default=-1) + 1
-            a = self._agents[name] = _Agent(next_id, edge_id, edge_map)
-            log.info("new robot %r (agent %d) served by edge %r", name, next_id, edge_id)
+            a = self._agents[name, edge_map] = _Agent(next_id, name, edge_id, edge_map)
+            log.info("new agent %d: robot %r, map %d of edge %r", next_id, name, edge_map, edge_id)
             return a, True
-        changed = (a.edge_id, a.edge_map) != (edge_id, edge_map)
-        a.edge_id, a.edge_map = edge_id, edge_map
+        changed = a.edge_id != edge_id
+        a.edge_id = edge_id
         return a, changed
 
-    def agent_names(self) -> dict[int, str]:
-        return {a.agent_id: n for n, a in self._agents.items()}
+    def agents(self) -> dict[int, tuple[str, str, int]]:
+        """``{atlas agent id: (robot name, edge id, edge map id)}``."""
+        return {a.agent_id: (a.name, a.edge_id, a.edge_map) for a in self._agents.values()}
 
-    def _agent_rows(self, names: list[str]) -> dict[str, tuple[int, str, int]]:
-        return {n: (self._agents[n].agent_id, self._agents[n].edge_id,
-                    self._agents[n].edge_map) for n in names}  # fmt: skip
+    def _rows(self, a: _Agent) -> dict[int, tuple[str, str, int]]:
+        return {a.agent_id: (a.name, a.edge_id, a.edge_map)}
 
     # ------------------------------------------------------------------ messages
     def handle(self, edge_id: str, message: Message, stream_id: bytes, seq: int) -> Reaction:
@@ -180,7 +183,7 @@ class CloudApp:
             a.link_counters = dict(message.link_counters)
             # Its position is saved too: a stale position would make the edge's replay
             # start at messages it no longer holds.
-            agents = self._agent_rows([message.agent_id]) if changed else None
+            agents = self._rows(a) if changed else None
             self.store.commit(self.atlas, positions=position, agents=agents)
             reaction = Reaction()
         else:
@@ -210,7 +213,7 @@ class CloudApp:
             if not self.atlas.has_keyframe(key):
                 log.warning("pose update of unknown keyframe %s/%d", msg.agent_id, d.keyframe_id)
                 self.store.commit(self.atlas, positions=position,
-                                  agents=self._agent_rows([msg.agent_id]))  # fmt: skip
+                                  agents=self._rows(a))  # fmt: skip
                 return Reaction()
             v = self.atlas.keyframe(key)
             real = ~v.virtual
@@ -227,7 +230,7 @@ class CloudApp:
         a.last_seen = d.timestamp_ns * 1e-9
         reaction = Reaction(urgent_maps=set(events.maps_to_optimize))
         merged = any(o.merge is not None for o in events.outcomes)
-        agents = self._agent_rows([msg.agent_id])
+        agents = self._rows(a)
         if merged or events.outcomes:
             self.store.save_all(self.atlas, positions=position, agents=agents)
             reaction.merged = merged
@@ -252,7 +255,7 @@ class CloudApp:
             raise
         keys = [self.fusion.add_map_point(p) for p in points]
         self.store.commit(self.atlas, [], keys, positions=position,
-                          agents=self._agent_rows([msg.agent_id]))  # fmt: skip
+                          agents=self._rows(a))  # fmt: skip
         return Reaction()
 
     def _cull(
@@ -276,7 +279,7 @@ class CloudApp:
             if self.atlas.has_map_point(m):
                 self.atlas.remove_map_point(m)
         self.store.commit(self.atlas, kf_keys, [*mp_keys, *touched], positions=position,
-                          agents=self._agent_rows([msg.agent_id]))  # fmt: skip
+                          agents=self._rows(a))  # fmt: skip
         return Reaction()
 
     # ------------------------------------------------------------------ optimisation
@@ -301,19 +304,18 @@ class CloudApp:
         return self.corrections(map_id)
 
     def corrections(self, map_id: int) -> list[Correction]:
-        """Current keyframe poses of every robot in ``map_id``, each in its own map frame."""
-        names = self.agent_names()
+        """Current keyframe poses of every agent in ``map_id``, each in its own map frame."""
         out = []
-        for agent in self.atlas.agents_in_map(map_id):
-            name = names.get(agent)
-            keys = self.atlas.keyframe_keys(map_id=map_id, agent_id=agent)
-            if name is None or not keys:
+        for a in self._agents.values():
+            if a.agent_id not in self.atlas.agents():
                 continue
-            T_agent_map = inverse_T(self.atlas.T_map_agent(agent))
+            keys = self.atlas.keyframe_keys(map_id=map_id, agent_id=a.agent_id)
+            if not keys:
+                continue
+            T_agent_map = inverse_T(self.atlas.T_map_agent(a.agent_id))
             ids = np.array([self.atlas.keyframe(k).keyframe_id for k in keys], np.int64)
             T = np.array([T_agent_map @ self.atlas.T_map_body(k) for k in keys])
-            info = self._agents[name]
-            out.append(Correction(info.edge_id, pose_correction(name, info.edge_map, ids, T)))
+            out.append(Correction(a.edge_id, pose_correction(a.name, a.edge_map, ids, T)))
         return out
 
     def prune_due(self, map_id: int) -> bool:
@@ -337,38 +339,50 @@ class CloudApp:
 
     # ------------------------------------------------------------------ outputs
     def trajectories(self) -> tuple[dict[str, Trajectory], dict[str, int]]:
-        """Keyframe trajectories ``T_map_body`` per robot name, and each robot's map id."""
-        names = self.agent_names()
+        """Keyframe trajectories ``T_map_body`` per robot name, and each robot's map id.
+
+        A robot whose edge started several maps for it contributes the keyframes of those
+        maps that ended in the same atlas map as its largest one (the others are in frames
+        the robot's trajectory cannot be expressed in; they are logged)."""
         trajs: dict[str, Trajectory] = {}
         maps: dict[str, int] = {}
-        for agent, name in sorted(names.items()):
-            if agent not in self.atlas.agents():
+        by_name: dict[str, list[_Agent]] = {}
+        for a in self._agents.values():
+            if a.agent_id in self.atlas.agents():
+                by_name.setdefault(a.name, []).append(a)
+        for name, agents in sorted(by_name.items()):
+            keys = {a.agent_id: self.atlas.keyframe_keys(agent_id=a.agent_id) for a in agents}
+            main = max(agents, key=lambda a: len(keys[a.agent_id])).agent_id
+            if not keys[main]:
                 continue
-            keys = self.atlas.keyframe_keys(agent_id=agent)
-            if not keys:
-                continue
-            views = sorted((self.atlas.keyframe(k) for k in keys), key=lambda v: v.timestamp)
+            map_id = self.atlas.map_of_agent(main)
+            use = [k for a in agents if self.atlas.map_of_agent(a.agent_id) == map_id
+                   for k in keys[a.agent_id]]  # fmt: skip
+            if len(use) < sum(len(v) for v in keys.values()):
+                log.warning("robot %s: keyframes of unmerged maps left out of its trajectory", name)
+            views = sorted((self.atlas.keyframe(k) for k in use), key=lambda v: v.timestamp)
             ts = np.array([round(v.timestamp * 1e9) for v in views], np.int64)
             keep = np.concatenate([[True], np.diff(ts) > 0])
             views = [v for v, k in zip(views, keep, strict=True) if k]
             T = np.array([v.T_map_body for v in views])
             q = np.array([R_to_quat_wxyz(t[:3, :3]) for t in T])
             trajs[name] = Trajectory(ts[keep], T[:, :3, 3], q, name)
-            maps[name] = self.atlas.map_of_agent(agent)
+            maps[name] = map_id
         return trajs, maps
 
     def view(self, counters: dict[str, dict] | None = None) -> CloudView:
         """Plain data for the dashboard's map source (built on the worker thread)."""
         agents = tuple(
             AgentInfo(
-                agent_id=a.agent_id, name=n, edge_id=a.edge_id, status=a.status, frames=a.frames,
+                agent_id=a.agent_id, name=a.name, edge_id=a.edge_id, status=a.status,
+                frames=a.frames,
                 keyframes=len(self.atlas.keyframe_keys(agent_id=a.agent_id)),
                 last_seen=a.last_seen,
                 map_id=self.atlas.map_of_agent(a.agent_id)
                 if a.agent_id in self.atlas.agents() else a.agent_id,
                 link_counters=dict(a.link_counters),
             )
-            for n, a in sorted(self._agents.items())
+            for a in sorted(self._agents.values(), key=lambda x: x.agent_id)
         )  # fmt: skip
         return CloudView(
             atlas=self.atlas.snapshot(),

@@ -9,8 +9,8 @@ acknowledged is on disk. :meth:`CloudStore.load` rebuilds an :class:`Atlas` from
 
 Two tables serve the network service: ``edge_positions`` (the transport's inbound position
 per edge link: the edge's stream id and last delivered sequence, overwritten when the edge
-starts a new stream, see :meth:`CloudStore.positions`) and ``agent_names`` (the robots'
-names, their integer agent ids in the atlas, and the edge and edge map that serve them).
+starts a new stream, see :meth:`CloudStore.positions`) and ``agent_names`` (each atlas agent
+is one robot's map on its edge: the robot's name, the edge serving it and the edge's map id).
 
 Keyframe arrays are stored as ``.npy`` payloads (``numpy.save``, no pickle) inside an
 uncompressed ``.npz`` blob per row. Map point rows (many, small, rewritten whenever an
@@ -63,8 +63,8 @@ CREATE TABLE IF NOT EXISTS removed_keyframes (key INTEGER PRIMARY KEY);
 CREATE TABLE IF NOT EXISTS edge_sequences (edge_id TEXT PRIMARY KEY, last_seq INTEGER NOT NULL);
 CREATE TABLE IF NOT EXISTS edge_positions (edge_id TEXT PRIMARY KEY, stream_id BLOB NOT NULL,
     last_seq INTEGER NOT NULL);
-CREATE TABLE IF NOT EXISTS agent_names (name TEXT PRIMARY KEY, agent INTEGER UNIQUE NOT NULL,
-    edge_id TEXT NOT NULL, edge_map INTEGER NOT NULL);
+CREATE TABLE IF NOT EXISTS agent_names (agent INTEGER PRIMARY KEY, name TEXT NOT NULL,
+    edge_id TEXT NOT NULL, edge_map INTEGER NOT NULL, UNIQUE (name, edge_map));
 """
 
 
@@ -141,13 +141,13 @@ class CloudStore:
         map_points: Iterable[int] = (),
         edge_sequences: Mapping[str, int] | None = None,
         positions: Mapping[str, tuple[bytes, int]] | None = None,
-        agents: Mapping[str, tuple[int, str, int]] | None = None,
+        agents: Mapping[int, tuple[str, str, int]] | None = None,
     ) -> None:
         """In one transaction: write the given keyframes and map points as the atlas holds them
         (rows of keys no longer in the atlas are deleted), the atlas bookkeeping, the last
         delivered sequence of each edge, the transport ``positions`` ``{edge: (stream id,
-        last delivered seq)}`` (replacing the stored ones) and ``agents`` ``{name: (agent id,
-        edge id, edge map id)}``. Returns once the data is durable."""
+        last delivered seq)}`` (replacing the stored ones) and ``agents`` ``{agent id: (robot
+        name, edge id, edge map id)}``. Returns once the data is durable."""
         db = self._db
         db.execute("BEGIN IMMEDIATE")
         try:
@@ -164,10 +164,10 @@ class CloudStore:
                     "INSERT OR REPLACE INTO edge_positions VALUES (?, ?, ?)",
                     (str(edge_id), bytes(stream_id), int(seq)),
                 )
-            for name, (agent, edge_id, edge_map) in (agents or {}).items():
+            for agent, (name, edge_id, edge_map) in (agents or {}).items():
                 db.execute(
                     "INSERT OR REPLACE INTO agent_names VALUES (?, ?, ?, ?)",
-                    (str(name), int(agent), str(edge_id), int(edge_map)),
+                    (int(agent), str(name), str(edge_id), int(edge_map)),
                 )
             db.execute("COMMIT")
         except BaseException:
@@ -179,7 +179,7 @@ class CloudStore:
         atlas: Atlas,
         edge_sequences: Mapping[str, int] | None = None,
         positions: Mapping[str, tuple[bytes, int]] | None = None,
-        agents: Mapping[str, tuple[int, str, int]] | None = None,
+        agents: Mapping[int, tuple[str, str, int]] | None = None,
     ) -> None:
         """Write the whole atlas (after a merge, an optimisation or MBP), deleting stale rows."""
         kf_keys = atlas.keyframe_keys()
@@ -261,10 +261,10 @@ class CloudStore:
         rows = self._db.execute("SELECT edge_id, stream_id, last_seq FROM edge_positions")
         return {e: (bytes(s), int(q)) for e, s, q in rows}
 
-    def agents(self) -> dict[str, tuple[int, str, int]]:
-        """Known robots: ``{name: (agent id, edge id, edge map id)}``."""
-        rows = self._db.execute("SELECT name, agent, edge_id, edge_map FROM agent_names")
-        return {n: (int(a), str(e), int(m)) for n, a, e, m in rows}
+    def agents(self) -> dict[int, tuple[str, str, int]]:
+        """Known agents: ``{agent id: (robot name, edge id, edge map id)}``."""
+        rows = self._db.execute("SELECT agent, name, edge_id, edge_map FROM agent_names")
+        return {int(a): (str(n), str(e), int(m)) for a, n, e, m in rows}
 
     def load(self) -> Atlas:
         """Rebuild the atlas stored in this directory (empty atlas for a new directory)."""

@@ -105,8 +105,8 @@ def test_pose_correction_round_trip():
 def test_positions_and_robot_names_persist_in_the_same_store(tmp_path):
     atlas = Atlas()
     with CloudStore(tmp_path) as store:
-        store.commit(atlas, positions={"edge-a": (b"s1", 4)}, agents={"r0": (0, "edge-a", 7)})
+        store.commit(atlas, positions={"edge-a": (b"s1", 4)}, agents={0: ("r0", "edge-a", 7)})
         store.commit(atlas, positions={"edge-a": (b"s2", 1)})  # edge restarted: new stream
     with CloudStore(tmp_path) as store:
         assert store.positions() == {"edge-a": (b"s2", 1)}
-        assert store.agents() == {"r0": (0, "edge-a", 7)}
+        assert store.agents() == {0: ("r0", "edge-a", 7)}

@@ -1,0 +1,73 @@
+"""CloudApp without the network: one atlas agent per (robot, edge map), positions persisted
+with the effects and handed back to the transport after a restart."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from common.protocol.arrays import pack_array
+from common.protocol.messages import AgentStatus, CullEvent
+from common.vocabulary import Vocabulary
+from services.cloud.app import CloudApp
+from services.cloud.config import CloudServiceConfig
+from services.cloud.map_fusion import MapFusion
+from services.cloud.persistence import CloudStore
+from services.cloud.simulation import circle_poses, default_camera, make_session, make_world
+from services.cloud.uplink import decode_pose_correction, encode_keyframe_update
+
+
+@pytest.fixture(scope="module")
+def vocab() -> Vocabulary:
+    return Vocabulary.load()
+
+
+def _app(path, vocab) -> CloudApp:
+    store = CloudStore(path)
+    cfg = CloudServiceConfig()
+    return CloudApp(MapFusion(default_camera(), vocab.idf, cfg.domain, store.load()), store,
+                    vocab, cfg)  # fmt: skip
+
+
+def test_new_edge_map_of_a_robot_is_a_new_agent_and_survives_restart(tmp_path, vocab):
+    world = make_world(8, n_points=1500)
+    kfs, _ = make_session(world, default_camera(), 0, circle_poses(4, turns=0.1), np.eye(4))
+    app = _app(tmp_path, vocab)
+    seq = 0
+    for edge_map, ks in ((7, kfs[:2]), (8, kfs[2:])):
+        for k in ks:
+            seq += 1
+            msg, _ = encode_keyframe_update(k, "robot", vocab, edge_map_id=edge_map)
+            app.handle("edge-a", msg, b"stream", seq)
+    seq += 1
+    app.handle("edge-a", AgentStatus("robot", 8, "tracking", 10, 2, 0, {}), b"stream", seq)
+    assert app.agents() == {0: ("robot", "edge-a", 7), 1: ("robot", "edge-a", 8)}
+    assert app.atlas.maps() == [0, 1]
+    # Corrections: one per edge map, each naming its own map id.
+    msgs = [c.message for m in app.atlas.maps() for c in app.corrections(m)]
+    assert sorted((c.agent_id, c.map_id) for c in msgs) == [("robot", 7), ("robot", 8)]
+    ids, T = decode_pose_correction(msgs[0])
+    assert ids.tolist() == [0, 1] and np.allclose(T[0], kfs[0].T_world_body)
+    # The edge culls keyframe 3 of map 8.
+    seq += 1
+    cull = CullEvent("robot", 8, pack_array(np.array([3]), "<i8"), b"")
+    app.handle("edge-a", cull, b"stream", seq)
+    assert app.atlas.n_keyframes() == 3
+    app.close()
+
+    restarted = _app(tmp_path, vocab)
+    try:
+        assert restarted.agents() == app.agents()
+        assert restarted.atlas.keyframe_keys() == app.atlas.keyframe_keys()
+        pos = restarted.positions.load("edge-a")
+        assert pos is not None and (pos.stream_id, pos.last_delivered) == (b"stream", seq)
+        # A replayed keyframe (an update of a known one) adds nothing.
+        msg, _ = encode_keyframe_update(kfs[0], "robot", vocab, edge_map_id=7)
+        restarted.handle("edge-a", msg, b"stream", seq + 1)
+        assert restarted.atlas.n_keyframes() == 3
+        # A replay of the culled keyframe does not resurrect it.
+        msg, _ = encode_keyframe_update(kfs[3], "robot", vocab, edge_map_id=8)
+        restarted.handle("edge-a", msg, b"stream", seq + 2)
+        assert restarted.atlas.n_keyframes() == 3
+    finally:
+        restarted.close()
