@@ -39,7 +39,7 @@ from common.protocol.messages import (
 )
 from common.protocol.store import InboundPosition
 from common.vocabulary import Vocabulary
-from services.cloud.atlas import Atlas, KeyframeInput, make_key
+from services.cloud.atlas import Atlas, AtlasSnapshot, KeyframeInput, make_key
 from services.cloud.config import CloudServiceConfig
 from services.cloud.global_optimization import PoseGraphProblem, PoseGraphResult
 from services.cloud.map_fusion import MapFusion
@@ -140,6 +140,8 @@ class CloudApp:
         self._pruned_keyframes: set[int] = set()
         self.messages = 0
         self.rejected = 0
+        self._changes = 0  # bumped by every atlas mutation (the view is rebuilt only then)
+        self._view_cache: tuple[int, AtlasSnapshot] | None = None
 
     @property
     def atlas(self) -> Atlas:
@@ -170,6 +172,7 @@ class CloudApp:
 
         Raises :class:`UplinkError` for a malformed message (nothing is applied)."""
         self.messages += 1
+        self._changes += 1
         position = {edge_id: (stream_id, seq)}
         if isinstance(message, KeyframeUpdate):
             reaction = self._keyframe(edge_id, message, position)
@@ -298,6 +301,7 @@ class CloudApp:
         if token != len(self.atlas.merges()) or map_id not in self.atlas.maps():
             return None
         n = self.fusion.apply_optimization(result)
+        self._changes += 1
         self.store.save_all(self.atlas)
         log.info("map %d: applied optimisation of %d keyframes (error %.3g -> %.3g)",
                  map_id, n, result.initial_error, result.final_error)  # fmt: skip
@@ -328,6 +332,7 @@ class CloudApp:
         """MBP on ``map_id`` (then the whole atlas is saved)."""
         before = set(self.atlas.map_point_keys(map_id))
         report = self.fusion.prune(map_id, self.config.mbp_keep_recent)
+        self._changes += 1
         self._pruned_points |= before - set(self.atlas.map_point_keys(map_id))
         self._pruned_keyframes.update(report.removed_keyframes)
         self._mbp_done[map_id] = self.atlas.n_keyframes(map_id)
@@ -371,7 +376,11 @@ class CloudApp:
         return trajs, maps
 
     def view(self, counters: dict[str, dict] | None = None) -> CloudView:
-        """Plain data for the dashboard's map source (built on the worker thread)."""
+        """Plain data for the dashboard's map source (built on the worker thread; the atlas
+        snapshot is rebuilt only after the atlas changed)."""
+        if self._view_cache is None or self._view_cache[0] != self._changes:
+            self._view_cache = (self._changes, self.atlas.snapshot())
+        snap = self._view_cache[1]
         agents = tuple(
             AgentInfo(
                 agent_id=a.agent_id, name=a.name, edge_id=a.edge_id, status=a.status,
@@ -385,7 +394,7 @@ class CloudApp:
             for a in sorted(self._agents.values(), key=lambda x: x.agent_id)
         )  # fmt: skip
         return CloudView(
-            atlas=self.atlas.snapshot(),
+            atlas=snap,
             agents=agents,
             pruned_keyframes=frozenset(self._pruned_keyframes),
             pruned_points=frozenset(self._pruned_points),
