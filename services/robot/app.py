@@ -8,7 +8,9 @@ frame is in progress the newest feedback waits and is applied before the next fr
 
 Inertial feedback conversion (``InertialFeedback`` -> ``FrontEnd.set_inertial_state``):
 ``T_world_body`` "<f8 (4,4)" gives ``R_world_imu``/``p_world_imu`` (EuRoC's body frame is the
-IMU frame), the other arrays map one to one. Map points (``track_ids``/``p_world``) replace
+IMU frame), the other arrays map one to one. ``track_ids`` are stream track numbers (see
+``services.robot.coding``: the edge numbers tracks from the decoded stream); they are mapped
+to the tracker's ids and points of tracks no longer active are dropped. Map points replace
 the previous set; an empty set keeps the previous one unless ``map_id`` changed (points of
 another map are meaningless, so they are dropped). Feedback the front end refuses (too old
 for the IMU buffer, malformed arrays) is logged and counted, never retried.
@@ -159,7 +161,12 @@ class RobotApp:
         if msg is None:
             return
         try:
-            state, ids, points = feedback_to_state(msg)
+            state, numbers, points = feedback_to_state(msg)
+            ids = None
+            if numbers is not None and points is not None:
+                ids = self.frame_coder.tracker_ids_of(numbers)
+                live = ids >= 0  # tracks that ended since the edge's frame have no use
+                ids, points = ids[live], points[live]
             if self._map_id is not None and msg.map_id != self._map_id and ids is None:
                 ids, points = np.zeros(0, np.int64), np.zeros((0, 3))  # drop the old map's
             self.front_end.set_inertial_state(state, ids, points)
@@ -175,7 +182,8 @@ class RobotApp:
 def feedback_to_state(
     msg: InertialFeedback,
 ) -> tuple[InertialState, np.ndarray | None, np.ndarray | None]:
-    """Convert the edge's message: (state, track ids (M,) or None, points (M, 3) or None).
+    """Convert the edge's message: (state, stream track numbers (M,) or None, points (M, 3)
+    or None).
 
     Raises RemoteProtocolError (malformed arrays) or ImuPredictionError (not a rotation).
     """

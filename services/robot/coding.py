@@ -23,6 +23,13 @@ what the robot's pipeline used:
   :func:`common.codec.imu.dequantise_imu`; the robot feeds those values to its front end and
   the IMU codec reproduces them bit for bit (for EuRoC they are the CSV values unchanged).
 
+**Stream track numbers** (how the edge names the robot's tracks, e.g. in
+``InertialFeedback.track_ids``): the tracker's ids are never sent, so both ends number tracks
+from the decoded stream alone (:func:`next_stream_numbers`): starting at 0, in codec order, a
+keyframe feature with a link inherits the number of the previous track it continues and one
+without gets the next unused number; a non-keyframe's survivors keep theirs and its new
+tracks get the next numbers. :meth:`FrameCoder.tracker_ids_of` maps numbers back.
+
 Every frame's mapping is verified (:class:`CodingMismatchError` otherwise): keyframe
 ``kf_track_q / 4`` equals the tracker's keypoints, levels agree, and every surviving track id
 is found in the codec's list.
@@ -148,11 +155,13 @@ def imu_used(
 class CodedFrame:
     """One frame as coded: ``payload`` (feature codec bytes), ``features`` (what the edge
     decodes: :class:`KeyframeFeatures` or :class:`NonKeyframeFeatures`, codec order) and
-    ``track_ids`` (N,) int64, the tracker's track id of each row of ``features``."""
+    ``track_ids`` (N,) int64, the tracker's track id of each row of ``features``;
+    ``stream_ids`` (N,) int64, the stream track number of each row (what the edge computes)."""
 
     payload: bytes
     features: KeyframeFeatures | NonKeyframeFeatures
     track_ids: np.ndarray
+    stream_ids: np.ndarray
     bits: dict[str, float]
     overhead_bits: float
 
@@ -171,6 +180,9 @@ class FrameCoder:
         self.encoder = FeatureEncoder(vocabulary, config)
         self.track_ids = np.zeros(0, np.int64)
         """Codec order of the active tracks (the tracker's ids)."""
+        self.stream_ids = np.zeros(0, np.int64)
+        """Stream track numbers of the active tracks (codec order)."""
+        self.next_stream_id = 0
         self._frames = 0
 
     def encode(self, frame: TrackedFrame) -> CodedFrame:
@@ -181,12 +193,32 @@ class FrameCoder:
         else:
             features, ids = self._non_keyframe(frame)
             payload = self.encoder.encode_non_keyframe(features)
+        self.stream_ids, self.next_stream_id = next_stream_numbers(
+            self.stream_ids, self.next_stream_id, features
+        )
         self.track_ids = ids
         self._frames += 1
         ids.setflags(write=False)
         return CodedFrame(
-            payload, features, ids, dict(self.encoder.last_bits), self.encoder.last_overhead_bits
+            payload,
+            features,
+            ids,
+            self.stream_ids,
+            dict(self.encoder.last_bits),
+            self.encoder.last_overhead_bits,
         )
+
+    def tracker_ids_of(self, stream_ids: np.ndarray) -> np.ndarray:
+        """Tracker ids (M,) int64 of stream track numbers (M,); -1 for tracks no longer active."""
+        stream_ids = np.asarray(stream_ids, dtype=np.int64).reshape(-1)
+        out = np.full(len(stream_ids), -1, np.int64)
+        if len(self.stream_ids) and len(stream_ids):
+            order = np.argsort(self.stream_ids, kind="stable")
+            srt = self.stream_ids[order]
+            at = np.clip(np.searchsorted(srt, stream_ids), 0, len(srt) - 1)
+            found = srt[at] == stream_ids
+            out[found] = self.track_ids[order[at[found]]]
+        return out
 
     def _positions(self, ids: np.ndarray) -> np.ndarray:
         """Rows of the codec's previous list for ``ids`` (-1 where absent)."""
@@ -255,6 +287,31 @@ class FrameCoder:
             [frame.keypoints[rows], frame.levels[rows, None].astype(np.float64)], axis=1
         )
         return NonKeyframeFeatures(survived, kp), frame.track_ids[rows].astype(np.int64)
+
+
+def next_stream_numbers(
+    previous: np.ndarray, next_number: int, features: KeyframeFeatures | NonKeyframeFeatures
+) -> tuple[np.ndarray, int]:
+    """Stream track numbers (N,) int64 of a decoded frame's rows and the next unused number,
+    from the previous frame's numbers (P,) (see the module docstring). Pure: the edge can run
+    the same rule on what it decoded."""
+    previous = np.asarray(previous, dtype=np.int64)
+    if isinstance(features, KeyframeFeatures):
+        links = features.links.astype(np.int64)
+        out = np.empty(len(links), np.int64)
+        fresh = links < 0
+        out[~fresh] = previous[links[~fresh]]
+        n_new = int(fresh.sum())
+    else:
+        survivors = previous[features.survived]
+        n_new = len(features) - len(survivors)
+        out = np.empty(len(features), np.int64)
+        out[: len(survivors)] = survivors
+        fresh = np.zeros(len(features), bool)
+        fresh[len(survivors) :] = True
+    out[fresh] = np.arange(next_number, next_number + n_new, dtype=np.int64)
+    out.setflags(write=False)
+    return out, next_number + n_new
 
 
 class ImuCoder:

@@ -58,9 +58,13 @@ def test_feedback_conversion_and_refusals():
     assert (app.feedback_rejected, app.feedback_applied) == (4, 0)
     assert not app.front_end.vi_initialised
     deliver(app, Blob(0, b"x"))  # not for the robot: ignored
-    deliver(app, feedback(t, n_points=3))
+    # Points named by stream track numbers (the edge's naming); an ended track is dropped.
+    numbers = app.frame_coder.stream_ids[[0, 5, 9]]
+    msg = feedback(t, n_points=4, track_ids=pack_array([*numbers, 10**9], "<i8"))
+    deliver(app, msg)
     assert app.feedback_applied == 1 and app.front_end.vi_initialised
-    assert len(app.front_end.predictor._landmarks) == 3
+    want = set(app.frame_coder.track_ids[[0, 5, 9]].tolist())
+    assert set(app.front_end.predictor._landmarks) == want
     deliver(app, feedback(t, map_id=1))  # another map, no points: the old ones are dropped
     assert app.feedback_applied == 2 and len(app.front_end.predictor._landmarks) == 0
     fr = next(seq.frames(3, 4))

@@ -25,6 +25,7 @@ from common.protocol.messages import InertialFeedback, RobotFrame, RobotSequence
 from common.transport import Delivery, Server, TransportConfig, run
 from common.vocabulary import Vocabulary
 from services.robot.app import UsedFrame
+from services.robot.coding import next_stream_numbers
 from services.robot.server import Rate, RobotService, RobotServiceConfig
 
 ROOT = Path(__file__).resolve().parents[3]
@@ -48,6 +49,7 @@ class EdgeStub:
         self.vocabulary = vocabulary
         self.features: FeatureDecoder | None = None
         self.imu = ImuDecoder()
+        self.numbers, self.next_number = np.zeros(0, np.int64), 0  # stream track numbers
         self.frames: list[tuple[RobotFrame, object, object]] = []
         self.errors: list[str] = []
         self.end: RobotSequenceEnd | None = None
@@ -68,6 +70,9 @@ class EdgeStub:
             if m.frame_index != len(self.frames):
                 self.errors.append(f"frame {m.frame_index} arrived as #{len(self.frames)}")
             feats = self.features.decode(m.features)
+            self.numbers, self.next_number = next_stream_numbers(
+                self.numbers, self.next_number, feats
+            )
             imu = self.imu.decode(m.imu)
             self.frames.append((m, feats, imu))
             if self.hook is not None:
@@ -108,6 +113,7 @@ def assert_decoded_equals_used(used: list[UsedFrame], edge: EdgeStub, seq: Euroc
     cc = FeatureDecoder(edge.vocabulary).config
     assert len(edge.frames) == len(used) == N_FRAMES
     edge_ids = np.zeros(0, np.int64)  # track identities as the edge reconstructs them
+    numbers, next_number = np.zeros(0, np.int64), 0  # stream track numbers, decoded data only
     n_kf = 0
     for k, (u, (msg, feats, imu)) in enumerate(zip(used, edge.frames, strict=True)):
         t = u.tracked
@@ -133,6 +139,8 @@ def assert_decoded_equals_used(used: list[UsedFrame], edge: EdgeStub, seq: Euroc
             assert np.array_equal(feats.keypoints[:, 2], t.levels[rows])
             assert np.array_equal(u.coded.track_ids[:n_surv], edge_ids[feats.survived])
         edge_ids = np.asarray(u.coded.track_ids)
+        numbers, next_number = next_stream_numbers(numbers, next_number, feats)
+        assert np.array_equal(numbers, u.coded.stream_ids)
         # IMU: what the front end was fed, decoded bit for bit, and EuRoC's own values.
         assert imu.equals(u.imu)
         raw = seq.imu_between(None if k == 0 else used[k - 1].tracked.timestamp_ns, t.timestamp_ns)
@@ -141,7 +149,9 @@ def assert_decoded_equals_used(used: list[UsedFrame], edge: EdgeStub, seq: Euroc
     assert 2 <= n_kf < N_FRAMES // 2
 
 
-def feedback_for(seq: EurocSequence, timestamp_ns: int) -> InertialFeedback:
+def feedback_for(
+    seq: EurocSequence, timestamp_ns: int, numbers: np.ndarray | None = None
+) -> InertialFeedback:
     """A plausible edge state at ``timestamp_ns``: gravity-aligned attitude from the mean
     accelerometer reading, at rest, with V1_01-like biases (the excerpt has no ground truth)."""
     imu = seq.imu_between(timestamp_ns - 200_000_000, timestamp_ns)
@@ -159,8 +169,8 @@ def feedback_for(seq: EurocSequence, timestamp_ns: int) -> InertialFeedback:
         bias_gyro=pack_array(np.array([-0.0023, 0.0249, 0.0817]), "<f8"),
         bias_accel=pack_array(np.array([-0.0236, 0.1210, 0.0748]), "<f8"),
         gravity_world=pack_array(np.array([0.0, 0.0, -9.81]), "<f8"),
-        track_ids=b"",
-        p_world=b"",
+        track_ids=b"" if numbers is None else pack_array(numbers, "<i8"),
+        p_world=b"" if numbers is None else pack_array(np.ones((len(numbers), 3)), "<f8"),
     )
 
 
@@ -171,7 +181,8 @@ def test_frames_decode_to_what_the_robot_used_and_feedback_is_applied(vocabulary
     async def hook(edge: EdgeStub, d: Delivery, m: RobotFrame) -> None:
         if m.frame_index == fb_at:
             assert edge.server is not None
-            edge.server.peer(d.peer).send_nowait(feedback_for(seq, m.timestamp_ns))
+            msg = feedback_for(seq, m.timestamp_ns, edge.numbers[:5])
+            edge.server.peer(d.peer).send_nowait(msg)
 
     async def main():
         edge = EdgeStub(vocabulary, hook)
@@ -200,6 +211,10 @@ def test_frames_decode_to_what_the_robot_used_and_feedback_is_applied(vocabulary
     modes = [u.tracked.stats.prediction for u in service.app.recorded]
     assert "preintegration" not in modes[: fb_at + 1]
     assert modes[-1] == "preintegration"
+    # The edge named 5 map points by stream numbers: they reached the tracker's tracks (those
+    # still alive when the feedback was applied).
+    named = set(service.app.recorded[fb_at].coded.track_ids[:5].tolist())
+    assert 0 < len(fe.predictor._landmarks) and set(fe.predictor._landmarks) <= named
     # Protocol accounting saw the frames.
     by_type = result.counters["tx"]["by_type"]
     assert by_type["RobotFrame"]["messages"] >= N_FRAMES
