@@ -214,7 +214,7 @@ def test_frames_decode_to_what_the_robot_used_and_feedback_is_applied(vocabulary
     # The edge named 5 map points by stream numbers: they reached the tracker's tracks (those
     # still alive when the feedback was applied).
     named = set(service.app.recorded[fb_at].coded.track_ids[:5].tolist())
-    assert 0 < len(fe.predictor._landmarks) and set(fe.predictor._landmarks) <= named
+    assert len(fe.predictor._landmarks) > 0 and set(fe.predictor._landmarks) <= named
     # Protocol accounting saw the frames.
     by_type = result.counters["tx"]["by_type"]
     assert by_type["RobotFrame"]["messages"] >= N_FRAMES
