@@ -171,6 +171,7 @@ def bundle_adjust(
         return BAStats(len(window), len(fixed_set), 0, 0, 0.0, 0.0, 0, 0)
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(max_iterations or options.max_iterations)
+    params.setRelativeErrorTol(options.relative_error_tol)
     params.setVerbosityLM("SILENT")
     err0 = graph.error(values)
     try:

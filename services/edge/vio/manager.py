@@ -168,6 +168,42 @@ class VioManager:
                 out.append(upd)
         return out
 
+    def apply_pose_corrections(self, map_id: int, T_world_body: dict[int, np.ndarray]) -> int:
+        """Apply corrected keyframe poses (e.g. from the cloud's global optimisation, same world
+        frame) to the current map: each corrected keyframe takes its pose, uncorrected ones move
+        with the nearest earlier corrected keyframe, each map point moves rigidly with its first
+        observer, and the tracking state with the newest keyframe. Returns keyframes updated;
+        corrections for another map are ignored (0)."""
+        vmap = self._map
+        if vmap is None or vmap.map_id != map_id:
+            return 0
+        delta = np.eye(4)
+        deltas: dict[int, np.ndarray] = {}
+        n = 0
+        for kf in vmap.keyframe_list():
+            T_new = T_world_body.get(kf.id)
+            if T_new is not None:
+                T_new = np.asarray(T_new, dtype=np.float64)
+                if T_new.shape != (4, 4) or not np.all(np.isfinite(T_new)):
+                    raise VioError(f"apply_pose_corrections: keyframe {kf.id} pose is not (4, 4)")
+                delta = T_new @ inverse_T(kf.T_world_body)
+                n += 1
+            deltas[kf.id] = delta
+            kf.T_world_body = delta @ kf.T_world_body
+            kf.v_world = delta[:3, :3] @ kf.v_world
+        for mp in vmap.points.values():
+            ref = min(mp.observations, default=None)
+            if ref is not None and ref in deltas:
+                mp.p_world = deltas[ref][:3, :3] @ mp.p_world + deltas[ref][:3, 3]
+        vmap.mark_all_dirty()
+        if self._last_T is not None:
+            self._last_T = delta @ self._last_T
+        if self._prev_T is not None:
+            self._prev_T = delta @ self._prev_T
+        if self._last_v is not None:
+            self._last_v = delta[:3, :3] @ self._last_v
+        return n
+
     # ------------------------------------------------------------------ helpers
     def _collect_update(self, vmap: VioMap) -> MapUpdate:
         kfs, pts, removed = vmap.pop_changes()

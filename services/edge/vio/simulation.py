@@ -54,6 +54,7 @@ class SimOptions:
     keyframe_track_ratio: float = 0.6  # or when fewer of the last keyframe's tracks survive
     track_drop_prob: float = 0.01  # per frame, LK failure
     pixel_noise_px: float = 0.5
+    outlier_ratio: float = 0.0  # share of observations per frame displaced by 5–30 px (bad LK)
     motion_amplitude_m: tuple[float, float, float] = (1.2, 0.9, 0.3)
     motion_freq_rad_s: tuple[float, float, float] = (0.6, 0.8, 1.1)
     yaw_rate_rad_s: float = 0.15
@@ -236,6 +237,11 @@ def simulate(
         lms = np.array(sorted(active), dtype=np.int64)
         levels = level_of[lms]
         noise = rng.normal(0, 1, (len(lms), 2)) * (o.pixel_noise_px * 1.2 ** levels[:, None])
+        if o.outlier_ratio > 0:
+            bad = rng.random(len(lms)) < o.outlier_ratio
+            ang = rng.uniform(0, 2 * np.pi, bad.sum())
+            mag = rng.uniform(5.0, 30.0, bad.sum())
+            noise[bad] += np.c_[np.cos(ang), np.sin(ang)] * mag[:, None]
         frames.append(
             FrameObservation(
                 timestamp_ns=round(t * 1e9),

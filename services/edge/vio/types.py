@@ -97,10 +97,11 @@ class MappingOptions:
 class LocalBAOptions:
     """Local bundle adjustment (paper Eq. 18, Fig. 5b)."""
 
-    window_size: int = 20  # newest keyframes optimised; older observers are fixed
+    window_size: int = 10  # newest keyframes optimised; older observers are fixed
     cauchy_k: float = 2.4477  # on whitened reprojection error (sqrt(5.991))
     imu_huber_k: float = 5.0  # whitened 15-DoF IMU error: sqrt(chi2_15(0.95)) = sqrt(25.0)
     max_iterations: int = 10
+    relative_error_tol: float = 1e-3  # LM stops when the cost falls by less than this share
     max_fixed_observers: int = 20  # observers outside the window kept as fixed poses
     fixed_sigma: float = 1e-6  # prior sigma holding fixed variables
 

@@ -4,18 +4,26 @@ import numpy as np
 import pytest
 
 from services.edge.vio.manager import VioManager
-from services.edge.vio.simulation import SimOptions, evaluate_run, run_sequence, simulate
+from services.edge.vio.simulation import (
+    SimOptions,
+    evaluate_run,
+    run_sequence,
+    simulate,
+    umeyama_alignment,
+)
 from services.edge.vio.types import FrameObservation, TrackingStatus, VioError
 
 
 def test_end_to_end_20s_ate_and_scale():
-    seq = simulate(SimOptions(duration_s=20.0, seed=0))
+    # 5 % of the observations of every frame are gross outliers (5-30 px), as bad LK tracks.
+    seq = simulate(SimOptions(duration_s=20.0, seed=0, outlier_ratio=0.05))
     vio = VioManager(seq.camera, seq.imu)
     results = run_sequence(vio, seq)
     m = evaluate_run(vio, results, seq)
-    # Measured when written: frames ATE 3.4 cm, scale 0.985; keyframes ATE 1.3 cm, scale 0.996.
+    # Measured when written: frames ATE 3.0 cm, scale 0.983 (the first seconds after VI init
+    # carry the init's scale error); keyframes ATE 0.4 cm, scale 0.997.
     assert m.n_maps == 1
-    assert m.n_tracking > 0.85 * m.n_frames
+    assert m.n_tracking > 0.8 * m.n_frames  # the rest: before VI initialisation
     assert m.ate_frames_m < 0.10
     assert abs(m.scale_frames - 1.0) < 0.05
     assert m.ate_keyframes_m < 0.05
@@ -31,18 +39,23 @@ def test_end_to_end_20s_ate_and_scale():
     assert vio.pop_map_updates() == []
 
 
-def test_vi_initialisation_recovers_scale_and_gravity():
-    seq = simulate(SimOptions(duration_s=3.5, seed=4))
+@pytest.mark.parametrize("seed", [0, 2, 4])
+def test_vi_initialisation_recovers_scale_and_gravity(seed):
+    seq = simulate(SimOptions(duration_s=6.0, seed=seed))
     vio = VioManager(seq.camera, seq.imu)
-    run_sequence(vio, seq)
+    for t, g, a, fr in seq.feed():
+        vio.feed_imu(t, g, a)
+        vio.feed_frame(fr)
+        if vio.initialized:
+            break
     assert vio.initialized
     vmap = vio.current_map
     row = {int(t): i for i, t in enumerate(seq.gt_timestamps_ns)}
     kfs = vmap.keyframe_list()
     gt = seq.gt_T_world_body[[row[k.timestamp_ns] for k in kfs]]
-    est_d = np.linalg.norm(np.diff([k.T_world_body[:3, 3] for k in kfs], axis=0), axis=1).sum()
-    gt_d = np.linalg.norm(np.diff(gt[:, :3, 3], axis=0), axis=1).sum()
-    assert abs(est_d / gt_d - 1.0) < 0.05
+    est = np.array([k.T_world_body[:3, 3] for k in kfs])
+    _, _, scale = umeyama_alignment(est, gt[:, :3, 3], with_scale=True)
+    assert abs(scale - 1.0) < 0.05  # measured 1.026 / 0.985 / 0.977
     # Gravity: the body "up" seen in the estimated and true world frames agree (yaw-free).
     for kf, T in zip(kfs, gt, strict=True):
         up_est = kf.T_world_body[:3, :3].T @ np.array([0.0, 0.0, 1.0])
@@ -84,3 +97,31 @@ def test_rejects_malformed_frames():
         vio.feed_frame(seq.frames[0])
     with pytest.raises(VioError, match="strictly increasing"):
         vio.feed_imu(np.array([5, 4]), np.zeros((2, 3)), np.zeros((2, 3)))
+
+
+def test_pose_corrections_move_map_rigidly_and_tracking_continues():
+    from common.geometry import make_T, so3_exp
+    from services.edge.vio.local_ba import reprojection_chi2
+
+    seq = simulate(SimOptions(duration_s=8.0, seed=6))
+    vio = VioManager(seq.camera, seq.imu)
+    feed = list(seq.feed())
+    for t, g, a, fr in feed[:130]:
+        vio.feed_imu(t, g, a)
+        vio.feed_frame(fr)
+    assert vio.initialized
+    vmap = vio.current_map
+    ids = [k.id for k in vmap.keyframe_list()]
+    chi2 = reprojection_chi2(vmap, ids[-5:], vio.camera)
+    D = make_T(so3_exp([0.0, 0.0, 0.2]), [0.5, -0.3, 0.0])  # a yaw + shift "drift correction"
+    corrected = {k: D @ vmap.keyframes[k].T_world_body for k in ids}
+    assert vio.apply_pose_corrections(vmap.map_id + 1, corrected) == 0
+    assert vio.apply_pose_corrections(vmap.map_id, corrected) == len(ids)
+    assert np.allclose(vmap.keyframes[ids[-1]].T_world_body, corrected[ids[-1]])
+    assert abs(reprojection_chi2(vmap, ids[-5:], vio.camera) - chi2) < 1e-6
+    results = []
+    for t, g, a, fr in feed[130:]:
+        vio.feed_imu(t, g, a)
+        results.append(vio.feed_frame(fr))
+    assert all(r.status == TrackingStatus.TRACKING for r in results)
+    assert {r.map_id for r in results} == {vmap.map_id}
