@@ -157,7 +157,7 @@ def handle(args: argparse.Namespace) -> int:
 
     from common.errors import RecslamError
     from common.protocol import SessionConfig
-    from common.transport import run
+    from common.transport import TransportConfig, run
     from common.vocabulary import DEFAULT_VOCABULARY_PATH, Vocabulary
     from services.cloud.config import CloudConfig, CloudServiceConfig, MbpConfig
     from services.cloud.server import CloudServer
@@ -182,6 +182,7 @@ def handle(args: argparse.Namespace) -> int:
             config,
             results_dir=args.results,
             groundtruth=args.groundtruth,
+            transport=TransportConfig(accept_roles=("edge",)),
         )
         stop = asyncio.Event()
         loop = asyncio.get_running_loop()

@@ -31,7 +31,7 @@ import contextlib
 import logging
 import multiprocessing
 from collections.abc import Callable
-from concurrent.futures import Executor, ProcessPoolExecutor, ThreadPoolExecutor
+from concurrent.futures import BrokenExecutor, Executor, ProcessPoolExecutor, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TypeVar
@@ -117,12 +117,7 @@ class CloudServer:
         self.positions = PositionStore()
         self._worker = ThreadPoolExecutor(1, thread_name_prefix="cloud-worker")
         self._io = ThreadPoolExecutor(1, thread_name_prefix="cloud-io")
-        self._optimizer: Executor
-        if self.config.optimizer_process:
-            ctx = multiprocessing.get_context("spawn")
-            self._optimizer = ProcessPoolExecutor(1, mp_context=ctx)
-        else:
-            self._optimizer = ThreadPoolExecutor(1, thread_name_prefix="cloud-optimizer")
+        self._optimizer = self._new_optimizer()
         self._app: CloudApp | None = None
         self._server = Server(session, self._on_message, transport=transport, store=self.positions)
         self._max_failures = max_failures
@@ -137,6 +132,11 @@ class CloudServer:
         self.address: tuple[str, int] | None = None
 
     # ------------------------------------------------------------------ lifecycle
+    def _new_optimizer(self) -> Executor:
+        if self.config.optimizer_process:
+            return ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"))
+        return ThreadPoolExecutor(1, thread_name_prefix="cloud-optimizer")
+
     async def _on_worker(self, fn: Callable[..., T], *args: Any) -> T:
         return await asyncio.get_running_loop().run_in_executor(self._worker, fn, *args)
 
@@ -255,9 +255,15 @@ class CloudServer:
             return True
         problem, token = built
         loop = asyncio.get_running_loop()
-        result = await loop.run_in_executor(
-            self._optimizer, optimize_pose_graph, problem, self.config.domain.optimization
-        )
+        try:
+            result = await loop.run_in_executor(
+                self._optimizer, optimize_pose_graph, problem, self.config.domain.optimization
+            )
+        except BrokenExecutor:
+            log.error("optimizer process died on map %d; starting a new one", map_id)
+            self._optimizer.shutdown(wait=False)
+            self._optimizer = self._new_optimizer()
+            raise
         corrections = await self._on_worker(app.apply_optimization, map_id, result, token)
         if corrections is None:
             log.info("map %d merged while optimising; rescheduling", map_id)

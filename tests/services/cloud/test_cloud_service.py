@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import re
 import socket
 
 import numpy as np
@@ -294,11 +295,18 @@ def test_map_source_versions_and_pruned_items():
     assert len(src.snapshot(-1).keyframes) == 5 and src.snapshot(-1).version == v3
 
 
-def test_cloud_command_in_a_subprocess_stops_on_sigterm_and_writes_results(
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_cloud_command_survives_sigkill_then_stops_on_sigterm_and_writes_results(
     tmp_path, vocab, scenario
 ):
-    """``recslam cloud`` as a real process: an edge feeds it, SIGTERM stops it cleanly, and
-    the trajectories and the ATE report (ground truth given) are in the result folder."""
+    """``recslam cloud`` as a real process: killed (SIGKILL) while an edge streams to it, a new
+    process on the same state directory resumes: every keyframe arrives exactly once; SIGTERM
+    stops it cleanly with the trajectories and the ATE report in the result folder."""
     import os
     import signal
     import subprocess
@@ -321,34 +329,52 @@ def test_cloud_command_in_a_subprocess_stops_on_sigterm_and_writes_results(
         "p = argparse.ArgumentParser(); cloud.register(p.add_subparsers())\n"
         "a = p.parse_args(sys.argv[1:]); sys.exit(a.func(a))\n"
     )
-    args = ["cloud", "--listen", "127.0.0.1:0", "--state-dir", str(tmp_path / "state"),
+    port = _free_port()
+    args = ["cloud", "--listen", f"127.0.0.1:{port}", "--state-dir", str(tmp_path / "state"),
             "--dashboard-port", "0", "--results", str(tmp_path / "res"),
             "--groundtruth", str(tmp_path / "gt"), "--no-mbp", "--output-every", "0"]  # fmt: skip
     env = {**os.environ, "RECSLAM_SECRET": SECRET.decode()}
     log_path = tmp_path / "cloud.log"
-    with (
-        open(log_path, "w") as log_file,
-        subprocess.Popen([sys.executable, "-c", code, *args], stdout=subprocess.PIPE,
-                         stderr=log_file, text=True, env=env) as proc,
-    ):  # fmt: skip
-        try:
-            line = proc.stdout.readline()
-            assert line.startswith("cloud listening on 127.0.0.1:"), line + log_path.read_text()
-            port = int(line.split(",")[0].rsplit(":", 1)[1])
+    procs: list[subprocess.Popen] = []
 
-            async def feed() -> None:
-                edge = await Edge("edge-a", port).start()
-                await edge.send_all(scenario["r0"]["messages"])
-                await edge.client.flush()
-                await edge.client.close()
+    def start() -> subprocess.Popen:
+        with open(log_path, "a") as log_file:
+            proc = subprocess.Popen([sys.executable, "-c", code, *args], stdout=subprocess.PIPE,
+                                    stderr=log_file, text=True, env=env)  # fmt: skip
+        procs.append(proc)
+        line = proc.stdout.readline()
+        assert line.startswith(f"cloud listening on 127.0.0.1:{port}"), line + log_path.read_text()
+        return proc
 
-            run(feed())
-            proc.send_signal(signal.SIGTERM)
-            assert proc.wait(timeout=60) == 0, log_path.read_text()
-        finally:
+    try:
+        first = start()
+
+        async def feed() -> None:
+            edge = await Edge("edge-a", port).start()
+            await edge.send_all(scenario["r0"]["messages"])
+
+            async def some_acked() -> bool:
+                return edge.client.peer.link.first_unacked > 8
+
+            await _until(some_acked)
+            first.kill()  # a crash: no clean shutdown, no final commit
+            await asyncio.to_thread(first.wait)
+            await asyncio.to_thread(start)
+            await edge.client.flush()
+            await edge.client.close()
+
+        run(feed())
+        second = procs[-1]
+        second.send_signal(signal.SIGTERM)
+        assert second.wait(timeout=60) == 0, log_path.read_text()
+    finally:
+        for proc in procs:
             if proc.poll() is None:
                 proc.kill()
                 proc.wait()
+            proc.stdout.close()
+    loaded = [int(x) for x in re.findall(r"loaded (\d+) keyframes", log_path.read_text())]
+    assert loaded[0] == 0 and 0 < loaded[1] <= n  # the restart resumed what was durable
     traj = read_tum(tmp_path / "res" / "trajectories" / "r0.tum")
     assert len(traj.timestamps_ns) == n
     report = json.loads((tmp_path / "res" / "eval" / "ate.json").read_text())
