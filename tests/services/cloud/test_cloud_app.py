@@ -71,3 +71,27 @@ def test_new_edge_map_of_a_robot_is_a_new_agent_and_survives_restart(tmp_path, v
         assert restarted.atlas.n_keyframes() == 3
     finally:
         restarted.close()
+
+
+def test_mbp_through_the_app_marks_pruned_items_and_is_durable(tmp_path, vocab):
+    world = make_world(31, n_points=2000)
+    kfs, mps = make_session(world, default_camera(), 0, circle_poses(30, turns=0.5), np.eye(4),
+                            seed=6, dt=0.2, track_gap=30)  # fmt: skip
+    app = _app(tmp_path, vocab)
+    for k in kfs:
+        app.fusion.add_keyframe(k, detect=False)
+    for m in mps:
+        app.fusion.add_map_point(m)
+    app.store.save_all(app.atlas)
+    report = app.prune(0)
+    assert report.keyframes_after < report.keyframes_before and report.connected_after
+    view = app.view()
+    assert len(view.pruned_keyframes) == report.keyframes_before - report.keyframes_after
+    assert not set(view.atlas.keyframe_keys.tolist()) & view.pruned_keyframes
+    kept = app.atlas.keyframe_keys()
+    app.close()
+    restarted = _app(tmp_path, vocab)
+    try:
+        assert restarted.atlas.keyframe_keys() == kept
+    finally:
+        restarted.close()
