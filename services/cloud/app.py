@@ -302,7 +302,9 @@ class CloudApp:
             return None
         n = self.fusion.apply_optimization(result)
         self._changes += 1
-        self.store.save_all(self.atlas)
+        self.store.commit_poses(
+            self.atlas, self.atlas.keyframe_keys(map_id), self.atlas.map_point_keys(map_id)
+        )
         log.info("map %d: applied optimisation of %d keyframes (error %.3g -> %.3g)",
                  map_id, n, result.initial_error, result.final_error)  # fmt: skip
         return self.corrections(map_id)

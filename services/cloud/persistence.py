@@ -15,7 +15,9 @@ is one robot's map on its edge: the robot's name, the edge serving it and the ed
 Keyframe arrays are stored as ``.npy`` payloads (``numpy.save``, no pickle) inside an
 uncompressed ``.npz`` blob per row. Map point rows (many, small, rewritten whenever an
 observation is added) use a flat little-endian blob instead, ~40x cheaper to write:
-``p_map`` as 3 ``<f8`` followed by ``(M, 2)`` ``<i8`` rows ``(keyframe key, keypoint index)``.
+``(M, 2)`` ``<i8`` rows ``(keyframe key, keypoint index)``. Keyframe poses (16 ``<f8``) and
+map point positions (3 ``<f8``) have their own columns, so that writing an optimisation back
+(:meth:`CloudStore.commit_poses`) is a cheap ``UPDATE`` of those columns only.
 """
 
 from __future__ import annotations
@@ -41,16 +43,17 @@ from services.cloud.atlas import (
 log = logging.getLogger(__name__)
 
 DB_NAME = "cloud.sqlite"
-SCHEMA_VERSION = 2
+SCHEMA_VERSION = 3
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS meta (name TEXT PRIMARY KEY, value INTEGER NOT NULL);
 CREATE TABLE IF NOT EXISTS keyframes (
     key INTEGER PRIMARY KEY, agent INTEGER NOT NULL, keyframe_id INTEGER NOT NULL,
-    map_id INTEGER NOT NULL, timestamp REAL NOT NULL, data BLOB NOT NULL);
+    map_id INTEGER NOT NULL, timestamp REAL NOT NULL, pose BLOB NOT NULL, data BLOB NOT NULL);
 CREATE TABLE IF NOT EXISTS map_points (
     key INTEGER PRIMARY KEY, agent INTEGER NOT NULL, map_point_id INTEGER NOT NULL,
-    map_id INTEGER NOT NULL, ref_kf INTEGER NOT NULL, data BLOB NOT NULL);
+    map_id INTEGER NOT NULL, ref_kf INTEGER NOT NULL, p BLOB NOT NULL,
+    data BLOB NOT NULL);
 CREATE TABLE IF NOT EXISTS agents (agent INTEGER PRIMARY KEY, map_id INTEGER NOT NULL,
     T_map_agent BLOB NOT NULL);
 CREATE TABLE IF NOT EXISTS merges (seq INTEGER PRIMARY KEY, target_map INTEGER NOT NULL,
@@ -83,20 +86,25 @@ def _unpack(blob: bytes) -> dict[str, np.ndarray]:
         return {k: z[k] for k in z.files}
 
 
-def _pack_point(p_map: np.ndarray, obs_keyframes: np.ndarray, obs_indices: np.ndarray) -> bytes:
-    obs = np.stack([obs_keyframes, obs_indices], axis=1).astype("<i8")
-    return np.asarray(p_map, "<f8").tobytes() + obs.tobytes()
+def _pack_obs(obs_keyframes: np.ndarray, obs_indices: np.ndarray) -> bytes:
+    return np.stack([obs_keyframes, obs_indices], axis=1).astype("<i8").tobytes()
 
 
-def _unpack_point(blob: bytes) -> dict[str, np.ndarray]:
-    if len(blob) < 24 or (len(blob) - 24) % 16:
-        raise ValueError(f"map point blob of {len(blob)} bytes")
-    obs = np.frombuffer(blob, "<i8", offset=24).reshape(-1, 2).astype(np.int64)
+def _unpack_point(p: bytes, blob: bytes) -> dict[str, np.ndarray]:
+    if len(p) != 24 or len(blob) % 16:
+        raise ValueError(f"map point position of {len(p)} bytes, observations of {len(blob)}")
+    obs = np.frombuffer(blob, "<i8").reshape(-1, 2).astype(np.int64)
     return {
-        "p_map": np.frombuffer(blob, "<f8", 3).astype(np.float64),
+        "p_map": np.frombuffer(p, "<f8", 3).astype(np.float64),
         "obs_keyframes": obs[:, 0].copy(),
         "obs_indices": obs[:, 1].copy(),
     }
+
+
+def _pose(blob: bytes) -> np.ndarray:
+    if len(blob) != 128:
+        raise ValueError(f"keyframe pose of {len(blob)} bytes")
+    return np.frombuffer(blob, "<f8").reshape(4, 4).astype(np.float64)
 
 
 def _arr(blob: bytes) -> np.ndarray:
@@ -174,6 +182,35 @@ class CloudStore:
             db.execute("ROLLBACK")
             raise
 
+    def commit_poses(
+        self,
+        atlas: Atlas,
+        keyframes: Iterable[int],
+        map_points: Iterable[int],
+    ) -> None:
+        """In one transaction: only the poses, positions and map ids of the given (existing)
+        keyframes and map points, plus the atlas bookkeeping (after an optimisation)."""
+        kf = [int(k) for k in keyframes if atlas.has_keyframe(int(k))]
+        mp = np.array([int(k) for k in map_points if atlas.has_map_point(int(k))], np.int64)
+        P = atlas.map_point_positions(mp) if mp.size else np.zeros((0, 3))
+        db = self._db
+        db.execute("BEGIN IMMEDIATE")
+        try:
+            db.executemany(
+                "UPDATE keyframes SET pose = ?, map_id = ? WHERE key = ?",
+                [(np.asarray(atlas.T_map_body(k), "<f8").tobytes(),
+                  atlas.map_id_of_keyframe(k), k) for k in kf],
+            )  # fmt: skip
+            db.executemany(
+                "UPDATE map_points SET p = ? WHERE key = ?",
+                [(np.asarray(P[i], "<f8").tobytes(), int(k)) for i, k in enumerate(mp.tolist())],
+            )
+            self._write_state(atlas.state())
+            db.execute("COMMIT")
+        except BaseException:
+            db.execute("ROLLBACK")
+            raise
+
     def save_all(
         self,
         atlas: Atlas,
@@ -201,14 +238,22 @@ class CloudStore:
                 continue
             v = atlas.keyframe(key)
             blob = _pack(
-                T_map_body=v.T_map_body, velocity=v.velocity, bias_gyro=v.bias_gyro,
+                velocity=v.velocity, bias_gyro=v.bias_gyro,
                 bias_accel=v.bias_accel, keypoints=v.keypoints, levels=v.levels,
                 descriptors=v.descriptors, word_ids=v.word_ids, map_point_keys=v.map_point_keys,
                 virtual=v.virtual,
             )  # fmt: skip
             db.execute(
-                "INSERT OR REPLACE INTO keyframes VALUES (?, ?, ?, ?, ?, ?)",
-                (key, v.agent_id, v.keyframe_id, v.map_id, v.timestamp, blob),
+                "INSERT OR REPLACE INTO keyframes VALUES (?, ?, ?, ?, ?, ?, ?)",
+                (
+                    key,
+                    v.agent_id,
+                    v.keyframe_id,
+                    v.map_id,
+                    v.timestamp,
+                    np.asarray(v.T_map_body, "<f8").tobytes(),
+                    blob,
+                ),
             )
         for key in map_points:
             key = int(key)
@@ -216,11 +261,11 @@ class CloudStore:
                 db.execute("DELETE FROM map_points WHERE key = ?", (key,))
                 continue
             m = atlas.map_point(key)
-            blob = _pack_point(m.p_map, m.obs_keyframes, m.obs_indices)
             db.execute(
-                "INSERT OR REPLACE INTO map_points VALUES (?, ?, ?, ?, ?, ?)",
-                (key, m.agent_id, m.map_point_id, m.map_id, m.ref_kf, blob),
-            )
+                "INSERT OR REPLACE INTO map_points VALUES (?, ?, ?, ?, ?, ?, ?)",
+                (key, m.agent_id, m.map_point_id, m.map_id, m.ref_kf,
+                 np.asarray(m.p_map, "<f8").tobytes(), _pack_obs(m.obs_keyframes, m.obs_indices)),
+            )  # fmt: skip
 
     def _write_state(self, st: AtlasState) -> None:
         db = self._db
@@ -271,18 +316,18 @@ class CloudStore:
         db = self._db
         try:
             kfs = []
-            for key, agent, kf_id, map_id, ts, blob in db.execute(
-                "SELECT key, agent, keyframe_id, map_id, timestamp, data FROM keyframes "
+            for key, agent, kf_id, map_id, ts, pose, blob in db.execute(
+                "SELECT key, agent, keyframe_id, map_id, timestamp, pose, data FROM keyframes "
                 "ORDER BY key"
             ):
-                d = _unpack(blob)
+                d = {**_unpack(blob), "T_map_body": _pose(pose)}
                 kfs.append(KeyframeView(key=key, agent_id=agent, keyframe_id=kf_id, map_id=map_id,
                                         timestamp=ts, **d))  # fmt: skip
             mps = []
-            for key, agent, mp_id, map_id, ref, blob in db.execute(
-                "SELECT key, agent, map_point_id, map_id, ref_kf, data FROM map_points"
+            for key, agent, mp_id, map_id, ref, p, blob in db.execute(
+                "SELECT key, agent, map_point_id, map_id, ref_kf, p, data FROM map_points"
             ):
-                d = _unpack_point(blob)
+                d = _unpack_point(p, blob)
                 mps.append(MapPointView(key=key, agent_id=agent, map_point_id=mp_id, map_id=map_id,
                                         ref_kf=ref, **d))  # fmt: skip
             agents = list(db.execute("SELECT agent, map_id, T_map_agent FROM agents"))

@@ -95,3 +95,40 @@ def test_mbp_through_the_app_marks_pruned_items_and_is_durable(tmp_path, vocab):
         assert restarted.atlas.keyframe_keys() == kept
     finally:
         restarted.close()
+
+
+def test_applied_optimisation_is_durable(tmp_path, vocab):
+    from common.geometry import inverse_T
+    from services.cloud.global_optimization import optimize_pose_graph
+    from services.cloud.simulation import yaw_T
+
+    world = make_world(12, n_points=2000)
+    poses = circle_poses(10, turns=0.3)
+    kfs, mps = make_session(world, default_camera(), 0, poses, np.eye(4), seed=2,
+                            drift_T=yaw_T(np.radians(0.5), np.array([0.01, 0.0, 0.0])))  # fmt: skip
+    app = _app(tmp_path, vocab)
+    for m in mps:
+        app.fusion.add_map_point(m)
+    for k in kfs:
+        app.fusion.add_keyframe(k, detect=False)
+    app.store.save_all(app.atlas)
+    keys = app.atlas.keyframe_keys()
+    # A loop constraint from the truth pulls the last keyframe back: every pose moves.
+    app.atlas.add_loop(keys[0], keys[-1], inverse_T(poses[0]) @ poses[-1])
+    problem, token = app.optimization_problem(0)
+    corrections = app.apply_optimization(
+        0, optimize_pose_graph(problem, app.config.domain.optimization), token
+    )
+    assert corrections == []  # no robot names: the keyframes came in without messages
+    T = {k: app.atlas.T_map_body(k) for k in keys}
+    mk = app.atlas.map_point_keys()
+    P = app.atlas.map_point_positions(np.array(mk))
+    assert np.linalg.norm(T[keys[-1]][:3, 3] - kfs[-1].T_world_body[:3, 3]) > 0.01
+    app.close()
+    restarted = _app(tmp_path, vocab)
+    try:
+        for k in keys:
+            assert np.allclose(restarted.atlas.T_map_body(k), T[k])
+        assert np.allclose(restarted.atlas.map_point_positions(np.array(mk)), P)
+    finally:
+        restarted.close()
