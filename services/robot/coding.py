@@ -53,6 +53,7 @@ from common.codec import (
 )
 from common.codec.imu import ImuCodecConfig, dequantise_imu
 from common.codec.keypoints import kf_track_q
+from common.codec.tracks import next_stream_numbers
 from common.errors import RecslamError
 from common.vocabulary import Vocabulary
 from services.robot.config import FrontEndConfig, TrackingMode
@@ -287,31 +288,6 @@ class FrameCoder:
             [frame.keypoints[rows], frame.levels[rows, None].astype(np.float64)], axis=1
         )
         return NonKeyframeFeatures(survived, kp), frame.track_ids[rows].astype(np.int64)
-
-
-def next_stream_numbers(
-    previous: np.ndarray, next_number: int, features: KeyframeFeatures | NonKeyframeFeatures
-) -> tuple[np.ndarray, int]:
-    """Stream track numbers (N,) int64 of a decoded frame's rows and the next unused number,
-    from the previous frame's numbers (P,) (see the module docstring). Pure: the edge can run
-    the same rule on what it decoded."""
-    previous = np.asarray(previous, dtype=np.int64)
-    if isinstance(features, KeyframeFeatures):
-        links = features.links.astype(np.int64)
-        out = np.empty(len(links), np.int64)
-        fresh = links < 0
-        out[~fresh] = previous[links[~fresh]]
-        n_new = int(fresh.sum())
-    else:
-        survivors = previous[features.survived]
-        n_new = len(features) - len(survivors)
-        out = np.empty(len(features), np.int64)
-        out[: len(survivors)] = survivors
-        fresh = np.zeros(len(features), bool)
-        fresh[len(survivors) :] = True
-    out[fresh] = np.arange(next_number, next_number + n_new, dtype=np.int64)
-    out.setflags(write=False)
-    return out, next_number + n_new
 
 
 class ImuCoder:
