@@ -23,12 +23,16 @@ from __future__ import annotations
 
 import logging
 import threading
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from common.evaluation.alignment import umeyama
+from common.evaluation.errors import EvaluationError
 from common.evaluation.trajectory import Trajectory
 from common.geometry import R_to_quat_wxyz, inverse_T
+from common.map_view import GroundTruth
 from common.protocol.messages import (
     AgentStatus,
     CullEvent,
@@ -377,7 +381,63 @@ class CloudApp:
             maps[name] = map_id
         return trajs, maps
 
-    def view(self, counters: dict[str, dict] | None = None) -> CloudView:
+    def ground_truth(
+        self, references: Mapping[str, Trajectory], max_points: int = 3000
+    ) -> tuple[GroundTruth, ...]:
+        """Each robot's reference trajectory in its map's frame, for the dashboard.
+
+        All robots of one map are aligned to it with one rigid transform (Umeyama on the
+        keyframe positions associated by time within 20 ms); maps with fewer than 3 such
+        pairs are left out."""
+        by_name: dict[str, list[_Agent]] = {}
+        for a in self._agents.values():
+            if a.name in references and a.agent_id in self.atlas.agents():
+                by_name.setdefault(a.name, []).append(a)
+        pairs: dict[int, list[tuple[np.ndarray, np.ndarray]]] = {}
+        owner: dict[str, int] = {}
+        for name, agents in by_name.items():
+            ref = references[name]
+            t_ref = ref.timestamps_ns * 1e-9
+            main = max(agents, key=lambda a: len(self.atlas.keyframe_keys(agent_id=a.agent_id)))
+            main_id = main.agent_id
+            owner[name] = main_id
+            keys = self.atlas.keyframe_keys(agent_id=main_id)
+            if not keys or t_ref.size == 0:
+                continue
+            t_est = np.array([self.atlas.keyframe(k).timestamp for k in keys])
+            j = np.clip(np.searchsorted(t_ref, t_est), 1, max(t_ref.size - 1, 1))
+            j = np.where(np.abs(t_ref[j - 1] - t_est) < np.abs(t_ref[j] - t_est), j - 1, j)
+            j = np.minimum(j, t_ref.size - 1)
+            ok = np.abs(t_ref[j] - t_est) < 0.02
+            p_est = np.array([self.atlas.T_map_body(k)[:3, 3] for k in keys])[ok]
+            pairs.setdefault(self.atlas.map_of_agent(main_id), []).append(
+                (ref.p_world_body[j[ok]], p_est)
+            )
+        align = {}
+        for m, lst in pairs.items():
+            p_ref = np.concatenate([a for a, _ in lst])
+            p_est = np.concatenate([b for _, b in lst])
+            if p_ref.shape[0] >= 3:
+                try:
+                    align[m] = umeyama(p_ref, p_est)
+                except EvaluationError:
+                    continue
+        out = []
+        for name, main in sorted(owner.items()):
+            tf = align.get(self.atlas.map_of_agent(main))
+            if tf is None:
+                continue
+            ref = references[name]
+            step = max(1, len(ref.timestamps_ns) // max_points)
+            out.append(GroundTruth(main, ref.timestamps_ns[::step] * 1e-9,
+                                   tf.apply_points(ref.p_world_body[::step])))  # fmt: skip
+        return tuple(out)
+
+    def view(
+        self,
+        counters: dict[str, dict] | None = None,
+        references: Mapping[str, Trajectory] | None = None,
+    ) -> CloudView:
         """Plain data for the dashboard's map source (built on the worker thread; the atlas
         snapshot is rebuilt only after the atlas changed)."""
         if self._view_cache is None or self._view_cache[0] != self._changes:
@@ -401,6 +461,7 @@ class CloudApp:
             pruned_keyframes=frozenset(self._pruned_keyframes),
             pruned_points=frozenset(self._pruned_points),
             edge_counters=counters or {},
+            ground_truth=self.ground_truth(references) if references else None,
         )
 
     def close(self) -> None:

@@ -200,6 +200,8 @@ class CloudServiceConfig:
     optimizer_process: solve pose graphs in a separate process (default True: gtsam holds the
         GIL during most of a solve, which would stall the event loop's thread); False uses a
         thread (no process start-up, fine for small maps).
+    gt_every_s: with ground truth, the dashboard's reference trajectories are re-aligned to
+        the maps this often (default 5 s).
     """
 
     domain: CloudConfig = field(default_factory=CloudConfig)
@@ -213,3 +215,4 @@ class CloudServiceConfig:
     bandwidth_window_s: float = 120.0
     display_spacing_m: float = 0.0
     optimizer_process: bool = True
+    gt_every_s: float = 5.0

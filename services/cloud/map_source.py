@@ -33,6 +33,7 @@ from common.map_view import (
     AgentStatus,
     BandwidthSample,
     Direction,
+    GroundTruth,
     KeyframeSet,
     MapCounts,
     MapDelta,
@@ -62,14 +63,16 @@ class AgentInfo:
 
 @dataclass(frozen=True, eq=False)
 class CloudView:
-    """What the worker publishes: the atlas snapshot, agents, MBP-pruned keys and the
-    edge links' traffic counters ``{edge: TrafficCounters.snapshot()}``."""
+    """What the worker publishes: the atlas snapshot, agents, MBP-pruned keys, the edge
+    links' traffic counters ``{edge: TrafficCounters.snapshot()}`` and, when it changed,
+    the ground truth per agent aligned to its map's frame (None = unchanged)."""
 
     atlas: AtlasSnapshot
     agents: tuple[AgentInfo, ...]
     pruned_keyframes: frozenset[int]
     pruned_points: frozenset[int]
     edge_counters: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
+    ground_truth: tuple[GroundTruth, ...] | None = None
 
 
 def _ro(a: np.ndarray) -> np.ndarray:
@@ -172,6 +175,8 @@ class CloudMapSource:
         self._stats = StatsSnapshot(clock(), (), MapCounts(0, 0, 0, 0, 0, 0))
         self._bandwidth: deque[BandwidthSample] = deque()
         self._last_counts: dict[tuple[str, Direction, str], int] = {}
+        self._gt: tuple[GroundTruth, ...] = ()
+        self._gt_version = 0
 
     @property
     def version(self) -> int:
@@ -209,7 +214,16 @@ class CloudMapSource:
                 not np.array_equal(poses[a], self._poses[a]) for a in poses
             )
             merges = np.array([(m.query_key, m.candidate_key) for m in s.merges], np.int64)
-            if kf_changed or pt_changed or pose_changed:
+            gt_changed = view.ground_truth is not None
+            if gt_changed:
+                map_of = {a.agent_id: a.map_id for a in view.agents}
+                self._gt = tuple(
+                    GroundTruth(g.agent_id, g.timestamp,
+                                g.p_world + offset.get(map_of.get(g.agent_id, -1), 0.0))
+                    for g in view.ground_truth
+                )  # fmt: skip
+                self._gt_version = v
+            if kf_changed or pt_changed or pose_changed or gt_changed:
                 self._version = v
                 self._kfs, self._pts, self._poses = kfs, pts, poses
                 if self._removed.maxlen and len(self._removed) == self._removed.maxlen:
@@ -285,6 +299,7 @@ class CloudMapSource:
                 current_pose=dict(self._poses),
                 loops=self._loops,
                 merges=self._merges,
+                ground_truth=self._gt if full or self._gt_version > since_version else (),
             )
 
     def stats(self) -> StatsSnapshot:

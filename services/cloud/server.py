@@ -38,6 +38,9 @@ from typing import Any, TypeVar
 
 from common.calibration import CameraCalibration
 from common.errors import RecslamError
+from common.evaluation.errors import EvaluationError
+from common.evaluation.results import load_groundtruth
+from common.evaluation.trajectory import Trajectory
 from common.protocol import OutboxFullError, SessionConfig
 from common.protocol.errors import LocalProtocolError
 from common.transport import Delivery, Server, TransportConfig
@@ -130,6 +133,9 @@ class CloudServer:
         self._corrections = 0
         self._mbp_passes = 0
         self.address: tuple[str, int] | None = None
+        self._references: dict[str, Trajectory] = {}  # ground truth per robot name
+        self._no_reference: set[str] = set()
+        self._gt_published = -1e9
 
     # ------------------------------------------------------------------ lifecycle
     def _new_optimizer(self) -> Executor:
@@ -308,8 +314,36 @@ class CloudServer:
         app = self._app
         assert app is not None
         counters = self._server.counters()
-        view = await self._on_worker(app.view, counters)
+        references = await self._load_references()
+        view = await self._on_worker(app.view, counters, references)
         return self.map_source.publish(view)
+
+    async def _load_references(self) -> dict[str, Trajectory] | None:
+        """Ground truth of the known robots, every ``gt_every_s`` (None in between)."""
+        source = self.output.groundtruth if self.output is not None else None
+        loop = asyncio.get_running_loop()
+        if source is None or loop.time() - self._gt_published < self.config.gt_every_s:
+            return None
+        self._gt_published = loop.time()
+        app = self._app
+        assert app is not None
+        agents = await self._on_worker(app.agents)
+        known = {n for n, _, _ in agents.values()}
+        names = known - set(self._references) - self._no_reference
+        single = Path(source).is_file() or (Path(source) / "mav0").is_dir()
+        if single and len(known) > 1:  # one sequence's ground truth: whose is it?
+            names = set()
+        for name in sorted(names):
+            try:
+                refs, _ = await loop.run_in_executor(
+                    self._io, load_groundtruth, [name], source, None
+                )
+            except EvaluationError as exc:
+                log.info("no ground truth for %s: %s", name, exc)
+                self._no_reference.add(name)
+            else:
+                self._references.update(refs)
+        return dict(self._references) if self._references else None
 
     async def _publish_loop(self) -> None:
         while True:

@@ -11,8 +11,9 @@ import socket
 import numpy as np
 import pytest
 
-from common.evaluation.tum import read_tum
-from common.geometry import inverse_T, transform_points
+from common.evaluation.trajectory import Trajectory
+from common.evaluation.tum import read_tum, write_tum
+from common.geometry import R_to_quat_wxyz, inverse_T, transform_points
 from common.protocol import SessionConfig
 from common.protocol.arrays import pack_array
 from common.protocol.messages import PoseCorrection
@@ -103,7 +104,7 @@ async def _until(predicate, timeout: float = 30.0) -> None:
 
 
 def _cloud(tmp_path, vocab, **kw) -> CloudServer:
-    cfg = CloudServiceConfig(debounce_s=0.2, output_every_s=0, publish_every_s=0.2)
+    cfg = CloudServiceConfig(debounce_s=0.2, output_every_s=0, publish_every_s=0.2, gt_every_s=0)
     session = SessionConfig("cloud", "cloud", SECRET, **kw.pop("session", {}))
     return CloudServer(session, tmp_path / "state", default_camera(), vocab, cfg,
                        results_dir=tmp_path / "results", transport=FAST, **kw)  # fmt: skip
@@ -112,8 +113,16 @@ def _cloud(tmp_path, vocab, **kw) -> CloudServer:
 def test_two_edges_merge_send_corrections_and_write_trajectories(tmp_path, vocab, scenario):
     T_map_world = np.eye(4)
 
+    gt = tmp_path / "gt"
+    gt.mkdir()
+    for name, t0 in (("r0", 0.0), ("r1", 50.0)):
+        T = scenario[name]["truth"]
+        ts = np.round((t0 + 0.5 * np.arange(T.shape[0])) * 1e9).astype(np.int64)
+        q = np.array([R_to_quat_wxyz(t[:3, :3]) for t in T])
+        write_tum(gt / f"{name}.tum", Trajectory(ts, T[:, :3, 3], q, name))
+
     async def main():
-        cloud = _cloud(tmp_path, vocab)
+        cloud = _cloud(tmp_path, vocab, groundtruth=gt)
         _, port = await cloud.start()
         a, b = await Edge("edge-a", port).start(), await Edge("edge-b", port).start()
         try:
@@ -151,6 +160,14 @@ def test_two_edges_merge_send_corrections_and_write_trajectories(tmp_path, vocab
             assert full.full and len(full.keyframes) == 36 and len(full.merges) == 1
             assert not full.keyframes.T_world_body.flags.writeable
             assert set(full.current_pose) == {0, 1}
+            # Ground truth aligned to the merged map: it lies on the keyframes.
+            assert sorted(g.agent_id for g in full.ground_truth) == [0, 1]
+            for g in full.ground_truth:
+                mine = full.keyframes.agent == g.agent_id
+                t_kf = full.keyframes.timestamp[mine]
+                idx = np.searchsorted(g.timestamp, t_kf - 1e-6)
+                p_kf = full.keyframes.T_world_body[mine][:, :3, 3]
+                assert np.max(np.linalg.norm(g.p_world[idx] - p_kf, axis=1)) < 0.05
             assert cloud.map_source.snapshot(v).empty
             st = cloud.map_source.stats()
             assert {r.status.value for r in st.agents} == {"merged"}
@@ -168,6 +185,8 @@ def test_two_edges_merge_send_corrections_and_write_trajectories(tmp_path, vocab
             assert err.max() < 0.05
         maps = json.loads((tmp_path / "results" / "cloud_maps.json").read_text())
         assert maps["joint_frame"] is True
+        report = json.loads((tmp_path / "results" / "eval" / "ate.json").read_text())
+        assert report["joint"]["stats_m"]["rmse"] < 0.05
 
     run(main())
 
@@ -311,10 +330,6 @@ def test_cloud_command_survives_sigkill_then_stops_on_sigterm_and_writes_results
     import signal
     import subprocess
     import sys
-
-    from common.evaluation.trajectory import Trajectory
-    from common.evaluation.tum import write_tum
-    from common.geometry import R_to_quat_wxyz
 
     truth = scenario["r0"]["truth"]
     n = scenario["r0"]["n_keyframes"]
