@@ -436,8 +436,6 @@ class StaticMapSource:
             full = since_version < 1
             if full:
                 lo = 0.0
-            if not full and since == step:
-                return MapDelta(version=step, since_version=since_version, full=False)
             m = self._map
             pt = (self._pt_rank > lo) & (self._pt_rank <= hi)
             kf_upto = self._kf_rank <= hi
@@ -451,6 +449,8 @@ class StaticMapSource:
             kf_ids = set(m.keyframes.ids[kf_upto].tolist())
             loops = [r for r in m.loops if r[0] in kf_ids and r[1] in kf_ids]
             merges = [r for r in m.merges if r[0] in kf_ids and r[1] in kf_ids]
+            if not full and since == step:
+                poses = {}
             return MapDelta(
                 version=step,
                 since_version=since_version,

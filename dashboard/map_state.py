@@ -67,6 +67,7 @@ class PointChunks:
     _serial: int = 0
     _dirty: set[tuple[int, int]] = field(default_factory=set)
     _removed: set[tuple[int, int]] = field(default_factory=set)
+    _sent: set[tuple[int, int]] = field(default_factory=set)
     _dropped: int = 0
 
     def __len__(self) -> int:
@@ -161,7 +162,9 @@ class PointChunks:
         for key in sorted(self._dirty):
             c = self._chunks[key]
             ups.append(ChunkUpdate(c.agent, c.serial, c.p_world[c.alive], c.pruned[c.alive]))
-        ops = ChunkOps(tuple(ups), tuple(sorted(self._removed - self._dirty)))
+        gone = (self._removed - self._dirty) & self._sent  # nodes the scene really has
+        self._sent = (self._sent - gone) | self._dirty
+        ops = ChunkOps(tuple(ups), tuple(sorted(gone)))
         self._dirty.clear()
         self._removed.clear()
         return ops

@@ -23,7 +23,7 @@ SERIES_COLORS = ("#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b
 
 @dataclass(frozen=True, eq=False)
 class LinkSeries:
-    """kbit/s of one link over time: ``t_s (B,)`` bin starts relative to the newest sample
+    """kbit/s of one link over time: ``t_s (B,)`` bin ends relative to the newest sample
     (≤ 0), and for each label (``"keyframe ↑"``, ...) a ``(B,)`` array."""
 
     link: str
@@ -52,9 +52,9 @@ def bandwidth_series(
             arrow = "↑" if s.direction is Direction.UP else "↓"
             label = f"{s.message_type} {arrow}"
             arr = series.setdefault(label, np.zeros(n_bins))
-            b = min(int((s.time - t0) / bin_s), n_bins - 1)
+            b = min(max(int(np.ceil((s.time - t0) / bin_s)) - 1, 0), n_bins - 1)  # (lo, hi] bins
             arr[b] += s.n_bytes * 8 / 1000.0 / bin_s
-        edges = t0 + bin_s * np.arange(n_bins) - t_end
+        edges = t0 + bin_s * np.arange(1, n_bins + 1) - t_end  # bin ends, newest at 0
         out.append(LinkSeries(link, edges, dict(sorted(series.items()))))
     return out
 

@@ -81,9 +81,10 @@ class Dashboard:
             raise DashboardError("dashboard is not running")
         return self._server
 
-    def start(self) -> Dashboard:
-        """Bind the server and start polling the source (returns at once)."""
-        if self._thread is not None:
+    def start(self, poll: bool = True) -> Dashboard:
+        """Bind the server and start the poll thread (returns at once). ``poll=False`` leaves
+        polling to the caller (:meth:`poll_once`), e.g. to step a test deterministically."""
+        if self._server is not None:
             raise DashboardError("dashboard already started")
         server = viser.ViserServer(host=self._cfg.host, port=self._cfg.port, verbose=False)
         if server.get_port() != self._cfg.port:
@@ -93,14 +94,15 @@ class Dashboard:
             )
         self._server = server
         server.gui.configure_theme(control_width="large", dark_mode=False, show_logo=False)
-        server.initial_camera.position = (0.0, -11.0, 9.0)
-        server.initial_camera.look_at = (0.0, 0.0, 0.5)
+        server.initial_camera.position = (2.0, -10.0, 8.0)
+        server.initial_camera.look_at = (2.0, 0.0, 0.0)
         server.initial_camera.up = (0.0, 0.0, 1.0)
         self._scene = MapScene(server, self._cfg.scene)
         self._add_toggles(server)
         self._panels = Panels(server, self._cfg.bandwidth_window_s)
-        self._thread = threading.Thread(target=self._run, name="dashboard-poll", daemon=True)
-        self._thread.start()
+        if poll:
+            self._thread = threading.Thread(target=self._run, name="dashboard-poll", daemon=True)
+            self._thread.start()
         log.info("dashboard at %s", self.url)
         return self
 
@@ -155,8 +157,7 @@ class Dashboard:
         """Read one delta (and optionally stats) from the source and show it."""
         delta = self._source.snapshot(self.version)
         with self._lock:
-            if not delta.empty:
-                self._scene.apply(delta)
+            self._scene.apply(delta)  # cheap when nothing changed; loops may change alone
             self.version = delta.version
             self.ticks += 1
         if with_stats:

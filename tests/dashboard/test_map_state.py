@@ -1,0 +1,133 @@
+"""Chunked point bookkeeping, keyframe tracks, live ATE and bandwidth binning."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from common.map_view import (
+    BandwidthSample,
+    Direction,
+    GroundTruth,
+    KeyframeSet,
+    PointSet,
+)
+from dashboard.map_state import KeyframeTracks, PointChunks, live_ate_rmse
+from dashboard.panels import bandwidth_series
+from dashboard.scene import frustum_segments
+
+
+def _pts(ids, agent, z=0.0, pruned=False):
+    ids = np.asarray(ids)
+    p = np.zeros((ids.size, 3))
+    p[:, 0] = ids
+    p[:, 2] = z
+    return PointSet(ids, p, np.full(ids.size, agent), np.full(ids.size, pruned))
+
+
+def _none():
+    return np.zeros(0, np.int64)
+
+
+def test_new_points_go_to_new_chunks_and_consolidate():
+    pc = PointChunks(chunk_points=100)
+    pc.apply(_pts(range(60), agent=0), _none())
+    ops = pc.take_ops()
+    assert [len(u.p_world) for u in ops.upserts] == [60] and not ops.removals
+    pc.apply(_pts(range(60, 90), agent=0), _none())
+    ops = pc.take_ops()
+    assert [len(u.p_world) for u in ops.upserts] == [30]  # only the new points are sent
+    pc.apply(_pts(range(90, 130), agent=0), _none())
+    ops = pc.take_ops()
+    # 130 loose points >= 100: consolidated into one sealed chunk of 100 and one of 30
+    assert sorted(len(u.p_world) for u in ops.upserts) == [30, 100]
+    assert len(ops.removals) == 2  # the earlier two fragments (the third was never sent)
+    assert len(pc) == 130 and pc.n_nodes == 2
+    assert not pc.take_ops().upserts
+
+
+def test_moved_point_dirties_only_its_chunk_and_removal_drops_it():
+    pc = PointChunks(chunk_points=50)
+    pc.apply(_pts(range(50), agent=0), _none())
+    pc.apply(_pts(range(100, 150), agent=1), _none())
+    pc.take_ops()
+    pc.apply(_pts([7], agent=0, z=3.0, pruned=True), np.array([120]))
+    ops = pc.take_ops()
+    by_agent = {u.agent: u for u in ops.upserts}
+    assert sorted(by_agent) == [0, 1]
+    assert by_agent[0].p_world[7, 2] == 3.0 and by_agent[0].pruned[7]
+    assert len(by_agent[1].p_world) == 49
+    assert len(pc) == 99
+
+
+def test_owner_change_and_max_points():
+    pc = PointChunks(chunk_points=10, max_points=15)
+    pc.apply(_pts(range(10), agent=0), _none())
+    pc.apply(_pts([3], agent=2), _none())
+    assert len(pc) == 10
+    ops = pc.take_ops()
+    assert {u.agent for u in ops.upserts} == {0, 2}
+    pc.apply(_pts(range(20, 40), agent=1), _none())
+    assert len(pc) == 15
+
+
+def _kfs(ids, agent, t, x, pruned=None):
+    n = len(ids)
+    T = np.tile(np.eye(4), (n, 1, 1))
+    T[:, 0, 3] = x
+    return KeyframeSet(
+        ids, np.full(n, agent), t, T, np.zeros(n, bool) if pruned is None else pruned
+    )
+
+
+def test_keyframe_tracks_sorted_by_time_and_dirty_agents():
+    kt = KeyframeTracks()
+    kt.apply(_kfs([3, 1, 2], 0, [3.0, 1.0, 2.0], [30.0, 10.0, 20.0]), _none())
+    kt.apply(_kfs([9], 1, [0.5], [90.0]), _none())
+    assert kt.take_dirty() == [0, 1]
+    t, T, _ = kt.track(0)
+    np.testing.assert_array_equal(t, [1.0, 2.0, 3.0])
+    np.testing.assert_array_equal(T[:, 0, 3], [10.0, 20.0, 30.0])
+    kt.apply(KeyframeSet.empty(), np.array([2]))
+    assert kt.take_dirty() == [0]
+    assert kt.position(2) is None and kt.position(9)[0] == 90.0
+
+
+def test_live_ate_is_zero_after_rigid_motion_and_positive_with_noise():
+    rng = np.random.default_rng(1)
+    t = np.linspace(0, 10, 50)
+    p_gt = np.stack([np.cos(t), np.sin(t), 0.1 * t], axis=1)
+    gt = GroundTruth(0, t, p_gt)
+    c, s = np.cos(0.4), np.sin(0.4)
+    R = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
+    p_est = p_gt @ R.T + [1.0, 2.0, 3.0]
+    assert live_ate_rmse(t, p_est, gt) < 1e-9
+    noisy = p_est + rng.normal(0, 0.05, p_est.shape)
+    assert 0.03 < live_ate_rmse(t, noisy, gt) < 0.08
+    assert live_ate_rmse(t[:2], p_est[:2], gt) is None
+    assert live_ate_rmse(t + 100.0, p_est, gt) is None
+
+
+def test_bandwidth_series_bins_kbit_per_second():
+    up, down = Direction.UP, Direction.DOWN
+    samples = (
+        BandwidthSample(0.5, "edge→cloud", up, "keyframe", 1000),
+        BandwidthSample(9.5, "edge→cloud", up, "keyframe", 2000),
+        BandwidthSample(9.6, "edge→cloud", up, "keyframe", 500),
+        BandwidthSample(9.0, "robot0→edge", down, "ack", 125),
+    )
+    out = bandwidth_series(samples, window_s=5.0, bin_s=1.0)
+    assert [s.link for s in out] == ["robot0→edge", "edge→cloud"]
+    cloud = out[1]
+    np.testing.assert_array_equal(cloud.t_s, [-4, -3, -2, -1, 0])
+    np.testing.assert_allclose(cloud.kbit_s["keyframe ↑"], [0, 0, 0, 0, 20.0])  # 2500 B in 1 s
+    np.testing.assert_allclose(out[0].kbit_s["ack ↓"], [0, 0, 0, 0, 1.0])  # (8.6, 9.6]
+
+
+def test_frustum_segments_geometry():
+    T = np.eye(4)[None].repeat(2, axis=0)
+    T[1, :3, 3] = [5, 0, 0]
+    seg = frustum_segments(T, scale=1.0)
+    assert seg.shape == (16, 2, 3)
+    np.testing.assert_allclose(seg[0, 0], [0, 0, 0])
+    assert np.allclose(seg[:4, 1, 2], 1.0)  # corners at depth 1 along +z
+    np.testing.assert_allclose(seg[8, 0], [5, 0, 0])
