@@ -1,0 +1,24 @@
+"""Synthetic multi-robot EuRoC-layout dataset generator (scene, textures, flights, IMU, render).
+
+Public entry: ``generate_dataset(out, SynthConfig(robots=3, seconds=60.0, seed=0))``.
+"""
+
+from common.data.synth.generate import (
+    EUROC_CAM0,
+    GENERATOR_VERSION,
+    DatasetSummary,
+    RobotSummary,
+    SynthConfig,
+    SynthError,
+    generate_dataset,
+)
+
+__all__ = [
+    "EUROC_CAM0",
+    "GENERATOR_VERSION",
+    "DatasetSummary",
+    "RobotSummary",
+    "SynthConfig",
+    "SynthError",
+    "generate_dataset",
+]

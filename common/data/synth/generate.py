@@ -1,0 +1,320 @@
+"""Multi-robot synthetic dataset generator: scene + textures + flights -> EuRoC-layout folders.
+
+``generate_dataset(out, SynthConfig(robots=3, seconds=60, seed=0))`` writes::
+
+    out/robot0/mav0/{cam0, imu0, state_groundtruth_estimate0, body.yaml}
+    out/robot1/mav0/...
+    out/dataset.json           seed, robots, seconds, generator version, per-robot facts
+    out/contact_sheet.png      sample frames of each robot
+    out/trajectories_top.png   top view of the room, boxes and flights
+
+Time: IMU and ground truth at 200 Hz on a grid starting at ``start_ns``; robot ``k`` starts
+``k * robot_start_offset_s`` later (they fly at the same time, with different loop phases);
+camera frames at 20 Hz are every 10th IMU sample. Everything is deterministic in ``seed``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from common.calibration import EUROC_IMU, CameraCalibration, ImuCalibration
+from common.camera import PinholeRadtan
+from common.data.euroc import GroundTruth
+from common.data.euroc_write import EurocWriter
+from common.data.synth.imu_sim import ImuNoiseConfig, simulate_imu
+from common.data.synth.render import RenderConfig, Renderer
+from common.data.synth.scene import Scene, vicon_room
+from common.data.synth.textures import TextureConfig, build_atlas
+from common.data.synth.trajectory import (
+    T_IMU_CAM,
+    LoopTrajectory,
+    TrajectoryConfig,
+    make_trajectories,
+)
+from common.errors import RecslamError
+from common.geometry import R_to_quat_wxyz
+
+logger = logging.getLogger(__name__)
+
+GENERATOR_VERSION = "recslam-synth-1"
+
+# EuRoC cam0 (V1_01): intrinsics [px] and radial-tangential distortion.
+EUROC_CAM0 = PinholeRadtan(
+    752, 480, 458.654, 457.296, 367.215, 248.375,
+    -0.28340811, 0.07395907, 0.00019359, 1.76187114e-05,
+)  # fmt: skip
+
+
+class SynthError(RecslamError):
+    """Invalid generator settings or output folder."""
+
+
+@dataclass(frozen=True)
+class SynthConfig:
+    """What to generate.
+
+    ``robots``: number of sequences; ``seconds``: length of each [s]; ``seed``: everything
+    random (textures, flights, noise) derives from it; ``camera_rate_hz`` (20) must divide
+    ``imu_rate_hz`` (200); ``start_ns``: timestamp of robot 0's first sample [ns];
+    ``robot_start_offset_s``: extra start delay of each further robot [s]; ``imu_noise`` /
+    ``render`` / ``textures`` / ``trajectory``: sub-configs (set ``imu_noise.enabled=False``
+    and ``render.noise_std=0`` for noise-free data); ``contact_sheet``: write the PNG previews;
+    ``progress``: tqdm bar on stderr.
+    """
+
+    robots: int = 3
+    seconds: float = 60.0
+    seed: int = 0
+    camera_rate_hz: float = 20.0
+    imu_rate_hz: float = 200.0
+    start_ns: int = 1_600_000_000_000_000_000
+    robot_start_offset_s: float = 0.0
+    imu_noise: ImuNoiseConfig = field(default_factory=ImuNoiseConfig)
+    render: RenderConfig = field(default_factory=RenderConfig)
+    textures: TextureConfig = field(default_factory=TextureConfig)
+    trajectory: TrajectoryConfig = field(default_factory=TrajectoryConfig)
+    contact_sheet: bool = True
+    progress: bool = True
+
+    def __post_init__(self) -> None:
+        if self.robots < 1:
+            raise SynthError(f"robots must be >= 1, got {self.robots}")
+        if not self.seconds > 0:
+            raise SynthError(f"seconds must be > 0, got {self.seconds}")
+        ratio = self.imu_rate_hz / self.camera_rate_hz
+        if abs(ratio - round(ratio)) > 1e-9 or ratio < 1:
+            raise SynthError(
+                f"imu_rate_hz {self.imu_rate_hz} must be a multiple of camera_rate_hz "
+                f"{self.camera_rate_hz}"
+            )
+        if (1e9 / self.imu_rate_hz) % 1 != 0:
+            raise SynthError(f"imu_rate_hz {self.imu_rate_hz} must give an integer ns period")
+
+
+@dataclass(frozen=True)
+class RobotSummary:
+    """Facts about one generated sequence."""
+
+    name: str
+    path: str
+    frames: int
+    imu_samples: int
+    first_timestamp_ns: int
+    path_length_m: float
+    max_speed_mps: float
+    max_rate_radps: float
+
+
+@dataclass(frozen=True)
+class DatasetSummary:
+    """What :func:`generate_dataset` wrote (``out`` folder, settings, per-robot facts, and the
+    wall time [s] and rendering rate [frames/s])."""
+
+    out: str
+    robots: int
+    seconds: float
+    seed: int
+    version: str
+    sequences: tuple[RobotSummary, ...]
+    wall_time_s: float
+    render_fps: float
+
+    def to_json(self) -> dict:
+        return asdict(self)
+
+
+def imu_calibration(config: SynthConfig) -> ImuCalibration:
+    """EuRoC's ADIS16448 densities at the configured rate (IMU = body frame)."""
+    return ImuCalibration(
+        gyro_noise_density=EUROC_IMU.gyro_noise_density,
+        gyro_random_walk=EUROC_IMU.gyro_random_walk,
+        accel_noise_density=EUROC_IMU.accel_noise_density,
+        accel_random_walk=EUROC_IMU.accel_random_walk,
+        rate_hz=config.imu_rate_hz,
+    )
+
+
+def camera_calibration(config: SynthConfig) -> CameraCalibration:
+    """EuRoC cam0 intrinsics, distortion and ``T_BS`` at the configured rate."""
+    return EUROC_CAM0.to_calibration(T_IMU_CAM, config.camera_rate_hz)
+
+
+def robot_timestamps(config: SynthConfig, robot: int) -> tuple[np.ndarray, np.ndarray, int]:
+    """(IMU timestamps (M,) int64, camera frame indices into them (N,), t0_ns) of ``robot``."""
+    period_ns = int(round(1e9 / config.imu_rate_hz))
+    step = int(round(config.imu_rate_hz / config.camera_rate_hz))
+    n = int(np.floor(config.seconds * config.imu_rate_hz + 1e-9)) + 1
+    t0 = config.start_ns + int(round(robot * config.robot_start_offset_s * 1e9))
+    ts = t0 + period_ns * np.arange(n, dtype=np.int64)
+    return ts, np.arange(0, n, step), t0
+
+
+def _write_robot(out: Path, k: int, config: SynthConfig, traj: LoopTrajectory,
+                 renderer: Renderer, bar) -> tuple[RobotSummary, list[np.ndarray]]:  # fmt: skip
+    """Simulate, render and write robot ``k``; returns its summary and sample frames."""
+    name = f"robot{k}"
+    ts, cam_idx, t0 = robot_timestamps(config, k)
+    t = (ts - t0) * 1e-9
+    imu_calib = imu_calibration(config)
+    imu = simulate_imu(traj, ts, t0, imu_calib, config.imu_noise,
+                       np.random.default_rng([config.seed, 202, k]))  # fmt: skip
+    st = traj.evaluate(t)
+    gt = GroundTruth(
+        timestamps_ns=ts,
+        p_world_body=st.p_world_body,
+        q_world_body_wxyz=R_to_quat_wxyz(st.R_world_body),
+        v_world_body=st.v_world_body,
+        bias_gyro=imu.bias_gyro,
+        bias_accel=imu.bias_accel,
+    )
+    T_world_cam = st.T_world_cam()
+    samples: list[np.ndarray] = []
+    sample_at = set(np.linspace(0, len(cam_idx) - 1, 4).round().astype(int).tolist())
+    phase = float(np.random.default_rng([config.seed, 303, k]).uniform(0, 2 * np.pi))
+    with EurocWriter(out / name, body_yaml_comment=f"recslam synthetic {name}") as w:
+        w.add_camera("cam0", camera_calibration(config), comment="synthetic EuRoC-like cam0")
+        for j, i in enumerate(cam_idx):
+            rng = np.random.default_rng([config.seed, 404, k, j])
+            img = renderer.render(T_world_cam[i], float(t[i]), rng, phase)
+            w.add_image("cam0", int(ts[i]), img)
+            if j in sample_at:
+                samples.append(img)
+            bar.update(1)
+        w.write_imu(imu_calib, ts, imu.gyro, imu.accel)
+        w.write_groundtruth(gt)
+    steps = np.linalg.norm(np.diff(st.p_world_body, axis=0), axis=1)
+    summary = RobotSummary(
+        name=name,
+        path=str(out / name),
+        frames=len(cam_idx),
+        imu_samples=len(ts),
+        first_timestamp_ns=int(ts[0]),
+        path_length_m=float(steps.sum()),
+        max_speed_mps=float(np.linalg.norm(st.v_world_body, axis=1).max()),
+        max_rate_radps=float(np.linalg.norm(st.omega_body, axis=1).max()),
+    )
+    return summary, samples
+
+
+def contact_sheet(samples: list[list[np.ndarray]], scale: float = 0.5) -> np.ndarray:
+    """Rows of sample frames (one row per robot) -> one uint8 image with labels."""
+    rows = []
+    for k, frames in enumerate(samples):
+        small = [cv2.resize(f, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
+                 for f in frames]  # fmt: skip
+        row = np.concatenate([np.pad(s, 2, constant_values=255) for s in small], axis=1)
+        cv2.putText(row, f"robot{k}", (8, 22), cv2.FONT_HERSHEY_SIMPLEX, 0.7, 255, 3,
+                    cv2.LINE_AA)  # fmt: skip
+        cv2.putText(row, f"robot{k}", (8, 22), cv2.FONT_HERSHEY_SIMPLEX, 0.7, 0, 1,
+                    cv2.LINE_AA)  # fmt: skip
+        rows.append(row)
+    width = max(r.shape[1] for r in rows)
+    rows = [np.pad(r, ((0, 0), (0, width - r.shape[1])), constant_values=255) for r in rows]
+    return np.concatenate(rows, axis=0)
+
+
+def plot_top_view(scene: Scene, trajectories: list[LoopTrajectory], seconds: float,
+                  path: Path) -> None:  # fmt: skip
+    """Top view PNG of the room, its boxes and every robot's flight (start marked)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.patches import Rectangle
+
+    fig, ax = plt.subplots(figsize=(8, 7.5), dpi=100)
+    lo, hi = scene.room_lo, scene.room_hi
+    ax.add_patch(Rectangle(lo[:2], hi[0] - lo[0], hi[1] - lo[1], fill=False, lw=2))
+    for box in scene.boxes:
+        ax.add_patch(Rectangle(box.lo[:2], box.hi[0] - box.lo[0], box.hi[1] - box.lo[1],
+                               color="0.6", alpha=0.8))  # fmt: skip
+        ax.text((box.lo[0] + box.hi[0]) / 2, (box.lo[1] + box.hi[1]) / 2,
+                f"{box.name}\n{box.hi[2]:.2f} m", ha="center", va="center", fontsize=7)  # fmt: skip
+    t = np.arange(0.0, seconds, 0.05)
+    for k, traj in enumerate(trajectories):
+        st = traj.evaluate(t)
+        p = st.p_world_body
+        (line,) = ax.plot(p[:, 0], p[:, 1], lw=1.2, label=f"robot{k}")
+        ax.plot(p[0, 0], p[0, 1], "o", color=line.get_color(), ms=7)
+        # Viewing direction every 2 s.
+        fwd = st.T_world_cam()[:, :3, 2]
+        idx = np.arange(0, len(t), 40)
+        ax.quiver(p[idx, 0], p[idx, 1], fwd[idx, 0], fwd[idx, 1], color=line.get_color(),
+                  scale=25, width=0.003, alpha=0.7)  # fmt: skip
+    ax.set_xlim(lo[0] - 0.2, hi[0] + 0.2)
+    ax.set_ylim(lo[1] - 0.2, hi[1] + 0.2)
+    ax.set_aspect("equal")
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.set_title(f"synthetic room, {len(trajectories)} robots x {seconds:g} s (o = start)")
+    ax.legend(loc="upper right", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def generate_dataset(out: Path, config: SynthConfig = SynthConfig()) -> DatasetSummary:
+    """Generate the whole dataset into ``out`` (created if needed) and return its summary."""
+    from tqdm import tqdm
+
+    start = time.perf_counter()
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise SynthError(f"{out}: exists and is not a folder")
+    out.mkdir(parents=True, exist_ok=True)
+    scene = vicon_room()
+    atlas = build_atlas(scene, config.seed, config.textures)
+    renderer = Renderer(scene, atlas, EUROC_CAM0, config.render)
+    trajectories = make_trajectories(scene, config.robots, config.seconds, config.seed,
+                                     config.trajectory)  # fmt: skip
+    frames_per_robot = len(robot_timestamps(config, 0)[1])
+    summaries, samples = [], []
+    render_start = time.perf_counter()
+    with tqdm(total=frames_per_robot * config.robots, desc="rendering", unit="frame",
+              disable=not config.progress) as bar:  # fmt: skip
+        for k, traj in enumerate(trajectories):
+            s, frames = _write_robot(out, k, config, traj, renderer, bar)
+            summaries.append(s)
+            samples.append(frames)
+    render_time = time.perf_counter() - render_start
+    if config.contact_sheet:
+        cv2.imwrite(str(out / "contact_sheet.png"), contact_sheet(samples))
+        plot_top_view(scene, trajectories, config.seconds, out / "trajectories_top.png")
+    total_frames = sum(s.frames for s in summaries)
+    summary = DatasetSummary(
+        out=str(out),
+        robots=config.robots,
+        seconds=float(config.seconds),
+        seed=config.seed,
+        version=GENERATOR_VERSION,
+        sequences=tuple(summaries),
+        wall_time_s=time.perf_counter() - start,
+        render_fps=total_frames / max(render_time, 1e-9),
+    )
+    meta = {
+        "generator": GENERATOR_VERSION,
+        "robots": config.robots,
+        "seconds": float(config.seconds),
+        "seed": config.seed,
+        "camera_rate_hz": config.camera_rate_hz,
+        "imu_rate_hz": config.imu_rate_hz,
+        "sequences": [asdict(s) | {"path": s.name} for s in summaries],
+        "config": asdict(config),
+        "room": {
+            "lo": list(scene.room_lo),
+            "hi": list(scene.room_hi),
+            "boxes": [asdict(b) for b in scene.boxes],
+        },  # fmt: skip
+        "trajectories": [asdict(tr) for tr in trajectories],
+    }
+    (out / "dataset.json").write_text(json.dumps(meta, indent=2) + "\n")
+    logger.info("dataset %s: %d robots x %g s in %.1f s (%.1f frames/s)", out, config.robots,
+                config.seconds, summary.wall_time_s, summary.render_fps)  # fmt: skip
+    return summary
