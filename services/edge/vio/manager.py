@@ -438,7 +438,11 @@ class VioManager:
         age = (kfs[-1].timestamp_ns - kfs[0].timestamp_ns) * 1e-9
         runs = vmap.vi_init_runs
         if runs == 0:
-            due = age >= vopt.first_after_s and len(kfs) >= vopt.min_keyframes
+            last = vmap.last_vi_attempt_ns
+            waited = last is None or (kfs[-1].timestamp_ns - last) * 1e-9 >= vopt.retry_interval_s
+            due = age >= vopt.first_after_s and len(kfs) >= vopt.min_keyframes and waited
+            if due:
+                vmap.last_vi_attempt_ns = kfs[-1].timestamp_ns
         else:
             due = runs <= len(vopt.refine_after_s) and age >= vopt.refine_after_s[runs - 1]
         if due:

@@ -101,6 +101,7 @@ class VioMap:
         self.points: dict[int, MapPoint] = {}
         self.vi_initialized = False
         self.vi_init_runs = 0
+        self.last_vi_attempt_ns: int | None = None
         self.banned_tracks: set[int] = set()
         self.track_point: dict[int, int] = {}  # robot track id -> map point id
         self._dirty_keyframes: set[int] = set()

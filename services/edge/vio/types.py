@@ -59,6 +59,7 @@ class ViInitOptions:
     visual_position_sigma_rel: float = 0.002  # pose noise as a fraction of median scene depth
     visual_rotation_sigma_deg: float = 0.1  # pose rotation noise of the visual map
     max_span_s: float = 4.0  # the inertial-only problem uses the newest keyframes of this span
+    retry_interval_s: float = 0.5  # after a rejected attempt, wait this long (map time)
     max_cost_per_residual: float = 0.25  # reject (retry at the next keyframe) above this
     min_scale: float = 1e-3  # a smaller/larger scale estimate is rejected
     max_scale: float = 1e3
