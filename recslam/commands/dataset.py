@@ -65,6 +65,8 @@ def run_synth(args: argparse.Namespace) -> int:
 
 
 def run_info(args: argparse.Namespace) -> int:
+    import numpy as np
+
     from common.data.euroc import EurocError, EurocSequence
 
     root: Path = args.path
@@ -81,13 +83,8 @@ def run_info(args: argparse.Namespace) -> int:
             s = seq.summary()
             gt = seq.groundtruth
             if gt is not None and len(gt) > 1:
-                s["path_length_m"] = float(
-                    sum(
-                        abs(d)
-                        for d in ((gt.p_world_body[1:] - gt.p_world_body[:-1]) ** 2).sum(axis=1)
-                        ** 0.5
-                    )  # fmt: skip
-                )
+                steps = np.diff(gt.p_world_body, axis=0)
+                s["path_length_m"] = float(np.linalg.norm(steps, axis=1).sum())
             rows.append(s)
     except EurocError as e:
         print(f"error: {e}")
@@ -105,7 +102,9 @@ def run_info(args: argparse.Namespace) -> int:
     for s in rows:
         res = "x".join(str(v) for v in s["resolution"])
         path = s.get("path_length_m")
-        print(f"{s['name']:<12}{s['frames']:>8}{s['camera_rate_hz']:>8.1f}{s['imu_samples']:>8}"
-              f"{s['imu_rate_hz']:>8.1f}{s['duration_s']:>8.1f}{res:>10}"
-              f"{s['groundtruth_samples']:>7}{'-' if path is None else f'{path:.1f}':>8}")  # fmt: skip
+        print(
+            f"{s['name']:<12}{s['frames']:>8}{s['camera_rate_hz']:>8.1f}{s['imu_samples']:>8}"
+            f"{s['imu_rate_hz']:>8.1f}{s['duration_s']:>8.1f}{res:>10}"
+            f"{s['groundtruth_samples']:>7}{'-' if path is None else f'{path:.1f}':>8}"
+        )
     return 0

@@ -224,11 +224,11 @@ def _draw(scene: Scene, k: int, n: int, rng: np.random.Generator,
     z_mid = (lo[2] + hi[2]) / 2.0
     height = _random_wave(rng, z_mid + rng.uniform(-0.4, 0.1),
                           [(0.15, 0.4), (0.0, 0.06 * agg)], [(0.15, 0.4), (1.5, 3.0)])  # fmt: skip
-    jitter_x = _random_wave(rng, 0.0, [(0.0, 0.08 * agg)], [(1.0, 2.5 + agg)])
-    jitter_y = _random_wave(rng, 0.0, [(0.0, 0.08 * agg)], [(1.0, 2.5 + agg)])
+    jitter_x = _random_wave(rng, 0.0, [(0.03 * agg, 0.1 * agg)], [(1.0, 2.5 + agg)])
+    jitter_y = _random_wave(rng, 0.0, [(0.03 * agg, 0.1 * agg)], [(1.0, 2.5 + agg)])
     yaw_offset = _random_wave(rng, rng.uniform(-0.35, 0.35),
-                              [(0.15, 0.25 + 0.2 * agg), (0.0, 0.05 * agg)],
-                              [(0.2, 0.6), (1.0, 2.0)])  # fmt: skip
+                              [(0.15, 0.2 + 0.3 * agg), (0.0, 0.08 * agg)],
+                              [(0.3, 0.5 + 0.5 * agg), (1.0, 2.0)])  # fmt: skip
     pitch = _random_wave(rng, rng.uniform(0.08, 0.25), [(0.04, 0.1), (0.0, 0.03 * agg)],
                          [(0.2, 0.6), (1.0, 3.0)])  # fmt: skip
     roll = _random_wave(rng, 0.0, [(0.03, 0.08), (0.0, 0.04 * agg)], [(0.2, 0.6), (1.0, 3.0)])
@@ -255,8 +255,9 @@ def check_trajectory(scene: Scene, traj: LoopTrajectory, seconds: float,
     return None
 
 
-def make_trajectories(scene: Scene, robots: int, seconds: float, seed: int,
-                      cfg: TrajectoryConfig = TrajectoryConfig()) -> list[LoopTrajectory]:  # fmt: skip
+def make_trajectories(
+    scene: Scene, robots: int, seconds: float, seed: int, cfg: TrajectoryConfig = TrajectoryConfig()
+) -> list[LoopTrajectory]:
     """One valid flight per robot, deterministic in ``seed``."""
     out = []
     for k in range(robots):
