@@ -99,9 +99,14 @@ class Panels:
         self._bw_folder = gui.add_folder("Bandwidth (kbit/s)")
         self._plots: dict[str, tuple[tuple[str, ...], viser.GuiUplotHandle]] = {}
         self.last_update = 0.0
+        self._last: object = None
 
     def update(self, stats: StatsSnapshot, ate_m: dict[int, float | None]) -> None:
-        """Refresh every panel from one stats snapshot."""
+        """Refresh every panel from one stats snapshot (nothing is sent when unchanged)."""
+        key = (stats, tuple(sorted(ate_m.items())))
+        if key == self._last:
+            return
+        self._last = key
         with self._server.atomic():
             self.counts.content = counts_markdown(stats)
             self.agents.content = agents_markdown(stats, ate_m)

@@ -45,7 +45,8 @@ class SceneConfig:
 
     point_size_m: point size in metres; chunk_points: points per sealed chunk node;
     max_points: points kept at most; frustum_every: draw one frustum per this many keyframes;
-    frustum_scale_m: frustum depth; line_width_px: trajectory / link width in pixels.
+    frustum_scale_m: frustum depth; line_width_px: trajectory / link width in pixels;
+    track_hz: how often at most an agent's trajectory and frustums are resent while it grows.
     """
 
     point_size_m: float = 0.03
@@ -54,6 +55,7 @@ class SceneConfig:
     frustum_every: int = 5
     frustum_scale_m: float = 0.15
     line_width_px: float = 2.0
+    track_hz: float = 2.0
 
 
 def frustum_segments(T_world_cam: np.ndarray, scale: float, aspect: float = 4 / 3) -> np.ndarray:
@@ -88,6 +90,8 @@ class MapScene:
         self._merges = np.zeros((0, 2), np.int64)
         self._links_dirty = False
         self._gt_dirty = False
+        self._pending_tracks: set[int] = set()
+        self._last_tracks = -np.inf
         self.mbp = False
         self.show_frustums = True
         self.show_ground_truth = True
@@ -101,8 +105,9 @@ class MapScene:
 
     # -------------------------------------------------------------- deltas
 
-    def apply(self, delta: MapDelta) -> None:
-        """Take in one delta and send what changed (one atomic batch)."""
+    def apply(self, delta: MapDelta, now: float = np.inf) -> None:
+        """Take in one delta and send what changed (one atomic batch). ``now`` (s, monotonic)
+        rate-limits trajectory resends to ``track_hz``; pending ones go out on a later call."""
         if delta.full:
             self.points.clear()
             self.keyframes.clear()
@@ -121,10 +126,13 @@ class MapScene:
             self._links_dirty = True
         with self._server.atomic():
             self._send_points()
-            dirty_agents = self.keyframes.take_dirty()
-            for a in dirty_agents:
-                self._send_track(a)
-            if dirty_agents:
+            self._pending_tracks |= set(self.keyframes.take_dirty())
+            due = now - self._last_tracks >= 1.0 / self._cfg.track_hz
+            if self._pending_tracks and (due or delta.full):
+                for a in sorted(self._pending_tracks):
+                    self._send_track(a)
+                self._pending_tracks.clear()
+                self._last_tracks = now if np.isfinite(now) else self._last_tracks
                 self._links_dirty = True
             if self._links_dirty:
                 self._send_links()

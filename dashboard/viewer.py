@@ -157,7 +157,7 @@ class Dashboard:
         """Read one delta (and optionally stats) from the source and show it."""
         delta = self._source.snapshot(self.version)
         with self._lock:
-            self._scene.apply(delta)  # cheap when nothing changed; loops may change alone
+            self._scene.apply(delta, time.monotonic())  # cheap when nothing changed
             self.version = delta.version
             self.ticks += 1
         if with_stats:

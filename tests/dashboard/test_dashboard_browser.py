@@ -120,12 +120,16 @@ def test_dashboard_draws_points_and_panels_in_chromium(browser, tmp_path):
         page = _open(browser, demo.url)
         png = _settled_shot(page, want_points=True)
         text = page.inner_text("body")
+        page.get_by_text("Map with MBP").click()  # hide what map backbone profiling pruned
+        mbp_png = _settled_shot(page, want_points=True, timeout_s=10.0)
+        mbp_state = demo.mbp_checkbox.value
         empty_page = _open(browser, empty.url)
         empty_png = _settled_shot(empty_page, want_points=False, timeout_s=5.0)
         empty_text = empty_page.inner_text("body")
     ARTIFACTS.mkdir(parents=True, exist_ok=True)
     (ARTIFACTS / "dashboard.png").write_bytes(png)
     (ARTIFACTS / "dashboard_empty.png").write_bytes(empty_png)
+    (ARTIFACTS / "dashboard_mbp.png").write_bytes(mbp_png)
     docs = REPO / "docs" / "dashboard.png"
     if not docs.exists() or os.environ.get("RECSLAM_UPDATE_SCREENSHOT") == "1":
         docs.parent.mkdir(exist_ok=True)
@@ -135,6 +139,9 @@ def test_dashboard_draws_points_and_panels_in_chromium(browser, tmp_path):
     blank = agent_pixel_counts(empty_png)
     assert all(n > 2000 for n in drawn), f"agent-coloured pixels {drawn} (map not drawn?)"
     assert all(n < 50 for n in blank), f"empty scene has agent-coloured pixels {blank}"
+    with_mbp = agent_pixel_counts(mbp_png)
+    assert mbp_state, "clicking the MBP checkbox did not reach the server"
+    assert sum(with_mbp) < 0.97 * sum(drawn), f"MBP view {with_mbp} vs full map {drawn}"
     # Panels: counts and agents as the source reports them.
     c = stats.counts
     assert "Map points" in text and str(c.map_points) in text and str(c.map_points_kept) in text
