@@ -1,0 +1,134 @@
+"""``recslam edge``: run the edge tier (per-robot VIO, feedback to robots, uplink to the cloud).
+
+    recslam edge --listen 0.0.0.0:7000 --cloud cloud-host:7100 --state-dir state/edge \\
+        --camera datasets/euroc-micro-V1_01 --secret-file secret.txt
+
+Robots connect with role "robot" and their robot name as agent id; the edge connects to the
+cloud with role "edge" and ``--agent-id``. With ``--state-dir`` every robot's frames are
+journaled before they are acknowledged, and a restarted edge (same directory) replays the
+journals and loses nothing; without it a restart loses every robot's state.
+
+The robots' calibration comes from ``--camera``: an EuRoC dataset folder (``mav0/cam0`` and
+``mav0/imu0`` sensor.yaml files) or a cam0 ``sensor.yaml`` (the IMU is then EuRoC's ADIS16448).
+The shared secret comes from ``--secret-file`` or ``$RECSLAM_SECRET`` (at least 16 bytes).
+SIGINT / SIGTERM stop it cleanly (journals are fsynced).
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+from pathlib import Path
+
+log = logging.getLogger(__name__)
+
+SECRET_ENV = "RECSLAM_SECRET"
+
+
+def _host_port(text: str) -> tuple[str, int]:
+    host, sep, port = text.rpartition(":")
+    if not sep or not port.isdigit() or not 0 <= int(port) < 65536:
+        raise argparse.ArgumentTypeError(f"expected HOST:PORT, got {text!r}")
+    return host or "0.0.0.0", int(port)
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser(
+        "edge",
+        help="run the edge service (per-robot VIO, feedback, uplink to the cloud)",
+        description=__doc__.split("\n\n")[0],
+    )
+    p.add_argument("--listen", type=_host_port, default=("0.0.0.0", 7000), metavar="HOST:PORT",
+                   help="address robots connect to (default 0.0.0.0:7000)")  # fmt: skip
+    p.add_argument("--cloud", type=_host_port, default=None, metavar="HOST:PORT",
+                   help="cloud address (default: none, the uplink is dropped)")  # fmt: skip
+    p.add_argument("--state-dir", type=Path, default=None, metavar="DIR",
+                   help="journal directory for restarts without loss (default: none)")  # fmt: skip
+    p.add_argument("--secret-file", type=Path, default=None, metavar="F",
+                   help=f"shared secret file (default: ${SECRET_ENV})")  # fmt: skip
+    p.add_argument("--camera", type=Path, default=None, metavar="PATH",
+                   help="EuRoC dataset folder or cam0 sensor.yaml (required)")  # fmt: skip
+    p.add_argument("--agent-id", default="edge", help="this edge's agent id (default edge)")
+    p.add_argument("--worker", choices=("process", "thread"), default="process",
+                   help="where each robot's VIO runs (default: one process per robot)")  # fmt: skip
+    p.add_argument("--vocabulary", type=Path, default=None, metavar="NPZ",
+                   help="vocabulary file (default: common/assets/orb_vocabulary.npz)")  # fmt: skip
+    p.set_defaults(func=handle)
+
+
+def read_secret(path: Path | None) -> bytes:
+    """The shared secret from ``path`` (trailing newline stripped) or ``$RECSLAM_SECRET``."""
+    from common.errors import RecslamError
+
+    if path is not None:
+        try:
+            secret = path.read_bytes().rstrip(b"\r\n")
+        except OSError as exc:
+            raise RecslamError(f"{path}: cannot read the secret file ({exc})") from exc
+        what = str(path)
+    else:
+        secret = os.environ.get(SECRET_ENV, "").encode()
+        what = f"${SECRET_ENV}"
+        if not secret:
+            raise RecslamError(f"no shared secret: pass --secret-file or set ${SECRET_ENV}")
+    if len(secret) < 16:
+        raise RecslamError(f"{what}: the shared secret must be at least 16 bytes")
+    return secret
+
+
+def read_calibration(path: Path | None):
+    """(CameraCalibration, ImuCalibration) from a dataset folder or a cam0 sensor.yaml."""
+    from common.calibration import EUROC_IMU
+    from common.data.euroc import find_mav0, read_camera_yaml, read_imu_yaml
+    from common.errors import RecslamError
+
+    if path is None:
+        raise RecslamError("--camera is required (EuRoC dataset folder or cam0 sensor.yaml)")
+    if path.is_dir():
+        mav0 = find_mav0(path)
+        imu_yaml = mav0 / "imu0" / "sensor.yaml"
+        imu = read_imu_yaml(imu_yaml) if imu_yaml.exists() else EUROC_IMU
+        return read_camera_yaml(mav0 / "cam0" / "sensor.yaml"), imu
+    return read_camera_yaml(path), EUROC_IMU
+
+
+def handle(args: argparse.Namespace) -> int:
+    import asyncio
+    import signal
+
+    from common.errors import RecslamError
+    from common.transport import run
+    from common.vocabulary import DEFAULT_VOCABULARY_PATH, Vocabulary
+    from services.edge.app import EdgeConfig
+    from services.edge.server import EdgeServer, EdgeServiceConfig
+
+    try:
+        secret = read_secret(args.secret_file)
+        camera, imu = read_calibration(args.camera)
+        vocab = Vocabulary.load(args.vocabulary or DEFAULT_VOCABULARY_PATH)
+    except RecslamError as exc:
+        log.error("%s", exc)
+        return 2
+    cloud_host, cloud_port = args.cloud if args.cloud is not None else (None, 0)
+    service = EdgeServiceConfig(agent_id=args.agent_id, cloud_host=cloud_host,
+                                cloud_port=cloud_port)  # fmt: skip
+
+    async def main() -> int:
+        edge = EdgeServer(secret, camera, imu, vocab, EdgeConfig(worker=args.worker), service,
+                          state_dir=args.state_dir)  # fmt: skip
+        stop = asyncio.Event()
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            loop.add_signal_handler(sig, stop.set)
+        host, port = await edge.start(*args.listen)
+        print(f"edge listening on {host}:{port}, replayed {edge.replayed_frames} frames",
+              flush=True)  # fmt: skip
+        try:
+            await stop.wait()
+        finally:
+            print("edge stopping", flush=True)
+            await edge.stop()
+        return 0
+
+    return run(main())

@@ -1,0 +1,263 @@
+"""The edge's application: reacts to delivered messages, never touches bytes or sockets.
+
+Per robot (agent id) an :class:`_Robot` holds a :class:`RobotSession` (decoders, outputs), a
+worker running its VIO (``services.edge.worker``), an input queue and a task draining it:
+
+- ``RobotFrame``: decoded at once on the loop (in stream order), journaled (when a journal
+  is configured) and queued; the handler returns, so the transport acknowledges, once the
+  frame is in the journal. The queue is bounded (``EdgeConfig.max_queued_frames``): a full
+  queue makes the handler wait, which back-pressures the robot through the protocol window;
+- the robot's task feeds the worker frame by frame and turns results into messages via the
+  :class:`Sink` (feedback to the robot, uplink to the cloud);
+- ``PoseCorrection`` from the cloud is attached to that robot's next frame;
+- on start, :meth:`EdgeApp.replay` re-decodes each journal and fast-forwards the VIO over it
+  (no robot feedback during replay; keyframes are uplinked again, the cloud is idempotent).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import dataclasses
+import logging
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+import numpy as np
+
+from common.calibration import CameraCalibration, ImuCalibration
+from common.protocol.arrays import unpack_array
+from common.protocol.messages import (
+    Message,
+    PoseCorrection,
+    RobotFrame,
+    RobotSequenceEnd,
+    decode_payload,
+    encode_payload,
+)
+from common.transport import Delivery
+from common.vocabulary import Vocabulary
+from services.edge.journal import JournalRecord, JournalStore
+from services.edge.robot_session import RobotSession, SessionOptions
+from services.edge.vio.types import VioOptions
+from services.edge.worker import Worker, WorkerSpec, WorkItem, make_worker
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class EdgeConfig:
+    """Options of the edge application.
+
+    worker: "process" (one spawned VIO process per robot, default) or "thread".
+    max_queued_frames: decoded frames waiting for a robot's VIO before the handler waits
+        (200 = 10 s at 20 Hz).
+    vio: the VIO's options; session: feedback / status / uplink options.
+    """
+
+    worker: str = "process"
+    max_queued_frames: int = 200
+    vio: VioOptions = field(default_factory=VioOptions)
+    session: SessionOptions = field(default_factory=SessionOptions)
+
+
+class Sink(Protocol):
+    """Where the app's messages go (the server implements it with the transport)."""
+
+    def to_robot(self, agent_id: str, message: Message) -> None: ...
+
+    async def to_cloud(self, message: Message) -> None: ...
+
+    def link_counters(self, agent_id: str) -> dict[str, int]: ...
+
+
+@dataclass
+class _Robot:
+    session: RobotSession
+    worker: Worker
+    queue: asyncio.Queue[tuple[WorkItem | None, bool]]
+    space: asyncio.Event
+    corrections: list[tuple[int, dict[int, np.ndarray]]] = field(default_factory=list)
+    task: asyncio.Task[None] | None = None
+    idle: asyncio.Event = field(default_factory=asyncio.Event)
+    ended: asyncio.Event = field(default_factory=asyncio.Event)
+    expected_frames: int | None = None
+
+
+class EdgeApp:
+    """All robots of one edge (see the module docstring)."""
+
+    def __init__(
+        self,
+        camera: CameraCalibration,
+        imu: ImuCalibration,
+        vocabulary: Vocabulary,
+        sink: Sink,
+        config: EdgeConfig | None = None,
+        journal: JournalStore | None = None,
+    ) -> None:
+        self.camera, self.imu, self.vocabulary = camera, imu, vocabulary
+        self.sink = sink
+        self.config = config or EdgeConfig()
+        self.journal = journal
+        self.robots: dict[str, _Robot] = {}
+        self.on_robot_added: Callable[[str], None] | None = None
+
+    # ------------------------------------------------------------------ robots
+    def _robot(self, agent_id: str) -> _Robot:
+        rb = self.robots.get(agent_id)
+        if rb is None:
+            session = RobotSession(agent_id, self.camera, self.vocabulary, self.config.session)
+            spec = WorkerSpec(agent_id, self.camera, self.imu, self.config.vio)
+            rb = _Robot(session, make_worker(spec, self.config.worker), asyncio.Queue(),
+                        asyncio.Event())  # fmt: skip
+            rb.idle.set()
+            rb.task = asyncio.create_task(self._drain(rb), name=f"edge-robot-{agent_id}")
+            self.robots[agent_id] = rb
+            if self.journal is not None:
+                self.journal.register(agent_id)
+            logger.info("robot %s: new session (%s worker)", agent_id, self.config.worker)
+        return rb
+
+    async def _drain(self, rb: _Robot) -> None:
+        s = rb.session
+        while True:
+            item, replaying = await rb.queue.get()
+            rb.idle.clear()
+            rb.space.set()
+            if item is None:
+                s.finished = True
+                await self.sink.to_cloud(s.status(self.sink.link_counters(s.agent_id)))
+                rb.ended.set()
+                if rb.queue.empty():
+                    rb.idle.set()
+                continue
+            if rb.corrections:
+                item = dataclasses.replace(item, corrections=tuple(rb.corrections))
+                rb.corrections.clear()
+            res = await rb.worker.step(item)
+            if res.failed:
+                logger.error("robot %s: %s (other robots unaffected)", s.agent_id, res.failed)
+            out = s.on_result(res, replaying=replaying)
+            for m in out.robot:
+                self.sink.to_robot(s.agent_id, m)
+            for m in out.cloud:
+                await self.sink.to_cloud(m)
+            if out.status_due:
+                await self.sink.to_cloud(s.status(self.sink.link_counters(s.agent_id)))
+            if rb.queue.empty():
+                rb.idle.set()
+
+    async def _enqueue(self, rb: _Robot, item: WorkItem | None, replaying: bool) -> None:
+        if not replaying:
+            while rb.queue.qsize() >= self.config.max_queued_frames:
+                rb.space.clear()
+                await rb.space.wait()
+        rb.idle.clear()
+        rb.queue.put_nowait((item, replaying))
+
+    # ------------------------------------------------------------------ messages
+    async def on_robot_message(self, d: Delivery) -> None:
+        """Handler of the robots' link (one call per message, in order per robot)."""
+        rb = self._robot(d.peer)
+        if self.journal is not None:
+            last = self.journal.journal(d.peer).last
+            if last is not None and last.stream_id == d.stream_id and d.seq <= last.last_delivered:
+                return  # already journaled (and processed) before a restart
+        await self._apply(rb, d.message, replaying=False)
+        if self.journal is not None:
+            rec = JournalRecord(d.stream_id, d.seq, d.message.TYPE_ID, encode_payload(d.message))
+            self.journal.journal(d.peer).append(rec)
+
+    async def _apply(self, rb: _Robot, m: Message, replaying: bool) -> None:
+        if isinstance(m, RobotFrame):
+            item = rb.session.decode(m)
+            await self._enqueue(rb, item, replaying)
+        elif isinstance(m, RobotSequenceEnd):
+            rb.expected_frames = m.frames
+            logger.info("robot %s: sequence end after %d frames (decoded %d)",
+                        rb.session.agent_id, m.frames, rb.session.frames)  # fmt: skip
+            await self._enqueue(rb, None, replaying)
+        else:
+            logger.warning("robot %s sent an unexpected %s; ignored", rb.session.agent_id,
+                           type(m).__name__)  # fmt: skip
+
+    async def on_cloud_message(self, d: Delivery) -> None:
+        """Handler of the cloud link: pose corrections for a robot's map."""
+        m = d.message
+        if not isinstance(m, PoseCorrection):
+            logger.warning("cloud sent an unexpected %s; ignored", type(m).__name__)
+            return
+        rb = self.robots.get(m.agent_id)
+        if rb is None:
+            logger.warning("pose correction for unknown robot %s; ignored", m.agent_id)
+            return
+        ids = unpack_array(m.keyframe_ids, "<i8", (), "PoseCorrection.keyframe_ids")
+        T = unpack_array(m.T_world_body, "<f8", (4, 4), "PoseCorrection.T_world_body")
+        if len(ids) != len(T):
+            logger.warning("pose correction for %s: %d ids, %d poses; ignored", m.agent_id,
+                           len(ids), len(T))  # fmt: skip
+            return
+        poses = {int(k): np.array(t) for k, t in zip(ids, T, strict=True)}
+        rb.corrections.append((m.map_id, poses))
+
+    # ------------------------------------------------------------------ restart
+    async def replay(self) -> int:
+        """Re-decode every journal and queue its frames (VIO fast-forward); returns frames."""
+        if self.journal is None:
+            return 0
+        n = 0
+        for agent in self.journal.agents():
+            rb = self._robot(agent)
+            records = self.journal.journal(agent).read()
+            for rec in records:
+                await self._apply(rb, decode_payload(rec.type_id, rec.payload), replaying=True)
+                n += rec.type_id == RobotFrame.TYPE_ID
+            logger.info("robot %s: replaying %d journaled messages", agent, len(records))
+        return n
+
+    # ------------------------------------------------------------------ lifecycle
+    async def wait_idle(self, agent_id: str | None = None) -> None:
+        """Until the robot's (every robot's) queued frames are processed."""
+        for name, rb in list(self.robots.items()):
+            if agent_id is None or name == agent_id:
+                await rb.idle.wait()
+
+    def stats(self) -> dict[str, dict[str, Any]]:
+        """Per-robot plain-data counters."""
+        out = {}
+        for name, rb in self.robots.items():
+            s = rb.session
+            out[name] = {
+                "frames_decoded": s.frames,
+                "frames_processed": s.processed,
+                "keyframes_decoded": s.keyframes,
+                "keyframes_uplinked": s.vio_keyframes,
+                "state": s.state,
+                "reason": s.reason,
+                "map_id": s.map_id,
+                "failures": list(s.failures),
+                "feedback_sent": s.feedback_sent,
+                "queued": rb.queue.qsize(),
+                "finished": s.finished,
+                "expected_frames": rb.expected_frames,
+                "track_s": list(s.track_s),
+                "local_ba_s": list(s.local_ba_s),
+            }
+        return out
+
+    async def start_workers(self) -> None:
+        """Start process workers ahead of the first frame (spawn + imports take ~1-2 s)."""
+        for rb in self.robots.values():
+            start = getattr(rb.worker, "start", None)
+            if start is not None:
+                await start()
+
+    async def close(self) -> None:
+        for rb in self.robots.values():
+            if rb.task is not None:
+                rb.task.cancel()
+                with contextlib.suppress(asyncio.CancelledError):
+                    await rb.task
+            await rb.worker.close()

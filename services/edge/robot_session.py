@@ -1,0 +1,317 @@
+"""One robot as the edge sees it (sans-I/O): decoding, track naming, outputs of its VIO.
+
+:class:`RobotSession` turns each :class:`~common.protocol.messages.RobotFrame` into a
+:class:`~services.edge.worker.WorkItem` (feature and IMU decoders are stateful per robot and
+live here, outside the VIO worker, so that a VIO failure never loses the stream state), and
+turns each :class:`~services.edge.worker.WorkResult` into messages:
+
+- to the robot, :class:`InertialFeedback` after VI initialisation (or a new map) and then
+  whenever biases/velocity moved more than :class:`FeedbackPolicy`'s thresholds or every
+  ``every_frames`` frames; tracks are named by stream numbers (``common.codec.tracks``);
+- to the cloud, :class:`KeyframeUpdate` (first time with the keyframe's features re-coded
+  standalone; later pose-only), :class:`MapPointUpdate`, :class:`CullEvent`, and every
+  ``status_every_frames`` an :class:`AgentStatus`.
+
+No sockets, no asyncio: ``services/edge/app.py`` drives it.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections import OrderedDict
+from dataclasses import dataclass
+
+import numpy as np
+
+from common.calibration import CameraCalibration
+from common.codec import (
+    CodecConfig,
+    FeatureDecoder,
+    ImuDecoder,
+    KeyframeFeatures,
+    encode_standalone_keyframe,
+)
+from common.codec.keypoints import kf_track_q
+from common.codec.tracks import next_stream_numbers
+from common.protocol.arrays import pack_array
+from common.protocol.messages import (
+    AgentStatus,
+    CullEvent,
+    InertialFeedback,
+    KeyframeUpdate,
+    MapPointUpdate,
+    Message,
+    RobotFrame,
+)
+from common.vocabulary import Vocabulary
+from services.edge.vio.types import FrameObservation, InertialState, MapUpdate
+from services.edge.worker import WorkItem, WorkResult
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class FeedbackPolicy:
+    """When the edge sends :class:`InertialFeedback` to a robot (after VI initialisation).
+
+    A message goes out on the first initialised frame of a map, then whenever the gyro bias
+    moved by more than ``gyro_bias_rad_s`` (rad/s, norm), the accel bias by more than
+    ``accel_bias_mps2`` (m/s², norm) or the velocity by more than ``velocity_mps`` (m/s, norm)
+    since the last message, and at least every ``every_frames`` frames.
+    """
+
+    gyro_bias_rad_s: float = 2e-3
+    accel_bias_mps2: float = 2e-2
+    velocity_mps: float = 0.1
+    every_frames: int = 20
+
+
+@dataclass(frozen=True)
+class SessionOptions:
+    """Per-robot output options: feedback policy, status period (frames), features kept for
+    the keyframe uplink (robot keyframes, newest), IMU history kept (s)."""
+
+    feedback: FeedbackPolicy = FeedbackPolicy()
+    status_every_frames: int = 20
+    keyframes_kept: int = 300
+    imu_history_s: float = 120.0
+
+
+@dataclass
+class Outputs:
+    """Messages produced by one step: for the robot and for the cloud."""
+
+    robot: list[Message]
+    cloud: list[Message]
+    status_due: bool = False  # time for an AgentStatus (the app adds the link counters)
+
+
+class RobotSession:
+    """Edge-side state of one robot (see the module docstring)."""
+
+    def __init__(
+        self,
+        agent_id: str,
+        camera: CameraCalibration,
+        vocabulary: Vocabulary,
+        options: SessionOptions | None = None,
+    ) -> None:
+        self.agent_id = agent_id
+        self.vocabulary = vocabulary
+        self.codec = CodecConfig(image_width=camera.width, image_height=camera.height)
+        self.options = options or SessionOptions()
+        self.frames = 0  # frames decoded (this stream)
+        self.keyframes = 0  # robot keyframes decoded
+        self.processed = 0  # frames the VIO finished
+        self.vio_keyframes = 0  # keyframes uplinked (distinct)
+        self.failures: list[str] = []
+        self.state = "initializing"
+        self.reason = ""
+        self.map_id = 0
+        self.last_timestamp_ns = 0
+        self.finished = False
+        self.feedback_sent = 0
+        self.track_s: list[float] = []
+        self.local_ba_s: list[float] = []
+        self._reset_stream()
+        self._kf_features: OrderedDict[int, KeyframeFeatures] = OrderedDict()
+        self._imu_chunks: list[tuple[np.ndarray, np.ndarray]] = []  # (t_ns (K,), (K, 6))
+        self._kf_time: dict[tuple[int, int], int] = {}
+        self._sent_kfs: set[tuple[int, int]] = set()
+        self._last_fb: InertialState | None = None
+        self._last_fb_frame = -(10**9)
+        self._fb_map: int | None = None
+
+    def _reset_stream(self) -> None:
+        self.features = FeatureDecoder(self.vocabulary, self.codec)
+        self.imu = ImuDecoder()
+        self.numbers = np.zeros(0, np.int64)
+        self.next_number = 0
+        self.frames = 0
+
+    # ------------------------------------------------------------------ decoding
+    def decode(self, msg: RobotFrame) -> WorkItem:
+        """Decode one frame (in stream order) into the VIO's input; raises CodecError."""
+        if msg.frame_index == 0 and self.frames > 0:
+            logger.warning("robot %s restarted its stream: fresh decoders", self.agent_id)
+            self._reset_stream()
+        feats = self.features.decode(msg.features)
+        imu = self.imu.decode(msg.imu)
+        self.numbers, self.next_number = next_stream_numbers(self.numbers, self.next_number, feats)
+        if isinstance(feats, KeyframeFeatures):
+            kp = feats.keypoints
+            uv = kf_track_q(kp, self.codec).astype(np.float64) / self.codec.subpixel
+            levels = kp[:, 2].astype(np.uint8)
+            desc = feats.descriptors
+            self.keyframes += 1
+            self._kf_features[msg.timestamp_ns] = feats
+            while len(self._kf_features) > self.options.keyframes_kept:
+                self._kf_features.popitem(last=False)
+        else:
+            uv = feats.keypoints[:, :2]
+            levels = feats.keypoints[:, 2].astype(np.uint8)
+            desc = None
+        obs = FrameObservation(
+            timestamp_ns=msg.timestamp_ns,
+            track_ids=self.numbers,
+            keypoints_px=uv,
+            levels=levels,
+            is_keyframe=isinstance(feats, KeyframeFeatures),
+            descriptors=desc,
+        )
+        if len(imu):
+            self._imu_chunks.append(
+                (imu.timestamps_ns, np.concatenate([imu.gyro, imu.accel], axis=1))
+            )
+            horizon = int(imu.timestamps_ns[-1]) - int(self.options.imu_history_s * 1e9)
+            while self._imu_chunks and self._imu_chunks[0][0][-1] < horizon:
+                self._imu_chunks.pop(0)
+        self.frames += 1
+        self.last_timestamp_ns = msg.timestamp_ns
+        return WorkItem(msg.frame_index, imu.timestamps_ns, imu.gyro, imu.accel, obs)
+
+    def _imu_between(self, t0_ns: int | None, t1_ns: int) -> np.ndarray:
+        """IMU rows "<f8 (M,7)" [t_s, gyro, accel] with t0 < t <= t1 (all up to t1 if None)."""
+        if not self._imu_chunks:
+            return np.zeros((0, 7))
+        t = np.concatenate([c[0] for c in self._imu_chunks])
+        v = np.concatenate([c[1] for c in self._imu_chunks])
+        keep = t <= t1_ns
+        if t0_ns is not None:
+            keep &= t > t0_ns
+        return np.concatenate([t[keep, None] * 1e-9, v[keep]], axis=1)
+
+    # ------------------------------------------------------------------ outputs
+    def on_result(self, res: WorkResult, *, replaying: bool = False) -> Outputs:
+        """Messages for one VIO result (no robot feedback while replaying the journal)."""
+        out = Outputs([], [])
+        self.processed += 1
+        if res.failed:
+            self.failures.append(f"frame {res.frame_index}: {res.failed}")
+            self.state, self.reason = "initializing", f"VIO re-initialised after: {res.failed}"
+            self._fb_map = None
+        if res.result is not None:
+            r = res.result
+            self.state = r.status.value
+            self.reason = r.reason
+            self.map_id = r.map_id
+            self.track_s.append(res.track_s)
+        self.local_ba_s.extend(res.local_ba_s)
+        for upd in res.updates:
+            out.cloud.extend(self._uplink(upd))
+        if res.state is not None and not replaying:
+            fb = self._feedback(res)
+            if fb is not None:
+                out.robot.append(fb)
+        out.status_due = self.processed % self.options.status_every_frames == 0
+        return out
+
+    def _feedback(self, res: WorkResult) -> InertialFeedback | None:
+        s = res.state
+        assert s is not None
+        pol = self.options.feedback
+        last = self._last_fb
+        due = (
+            last is None
+            or self._fb_map != s.map_id
+            or res.frame_index - self._last_fb_frame >= pol.every_frames
+            or np.linalg.norm(s.bias_gyro - last.bias_gyro) > pol.gyro_bias_rad_s
+            or np.linalg.norm(s.bias_accel - last.bias_accel) > pol.accel_bias_mps2
+            or np.linalg.norm(s.v_world - last.v_world) > pol.velocity_mps
+        )
+        if not due:
+            return None
+        self._last_fb, self._last_fb_frame, self._fb_map = s, res.frame_index, s.map_id
+        self.feedback_sent += 1
+        ids = res.live_track_ids if res.live_track_ids is not None else np.zeros(0, np.int64)
+        pts = res.live_p_world if res.live_p_world is not None else np.zeros((0, 3))
+        g_world = s.T_world_body[:3, :3] @ s.gravity_body
+        return InertialFeedback(
+            timestamp_ns=int(s.timestamp_ns),
+            map_id=int(s.map_id),
+            T_world_body=pack_array(s.T_world_body, "<f8"),
+            velocity_world=pack_array(s.v_world, "<f8"),
+            bias_gyro=pack_array(s.bias_gyro, "<f8"),
+            bias_accel=pack_array(s.bias_accel, "<f8"),
+            gravity_world=pack_array(g_world, "<f8"),
+            track_ids=pack_array(ids, "<i8"),
+            p_world=pack_array(pts, "<f8"),
+        )
+
+    def _uplink(self, upd: MapUpdate) -> list[Message]:
+        msgs: list[Message] = []
+        for kf in upd.keyframes:
+            key = (upd.map_id, kf.keyframe_id)
+            self._kf_time[key] = kf.timestamp_ns
+            prev = kf.previous_keyframe_id
+            features = b""
+            imu = np.zeros((0, 7))
+            if key not in self._sent_kfs:
+                feats = self._kf_features.get(kf.timestamp_ns)
+                if feats is not None:
+                    features = encode_standalone_keyframe(self.vocabulary, feats, self.codec)
+                else:
+                    logger.warning("robot %s: features of keyframe %d no longer kept",
+                                   self.agent_id, kf.keyframe_id)  # fmt: skip
+                t0 = None if prev is None else self._kf_time.get((upd.map_id, prev))
+                imu = self._imu_between(t0, kf.timestamp_ns)
+                self._sent_kfs.add(key)
+                self.vio_keyframes += 1
+            msgs.append(
+                KeyframeUpdate(
+                    agent_id=self.agent_id,
+                    map_id=upd.map_id,
+                    keyframe_id=kf.keyframe_id,
+                    previous_keyframe_id=-1 if prev is None else int(prev),
+                    timestamp_ns=kf.timestamp_ns,
+                    T_world_body=pack_array(kf.T_world_body, "<f8"),
+                    velocity_world=pack_array(kf.v_world, "<f8"),
+                    bias_gyro=pack_array(kf.bias_gyro, "<f8"),
+                    bias_accel=pack_array(kf.bias_accel, "<f8"),
+                    features=features,
+                    map_point_ids=pack_array(kf.point_ids if features else [], "<i8"),
+                    imu=pack_array(imu, "<f8"),
+                )
+            )
+        if upd.points:
+            ids = np.array([p.point_id for p in upd.points], np.int64)
+            p_world = np.array([p.p_world for p in upd.points], np.float64).reshape(-1, 3)
+            obs = [
+                np.stack(
+                    [np.full(len(p.keyframe_ids), p.point_id), p.keyframe_ids, p.feature_indices],
+                    axis=1,
+                )
+                for p in upd.points
+            ]
+            rows = np.concatenate(obs).astype(np.int64) if obs else np.zeros((0, 3), np.int64)
+            msgs.append(
+                MapPointUpdate(
+                    agent_id=self.agent_id,
+                    map_id=upd.map_id,
+                    ids=pack_array(ids, "<i8"),
+                    p_world=pack_array(p_world, "<f8"),
+                    observations=pack_array(rows, "<i8"),
+                )
+            )
+        if upd.removed_point_ids:
+            msgs.append(
+                CullEvent(
+                    agent_id=self.agent_id,
+                    map_id=upd.map_id,
+                    keyframe_ids=b"",
+                    map_point_ids=pack_array(np.array(upd.removed_point_ids), "<i8"),
+                )
+            )
+        return msgs
+
+    def status(self, link_counters: dict[str, int]) -> AgentStatus:
+        """The robot's :class:`AgentStatus` now (``link_counters``: flat int counters)."""
+        return AgentStatus(
+            agent_id=self.agent_id,
+            map_id=int(self.map_id),
+            state="finished" if self.finished else self.state,
+            frames=int(self.processed),
+            keyframes=int(self.vio_keyframes),
+            timestamp_ns=int(self.last_timestamp_ns),
+            link_counters={k: int(v) for k, v in link_counters.items()},
+        )
