@@ -84,7 +84,14 @@ class Renderer:
         self._normal_axis = np.array([f.axis for f in faces], np.int8)
         self._boxes = [(np.array(b.lo), np.array(b.hi)) for b in scene.boxes]
         self._cos_fov = float(self._rays[2].min())
-        self._origins = atlas.level_origin.astype(np.float32)
+        origins = atlas.level_origin.astype(np.float32)
+        self._level_scale = (1.0 / 2.0 ** np.arange(atlas.levels)).astype(np.float32)
+        # Texel centres: level-L coordinate = level-0 coordinate / 2^L - 0.5 + level origin.
+        self._level_ox = origins[:, 0] - np.float32(0.5)
+        self._level_oy = origins[:, 1] - np.float32(0.5)
+        self._axis_is_x = self._normal_axis == 0
+        self._axis_is_z = self._normal_axis == 2
+        self._log_texel_bias = (self._log_texel - np.float32(config.lod_bias)).astype(np.float32)
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -158,28 +165,34 @@ class Renderer:
         Rf = R.astype(np.float32)
         d = [Rf[k, 0] * rx + Rf[k, 1] * ry + Rf[k, 2] * rz for k in range(3)]
         t, face, _ = self._cast(o, d, R)
-        p = [np.float32(o[k]) + d[k] * t for k in range(3)]
-        axis = self._normal_axis[face]
-        u = np.where(axis == 0, p[1], p[0])
-        v = np.where(axis == 2, p[1], p[2])
+        on_x = self._axis_is_x[face]
+        on_z = self._axis_is_z[face]
+        # Tangent coordinates of the hit: (y, z) on x-faces, (x, z) on y-faces, (x, y) on z-faces.
+        u = np.float32(o[0]) + np.where(on_x, d[1], d[0]) * t
+        u += np.where(on_x, np.float32(o[1] - o[0]), np.float32(0.0))
+        v = np.float32(o[2]) + np.where(on_z, d[1], d[2]) * t
+        v += np.where(on_z, np.float32(o[1] - o[2]), np.float32(0.0))
         cx = u * self._ax[face] + self._bx[face]
         cy = v * self._ay[face] + self._by[face]
-        cos = np.abs(np.where(axis == 0, d[0], np.where(axis == 1, d[1], d[2])))
-        lod = (np.log2(t) + self._log_pix - self._log_texel[face]
-               - np.log2(np.maximum(cos, self.config.min_cos)) + self.config.lod_bias)  # fmt: skip
+        cos = np.where(on_x, d[0], np.where(on_z, d[2], d[1]))
+        np.abs(cos, out=cos)
+        np.maximum(cos, self.config.min_cos, out=cos)
+        lod = np.log2(t / cos)
+        lod += self._log_pix
+        lod -= self._log_texel_bias[face]
         top = self.atlas.levels - 1
-        lod = np.clip(lod, 0.0, top).astype(np.float32)
-        l0 = np.minimum(lod.astype(np.int32), top - 1)
+        np.clip(lod, 0.0, top, out=lod)
+        l0 = np.minimum(lod.astype(np.int8), top - 1)
         frac = lod - l0
         h, w = self.shape
         samples = []
         for lvl in (l0, l0 + 1):
-            scale = np.float32(1.0) / (1 << lvl).astype(np.float32)
-            org = self._origins[lvl]
-            mx = (cx * scale - 0.5 + org[:, 0]).reshape(h, w)
-            my = (cy * scale - 0.5 + org[:, 1]).reshape(h, w)
+            scale = self._level_scale[lvl]
+            mx = (cx * scale + self._level_ox[lvl]).reshape(h, w)
+            my = (cy * scale + self._level_oy[lvl]).reshape(h, w)
             samples.append(cv2.remap(self.atlas.image, mx, my, cv2.INTER_LINEAR))
-        a, b = (s.reshape(-1).astype(np.float32) for s in samples)
+        a = samples[0].reshape(-1).astype(np.float32)
+        b = samples[1].reshape(-1)
         rad = (a + (b - a) * frac) * self._shade[face]
         return RenderResult(rad.reshape(h, w), t.reshape(h, w), face.reshape(h, w),
                             lod.reshape(h, w))  # fmt: skip
