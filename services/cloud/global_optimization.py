@@ -25,6 +25,10 @@ from __future__ import annotations
 
 import itertools
 import logging
+import os
+import signal
+import threading
+import time
 from dataclasses import dataclass
 
 import gtsam
@@ -239,3 +243,24 @@ def apply_pose_graph(atlas: Atlas, result: PoseGraphResult) -> int:
                 poses[k] = corr_of_agent[a][1] @ atlas.T_map_body(k)
     atlas.set_keyframe_poses(poses)
     return len(poses)
+
+
+def optimizer_process_init(parent_pid: int) -> None:
+    """Initializer of a separate optimizer process (``ProcessPoolExecutor(initializer=...)``).
+
+    The service owns its lifecycle: SIGINT / SIGTERM (e.g. Ctrl-C to the process group) are
+    ignored, and the process exits as soon as ``parent_pid`` is gone, even after a SIGKILL of
+    the service (checked every second)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+
+    def watch() -> None:
+        while os.getppid() == parent_pid:
+            time.sleep(1.0)
+        os._exit(0)
+
+    threading.Thread(target=watch, name="parent-watch", daemon=True).start()
+
+
+def warm_up() -> None:
+    """No-op: submitted once so that a worker process imports gtsam before it is needed."""

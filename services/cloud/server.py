@@ -30,6 +30,7 @@ import asyncio
 import contextlib
 import logging
 import multiprocessing
+import os
 from collections.abc import Callable
 from concurrent.futures import BrokenExecutor, Executor, ProcessPoolExecutor, ThreadPoolExecutor
 from dataclasses import dataclass
@@ -47,7 +48,11 @@ from common.transport import Delivery, Server, TransportConfig
 from common.vocabulary import Vocabulary
 from services.cloud.app import CloudApp, Correction, PositionStore, Reaction
 from services.cloud.config import CloudServiceConfig
-from services.cloud.global_optimization import optimize_pose_graph
+from services.cloud.global_optimization import (
+    optimize_pose_graph,
+    optimizer_process_init,
+    warm_up,
+)
 from services.cloud.map_fusion import MapFusion
 from services.cloud.map_source import CloudMapSource
 from services.cloud.output import OutputWriter
@@ -72,11 +77,6 @@ class CloudStats:
     maps: tuple[int, ...]
     merges: int
     loops: int
-
-
-def _warm_up() -> None:
-    """Runs in the optimizer process once: pay the gtsam import before the first merge."""
-    import services.cloud.global_optimization  # noqa: F401
 
 
 class CloudServer:
@@ -140,7 +140,13 @@ class CloudServer:
     # ------------------------------------------------------------------ lifecycle
     def _new_optimizer(self) -> Executor:
         if self.config.optimizer_process:
-            return ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"))
+            # spawn: no fork of a threaded process; the child imports only the optimiser.
+            return ProcessPoolExecutor(
+                1,
+                mp_context=multiprocessing.get_context("spawn"),
+                initializer=optimizer_process_init,
+                initargs=(os.getpid(),),
+            )
         return ThreadPoolExecutor(1, thread_name_prefix="cloud-optimizer")
 
     async def _on_worker(self, fn: Callable[..., T], *args: Any) -> T:
@@ -158,7 +164,7 @@ class CloudServer:
 
     async def start(self, host: str = "127.0.0.1", port: int = 0) -> tuple[str, int]:
         """Load the state directory, then listen; returns the bound address."""
-        self._optimizer.submit(_warm_up)  # import gtsam in the optimizer now, not at a merge
+        self._optimizer.submit(warm_up)  # import gtsam in the optimizer now, not at a merge
         self._app = await self._on_worker(self._open)
         n = self._app.atlas.n_keyframes()
         log.info("cloud state %s: %d keyframes, %d map points, maps %s", self.state_dir, n,
