@@ -25,6 +25,7 @@ demo: $(STAMP)
 
 ## The test suite (what CI runs).
 test: $(STAMP)
+	@bash scripts/install-browser.sh
 	$(BIN)/ruff check .
 	$(BIN)/python -m pytest
 

@@ -15,7 +15,7 @@ import sys
 from common.errors import RecslamError
 
 # Order is the order shown by ``recslam --help``.
-COMMAND_MODULES = ("demo", "dataset", "robot", "cloud", "evaluate", "vocab")
+COMMAND_MODULES = ("demo", "dataset", "robot", "edge", "cloud", "dashboard", "evaluate", "vocab")
 
 log = logging.getLogger(__name__)
 
