@@ -1,0 +1,274 @@
+"""The edge service over real TCP on loopback: real robot in, real (or stub) cloud out."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import dataclasses
+import os
+import re
+import signal
+import socket
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from common.data.euroc import read_camera_yaml, read_imu_yaml
+from common.protocol import SessionConfig
+from common.protocol.arrays import unpack_array
+from common.protocol.messages import (
+    AgentStatus,
+    InertialFeedback,
+    KeyframeUpdate,
+    MapPointUpdate,
+)
+from common.transport import Delivery, Server, TransportConfig
+from common.vocabulary import Vocabulary
+from services.edge.app import EdgeConfig
+from services.edge.server import EdgeServer, EdgeServiceConfig
+from services.edge.sim_robot import code_sequence, play
+from services.edge.vio.simulation import SimOptions, simulate
+from services.edge.worker import FAIL_ENV, MAP_ID_STRIDE
+
+EXCERPT = Path("/work/shared/datasets/euroc-micro-V1_01")
+SECRET = b"edge-test-secret-0123456789"
+FAST = TransportConfig(reconnect_initial_delay=0.02, reconnect_max_delay=0.3)
+ROOT = Path(__file__).resolve().parents[3]
+
+pytestmark = pytest.mark.timeout(240)
+
+
+@pytest.fixture(scope="module")
+def vocab() -> Vocabulary:
+    return Vocabulary.load()
+
+
+@pytest.fixture(scope="module")
+def sim_frames(vocab):
+    """A 7 s simulated robot (enough motion for VI initialisation), coded as RobotFrames."""
+    seq = simulate(SimOptions(duration_s=7.0, seed=1))
+    return seq, code_sequence(seq, vocab)
+
+
+class CloudStub:
+    """The cloud's side of the uplink, recording every message (a common.transport.Server)."""
+
+    def __init__(self) -> None:
+        self.messages: list = []
+        self.server: Server | None = None
+
+    async def __call__(self, d: Delivery) -> None:
+        self.messages.append(d.message)
+
+    async def start(self, port: int = 0) -> int:
+        cfg = SessionConfig("cloud", "cloud", SECRET, heartbeat_interval=0.2, idle_timeout=2.0)
+        self.server = Server(cfg, self, transport=FAST)
+        return (await self.server.start("127.0.0.1", port))[1]
+
+    def of(self, kind: type, agent: str | None = None) -> list:
+        return [
+            m for m in self.messages
+            if isinstance(m, kind) and (agent is None or m.agent_id == agent)
+        ]  # fmt: skip
+
+
+def _edge(camera, imu, vocab, cloud_port: int, worker: str, **kw) -> EdgeServer:
+    service = EdgeServiceConfig(agent_id="edge-1", cloud_host="127.0.0.1", cloud_port=cloud_port,
+                                heartbeat_interval_s=0.2, idle_timeout_s=2.0)  # fmt: skip
+    return EdgeServer(SECRET, camera, imu, vocab, EdgeConfig(worker=worker), service,
+                      transport=TransportConfig(accept_roles=("robot",)), **kw)  # fmt: skip
+
+
+# ------------------------------------------------------------------ EuRoC excerpt, real cloud
+def test_excerpt_robot_to_edge_to_real_cloud(tmp_path, vocab) -> None:
+    """The image-based robot plays the excerpt into the edge (VIO in a worker process), which
+    reports to the real cloud service: every frame decoded, status received, no VIO failure,
+    and the VIO says why it has not initialised (too little motion)."""
+    from services.cloud.config import CloudServiceConfig
+    from services.cloud.server import CloudServer
+    from services.robot.server import Rate, RobotService, RobotServiceConfig
+
+    camera = read_camera_yaml(EXCERPT / "mav0/cam0/sensor.yaml")
+    imu = read_imu_yaml(EXCERPT / "mav0/imu0/sensor.yaml")
+
+    async def main():
+        cloud = CloudServer(
+            SessionConfig("cloud", "cloud", SECRET, heartbeat_interval=0.2, idle_timeout=2.0),
+            tmp_path / "cloud", camera, vocab,
+            dataclasses.replace(CloudServiceConfig(), optimizer_process=False, output_every_s=0),
+            transport=TransportConfig(accept_roles=("edge",)),
+        )  # fmt: skip
+        _, cport = await cloud.start()
+        edge = _edge(camera, imu, vocab, cport, "process")
+        _, port = await edge.start()
+        try:
+            robot = RobotService(
+                RobotServiceConfig(dataset=EXCERPT, edge_host="127.0.0.1", edge_port=port,
+                                   agent_id="robot-1", secret=SECRET, rate=Rate.MAX,
+                                   heartbeat_interval_s=0.2, idle_timeout_s=2.0),
+                transport=FAST,
+            )  # fmt: skip
+            result = await robot.run()
+            await asyncio.wait_for(edge.flush(), 60)
+            stats = edge.stats()
+            counters = cloud.transport.counters()
+        finally:
+            await edge.stop()
+            await cloud.stop(write_output=False)
+        return result, stats, counters
+
+    result, stats, counters = asyncio.run(main())
+    r = stats["robots"]["robot-1"]
+    assert result.frames == 95 and result.flushed
+    assert r["frames_decoded"] == r["frames_processed"] == 95
+    assert r["expected_frames"] == 95 and r["finished"]
+    assert r["failures"] == []
+    assert r["state"] in ("initializing", "tracking")
+    if r["state"] == "initializing":
+        assert "parallax" in r["reason"] or "keyframe" in r["reason"], r["reason"]
+    rx = counters["edge-1"]["rx"]["by_type"]
+    assert rx["AgentStatus"]["messages"] >= 95 // 20 + 1  # periodic + the final "finished"
+    assert stats["dropped_uplink"] == 0
+
+
+# ------------------------------------------------------------------ containment
+def test_failing_robot_vio_does_not_disturb_another(monkeypatch, vocab, sim_frames) -> None:
+    """Robot "bad" gets a VIO exception at frame 25 (in its worker process); it re-initialises
+    with a new map id range. Robot "good" on the same edge initialises, gets feedback with
+    stream-numbered map points and uplinks keyframes, untouched."""
+    seq, frames = sim_frames
+    monkeypatch.setenv(FAIL_ENV, "bad:25")
+
+    async def main():
+        cloud = CloudStub()
+        cport = await cloud.start()
+        edge = _edge(seq.camera, seq.imu, vocab, cport, "process")
+        _, port = await edge.start()
+        done = asyncio.Event()
+        try:
+            plays = [
+                asyncio.create_task(
+                    play(frames, "127.0.0.1", port, name, SECRET, transport=FAST, linger=done)
+                )
+                for name in ("good", "bad")
+            ]
+            while len(edge.app.robots) < 2 or not all(
+                rb.ended.is_set() for rb in edge.app.robots.values()
+            ):
+                await asyncio.sleep(0.1)
+            await asyncio.wait_for(edge.flush(), 60)
+            done.set()
+            good, bad = await asyncio.gather(*plays)
+            stats = edge.stats()
+        finally:
+            await edge.stop()
+            await cloud.server.close()
+        return cloud, stats, good, bad
+
+    cloud, stats, good, _ = asyncio.run(main())
+    g, b = stats["robots"]["good"], stats["robots"]["bad"]
+    assert g["failures"] == [] and g["frames_processed"] == len(frames)
+    assert g["state"] == "tracking" and g["map_id"] == 0
+    assert len(b["failures"]) == 1 and "injected VIO fault at frame 25" in b["failures"][0]
+    assert b["frames_processed"] == len(frames)
+    # Good robot: feedback after VI init, tracks named by stream numbers with map points.
+    fbs = [m for m in good.feedback if isinstance(m, InertialFeedback)]
+    assert fbs, "no InertialFeedback reached the good robot"
+    last = fbs[-1]
+    ids = unpack_array(last.track_ids, "<i8")
+    p = unpack_array(last.p_world, "<f8", (3,))
+    assert len(ids) == len(p) > 10
+    g_world = unpack_array(last.gravity_world, "<f8")
+    assert np.allclose(g_world, [0, 0, -9.81], atol=1e-6)
+    bg = unpack_array(last.bias_gyro, "<f8")
+    assert np.linalg.norm(bg - np.array(SimOptions().bias_gyro)) < 5e-3
+    # Uplink: keyframes with features and IMU, map points, status.
+    kfs = cloud.of(KeyframeUpdate, "good")
+    first = [m for m in kfs if m.features]
+    assert len(first) == len({m.keyframe_id for m in kfs}) == g["keyframes_uplinked"] > 5
+    assert all(len(unpack_array(m.imu, "<f8", (7,))) > 0 for m in first[1:])
+    assert cloud.of(MapPointUpdate, "good")
+    statuses = cloud.of(AgentStatus, "good")
+    assert statuses[-1].state == "finished" and statuses[-1].frames == len(frames)
+    assert statuses[-1].link_counters["rx.RobotFrame"] > 0
+    # Bad robot: nothing of its old map after the failure; any new map has a fresh id.
+    assert all(
+        m.map_id in (0,) or m.map_id >= MAP_ID_STRIDE for m in cloud.of(KeyframeUpdate, "bad")
+    )
+    assert not [m for m in cloud.of(KeyframeUpdate, "bad") if m.map_id == 0 and m.timestamp_ns
+                > frames[25].timestamp_ns]  # fmt: skip
+
+
+# ------------------------------------------------------------------ restart without loss
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _start_edge(port: int, cloud_port: int, state: Path, log: Path) -> subprocess.Popen:
+    env = dict(os.environ, RECSLAM_SECRET=SECRET.decode())
+    env.pop(FAIL_ENV, None)
+    cmd = [sys.executable, "-m", "services.edge", "--listen", f"127.0.0.1:{port}",
+           "--cloud", f"127.0.0.1:{cloud_port}", "--state-dir", str(state),
+           "--camera", str(EXCERPT), "--worker", "thread", "--agent-id", "edge-1"]  # fmt: skip
+    with log.open("ab") as out:
+        return subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=out, stderr=subprocess.STDOUT)
+
+
+def test_edge_killed_and_restarted_loses_no_frame(tmp_path, vocab, sim_frames) -> None:
+    """SIGKILL the edge process mid-stream, restart it on the same state directory: the
+    journal replay plus the robot's replay give every frame exactly once, and the keyframes
+    uplinked cover every keyframe id of the final map."""
+    _, frames = sim_frames
+    port = _free_port()
+    log = tmp_path / "edge.log"
+
+    async def main():
+        cloud = CloudStub()
+        cport = await cloud.start()
+        proc = _start_edge(port, cport, tmp_path / "state", log)
+        try:
+            task = asyncio.create_task(
+                play(frames, "127.0.0.1", port, "robot-1", SECRET, rate_hz=20.0, transport=FAST)
+            )
+            while not any(m.frames >= 40 for m in cloud.of(AgentStatus)):
+                assert proc.poll() is None, log.read_text()
+                assert not task.done(), "robot finished before the kill"
+                await asyncio.sleep(0.05)
+            proc.send_signal(signal.SIGKILL)
+            proc.wait(10)
+            killed_at = max(m.frames for m in cloud.of(AgentStatus))
+            proc = _start_edge(port, cport, tmp_path / "state", log)
+            result = await asyncio.wait_for(task, 120)
+            while not any(m.state == "finished" for m in cloud.of(AgentStatus)[-3:]):
+                assert proc.poll() is None, log.read_text()
+                await asyncio.sleep(0.1)
+            await asyncio.sleep(0.5)
+        finally:
+            with contextlib.suppress(ProcessLookupError):
+                proc.send_signal(signal.SIGTERM)
+            proc.wait(20)
+            await cloud.server.close()
+        return cloud, result, killed_at
+
+    cloud, result, killed_at = asyncio.run(main())
+    text = log.read_text()
+    assert "Traceback" not in text, text[-3000:]
+    replayed = [int(n) for n in re.findall(r"replayed (\d+) frames", text)]
+    assert replayed[0] == 0 and replayed[-1] >= killed_at, replayed  # journal fast-forward
+    assert result.frames == len(frames) and killed_at < len(frames)
+    final = [m for m in cloud.of(AgentStatus) if m.state == "finished"][-1]
+    assert final.frames == len(frames)  # journal replay + robot replay: each frame once
+    kfs = cloud.of(KeyframeUpdate, "robot-1")
+    by_map: dict[int, set[int]] = {}
+    for m in kfs:
+        if m.features:
+            by_map.setdefault(m.map_id, set()).add(m.keyframe_id)
+    assert by_map, "no keyframes uplinked"
+    for map_id, ids in by_map.items():
+        assert ids == set(range(max(ids) + 1)), (map_id, sorted(ids))
+    assert final.keyframes == sum(len(v) for v in by_map.values())
