@@ -102,7 +102,9 @@ def main() -> int:
         "",
         f"`benchmarks/bench_synth.py --frames {args.frames}`; {platform.processor() or '?'}, "
         f"Python {platform.python_version()}, OpenCV {cv2.__version__}, one thread. "
-        "752x480 frames along robot 0's flight (seed 0).",
+        "752x480 frames along robot 0's flight (seed 0). Load average at the end "
+        f"{os.getloadavg()[0]:.1f} on {os.cpu_count()} cores (shared machine: other jobs slow "
+        "these numbers down).",
         "",
         "| what | value |",
         "|---|---|",
