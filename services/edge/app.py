@@ -247,6 +247,12 @@ class EdgeApp:
             }
         return out
 
+    async def prepare(self, agent_ids: list[str]) -> None:
+        """Create the sessions of robots expected soon and start their workers now."""
+        for a in agent_ids:
+            self._robot(a)
+        await self.start_workers()
+
     async def start_workers(self) -> None:
         """Start process workers ahead of the first frame (spawn + imports take ~1-2 s)."""
         for rb in self.robots.values():

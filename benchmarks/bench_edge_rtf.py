@@ -1,0 +1,150 @@
+"""Edge service real-time factor: 1 and 3 robots through the whole network path.
+
+Each robot is a simulated, coded robot (``services.edge.sim_robot``: the VIO simulator's
+tracks and IMU as RobotFrame messages, seeds 0, 1, 2) sending as fast as the link allows
+(``--rate max``) over loopback TCP to one in-process :class:`EdgeServer` (decode, journal-less,
+VIO, feedback, uplink to a stub cloud). Workers are started before the clock starts.
+
+RT factor per robot = its frames processed per wall second ÷ 20 Hz (≥ 1 keeps up);
+aggregate = all frames per wall second ÷ 20 Hz. Worker = "process" (one spawned process per
+robot) or "thread" (one thread per robot in the edge process).
+
+Run: ``.venv/bin/python benchmarks/bench_edge_rtf.py [--seconds 20]``; writes
+``benchmarks/results/edge_rtf.md``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import logging
+import os
+import platform
+import time
+from pathlib import Path
+
+import numpy as np
+
+from common.protocol import SessionConfig
+from common.transport import Delivery, Server, TransportConfig
+from common.vocabulary import Vocabulary
+from services.edge.app import EdgeConfig
+from services.edge.server import EdgeServer, EdgeServiceConfig
+from services.edge.sim_robot import code_sequence, play
+from services.edge.vio.simulation import SimOptions, simulate
+
+log = logging.getLogger("bench_edge_rtf")
+RESULTS = Path(__file__).resolve().parent / "results" / "edge_rtf.md"
+SECRET = b"bench-edge-secret-0123456789"
+RATE_HZ = 20.0
+
+
+def _ms(values: list[float]) -> str:
+    if not values:
+        return "-"
+    a = np.asarray(values) * 1e3
+    return f"{np.median(a):.1f} / {np.percentile(a, 95):.1f}"
+
+
+async def run_case(frames_by_robot: dict, camera, imu, vocab, worker: str) -> dict:
+    received: list = []
+
+    async def on_cloud(d: Delivery) -> None:
+        received.append(d.message)
+
+    cloud = Server(SessionConfig("cloud", "cloud", SECRET), on_cloud)
+    _, cport = await cloud.start()
+    edge = EdgeServer(SECRET, camera, imu, vocab, EdgeConfig(worker=worker),
+                      EdgeServiceConfig(agent_id="edge", cloud_host="127.0.0.1",
+                                        cloud_port=cport))  # fmt: skip
+    _, port = await edge.start()
+    await edge.app.prepare(list(frames_by_robot))
+    done = asyncio.Event()
+    t0 = time.monotonic()
+    finish: dict[str, float] = {}
+
+    async def watch() -> None:
+        while len(finish) < len(frames_by_robot):
+            for name, rb in edge.app.robots.items():
+                if name not in finish and rb.ended.is_set() and rb.idle.is_set():
+                    finish[name] = time.monotonic() - t0
+            await asyncio.sleep(0.02)
+
+    tasks = [
+        asyncio.create_task(
+            play(fr, "127.0.0.1", port, name, SECRET, transport=TransportConfig(), linger=done)
+        )
+        for name, fr in frames_by_robot.items()
+    ]
+    await watch()
+    wall = time.monotonic() - t0
+    done.set()
+    await asyncio.gather(*tasks)
+    stats = edge.stats()["robots"]
+    await edge.stop()
+    await cloud.close()
+    out = {"worker": worker, "robots": len(frames_by_robot), "wall": wall, "per_robot": {}}
+    track, ba = [], []
+    for name in frames_by_robot:
+        s = stats[name]
+        out["per_robot"][name] = {
+            "frames": s["frames_processed"],
+            "rtf": s["frames_processed"] / finish[name] / RATE_HZ,
+            "state": s["state"],
+            "feedback": s["feedback_sent"],
+            "keyframes": s["keyframes_uplinked"],
+        }
+        track += s["track_s"]
+        ba += s["local_ba_s"]
+    n = sum(v["frames"] for v in out["per_robot"].values())
+    out["aggregate_rtf"] = n / wall / RATE_HZ
+    out["track"], out["ba"] = _ms(track), _ms(ba)
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--seconds", type=float, default=20.0, help="sequence length (s)")
+    ap.add_argument("--workers", default="process,thread", help="worker kinds to measure")
+    args = ap.parse_args()
+    logging.basicConfig(level=logging.WARNING)
+    vocab = Vocabulary.load()
+    seqs = [simulate(SimOptions(duration_s=args.seconds, seed=s)) for s in range(3)]
+    coded = [code_sequence(q, vocab) for q in seqs]
+    cam, imu = seqs[0].camera, seqs[0].imu
+    rows = []
+    for worker in args.workers.split(","):
+        for n in (1, 3):
+            frames = {f"robot-{i}": coded[i] for i in range(n)}
+            res = asyncio.run(run_case(frames, cam, imu, vocab, worker))
+            log.warning("%s", res)
+            rows.append(res)
+    lines = [
+        "# Edge service real-time factor (1 and 3 robots)",
+        "",
+        f"Machine: {platform.machine()}, {os.cpu_count()} cores (shared with other jobs while "
+        f"measured), Python {platform.python_version()}.",
+        f"Robots: `services.edge.sim_robot` coded simulator sequences ({args.seconds:.0f} s, "
+        "seeds 0-2, 20 Hz camera, 200 Hz IMU, 150 tracks), sent at max rate over loopback TCP to "
+        "one in-process `EdgeServer` (decode, VIO, feedback, uplink to a stub cloud).",
+        "RT factor per robot = its frames processed per wall second / 20 Hz (>= 1 keeps up); "
+        "aggregate = all robots' frames per wall second / 20 Hz. Times per tracked frame and "
+        "per local BA are the VIO's own (median / p95, all robots of the run).",
+        "",
+        "| worker | robots | wall s | RT factor per robot (min) | aggregate | "
+        "track ms (med / p95) | local BA ms (med / p95) | states |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        pr = r["per_robot"].values()
+        lines.append(
+            f"| {r['worker']} | {r['robots']} | {r['wall']:.1f} | "
+            f"{min(v['rtf'] for v in pr):.2f} | {r['aggregate_rtf']:.2f} | {r['track']} | "
+            f"{r['ba']} | {', '.join(v['state'] for v in pr)} |"
+        )
+    RESULTS.write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
+
+
+if __name__ == "__main__":
+    main()
