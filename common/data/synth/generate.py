@@ -157,6 +157,13 @@ def robot_timestamps(config: SynthConfig, robot: int) -> tuple[np.ndarray, np.nd
     return ts, np.arange(0, n, step), t0
 
 
+def _continuous(q: np.ndarray) -> np.ndarray:
+    """Quaternions (K, 4) with signs flipped so that neighbours never jump to ``-q``."""
+    flips = np.concatenate([[False], np.einsum("ij,ij->i", q[1:], q[:-1]) < 0])
+    sign = np.where(np.cumsum(flips) % 2 == 1, -1.0, 1.0)
+    return q * sign[:, None]
+
+
 def _write_robot(out: Path, k: int, config: SynthConfig, traj: LoopTrajectory,
                  renderer: Renderer, bar) -> tuple[RobotSummary, list[np.ndarray]]:  # fmt: skip
     """Simulate, render and write robot ``k``; returns its summary and sample frames."""
@@ -170,7 +177,7 @@ def _write_robot(out: Path, k: int, config: SynthConfig, traj: LoopTrajectory,
     gt = GroundTruth(
         timestamps_ns=ts,
         p_world_body=st.p_world_body,
-        q_world_body_wxyz=R_to_quat_wxyz(st.R_world_body),
+        q_world_body_wxyz=_continuous(R_to_quat_wxyz(st.R_world_body)),
         v_world_body=st.v_world_body,
         bias_gyro=imu.bias_gyro,
         bias_accel=imu.bias_accel,

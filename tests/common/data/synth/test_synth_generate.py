@@ -127,3 +127,16 @@ def test_info_command(generated, capsys) -> None:
     text = capsys.readouterr().out
     assert "robot0" in text and "robot1" in text and "752x480" in text
     assert _cli(["dataset", "info", str(out / "missing")]) == 2
+
+
+def test_groundtruth_quaternions_are_continuous(generated) -> None:
+    from common.data.synth.generate import _continuous
+
+    q = np.array([[1.0, 0, 0, 0], [0.0, 0, 0, 1], [-0.1, 0, 0, 0.995], [-1.0, 0, 0, 0]])
+    out = _continuous(q)
+    assert np.all(np.einsum("ij,ij->i", out[1:], out[:-1]) >= 0)
+    np.testing.assert_array_equal(np.abs(out), np.abs(q))
+    gt = EurocSequence(generated[0] / "robot1").groundtruth
+    assert gt is not None
+    dots = np.einsum("ij,ij->i", gt.q_world_body_wxyz[1:], gt.q_world_body_wxyz[:-1])
+    assert dots.min() > 0.99
