@@ -227,8 +227,8 @@ def _draw(scene: Scene, k: int, n: int, rng: np.random.Generator,
     jitter_x = _random_wave(rng, 0.0, [(0.03 * agg, 0.1 * agg)], [(1.0, 2.5 + agg)])
     jitter_y = _random_wave(rng, 0.0, [(0.03 * agg, 0.1 * agg)], [(1.0, 2.5 + agg)])
     yaw_offset = _random_wave(rng, rng.uniform(-0.35, 0.35),
-                              [(0.15, 0.2 + 0.3 * agg), (0.0, 0.08 * agg)],
-                              [(0.3, 0.5 + 0.5 * agg), (1.0, 2.0)])  # fmt: skip
+                              [(0.15, 0.2 + 0.4 * agg), (0.0, 0.08 * agg)],
+                              [(0.3 + 0.3 * agg, 0.5 + 0.7 * agg), (1.0, 2.0)])  # fmt: skip
     pitch = _random_wave(rng, rng.uniform(0.08, 0.25), [(0.04, 0.1), (0.0, 0.03 * agg)],
                          [(0.2, 0.6), (1.0, 3.0)])  # fmt: skip
     roll = _random_wave(rng, 0.0, [(0.03, 0.08), (0.0, 0.04 * agg)], [(0.2, 0.6), (1.0, 3.0)])
