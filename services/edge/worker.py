@@ -43,8 +43,9 @@ from services.edge.vio.types import (
 logger = logging.getLogger(__name__)
 
 FAIL_ENV = "RECSLAM_EDGE_FAIL_AT"
-"""Test-only fault injection: ``"robot-2:30"`` makes robot-2's VIO raise at its frame 30
-(comma-separated for several robots). Read by the runner, so it works in worker processes."""
+"""Test-only fault injection: ``"robot-2:30"`` makes robot-2's VIO raise at its frame 30,
+``"robot-2:60:exit"`` makes its worker process exit there (comma-separated, several allowed).
+Read by the runner, so it works in worker processes."""
 
 MAP_ID_STRIDE = 1000
 """Map ids of a re-initialised VIO start at ``generation * MAP_ID_STRIDE`` (no reuse)."""
@@ -100,12 +101,14 @@ class WorkerSpec:
     generation: int = 0
 
 
-def _fail_at(agent_id: str) -> int | None:
+def _faults(agent_id: str) -> dict[int, str]:
+    """Injected faults of ``agent_id``: frame index -> "raise" | "exit" (see ``FAIL_ENV``)."""
+    out = {}
     for part in os.environ.get(FAIL_ENV, "").split(","):
-        name, sep, k = part.rpartition(":")
-        if sep and name == agent_id and k.strip().isdigit():
-            return int(k)
-    return None
+        fields = part.strip().split(":")
+        if len(fields) >= 2 and fields[0] == agent_id and fields[1].isdigit():
+            out[int(fields[1])] = fields[2] if len(fields) > 2 else "raise"
+    return out
 
 
 def _offset_update(u: MapUpdate, base: int) -> MapUpdate:
@@ -121,7 +124,7 @@ class VioRunner:
     def __init__(self, spec: WorkerSpec) -> None:
         self.spec = spec
         self.generation = spec.generation
-        self.fail_at = _fail_at(spec.agent_id)
+        self.faults = _faults(spec.agent_id)
         self.vio = self._new_vio()
 
     def _new_vio(self) -> VioManager:
@@ -144,8 +147,10 @@ class VioRunner:
                 self.vio.feed_imu(item.imu_t_ns, item.gyro, item.accel)
             if item.obs is None:
                 return WorkResult(item.frame_index, None, None, (), generation=self.generation)
-            if self.fail_at is not None and item.frame_index == self.fail_at:
-                self.fail_at = None
+            fault = self.faults.pop(item.frame_index, None)
+            if fault == "exit" and multiprocessing.parent_process() is not None:
+                os._exit(3)  # a crashing worker process (test only)
+            if fault is not None:
                 raise InjectedFaultError(f"{self.spec.agent_id}: injected VIO fault at frame "
                                     f"{item.frame_index}")  # fmt: skip
             t0 = time.perf_counter()

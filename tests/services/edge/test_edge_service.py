@@ -136,11 +136,12 @@ def test_excerpt_robot_to_edge_to_real_cloud(tmp_path, vocab) -> None:
 
 # ------------------------------------------------------------------ containment
 def test_failing_robot_vio_does_not_disturb_another(monkeypatch, vocab, sim_frames) -> None:
-    """Robot "bad" gets a VIO exception at frame 25 (in its worker process); it re-initialises
-    with a new map id range. Robot "good" on the same edge initialises, gets feedback with
-    stream-numbered map points and uplinks keyframes, untouched."""
+    """Robot "bad" gets a VIO exception at frame 25 and its worker process dies at frame 60;
+    each time it re-initialises (fresh VIO, new map id range, process respawned). Robot "good"
+    on the same edge initialises, gets feedback with stream-numbered map points and uplinks
+    keyframes, untouched."""
     seq, frames = sim_frames
-    monkeypatch.setenv(FAIL_ENV, "bad:25")
+    monkeypatch.setenv(FAIL_ENV, "bad:25,bad:60:exit")
 
     async def main():
         cloud = CloudStub()
@@ -172,7 +173,9 @@ def test_failing_robot_vio_does_not_disturb_another(monkeypatch, vocab, sim_fram
     g, b = stats["robots"]["good"], stats["robots"]["bad"]
     assert g["failures"] == [] and g["frames_processed"] == len(frames)
     assert g["state"] == "tracking" and g["map_id"] == 0
-    assert len(b["failures"]) == 1 and "injected VIO fault at frame 25" in b["failures"][0]
+    assert len(b["failures"]) == 2, b["failures"]
+    assert "injected VIO fault at frame 25" in b["failures"][0]
+    assert "frame 60: VIO process died" in b["failures"][1]
     assert b["frames_processed"] == len(frames)
     # Good robot: feedback after VI init, tracks named by stream numbers with map points.
     fbs = [m for m in good.feedback if isinstance(m, InertialFeedback)]
