@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
 
@@ -53,7 +54,7 @@ def run_synth(args: argparse.Namespace) -> int:
             )
         summary = generate_dataset(args.out, config)
     except SynthError as e:
-        print(f"error: {e}")
+        print(f"error: {e}", file=sys.stderr)
         return 2
     print(f"dataset: {summary.out} ({summary.version}, seed {summary.seed})")
     for s in summary.sequences:
@@ -71,7 +72,7 @@ def run_info(args: argparse.Namespace) -> int:
 
     root: Path = args.path
     if not root.exists():
-        print(f"error: {root}: no such file or folder")
+        print(f"error: {root}: no such file or folder", file=sys.stderr)
         return 2
     meta_path = root / "dataset.json"
     meta = json.loads(meta_path.read_text()) if meta_path.is_file() else None
@@ -87,7 +88,7 @@ def run_info(args: argparse.Namespace) -> int:
                 s["path_length_m"] = float(np.linalg.norm(steps, axis=1).sum())
             rows.append(s)
     except EurocError as e:
-        print(f"error: {e}")
+        print(f"error: {e}", file=sys.stderr)
         return 2
     if args.json:
         print(json.dumps({"dataset": meta and {k: meta.get(k) for k in

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import json
 import logging
+import shutil
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -211,6 +212,17 @@ def _write_robot(out: Path, k: int, config: SynthConfig, traj: LoopTrajectory,
     return summary, samples
 
 
+def _clear_previous(out: Path) -> None:
+    """Remove what an earlier run of this generator wrote into ``out`` (its ``dataset.json``
+    and ``robotK`` folders whose ``body.yaml`` names this generator), so no stale frames stay."""
+    (out / "dataset.json").unlink(missing_ok=True)
+    for folder in sorted(out.glob("robot*")):
+        body = folder / "mav0" / "body.yaml"
+        if folder.name[5:].isdigit() and body.is_file() and "recslam synthetic" in body.read_text():
+            logger.info("removing previous %s", folder)
+            shutil.rmtree(folder)
+
+
 def generate_dataset(out: Path, config: SynthConfig = SynthConfig()) -> DatasetSummary:
     """Generate the whole dataset into ``out`` (created if needed) and return its summary."""
     from tqdm import tqdm
@@ -220,6 +232,7 @@ def generate_dataset(out: Path, config: SynthConfig = SynthConfig()) -> DatasetS
     if out.exists() and not out.is_dir():
         raise SynthError(f"{out}: exists and is not a folder")
     out.mkdir(parents=True, exist_ok=True)
+    _clear_previous(out)
     scene = vicon_room()
     atlas = build_atlas(scene, config.seed, config.textures)
     renderer = Renderer(scene, atlas, EUROC_CAM0, config.render)

@@ -140,3 +140,25 @@ def test_groundtruth_quaternions_are_continuous(generated) -> None:
     assert gt is not None
     dots = np.einsum("ij,ij->i", gt.q_world_body_wxyz[1:], gt.q_world_body_wxyz[:-1])
     assert dots.min() > 0.99
+
+
+def test_rerun_replaces_previous_output(tmp_path) -> None:
+    cfg = SynthConfig(robots=2, seconds=0.1, seed=1, progress=False, contact_sheet=False)
+    generate_dataset(tmp_path, cfg)
+    (tmp_path / "notes.txt").write_text("keep me")
+    generate_dataset(tmp_path, SynthConfig(robots=1, seconds=0.1, seed=1, progress=False,
+                                           contact_sheet=False))  # fmt: skip
+    assert not (tmp_path / "robot1").exists()  # stale robot removed
+    assert (tmp_path / "notes.txt").read_text() == "keep me"  # foreign files untouched
+    assert json.loads((tmp_path / "dataset.json").read_text())["robots"] == 1
+
+
+def test_bad_settings_are_refused(tmp_path, capsys) -> None:
+    from common.data.synth import SynthError
+
+    with pytest.raises(SynthError, match="robots"):
+        SynthConfig(robots=0)
+    with pytest.raises(SynthError, match="multiple"):
+        SynthConfig(camera_rate_hz=30.0)
+    assert _cli(["dataset", "synth", "--out", str(tmp_path), "--robots", "0"]) == 2
+    assert "robots" in capsys.readouterr().err
