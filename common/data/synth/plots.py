@@ -37,7 +37,7 @@ def plot_top_view(scene: Scene, trajectories: list[LoopTrajectory], seconds: flo
     import matplotlib.pyplot as plt
     from matplotlib.patches import Rectangle
 
-    fig, ax = plt.subplots(figsize=(8, 7.5), dpi=100)
+    fig, ax = plt.subplots(figsize=(9, 7.5), dpi=100)
     lo, hi = scene.room_lo, scene.room_hi
     ax.add_patch(Rectangle(lo[:2], hi[0] - lo[0], hi[1] - lo[1], fill=False, lw=2))
     for box in scene.boxes:
@@ -62,7 +62,7 @@ def plot_top_view(scene: Scene, trajectories: list[LoopTrajectory], seconds: flo
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")
     ax.set_title(f"synthetic room, {len(trajectories)} robots x {seconds:g} s (o = start)")
-    ax.legend(loc="upper right", fontsize=8)
+    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8)
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)
