@@ -242,6 +242,7 @@ class EdgeApp:
                 "queued": rb.queue.qsize(),
                 "finished": s.finished,
                 "expected_frames": rb.expected_frames,
+                "frame_s": list(s.frame_s),
                 "track_s": list(s.track_s),
                 "local_ba_s": list(s.local_ba_s),
             }

@@ -111,6 +111,7 @@ class RobotSession:
         self.last_timestamp_ns = 0
         self.finished = False
         self.feedback_sent = 0
+        self.frame_s: list[float] = []
         self.track_s: list[float] = []
         self.local_ba_s: list[float] = []
         self._reset_stream()
@@ -195,7 +196,8 @@ class RobotSession:
             self.state = r.status.value
             self.reason = r.reason
             self.map_id = r.map_id
-            self.track_s.append(res.track_s)
+            self.frame_s.append(res.frame_s)
+        self.track_s.extend(res.track_s)
         self.local_ba_s.extend(res.local_ba_s)
         for upd in res.updates:
             out.cloud.extend(self._uplink(upd))

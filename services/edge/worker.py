@@ -83,7 +83,8 @@ class WorkResult:
     updates: tuple[MapUpdate, ...]
     failed: str = ""  # exception text when the VIO threw (it has been re-initialised)
     generation: int = 0
-    track_s: float = 0.0  # wall time of feed_frame [s]
+    frame_s: float = 0.0  # wall time of the whole feed_frame (tracking, mapping, BA) [s]
+    track_s: tuple[float, ...] = ()  # the VIO's own per-frame tracking durations [s]
     local_ba_s: tuple[float, ...] = ()  # local BA durations during this frame [s]
     corrections_applied: int = 0
     live_track_ids: np.ndarray | None = None  # (L,) int64 stream numbers with a map point
@@ -138,6 +139,7 @@ class VioRunner:
         import time
 
         n_ba = len(self.vio.stats.local_ba_s)
+        n_track = len(self.vio.stats.track_s)
         applied = 0
         try:
             for map_id, poses in item.corrections:
@@ -155,7 +157,7 @@ class VioRunner:
                                     f"{item.frame_index}")  # fmt: skip
             t0 = time.perf_counter()
             result = self.vio.feed_frame(item.obs)
-            track_s = time.perf_counter() - t0
+            frame_s = time.perf_counter() - t0
             state = self.vio.get_state()
             updates = tuple(_offset_update(u, self.base) for u in self.vio.pop_map_updates())
         except Exception as exc:  # contained: this robot re-initialises, nobody else notices
@@ -191,7 +193,8 @@ class VioRunner:
             state,
             updates,
             generation=self.generation,
-            track_s=track_s,
+            frame_s=frame_s,
+            track_s=tuple(self.vio.stats.track_s[n_track:]),
             local_ba_s=tuple(self.vio.stats.local_ba_s[n_ba:]),
             corrections_applied=applied,
             live_track_ids=live_ids,
