@@ -275,3 +275,26 @@ def test_edge_killed_and_restarted_loses_no_frame(tmp_path, vocab, sim_frames) -
     for map_id, ids in by_map.items():
         assert ids == set(range(max(ids) + 1)), (map_id, sorted(ids))
     assert final.keyframes == sum(len(v) for v in by_map.values())
+
+
+# ------------------------------------------------------------------ command line
+def test_edge_command_parses_and_names_missing_inputs(tmp_path, monkeypatch, caplog) -> None:
+    import argparse
+
+    from recslam.commands import edge as edge_cmd
+
+    parser = argparse.ArgumentParser()
+    edge_cmd.register(parser.add_subparsers())
+    args = parser.parse_args(["edge", "--listen", "127.0.0.1:7001", "--cloud", "cloud:7100",
+                              "--state-dir", str(tmp_path)])  # fmt: skip
+    assert args.listen == ("127.0.0.1", 7001) and args.cloud == ("cloud", 7100)
+    assert args.worker == "process" and args.func is edge_cmd.handle
+    monkeypatch.setenv("RECSLAM_SECRET", SECRET.decode())
+    assert args.func(args) == 2  # no --camera
+    assert "--camera is required" in caplog.text
+    monkeypatch.setenv("RECSLAM_SECRET", "short")
+    args = parser.parse_args(["edge", "--camera", str(EXCERPT)])
+    assert args.func(args) == 2
+    assert "at least 16 bytes" in caplog.text
+    with pytest.raises(SystemExit):
+        parser.parse_args(["edge", "--listen", "nonsense"])
