@@ -104,3 +104,26 @@ def test_cloud_pose_correction_moves_the_tracking_state(run) -> None:
     assert 0.7 < dx < 1.3  # 1 m correction plus one frame of motion
     moved = [m for m in cloud_msgs if isinstance(m, KeyframeUpdate) and not m.features]
     assert moved  # corrected keyframes go back up as pose-only updates
+
+
+def test_the_clouds_uplink_decoder_accepts_every_message(run) -> None:
+    """Contract check against the cloud's own decoders (services.cloud.uplink)."""
+    from common.protocol.messages import CullEvent
+    from services.cloud.uplink import (
+        decode_cull_event,
+        decode_keyframe_update,
+        decode_map_point_update,
+    )
+
+    _, vocab, session, _, _, _, cloud_msgs = run
+    n = 0
+    for m in cloud_msgs:
+        if isinstance(m, KeyframeUpdate):
+            kf = decode_keyframe_update(m, 0, vocab, session.codec)
+            assert (kf.keyframe is None) == (not m.features)
+            n += 1
+        elif isinstance(m, MapPointUpdate):
+            assert decode_map_point_update(m, 0)
+        elif isinstance(m, CullEvent):
+            decode_cull_event(m)
+    assert n > 0
