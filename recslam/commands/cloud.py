@@ -110,7 +110,29 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         metavar="S",
         help="rewrite outputs every S seconds, 0 = only at exit (default 30)",
     )
+    p.add_argument(
+        "--stats-out",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help="rewrite service counters and per-edge traffic counters as JSON here every "
+        "second and at exit (default: none)",
+    )
     p.set_defaults(func=handle)
+
+
+async def write_stats(path: Path, cloud) -> None:
+    """Write the cloud's counters and every edge link's traffic counters to ``path`` (JSON)."""
+    import dataclasses
+    import json
+    import time
+
+    stats = dataclasses.asdict(await cloud.stats())
+    stats["links"] = cloud.transport.counters()
+    stats["time"] = time.time()
+    tmp = path.with_suffix(".tmp")
+    tmp.write_text(json.dumps(stats))
+    tmp.replace(path)
 
 
 def read_secret(path: Path | None) -> bytes:
@@ -152,6 +174,7 @@ def find_camera(camera: Path | None, groundtruth: Path | None):
 
 def handle(args: argparse.Namespace) -> int:
     import asyncio
+    import contextlib
     import dataclasses
     import signal
 
@@ -198,11 +221,17 @@ def handle(args: argparse.Namespace) -> int:
             dashboard.start()
             print(f"dashboard at {dashboard.url}", flush=True)
         try:
-            await stop.wait()
+            while not stop.is_set():
+                if args.stats_out is not None:
+                    await write_stats(args.stats_out, cloud)
+                with contextlib.suppress(TimeoutError):
+                    await asyncio.wait_for(stop.wait(), 1.0)
         finally:
             print("cloud stopping", flush=True)
             if dashboard is not None:
                 dashboard.stop()
+            if args.stats_out is not None:
+                await write_stats(args.stats_out, cloud)
             await cloud.stop()
         return 0
 

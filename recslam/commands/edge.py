@@ -54,7 +54,29 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="where each robot's VIO runs (default: one process per robot)")  # fmt: skip
     p.add_argument("--vocabulary", type=Path, default=None, metavar="NPZ",
                    help="vocabulary file (default: common/assets/orb_vocabulary.npz)")  # fmt: skip
+    p.add_argument("--stats-out", type=Path, default=None, metavar="FILE",
+                   help="rewrite service and per-link traffic counters as JSON here every "
+                   "second and at exit (default: none)")  # fmt: skip
     p.set_defaults(func=handle)
+
+
+def write_stats(path: Path, edge) -> None:
+    """Write the edge's counters and every robot link's traffic counters to ``path`` (JSON)."""
+    import json
+    import time
+
+    stats = edge.stats()
+    for robot in stats["robots"].values():
+        for key in ("frame_s", "track_s", "local_ba_s"):
+            values = robot.pop(key)
+            robot[key.removesuffix("_s") + "_mean_s"] = (
+                sum(values) / len(values) if values else None
+            )
+    stats["links"] = edge.server.counters()
+    stats["time"] = time.time()
+    tmp = path.with_suffix(".tmp")
+    tmp.write_text(json.dumps(stats))
+    tmp.replace(path)
 
 
 def read_secret(path: Path | None) -> bytes:
@@ -95,6 +117,7 @@ def read_calibration(path: Path | None):
 
 def handle(args: argparse.Namespace) -> int:
     import asyncio
+    import contextlib
     import signal
 
     from common.errors import RecslamError
@@ -125,9 +148,15 @@ def handle(args: argparse.Namespace) -> int:
         print(f"edge listening on {host}:{port}, replayed {edge.replayed_frames} frames",
               flush=True)  # fmt: skip
         try:
-            await stop.wait()
+            while not stop.is_set():
+                if args.stats_out is not None:
+                    write_stats(args.stats_out, edge)
+                with contextlib.suppress(TimeoutError):
+                    await asyncio.wait_for(stop.wait(), 1.0)
         finally:
             print("edge stopping", flush=True)
+            if args.stats_out is not None:
+                write_stats(args.stats_out, edge)
             await edge.stop()
         return 0
 

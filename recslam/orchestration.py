@@ -1,0 +1,329 @@
+"""Process supervision for a whole run: cloud, edge and N robots as separate processes.
+
+Used by ``recslam demo``, ``recslam experiment`` and the end-to-end tests. Everything runs on
+loopback with free ports and a freshly generated shared secret (a 0600 file in the run
+folder). Each service writes its log to ``RUN_DIR/logs/<name>.log``; the edge and the cloud
+also rewrite their counters every second (``--stats-out``, ``RUN_DIR/stats/{edge,cloud}.json``),
+which is where progress and bandwidth come from.
+
+Run folder layout::
+
+    RUN_DIR/secret            shared secret (0600)
+    RUN_DIR/logs/*.log        one log per process (stdout + stderr)
+    RUN_DIR/stats/*.json      edge and cloud counters (last sample), stats/samples.jsonl history
+    RUN_DIR/state/{edge,cloud} the services' state directories
+    RUN_DIR/results/          the cloud's trajectories/ and eval/ (written at its exit)
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import secrets
+import signal
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from common.errors import RecslamError
+
+log = logging.getLogger(__name__)
+
+
+class OrchestrationError(RecslamError):
+    """A service did not start, or failed."""
+
+
+def free_port() -> int:
+    """A TCP port on 127.0.0.1 that was free a moment ago."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+@dataclass(frozen=True)
+class JobConfig:
+    """One run of the whole system.
+
+    Attributes:
+        dataset: dataset folder holding one EuRoC-layout sequence per robot (``*/mav0``).
+        run_dir: run folder (created).
+        robots: sequence folder names under ``dataset`` to play (default: all, sorted).
+        dashboard_port: the cloud's dashboard port, 0 = none (default 0).
+        rate: robots' playback rate, "realtime" (default) or "max".
+        worker: the edge's VIO workers, "process" (default) or "thread".
+        max_frames: play at most this many frames per robot (default: all).
+        robot_links: optional hook ``(robot name, edge port) -> port the robot connects to``
+            (an application-level throttle, see ``recslam.commands.experiment``).
+        start_timeout_s: seconds a service may take to listen (default 120, imports are slow).
+    """
+
+    dataset: Path
+    run_dir: Path
+    robots: tuple[str, ...] = ()
+    dashboard_port: int = 0
+    rate: str = "realtime"
+    worker: str = "process"
+    max_frames: int | None = None
+    robot_links: Callable[[str, int], int] | None = None
+    start_timeout_s: float = 120.0
+
+
+@dataclass
+class Service:
+    """A supervised process."""
+
+    name: str
+    argv: list[str]
+    log_path: Path
+    proc: subprocess.Popen | None = None
+    started_at: float = 0.0
+    exit_codes: list[int] = field(default_factory=list)
+
+    def poll(self) -> int | None:
+        return None if self.proc is None else self.proc.poll()
+
+    def log_text(self) -> str:
+        return self.log_path.read_text(errors="replace") if self.log_path.exists() else ""
+
+
+class Job:
+    """Start, watch and stop one run. ``start()`` ... ``wait_robots()`` ... ``stop()``."""
+
+    def __init__(self, config: JobConfig) -> None:
+        self.config = config
+        self.run_dir = Path(config.run_dir)
+        for sub in ("logs", "stats", "state", "results"):
+            (self.run_dir / sub).mkdir(parents=True, exist_ok=True)
+        names = config.robots or tuple(
+            sorted(p.parent.name for p in Path(config.dataset).glob("*/mav0"))
+        )
+        if not names:
+            raise OrchestrationError(f"{config.dataset}: no */mav0 sequence folders")
+        self.robot_names = names
+        self.secret_path = self.run_dir / "secret"
+        self.secret_path.write_text(secrets.token_hex(24))
+        self.secret_path.chmod(0o600)
+        self.cloud_port = free_port()
+        self.edge_port = free_port()
+        self.services: dict[str, Service] = {}
+        self.robot_started_at: float = 0.0
+        self.samples_path = self.run_dir / "stats" / "samples.jsonl"
+
+    # ------------------------------------------------------------------ commands
+    def _recslam(self, *args: str) -> list[str]:
+        return [sys.executable, "-m", "recslam", *args]
+
+    def cloud_argv(self) -> list[str]:
+        c = self.config
+        return self._recslam(
+            "cloud", "--listen", f"127.0.0.1:{self.cloud_port}",
+            "--state-dir", str(self.run_dir / "state" / "cloud"),
+            "--dashboard-port", str(c.dashboard_port),
+            "--results", str(self.run_dir / "results"),
+            "--groundtruth", str(c.dataset),
+            "--secret-file", str(self.secret_path),
+            "--output-every", "0",
+            "--stats-out", str(self.run_dir / "stats" / "cloud.json"),
+        )  # fmt: skip
+
+    def edge_argv(self) -> list[str]:
+        c = self.config
+        return self._recslam(
+            "edge", "--listen", f"127.0.0.1:{self.edge_port}",
+            "--cloud", f"127.0.0.1:{self.cloud_port}",
+            "--state-dir", str(self.run_dir / "state" / "edge"),
+            "--secret-file", str(self.secret_path),
+            "--camera", str(Path(c.dataset) / self.robot_names[0]),
+            "--worker", c.worker,
+            "--stats-out", str(self.run_dir / "stats" / "edge.json"),
+        )  # fmt: skip
+
+    def robot_argv(self, name: str) -> list[str]:
+        c = self.config
+        port = self.edge_port if c.robot_links is None else c.robot_links(name, self.edge_port)
+        argv = self._recslam(
+            "robot", "--dataset", str(Path(c.dataset) / name),
+            "--edge", f"127.0.0.1:{port}", "--agent-id", name,
+            "--rate", c.rate, "--secret-file", str(self.secret_path),
+        )  # fmt: skip
+        if c.max_frames is not None:
+            argv += ["--max-frames", str(c.max_frames)]
+        return argv
+
+    # ------------------------------------------------------------------ processes
+    def launch(self, name: str, argv: list[str]) -> Service:
+        """Start (or restart) process ``name``; its output is appended to its log."""
+        svc = self.services.get(name)
+        if svc is None:
+            svc = Service(name, argv, self.run_dir / "logs" / f"{name}.log")
+            self.services[name] = svc
+        env = dict(os.environ, PYTHONUNBUFFERED="1")
+        env.pop("RECSLAM_SECRET", None)
+        with svc.log_path.open("ab") as out:
+            out.write(f"$ {' '.join(argv)}\n".encode())
+            out.flush()
+            svc.proc = subprocess.Popen(
+                argv, stdout=out, stderr=subprocess.STDOUT, env=env, start_new_session=True
+            )
+        svc.started_at = time.monotonic()
+        log.info("started %s (pid %d)", name, svc.proc.pid)
+        return svc
+
+    def _wait_for_line(self, svc: Service, marker: str, count: int = 1) -> None:
+        deadline = time.monotonic() + self.config.start_timeout_s
+        while svc.log_text().count(marker) < count:
+            if svc.poll() is not None:
+                raise OrchestrationError(
+                    f"{svc.name} exited with {svc.poll()} before listening; "
+                    f"log {svc.log_path}:\n{svc.log_text()[-2000:]}"
+                )
+            if time.monotonic() > deadline:
+                raise OrchestrationError(f"{svc.name} not listening after "
+                                         f"{self.config.start_timeout_s:.0f} s ({svc.log_path})")  # fmt: skip
+            time.sleep(0.1)
+
+    def start(self) -> None:
+        """Start the cloud, then the edge, then every robot (each once the previous listens)."""
+        self._wait_for_line(self.launch("cloud", self.cloud_argv()), "cloud listening")
+        self.start_edge()
+        self.robot_started_at = time.time()
+        for name in self.robot_names:
+            self.launch(name, self.robot_argv(name))
+
+    def start_edge(self) -> None:
+        """Start (or restart, on the same state directory) the edge and wait until it listens."""
+        svc = self.services.get("edge")
+        count = 1 + (svc.log_text().count("edge listening") if svc is not None else 0)
+        self._wait_for_line(self.launch("edge", self.edge_argv()), "edge listening", count)
+
+    def kill(self, name: str, sig: int = signal.SIGKILL) -> int:
+        """Send ``sig`` to service ``name`` and wait for it; returns its exit code."""
+        svc = self.services[name]
+        assert svc.proc is not None
+        if svc.proc.poll() is None:
+            svc.proc.send_signal(sig)
+        code = svc.proc.wait(60)
+        svc.exit_codes.append(code)
+        return code
+
+    def stats(self, which: str) -> dict[str, Any]:
+        """The last counters ``which`` ("edge" or "cloud") wrote ({} before the first)."""
+        path = self.run_dir / "stats" / f"{which}.json"
+        try:
+            return json.loads(path.read_text())
+        except (OSError, ValueError):
+            return {}
+
+    def sample(self) -> dict[str, Any]:
+        """Current edge and cloud counters, also appended to ``stats/samples.jsonl``."""
+        s = {"time": time.time(), "edge": self.stats("edge"), "cloud": self.stats("cloud")}
+        with self.samples_path.open("a") as f:
+            f.write(json.dumps(s) + "\n")
+        return s
+
+    def failed(self) -> list[str]:
+        """Names of services that exited unexpectedly (non-zero while the run goes on)."""
+        bad = []
+        for svc in self.services.values():
+            code = svc.poll()
+            if code is not None and code != 0:
+                bad.append(f"{svc.name} (exit {code})")
+            elif code == 0 and svc.name in ("cloud", "edge"):
+                bad.append(f"{svc.name} (exited early)")
+        return bad
+
+    def wait_robots(
+        self,
+        timeout_s: float,
+        progress: Callable[[dict[str, Any]], None] | None = None,
+        every_s: float = 1.0,
+        on_tick: Callable[[Job, dict[str, Any]], None] | None = None,
+    ) -> dict[str, int]:
+        """Wait until every robot process exits; returns their exit codes.
+
+        Raises OrchestrationError when the edge or cloud dies, or after ``timeout_s``.
+        ``on_tick`` (tests: kill/restart the edge mid-run) runs after every sample.
+        """
+        deadline = time.monotonic() + timeout_s
+        while True:
+            s = self.sample()
+            if progress is not None:
+                progress(s)
+            if on_tick is not None:
+                on_tick(self, s)
+            codes = {n: self.services[n].poll() for n in self.robot_names}
+            if all(c is not None for c in codes.values()):
+                return {n: int(c) for n, c in codes.items() if c is not None}
+            for name in ("cloud", "edge"):
+                if self.services[name].poll() is not None:
+                    raise OrchestrationError(
+                        f"{name} exited with {self.services[name].poll()}; log "
+                        f"{self.services[name].log_path}:\n{self.services[name].log_text()[-2000:]}"
+                    )
+            if time.monotonic() > deadline:
+                raise OrchestrationError(f"robots not done after {timeout_s:.0f} s")
+            time.sleep(every_s)
+
+    def wait_edge_idle(self, timeout_s: float = 120.0, quiet_s: float = 3.0) -> None:
+        """Wait until the edge processed every decoded frame and the cloud's keyframe count
+        stopped changing for ``quiet_s`` seconds (or ``timeout_s``)."""
+        deadline = time.monotonic() + timeout_s
+        last, since = None, time.monotonic()
+        while time.monotonic() < deadline:
+            s = self.sample()
+            robots = s["edge"].get("robots", {})
+            busy = any(r["frames_processed"] < r["frames_decoded"] or r["queued"]
+                       for r in robots.values())  # fmt: skip
+            key = (s["cloud"].get("keyframes"), s["cloud"].get("messages"))
+            if key != last or busy:
+                last, since = key, time.monotonic()
+            elif time.monotonic() - since >= quiet_s:
+                return
+            time.sleep(0.5)
+        log.warning("edge/cloud still busy after %.0f s; stopping anyway", timeout_s)
+
+    def stop(self, timeout_s: float = 120.0) -> dict[str, int]:
+        """SIGTERM robots still running, then the edge, then the cloud (which writes its
+        results); SIGKILL after ``timeout_s``. Returns every service's last exit code."""
+        order = [n for n in self.robot_names] + ["edge", "cloud"]
+        codes: dict[str, int] = {}
+        for name in order:
+            svc = self.services.get(name)
+            if svc is None or svc.proc is None:
+                continue
+            if svc.proc.poll() is None:
+                svc.proc.send_signal(signal.SIGTERM)
+                try:
+                    svc.proc.wait(timeout_s)
+                except subprocess.TimeoutExpired:
+                    log.error("%s did not stop within %.0f s; killing it", name, timeout_s)
+                    svc.proc.kill()
+                    svc.proc.wait(10)
+            codes[name] = int(svc.proc.returncode)
+        return codes
+
+    def __enter__(self) -> Job:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        for svc in self.services.values():
+            if svc.proc is not None and svc.proc.poll() is None:
+                svc.proc.kill()
+                svc.proc.wait(10)
+
+
+def robot_frames(dataset: Path, names: Sequence[str]) -> dict[str, int]:
+    """Number of camera frames of each robot's sequence (``mav0/cam0/data.csv`` rows)."""
+    out = {}
+    for name in names:
+        csv = Path(dataset) / name / "mav0" / "cam0" / "data.csv"
+        lines = [ln for ln in csv.read_text().splitlines() if ln and not ln.startswith("#")]
+        out[name] = len(lines)
+    return out
