@@ -298,3 +298,50 @@ def test_edge_command_parses_and_names_missing_inputs(tmp_path, monkeypatch, cap
     assert "at least 16 bytes" in caplog.text
     with pytest.raises(SystemExit):
         parser.parse_args(["edge", "--listen", "nonsense"])
+
+
+# ------------------------------------------------------------------ rendered synthetic robot
+def test_synthetic_robot_initialises_and_receives_feedback(tmp_path) -> None:
+    """The image-based robot plays a rendered synthetic sequence (15 s, enough keyframes for
+    the default VI initialisation) in real time into the edge: the VIO initialises, the edge
+    sends InertialFeedback and the robot applies it. Slowest test here (~70 s: rendering)."""
+    from common.data.euroc import find_mav0
+    from common.data.synth import SynthConfig, generate_dataset
+    from services.robot.server import Rate, RobotService, RobotServiceConfig
+
+    generate_dataset(
+        tmp_path / "synth",
+        SynthConfig(robots=1, seconds=15.0, seed=2, contact_sheet=False, progress=False),
+    )
+    dataset = next(p for p in (tmp_path / "synth").iterdir() if p.is_dir())
+    mav0 = find_mav0(dataset)
+    camera = read_camera_yaml(mav0 / "cam0/sensor.yaml")
+    imu = read_imu_yaml(mav0 / "imu0/sensor.yaml")
+
+    async def main():
+        cloud = CloudStub()
+        cport = await cloud.start()
+        edge = _edge(camera, imu, Vocabulary.load(), cport, "thread")
+        _, port = await edge.start()
+        try:
+            robot = RobotService(
+                RobotServiceConfig(dataset=dataset, edge_host="127.0.0.1", edge_port=port,
+                                   agent_id="synth-0", secret=SECRET, rate=Rate.REALTIME,
+                                   heartbeat_interval_s=0.2, idle_timeout_s=2.0),
+                transport=FAST,
+            )  # fmt: skip
+            result = await robot.run()
+            await asyncio.wait_for(edge.flush(), 60)
+            stats = edge.stats()
+        finally:
+            await edge.stop()
+            await cloud.server.close()
+        return cloud, result, stats
+
+    cloud, result, stats = asyncio.run(main())
+    s = stats["robots"]["synth-0"]
+    assert s["failures"] == [] and s["frames_decoded"] == s["frames_processed"] == result.frames
+    assert s["feedback_sent"] >= 1, s["reason"]
+    assert result.feedback_applied >= 1
+    kfs = [m for m in cloud.of(KeyframeUpdate, "synth-0") if m.features]
+    assert len(kfs) == s["keyframes_uplinked"] >= 5
