@@ -1,0 +1,203 @@
+"""The run report: ``REPORT_DIR/report.md``, ``report.json`` and PNGs from one run folder.
+
+Inputs (see ``recslam.orchestration``): the cloud's result folder (``results/eval/ate.json``
+and its plots, ``results/cloud_maps.json``), the last edge and cloud counters
+(``stats/{edge,cloud}.json``) and their history (``stats/samples.jsonl``).
+
+Bandwidth is the traffic counters of each link divided by the robots' streaming time
+(first robot start to last robot exit), in kbit/s (1 kbit = 1000 bit). Robot→edge bytes are
+what the edge received from each robot (``RobotFrame`` per frame, keyframes included: the
+robot's coded frames are one message type, so KF/non-KF are not separable from the counters),
+edge→cloud what the cloud received from the edge. Bits per feature are not in the counters;
+the report gives bits per frame instead.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+log = logging.getLogger(__name__)
+
+PLOTS = ("trajectories_joint.png", "trajectories_individual.png", "ate_over_time.png")
+
+
+@dataclass(frozen=True)
+class RunFacts:
+    """What the orchestrator knows beyond the files: timing and exit codes.
+
+    Attributes:
+        stream_s: robots' streaming time (s): first robot start to last robot exit.
+        wall_s: whole run (s), dataset build excluded.
+        exit_codes: last exit code of every service.
+        frames_sent: frames each robot's sequence holds (what it sends).
+    """
+
+    stream_s: float
+    wall_s: float
+    exit_codes: dict[str, int]
+    frames_sent: dict[str, int]
+
+
+def _load(path: Path) -> dict[str, Any]:
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError):
+        return {}
+
+
+def _kbps(nbytes: int, seconds: float) -> float:
+    return 8.0 * nbytes / 1000.0 / seconds if seconds > 0 else 0.0
+
+
+def collect(run_dir: Path, facts: RunFacts) -> dict[str, Any]:
+    """Everything the report shows, as plain data (this is ``report.json``)."""
+    run_dir = Path(run_dir)
+    edge = _load(run_dir / "stats" / "edge.json")
+    cloud = _load(run_dir / "stats" / "cloud.json")
+    ate = _load(run_dir / "results" / "eval" / "ate.json")
+    maps = _load(run_dir / "results" / "cloud_maps.json")
+    secs = facts.stream_s
+
+    links: dict[str, Any] = {}
+    for robot, c in sorted(edge.get("links", {}).items()):
+        links[f"{robot}->edge"] = {
+            "kbit_s": _kbps(c["rx"]["bytes"], secs),
+            "by_type_kbit_s": {t: _kbps(e["bytes"], secs) for t, e in c["rx"]["by_type"].items()},
+            "reverse_kbit_s": _kbps(c["tx"]["bytes"], secs),
+            "duplicates_dropped": c.get("duplicates_dropped", 0),
+            "retransmitted_messages": c.get("retransmitted_messages", 0),
+        }
+    for edge_id, c in sorted(cloud.get("links", {}).items()):
+        links[f"{edge_id}->cloud"] = {
+            "kbit_s": _kbps(c["rx"]["bytes"], secs),
+            "by_type_kbit_s": {t: _kbps(e["bytes"], secs) for t, e in c["rx"]["by_type"].items()},
+            "reverse_kbit_s": _kbps(c["tx"]["bytes"], secs),
+            "duplicates_dropped": c.get("duplicates_dropped", 0),
+            "retransmitted_messages": c.get("retransmitted_messages", 0),
+        }
+
+    robots: dict[str, Any] = {}
+    for name, sent in sorted(facts.frames_sent.items()):
+        r = edge.get("robots", {}).get(name, {})
+        link = edge.get("links", {}).get(name, {})
+        frame_bytes = link.get("rx", {}).get("by_type", {}).get("RobotFrame", {}).get("bytes", 0)
+        decoded = r.get("frames_decoded", 0)
+        agent = ate.get("agents", {}).get(name, {})
+        robots[name] = {
+            "frames_sent": sent,
+            "frames_decoded": decoded,
+            "frames_lost": sent - decoded,
+            "keyframes_decoded": r.get("keyframes_decoded"),
+            "keyframes_uplinked": r.get("keyframes_uplinked"),
+            "vio_state": r.get("state"),
+            "map": maps.get("robots", {}).get(name),
+            "bits_per_frame": 8.0 * frame_bytes / decoded if decoded else None,
+            "ate_rmse_m": agent.get("individual", {}).get("stats_m", {}).get("rmse"),
+            "ate_under_joint_rmse_m": agent.get("under_joint", {}).get("stats_m", {}).get("rmse"),
+            "keyframes_matched": agent.get("n_matched"),
+        }
+    joint = ate.get("joint", {})
+    return {
+        "wall_s": facts.wall_s,
+        "stream_s": secs,
+        "exit_codes": facts.exit_codes,
+        "failed": sorted(n for n, c in facts.exit_codes.items() if c != 0),
+        "robots": robots,
+        "ate": {
+            "joint_rmse_m": joint.get("stats_m", {}).get("rmse"),
+            "joint_frame": maps.get("joint_frame"),
+            "note": maps.get("note"),
+            "align": ate.get("align"),
+        },
+        "map": {
+            "keyframes_uplinked": sum((r.get("keyframes_uplinked") or 0) for r in robots.values()),
+            "keyframes_after_mbp": cloud.get("keyframes"),
+            "map_points_after_mbp": cloud.get("map_points"),
+            "mbp_passes": cloud.get("mbp_passes"),
+            "maps": cloud.get("maps"),
+            "merges": cloud.get("merges"),
+            "loops": cloud.get("loops"),
+            "optimizations": cloud.get("optimizations"),
+        },
+        "links": links,
+    }
+
+
+def _fmt(x: Any, spec: str = ".3f") -> str:
+    return "–" if x is None else format(x, spec)
+
+
+def render_markdown(data: dict[str, Any]) -> str:
+    """``report.md`` text from ``collect``'s data."""
+    m, a = data["map"], data["ate"]
+    lines = [
+        "# recslam run report",
+        "",
+        f"Wall time {data['wall_s']:.0f} s (robots streaming {data['stream_s']:.0f} s). "
+        f"Failed services: {', '.join(data['failed']) or 'none'}.",
+        "",
+        "## Accuracy (keyframe trajectories vs ground truth, SE(3)-aligned)",
+        "",
+        "| robot | map | ATE RMSE m (own / joint alignment) | frames sent | decoded | lost "
+        "| KF uplinked | bits/frame |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for name, r in data["robots"].items():
+        lines.append(
+            f"| {name} | {r['map']} | {_fmt(r['ate_rmse_m'])} / "
+            f"{_fmt(r['ate_under_joint_rmse_m'])} | {r['frames_sent']} | "
+            f"{r['frames_decoded']} | {r['frames_lost']} | {r['keyframes_uplinked']} | "
+            f"{_fmt(r['bits_per_frame'], '.0f')} |"
+        )
+    lines += [
+        "",
+        f"Joint ATE RMSE: {_fmt(a['joint_rmse_m'])} m"
+        + ("" if a["joint_frame"] else f" — {a['note']}"),
+        "",
+        "## Map",
+        "",
+        f"- keyframes uplinked by the edge (before MBP): {m['keyframes_uplinked']}",
+        f"- keyframes / map points at the cloud (after MBP, {m['mbp_passes']} passes): "
+        f"{m['keyframes_after_mbp']} / {m['map_points_after_mbp']}",
+        f"- maps {m['maps']}, merges {m['merges']}, loops {m['loops']}, "
+        f"global optimisations {m['optimizations']}",
+        "",
+        "## Bandwidth (kbit/s over the streaming time)",
+        "",
+        "| link | total | by message type | reverse | duplicates dropped |",
+        "|---|---|---|---|---|",
+    ]
+    for name, link in data["links"].items():
+        types = ", ".join(
+            f"{t} {v:.1f}" for t, v in sorted(link["by_type_kbit_s"].items()) if v >= 0.05
+        )
+        lines.append(
+            f"| {name} | {link['kbit_s']:.1f} | {types} | {link['reverse_kbit_s']:.1f} | "
+            f"{link['duplicates_dropped']} |"
+        )
+    lines += ["", "## Plots", ""]
+    lines += [f"![{p}]({p})" for p in data.get("plots", [])]
+    return "\n".join(lines) + "\n"
+
+
+def write_report(run_dir: Path, out_dir: Path, facts: RunFacts) -> dict[str, Any]:
+    """Write ``out_dir/report.{md,json}`` and copy the cloud's plots; returns the data."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    data = collect(run_dir, facts)
+    plots = []
+    for name in PLOTS:
+        src = Path(run_dir) / "results" / "eval" / name
+        if src.is_file():
+            shutil.copy(src, out_dir / name)
+            plots.append(name)
+    data["plots"] = plots
+    (out_dir / "report.json").write_text(json.dumps(data, indent=2))
+    (out_dir / "report.md").write_text(render_markdown(data))
+    log.info("report written to %s", out_dir)
+    return data
