@@ -9,8 +9,14 @@ RT factor per robot = its frames processed per wall second ÷ 20 Hz (≥ 1 keeps
 aggregate = all frames per wall second ÷ 20 Hz. Worker = "process" (one spawned process per
 robot) or "thread" (one thread per robot in the edge process).
 
-Run: ``.venv/bin/python benchmarks/bench_edge_rtf.py [--seconds 20]``; writes
-``benchmarks/results/edge_rtf.md``.
+With ``--synth DIR`` (``recslam dataset synth --out DIR --robots 3 --seconds 20 --seed 2``)
+the robots are the rendered synthetic sequences instead: each is first played once by the
+real image-based robot (``RobotService``, max rate) into a recording stub, and the recorded
+``RobotFrame`` messages are then replayed into the edge exactly like the simulated ones (so
+the robots' own image processing does not compete with the edge for the 2 cores).
+
+Run: ``.venv/bin/python benchmarks/bench_edge_rtf.py [--seconds 20] [--synth DIR]``; writes
+``benchmarks/results/edge_rtf.md`` (``edge_rtf_synth.md`` with ``--synth``).
 """
 
 from __future__ import annotations
@@ -25,7 +31,9 @@ from pathlib import Path
 
 import numpy as np
 
+from common.data.euroc import find_mav0, read_camera_yaml, read_imu_yaml
 from common.protocol import SessionConfig
+from common.protocol.messages import RobotFrame
 from common.transport import Delivery, Server, TransportConfig
 from common.vocabulary import Vocabulary
 from services.edge.app import EdgeConfig
@@ -103,16 +111,54 @@ async def run_case(frames_by_robot: dict, camera, imu, vocab, worker: str) -> di
     return out
 
 
+async def record_robot(dataset: Path, name: str) -> list:
+    """The RobotFrames the real robot sends for ``dataset`` (no edge feedback)."""
+    from services.robot.server import Rate, RobotService, RobotServiceConfig
+
+    frames: list = []
+
+    async def on_message(d: Delivery) -> None:
+        if isinstance(d.message, RobotFrame):
+            frames.append(d.message)
+
+    stub = Server(SessionConfig("edge", "recorder", SECRET), on_message)
+    _, port = await stub.start()
+    cfg = RobotServiceConfig(dataset=dataset, edge_host="127.0.0.1", edge_port=port,
+                             agent_id=name, secret=SECRET, rate=Rate.MAX)  # fmt: skip
+    await RobotService(cfg).run()
+    await stub.close()
+    return frames
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--seconds", type=float, default=20.0, help="sequence length (s)")
     ap.add_argument("--workers", default="process,thread", help="worker kinds to measure")
+    ap.add_argument("--synth", type=Path, default=None, help="rendered synthetic dataset")
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
     vocab = Vocabulary.load()
-    seqs = [simulate(SimOptions(duration_s=args.seconds, seed=s)) for s in range(3)]
-    coded = [code_sequence(q, vocab) for q in seqs]
-    cam, imu = seqs[0].camera, seqs[0].imu
+    if args.synth is None:
+        seqs = [simulate(SimOptions(duration_s=args.seconds, seed=s)) for s in range(3)]
+        coded = [code_sequence(q, vocab) for q in seqs]
+        cam, imu = seqs[0].camera, seqs[0].imu
+        source = (
+            f"`services.edge.sim_robot` coded simulator sequences ({args.seconds:.0f} s, seeds "
+            "0-2, 20 Hz camera, 200 Hz IMU, 150 tracks)"
+        )
+        results = RESULTS
+    else:
+        robots = sorted(p for p in args.synth.iterdir() if p.is_dir())[:3]
+        coded = [asyncio.run(record_robot(p, p.name)) for p in robots]
+        mav0 = find_mav0(robots[0])
+        cam = read_camera_yaml(mav0 / "cam0" / "sensor.yaml")
+        imu = read_imu_yaml(mav0 / "imu0" / "sensor.yaml")
+        source = (
+            f"rendered synthetic dataset `{args.synth}` ({', '.join(p.name for p in robots)}; "
+            f"{', '.join(str(len(c)) for c in coded)} frames), RobotFrames recorded from the "
+            "real image-based robot"
+        )
+        results = RESULTS.with_name("edge_rtf_synth.md")
     rows = []
     for worker in args.workers.split(","):
         for n in (1, 3):
@@ -127,9 +173,8 @@ def main() -> None:
         "",
         f"Machine: {platform.machine()}, {os.cpu_count()} cores (shared with other jobs while "
         f"measured), Python {platform.python_version()}.",
-        f"Robots: `services.edge.sim_robot` coded simulator sequences ({args.seconds:.0f} s, "
-        "seeds 0-2, 20 Hz camera, 200 Hz IMU, 150 tracks), sent at max rate over loopback TCP to "
-        "one in-process `EdgeServer` (decode, VIO, feedback, uplink to a stub cloud).",
+        f"Robots: {source}, sent at max rate over loopback TCP to one in-process `EdgeServer` "
+        "(decode, VIO, feedback, uplink to a stub cloud).",
         "RT factor per robot = its frames processed per wall second / 20 Hz (>= 1 keeps up); "
         "aggregate = all robots' frames per wall second / 20 Hz. Track = the VIO's per-frame "
         "tracking; feed_frame = the whole call (keyframes add mapping, local BA, VI init); "
@@ -149,7 +194,7 @@ def main() -> None:
             f"{r['frame']} | "
             f"{r['ba']} | {', '.join(v['state'] for v in pr)} | {r['load']} |"
         )
-    RESULTS.write_text("\n".join(lines) + "\n")
+    results.write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
 
 
