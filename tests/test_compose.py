@@ -1,23 +1,133 @@
-"""Static checks of docker-compose.yml (no Docker engine runs on the test machines)."""
+"""Static checks of docker-compose.yml, the EuRoC override, the Dockerfile and the entrypoint
+(no Docker engine runs on the test machines)."""
 
+from __future__ import annotations
+
+import re
 from pathlib import Path
 
+import pytest
 import yaml
 
 from recslam.cli import build_parser
 
 ROOT = Path(__file__).resolve().parents[1]
+COMPOSE = ROOT / "docker-compose.yml"
+EUROC = ROOT / "docker-compose.euroc.yml"
+ENTRYPOINT = ROOT / "docker" / "entrypoint.sh"
+VAR = re.compile(r"\$\{(\w+)(?::-([^}]*))?\}")
+# What the entrypoint exports for a robot (see docker/entrypoint.sh).
+ROBOT_ENV = {"RECSLAM_DATASET": "/datasets/x", "RECSLAM_AGENT_ID": "r", "RECSLAM_EDGE": "edge:7000"}
 
 
-def test_compose_commands_exist_in_cli() -> None:
-    compose = yaml.safe_load((ROOT / "docker-compose.yml").read_text())
-    parser = build_parser()
-    assert compose["services"], "no services"
-    for name, service in compose["services"].items():
-        command = service["command"]
+def _substitute(text: str) -> str:
+    """Compose variable substitution with every variable unset (defaults apply)."""
+    return VAR.sub(lambda m: m.group(2) or "", text)
+
+
+def _load(path: Path) -> dict:
+    return yaml.safe_load(path.read_text())
+
+
+def _merged() -> dict[str, dict]:
+    """Services of docker-compose.yml with docker-compose.euroc.yml applied on top."""
+    services = {k: dict(v) for k, v in _load(COMPOSE)["services"].items()}
+    for name, over in _load(EUROC)["services"].items():
+        services[name] = {**services.get(name, {}), **over}
+    return services
+
+
+def _flag(command: list[str], flag: str) -> str:
+    return command[command.index(flag) + 1]
+
+
+def _mount_targets(service: dict) -> list[str]:
+    return [v.split(":")[1] for v in service.get("volumes", [])]
+
+
+@pytest.fixture
+def parser(monkeypatch):
+    for k, v in ROBOT_ENV.items():
+        monkeypatch.setenv(k, v)
+    return build_parser()
+
+
+@pytest.mark.parametrize("path", [COMPOSE, EUROC], ids=["default", "euroc"])
+def test_compose_commands_exist_in_cli(path, parser) -> None:
+    compose = _load(COMPOSE)
+    services = compose["services"] if path == COMPOSE else _merged()
+    assert {"cloud", "edge", "robot1", "robot2", "robot3"} <= set(services)
+    if path == EUROC:
+        assert {"robot4", "robot5"} <= set(services)
+    for name, service in services.items():
+        command = [_substitute(c) for c in service["command"]]
         assert command[0] == "recslam", name
-        args = parser.parse_args(command[1:])  # raises SystemExit on an unknown command/flag
+        args = parser.parse_args(command[1:])  # SystemExit on an unknown command/flag
         assert callable(args.func), name
         for volume in service.get("volumes", []):
             source = volume.split(":", 1)[0]
             assert source in compose.get("volumes", {}) or source.startswith("."), volume
+
+
+def test_every_environment_variable_is_read_by_the_code() -> None:
+    sources = ENTRYPOINT.read_text() + "".join(
+        p.read_text() for d in ("recslam", "services", "common") for p in (ROOT / d).rglob("*.py")
+    )
+    example = (ROOT / "docker" / "secret.env.example").read_text()
+    env_file_vars = re.findall(r"^(\w+)=", example, flags=re.M)
+    assert env_file_vars == ["RECSLAM_SECRET"]
+    names = set(env_file_vars)
+    for service in _merged().values():
+        names |= set(service.get("environment", {}))
+        assert service.get("env_file") == "docker/secret.env"
+    assert {"SEQUENCE", "AGENT_ID", "NETEM"} <= names
+    for name in names:
+        assert re.search(rf"\b{name}\b", sources), f"{name} is set by compose but read nowhere"
+    # The entrypoint maps the compose variables to what `recslam robot` reads.
+    robot_cli = (ROOT / "recslam" / "commands" / "robot.py").read_text()
+    for var in ROBOT_ENV:
+        assert f"export {var}=" in ENTRYPOINT.read_text() and var in robot_cli, var
+
+
+def test_ports_volumes_and_addresses_agree_with_the_flags() -> None:
+    compose = _load(COMPOSE)
+    s = compose["services"]
+    cloud = [_substitute(c) for c in s["cloud"]["command"]]
+    edge = [_substitute(c) for c in s["edge"]["command"]]
+    cloud_port = _flag(cloud, "--listen").rsplit(":", 1)[1]
+    edge_port = _flag(edge, "--listen").rsplit(":", 1)[1]
+    # Dashboard: the published container port is the cloud's --dashboard-port.
+    published = [_substitute(p).split(":")[-1] for p in s["cloud"]["ports"]]
+    assert published == [_flag(cloud, "--dashboard-port")]
+    # The edge reaches the cloud by service name and the cloud's port; robots reach the edge.
+    assert _flag(edge, "--cloud") == f"cloud:{cloud_port}"
+    assert f"RECSLAM_EDGE:-edge:{edge_port}" in ENTRYPOINT.read_text()
+    # Healthchecks probe the listening ports.
+    assert cloud_port == "7100" and cloud_port in " ".join(s["cloud"]["healthcheck"]["test"])
+    assert edge_port in " ".join(s["edge"]["healthcheck"]["test"])
+    # State, results and datasets live on mounts.
+    for name, flag in (("cloud", "--state-dir"), ("cloud", "--results"), ("edge", "--state-dir"),
+                       ("cloud", "--groundtruth"), ("edge", "--camera")):  # fmt: skip
+        command = cloud if name == "cloud" else edge
+        path = _flag(command, flag)
+        assert any(path.startswith(t) for t in _mount_targets(s[name])), (name, flag, path)
+    for name, service in _merged().items():
+        if name.startswith("robot"):
+            assert "/datasets" in _mount_targets(service), name
+            assert "NET_ADMIN" in service["cap_add"], name
+            assert service["depends_on"]["edge"]["condition"] == "service_healthy"
+            assert service["restart"] == "on-failure"
+    for name in ("cloud", "edge"):
+        assert s[name]["restart"] == "unless-stopped"
+    for volume in ("cloud-state", "edge-state"):
+        assert volume in compose["volumes"]
+
+
+def test_dockerfile_and_entrypoint() -> None:
+    docker = (ROOT / "Dockerfile").read_text()
+    assert docker.startswith("#") and "FROM python:3.11-slim\n" in docker
+    assert "pip install --no-cache-dir -c requirements.lock ." in docker
+    assert "iproute2" in docker and "useradd" in docker
+    entry = ENTRYPOINT.read_text()
+    assert "tc qdisc replace dev" in entry and "${NETEM}" in entry
+    assert "setpriv --reuid=recslam" in entry  # services never run as root
