@@ -15,7 +15,17 @@ import sys
 from common.errors import RecslamError
 
 # Order is the order shown by ``recslam --help``.
-COMMAND_MODULES = ("demo", "dataset", "robot", "edge", "cloud", "dashboard", "evaluate", "vocab")
+COMMAND_MODULES = (
+    "demo",
+    "dataset",
+    "robot",
+    "edge",
+    "cloud",
+    "dashboard",
+    "evaluate",
+    "vocab",
+    "experiment",
+)
 
 log = logging.getLogger(__name__)
 
