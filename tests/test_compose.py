@@ -117,6 +117,8 @@ def test_ports_volumes_and_addresses_agree_with_the_flags() -> None:
             assert "NET_ADMIN" in service["cap_add"], name
             assert service["depends_on"]["edge"]["condition"] == "service_healthy"
             assert service["restart"] == "on-failure"
+            env = service["environment"]  # ground truth is found by the agent's folder name
+            assert env["AGENT_ID"] == env["SEQUENCE"].rsplit("/", 1)[1], name
     for name in ("cloud", "edge"):
         assert s[name]["restart"] == "unless-stopped"
     for volume in ("cloud-state", "edge-state"):
