@@ -1,6 +1,8 @@
 """``recslam demo`` — the main job behind the README's first command.
 
-Builds the embedded synthetic multi-robot dataset (if missing or made with other settings),
+Builds the embedded synthetic multi-robot dataset (if missing or made with other settings;
+a ``--data`` folder of downloaded sequences, e.g. EuRoC ``MH_01_easy/mav0``..., is used as
+is, one robot per sequence),
 starts the cloud, the edge and one robot process per sequence on loopback (free ports, a
 generated secret), shows progress every few seconds, prints the dashboard URL, waits for the
 robots to finish, lets the edge and cloud drain, stops them (SIGTERM: the cloud writes its
@@ -61,6 +63,8 @@ def build_dataset(args: argparse.Namespace) -> None:
     start = time.perf_counter()
     if _dataset_matches(args.data, args.robots, args.seconds, args.seed):
         print(f"dataset: {args.data} (already built with these settings)")
+    elif not (args.data / "dataset.json").exists() and any(args.data.glob("*/mav0")):
+        print(f"dataset: {args.data} (not synthetic: every */mav0 sequence is a robot)")
     else:
         print(f"dataset: building {args.robots} robots x {args.seconds:g} s (seed {args.seed})")
         config = SynthConfig(robots=args.robots, seconds=args.seconds, seed=args.seed)
