@@ -1,0 +1,127 @@
+"""End to end: 3 robots, the edge and the cloud as real processes talking TCP on loopback.
+
+Short synthetic sequences (3 robots x 10 s, generated once per session). What is asserted
+is what the system achieves on such short data today: every frame decoded exactly once,
+every keyframe the edge uplinked present at the cloud exactly once (also across an edge
+SIGKILL + restart on the same state directory), each robot's keyframe trajectory within
+ATE_BOUND_M of ground truth. Merging the maps does not happen on 10 s sequences yet (each
+robot ends in its own map; see the xfail test), so no joint-frame ATE bound is asserted.
+"""
+
+from __future__ import annotations
+
+import signal
+import sqlite3
+import time
+from pathlib import Path
+
+import pytest
+
+from common.data.synth import SynthConfig, generate_dataset
+from recslam.orchestration import Job, JobConfig, robot_frames
+from recslam.report import RunFacts, write_report
+
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(400)]
+
+SECONDS = 10.0
+# Per robot, own SE(3) alignment, keyframe trajectory (paths 6-8 m in 10 s). Measured 0.05-1.05 m:
+# the aggressive robot's VI initialisation often fails on 10 s, which is what bounds this.
+ATE_BOUND_M = 2.0
+
+
+@pytest.fixture(scope="session")
+def dataset(tmp_path_factory) -> Path:
+    folder = tmp_path_factory.mktemp("e2e_synth")
+    generate_dataset(folder, SynthConfig(robots=3, seconds=SECONDS, seed=0))
+    return folder
+
+
+def _cloud_keyframe_ids(run_dir: Path) -> dict[str, list[int]]:
+    """{robot: keyframe ids (with repeats, if any)} from the cloud's SQLite state."""
+    db = sqlite3.connect(f"file:{run_dir / 'state' / 'cloud' / 'cloud.sqlite'}?mode=ro", uri=True)
+    try:
+        names = dict(db.execute("SELECT agent, name FROM agent_names").fetchall())
+        out: dict[str, list[int]] = {}
+        for agent, kf in db.execute("SELECT agent, keyframe_id FROM keyframes"):
+            out.setdefault(names[agent], []).append(int(kf))
+    finally:
+        db.close()
+    return out
+
+
+def _run(dataset: Path, run_dir: Path, on_tick=None) -> tuple[Job, dict]:
+    t0 = time.monotonic()
+    with Job(JobConfig(dataset=dataset, run_dir=run_dir)) as job:
+        job.start()
+        t_robots = time.monotonic()
+        robot_codes = job.wait_robots(300, on_tick=on_tick)
+        stream_s = time.monotonic() - t_robots
+        job.wait_edge_idle(quiet_s=4.0)
+        codes = job.stop()
+    frames = robot_frames(dataset, job.robot_names)
+    facts = RunFacts(stream_s, time.monotonic() - t0, codes, frames)
+    data = write_report(run_dir, run_dir / "report", facts)
+    assert robot_codes == dict.fromkeys(job.robot_names, 0), job.services["edge"].log_text()[-3000:]
+    assert codes == dict.fromkeys([*job.robot_names, "edge", "cloud"], 0), codes
+    return job, data
+
+
+def _assert_nothing_lost(run_dir: Path, data: dict) -> None:
+    # Frames: each robot sent its whole sequence, the edge decoded each frame exactly once.
+    for name, r in data["robots"].items():
+        assert r["frames_sent"] > 150, (name, r)
+        assert r["frames_decoded"] == r["frames_sent"], (name, r)
+    # Keyframes: the cloud holds every keyframe the edge uplinked, once, ids 0..n-1 per robot.
+    ids = _cloud_keyframe_ids(run_dir)
+    assert data["map"]["mbp_passes"] == 0  # nothing culled: the id sets must be complete
+    for name, r in data["robots"].items():
+        got = ids.get(name, [])
+        assert r["keyframes_uplinked"] and r["keyframes_uplinked"] > 0, (name, r)
+        assert len(got) == len(set(got)), (name, sorted(got))
+        assert sorted(got) == list(range(r["keyframes_uplinked"])), (name, sorted(got))
+    assert data["map"]["keyframes_after_mbp"] == sum(len(v) for v in ids.values())
+
+
+@pytest.fixture(scope="session")
+def clean_run(dataset, tmp_path_factory) -> tuple[Path, dict]:
+    run_dir = tmp_path_factory.mktemp("e2e_run")
+    _, data = _run(dataset, run_dir)
+    return run_dir, data
+
+
+def test_three_robots_nothing_lost_or_duplicated(clean_run) -> None:
+    run_dir, data = clean_run
+    _assert_nothing_lost(run_dir, data)
+    link = data["links"]["edge->cloud"]
+    assert link["by_type_kbit_s"]["KeyframeUpdate"] > 0
+    assert (run_dir / "report" / "report.md").is_file()
+
+
+def test_three_robots_ate_within_bound(clean_run) -> None:
+    _, data = clean_run
+    for name, r in data["robots"].items():
+        assert r["ate_rmse_m"] is not None, name
+        assert r["ate_rmse_m"] < ATE_BOUND_M, (name, r["ate_rmse_m"])
+
+
+@pytest.mark.xfail(reason="maps do not merge on 10 s synthetic sequences yet", strict=False)
+def test_three_robots_maps_merged(clean_run) -> None:
+    _, data = clean_run
+    assert data["map"]["merges"] >= 2
+    assert data["ate"]["joint_frame"] is True
+
+
+def test_edge_killed_and_restarted_loses_no_keyframe(dataset, tmp_path) -> None:
+    killed: list[int] = []
+
+    def kill_once(job: Job, sample: dict) -> None:
+        robots = sample["edge"].get("robots", {})
+        if not killed and robots and min(r["frames_decoded"] for r in robots.values()) >= 60:
+            killed.append(job.kill("edge", signal.SIGKILL))
+            job.start_edge()
+
+    job, data = _run(dataset, tmp_path, on_tick=kill_once)
+    assert killed == [-signal.SIGKILL]
+    text = job.services["edge"].log_text()
+    assert text.count("edge listening") == 2 and "Traceback" not in text, text[-3000:]
+    _assert_nothing_lost(tmp_path, data)
