@@ -25,6 +25,7 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -310,13 +311,24 @@ class Job:
         return codes
 
     def __enter__(self) -> Job:
+        """SIGTERM now raises KeyboardInterrupt (main thread), so that ``__exit__`` kills the
+        children (they run in their own sessions and would outlive a plain exit)."""
+        self._old_sigterm = None
+        if threading.current_thread() is threading.main_thread():
+            self._old_sigterm = signal.signal(signal.SIGTERM, _raise_interrupt)
         return self
 
     def __exit__(self, *exc: object) -> None:
+        if self._old_sigterm is not None:
+            signal.signal(signal.SIGTERM, self._old_sigterm)
         for svc in self.services.values():
             if svc.proc is not None and svc.proc.poll() is None:
                 svc.proc.kill()
                 svc.proc.wait(10)
+
+
+def _raise_interrupt(signum: int, frame: object) -> None:
+    raise KeyboardInterrupt(f"signal {signum}")
 
 
 def robot_frames(dataset: Path, names: Sequence[str]) -> dict[str, int]:
