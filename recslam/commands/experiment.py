@@ -99,7 +99,9 @@ class ThrottledLinks:
 
         if self.kbit_s is None:
             return edge_port
-        config = FaultConfig(rate_bytes_per_s=self.kbit_s * 1000.0 / 8.0)
+        # Small pieces: the proxy sleeps per forwarded piece, so a 64 KiB read forwarded whole
+        # would arrive after 10 s of silence at 50 kbit/s (and trip the peers' timeouts).
+        config = FaultConfig(rate_bytes_per_s=self.kbit_s * 1000.0 / 8.0, max_write_bytes=1460)
         proxy = FaultProxy("127.0.0.1", edge_port, config)
         _, port = asyncio.run_coroutine_threadsafe(proxy.start(), self.loop).result(10)
         self.proxies.append(proxy)
