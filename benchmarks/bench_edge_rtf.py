@@ -80,7 +80,16 @@ async def run_case(frames_by_robot: dict, camera, imu, vocab, worker: str) -> di
 
     tasks = [
         asyncio.create_task(
-            play(fr, "127.0.0.1", port, name, SECRET, transport=TransportConfig(), linger=done)
+            play(
+                fr,
+                "127.0.0.1",
+                port,
+                name,
+                SECRET,
+                transport=TransportConfig(),
+                linger=done,
+                flush_timeout_s=3600.0,
+            )
         )
         for name, fr in frames_by_robot.items()
     ]
