@@ -95,7 +95,7 @@ class Edge:
             await self.client.send(m)
 
 
-async def _until(predicate, timeout: float = 30.0) -> None:
+async def _until(predicate, timeout: float = 180.0) -> None:
     async def loop() -> None:
         while not await predicate():
             await asyncio.sleep(0.05)
