@@ -69,12 +69,16 @@ class FeedbackPolicy:
 @dataclass(frozen=True)
 class SessionOptions:
     """Per-robot output options: feedback policy, status period (frames), features kept for
-    the keyframe uplink (robot keyframes, newest), IMU history kept (s)."""
+    the keyframe uplink (robot keyframes, newest), IMU history kept (s), and the map-point
+    uplink threshold: a point already sent is sent again only when it moved more than
+    ``point_resend_m`` (m) or gained observations (local BA nudges every window point a
+    little, and resending all of them dominated the edge->cloud link)."""
 
     feedback: FeedbackPolicy = FeedbackPolicy()
     status_every_frames: int = 20
     keyframes_kept: int = 300
     imu_history_s: float = 120.0
+    point_resend_m: float = 0.01
 
 
 @dataclass
@@ -119,6 +123,8 @@ class RobotSession:
         self._imu_chunks: list[tuple[np.ndarray, np.ndarray]] = []  # (t_ns (K,), (K, 6))
         self._kf_time: dict[tuple[int, int], int] = {}
         self._sent_kfs: set[tuple[int, int]] = set()
+        # (map id, point id) -> (position sent (3,), observations sent)
+        self._sent_points: dict[tuple[int, int], tuple[np.ndarray, int]] = {}
         self._last_fb: InertialState | None = None
         self._last_fb_frame = -(10**9)
         self._fb_map: int | None = None
@@ -275,15 +281,16 @@ class RobotSession:
                     imu=pack_array(imu, "<f8"),
                 )
             )
-        if upd.points:
-            ids = np.array([p.point_id for p in upd.points], np.int64)
-            p_world = np.array([p.p_world for p in upd.points], np.float64).reshape(-1, 3)
+        points = self._points_to_send(upd)
+        if points:
+            ids = np.array([p.point_id for p in points], np.int64)
+            p_world = np.array([p.p_world for p in points], np.float64).reshape(-1, 3)
             obs = [
                 np.stack(
                     [np.full(len(p.keyframe_ids), p.point_id), p.keyframe_ids, p.feature_indices],
                     axis=1,
                 )
-                for p in upd.points
+                for p in points
             ]
             rows = np.concatenate(obs).astype(np.int64) if obs else np.zeros((0, 3), np.int64)
             msgs.append(
@@ -295,6 +302,8 @@ class RobotSession:
                     observations=pack_array(rows, "<i8"),
                 )
             )
+        for pid in upd.removed_point_ids:
+            self._sent_points.pop((upd.map_id, int(pid)), None)
         if upd.removed_point_ids:
             msgs.append(
                 CullEvent(
@@ -305,6 +314,23 @@ class RobotSession:
                 )
             )
         return msgs
+
+    def _points_to_send(self, upd: MapUpdate) -> list:
+        """The changed points worth sending: new, moved > ``point_resend_m``, or re-observed."""
+        out = []
+        for p in upd.points:
+            key = (upd.map_id, int(p.point_id))
+            p_world = np.asarray(p.p_world, np.float64).reshape(3)
+            n_obs = len(p.keyframe_ids)
+            sent = self._sent_points.get(key)
+            if (
+                sent is None
+                or n_obs != sent[1]
+                or np.linalg.norm(p_world - sent[0]) > self.options.point_resend_m
+            ):
+                self._sent_points[key] = (p_world, n_obs)
+                out.append(p)
+        return out
 
     def status(self, link_counters: dict[str, int]) -> AgentStatus:
         """The robot's :class:`AgentStatus` now (``link_counters``: flat int counters)."""

@@ -127,3 +127,25 @@ def test_the_clouds_uplink_decoder_accepts_every_message(run) -> None:
         elif isinstance(m, CullEvent):
             decode_cull_event(m)
     assert n > 0
+
+
+def test_map_points_are_resent_only_when_moved_or_reobserved() -> None:
+    from common.data.synth import EUROC_CAM0
+    from services.edge.vio.types import MapPointSnapshot, MapUpdate
+
+    session = RobotSession("r", EUROC_CAM0, Vocabulary.load())
+
+    def point(pid: int, x: float, n_obs: int) -> MapPointSnapshot:
+        return MapPointSnapshot(
+            pid, 0, np.array([x, 0.0, 1.0]), np.arange(n_obs), np.zeros(n_obs, np.int64)
+        )
+
+    def sent_ids(*points: MapPointSnapshot) -> list[int]:
+        msgs = session._uplink(MapUpdate(0, True, (), points, ()))
+        ups = [m for m in msgs if isinstance(m, MapPointUpdate)]
+        return [int(i) for m in ups for i in unpack_array(m.ids, "<i8")]
+
+    assert sent_ids(point(1, 0.0, 2), point(2, 0.0, 2)) == [1, 2]
+    # a BA nudge of 1 mm: nothing to send; 5 cm or a new observation: resend that point
+    assert sent_ids(point(1, 0.001, 2), point(2, 0.001, 2)) == []
+    assert sent_ids(point(1, 0.05, 2), point(2, 0.001, 3)) == [1, 2]
