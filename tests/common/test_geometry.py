@@ -28,7 +28,7 @@ def test_hat_is_cross_product() -> None:
     np.testing.assert_allclose(hat(a) @ b, np.cross(a, b))
 
 
-@pytest.mark.parametrize("w", list(random_rotvecs(20)) + [np.zeros(3), np.array([1e-10, 0, 0])])
+@pytest.mark.parametrize("w", [*random_rotvecs(20), np.zeros(3), np.array([1e-10, 0, 0])])
 def test_exp_log_round_trip(w: np.ndarray) -> None:
     R = so3_exp(w)
     check_rotation(R)
