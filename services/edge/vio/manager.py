@@ -261,7 +261,8 @@ class VioManager:
             )  # fmt: skip
         self._map = None
         self._last_init_reason = ""
-        self._ref = frame if frame is not None and frame.obs.is_keyframe else None
+        own = self.options.max_keyframe_interval_s > 0
+        self._ref = frame if frame is not None and (own or frame.obs.is_keyframe) else None
         self._last_T = self._prev_T = self._last_v = None
         self._last_bias = None
         self.stats.maps_started += 1
@@ -270,8 +271,16 @@ class VioManager:
     def _initialise_mono(self, frame: _Frame) -> FrameResult:
         opt = self.options.mono_init
         st = TrackingStatus.INITIALIZING
-        if not frame.obs.is_keyframe:
-            why = "waiting for a robot keyframe"
+        own = self.options.max_keyframe_interval_s
+        candidate = frame.obs.is_keyframe or (
+            own > 0
+            and (
+                self._ref is None
+                or (frame.obs.timestamp_ns - self._ref.obs.timestamp_ns) * 1e-9 >= own
+            )
+        )
+        if not candidate:
+            why = "waiting for a keyframe"
             if self._last_init_reason:
                 why += f" (last attempt: {self._last_init_reason})"
             return self._result(frame, None, st, 0, False, why)
@@ -383,10 +392,7 @@ class VioManager:
         T_out = res.T_world_body
         last_kf = vmap.last_keyframe()
         assert last_kf is not None
-        if frame.obs.is_keyframe and (
-            (frame.obs.timestamp_ns - last_kf.timestamp_ns) * 1e-9
-            >= self.options.min_keyframe_interval_s
-        ):
+        if self._keyframe_due(frame, last_kf, vmap, n_inl):
             kf = self._insert_keyframe(frame, res, vmap, last_kf)
             is_kf = True
             T_out = kf.T_world_body
@@ -400,6 +406,19 @@ class VioManager:
         if self._last_init_reason.startswith("VI init"):
             why += f" ({self._last_init_reason})"
         return self._result(frame, T_out, TrackingStatus.INITIALIZING, n_inl, is_kf, why)
+
+    def _keyframe_due(self, frame: _Frame, last_kf: Keyframe, vmap: VioMap, n_inl: int) -> bool:
+        """Robot keyframes, and the VIO's own ones (see ``VioOptions.max_keyframe_interval_s``)."""
+        opt = self.options
+        dt = (frame.obs.timestamp_ns - last_kf.timestamp_ns) * 1e-9
+        if dt < opt.min_keyframe_interval_s:
+            return False
+        if frame.obs.is_keyframe:
+            return True
+        if opt.max_keyframe_interval_s <= 0:
+            return False
+        n_kf = sum(1 for t in last_kf.row_of if vmap.point_of(t) is not None)
+        return dt >= opt.max_keyframe_interval_s or n_inl < opt.min_tracked_point_ratio * n_kf
 
     # ------------------------------------------------------------------ local mapping
     def _insert_keyframe(self, frame: _Frame, res, vmap: VioMap, last_kf: Keyframe) -> Keyframe:

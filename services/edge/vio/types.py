@@ -116,6 +116,12 @@ class VioOptions:
     level_scale: float = 1.2
     integration_sigma: float = 1e-4  # preintegration integration noise (m/s²/√Hz-like)
     min_keyframe_interval_s: float = 0.05  # robot keyframes closer than this are not inserted
+    # The VIO's own keyframes on non-keyframe frames (no descriptors): robots that send a
+    # keyframe only every ~1 s leave too little shared structure between keyframes. A frame
+    # becomes one when this long passed since the last keyframe (0: never) ...
+    max_keyframe_interval_s: float = 0.25
+    # ... or when fewer tracks than this share of the last keyframe's map points are inliers.
+    min_tracked_point_ratio: float = 0.5
     mono_init: MonoInitOptions = field(default_factory=MonoInitOptions)
     vi_init: ViInitOptions = field(default_factory=ViInitOptions)
     tracking: TrackingOptions = field(default_factory=TrackingOptions)
