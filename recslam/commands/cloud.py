@@ -19,20 +19,15 @@ from __future__ import annotations
 
 import argparse
 import logging
-import os
 from pathlib import Path
+
+from common.protocol.credentials import SECRET_ENV, load_secret, parse_address
 
 log = logging.getLogger(__name__)
 
-SECRET_ENV = "RECSLAM_SECRET"
 
-
-def _host_port(text: str) -> tuple[str, int]:
-    host, sep, port = text.rpartition(":")
-    if not sep or not port.isdigit() or not 0 <= int(port) < 65536:
-        raise argparse.ArgumentTypeError(f"expected HOST:PORT, got {text!r}")
-    return host or "0.0.0.0", int(port)
-
+def _address(text: str) -> tuple[str, int]:
+    return parse_address(text, default_host="0.0.0.0")
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
@@ -42,7 +37,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument(
         "--listen",
-        type=_host_port,
+        type=_address,
         default=("0.0.0.0", 7100),
         metavar="HOST:PORT",
         help="address edges connect to (default 0.0.0.0:7100)",
@@ -135,26 +130,6 @@ async def write_stats(path: Path, cloud) -> None:
     tmp.replace(path)
 
 
-def read_secret(path: Path | None) -> bytes:
-    """The shared secret from ``path`` (stripped) or ``$RECSLAM_SECRET``."""
-    from common.errors import RecslamError
-
-    if path is not None:
-        try:
-            secret = path.read_bytes().strip()
-        except OSError as exc:
-            raise RecslamError(f"{path}: cannot read the secret file ({exc})") from exc
-        what = str(path)
-    else:
-        secret = os.environ.get(SECRET_ENV, "").encode()
-        what = f"${SECRET_ENV}"
-        if not secret:
-            raise RecslamError(f"no shared secret: pass --secret-file or set ${SECRET_ENV}")
-    if len(secret) < 16:
-        raise RecslamError(f"{what}: the shared secret must be at least 16 bytes")
-    return secret
-
-
 def find_camera(camera: Path | None, groundtruth: Path | None):
     """The robots' camera (see the module docstring)."""
     from common.data.euroc import read_camera_yaml
@@ -186,7 +161,7 @@ def handle(args: argparse.Namespace) -> int:
     from services.cloud.server import CloudServer
 
     try:
-        secret = read_secret(args.secret_file)
+        secret = load_secret(args.secret_file)
         camera = find_camera(args.camera, args.groundtruth)
         vocab = Vocabulary.load(args.vocabulary or DEFAULT_VOCABULARY_PATH)
     except RecslamError as exc:

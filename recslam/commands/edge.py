@@ -18,20 +18,15 @@ from __future__ import annotations
 
 import argparse
 import logging
-import os
 from pathlib import Path
+
+from common.protocol.credentials import SECRET_ENV, load_secret, parse_address
 
 log = logging.getLogger(__name__)
 
-SECRET_ENV = "RECSLAM_SECRET"
 
-
-def _host_port(text: str) -> tuple[str, int]:
-    host, sep, port = text.rpartition(":")
-    if not sep or not port.isdigit() or not 0 <= int(port) < 65536:
-        raise argparse.ArgumentTypeError(f"expected HOST:PORT, got {text!r}")
-    return host or "0.0.0.0", int(port)
-
+def _address(text: str) -> tuple[str, int]:
+    return parse_address(text, default_host="0.0.0.0")
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
@@ -39,9 +34,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="run the edge service (per-robot VIO, feedback, uplink to the cloud)",
         description=__doc__.split("\n\n")[0],
     )
-    p.add_argument("--listen", type=_host_port, default=("0.0.0.0", 7000), metavar="HOST:PORT",
+    p.add_argument("--listen", type=_address, default=("0.0.0.0", 7000), metavar="HOST:PORT",
                    help="address robots connect to (default 0.0.0.0:7000)")  # fmt: skip
-    p.add_argument("--cloud", type=_host_port, default=None, metavar="HOST:PORT",
+    p.add_argument("--cloud", type=_address, default=None, metavar="HOST:PORT",
                    help="cloud address (default: none, the uplink is dropped)")  # fmt: skip
     p.add_argument("--state-dir", type=Path, default=None, metavar="DIR",
                    help="journal directory for restarts without loss (default: none)")  # fmt: skip
@@ -79,26 +74,6 @@ def write_stats(path: Path, edge) -> None:
     tmp.replace(path)
 
 
-def read_secret(path: Path | None) -> bytes:
-    """The shared secret from ``path`` (trailing newline stripped) or ``$RECSLAM_SECRET``."""
-    from common.errors import RecslamError
-
-    if path is not None:
-        try:
-            secret = path.read_bytes().rstrip(b"\r\n")
-        except OSError as exc:
-            raise RecslamError(f"{path}: cannot read the secret file ({exc})") from exc
-        what = str(path)
-    else:
-        secret = os.environ.get(SECRET_ENV, "").encode()
-        what = f"${SECRET_ENV}"
-        if not secret:
-            raise RecslamError(f"no shared secret: pass --secret-file or set ${SECRET_ENV}")
-    if len(secret) < 16:
-        raise RecslamError(f"{what}: the shared secret must be at least 16 bytes")
-    return secret
-
-
 def read_calibration(path: Path | None):
     """(CameraCalibration, ImuCalibration) from a dataset folder or a cam0 sensor.yaml."""
     from common.calibration import EUROC_IMU
@@ -127,7 +102,7 @@ def handle(args: argparse.Namespace) -> int:
     from services.edge.server import EdgeServer, EdgeServiceConfig
 
     try:
-        secret = read_secret(args.secret_file)
+        secret = load_secret(args.secret_file)
         camera, imu = read_calibration(args.camera)
         vocab = Vocabulary.load(args.vocabulary or DEFAULT_VOCABULARY_PATH)
     except RecslamError as exc:

@@ -79,13 +79,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def build_config(args: argparse.Namespace):
     """RobotServiceConfig from parsed arguments (RobotConfigError on bad values)."""
-    from services.robot.server import (
-        Rate,
-        RobotConfigError,
-        RobotServiceConfig,
-        load_secret,
-        parse_address,
-    )
+    from common.protocol.credentials import load_secret, parse_address
+    from services.robot.server import DEV_SECRET, Rate, RobotConfigError, RobotServiceConfig
 
     host, port = parse_address(args.edge)
     if args.backlog_minutes is None or args.backlog_minutes <= 0:
@@ -95,7 +90,7 @@ def build_config(args: argparse.Namespace):
         edge_host=host,
         edge_port=port,
         agent_id=args.agent_id,
-        secret=load_secret(args.secret_file),
+        secret=load_secret(args.secret_file, dev_default=DEV_SECRET),
         rate=Rate(args.rate),
         start_frame=args.start,
         max_frames=args.max_frames,

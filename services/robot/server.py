@@ -21,9 +21,9 @@ backlog in order, exactly once. Beyond the bound the send waits (back-pressure, 
 per outage): frames are delayed, never dropped. The backlog lives in memory, so it does not
 survive a restart of the robot process.
 
-Shared secret (:func:`load_secret`): ``--secret-file`` (contents, trailing newline stripped),
-else the environment variable ``RECSLAM_SECRET``, else a development default with a logged
-warning. At least 16 bytes.
+Shared secret (:func:`common.protocol.credentials.load_secret`): ``--secret-file``
+(contents, trailing newline stripped), else the environment variable ``RECSLAM_SECRET``, else
+a development default with a logged warning. At least 16 bytes.
 
 Signals: SIGINT/SIGTERM stop the playback after the current frame; the sequence end is still
 sent and flushed (bounded by ``flush_timeout_s`` if set); a second signal gives up waiting for
@@ -37,10 +37,9 @@ import contextlib
 import enum
 import logging
 import math
-import os
 import signal
 import time
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -58,7 +57,6 @@ from services.robot.config import FrontEndConfig
 
 logger = logging.getLogger(__name__)
 
-SECRET_ENV = "RECSLAM_SECRET"
 DEV_SECRET = b"recslam-development-secret-do-not-deploy"
 
 
@@ -83,7 +81,7 @@ class RobotServiceConfig:
         dataset: EuRoC-layout sequence folder (``mav0`` inside or the folder itself).
         edge_host, edge_port: the edge's address.
         agent_id: this robot's id on the link (unique per edge).
-        secret: shared secret (>= 16 bytes); see :func:`load_secret`.
+        secret: shared secret (>= 16 bytes); see :func:`common.protocol.credentials.load_secret`.
         rate: playback pace (realtime default).
         start_frame: first frame played (0).
         max_frames: frames played at most (None = to the end).
@@ -132,44 +130,6 @@ class RobotServiceConfig:
             raise RobotConfigError("flush_timeout_s must be positive (or None to wait)")
         if self.idle_timeout_s <= self.heartbeat_interval_s:
             raise RobotConfigError("idle_timeout_s must exceed heartbeat_interval_s")
-
-
-def parse_address(text: str) -> tuple[str, int]:
-    """``HOST:PORT`` (``[v6]:PORT`` for IPv6) -> (host, port); RobotConfigError if malformed."""
-    host, sep, port = text.rpartition(":")
-    host = host[1:-1] if host.startswith("[") and host.endswith("]") else host
-    if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
-        raise RobotConfigError(f"edge address {text!r} is not HOST:PORT (port 1..65535)")
-    return host, int(port)
-
-
-def load_secret(secret_file: str | Path | None, environ: Mapping[str, str] = os.environ) -> bytes:
-    """The shared secret: file contents (trailing newline stripped), else ``$RECSLAM_SECRET``,
-    else the development default (logged as a warning)."""
-    if secret_file is not None:
-        path = Path(secret_file)
-        try:
-            secret = path.read_bytes().rstrip(b"\r\n")
-        except OSError as exc:
-            raise RobotConfigError(f"{path}: cannot read the secret file ({exc})") from None
-        if len(secret) < MIN_SECRET_SIZE:
-            raise RobotConfigError(
-                f"{path}: secret is {len(secret)} bytes, need at least {MIN_SECRET_SIZE}"
-            )
-        return secret
-    env = environ.get(SECRET_ENV)
-    if env is not None:
-        secret = env.encode()
-        if len(secret) < MIN_SECRET_SIZE:
-            raise RobotConfigError(
-                f"${SECRET_ENV} is {len(secret)} bytes, need at least {MIN_SECRET_SIZE}"
-            )
-        return secret
-    logger.warning(
-        "no --secret-file and no $%s: using the development secret (never in deployment)",
-        SECRET_ENV,
-    )
-    return DEV_SECRET
 
 
 def open_sequence(path: Path) -> EurocSequence:

@@ -9,15 +9,9 @@ from pathlib import Path
 import pytest
 
 from common.errors import RecslamError
+from common.protocol.credentials import CredentialsError, load_secret, parse_address
 from recslam.commands import robot
-from services.robot.server import (
-    DEV_SECRET,
-    Rate,
-    RobotConfigError,
-    RobotService,
-    load_secret,
-    parse_address,
-)
+from services.robot.server import DEV_SECRET, Rate, RobotConfigError, RobotService
 
 EXCERPT = Path(__file__).resolve().parents[3].parent / "shared/datasets/euroc-micro-V1_01"
 
@@ -46,7 +40,7 @@ def test_arguments_build_the_service_config(tmp_path, monkeypatch):
 
 @pytest.mark.parametrize("text", ["localhost", "host:", ":7000", "host:70000", "host:x1"])
 def test_malformed_edge_address_is_named(text):
-    with pytest.raises(RobotConfigError, match="HOST:PORT"):
+    with pytest.raises(CredentialsError, match="HOST:PORT"):
         parse_address(text)
 
 
@@ -57,15 +51,17 @@ def test_ipv6_address():
 def test_secret_sources(tmp_path, caplog):
     short = tmp_path / "short"
     short.write_bytes(b"abc\n")
-    with pytest.raises(RobotConfigError, match=f"{short}.*at least 16"):
+    with pytest.raises(CredentialsError, match=f"{short}.*at least 16"):
         load_secret(short, {})
-    with pytest.raises(RobotConfigError, match="cannot read"):
+    with pytest.raises(CredentialsError, match="cannot read"):
         load_secret(tmp_path / "missing", {})
-    with pytest.raises(RobotConfigError, match="RECSLAM_SECRET"):
+    with pytest.raises(CredentialsError, match="RECSLAM_SECRET"):
         load_secret(None, {"RECSLAM_SECRET": "short"})
+    with pytest.raises(CredentialsError, match="no shared secret"):
+        load_secret(None, {})  # edge and cloud: no development default
     assert load_secret(None, {"RECSLAM_SECRET": "x" * 20}) == b"x" * 20
     with caplog.at_level(logging.WARNING):
-        assert load_secret(None, {}) == DEV_SECRET
+        assert load_secret(None, {}, dev_default=DEV_SECRET) == DEV_SECRET
     assert "development secret" in caplog.text
 
 
