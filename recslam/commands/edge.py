@@ -28,6 +28,7 @@ log = logging.getLogger(__name__)
 def _address(text: str) -> tuple[str, int]:
     return parse_address(text, default_host="0.0.0.0")
 
+
 def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         "edge",
