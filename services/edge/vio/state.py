@@ -198,6 +198,7 @@ class VioMap:
             track_ids=kf.track_ids.copy(),
             point_ids=point_ids,
             previous_keyframe_id=kf.previous_id,
+            robot_keyframe=kf.descriptors is not None,
         )
 
     def point_snapshot(self, mp: MapPoint) -> MapPointSnapshot:

@@ -235,6 +235,9 @@ class KeyframeSnapshot:
     track_ids: np.ndarray
     point_ids: np.ndarray
     previous_keyframe_id: int | None
+    # False for the VIO's own keyframes (made of non-keyframe frames: no robot features, no
+    # descriptors); the uplink has no features to send for those.
+    robot_keyframe: bool = True
 
 
 @dataclass(frozen=True, eq=False)
