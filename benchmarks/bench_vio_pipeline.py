@@ -32,6 +32,7 @@ def main() -> None:
     ap.add_argument("--robots", default="robot0,robot1,robot2")
     ap.add_argument("--seconds", type=float, default=60.0)
     ap.add_argument("--cache", type=Path, default=Path("/tmp/vio_pipeline_cache"))
+    ap.add_argument("--out", type=Path, default=RESULTS, help="markdown table written")
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
     args.cache.mkdir(parents=True, exist_ok=True)
@@ -71,8 +72,8 @@ def main() -> None:
             f"| {s.ate_se3_m * 100:.1f} | {s.ate_sim3_m * 100:.1f} "
             f"| {s.scale_error * 100:+.2f} | {wall:.1f} |"
         )
-    RESULTS.write_text("\n".join(lines) + "\n")
-    print(f"wrote {RESULTS}")
+    args.out.write_text("\n".join(lines) + "\n")
+    print(f"wrote {args.out}")
 
 
 if __name__ == "__main__":
