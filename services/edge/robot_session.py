@@ -123,6 +123,11 @@ class RobotSession:
         self._imu_chunks: list[tuple[np.ndarray, np.ndarray]] = []  # (t_ns (K,), (K, 6))
         self._kf_time: dict[tuple[int, int], int] = {}
         self._sent_kfs: set[tuple[int, int]] = set()
+        # The VIO's own keyframes (no robot features) stay on the edge: uplinked keyframes
+        # chain to the previous uplinked keyframe of their map, observations skip the others.
+        self._own_kfs: set[tuple[int, int]] = set()
+        self._up_prev: dict[tuple[int, int], int | None] = {}
+        self._last_up: dict[int, int] = {}
         # (map id, point id) -> (position sent (3,), observations sent)
         self._sent_points: dict[tuple[int, int], tuple[np.ndarray, int]] = {}
         self._last_fb: InertialState | None = None
@@ -251,7 +256,13 @@ class RobotSession:
         for kf in upd.keyframes:
             key = (upd.map_id, kf.keyframe_id)
             self._kf_time[key] = kf.timestamp_ns
-            prev = kf.previous_keyframe_id
+            if not kf.robot_keyframe:
+                self._own_kfs.add(key)
+                continue
+            if key not in self._up_prev:
+                self._up_prev[key] = self._last_up.get(upd.map_id)
+                self._last_up[upd.map_id] = kf.keyframe_id
+            prev = self._up_prev[key]
             features = b""
             imu = np.zeros((0, 7))
             if key not in self._sent_kfs:
@@ -289,7 +300,7 @@ class RobotSession:
                 np.stack(
                     [np.full(len(p.keyframe_ids), p.point_id), p.keyframe_ids, p.feature_indices],
                     axis=1,
-                )
+                )[[(upd.map_id, int(k)) not in self._own_kfs for k in p.keyframe_ids]]
                 for p in points
             ]
             rows = np.concatenate(obs).astype(np.int64) if obs else np.zeros((0, 3), np.int64)
