@@ -268,12 +268,18 @@ def test_edge_killed_and_restarted_loses_no_frame(tmp_path, vocab, sim_frames) -
     assert final.frames == len(frames)  # journal replay + robot replay: each frame once
     kfs = cloud.of(KeyframeUpdate, "robot-1")
     by_map: dict[int, set[int]] = {}
+    prev_of: dict[tuple[int, int], int] = {}
     for m in kfs:
         if m.features:
             by_map.setdefault(m.map_id, set()).add(m.keyframe_id)
+            prev_of[(m.map_id, m.keyframe_id)] = m.previous_keyframe_id
     assert by_map, "no keyframes uplinked"
     for map_id, ids in by_map.items():
-        assert ids == set(range(max(ids) + 1)), (map_id, sorted(ids))
+        # The VIO's own keyframes are not uplinked: the uplinked ones form one unbroken chain.
+        chain = sorted(ids)
+        assert prev_of[(map_id, chain[0])] == -1, (map_id, chain)
+        for i in range(1, len(chain)):
+            assert prev_of[(map_id, chain[i])] == chain[i - 1], (map_id, chain)
     assert final.keyframes == sum(len(v) for v in by_map.values())
 
 
