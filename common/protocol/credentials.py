@@ -66,6 +66,6 @@ def load_secret(
         raise CredentialsError(f"no shared secret: pass --secret-file or set ${SECRET_ENV}")
     if len(secret) < MIN_SECRET_SIZE:
         raise CredentialsError(
-            f"{source}: secret is {len(secret)} bytes, need at least {MIN_SECRET_SIZE}"
+            f"{source}: secret is {len(secret)} bytes, need at least {MIN_SECRET_SIZE} bytes"
         )
     return secret
