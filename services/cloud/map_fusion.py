@@ -13,6 +13,8 @@ Sans-I/O: no sockets, clocks or threads here.
 from __future__ import annotations
 
 import logging
+import re
+from collections import Counter
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -32,6 +34,11 @@ from services.cloud.place_recognition import KeyframeDatabase, PlaceRecognizer
 from services.cloud.verification import VerificationResult, verify_candidate
 
 log = logging.getLogger(__name__)
+
+
+def _reason_kind(reason: str) -> str:
+    """A verification reason without its numbers (``"tilt 98.2 deg"`` -> ``"tilt deg"``)."""
+    return " ".join(w for w in reason.split() if not re.fullmatch(r"[\d./]+", w)) or reason
 
 
 @dataclass
@@ -65,6 +72,8 @@ class MapFusion:
         self.recognizer = PlaceRecognizer(KeyframeDatabase(idf), config.place_recognition)
         for key in self.atlas.keyframe_keys():  # restored atlas: rebuild the database
             self.recognizer.add(self.atlas, key)
+        # Verification outcomes so far, by reason ("ok" or the rejection's first word).
+        self.verification_counts: Counter[str] = Counter()
 
     def add_map_point(self, mp: MapPointInput) -> int:
         return self.atlas.add_map_point(mp)
@@ -89,6 +98,14 @@ class MapFusion:
                     self.word_group,
                 )  # fmt: skip
                 events.verifications.append(res)
+                self.verification_counts[_reason_kind(res.reason)] += 1
+                log.info(
+                    "candidate %d (agent %d) for keyframe %d (agent %d), score %.3f: %s "
+                    "(%d inliers, ratio %.2f; totals %s)",
+                    cand.candidate_key, self.atlas.keyframe(cand.candidate_key).agent_id, key,
+                    kf.agent_id, cand.score, "accepted" if res.accepted else res.reason,
+                    res.n_inliers, res.inlier_ratio, dict(self.verification_counts),
+                )  # fmt: skip
                 if not res.accepted:
                     continue
                 outcome = apply_match(self.atlas, res, self.config.merge)

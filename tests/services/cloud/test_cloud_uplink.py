@@ -110,3 +110,21 @@ def test_positions_and_robot_names_persist_in_the_same_store(tmp_path):
     with CloudStore(tmp_path) as store:
         assert store.positions() == {"edge-a": (b"s2", 1)}
         assert store.agents() == {0: ("r0", "edge-a", 7)}
+
+
+def test_slightly_non_orthonormal_poses_are_repaired_and_gross_ones_rejected(vocab, session):
+    kfs, _ = session
+    msg, _ = encode_keyframe_update(kfs[0], "robot-3", vocab)
+    T = np.array(kfs[0].T_world_body)
+    drifted = T.copy()
+    drifted[:3, :3] *= 1.0 + 3e-4  # off by ~6e-4: what composed float corrections can do
+    for features in (msg.features, b""):  # full keyframe and pose-only update
+        m = dataclasses.replace(msg, T_world_body=pack_array(drifted, "<f8"), features=features)
+        R = decode_keyframe_update(m, 0, vocab).T_world_body[:3, :3]
+        assert np.allclose(R.T @ R, np.eye(3), atol=1e-12) and np.linalg.det(R) > 0
+        assert np.allclose(R, T[:3, :3], atol=1e-6)
+    gross = T.copy()
+    gross[:3, :3] *= 1.1
+    with pytest.raises(UplinkError, match="not orthonormal"):
+        decode_keyframe_update(dataclasses.replace(msg, T_world_body=pack_array(gross, "<f8")),
+                               0, vocab)  # fmt: skip
