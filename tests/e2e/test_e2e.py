@@ -71,14 +71,15 @@ def _assert_nothing_lost(run_dir: Path, data: dict) -> None:
     for name, r in data["robots"].items():
         assert r["frames_sent"] > 150, (name, r)
         assert r["frames_decoded"] == r["frames_sent"], (name, r)
-    # Keyframes: the cloud holds every keyframe the edge uplinked, once, ids 0..n-1 per robot.
+    # Keyframes: the cloud holds every keyframe the edge uplinked, exactly once. (Ids have gaps:
+    # the VIO's own keyframes between the robot's are not uplinked.)
     ids = _cloud_keyframe_ids(run_dir)
     assert data["map"]["mbp_passes"] == 0  # nothing culled: the id sets must be complete
     for name, r in data["robots"].items():
         got = ids.get(name, [])
         assert r["keyframes_uplinked"] and r["keyframes_uplinked"] > 0, (name, r)
         assert len(got) == len(set(got)), (name, sorted(got))
-        assert sorted(got) == list(range(r["keyframes_uplinked"])), (name, sorted(got))
+        assert len(got) == r["keyframes_uplinked"], (name, sorted(got))
     assert data["map"]["keyframes_after_mbp"] == sum(len(v) for v in ids.values())
 
 
