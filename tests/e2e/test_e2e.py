@@ -4,8 +4,8 @@ Short synthetic sequences (3 robots x 10 s, generated once per session). What is
 is what the system achieves on such short data today: every frame decoded exactly once,
 every keyframe the edge uplinked present at the cloud exactly once (also across an edge
 SIGKILL + restart on the same state directory), each robot's keyframe trajectory within
-ATE_BOUND_M of ground truth. Merging the maps does not happen on 10 s sequences yet (each
-robot ends in its own map; see the xfail test), so no joint-frame ATE bound is asserted.
+ATE_BOUND_M of ground truth, and the cloud merging the three robots' maps into one (joint-frame
+ATE within the same bound: a false merge would put a robot metres off).
 """
 
 from __future__ import annotations
@@ -105,11 +105,12 @@ def test_three_robots_ate_within_bound(clean_run) -> None:
         assert r["ate_rmse_m"] < ATE_BOUND_M, (name, r["ate_rmse_m"])
 
 
-@pytest.mark.xfail(reason="maps do not merge on 10 s synthetic sequences yet", strict=False)
 def test_three_robots_maps_merged(clean_run) -> None:
     _, data = clean_run
-    assert data["map"]["merges"] >= 2
-    assert data["ate"]["joint_frame"] is True
+    assert data["map"]["merges"] >= 2, data["map"]
+    assert len(data["map"]["maps"]) == 1, data["map"]
+    assert data["ate"]["joint_frame"] is True, data["ate"]
+    assert data["ate"]["joint_rmse_m"] < ATE_BOUND_M, data["ate"]
 
 
 def test_edge_killed_and_restarted_loses_no_keyframe(dataset, tmp_path) -> None:
