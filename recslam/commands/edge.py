@@ -131,9 +131,9 @@ def handle(args: argparse.Namespace) -> int:
                     await asyncio.wait_for(stop.wait(), 1.0)
         finally:
             print("edge stopping", flush=True)
+            await edge.stop()  # drains the workers: their last uplinks count in the stats
             if args.stats_out is not None:
                 write_stats(args.stats_out, edge)
-            await edge.stop()
         return 0
 
     return run(main())
