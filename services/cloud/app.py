@@ -218,7 +218,11 @@ class CloudApp:
         kf = d.keyframe
         if kf is None:  # pose-only update of a keyframe the cloud has
             if not self.atlas.has_keyframe(key):
-                log.warning("pose update of unknown keyframe %s/%d", msg.agent_id, d.keyframe_id)
+                # A keyframe the cloud pruned (MBP) or the edge culled is routine; others not.
+                routine = key in self.atlas.removed_keyframes()
+                log.log(logging.DEBUG if routine else logging.WARNING,
+                        "pose update of %s keyframe %s/%d", "removed" if routine else "unknown",
+                        msg.agent_id, d.keyframe_id)  # fmt: skip
                 self.store.commit(self.atlas, positions=position,
                                   agents=self._rows(a))  # fmt: skip
                 return Reaction()
