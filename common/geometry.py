@@ -117,3 +117,18 @@ def R_to_quat_wxyz(R: np.ndarray) -> np.ndarray:
     wxyz = np.concatenate([xyzw[:, 3:], xyzw[:, :3]], axis=1)
     wxyz *= np.where(wxyz[:, :1] < 0, -1.0, 1.0)
     return wxyz.reshape(*R.shape[:-2], 4)
+
+
+def nearest_rotation(R: np.ndarray) -> np.ndarray:
+    """The rotation closest (Frobenius) to a (3, 3) matrix: re-orthonormalises a rotation
+    that repeated products have pushed off SO(3)."""
+    U, _, Vt = np.linalg.svd(np.asarray(R, dtype=np.float64))
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+    return U @ D @ Vt
+
+
+def orthonormalize_T(T: np.ndarray) -> np.ndarray:
+    """A copy of the (4, 4) transform ``T`` with its rotation block snapped onto SO(3)."""
+    out = np.array(T, dtype=np.float64)
+    out[:3, :3] = nearest_rotation(out[:3, :3])
+    return out

@@ -63,3 +63,17 @@ def test_quaternion_round_trip_and_convention() -> None:
     assert np.all(R_to_quat_wxyz(Rs)[:, 0] >= 0)
     with pytest.raises(GeometryError):
         quat_wxyz_to_R(np.zeros(4))
+
+
+def test_nearest_rotation_repairs_drift() -> None:
+    from common.geometry import nearest_rotation, orthonormalize_T
+
+    R = so3_exp(np.array([0.3, -0.2, 0.1]))
+    drifted = R + 1e-3 * rng.normal(size=(3, 3))
+    fixed = nearest_rotation(drifted)
+    check_rotation(fixed, atol=1e-12)
+    assert np.linalg.norm(fixed - R) < 5e-3
+    T = make_T(drifted, [1.0, 2.0, 3.0])
+    out = orthonormalize_T(T)
+    check_rotation(out[:3, :3], atol=1e-12)
+    np.testing.assert_array_equal(out[:3, 3], [1.0, 2.0, 3.0])

@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from common.calibration import CameraCalibration, ImuCalibration
-from common.geometry import inverse_T, make_T
+from common.geometry import inverse_T, make_T, orthonormalize_T
 from services.edge.vio.imu import (
     ImuBuffer,
     integrate_gyro,
@@ -186,10 +186,12 @@ class VioManager:
                 T_new = np.asarray(T_new, dtype=np.float64)
                 if T_new.shape != (4, 4) or not np.all(np.isfinite(T_new)):
                     raise VioError(f"apply_pose_corrections: keyframe {kf.id} pose is not (4, 4)")
-                delta = T_new @ inverse_T(kf.T_world_body)
+                # Snap rotations back onto SO(3): repeated corrections otherwise compound the
+                # float error until the cloud refuses the poses as not orthonormal.
+                delta = orthonormalize_T(orthonormalize_T(T_new) @ inverse_T(kf.T_world_body))
                 n += 1
             deltas[kf.id] = delta
-            kf.T_world_body = delta @ kf.T_world_body
+            kf.T_world_body = orthonormalize_T(delta @ kf.T_world_body)
             kf.v_world = delta[:3, :3] @ kf.v_world
         for mp in vmap.points.values():
             ref = min(mp.observations, default=None)
@@ -197,9 +199,9 @@ class VioManager:
                 mp.p_world = deltas[ref][:3, :3] @ mp.p_world + deltas[ref][:3, 3]
         vmap.mark_all_dirty()
         if self._last_T is not None:
-            self._last_T = delta @ self._last_T
+            self._last_T = orthonormalize_T(delta @ self._last_T)
         if self._prev_T is not None:
-            self._prev_T = delta @ self._prev_T
+            self._prev_T = orthonormalize_T(delta @ self._prev_T)
         if self._last_v is not None:
             self._last_v = delta[:3, :3] @ self._last_v
         return n
