@@ -33,6 +33,7 @@ from common.codec import (
 )
 from common.codec.keypoints import kf_track_q
 from common.codec.tracks import next_stream_numbers
+from common.geometry import orthonormalize_T
 from common.protocol.arrays import pack_array
 from common.protocol.messages import (
     AgentStatus,
@@ -283,7 +284,7 @@ class RobotSession:
                     keyframe_id=kf.keyframe_id,
                     previous_keyframe_id=-1 if prev is None else int(prev),
                     timestamp_ns=kf.timestamp_ns,
-                    T_world_body=pack_array(kf.T_world_body, "<f8"),
+                    T_world_body=pack_array(orthonormalize_T(kf.T_world_body), "<f8"),
                     velocity_world=pack_array(kf.v_world, "<f8"),
                     bias_gyro=pack_array(kf.bias_gyro, "<f8"),
                     bias_accel=pack_array(kf.bias_accel, "<f8"),
