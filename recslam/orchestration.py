@@ -63,6 +63,8 @@ class JobConfig:
         robot_links: optional hook ``(robot name, edge port) -> port the robot connects to``
             (an application-level throttle, see ``recslam.commands.experiment``).
         start_timeout_s: seconds a service may take to listen (default 120, imports are slow).
+        record_uplink: the cloud records every applied uplink message to this file
+            (``recslam cloud --record``; default: no recording).
     """
 
     dataset: Path
@@ -74,6 +76,7 @@ class JobConfig:
     max_frames: int | None = None
     robot_links: Callable[[str, int], int] | None = None
     start_timeout_s: float = 120.0
+    record_uplink: Path | None = None
 
 
 @dataclass
@@ -123,6 +126,7 @@ class Job:
 
     def cloud_argv(self) -> list[str]:
         c = self.config
+        record = [] if c.record_uplink is None else ["--record", str(c.record_uplink)]
         return self._recslam(
             "cloud", "--listen", f"127.0.0.1:{self.cloud_port}",
             "--state-dir", str(self.run_dir / "state" / "cloud"),
@@ -132,6 +136,7 @@ class Job:
             "--secret-file", str(self.secret_path),
             "--output-every", "0",
             "--stats-out", str(self.run_dir / "stats" / "cloud.json"),
+            *record,
         )  # fmt: skip
 
     def edge_argv(self) -> list[str]:

@@ -114,6 +114,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="rewrite service counters and per-edge traffic counters as JSON here every "
         "second and at exit (default: none)",
     )
+    p.add_argument(
+        "--record",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help="append every applied uplink message to this recording (replayed by "
+        "'recslam experiment table3'; default: off)",
+    )
     p.set_defaults(func=handle)
 
 
@@ -182,6 +190,7 @@ def handle(args: argparse.Namespace) -> int:
             results_dir=args.results,
             groundtruth=args.groundtruth,
             transport=TransportConfig(accept_roles=("edge",)),
+            record=args.record,
         )
         stop = asyncio.Event()
         loop = asyncio.get_running_loop()

@@ -40,6 +40,14 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--rate", choices=("realtime", "max"), default="realtime", help="robots' playback rate"
     )
     p.add_argument("--timeout", type=float, default=1800.0, help="give up after this many seconds")
+    p.add_argument(
+        "--record-uplink",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help="the cloud records every applied uplink message here (for 'recslam experiment "
+        "table3'; default: off)",
+    )
     p.set_defaults(func=run)
 
 
@@ -120,7 +128,11 @@ def run(args: argparse.Namespace) -> int:
     if run_dir.exists():
         shutil.rmtree(run_dir)
     port = 0 if args.no_dashboard else args.dashboard_port
-    config = JobConfig(dataset=args.data, run_dir=run_dir, dashboard_port=port, rate=args.rate)
+    record = args.record_uplink.resolve() if args.record_uplink is not None else None
+    config = JobConfig(
+        dataset=args.data, run_dir=run_dir, dashboard_port=port, rate=args.rate,
+        record_uplink=record,
+    )  # fmt: skip
     t0 = time.perf_counter()
     last_print = [0.0]
 

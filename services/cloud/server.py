@@ -21,7 +21,9 @@
 - MBP runs on the worker right after an optimisation when due (it mutates the atlas);
 - the dashboard's :class:`~services.cloud.map_source.CloudMapSource` is refreshed every
   ``publish_every_s``; trajectories (and the ATE report with ground truth) are written every
-  ``output_every_s`` and at :meth:`CloudServer.stop`.
+  ``output_every_s`` and at :meth:`CloudServer.stop`;
+- with ``record``, every applied uplink message is appended to a recording
+  (:mod:`services.cloud.recording`) on the worker, right after it was applied.
 """
 
 from __future__ import annotations
@@ -31,6 +33,7 @@ import contextlib
 import logging
 import multiprocessing
 import os
+import time
 from collections.abc import Callable
 from concurrent.futures import BrokenExecutor, Executor, ProcessPoolExecutor, ThreadPoolExecutor
 from dataclasses import dataclass
@@ -57,6 +60,7 @@ from services.cloud.map_fusion import MapFusion
 from services.cloud.map_source import CloudMapSource
 from services.cloud.output import OutputWriter
 from services.cloud.persistence import CloudStore, PersistenceError
+from services.cloud.recording import RecordingWriter
 
 log = logging.getLogger(__name__)
 
@@ -92,6 +96,7 @@ class CloudServer:
         groundtruth: ground-truth source for the ATE report (see common.evaluation.results).
         transport: socket settings.
         max_failures: a message whose handler failed this many times is skipped.
+        record: append every applied uplink message to this recording file (default: none).
     """
 
     def __init__(
@@ -105,6 +110,7 @@ class CloudServer:
         groundtruth: str | Path | None = None,
         transport: TransportConfig | None = None,
         max_failures: int = 3,
+        record: str | Path | None = None,
     ) -> None:
         self.session = session
         self.config = config or CloudServiceConfig()
@@ -136,6 +142,8 @@ class CloudServer:
         self._references: dict[str, Trajectory] = {}  # ground truth per robot name
         self._no_reference: set[str] = set()
         self._gt_published = -1e9
+        self._record_path = Path(record) if record is not None else None
+        self._recorder: RecordingWriter | None = None
 
     # ------------------------------------------------------------------ lifecycle
     def _new_optimizer(self) -> Executor:
@@ -166,6 +174,8 @@ class CloudServer:
         """Load the state directory, then listen; returns the bound address."""
         self._optimizer.submit(warm_up)  # import gtsam in the optimizer now, not at a merge
         self._app = await self._on_worker(self._open)
+        if self._record_path is not None:
+            self._recorder = RecordingWriter(self._record_path)
         n = self._app.atlas.n_keyframes()
         log.info("cloud state %s: %d keyframes, %d map points, maps %s", self.state_dir, n,
                  self._app.atlas.n_map_points(), self._app.atlas.maps())  # fmt: skip
@@ -195,6 +205,9 @@ class CloudServer:
                 await self.write_output(evaluate=True)
             await self._on_worker(self._app.close)
             self._app = None
+        if self._recorder is not None:
+            await self._on_worker(self._recorder.close)
+            self._recorder = None
         self._worker.shutdown(wait=True)
         self._io.shutdown(wait=True)
         self._optimizer.shutdown(wait=True)
@@ -212,7 +225,7 @@ class CloudServer:
             raise LocalProtocolError("cloud is not running")
         key = (d.peer, d.stream_id, d.seq)
         try:
-            reaction = await self._on_worker(app.handle, d.peer, d.message, d.stream_id, d.seq)
+            reaction = await self._on_worker(self._handle, app, d, time.time())
         except PersistenceError:
             raise  # not the message's fault: no ack, it is redelivered
         except RecslamError as exc:  # malformed or inconsistent input (UplinkError, AtlasError)
@@ -229,6 +242,13 @@ class CloudServer:
             raise
         self._failures.pop(key, None)
         self._react(reaction)
+
+    def _handle(self, app: CloudApp, d: Delivery, t_recv: float) -> Reaction:
+        """Apply one message (worker thread), then record it when recording."""
+        reaction = app.handle(d.peer, d.message, d.stream_id, d.seq)
+        if self._recorder is not None:
+            self._recorder.write(d.peer, d.stream_id, d.seq, d.message, t_recv)
+        return reaction
 
     def _react(self, reaction: Reaction) -> None:
         trigger = bool(reaction.urgent_maps)

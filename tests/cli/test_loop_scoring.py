@@ -1,0 +1,66 @@
+"""Loop-detection scoring against ground truth labels known loops correctly."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from common.evaluation.trajectory import Trajectory
+from common.geometry import inverse_T
+from recslam.loop_scoring import (
+    Detection,
+    GroundTruthPoses,
+    KeyframeInfo,
+    LoopCriterion,
+    QueryEvent,
+    score_loops,
+)
+from services.cloud.simulation import R_BODY_CAM, circle_poses, yaw_T
+
+
+def _gt() -> tuple[GroundTruthPoses, dict[int, KeyframeInfo], np.ndarray, np.ndarray]:
+    """Two robots on the same circle, robot b half a lap behind; one pose per second."""
+    poses = circle_poses(40, turns=2.0)  # 20 s a lap
+    ts = (np.arange(40) * 1e9).astype(np.int64)
+    refs = {"a": Trajectory.from_poses(ts, poses, "a"), "b": Trajectory.from_poses(ts, poses, "b")}
+    T_body_cam = np.eye(4)
+    T_body_cam[:3, :3] = R_BODY_CAM
+    info = {i: KeyframeInfo(i, "a", float(i)) for i in range(40)}
+    info.update({100 + i: KeyframeInfo(100 + i, "b", float(i)) for i in range(10)})
+    return GroundTruthPoses(refs, T_body_cam), info, poses, ts
+
+
+def test_true_and_false_loops_are_labelled_and_counted():
+    gt, info, poses, _ = _gt()
+    T_true = inverse_T(poses[5]) @ poses[25]  # a at 25 s revisits a at 5 s (one lap later)
+    T_false = T_true @ yaw_T(0.0, np.array([1.0, 0.0, 0.0]))  # 1 m off
+    T_near = T_true @ yaw_T(np.radians(3.0), np.array([0.1, 0.05, 0.0]))  # within 0.3 m, 10 deg
+    dets = [
+        Detection(25, 5, T_true, True, "loop", "ok", 120),
+        Detection(26, 6, T_false, True, "loop", "ok", 40),
+        Detection(27, 7, T_near, True, "loop", "ok", 90),
+        Detection(28, 8, T_true, False, "rejected", "inliers 12/30", 12),
+    ]
+    held = np.arange(30, dtype=np.int64)
+    queries = [QueryEvent(k, held[held < k]) for k in (25, 26, 27, 28, 12)]
+    s = score_loops(dets, queries, info, gt, LoopCriterion())
+    assert [d.true for d in s.accepted] == [True, False, True]
+    assert s.accepted[0].trans_err_m < 1e-9 and s.accepted[1].trans_err_m > 0.9
+    assert (s.true_positives, s.false_positives) == (2, 1)
+    assert abs(s.precision - 2 / 3) < 1e-12
+    # 25..28 have a partner one lap earlier; 12 has none (a only 12 s old, b not held).
+    assert (s.queries, s.queries_with_partner, s.found) == (5, 4, 2)
+    assert s.recall == 0.5
+    assert len(s.rejected) == 1 and s.rejected_true == 1 and s.rejected_reasons["inliers"] == 1
+
+
+def test_revisit_partner_needs_time_gap_or_other_robot():
+    gt, info, _, _ = _gt()
+    crit = LoopCriterion()
+    # a at 3 s: its own previous keyframes are < 10 s old -> no partner ...
+    assert (
+        score_loops([], [QueryEvent(3, np.array([0, 1, 2]))], info, gt, crit).queries_with_partner
+        == 0
+    )
+    # ... but robot b's keyframe at the same place (b at 3 s) is one.
+    s = score_loops([], [QueryEvent(3, np.array([0, 1, 2, 103]))], info, gt, crit)
+    assert s.queries_with_partner == 1 and s.found == 0 and s.recall == 0.0
