@@ -82,7 +82,8 @@ def save_decoded(path: Path | str, frames: list[DecodedFrame]) -> None:
 
 def load_decoded(path: Path | str) -> list[DecodedFrame]:
     """Read what :func:`save_decoded` wrote."""
-    z = np.load(path)
+    with np.load(path) as npz:  # read each array once (indexing an NpzFile re-reads it)
+        z = {k: npz[k] for k in npz.files}
     oi = np.concatenate([[0], np.cumsum(z["n_imu"])])
     ok = np.concatenate([[0], np.cumsum(z["n_kp"])])
     out, d = [], 0

@@ -46,19 +46,20 @@ def _pose(T: np.ndarray) -> gtsam.Pose3:
 
 
 class _NoiseCache:
+    """One robust noise model per distinct sigma (sigmas repeat: one per pyramid level)."""
+
     def __init__(self, cauchy_k: float) -> None:
         self._k = cauchy_k
         self._cache: dict[float, gtsam.noiseModel.Base] = {}
 
     def __call__(self, sigma: float) -> gtsam.noiseModel.Base:
-        key = round(float(sigma), 12)
-        m = self._cache.get(key)
+        m = self._cache.get(sigma)
         if m is None:
             m = gtsam.noiseModel.Robust.Create(
                 gtsam.noiseModel.mEstimator.Cauchy.Create(self._k),
-                gtsam.noiseModel.Isotropic.Sigma(2, key),
+                gtsam.noiseModel.Isotropic.Sigma(2, sigma),
             )
-            self._cache[key] = m
+            self._cache[sigma] = m
         return m
 
 
@@ -83,8 +84,9 @@ def bundle_adjust(
     """
     window = [vmap.keyframes[k] for k in window_ids if k in vmap.keyframes]
     in_window = {kf.id for kf in window}
+    track_point, all_points = vmap.track_point, vmap.points
     point_ids = sorted(
-        {mp.id for kf in window for t in kf.row_of if (mp := vmap.point_of(t)) is not None}
+        {p for kf in window for t in kf.row_of if (p := track_point.get(t)) in all_points}
     )
     points = [vmap.points[p] for p in point_ids]
     observers: set[int] = set()
@@ -152,21 +154,23 @@ def bundle_adjust(
     var_set = set(variables)
     n_obs = 0
     used_points = []
+    # Per variable keyframe: its key, observations as float lists, noise models by row.
+    kf_key = {k: X(k) for k in variables}
+    kf_xy = {k: vmap.keyframes[k].xy for k in variables}
+    kf_noise = {k: [noise_of(s) for s in vmap.keyframes[k].sigma.tolist()] for k in variables}
+    projection_factor = gtsam.GenericProjectionFactorCal3_S2
     for mp in points:
         obs = [(k, r) for k, r in mp.observations.items() if k in var_set]
         if len(obs) < 2:
             continue
         used_points.append(mp)
-        values.insert(L(mp.id), np.asarray(mp.p_world, float))
+        lkey = L(mp.id)
+        values.insert(lkey, np.asarray(mp.p_world, float))
         for k, r in obs:
-            kf = vmap.keyframes[k]
             graph.add(
-                gtsam.GenericProjectionFactorCal3_S2(
-                    gtsam.Point2(*kf.xy[r]), noise_of(kf.sigma[r]), X(k), L(mp.id), _UNIT_K,
-                    body_P_cam,
-                )
-            )  # fmt: skip
-            n_obs += 1
+                projection_factor(kf_xy[k][r], kf_noise[k][r], kf_key[k], lkey, _UNIT_K, body_P_cam)
+            )
+        n_obs += len(obs)
     if n_obs == 0:
         return BAStats(len(window), len(fixed_set), 0, 0, 0.0, 0.0, 0, 0)
     params = gtsam.LevenbergMarquardtParams()

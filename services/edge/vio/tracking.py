@@ -2,10 +2,11 @@
 
 The pose is first checked at the prediction (IMU preintegration from the last keyframe after
 VI initialisation, constant velocity before). If enough tracks agree with it, RANSAC is skipped;
-otherwise PnP RANSAC (cv2, EPnP) finds the inliers. A motion-only optimisation in gtsam then
-refines the pose on the inliers with a Cauchy kernel; after VI initialisation the graph also
-holds the CombinedImuFactor from the last keyframe (held fixed), so velocity and bias of the
-frame come out too (ORB-SLAM3's pose-inertial optimisation).
+otherwise PnP RANSAC (cv2, EPnP) finds the inliers. A motion-only optimisation then refines
+the pose on the inliers with a Cauchy kernel (reprojection linearised in numpy, map points
+fixed); after VI initialisation the problem also holds gtsam's CombinedImuFactor from the last
+keyframe (held fixed), so velocity and bias of the frame come out too (ORB-SLAM3's
+pose-inertial optimisation).
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ from dataclasses import dataclass
 import cv2
 import gtsam
 import numpy as np
-from gtsam.symbol_shorthand import B, L, V, X
+from gtsam.symbol_shorthand import B, V, X
 
 from common.geometry import inverse_T, so3_exp
 from services.edge.vio.imu import make_bias
@@ -74,6 +75,49 @@ def _ransac(P, xy, camera: PinholeUndistorter, options: TrackingOptions) -> np.n
     return inverse_T(T_cam_world) @ camera.T_cam_body
 
 
+def _visual_system(
+    T_world_body: np.ndarray,
+    T_body_cam: np.ndarray,
+    P: np.ndarray,
+    xy: np.ndarray,
+    sigma: np.ndarray,
+    cauchy_c2: float,
+) -> tuple[np.ndarray, np.ndarray, float]:
+    """Whitened, Cauchy-weighted (IRLS) linearisation of the reprojection of ``P`` (M, 3) at
+    ``T_world_body`` for gtsam's Pose3 tangent ``xi = (omega, v)`` with ``T·Exp(xi)``.
+
+    Returns ``A`` (2M, 6) and ``b`` (2M,) such that ``‖A·xi − b‖²`` is the weighted
+    Gauss–Newton model, and the robust cost ``Σ 0.5·c²·log(1 + r²/c²)`` (gtsam's Cauchy loss).
+    """
+    R_wb, t_wb = T_world_body[:3, :3], T_world_body[:3, 3]
+    R_bc, t_bc = T_body_cam[:3, :3], T_body_cam[:3, 3]
+    p_body = (P - t_wb) @ R_wb
+    p_cam = (p_body - t_bc) @ R_bc
+    z = p_cam[:, 2]
+    inv_z = 1.0 / z
+    proj = p_cam[:, :2] * inv_z[:, None]
+    r = (proj - xy) / sigma[:, None]  # (M, 2) whitened residual
+    s2 = np.sum(r * r, axis=1)
+    cost = float(np.sum(0.5 * cauchy_c2 * np.log1p(s2 / cauchy_c2)))
+    sqrt_w = np.sqrt(1.0 / (1.0 + s2 / cauchy_c2)) / sigma  # (M,) robust weight and whitening
+    # d proj / d p_cam (M, 2, 3)
+    J_proj = np.zeros((len(P), 2, 3))
+    J_proj[:, 0, 0] = inv_z
+    J_proj[:, 1, 1] = inv_z
+    J_proj[:, :, 2] = -proj * inv_z[:, None]
+    # d p_body / d xi = [ [p_body]x , -I ]  (right perturbation of T_world_body)
+    J_body = np.zeros((len(P), 3, 6))
+    x, y, w = p_body[:, 0], p_body[:, 1], p_body[:, 2]
+    J_body[:, 0, 1], J_body[:, 0, 2] = -w, y
+    J_body[:, 1, 0], J_body[:, 1, 2] = w, -x
+    J_body[:, 2, 0], J_body[:, 2, 1] = -y, x
+    J_body[:, 0, 3] = J_body[:, 1, 4] = J_body[:, 2, 5] = -1.0
+    J = np.einsum("mij,jk,mkl->mil", J_proj, R_bc.T, J_body)  # (M, 2, 6)
+    A = (J * sqrt_w[:, None, None]).reshape(-1, 6)
+    b = -(r * (sqrt_w * sigma)[:, None]).reshape(-1)
+    return A, b, cost
+
+
 def _optimise(
     T0: np.ndarray,
     P: np.ndarray,
@@ -84,51 +128,63 @@ def _optimise(
     v0: np.ndarray | None,
     options: TrackingOptions,
 ) -> tuple[np.ndarray, np.ndarray | None, gtsam.imuBias.ConstantBias | None]:
-    graph = gtsam.NonlinearFactorGraph()
+    """Motion-only optimisation: Gauss–Newton with backtracking on the pose (and, with an
+    IMU prior, velocity and bias of the frame). The reprojection terms are linearised here in
+    numpy (map points fixed: no landmark variables); the IMU part stays a gtsam
+    CombinedImuFactor from the fixed keyframe, linearised by gtsam each iteration."""
+    c2 = float(options.chi2_threshold)
     values = gtsam.Values()
     values.insert(X(0), gtsam.Pose3(T0))
-    body_P_cam = gtsam.Pose3(camera.T_body_cam)
-    cauchy = gtsam.noiseModel.mEstimator.Cauchy.Create(np.sqrt(options.chi2_threshold))
-    tight3 = gtsam.noiseModel.Isotropic.Sigma(3, 1e-6)
-    noise: dict[float, gtsam.noiseModel.Base] = {}
-    for i in range(len(P)):
-        s = float(sigma[i])
-        if s not in noise:
-            noise[s] = gtsam.noiseModel.Robust.Create(
-                cauchy, gtsam.noiseModel.Isotropic.Sigma(2, s)
-            )
-        values.insert(L(i), P[i])
-        graph.add(gtsam.PriorFactorPoint3(L(i), P[i], tight3))
-        graph.add(
-            gtsam.GenericProjectionFactorCal3_S2(
-                gtsam.Point2(*xy[i]), noise[s], X(0), L(i), _UNIT_K, body_P_cam
-            )
-        )
+    graph = gtsam.NonlinearFactorGraph()
     if prior is not None:
         kf = prior.keyframe
         bias = make_bias(kf.bias_accel, kf.bias_gyro)
+        tight3 = gtsam.noiseModel.Isotropic.Sigma(3, 1e-6)
+        tight6 = gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)
         values.insert(X(1), gtsam.Pose3(kf.T_world_body))
         values.insert(V(1), kf.v_world)
         values.insert(B(1), bias)
         values.insert(V(0), v0 if v0 is not None else kf.v_world)
         values.insert(B(0), bias)
-        graph.add(
-            gtsam.PriorFactorPose3(
-                X(1), gtsam.Pose3(kf.T_world_body), gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)
-            )
-        )
+        graph.add(gtsam.PriorFactorPose3(X(1), gtsam.Pose3(kf.T_world_body), tight6))
         graph.add(gtsam.PriorFactorVector(V(1), kf.v_world, tight3))
-        graph.add(
-            gtsam.PriorFactorConstantBias(B(1), bias, gtsam.noiseModel.Isotropic.Sigma(6, 1e-6))
-        )
+        graph.add(gtsam.PriorFactorConstantBias(B(1), bias, tight6))
         graph.add(gtsam.CombinedImuFactor(X(1), V(1), X(0), V(0), B(1), B(0), prior.pim))
-    params = gtsam.LevenbergMarquardtParams()
-    params.setMaxIterations(options.max_iterations)
-    result = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
-    T = result.atPose3(X(0)).matrix()
+    unit = gtsam.noiseModel.Unit.Create(2 * len(P))
+    T_body_cam = camera.T_body_cam
+
+    def total_cost(vals: gtsam.Values) -> float:
+        T = vals.atPose3(X(0)).matrix()
+        _, _, c = _visual_system(T, T_body_cam, P, xy, sigma, c2)
+        return c + (graph.error(vals) if prior is not None else 0.0)
+
+    cost = total_cost(values)
+    for _ in range(options.max_iterations):
+        T = values.atPose3(X(0)).matrix()
+        A, b, _ = _visual_system(T, T_body_cam, P, xy, sigma, c2)
+        gfg = graph.linearize(values) if prior is not None else gtsam.GaussianFactorGraph()
+        gfg.add(gtsam.JacobianFactor(X(0), A, b, unit))
+        delta = gfg.optimize()
+        step = 1.0
+        while True:
+            trial = values.retract(delta.scale(step)) if step != 1.0 else values.retract(delta)
+            new_cost = total_cost(trial)
+            if np.isfinite(new_cost) and new_cost <= cost:
+                break
+            step *= 0.5
+            if step < 1e-3:
+                trial = None
+                break
+        if trial is None:
+            break
+        values, improvement = trial, cost - new_cost
+        cost = new_cost
+        if improvement <= 1e-6 * max(cost, 1e-12):
+            break
+    T = values.atPose3(X(0)).matrix()
     if prior is None:
         return T, None, None
-    return T, np.asarray(result.atVector(V(0)), float), result.atConstantBias(B(0))
+    return T, np.asarray(values.atVector(V(0)), float), values.atConstantBias(B(0))
 
 
 def track_frame(
