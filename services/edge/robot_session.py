@@ -72,8 +72,9 @@ class SessionOptions:
     """Per-robot output options: feedback policy, status period (frames), features kept for
     the keyframe uplink (robot keyframes, newest), IMU history kept (s), and the map-point
     uplink threshold: a point already sent is sent again only when it moved more than
-    ``point_resend_m`` (m) or gained observations (local BA nudges every window point a
-    little, and resending all of them dominated the edge->cloud link)."""
+    ``point_resend_m`` (m) or gained observations in robot keyframes, and then with only the
+    new observations (local BA nudges every window point a little, and resending all of them
+    with every observation dominated the edge->cloud link)."""
 
     feedback: FeedbackPolicy = FeedbackPolicy()
     status_every_frames: int = 20
@@ -130,7 +131,7 @@ class RobotSession:
         self._up_prev: dict[tuple[int, int], int | None] = {}
         self._last_up: dict[int, int] = {}
         # (map id, point id) -> (position sent (3,), observations sent)
-        self._sent_points: dict[tuple[int, int], tuple[np.ndarray, int]] = {}
+        self._sent_points: dict[tuple[int, int], tuple[np.ndarray, set[int]]] = {}
         self._last_fb: InertialState | None = None
         self._last_fb_frame = -(10**9)
         self._fb_map: int | None = None
@@ -295,16 +296,11 @@ class RobotSession:
             )
         points = self._points_to_send(upd)
         if points:
-            ids = np.array([p.point_id for p in points], np.int64)
-            p_world = np.array([p.p_world for p in points], np.float64).reshape(-1, 3)
-            obs = [
-                np.stack(
-                    [np.full(len(p.keyframe_ids), p.point_id), p.keyframe_ids, p.feature_indices],
-                    axis=1,
-                )[[(upd.map_id, int(k)) not in self._own_kfs for k in p.keyframe_ids]]
-                for p in points
-            ]
-            rows = np.concatenate(obs).astype(np.int64) if obs else np.zeros((0, 3), np.int64)
+            ids = np.array([pid for pid, _, _ in points], np.int64)
+            p_world = np.array([p for _, p, _ in points], np.float64).reshape(-1, 3)
+            rows = np.array(
+                [(pid, k, i) for pid, _, new in points for k, i in new], np.int64
+            ).reshape(-1, 3)
             msgs.append(
                 MapPointUpdate(
                     agent_id=self.agent_id,
@@ -314,34 +310,50 @@ class RobotSession:
                     observations=pack_array(rows, "<i8"),
                 )
             )
-        for pid in upd.removed_point_ids:
-            self._sent_points.pop((upd.map_id, int(pid)), None)
-        if upd.removed_point_ids:
+        removed = [
+            int(pid)
+            for pid in upd.removed_point_ids
+            if self._sent_points.pop((upd.map_id, int(pid)), None) is not None
+        ]
+        if removed:  # points the cloud never heard of need no cull
             msgs.append(
                 CullEvent(
                     agent_id=self.agent_id,
                     map_id=upd.map_id,
                     keyframe_ids=b"",
-                    map_point_ids=pack_array(np.array(upd.removed_point_ids), "<i8"),
+                    map_point_ids=pack_array(np.array(removed), "<i8"),
                 )
             )
         return msgs
 
-    def _points_to_send(self, upd: MapUpdate) -> list:
-        """The changed points worth sending: new, moved > ``point_resend_m``, or re-observed."""
+    def _points_to_send(
+        self, upd: MapUpdate
+    ) -> list[tuple[int, np.ndarray, list[tuple[int, int]]]]:
+        """The changed points worth sending as ``(id, p_world (3,), new observation rows)``.
+
+        The cloud only knows the robot keyframes (the VIO's own keyframes carry no features),
+        so only observations in those count: a point is sent once a robot keyframe observes
+        it, again when it gains such observations (only the new rows: the cloud adds them to
+        what it has) or moved more than ``point_resend_m`` since it was last sent.
+        """
         out = []
         for p in upd.points:
             key = (upd.map_id, int(p.point_id))
+            obs = [
+                (int(k), int(i))
+                for k, i in zip(p.keyframe_ids, p.feature_indices, strict=True)
+                if (upd.map_id, int(k)) not in self._own_kfs
+            ]
+            if not obs:
+                continue
             p_world = np.asarray(p.p_world, np.float64).reshape(3)
-            n_obs = len(p.keyframe_ids)
             sent = self._sent_points.get(key)
-            if (
-                sent is None
-                or n_obs != sent[1]
-                or np.linalg.norm(p_world - sent[0]) > self.options.point_resend_m
-            ):
-                self._sent_points[key] = (p_world, n_obs)
-                out.append(p)
+            new = obs if sent is None else [o for o in obs if o[0] not in sent[1]]
+            if new or np.linalg.norm(p_world - sent[0]) > self.options.point_resend_m:
+                known = set() if sent is None else sent[1]
+                known.update(k for k, _ in new)
+                self._sent_points[key] = (p_world, known)
+                out.append((int(p.point_id), p_world, new))
         return out
 
     def status(self, link_counters: dict[str, int]) -> AgentStatus:

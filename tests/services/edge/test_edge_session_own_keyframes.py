@@ -36,3 +36,27 @@ def test_own_keyframes_stay_on_the_edge() -> None:
     rows = unpack_array(mpu.observations, "<i8").reshape(-1, 3)
     assert rows[:, 1].tolist() == [0, 3]  # the observation in own keyframe 1 is not sent
     assert session.vio_keyframes == 2
+
+
+def test_points_seen_only_by_own_keyframes_stay_and_only_new_rows_go() -> None:
+    cam = CameraCalibration(fx=400.0, fy=400.0, cx=320.0, cy=240.0, width=640, height=480)
+    session = RobotSession("r", cam, Vocabulary.load())
+    kfs = (_kf(0, None, True), _kf(1, 0, False), _kf(2, 1, False))
+    only_own = MapPointSnapshot(8, 0, np.ones(3), np.array([1, 2]), np.array([0, 1]))
+    shared = MapPointSnapshot(9, 0, np.ones(3), np.array([0, 1]), np.array([2, 2]))
+    out = session.on_result(
+        WorkResult(0, None, None, (MapUpdate(0, False, kfs, (only_own, shared), ()),))
+    )
+    (mpu,) = [m for m in out.cloud if isinstance(m, MapPointUpdate)]
+    assert unpack_array(mpu.ids, "<i8").tolist() == [9]
+    # Keyframe 3 (a robot keyframe) observes point 9 too: one new row, not the whole list.
+    # A new observation in own keyframe 2 alone is no reason to resend.
+    shared = MapPointSnapshot(9, 0, np.ones(3), np.array([0, 1, 3]), np.array([2, 2, 5]))
+    only_own = MapPointSnapshot(8, 0, np.ones(3), np.array([1, 2]), np.array([0, 1]))
+    upd = MapUpdate(0, False, (_kf(3, 2, True),), (only_own, shared), (8,))
+    out = session.on_result(WorkResult(0, None, None, (upd,)))
+    (mpu,) = [m for m in out.cloud if isinstance(m, MapPointUpdate)]
+    assert unpack_array(mpu.ids, "<i8").tolist() == [9]
+    assert unpack_array(mpu.observations, "<i8").reshape(-1, 3).tolist() == [[9, 3, 5]]
+    # Point 8 was never sent: its removal needs no cull message.
+    assert not any(type(m).__name__ == "CullEvent" for m in out.cloud)
