@@ -24,11 +24,15 @@ Definitions (:class:`LoopCriterion` holds the thresholds):
 - **Recall** = queries with a revisit partner for which a true-positive loop / merge was
   found / queries with a revisit partner. (A TP whose partner is not a "revisit partner" by
   these thresholds still counts as found when the query has one.)
+- A **rejected** candidate (verification keeps no pose for it) is a *true place* when the
+  two keyframes' ground-truth cameras are within the revisit thresholds.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
+import re
 from collections import Counter
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
@@ -129,6 +133,11 @@ class GroundTruthPoses:
         return None if T is None else T @ self.T_body_cam
 
 
+def reason_kind(reason: str) -> str:
+    """A verification reason without its numbers (``"tilt 98.2 deg"`` -> ``"tilt deg"``)."""
+    return " ".join(w for w in reason.split() if not re.fullmatch(r"[\d./]+", w)) or reason or "?"
+
+
 def rotation_angle_deg(R: np.ndarray) -> float:
     """Angle of a (3, 3) rotation [deg]."""
     c = (float(np.trace(R)) - 1.0) / 2.0
@@ -167,6 +176,19 @@ def score_detection(
     dist = float(np.linalg.norm(T_gt[:3, 3]))
     ok = trans < criterion.max_trans_err_m and rot < criterion.max_rot_err_deg
     return DetectionScore(det, q, m, trans, rot, dist, ok)
+
+
+def same_place(
+    a: KeyframeInfo, b: KeyframeInfo, gt: GroundTruthPoses, criterion: LoopCriterion
+) -> bool | None:
+    """Ground-truth camera centres within ``revisit_dist_m`` and optical axes within
+    ``revisit_angle_deg`` (None without ground truth)."""
+    T_a = gt.T_world_cam(a.robot, a.timestamp_s)
+    T_b = gt.T_world_cam(b.robot, b.timestamp_s)
+    if T_a is None or T_b is None:
+        return None
+    near = np.linalg.norm(T_a[:3, 3] - T_b[:3, 3]) < criterion.revisit_dist_m
+    return bool(near and T_a[:3, 2] @ T_b[:3, 2] > np.cos(np.radians(criterion.revisit_angle_deg)))
 
 
 def revisit_partners(
@@ -230,7 +252,8 @@ class LoopScores:
 
     @property
     def rejected_true(self) -> int:
-        """Rejected candidates whose relative pose the truth would have accepted."""
+        """Rejected candidates that are a true place (a ground-truth revisit by camera
+        geometry: :func:`same_place`); verification keeps no pose for a rejected one."""
         return sum(1 for s in self.rejected if s.true)
 
 
@@ -252,8 +275,10 @@ def score_loops(
             if s.true:
                 true_found.add(det.query_key)
         else:
+            # A rejected candidate carries no pose: judge the place, not the transform.
+            s = dataclasses.replace(s, true=same_place(s.query, s.match, gt, crit))
             scores.rejected.append(s)
-            scores.rejected_reasons[det.reason.split(" ")[0] if det.reason else "?"] += 1
+            scores.rejected_reasons[reason_kind(det.reason)] += 1
     for q in queries:
         scores.queries += 1
         held = [info[int(k)] for k in q.held_keys.tolist() if int(k) in info]

@@ -38,7 +38,8 @@ def test_true_and_false_loops_are_labelled_and_counted():
         Detection(25, 5, T_true, True, "loop", "ok", 120),
         Detection(26, 6, T_false, True, "loop", "ok", 40),
         Detection(27, 7, T_near, True, "loop", "ok", 90),
-        Detection(28, 8, T_true, False, "rejected", "inliers 12/30", 12),
+        Detection(28, 8, np.eye(4), False, "rejected", "inliers 12/30", 12),  # same place
+        Detection(29, 14, np.eye(4), False, "rejected", "no 3D-2D pose", 0),  # half a lap off
     ]
     held = np.arange(30, dtype=np.int64)
     queries = [QueryEvent(k, held[held < k]) for k in (25, 26, 27, 28, 12)]
@@ -50,7 +51,8 @@ def test_true_and_false_loops_are_labelled_and_counted():
     # 25..28 have a partner one lap earlier; 12 has none (a only 12 s old, b not held).
     assert (s.queries, s.queries_with_partner, s.found) == (5, 4, 2)
     assert s.recall == 0.5
-    assert len(s.rejected) == 1 and s.rejected_true == 1 and s.rejected_reasons["inliers"] == 1
+    assert [d.true for d in s.rejected] == [True, False] and s.rejected_true == 1
+    assert s.rejected_reasons == {"inliers": 1, "no 3D-2D pose": 1}
 
 
 def test_revisit_partner_needs_time_gap_or_other_robot():

@@ -72,6 +72,8 @@ def test_replay_with_and_without_mbp(recording, vocab, tmp_path):
     assert on.mbp_passes > 0 and on.keyframes < off.keyframes
     assert on.map_points <= off.map_points
     assert set(on.trajectories) == {"r0", "r1"}
+    assert on.backbone["keyframes"] == on.keyframes
+    assert off.backbone["kept_by_one_more_pass"] <= off.keyframes
     # Every new keyframe was queried against what the cloud held; the second robot's map
     # was merged into the first through an accepted detection.
     assert len(on.queries) == 42 and on.queries[0].held_keys.size == 0
