@@ -244,6 +244,16 @@ class Vocabulary:
         if self.residual_ones.shape != (256,):
             raise VocabularyError("residual_ones must be (256,)")
         self._desc64 = self.node_desc.view(np.uint64)
+        # Lookup tables: for every inner node its children's descriptors (k, 4) uint64 and a
+        # distance penalty (k,) for empty slots, so a descent level is one gather per query.
+        inner = np.flatnonzero(self.children[:, 0] >= 0)
+        self._inner_row = np.full(m, -1, dtype=np.int32)
+        self._inner_row[inner] = np.arange(inner.size, dtype=np.int32)
+        ch_inner = self.children[inner]
+        self._child_desc64 = self._desc64[np.maximum(ch_inner, 0)]  # (I, k, 4)
+        self._child_penalty = np.where(ch_inner >= 0, 0, 1 << 20).astype(np.int32)
+        self._child_ids = ch_inner
+        self._fingerprint: int | None = None
         if bit_parents is None or bit_p1 is None:
             bit_parents = np.full((256, 0), -1, dtype=np.int16)
             bit_p1 = np.full((256, 1), 0.5)
@@ -283,19 +293,20 @@ class Vocabulary:
 
     def _descend(self, d64: np.ndarray) -> np.ndarray:
         cur = np.zeros(d64.shape[0], dtype=np.int32)
+        idx = np.arange(d64.shape[0])
         for _ in range(self.depth + 1):
-            ch = self.children[cur]  # (n, k)
-            inner = ch[:, 0] >= 0
-            if not inner.any():
+            rows = self._inner_row[cur[idx]]
+            keep = rows >= 0
+            if not keep.all():
+                idx, rows = idx[keep], rows[keep]
+            if idx.size == 0:
                 break
-            idx = np.flatnonzero(inner)
-            chi = ch[idx]
-            valid = chi >= 0
-            dist = np.bitwise_count(d64[idx, None, :] ^ self._desc64[np.maximum(chi, 0)]).sum(
-                axis=2, dtype=np.int32
-            )
-            dist[~valid] = 1 << 20
-            cur[idx] = chi[np.arange(idx.size), np.argmin(dist, axis=1)]
+            c = np.bitwise_count(d64[idx, None, :] ^ self._child_desc64[rows])  # (n, k, 4) u8
+            # per-word counts are <= 64, so pairs fit in uint8; the total needs more
+            dist = (c[:, :, 0] + c[:, :, 1]).astype(np.int32)
+            dist += c[:, :, 2] + c[:, :, 3]
+            dist += self._child_penalty[rows]
+            cur[idx] = self._child_ids[rows, np.argmin(dist, axis=1)]
         return cur
 
     def lookup_bruteforce_descent(self, descriptor: np.ndarray) -> int:
@@ -492,4 +503,6 @@ class Vocabulary:
         """A 32-bit checksum of the tree, so coder and decoder can check they share it."""
         import zlib
 
-        return zlib.crc32(self.node_desc.tobytes() + self.parent.tobytes())
+        if self._fingerprint is None:  # the tree is immutable: compute once
+            self._fingerprint = zlib.crc32(self.node_desc.tobytes() + self.parent.tobytes())
+        return self._fingerprint

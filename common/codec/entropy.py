@@ -73,32 +73,63 @@ def best_scale_index(values: np.ndarray, signed: bool) -> int:
         return 0
     mean = float(np.mean(np.abs(v)))
     centre = int(np.clip(np.round(4 * (np.log2(max(mean, 0.125)) + 3)), 0, N_SCALES - 1))
-    best, best_cost = centre, np.inf
-    for i in range(max(0, centre - 6), min(N_SCALES, centre + 7)):
-        cost = (signed_cost if signed else geometric_cost)(v, i)
-        if cost < best_cost:
-            best, best_cost = i, cost
-    return best
+    lo, hi = max(0, centre - 6), min(N_SCALES, centre + 7)
+    # all candidates at once: the same floats as signed_cost / geometric_cost (each row of
+    # the gathered matrix is summed like the 1-D array), first minimum as in a scan
+    tables, r = _cost_tables(signed, lo, hi)
+    r = r[:, None]
+    if signed:
+        esc = (v < -r) | (v > r)
+        sym = np.where(esc, 2 * r + 1, v + r)
+    else:
+        esc = v >= r
+        sym = np.where(esc, r, v)
+    costs = tables[np.arange(hi - lo)[:, None], sym].sum(axis=1) + 32 * esc.sum(axis=1)
+    return lo + int(np.argmin(costs))
+
+
+@functools.lru_cache(maxsize=4 * N_SCALES)
+def _cost_tables(signed: bool, lo: int, hi: int) -> tuple[np.ndarray, np.ndarray]:
+    """``-log2`` tables of scales ``lo..hi-1`` zero-padded into one ``(hi - lo, L)`` array,
+    and their ``R`` values ``(hi - lo,)``."""
+    table = signed_table if signed else geometric_table
+    rows = [_info_table(signed, i) for i in range(lo, hi)]
+    out = np.zeros((hi - lo, max(t.size for t in rows)))
+    for k, t in enumerate(rows):
+        out[k, : t.size] = t
+    r = np.array([table(i)[1] for i in range(lo, hi)], dtype=np.int64)
+    out.setflags(write=False)
+    r.setflags(write=False)
+    return out, r
 
 
 def _escape_split(v: np.ndarray, lo: int, hi: int) -> np.ndarray:
     return (v < lo) | (v > hi)
 
 
+@functools.lru_cache(maxsize=256)
+def _info_table(signed: bool, scale_index: int) -> np.ndarray:
+    """``-log2`` of :func:`signed_table` / :func:`geometric_table` (bits per symbol)."""
+    p = (signed_table if signed else geometric_table)(scale_index)[0]
+    bits = -np.log2(p)
+    bits.setflags(write=False)
+    return bits
+
+
 def signed_cost(values: np.ndarray, scale_index: int) -> float:
-    p, r = signed_table(scale_index)
+    r = signed_table(scale_index)[1]
     v = np.asarray(values, dtype=np.int64)
     esc = _escape_split(v, -r, r)
     sym = np.where(esc, 2 * r + 1, v + r)
-    return float(-np.log2(p[sym]).sum() + 32 * esc.sum())
+    return float(_info_table(True, scale_index)[sym].sum() + 32 * esc.sum())
 
 
 def geometric_cost(values: np.ndarray, scale_index: int) -> float:
-    p, r = geometric_table(scale_index)
+    r = geometric_table(scale_index)[1]
     v = np.asarray(values, dtype=np.int64)
     esc = v >= r
     sym = np.where(esc, r, v)
-    return float(-np.log2(p[sym]).sum() + 32 * esc.sum())
+    return float(_info_table(False, scale_index)[sym].sum() + 32 * esc.sum())
 
 
 _POS = np.int64((1 << 63) - 1)
@@ -124,13 +155,19 @@ class BitWriter:
     def _tally(self, part: str, bits: float) -> None:
         self.bits[part] = self.bits.get(part, 0.0) + float(bits)
 
-    def put_bernoulli(self, symbols: np.ndarray, p1: np.ndarray, part: str) -> None:
+    def put_bernoulli(
+        self, symbols: np.ndarray, p1: np.ndarray, part: str, info: float | None = None
+    ) -> None:
+        """``info``: the symbols' information content in bits if the caller already has it
+        (saves the ``log2`` pass)."""
         s = np.ascontiguousarray(symbols, dtype=np.int32).ravel()
         if s.size == 0:
             return
         p = np.ascontiguousarray(p1, dtype=np.float64).ravel()
         self._enc.encode(s, _BERNOULLI, p)
-        self._tally(part, -np.log2(np.where(s == 1, p, 1.0 - p)).sum())
+        if info is None:
+            info = -np.log2(np.where(s == 1, p, 1.0 - p)).sum()
+        self._tally(part, info)
 
     def put_categorical(self, symbols: np.ndarray, probs: np.ndarray, part: str) -> None:
         s = np.ascontiguousarray(symbols, dtype=np.int32).ravel()
@@ -222,6 +259,14 @@ class BitReader:
         if p.size == 0:
             return np.zeros(0, dtype=np.int64)
         return self._decode(_BERNOULLI, p)
+
+    def get_bernoulli_fast(self, p1: np.ndarray) -> np.ndarray:
+        """:meth:`get_bernoulli` for a non-empty contiguous float64 ``p1 (n,)`` without
+        conversions (hot loops); returns the constriction array (int32)."""
+        try:
+            return self._dec.decode(_BERNOULLI, p1)
+        except (ValueError, RuntimeError, AssertionError, OverflowError) as exc:
+            raise CodecError(f"entropy decoding failed: {exc}") from exc
 
     def get_categorical(self, probs: np.ndarray, n: int | None = None) -> np.ndarray:
         probs = np.asarray(probs, dtype=np.float64)

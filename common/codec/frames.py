@@ -14,8 +14,11 @@ Keyframe body: keypoints (see ``keypoints.py``), continuation links, descriptors
 
 State both ends hold after every frame (:class:`FeatureCodecState`): the active tracks
 (quarter-pixel positions, levels, last descriptor if any), the adaptive descriptor tables and
-the adaptive flag counts. The decoder works on a copy and commits it only after a payload
-decoded completely, so a rejected payload leaves it untouched.
+the adaptive flag counts. Encoder and decoder work on a copy and commit it only after a
+frame was coded completely, so a rejected payload leaves the state untouched. The copy
+shares the 8 MB descriptor tables, which keyframe coding updates in place while recording
+the old values in an undo journal; a failure rolls them back (cheaper than copying them).
+Code that keeps a reference to an older state object must not expect its tables to stay.
 """
 
 from __future__ import annotations
@@ -27,7 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from common.codec import keypoints as kpc
-from common.codec.descriptors import DescriptorCoder, DescriptorModelState
+from common.codec.descriptors import DescriptorCoder, DescriptorModelState, UndoLog, rollback
 from common.codec.entropy import BitReader, BitWriter
 from common.codec.errors import CodecError, CodecUsageError
 from common.codec.types import CodecConfig, KeyframeFeatures, NonKeyframeFeatures
@@ -73,13 +76,21 @@ class FeatureCodecState:
     def copy(self, descriptors: bool = True) -> FeatureCodecState:
         """Deep copy; ``descriptors=False`` shares the (large) descriptor tables, for
         non-keyframes, which never touch them."""
+        return self._copy(self.descriptors.copy() if descriptors else self.descriptors)
+
+    def copy_sharing_tables(self) -> FeatureCodecState:
+        """Copy whose descriptor model shares the 8 MB count tables (everything else is
+        copied): keyframe coding updates them in place with an undo journal instead."""
+        return self._copy(self.descriptors.copy_counts())
+
+    def _copy(self, descriptors: DescriptorModelState) -> FeatureCodecState:
         return FeatureCodecState(
             self.seq,
             self.tracks_q.copy(),
             self.tracks_level.copy(),
             self.tracks_desc.copy(),
             self.tracks_has_desc.copy(),
-            self.descriptors.copy() if descriptors else self.descriptors,
+            descriptors,
             self.survival_counts.copy(),
             self.link_counts.copy(),
         )
@@ -162,7 +173,15 @@ class FeatureEncoder(_Base):
 
     def encode_keyframe(self, kf: KeyframeFeatures) -> bytes:
         self._validate_keyframe(kf)
-        st = self.state.copy()
+        st = self.state.copy_sharing_tables()
+        undo: UndoLog = []
+        try:
+            return self._encode_keyframe(kf, st, undo)
+        except BaseException:
+            rollback(st.descriptors, undo)
+            raise
+
+    def _encode_keyframe(self, kf: KeyframeFeatures, st: FeatureCodecState, undo: UndoLog) -> bytes:
         w = BitWriter()
         kpc.encode_kf_keypoints(w, kf.keypoints, self.config)
         q = kpc.kf_track_q(kf.keypoints, self.config)
@@ -182,7 +201,7 @@ class FeatureEncoder(_Base):
         linked = links >= 0
         has_prev[linked] = st.tracks_has_desc[links[linked]]
         prev_desc[linked] = st.tracks_desc[links[linked]]
-        self._desc.encode(w, st.descriptors, kf.descriptors, prev_desc, has_prev)
+        self._desc.encode(w, st.descriptors, kf.descriptors, prev_desc, has_prev, undo)
         self._apply_keyframe(st, kf)
         return self._finish(st, w, KIND_KEYFRAME)
 
@@ -260,10 +279,16 @@ class FeatureDecoder(_Base):
             )
         r = BitReader(framed[HEADER.size :])
         kind = vk & 0xF
-        st = self.state.copy(descriptors=kind == KIND_KEYFRAME)
         if kind == KIND_KEYFRAME:
-            out = self._decode_keyframe(r, st)
+            st = self.state.copy_sharing_tables()
+            undo: UndoLog = []
+            try:
+                out = self._decode_keyframe(r, st, undo)
+            except BaseException:
+                rollback(st.descriptors, undo)
+                raise
         elif kind == KIND_NON_KEYFRAME:
+            st = self.state.copy(descriptors=False)
             out = self._decode_non_keyframe(r, st)
         else:
             raise CodecError(f"unknown frame kind {kind}")
@@ -271,7 +296,9 @@ class FeatureDecoder(_Base):
         self.state = st
         return out
 
-    def _decode_keyframe(self, r: BitReader, st: FeatureCodecState) -> KeyframeFeatures:
+    def _decode_keyframe(
+        self, r: BitReader, st: FeatureCodecState, undo: UndoLog
+    ) -> KeyframeFeatures:
         kp = kpc.decode_kf_keypoints(r, self.config)
         q = kpc.kf_track_q(kp, self.config)
         links = kpc.decode_links(
@@ -290,7 +317,7 @@ class FeatureDecoder(_Base):
         linked = links >= 0
         has_prev[linked] = st.tracks_has_desc[links[linked]]
         prev_desc[linked] = st.tracks_desc[links[linked]]
-        desc = self._desc.decode(r, st.descriptors, prev_desc, has_prev)
+        desc = self._desc.decode(r, st.descriptors, prev_desc, has_prev, undo)
         kf = KeyframeFeatures(kp, desc, links.astype(np.int32))
         self._apply_keyframe(st, kf)
         return kf

@@ -89,6 +89,81 @@ def _link_key(q: np.ndarray, lev: np.ndarray, tracks_q: np.ndarray, tracks_lev) 
     return (d * d).sum(axis=2) + other
 
 
+def _sq_dist(q: np.ndarray, tracks_q: np.ndarray) -> np.ndarray:
+    """Squared distances ``(R, T) int64`` (same values as :func:`_link_key`'s first term)."""
+    dx = q[:, 0, None] - tracks_q[None, :, 0]
+    dy = q[:, 1, None] - tracks_q[None, :, 1]
+    return dx * dx + dy * dy
+
+
+def _by_level_ok(q: np.ndarray, pred: np.ndarray) -> bool:
+    """True when every squared distance is below 2**50, so that :func:`_link_key` orders
+    the query's own level first and a per-level search gives the same ranks (cheaper)."""
+    lim = 1 << 23
+    return bool(np.abs(q).max(initial=0) < lim and np.abs(pred).max(initial=0) < lim)
+
+
+def _ranks_full(q, lev, pred, tracks_lev, tgt: np.ndarray) -> np.ndarray:
+    """Ranks of the targets ``tgt (R,)`` among all previous tracks, by definition."""
+    n_prev = pred.shape[0]
+    ranks = np.zeros(tgt.size, dtype=np.int64)
+    for s in range(0, tgt.size, MAX_RANK_ROWS):
+        sl = slice(s, s + MAX_RANK_ROWS)
+        d2 = _link_key(q[sl], lev[sl], pred, tracks_lev)
+        t = tgt[sl]
+        dl = d2[np.arange(t.size), t][:, None]
+        before = (d2 < dl) | ((d2 == dl) & (np.arange(n_prev)[None, :] < t[:, None]))
+        ranks[sl] = before.sum(axis=1)
+    return ranks
+
+
+def _link_ranks(q, lev, pred, tracks_lev, tgt: np.ndarray) -> np.ndarray:
+    """Rank of each target track (see module docstring) for queries ``q (R, 2)``."""
+    if not _by_level_ok(q, pred):
+        return _ranks_full(q, lev, pred, tracks_lev, tgt)
+    ranks = np.zeros(tgt.size, dtype=np.int64)
+    same = tracks_lev[tgt] == lev
+    for level in np.unique(lev[same]):
+        rows = np.flatnonzero(same & (lev == level))
+        cand = np.flatnonzero(tracks_lev == level)  # ascending track index
+        d2 = _sq_dist(q[rows], pred[cand])
+        pos = np.searchsorted(cand, tgt[rows])
+        dl = d2[np.arange(rows.size), pos][:, None]
+        before = (d2 < dl) | ((d2 == dl) & (np.arange(cand.size)[None, :] < pos[:, None]))
+        ranks[rows] = before.sum(axis=1)
+    if not same.all():
+        rows = np.flatnonzero(~same)
+        ranks[rows] = _ranks_full(q[rows], lev[rows], pred, tracks_lev, tgt[rows])
+    return ranks
+
+
+def _links_of_ranks(q, lev, pred, tracks_lev, ranks: np.ndarray) -> np.ndarray:
+    """Inverse of :func:`_link_ranks`: the track of each rank (ranks < number of tracks)."""
+    out = np.zeros(ranks.size, dtype=np.int64)
+    todo = np.ones(ranks.size, dtype=bool)
+    if _by_level_ok(q, pred):
+        for level in np.unique(lev):
+            cand = np.flatnonzero(tracks_lev == level)
+            rows = np.flatnonzero((lev == level) & (ranks < cand.size))
+            if rows.size == 0:
+                continue
+            d2 = _sq_dist(q[rows], pred[cand])
+            pick = np.argmin(d2, axis=1)  # rank 0: the first minimum
+            far = np.flatnonzero(ranks[rows] > 0)
+            if far.size:
+                order = np.argsort(d2[far], axis=1, kind="stable")
+                pick[far] = order[np.arange(far.size), ranks[rows[far]]]
+            out[rows] = cand[pick]
+            todo[rows] = False
+    rows = np.flatnonzero(todo)
+    for s in range(0, rows.size, MAX_RANK_ROWS):
+        r = rows[s : s + MAX_RANK_ROWS]
+        key = _link_key(q[r], lev[r], pred, tracks_lev)
+        order = np.argsort(key, axis=1, kind="stable")
+        out[r] = order[np.arange(r.size), ranks[r]]
+    return out
+
+
 def encode_links(
     w: BitWriter,
     links: np.ndarray,
@@ -112,14 +187,7 @@ def encode_links(
     a = fit_affine(tracks_q[links[idx]], q[idx], config)
     w.put_signed(a, AFFINE_SCALE_INDEX, "link")
     pred = _affine_predict(tracks_q, a, config)
-    ranks = np.zeros(idx.size, dtype=np.int64)
-    for s in range(0, idx.size, MAX_RANK_ROWS):
-        rows = idx[s : s + MAX_RANK_ROWS]
-        d2 = _link_key(q[rows], lev[rows], pred, tracks_lev)
-        tgt = links[rows].astype(np.int64)
-        dl = d2[np.arange(rows.size), tgt][:, None]
-        before = (d2 < dl) | ((d2 == dl) & (np.arange(n_prev)[None, :] < tgt[:, None]))
-        ranks[s : s + rows.size] = before.sum(axis=1)
+    ranks = _link_ranks(q[idx], lev[idx], pred, tracks_lev, links[idx].astype(np.int64))
     zero = ranks == 0
     w.put_bernoulli(zero.astype(np.int64), np.full(ranks.size, _adaptive_p(counts[2:])), "link")
     counts[2:] += [float(zero.sum()), float(ranks.size)]
@@ -160,11 +228,7 @@ def decode_links(
         ranks[~zero] = r.get_geometric(int((~zero).sum()), si) + 1
     if ranks.max() >= n_prev:
         raise CodecError(f"link rank {int(ranks.max())} beyond {n_prev} previous tracks")
-    for s in range(0, idx.size, MAX_RANK_ROWS):
-        rows = idx[s : s + MAX_RANK_ROWS]
-        key = _link_key(q[rows], lev[rows], pred, tracks_lev)
-        order = np.argsort(key, axis=1, kind="stable")
-        links[rows] = order[np.arange(rows.size), ranks[s : s + rows.size]]
+    links[idx] = _links_of_ranks(q[idx], lev[idx], pred, tracks_lev, ranks)
     return links
 
 
