@@ -89,6 +89,9 @@ def bundle_adjust(
         {p for kf in window for t in kf.row_of if (p := track_point.get(t)) in all_points}
     )
     points = [vmap.points[p] for p in point_ids]
+    if 0 < options.max_points < len(points):
+        points.sort(key=lambda mp: (-sum(k in in_window for k in mp.observations), mp.id))
+        points = sorted(points[: options.max_points], key=lambda mp: mp.id)
     observers: set[int] = set()
     for mp in points:
         observers.update(mp.observations)
@@ -154,10 +157,10 @@ def bundle_adjust(
     var_set = set(variables)
     n_obs = 0
     used_points = []
-    # Per variable keyframe: its key, observations as float lists, noise models by row.
+    # Per variable keyframe: its key, observations and noise sigmas.
     kf_key = {k: X(k) for k in variables}
     kf_xy = {k: vmap.keyframes[k].xy for k in variables}
-    kf_noise = {k: [noise_of(s) for s in vmap.keyframes[k].sigma.tolist()] for k in variables}
+    kf_sigma = {k: vmap.keyframes[k].sigma.tolist() for k in variables}
     projection_factor = gtsam.GenericProjectionFactorCal3_S2
     for mp in points:
         obs = [(k, r) for k, r in mp.observations.items() if k in var_set]
@@ -168,7 +171,9 @@ def bundle_adjust(
         values.insert(lkey, np.asarray(mp.p_world, float))
         for k, r in obs:
             graph.add(
-                projection_factor(kf_xy[k][r], kf_noise[k][r], kf_key[k], lkey, _UNIT_K, body_P_cam)
+                projection_factor(
+                    kf_xy[k][r], noise_of(kf_sigma[k][r]), kf_key[k], lkey, _UNIT_K, body_P_cam
+                )
             )
         n_obs += len(obs)
     if n_obs == 0:

@@ -99,6 +99,7 @@ class VioManager:
         self._pending_updates: list[MapUpdate] = []
         self._last_init_reason = ""
         self.last_local_ba: BAStats | None = None
+        self._keyframes_since_ba = 0
         logger.info("VIO %s options: %s", robot_name, self.options)
 
     # ------------------------------------------------------------------ public API
@@ -437,6 +438,14 @@ class VioManager:
         if mopt.match_by_projection:
             match_by_projection(vmap, kf, self.camera, mopt)
         n_new = triangulate_new_points(vmap, kf, self.camera, mopt)
+        self._keyframes_since_ba += 1
+        if (
+            not frame.obs.is_keyframe
+            and self._keyframes_since_ba < self.options.local_ba.every_keyframes
+        ):
+            self._maybe_vi_init(vmap)
+            return kf
+        self._keyframes_since_ba = 0
         t0 = time.perf_counter()
         window = [k.id for k in vmap.keyframe_list()[-self.options.local_ba.window_size :]]
         first_ids = tuple(k.id for k in vmap.keyframe_list()[:2])

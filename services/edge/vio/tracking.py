@@ -82,7 +82,8 @@ def _visual_system(
     xy: np.ndarray,
     sigma: np.ndarray,
     cauchy_c2: float,
-) -> tuple[np.ndarray, np.ndarray, float]:
+    jacobians: bool = True,
+) -> tuple[np.ndarray | None, np.ndarray | None, float]:
     """Whitened, Cauchy-weighted (IRLS) linearisation of the reprojection of ``P`` (M, 3) at
     ``T_world_body`` for gtsam's Pose3 tangent ``xi = (omega, v)`` with ``T·Exp(xi)``.
 
@@ -99,6 +100,8 @@ def _visual_system(
     r = (proj - xy) / sigma[:, None]  # (M, 2) whitened residual
     s2 = np.sum(r * r, axis=1)
     cost = float(np.sum(0.5 * cauchy_c2 * np.log1p(s2 / cauchy_c2)))
+    if not jacobians:
+        return None, None, cost
     sqrt_w = np.sqrt(1.0 / (1.0 + s2 / cauchy_c2)) / sigma  # (M,) robust weight and whitening
     # d proj / d p_cam (M, 2, 3)
     J_proj = np.zeros((len(P), 2, 3))
@@ -112,7 +115,7 @@ def _visual_system(
     J_body[:, 1, 0], J_body[:, 1, 2] = w, -x
     J_body[:, 2, 0], J_body[:, 2, 1] = -y, x
     J_body[:, 0, 3] = J_body[:, 1, 4] = J_body[:, 2, 5] = -1.0
-    J = np.einsum("mij,jk,mkl->mil", J_proj, R_bc.T, J_body)  # (M, 2, 6)
+    J = (J_proj @ R_bc.T) @ J_body  # (M, 2, 6)
     A = (J * sqrt_w[:, None, None]).reshape(-1, 6)
     b = -(r * (sqrt_w * sigma)[:, None]).reshape(-1)
     return A, b, cost
@@ -155,7 +158,7 @@ def _optimise(
 
     def total_cost(vals: gtsam.Values) -> float:
         T = vals.atPose3(X(0)).matrix()
-        _, _, c = _visual_system(T, T_body_cam, P, xy, sigma, c2)
+        _, _, c = _visual_system(T, T_body_cam, P, xy, sigma, c2, jacobians=False)
         return c + (graph.error(vals) if prior is not None else 0.0)
 
     cost = total_cost(values)
