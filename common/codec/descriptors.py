@@ -122,6 +122,13 @@ def rollback(state: DescriptorModelState, undo: UndoLog) -> None:
     undo.clear()
 
 
+def _count_words(state: DescriptorModelState, words: np.ndarray) -> None:
+    """``word_counts[w] += (number of w in words)``, one addition per distinct word (as a
+    full-size bincount would, without touching all S entries)."""
+    uniq, counts = np.unique(words, return_counts=True)
+    state.word_counts[uniq] += counts
+
+
 class DescriptorCoder:
     """Stateless helper bound to a vocabulary; the state object is passed in."""
 
@@ -141,9 +148,10 @@ class DescriptorCoder:
         # the run is decoded with one range-coder call (same symbol order as the encoder's).
         w2f = self._w2.astype(np.float64)
         self._groups: list[tuple[int, int, np.ndarray, np.ndarray]] = []
+        last_parent = par.max(axis=1, initial=-1).tolist()  # latest parent of each plane
         start = 0
         for j in range(1, 257):
-            if j == 256 or bool(np.any(par[j] >= start)):
+            if j == 256 or last_parent[j] >= start:
                 sel = slice(start, j)
                 self._groups.append((start, j, self.parents[sel], w2f[sel, None, :]))
                 start = j
@@ -166,9 +174,10 @@ class DescriptorCoder:
         ctx = np.zeros((256, n), dtype=np.uint16)
         if self.n_par == 0:
             return ctx.astype(np.int64)
-        padded = np.concatenate([bits_t, np.zeros((1, n), dtype=bits_t.dtype)])
+        padded = np.zeros((257, n), dtype=np.uint16)
+        padded[:256] = bits_t
         for q in range(self.n_par):
-            g = padded[self._parents_z[:, q]].astype(np.uint16)
+            g = padded[self._parents_z[:, q]]
             g <<= self.n_par - 1 - q
             ctx |= g
         return ctx.astype(np.int64)
@@ -249,7 +258,7 @@ class DescriptorCoder:
             w.put_bernoulli(mode[hp], np.full(int(hp.sum()), pm), "mode")
             intra = mode == INTRA
             w.put_categorical(wsl[intra], word_p, "word")
-            state.word_counts += np.bincount(wsl[intra], minlength=word_p.size)
+            _count_words(state, wsl[intra])
             w.put_bernoulli(resid, p, "residual", info)
             self._update(state, flat, resid, undo)
             state.mode_counts += [float((mode[hp] == INTER).sum()), float(hp.sum())]
@@ -282,7 +291,7 @@ class DescriptorCoder:
             words = r.get_categorical(word_p, int(intra.sum()))
             if words.size and (words.min() < 0 or words.max() >= self.vocab.n_words):
                 raise CodecError("decoded word index out of range")
-            state.word_counts += np.bincount(words, minlength=word_p.size)
+            _count_words(state, words)
             ref = pbits[sl].copy()
             ref[intra] = np.unpackbits(self._words[words], axis=1)
             ref_t = np.ascontiguousarray(ref.T).astype(np.int32)  # (256, m)
@@ -297,7 +306,8 @@ class DescriptorCoder:
                 p = ones[f] / total[f]
                 np.maximum(p, _LO, out=p)
                 np.minimum(p, _HI, out=p)
-                bt[a:b] = get_bits(p.astype(np.float64).ravel()).reshape(b - a, m) ^ ref_t[a:b]
+                # float32 p is exact for constriction (it widens to float64 itself)
+                bt[a:b] = get_bits(p.ravel()).reshape(b - a, m) ^ ref_t[a:b]
             bits_t = bt.astype(np.uint8)
             self._update(state, off, bits_t ^ ref_t, undo)
             state.mode_counts += [float((mode[hp] == INTER).sum()), float(hp.sum())]

@@ -261,8 +261,9 @@ class BitReader:
         return self._decode(_BERNOULLI, p)
 
     def get_bernoulli_fast(self, p1: np.ndarray) -> np.ndarray:
-        """:meth:`get_bernoulli` for a non-empty contiguous float64 ``p1 (n,)`` without
-        conversions (hot loops); returns the constriction array (int32)."""
+        """:meth:`get_bernoulli` for a non-empty contiguous ``p1 (n,)`` (float64, or float32
+        which constriction widens exactly) without conversions (hot loops); returns the
+        constriction array (int32)."""
         try:
             return self._dec.decode(_BERNOULLI, p1)
         except (ValueError, RuntimeError, AssertionError, OverflowError) as exc:
