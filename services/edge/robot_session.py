@@ -131,7 +131,7 @@ class RobotSession:
         self._up_prev: dict[tuple[int, int], int | None] = {}
         self._last_up: dict[int, int] = {}
         # (map id, point id) -> (position sent (3,), observations sent)
-        self._sent_points: dict[tuple[int, int], tuple[np.ndarray, set[int]]] = {}
+        self._sent_points: dict[tuple[int, int], tuple[tuple[float, float, float], set[int]]] = {}
         self._last_fb: InertialState | None = None
         self._last_fb_frame = -(10**9)
         self._fb_map: int | None = None
@@ -337,23 +337,30 @@ class RobotSession:
         what it has) or moved more than ``point_resend_m`` since it was last sent.
         """
         out = []
+        map_id = upd.map_id
+        own = {k for m, k in self._own_kfs if m == map_id}
+        resend2 = self.options.point_resend_m**2
         for p in upd.points:
-            key = (upd.map_id, int(p.point_id))
+            pid = int(p.point_id)
             obs = [
-                (int(k), int(i))
-                for k, i in zip(p.keyframe_ids, p.feature_indices, strict=True)
-                if (upd.map_id, int(k)) not in self._own_kfs
+                (k, i)
+                for k, i in zip(p.keyframe_ids.tolist(), p.feature_indices.tolist(), strict=True)
+                if k not in own
             ]
             if not obs:
                 continue
-            p_world = np.asarray(p.p_world, np.float64).reshape(3)
-            sent = self._sent_points.get(key)
-            new = obs if sent is None else [o for o in obs if o[0] not in sent[1]]
-            if new or np.linalg.norm(p_world - sent[0]) > self.options.point_resend_m:
-                known = set() if sent is None else sent[1]
+            x, y, z = np.asarray(p.p_world, np.float64).reshape(3).tolist()
+            sent = self._sent_points.get((map_id, pid))
+            if sent is None:
+                self._sent_points[(map_id, pid)] = ((x, y, z), {k for k, _ in obs})
+                out.append((pid, np.array([x, y, z]), obs))
+                continue
+            (sx, sy, sz), known = sent
+            new = [o for o in obs if o[0] not in known]
+            if new or (x - sx) ** 2 + (y - sy) ** 2 + (z - sz) ** 2 > resend2:
                 known.update(k for k, _ in new)
-                self._sent_points[key] = (p_world, known)
-                out.append((int(p.point_id), p_world, new))
+                self._sent_points[(map_id, pid)] = ((x, y, z), known)
+                out.append((pid, np.array([x, y, z]), new))
         return out
 
     def status(self, link_counters: dict[str, int]) -> AgentStatus:
