@@ -1,0 +1,376 @@
+"""Connection machinery of the asyncio transport: settings, deliveries, one peer's link
+and the per-connection reader/writer/timer (:class:`Peer`, :class:`_Connection`).
+
+See :mod:`common.transport` for the overview and usage."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import ssl as ssl_module
+from collections.abc import Awaitable, Callable, Coroutine
+from dataclasses import dataclass
+from typing import Any, TypeVar
+
+from common.protocol import (
+    Acknowledged,
+    CloseCode,
+    HandshakeComplete,
+    InboundPosition,
+    Message,
+    MessageReceived,
+    PeerAuthenticated,
+    PeerClosed,
+    ProtocolError,
+    Session,
+)
+from common.protocol.link import Link
+from common.protocol.store import DeliveryStore
+
+logger = logging.getLogger(__name__)
+
+T = TypeVar("T")
+
+
+@dataclass(frozen=True)
+class TransportConfig:
+    """Socket-level settings (protocol limits live in ``SessionConfig``).
+
+    Attributes:
+        max_peers: concurrent connections a server accepts; more are refused with a reason.
+        accept_roles: roles a server serves (None = any authenticated role).
+        read_chunk_bytes: bytes per socket read.
+        write_chunk_bytes: bytes of frames handed to the socket before awaiting drain.
+        reconnect_initial_delay: first client reconnect delay (s), doubled per failure.
+        reconnect_max_delay: cap of the reconnect delay (s).
+        reconnect_jitter: each delay is multiplied by uniform(1 - j, 1 + j).
+        connect_timeout: TCP (+TLS) connect timeout (s).
+    """
+
+    max_peers: int = 64
+    accept_roles: tuple[str, ...] | None = None
+    read_chunk_bytes: int = 256 * 1024
+    write_chunk_bytes: int = 1024 * 1024
+    reconnect_initial_delay: float = 0.05
+    reconnect_max_delay: float = 5.0
+    reconnect_jitter: float = 0.5
+    connect_timeout: float = 10.0
+
+
+@dataclass(frozen=True)
+class Delivery:
+    """One message handed to the application: from ``peer`` (agent id), stream position."""
+
+    peer: str
+    role: str
+    message: Message
+    seq: int
+    stream_id: bytes
+
+
+Handler = Callable[[Delivery], Awaitable[None]]
+
+
+def run(main: Coroutine[Any, Any, T], *, use_uvloop: bool = True) -> T:
+    """Run ``main`` on a fresh event loop, uvloop when installed."""
+    factory = None
+    if use_uvloop:
+        try:
+            import uvloop
+        except ImportError:
+            pass
+        else:
+            factory = uvloop.new_event_loop
+    with asyncio.Runner(loop_factory=factory) as runner:
+        return runner.run(main)
+
+
+class Peer:
+    """The link to one remote agent plus its runtime: senders, delivery task, connection."""
+
+    def __init__(
+        self, name: str, link: Link, handler: Handler, store: DeliveryStore | None
+    ) -> None:
+        self.agent_id = name
+        self.role = ""
+        self.link = link
+        self._handler = handler
+        self._store = store
+        self._conn: _Connection | None = None
+        self._space = asyncio.Event()
+        self._established = asyncio.Event()
+        self._inbox: asyncio.Queue[MessageReceived] = asyncio.Queue()
+        self._delivery = asyncio.create_task(self._deliver_loop(), name=f"deliver-{name}")
+        self.attach_lock = asyncio.Lock()
+
+    @property
+    def connected(self) -> bool:
+        """True while an authenticated connection carries this link."""
+        return self._conn is not None and self._conn.session.established
+
+    def counters(self) -> dict[str, Any]:
+        """Traffic counters of this link (plain data, see ``accounting.py``)."""
+        snap = self.link.counters.snapshot()
+        snap["outbox_messages"] = len(self.link.outbox)
+        snap["outbox_bytes"] = self.link.outbox_bytes
+        snap["connected"] = self.connected
+        return snap
+
+    def send_nowait(self, message: Message) -> int:
+        """Queue ``message``; raises ``OutboxFullError`` instead of waiting."""
+        seq = self.link.enqueue(message)
+        self._kick()
+        return seq
+
+    async def send(self, message: Message) -> int:
+        """Queue ``message`` (waits while the outbox is full) and return its sequence."""
+        entry = self.link.encode(message)
+        while not self.link.has_room(len(entry.payload)):
+            self._space.clear()
+            await self._space.wait()
+        seq = self.link.enqueue(entry)
+        self._kick()
+        return seq
+
+    async def flush(self) -> None:
+        """Wait until the peer's application delivered everything queued so far."""
+        target = self.link.next_seq - 1
+        while self.link.first_unacked <= target:
+            self._space.clear()
+            await self._space.wait()
+
+    async def wait_connected(self) -> None:
+        await self._established.wait()
+
+    # ------------------------------------------------------------------ internals
+    def _kick(self) -> None:
+        if self._conn is not None:
+            self._conn.kick()
+
+    def _attach(self, conn: _Connection) -> None:
+        self._conn = conn
+
+    def _detach(self, conn: _Connection) -> None:
+        if self._conn is conn:
+            self._conn = None
+            self._established.clear()
+
+    def _on_event(self, ev: object) -> None:
+        if isinstance(ev, MessageReceived):
+            self._inbox.put_nowait(ev)
+        elif isinstance(ev, Acknowledged):
+            self._space.set()
+        elif isinstance(ev, HandshakeComplete):
+            self.agent_id, self.role = ev.agent_id, ev.role
+            self._established.set()
+            self._space.set()
+
+    async def _deliver_loop(self) -> None:
+        while True:
+            ev = await self._inbox.get()
+            delivery = Delivery(self.agent_id, self.role, ev.message, ev.seq, ev.stream_id)
+            try:
+                await self._handler(delivery)
+            except asyncio.CancelledError:
+                raise
+            except Exception:
+                logger.exception(
+                    "handler failed on %s seq %d from %s; dropping the connection, the "
+                    "message will be redelivered",
+                    type(ev.message).__name__,
+                    ev.seq,
+                    self.agent_id,
+                )
+                self._rewind()
+                continue
+            if ev.stream_id != self.link.in_stream_id:
+                continue  # the peer restarted on a new stream meanwhile: nothing to ack
+            if self._store is not None:
+                self._store.save(self.agent_id, InboundPosition(ev.stream_id, ev.seq))
+            conn = self._conn
+            if conn is not None and conn.session.established:
+                conn.session.mark_delivered(ev.seq, asyncio.get_running_loop().time())
+                conn.kick()
+                conn.arm_timer()
+            else:
+                self.link.mark_delivered(ev.seq)
+
+    def _rewind(self) -> None:
+        while not self._inbox.empty():
+            self._inbox.get_nowait()
+        self.link.rewind_inbound()
+        if self._conn is not None:
+            self._conn.close(CloseCode.HANDLER_FAILED, "handler failed; resume to redeliver")
+
+    async def _stop(self) -> None:
+        self._delivery.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await self._delivery
+
+
+class _Connection:
+    """Drives one Session over one asyncio stream pair."""
+
+    def __init__(
+        self,
+        reader: asyncio.StreamReader,
+        writer: asyncio.StreamWriter,
+        session: Session,
+        transport: TransportConfig,
+        *,
+        peer: Peer | None = None,
+        on_authenticated: Callable[[_Connection, PeerAuthenticated], Awaitable[Peer | None]]
+        | None = None,
+    ) -> None:
+        self.reader, self.writer, self.session = reader, writer, session
+        self.transport = transport
+        self.peer = peer
+        self._on_authenticated = on_authenticated
+        self._loop = asyncio.get_running_loop()
+        self._wake = asyncio.Event()
+        self._done: asyncio.Future[str] = self._loop.create_future()
+        self._timer: asyncio.TimerHandle | None = None
+        self._timer_at: float | None = None
+        self.established_once = False
+        info = writer.get_extra_info("peername")
+        self.name = f"{info[0]}:{info[1]}" if isinstance(info, tuple) else str(info)
+        if peer is not None:
+            peer._attach(self)
+
+    async def run(self) -> str:
+        """Serve until the connection ends; returns the reason."""
+        self.kick()
+        self.arm_timer()
+        tasks = [
+            asyncio.create_task(self._read_loop(), name=f"read-{self.name}"),
+            asyncio.create_task(self._write_loop(), name=f"write-{self.name}"),
+        ]
+        try:
+            return await asyncio.shield(self._done)
+        finally:
+            # synchronous part first, so that a cancelled caller still releases everything
+            for task in tasks:
+                task.cancel()
+            if self._timer is not None:
+                self._timer.cancel()
+            if self.peer is not None:
+                self.peer._detach(self)
+            with contextlib.suppress(OSError, RuntimeError, ssl_module.SSLError):
+                self.writer.writelines(self.session.data_to_send(self._loop.time()))
+            self.writer.close()
+            await asyncio.gather(*tasks, return_exceptions=True)
+            with contextlib.suppress(OSError, TimeoutError, ssl_module.SSLError):
+                await asyncio.wait_for(self.writer.wait_closed(), 1.0)
+
+    def kick(self) -> None:
+        self._wake.set()
+
+    def close(self, code: CloseCode, reason: str) -> None:
+        """Send Close and end the connection once it is written."""
+        self.session.close(code, reason)
+        self.kick()
+
+    def abort(self, reason: str) -> None:
+        self._finish(reason)
+
+    @property
+    def finished(self) -> asyncio.Future[str]:
+        return self._done
+
+    def arm_timer(self) -> None:
+        when = self.session.get_timer()
+        if when == self._timer_at and self._timer is not None:
+            return
+        if self._timer is not None:
+            self._timer.cancel()
+            self._timer = None
+        self._timer_at = when
+        if when is not None:
+            self._timer = self._loop.call_at(when, self._on_timer)
+
+    def _on_timer(self) -> None:
+        self._timer = None
+        self._timer_at = None
+        try:
+            self.session.handle_timer(self._loop.time())
+        except ProtocolError as exc:
+            self._finish(f"{type(exc).__name__}: {exc}", level=logging.WARNING)
+            return
+        self.kick()
+        self.arm_timer()
+
+    def _finish(self, reason: str, level: int = logging.INFO) -> None:
+        if not self._done.done():
+            logger.log(level, "connection %s (%s) closed: %s", self.name, self._who(), reason)
+            self.session.close(CloseCode.NORMAL, reason)  # stop driving the link at once
+            self._done.set_result(reason)
+
+    def _who(self) -> str:
+        return self.session.peer_agent_id or "unauthenticated"
+
+    async def _read_loop(self) -> None:
+        try:
+            while True:
+                data = await self.reader.read(self.transport.read_chunk_bytes)
+                if not data:
+                    self._finish(self.session.close_reason or "connection closed by peer")
+                    return
+                try:
+                    self.session.receive_data(data, self._loop.time())
+                except ProtocolError as exc:
+                    self._finish(f"{type(exc).__name__}: {exc}", level=logging.WARNING)
+                    return
+                await self._process_events()
+                self.kick()
+                self.arm_timer()
+        except (OSError, ssl_module.SSLError) as exc:
+            self._finish(f"read failed: {exc!r}")
+
+    async def _process_events(self) -> None:
+        while (ev := self.session.next_event()) is not None:
+            if isinstance(ev, PeerAuthenticated):
+                assert self._on_authenticated is not None
+                peer = await self._on_authenticated(self, ev)
+                if peer is None or self.session.closed:
+                    return
+                self.peer = peer
+                peer._attach(self)
+                try:
+                    self.session.attach(peer.link, self._loop.time())
+                except ProtocolError as exc:
+                    self._finish(f"{type(exc).__name__}: {exc}", level=logging.WARNING)
+                    return
+            elif isinstance(ev, PeerClosed):
+                self._finish(f"peer closed (code {ev.code}): {ev.reason}")
+            else:
+                if isinstance(ev, HandshakeComplete):
+                    self.established_once = True
+                    logger.info(
+                        "link %s (%s) established via %s, replaying %d",
+                        ev.agent_id,
+                        ev.role,
+                        self.name,
+                        ev.replay,
+                    )
+                if self.peer is not None:
+                    self.peer._on_event(ev)
+
+    async def _write_loop(self) -> None:
+        try:
+            while True:
+                self._wake.clear()
+                chunks = self.session.data_to_send(
+                    self._loop.time(), self.transport.write_chunk_bytes
+                )
+                if chunks:
+                    self.writer.writelines(chunks)
+                    await self.writer.drain()
+                    self.arm_timer()
+                    continue
+                if self.session.closed:
+                    self._finish(self.session.close_reason or "closed")
+                    return
+                await self._wake.wait()
+        except (OSError, RuntimeError, ssl_module.SSLError) as exc:
+            self._finish(f"write failed: {exc!r}")
