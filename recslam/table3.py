@@ -12,7 +12,11 @@ deterministically:
   the first recorded message received ``debounce_s`` or more after the triggering one (the
   solve itself is taken as instantaneous), and once more after the last message;
 - each optimisation is built, solved in this process and applied, then MBP runs on the map
-  when ``prune_due`` (as ``CloudServer.optimize_map``).
+  when ``prune_due`` (as ``CloudServer.optimize_map``);
+- with ``replay(..., full_ba=True)`` the full bundle adjustment follows the server's
+  schedule too: after a map's optimisation once it has ``full_ba_every_keyframes`` new
+  keyframes since its last one, before a record that arrived ``full_ba_quiet_s`` or more
+  after the last new keyframe ("quiet"), and at the end (the server's shutdown budget).
 
 :func:`run_table3` replays twice — MBP on and MBP off, everything else identical — computes
 per-robot and joint ATE of the keyframe trajectories with the cloud report's alignment
@@ -53,6 +57,7 @@ from recslam.loop_scoring import (
 from services.cloud.app import CloudApp
 from services.cloud.atlas import make_key
 from services.cloud.config import CloudConfig, CloudServiceConfig, MbpConfig
+from services.cloud.full_ba import solve_full_ba
 from services.cloud.global_optimization import optimize_pose_graph
 from services.cloud.map_fusion import FusionEvents, MapFusion
 from services.cloud.mbp import select_backbone
@@ -152,9 +157,11 @@ def replay(
     config: CloudServiceConfig,
     state_dir: Path,
     label: str = "",
+    full_ba: bool = False,
 ) -> ReplayResult:
     """Feed ``records`` to a fresh CloudApp on ``state_dir`` (must be empty) with the
-    server's optimisation / MBP schedule (module docstring)."""
+    server's optimisation / MBP schedule (module docstring); ``full_ba`` adds the full
+    bundle adjustment's schedule (when ``config.domain.full_ba.enabled``)."""
     t0 = time.perf_counter()
     app = open_app(state_dir, camera, vocab, config)
     if app.atlas.n_keyframes():
@@ -163,8 +170,27 @@ def replay(
     obs = _Observer(app)
     dirty: set[int] = set()
     since: dict[int, int] = {}
-    counts = {"optimizations": 0, "mbp": 0, "failed": 0, "messages": 0}
+    counts = {"optimizations": 0, "mbp": 0, "failed": 0, "messages": 0, "full_ba": 0}
     trigger_t: float | None = None
+    full_on = full_ba and config.domain.full_ba.enabled
+    since_full: dict[int, int] = {}
+    last_kf_t = -1e18
+
+    def full_ba_map(m: int, max_seconds: float | None = None) -> None:
+        since_full[m] = 0
+        built = app.full_ba_problem(m)
+        if built is None:
+            return
+        cfg = config.domain.full_ba
+        if max_seconds is not None:
+            cfg = dataclasses.replace(cfg, max_seconds=max_seconds)
+        result = solve_full_ba(built[0], cfg, config.domain.optimization)
+        if app.apply_optimization(m, result, built[1]) is not None:
+            counts["full_ba"] += 1
+
+    def full_ba_changed(max_seconds: float | None = None) -> None:
+        for m in sorted(m for m, n in since_full.items() if n > 0):
+            full_ba_map(m, max_seconds)
 
     def optimize_due() -> None:
         nonlocal dirty
@@ -183,12 +209,18 @@ def replay(
             if app.prune_due(m):
                 app.prune(m)
                 counts["mbp"] += 1
+            if full_on and since_full.get(m, 0) >= config.full_ba_every_keyframes:
+                full_ba_map(m)
 
     try:
         for rec in records:
             if trigger_t is not None and rec.t_recv >= trigger_t + config.debounce_s:
                 trigger_t = None
                 optimize_due()
+            quiet = config.full_ba_quiet_s
+            if (full_on and quiet > 0 and trigger_t is None and not dirty
+                    and rec.t_recv >= last_kf_t + quiet):  # fmt: skip
+                full_ba_changed()
             counts["messages"] += 1
             try:
                 reaction = app.handle(rec.edge_id, rec.message, rec.stream_id, rec.seq)
@@ -200,7 +232,12 @@ def replay(
                 continue
             trigger = bool(reaction.urgent_maps)
             dirty.update(reaction.urgent_maps)
+            for m in reaction.urgent_maps:
+                since_full[m] = since_full.get(m, 0) + 1
+            if reaction.new_keyframes:
+                last_kf_t = rec.t_recv
             for m, n in reaction.new_keyframes.items():
+                since_full[m] = since_full.get(m, 0) + n
                 since[m] = since.get(m, 0) + n
                 if since[m] >= config.optimize_every_keyframes:
                     dirty.add(m)
@@ -209,6 +246,9 @@ def replay(
                 trigger_t = rec.t_recv
         if dirty:
             optimize_due()
+        if full_on and config.full_ba_at_shutdown_s > 0:
+            full_ba_changed(config.full_ba_at_shutdown_s)
+        log.info("%s: %d full BA passes", label, counts["full_ba"])
         trajs, maps = app.trajectories()
         a = app.atlas
         return ReplayResult(

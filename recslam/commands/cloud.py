@@ -98,6 +98,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         default=True,
         help="map backbone profiling on/off (default on)",
     )
+    p.add_argument(
+        "--full-ba",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="full bundle adjustment after the pose graph when there is time, and at exit "
+        "(default on; --no-full-ba: pose graph only)",
+    )
     p.add_argument("--agent-id", default="cloud", help="this service's agent id (default cloud)")
     p.add_argument(
         "--output-every",
@@ -166,7 +173,7 @@ def handle(args: argparse.Namespace) -> int:
     from common.protocol import SessionConfig
     from common.transport import TransportConfig, run
     from common.vocabulary import DEFAULT_VOCABULARY_PATH, Vocabulary
-    from services.cloud.config import CloudConfig, CloudServiceConfig, MbpConfig
+    from services.cloud.config import CloudConfig, CloudServiceConfig, FullBAConfig, MbpConfig
     from services.cloud.server import CloudServer
 
     try:
@@ -176,7 +183,10 @@ def handle(args: argparse.Namespace) -> int:
     except RecslamError as exc:
         log.error("%s", exc)
         return 2
-    domain = CloudConfig(mbp=dataclasses.replace(MbpConfig(), enabled=args.mbp))
+    domain = CloudConfig(
+        mbp=dataclasses.replace(MbpConfig(), enabled=args.mbp),
+        full_ba=dataclasses.replace(FullBAConfig(), enabled=args.full_ba),
+    )
     config = CloudServiceConfig(domain=domain, output_every_s=args.output_every)
     session = SessionConfig("cloud", args.agent_id, secret)
 

@@ -45,6 +45,7 @@ from common.protocol.store import InboundPosition
 from common.vocabulary import Vocabulary
 from services.cloud.atlas import Atlas, AtlasSnapshot, KeyframeInput, make_key
 from services.cloud.config import CloudServiceConfig
+from services.cloud.full_ba import FullBAProblem, FullBAResult
 from services.cloud.global_optimization import PoseGraphProblem, PoseGraphResult
 from services.cloud.map_fusion import MapFusion
 from services.cloud.map_source import AgentInfo, CloudView
@@ -301,8 +302,17 @@ class CloudApp:
             return None
         return self.fusion.pose_graph(map_id), len(self.atlas.merges())
 
+    def full_ba_problem(self, map_id: int) -> tuple[FullBAProblem, int] | None:
+        """The full bundle adjustment of ``map_id`` and the merge-state token (None if the
+        map is gone, too small, or full BA is switched off)."""
+        if not self.config.domain.full_ba.enabled or map_id not in self.atlas.maps():
+            return None
+        if self.atlas.n_keyframes(map_id) < 2:
+            return None
+        return self.fusion.full_ba_problem(map_id), len(self.atlas.merges())
+
     def apply_optimization(
-        self, map_id: int, result: PoseGraphResult, token: int
+        self, map_id: int, result: PoseGraphResult | FullBAResult, token: int
     ) -> list[Correction] | None:
         """Write an optimisation back (None if maps were merged meanwhile: then the poses are
         in a stale frame and the caller should optimise again); returns the corrections."""

@@ -146,6 +146,43 @@ class GlobalOptimizationConfig:
 
 
 @dataclass(frozen=True)
+class FullBAConfig:
+    """Full bundle-adjustment options (paper Eq. 20, full stage; ``services/cloud/full_ba.py``).
+
+    enabled: run the full stage at all (default True; ``recslam cloud --no-full-ba``).
+    pixel_sigma: reprojection standard deviation at pyramid level 0, pixels (default 1.0) ...
+    level_scale: ... times this per level (ORB's scale factor, default 1.2).
+    robust_kernel: "huber", "cauchy" or "none" on the reprojection terms (default "huber").
+    kernel_scale: kernel threshold on the whitened error (default 2.447 = sqrt(5.991), the
+        95 % chi-square bound with 2 DoF, as ORB-SLAM).
+    max_initial_reprojection_px: observations reprojecting worse than this at the start are
+        left out (default 20 px).
+    min_depth_m: observations with a point closer than this in front of the camera at the
+        start are left out (default 0.05 m).
+    odometry_sigma_rot_rad / odometry_sigma_trans_m: sigmas of the relative-pose constraint
+        between consecutive keyframes of one agent, the stand-in of the IMU term (defaults
+        0.01 rad, 0.02 m: the pose graph's reference sigmas).
+    max_iterations: Levenberg–Marquardt iterations (default 15).
+    relative_error_tol: stop when the error decreases by less than this fraction (1e-4).
+    max_seconds: stop after the iteration that crosses this wall time, graph construction
+        included (default 60 s).
+    """
+
+    enabled: bool = True
+    pixel_sigma: float = 1.0
+    level_scale: float = 1.2
+    robust_kernel: str = "huber"
+    kernel_scale: float = 2.447
+    max_initial_reprojection_px: float = 20.0
+    min_depth_m: float = 0.05
+    odometry_sigma_rot_rad: float = 0.01
+    odometry_sigma_trans_m: float = 0.02
+    max_iterations: int = 15
+    relative_error_tol: float = 1e-4
+    max_seconds: float = 60.0
+
+
+@dataclass(frozen=True)
 class MbpConfig:
     """Map backbone profiling options.
 
@@ -174,6 +211,7 @@ class CloudConfig:
     verification: VerificationConfig = field(default_factory=VerificationConfig)
     merge: MergeConfig = field(default_factory=MergeConfig)
     optimization: GlobalOptimizationConfig = field(default_factory=GlobalOptimizationConfig)
+    full_ba: FullBAConfig = field(default_factory=FullBAConfig)
     mbp: MbpConfig = field(default_factory=MbpConfig)
 
 
@@ -202,6 +240,14 @@ class CloudServiceConfig:
         thread (no process start-up, fine for small maps).
     gt_every_s: with ground truth, the dashboard's reference trajectories are re-aligned to
         the maps this often (default 5 s).
+    full_ba_every_keyframes: when ``domain.full_ba.enabled``, a map gets a full bundle
+        adjustment right after its pose-graph optimisation once it has this many new
+        keyframes since its last one (default 100) ...
+    full_ba_quiet_s: ... and as soon as no optimisation has been triggered for this long
+        while it has changed since its last one (default 10 s; 0 = never on quiet) ...
+    full_ba_at_shutdown_s: ... and once at shutdown, before the trajectories are written,
+        after the pending pose graphs, within this many seconds in all (default 30 s: the
+        orchestration's stop waits 120 s; 0 = not at shutdown).
     """
 
     domain: CloudConfig = field(default_factory=CloudConfig)
@@ -216,3 +262,6 @@ class CloudServiceConfig:
     display_spacing_m: float = 0.0
     optimizer_process: bool = True
     gt_every_s: float = 5.0
+    full_ba_every_keyframes: int = 100
+    full_ba_quiet_s: float = 10.0
+    full_ba_at_shutdown_s: float = 30.0

@@ -6,7 +6,9 @@ queried for places seen before (intra- and inter-robot alike), candidates are ve
 verified match merges two maps or adds a loop constraint. Maps that gained a constraint are
 reported in :attr:`FusionEvents.maps_to_optimize`; the service then runs
 :func:`~services.cloud.global_optimization.optimize_pose_graph` off its event loop on
-:meth:`pose_graph` and hands the result back with :meth:`apply_optimization`.
+:meth:`pose_graph` and hands the result back with :meth:`apply_optimization`; when there is time
+it does the same with the full bundle adjustment (:meth:`full_ba_problem`,
+:func:`~services.cloud.full_ba.solve_full_ba`).
 Sans-I/O: no sockets, clocks or threads here.
 """
 
@@ -22,6 +24,7 @@ import numpy as np
 from common.calibration import CameraCalibration
 from services.cloud.atlas import Atlas, KeyframeInput, MapPointInput, make_key
 from services.cloud.config import CloudConfig
+from services.cloud.full_ba import FullBAProblem, FullBAResult, apply_full_ba, build_full_ba
 from services.cloud.global_optimization import (
     PoseGraphProblem,
     PoseGraphResult,
@@ -126,7 +129,15 @@ class MapFusion:
         """Plain pose-graph problem of a map (give it to ``optimize_pose_graph`` elsewhere)."""
         return build_pose_graph(self.atlas, map_id, self.config.optimization)
 
-    def apply_optimization(self, result: PoseGraphResult) -> int:
+    def full_ba_problem(self, map_id: int) -> FullBAProblem:
+        """Plain full-BA problem of a map (give it to ``solve_full_ba`` elsewhere)."""
+        return build_full_ba(
+            self.atlas, map_id, self.camera, self.config.full_ba, self.config.optimization
+        )
+
+    def apply_optimization(self, result: PoseGraphResult | FullBAResult) -> int:
+        if isinstance(result, FullBAResult):
+            return apply_full_ba(self.atlas, result)
         return apply_pose_graph(self.atlas, result)
 
     def prune(self, map_id: int, keep_recent: int = 5) -> MbpReport:

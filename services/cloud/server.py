@@ -19,6 +19,13 @@
   written back on the worker, and the corrected poses go to the edges as
   ``PoseCorrection`` in each robot's own map frame;
 - MBP runs on the worker right after an optimisation when due (it mutates the atlas);
+- the full bundle adjustment (:mod:`services.cloud.full_ba`, when
+  ``domain.full_ba.enabled``) is built on the worker, solved in the same optimizer process
+  and applied like a pose graph (corrections to the edges included): right after a map's
+  pose-graph optimisation once it has ``full_ba_every_keyframes`` new keyframes since its
+  last one, when no keyframe has arrived and nothing is scheduled for ``full_ba_quiet_s``,
+  and at :meth:`CloudServer.stop` (pending pose graphs first, then at most
+  ``full_ba_at_shutdown_s`` in all for the changed maps) before the trajectories are written;
 - the dashboard's :class:`~services.cloud.map_source.CloudMapSource` is refreshed every
   ``publish_every_s``; trajectories (and the ATE report with ground truth) are written every
   ``output_every_s`` and at :meth:`CloudServer.stop`;
@@ -30,6 +37,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
 import logging
 import multiprocessing
 import os
@@ -51,6 +59,7 @@ from common.transport import Delivery, Server, TransportConfig
 from common.vocabulary import Vocabulary
 from services.cloud.app import CloudApp, Correction, PositionStore, Reaction
 from services.cloud.config import CloudServiceConfig
+from services.cloud.full_ba import solve_full_ba
 from services.cloud.global_optimization import (
     optimize_pose_graph,
     optimizer_process_init,
@@ -81,6 +90,7 @@ class CloudStats:
     maps: tuple[int, ...]
     merges: int
     loops: int
+    full_ba_passes: int = 0
 
 
 class CloudServer:
@@ -133,6 +143,9 @@ class CloudServer:
         self._failures: dict[tuple[str, bytes, int], int] = {}
         self._dirty: set[int] = set()
         self._since_opt: dict[int, int] = {}
+        self._since_full: dict[int, int] = {}  # map -> changes since its last full BA
+        self._last_keyframe_t = 0.0  # loop time of the last new keyframe
+        self._full_bas = 0
         self._trigger = asyncio.Event()
         self._tasks: list[asyncio.Task[None]] = []
         self._optimizations = 0
@@ -201,6 +214,7 @@ class CloudServer:
                 await t
         self._tasks = []
         if self._app is not None:
+            await self._full_ba_at_shutdown()
             if write_output and self.output is not None:
                 await self.write_output(evaluate=True)
             await self._on_worker(self._app.close)
@@ -253,7 +267,12 @@ class CloudServer:
     def _react(self, reaction: Reaction) -> None:
         trigger = bool(reaction.urgent_maps)
         self._dirty.update(reaction.urgent_maps)
+        for m in reaction.urgent_maps:
+            self._since_full[m] = self._since_full.get(m, 0) + 1
+        if reaction.new_keyframes:
+            self._last_keyframe_t = asyncio.get_running_loop().time()
         for m, n in reaction.new_keyframes.items():
+            self._since_full[m] = self._since_full.get(m, 0) + n
             self._since_opt[m] = self._since_opt.get(m, 0) + n
             if self._since_opt[m] >= self.config.optimize_every_keyframes:
                 self._dirty.add(m)
@@ -264,7 +283,9 @@ class CloudServer:
     # ------------------------------------------------------------------ optimisation
     async def _optimize_loop(self) -> None:
         while True:
-            await self._trigger.wait()
+            if not await self._wait_trigger_or_quiet():
+                await self._full_ba_changed("quiet")
+                continue
             await asyncio.sleep(self.config.debounce_s)
             self._trigger.clear()
             maps, self._dirty = sorted(self._dirty), set()
@@ -286,16 +307,8 @@ class CloudServer:
         if built is None:
             return True
         problem, token = built
-        loop = asyncio.get_running_loop()
-        try:
-            result = await loop.run_in_executor(
-                self._optimizer, optimize_pose_graph, problem, self.config.domain.optimization
-            )
-        except BrokenExecutor:
-            log.error("optimizer process died on map %d; starting a new one", map_id)
-            self._optimizer.shutdown(wait=False)
-            self._optimizer = self._new_optimizer()
-            raise
+        result = await self._solve(map_id, optimize_pose_graph, problem,
+                                   self.config.domain.optimization)  # fmt: skip
         corrections = await self._on_worker(app.apply_optimization, map_id, result, token)
         if corrections is None:
             log.info("map %d merged while optimising; rescheduling", map_id)
@@ -307,7 +320,97 @@ class CloudServer:
         if await self._on_worker(app.prune_due, map_id):
             await self._on_worker(app.prune, map_id)
             self._mbp_passes += 1
+        if self._since_full.get(map_id, 0) >= self.config.full_ba_every_keyframes:
+            await self.full_ba_map(map_id)
         return True
+
+    async def _solve(self, map_id: int, fn: Callable[..., T], *args: Any) -> T:
+        """Run a pure solver in the optimizer (restarted if its process died)."""
+        loop = asyncio.get_running_loop()
+        try:
+            return await loop.run_in_executor(self._optimizer, fn, *args)
+        except BrokenExecutor:
+            log.error("optimizer process died on map %d; starting a new one", map_id)
+            self._optimizer.shutdown(wait=False)
+            self._optimizer = self._new_optimizer()
+            raise
+
+    async def full_ba_map(
+        self, map_id: int, max_seconds: float | None = None, send: bool = True
+    ) -> bool:
+        """Full bundle adjustment of one map now (off the event loop), applied like a pose
+        graph; corrections go to the edges when ``send``. ``max_seconds`` overrides the
+        solver's time budget. Returns False if the map was merged meanwhile (rescheduled)."""
+        app = self._app
+        assert app is not None
+        self._since_full[map_id] = 0
+        built = await self._on_worker(app.full_ba_problem, map_id)
+        if built is None:
+            return True
+        problem, token = built
+        cfg = self.config.domain.full_ba
+        if max_seconds is not None:
+            cfg = dataclasses.replace(cfg, max_seconds=max_seconds)
+        result = await self._solve(map_id, solve_full_ba, problem, cfg,
+                                   self.config.domain.optimization)  # fmt: skip
+        corrections = await self._on_worker(app.apply_optimization, map_id, result, token)
+        if corrections is None:
+            log.info("map %d merged during its full BA; rescheduling", map_id)
+            self._since_full[map_id] = self._since_full.get(map_id, 0) + 1
+            return False
+        self._full_bas += 1
+        if send:
+            self._send(corrections)
+        return True
+
+    async def _wait_trigger_or_quiet(self) -> bool:
+        """Wait for an optimisation trigger (True), or until the maps have been quiet for
+        ``full_ba_quiet_s`` while one changed since its last full BA (False)."""
+        quiet = self.config.full_ba_quiet_s
+        loop = asyncio.get_running_loop()
+        while True:
+            pending = any(n > 0 for n in self._since_full.values())
+            if not (self.config.domain.full_ba.enabled and quiet > 0 and pending):
+                await self._trigger.wait()
+                return True
+            left = self._last_keyframe_t + quiet - loop.time()
+            if left <= 0 and not self._dirty:
+                return False
+            try:
+                await asyncio.wait_for(self._trigger.wait(), max(left, 0.1))
+                return True
+            except TimeoutError:
+                continue
+
+    async def _full_ba_changed(self, why: str, deadline: float | None = None,
+                               send: bool = True) -> None:  # fmt: skip
+        """Full BA of every map that changed since its last one (errors are logged); with
+        ``deadline`` (loop time) the solves share what is left until then."""
+        loop = asyncio.get_running_loop()
+        for m in sorted(m for m, n in self._since_full.items() if n > 0):
+            left = None if deadline is None else deadline - loop.time()
+            if left is not None and left <= 0:
+                log.info("no time left for the full BA of map %d (%s)", m, why)
+                continue
+            log.info("full BA of map %d (%s)", m, why)
+            try:
+                await self.full_ba_map(m, left, send)
+            except asyncio.CancelledError:
+                raise
+            except Exception:
+                log.exception("full BA of map %d failed", m)
+
+    async def _full_ba_at_shutdown(self) -> None:
+        """Pending pose graphs, then a time-bounded full BA of the changed maps."""
+        budget = self.config.full_ba_at_shutdown_s
+        if not self.config.domain.full_ba.enabled or budget <= 0:
+            return
+        deadline = asyncio.get_running_loop().time() + budget
+        try:
+            await self.flush_optimizations()
+        except Exception:
+            log.exception("pose-graph optimisation at shutdown failed")
+        await self._full_ba_changed("shutdown", deadline, send=False)
 
     def _send(self, corrections: list[Correction]) -> None:
         for c in corrections:
@@ -409,7 +512,7 @@ class CloudServer:
             return CloudStats(
                 app.messages, app.rejected, self._optimizations, self._corrections,
                 self._mbp_passes, a.n_keyframes(), a.n_map_points(), tuple(a.maps()),
-                len(a.merges()), len(a.loops()),
+                len(a.merges()), len(a.loops()), self._full_bas,
             )  # fmt: skip
 
         return await self._on_worker(collect)

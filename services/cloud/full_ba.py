@@ -1,0 +1,400 @@
+"""Global optimisation of a map (paper Eq. 20), full stage: bundle adjustment with gtsam.
+
+The pose-graph stage (:mod:`services.cloud.global_optimization`) corrects drift quickly with
+relative-pose constraints only. When there is time the service follows it with this stage,
+which optimises keyframe poses *and* map points on Eq. 20's terms:
+
+- ``e_prio``: a tight prior on the map's first keyframe (the same one the pose graph fixes),
+- ``e_imu``: the atlas keeps each keyframe's velocity and biases but not the IMU samples
+  between keyframes, so a CombinedImuFactor cannot be formed in the cloud; its stand-in is a
+  ``BetweenFactor<Pose3>`` between consecutive keyframes of each agent whose measurement is
+  the current relative pose (what the edge's visual-inertial odometry and the pose graph
+  left) with fixed sigmas (:class:`~services.cloud.config.FullBAConfig`),
+- loop and merge constraints as the pose graph has them (Cauchy kernel); a loop whose
+  whitened error at the initial estimate exceeds ``loop_outlier_whitened`` is left out (the
+  pose graph, solved just before, rejects outliers with the same test),
+- ``e_proj``: a reprojection factor per observation on undistorted normalised coordinates
+  (unit-focal ``Cal3_S2``, camera extrinsic as ``body_P_sensor``, as the edge's local BA),
+  sigma ``pixel_sigma · level_scale^level / fx``, under a Huber (or Cauchy) kernel.
+  Observations that reproject worse than ``max_initial_reprojection_px`` or lie behind the
+  camera at the start are left out, and so are points with fewer than two observations left.
+
+As for the pose graph, everything is a pure function on plain arrays: :func:`build_full_ba`
+snapshots one map of the atlas into a picklable :class:`FullBAProblem` (on the service's
+worker thread), :func:`solve_full_ba` runs in the optimiser process with bounded iterations
+and wall time, and :func:`apply_full_ba` writes :class:`FullBAResult` back (keyframe poses as
+the pose graph's result, then the optimised point positions); the service then sends the
+corrected poses to the edges exactly as after a pose-graph optimisation.
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+import time
+from dataclasses import dataclass
+
+import cv2
+import gtsam
+import numpy as np
+
+from common.calibration import CameraCalibration
+from common.geometry import inverse_T, transform_points
+from services.cloud.atlas import Atlas
+from services.cloud.config import FullBAConfig, GlobalOptimizationConfig
+from services.cloud.global_optimization import (
+    GlobalOptimizationError,
+    PoseGraphResult,
+    apply_pose_graph,
+)
+
+log = logging.getLogger(__name__)
+
+_UNIT_K = gtsam.Cal3_S2(1.0, 1.0, 0.0, 0.0, 0.0)
+
+
+class FullBAError(GlobalOptimizationError):
+    """Empty or inconsistent full-BA problem."""
+
+
+@dataclass(frozen=True, eq=False)
+class FullBAProblem:
+    """Plain bundle-adjustment data of one map (picklable).
+
+    keys (N,) keyframe keys; T_world_body (N, 4, 4) initial poses (map frame);
+    point_keys (P,) map point keys; p_world (P, 3) initial positions, metres;
+    obs_kf (M,) index into keys, obs_point (M,) index into point_keys, obs_xy (M, 2)
+    undistorted normalised image coordinates, obs_sigma (M,) their standard deviation
+    (normalised units); T_body_cam (4, 4) camera extrinsic;
+    edge_i, edge_j (E,) indices into keys, T_i_j (E, 4, 4) measured relative poses (body j in
+    body i), sigmas (E, 6) (rad, rad, rad, m, m, m), robust (E,) loop / merge edges;
+    fixed: index of the keyframe held by the prior; fx: focal length, pixels (reports RMS in
+    pixels); dropped_observations: observations left out at build time (behind the camera,
+    too far off, or of points seen once).
+    """
+
+    keys: np.ndarray
+    T_world_body: np.ndarray
+    point_keys: np.ndarray
+    p_world: np.ndarray
+    obs_kf: np.ndarray
+    obs_point: np.ndarray
+    obs_xy: np.ndarray
+    obs_sigma: np.ndarray
+    T_body_cam: np.ndarray
+    edge_i: np.ndarray
+    edge_j: np.ndarray
+    T_i_j: np.ndarray
+    sigmas: np.ndarray
+    robust: np.ndarray
+    fixed: int
+    fx: float = 1.0
+    dropped_observations: int = 0
+
+    @property
+    def n_observations(self) -> int:
+        return int(self.obs_kf.shape[0])
+
+
+@dataclass(frozen=True, eq=False)
+class FullBAResult:
+    """Optimised ``T_world_body (N, 4, 4)`` of ``keys (N,)`` and ``p_world (P, 3)`` of
+    ``point_keys (P,)``; graph errors before / after (gtsam: 0.5 · Σ robust cost);
+    reprojection RMS in pixels (``fx`` units) over the used observations before / after;
+    Levenberg–Marquardt iterations; loop edges left out as outliers; solve seconds (graph
+    construction included)."""
+
+    keys: np.ndarray
+    T_world_body: np.ndarray
+    point_keys: np.ndarray
+    p_world: np.ndarray
+    initial_error: float
+    final_error: float
+    initial_rms_px: float
+    final_rms_px: float
+    iterations: int
+    rejected_edges: np.ndarray
+    seconds: float
+
+
+def undistort_normalized(camera: CameraCalibration, uv: np.ndarray) -> np.ndarray:
+    """Distorted pixels ``uv (M, 2)`` -> undistorted normalised coordinates ``(M, 2)``."""
+    if uv.shape[0] == 0:
+        return np.zeros((0, 2))
+    pts = np.ascontiguousarray(uv, np.float64).reshape(-1, 1, 2)
+    # OpenCV's default 5 iterations leave pixels of error in the corners of a strongly
+    # distorted image (k1 = -0.28): iterate to convergence, as the edge does.
+    crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 20, 1e-10)
+    out = cv2.undistortPoints(pts, camera.K, camera.dist_coeffs, None, None, None, crit)
+    return out.reshape(-1, 2)
+
+
+def _project(
+    T_body_cam: np.ndarray,
+    T_world_body: np.ndarray,
+    p_world: np.ndarray,
+    obs_kf: np.ndarray,
+    obs_point: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Normalised projections ``(M, 2)`` and depths ``(M,)`` of every observation."""
+    T_cam_world = np.array([inverse_T(T @ T_body_cam) for T in T_world_body])
+    R = T_cam_world[obs_kf, :3, :3]
+    t = T_cam_world[obs_kf, :3, 3]
+    p_cam = np.einsum("mij,mj->mi", R, p_world[obs_point]) + t
+    z = p_cam[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        xy = p_cam[:, :2] / z[:, None]
+    return xy, z
+
+
+def build_full_ba(
+    atlas: Atlas,
+    map_id: int,
+    camera: CameraCalibration,
+    config: FullBAConfig,
+    graph_config: GlobalOptimizationConfig,
+) -> FullBAProblem:
+    """Snapshot one map of the atlas as a bundle-adjustment problem (current estimates)."""
+    keys = atlas.keyframe_keys(map_id=map_id)
+    if not keys:
+        raise FullBAError(f"map {map_id} has no keyframes")
+    index = {k: i for i, k in enumerate(keys)}
+    T = np.array([atlas.T_map_body(k) for k in keys])
+    fx = float(camera.fx)
+    kf_idx: list[np.ndarray] = []
+    mp_keys: list[np.ndarray] = []
+    xy: list[np.ndarray] = []
+    sigma: list[np.ndarray] = []
+    for i, k in enumerate(keys):
+        v = atlas.keyframe(k)
+        rows = np.flatnonzero(v.map_point_keys >= 0)
+        if rows.size == 0:
+            continue
+        kf_idx.append(np.full(rows.size, i, np.int64))
+        mp_keys.append(np.asarray(v.map_point_keys[rows], np.int64))
+        xy.append(undistort_normalized(camera, np.asarray(v.keypoints[rows])))
+        lv = np.asarray(v.levels[rows], np.float64)
+        sigma.append(config.pixel_sigma * config.level_scale**lv / fx)
+    obs_kf = np.concatenate(kf_idx) if kf_idx else np.zeros(0, np.int64)
+    obs_mk = np.concatenate(mp_keys) if mp_keys else np.zeros(0, np.int64)
+    obs_xy = np.concatenate(xy) if xy else np.zeros((0, 2))
+    obs_sigma = np.concatenate(sigma) if sigma else np.zeros(0)
+    n_all = obs_kf.shape[0]
+    point_keys, obs_point = np.unique(obs_mk, return_inverse=True)
+    p_world = atlas.map_point_positions(point_keys) if point_keys.size else np.zeros((0, 3))
+    # Leave out observations behind the camera or too far off to be inliers now.
+    T_body_cam = np.asarray(camera.T_body_cam, np.float64)
+    proj, z = _project(T_body_cam, T, p_world, obs_kf, obs_point)
+    err_px = np.linalg.norm(proj - obs_xy, axis=1) * fx
+    ok = (z > config.min_depth_m) & (err_px <= config.max_initial_reprojection_px)
+    # ... and points with fewer than two observations left (repeat: rows drop together).
+    counts = np.bincount(obs_point[ok], minlength=point_keys.size)
+    ok &= counts[obs_point] >= 2
+    used = np.flatnonzero(np.bincount(obs_point[ok], minlength=point_keys.size) >= 2)
+    remap = np.full(point_keys.size, -1, np.int64)
+    remap[used] = np.arange(used.size)
+    # Relative-pose constraints (stand-in of the IMU terms) and loops.
+    ei: list[int] = []
+    ej: list[int] = []
+    meas: list[np.ndarray] = []
+    sig: list[np.ndarray] = []
+    rob: list[bool] = []
+    odo = np.array([config.odometry_sigma_rot_rad] * 3 + [config.odometry_sigma_trans_m] * 3)
+    for agent in atlas.agents_in_map(map_id):
+        for a, b in itertools.pairwise(atlas.keyframe_keys(map_id=map_id, agent_id=agent)):
+            i, j = index[a], index[b]
+            ei.append(i)
+            ej.append(j)
+            meas.append(inverse_T(T[i]) @ T[j])
+            sig.append(odo)
+            rob.append(False)
+    loop = np.array([graph_config.loop_sigma_rot_rad] * 3 + [graph_config.loop_sigma_trans_m] * 3)
+    for e in atlas.loops():
+        if e.key_a in index and e.key_b in index:
+            ei.append(index[e.key_a])
+            ej.append(index[e.key_b])
+            meas.append(np.array(e.T_a_b))
+            sig.append(loop)
+            rob.append(True)
+    own = atlas.keyframe_keys(map_id=map_id, agent_id=map_id)
+    E = len(ei)
+    return FullBAProblem(
+        keys=np.array(keys, np.int64),
+        T_world_body=T,
+        point_keys=point_keys[used],
+        p_world=p_world[used],
+        obs_kf=obs_kf[ok],
+        obs_point=remap[obs_point[ok]],
+        obs_xy=obs_xy[ok],
+        obs_sigma=obs_sigma[ok],
+        T_body_cam=T_body_cam,
+        edge_i=np.array(ei, np.int64),
+        edge_j=np.array(ej, np.int64),
+        T_i_j=np.array(meas).reshape(E, 4, 4),
+        sigmas=np.array(sig).reshape(E, 6),
+        robust=np.array(rob, bool),
+        fixed=index[own[0]] if own else 0,
+        fx=fx,
+        dropped_observations=int(n_all - ok.sum()),
+    )
+
+
+def _pose3(T: np.ndarray) -> gtsam.Pose3:
+    return gtsam.Pose3(gtsam.Rot3(np.asarray(T[:3, :3])), np.asarray(T[:3, 3]))
+
+
+def _kernel(name: str, scale: float) -> gtsam.noiseModel.mEstimator.Base | None:
+    if name == "huber":
+        return gtsam.noiseModel.mEstimator.Huber.Create(scale)
+    if name == "cauchy":
+        return gtsam.noiseModel.mEstimator.Cauchy.Create(scale)
+    if name == "none":
+        return None
+    raise FullBAError(f"unknown robust kernel {name!r}")
+
+
+def _rms_px(problem: FullBAProblem, T: np.ndarray, p: np.ndarray) -> float:
+    if problem.n_observations == 0:
+        return 0.0
+    xy, _ = _project(problem.T_body_cam, T, p, problem.obs_kf, problem.obs_point)
+    return float(np.sqrt(np.mean(np.sum((xy - problem.obs_xy) ** 2, axis=1)))) * problem.fx
+
+
+def solve_full_ba(
+    problem: FullBAProblem,
+    config: FullBAConfig,
+    graph_config: GlobalOptimizationConfig,
+) -> FullBAResult:
+    """Solve the bundle adjustment with Levenberg–Marquardt (pure; no atlas access).
+
+    At most ``config.max_iterations`` iterations and, after the one that crosses it,
+    ``config.max_seconds`` of wall time (graph construction included)."""
+    t0 = time.perf_counter()
+    n, n_pts = problem.keys.shape[0], problem.point_keys.shape[0]
+    if n == 0:
+        raise FullBAError("empty full-BA problem")
+    if not 0 <= problem.fixed < n:
+        raise FullBAError(f"fixed index {problem.fixed} outside 0..{n - 1}")
+    X = gtsam.symbol_shorthand.X
+    L = gtsam.symbol_shorthand.L
+    graph = gtsam.NonlinearFactorGraph()
+    values = gtsam.Values()
+    for i in range(n):
+        values.insert(X(i), _pose3(problem.T_world_body[i]))
+    for j in range(n_pts):
+        values.insert(L(j), np.asarray(problem.p_world[j], np.float64))
+    graph.add(
+        gtsam.PriorFactorPose3(
+            X(problem.fixed),
+            _pose3(problem.T_world_body[problem.fixed]),
+            gtsam.noiseModel.Isotropic.Sigma(6, graph_config.prior_sigma),
+        )
+    )
+    loop_kernel = _kernel(graph_config.loop_robust_kernel, graph_config.loop_kernel_scale)
+    rejected: list[int] = []
+    for e in range(problem.edge_i.shape[0]):
+        i, j = int(problem.edge_i[e]), int(problem.edge_j[e])
+        meas = _pose3(problem.T_i_j[e])
+        noise = gtsam.noiseModel.Diagonal.Sigmas(problem.sigmas[e])
+        if problem.robust[e]:
+            rel = _pose3(problem.T_world_body[i]).between(_pose3(problem.T_world_body[j]))
+            err = np.asarray(gtsam.Pose3.Logmap(meas.between(rel))) / problem.sigmas[e]
+            if np.linalg.norm(err) > graph_config.loop_outlier_whitened:
+                rejected.append(e)
+                continue
+            if loop_kernel is not None:
+                noise = gtsam.noiseModel.Robust.Create(loop_kernel, noise)
+        graph.add(gtsam.BetweenFactorPose3(X(i), X(j), meas, noise))
+    kernel = _kernel(config.robust_kernel, config.kernel_scale)
+    body_P_cam = _pose3(problem.T_body_cam)
+    noise_of: dict[float, gtsam.noiseModel.Base] = {}
+    factor = gtsam.GenericProjectionFactorCal3_S2
+    for kf, pt, xy, s in zip(problem.obs_kf.tolist(), problem.obs_point.tolist(),
+                             problem.obs_xy, problem.obs_sigma.tolist(), strict=True):  # fmt: skip
+        noise = noise_of.get(s)
+        if noise is None:
+            noise = gtsam.noiseModel.Isotropic.Sigma(2, s)
+            if kernel is not None:
+                noise = gtsam.noiseModel.Robust.Create(kernel, noise)
+            noise_of[s] = noise
+        graph.add(factor(xy, noise, X(kf), L(pt), _UNIT_K, body_P_cam))
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(config.max_iterations)
+    params.setRelativeErrorTol(config.relative_error_tol)
+    params.setVerbosityLM("SILENT")
+    optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
+    initial_error = error = float(optimizer.error())
+    iterations = 0
+    try:
+        while iterations < config.max_iterations:
+            optimizer.iterate()
+            iterations += 1
+            new_error = float(optimizer.error())
+            done = gtsam.checkConvergence(
+                params.getRelativeErrorTol(), params.getAbsoluteErrorTol(),
+                params.getErrorTol(), error, new_error,
+            )  # fmt: skip
+            error = new_error
+            if done or time.perf_counter() - t0 > config.max_seconds:
+                break
+    except RuntimeError as exc:  # indeterminant system: keep the last good estimate
+        log.warning("full BA: Levenberg-Marquardt stopped after %d iterations: %s", iterations,
+                    exc)  # fmt: skip
+    result = optimizer.values()
+    T_out = np.array([result.atPose3(X(i)).matrix() for i in range(n)])
+    p_out = np.array([result.atPoint3(L(j)) for j in range(n_pts)]).reshape(n_pts, 3)
+    seconds = time.perf_counter() - t0
+    out = FullBAResult(
+        keys=problem.keys.copy(), T_world_body=T_out, point_keys=problem.point_keys.copy(),
+        p_world=p_out, initial_error=initial_error, final_error=float(graph.error(result)),
+        initial_rms_px=_rms_px(problem, problem.T_world_body, problem.p_world),
+        final_rms_px=_rms_px(problem, T_out, p_out), iterations=iterations,
+        rejected_edges=np.array(rejected, np.int64), seconds=seconds,
+    )  # fmt: skip
+    log.info("full BA: %d keyframes, %d points, %d observations, %d iterations in %.2f s: "
+             "error %.4g -> %.4g, reprojection RMS %.2f -> %.2f px", n, n_pts,
+             problem.n_observations, iterations, seconds, out.initial_error, out.final_error,
+             out.initial_rms_px, out.final_rms_px)  # fmt: skip
+    return out
+
+
+def apply_full_ba(atlas: Atlas, result: FullBAResult) -> int:
+    """Write a full-BA result into the atlas; returns how many keyframe poses were written.
+
+    Poses go in as a pose-graph result does (:func:`apply_pose_graph`: pruned keyframes are
+    skipped, keyframes that arrived meanwhile get their agent's correction, map points move
+    with their reference keyframe); then the optimised points that still exist get their
+    optimised positions."""
+    n = apply_pose_graph(
+        atlas,
+        PoseGraphResult(
+            result.keys, result.T_world_body, result.initial_error, result.final_error,
+            result.iterations, result.rejected_edges,
+        ),
+    )  # fmt: skip
+    atlas.set_map_point_positions({
+        k: result.p_world[i] for i, k in enumerate(result.point_keys.tolist())
+        if atlas.has_map_point(k)
+    })  # fmt: skip
+    return n
+
+
+def reprojection_rms_px(atlas: Atlas, map_id: int, camera: CameraCalibration) -> float:
+    """RMS reprojection error, pixels (``fx`` units), of every observation of a map's points
+    in front of the camera at the atlas' current estimates (a diagnostic for tests and
+    benchmarks)."""
+    errs: list[np.ndarray] = []
+    for k in atlas.keyframe_keys(map_id=map_id):
+        v = atlas.keyframe(k)
+        rows = np.flatnonzero(v.map_point_keys >= 0)
+        if rows.size == 0:
+            continue
+        p = atlas.map_point_positions(v.map_point_keys[rows])
+        p_cam = transform_points(inverse_T(np.asarray(v.T_map_body) @ camera.T_body_cam), p)
+        front = p_cam[:, 2] > 1e-6
+        xy = p_cam[front, :2] / p_cam[front, 2:3]
+        obs = undistort_normalized(camera, np.asarray(v.keypoints[rows][front]))
+        errs.append(np.sum((xy - obs) ** 2, axis=1))
+    if not errs:
+        return 0.0
+    return float(np.sqrt(np.mean(np.concatenate(errs)))) * float(camera.fx)
