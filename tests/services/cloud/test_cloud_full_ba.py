@@ -10,6 +10,7 @@ import pickle
 import numpy as np
 import pytest
 
+from common.evaluation.alignment import umeyama
 from common.evaluation.tum import read_tum
 from common.geometry import inverse_T, so3_exp
 from common.protocol import SessionConfig
@@ -71,8 +72,12 @@ def _perturb(atlas: Atlas, seed: int = 0) -> None:
     atlas.set_map_point_positions(dict(zip(pk.tolist(), P, strict=True)))
 
 
-def _pose_error(atlas: Atlas, poses: np.ndarray) -> float:
+def _pose_error(atlas: Atlas, poses: np.ndarray, sim3: bool = False) -> float:
+    """RMS position error (m), raw or after a Sim(3) alignment (monocular BA leaves the scale
+    to the weak relative-pose terms, so the shape is what it must restore)."""
     est = np.array([atlas.T_map_body(make_key(0, i))[:3, 3] for i in range(N)])
+    if sim3:
+        est = umeyama(est, poses[:, :3, 3], with_scale=True).apply_points(est)
     return float(np.sqrt(np.mean(np.sum((est - poses[:, :3, 3]) ** 2, axis=1))))
 
 
@@ -82,6 +87,7 @@ def test_full_ba_brings_perturbed_map_back_and_keeps_first_keyframe(session):
     _perturb(atlas)
     T0 = atlas.T_map_body(make_key(0, 0))
     err_before = _pose_error(atlas, poses)
+    shape_before = _pose_error(atlas, poses, sim3=True)
     rms_before = reprojection_rms_px(atlas, 0, CAM)
     problem = build_full_ba(atlas, 0, CAM, CFG, GCFG)
     # Consecutive keyframes of the agent are tied by relative poses; no loops here.
@@ -93,7 +99,9 @@ def test_full_ba_brings_perturbed_map_back_and_keeps_first_keyframe(session):
     assert np.allclose(atlas.T_map_body(make_key(0, 0)), T0, atol=1e-6)
     assert reprojection_rms_px(atlas, 0, CAM) < 0.2 * rms_before
     err_after = _pose_error(atlas, poses)
-    assert err_after < 0.6 * err_before, (err_before, err_after)
+    shape_after = _pose_error(atlas, poses, sim3=True)
+    assert err_after < 0.8 * err_before, (err_before, err_after)
+    assert shape_after < 0.5 * shape_before, (shape_before, shape_after)
     # The optimised points are in the atlas.
     got = atlas.map_point_positions(result.point_keys)
     assert np.allclose(got, result.p_world)
