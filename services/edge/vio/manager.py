@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -100,6 +100,8 @@ class VioManager:
         self._last_init_reason = ""
         self.last_local_ba: BAStats | None = None
         self._keyframes_since_ba = 0
+        # VI initialisation and its refinements optimise every keyframe and every point.
+        self._full_ba_options = replace(self.options.local_ba, max_points=0)
         logger.info("VIO %s options: %s", robot_name, self.options)
 
     # ------------------------------------------------------------------ public API
@@ -523,7 +525,7 @@ class VioManager:
             ids = [k.id for k in kfs]
             T_newest_before = kfs[-1].T_world_body.copy()
             stats = bundle_adjust(
-                vmap, ids, self.camera, self.imu_params, self.options.local_ba,
+                vmap, ids, self.camera, self.imu_params, self._full_ba_options,
                 self.options.mapping, gauge_ids=(ids[0],), max_iterations=vopt.full_ba_iterations,
                 bias_prior_sigmas=(vopt.accel_bias_prior_sigma, vopt.gyro_bias_prior_sigma),
             )  # fmt: skip
@@ -573,7 +575,7 @@ class VioManager:
         self._last_init_reason = ""
         ids = [k.id for k in kfs]
         stats = bundle_adjust(
-            vmap, ids, self.camera, self.imu_params, self.options.local_ba, self.options.mapping,
+            vmap, ids, self.camera, self.imu_params, self._full_ba_options, self.options.mapping,
             gauge_ids=(ids[0],), max_iterations=vopt.full_ba_iterations,
             bias_prior_sigmas=(
                 vopt.accel_bias_prior_sigma_first, vopt.gyro_bias_prior_sigma_first
@@ -584,8 +586,9 @@ class VioManager:
         assert last is not None
         self._bias_guess = (last.bias_accel.copy(), last.bias_gyro.copy())
         logger.info(
-            "%s: VI init #%d of map %d: scale %.4f, bg %s, ba %s, BA %s", self.name,
-            vmap.vi_init_runs, vmap.map_id, res.scale, np.round(last.bias_gyro, 4),
+            "%s: VI init #%d of map %d: scale %.4f (sigma %.1f %%), bg %s, ba %s, BA %s",
+            self.name, vmap.vi_init_runs, vmap.map_id, res.scale, 100 * res.scale_sigma_rel,
+            np.round(last.bias_gyro, 4),
             np.round(last.bias_accel, 3), stats,
         )  # fmt: skip
         return True

@@ -37,6 +37,9 @@ class ViInitResult:
     bias_accel: np.ndarray
     cost: float
     cost_per_residual: float  # whitened; about 1 or below when IMU and poses agree
+    # 1-sigma of log(scale) from the Gauss-Newton covariance at the solution: how well this
+    # stretch of motion observes the scale (small accelerations leave it weakly observed).
+    scale_sigma_rel: float = float("nan")
 
 
 def _rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -224,4 +227,9 @@ def inertial_only_map(
     assert sol is not None
     R_wv, s, v, ba, bg = unpack(x)
     cost = float(2.0 * sol.cost)
-    return ViInitResult(s, R_wv, v, bg, ba, cost, cost / (9 * m)), ""
+    try:
+        cov = np.linalg.inv(sol.jac.T @ sol.jac)
+        sigma_log_s = float(np.sqrt(max(cov[0, 0], 0.0)))
+    except np.linalg.LinAlgError:
+        sigma_log_s = float("inf")
+    return ViInitResult(s, R_wv, v, bg, ba, cost, cost / (9 * m), sigma_log_s), ""
