@@ -175,7 +175,8 @@ class VioManager:
         """Apply corrected keyframe poses (e.g. from the cloud's global optimisation, same world
         frame) to the current map: each corrected keyframe takes its pose, uncorrected ones move
         with the nearest earlier corrected keyframe, each map point moves rigidly with its first
-        observer, and the tracking state with the newest keyframe. Returns keyframes updated;
+        observer (nothing re-sent to the cloud), and the tracking state with the newest keyframe.
+        Returns keyframes updated;
         corrections for another map are ignored (0)."""
         vmap = self._map
         if vmap is None or vmap.map_id != map_id:
@@ -200,7 +201,10 @@ class VioManager:
             ref = min(mp.observations, default=None)
             if ref is not None and ref in deltas:
                 mp.p_world = deltas[ref][:3, :3] @ mp.p_world + deltas[ref][:3, 3]
-        vmap.mark_all_dirty()
+        # Nothing is re-marked for the uplink: the cloud computed these poses and moved its
+        # points with them; resending every point and keyframe of the map after each
+        # correction was ~90 % of the edge->cloud bytes. What local BA touches next goes up
+        # again anyway.
         if self._last_T is not None:
             self._last_T = orthonormalize_T(delta @ self._last_T)
         if self._prev_T is not None:
