@@ -240,7 +240,12 @@ def _process_main(conn: Connection, spec: WorkerSpec, log_level: int) -> None:
             return
         if item is None:
             return
-        conn.send(runner.step(item))
+        result = runner.step(item)
+        try:
+            conn.send(result)
+        except (BrokenPipeError, ConnectionResetError):  # the edge process is gone
+            logger.info("edge process gone; VIO worker exits")
+            return
 
 
 class ProcessWorker:
