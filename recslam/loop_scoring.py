@@ -32,15 +32,16 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-import re
 from collections import Counter
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from common.evaluation.metrics import rotation_angles_deg
 from common.evaluation.trajectory import Trajectory
 from common.geometry import inverse_T
+from services.cloud.map_fusion import reason_kind
 
 log = logging.getLogger(__name__)
 
@@ -133,17 +134,6 @@ class GroundTruthPoses:
         return None if T is None else T @ self.T_body_cam
 
 
-def reason_kind(reason: str) -> str:
-    """A verification reason without its numbers (``"tilt 98.2 deg"`` -> ``"tilt deg"``)."""
-    return " ".join(w for w in reason.split() if not re.fullmatch(r"[\d./]+", w)) or reason or "?"
-
-
-def rotation_angle_deg(R: np.ndarray) -> float:
-    """Angle of a (3, 3) rotation [deg]."""
-    c = (float(np.trace(R)) - 1.0) / 2.0
-    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
-
-
 @dataclass(frozen=True)
 class DetectionScore:
     """One detection against the truth (errors None without ground truth)."""
@@ -172,7 +162,7 @@ def score_detection(
     T_gt = inverse_T(T_wm) @ T_wq
     T_est = np.asarray(det.T_match_query, np.float64)
     trans = float(np.linalg.norm(T_est[:3, 3] - T_gt[:3, 3]))
-    rot = rotation_angle_deg(T_gt[:3, :3].T @ T_est[:3, :3])
+    rot = float(rotation_angles_deg(T_gt[:3, :3].T @ T_est[:3, :3])[0])
     dist = float(np.linalg.norm(T_gt[:3, 3]))
     ok = trans < criterion.max_trans_err_m and rot < criterion.max_rot_err_deg
     return DetectionScore(det, q, m, trans, rot, dist, ok)
@@ -278,7 +268,7 @@ def score_loops(
             # A rejected candidate carries no pose: judge the place, not the transform.
             s = dataclasses.replace(s, true=same_place(s.query, s.match, gt, crit))
             scores.rejected.append(s)
-            scores.rejected_reasons[reason_kind(det.reason)] += 1
+            scores.rejected_reasons[reason_kind(det.reason) or "?"] += 1
     for q in queries:
         scores.queries += 1
         held = [info[int(k)] for k in q.held_keys.tolist() if int(k) in info]

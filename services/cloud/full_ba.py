@@ -34,11 +34,11 @@ import logging
 import time
 from dataclasses import dataclass
 
-import cv2
 import gtsam
 import numpy as np
 
 from common.calibration import CameraCalibration
+from common.camera import PinholeRadtan
 from common.geometry import inverse_T, transform_points
 from services.cloud.atlas import Atlas
 from services.cloud.config import FullBAConfig, GlobalOptimizationConfig
@@ -117,18 +117,6 @@ class FullBAResult:
     seconds: float
 
 
-def undistort_normalized(camera: CameraCalibration, uv: np.ndarray) -> np.ndarray:
-    """Distorted pixels ``uv (M, 2)`` -> undistorted normalised coordinates ``(M, 2)``."""
-    if uv.shape[0] == 0:
-        return np.zeros((0, 2))
-    pts = np.ascontiguousarray(uv, np.float64).reshape(-1, 1, 2)
-    # OpenCV's default 5 iterations leave pixels of error in the corners of a strongly
-    # distorted image (k1 = -0.28): iterate to convergence, as the edge does.
-    crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 20, 1e-10)
-    out = cv2.undistortPoints(pts, camera.K, camera.dist_coeffs, None, None, None, crit)
-    return out.reshape(-1, 2)
-
-
 def _project(
     T_body_cam: np.ndarray,
     T_world_body: np.ndarray,
@@ -161,6 +149,7 @@ def build_full_ba(
     index = {k: i for i, k in enumerate(keys)}
     T = np.array([atlas.T_map_body(k) for k in keys])
     fx = float(camera.fx)
+    model = PinholeRadtan.from_calibration(camera)
     kf_idx: list[np.ndarray] = []
     mp_keys: list[np.ndarray] = []
     xy: list[np.ndarray] = []
@@ -172,7 +161,7 @@ def build_full_ba(
             continue
         kf_idx.append(np.full(rows.size, i, np.int64))
         mp_keys.append(np.asarray(v.map_point_keys[rows], np.int64))
-        xy.append(undistort_normalized(camera, np.asarray(v.keypoints[rows])))
+        xy.append(model.pixels_to_normalized(np.asarray(v.keypoints[rows], np.float64)))
         lv = np.asarray(v.levels[rows], np.float64)
         sigma.append(config.pixel_sigma * config.level_scale**lv / fx)
     obs_kf = np.concatenate(kf_idx) if kf_idx else np.zeros(0, np.int64)
@@ -383,6 +372,7 @@ def reprojection_rms_px(atlas: Atlas, map_id: int, camera: CameraCalibration) ->
     """RMS reprojection error, pixels (``fx`` units), of every observation of a map's points
     in front of the camera at the atlas' current estimates (a diagnostic for tests and
     benchmarks)."""
+    model = PinholeRadtan.from_calibration(camera)
     errs: list[np.ndarray] = []
     for k in atlas.keyframe_keys(map_id=map_id):
         v = atlas.keyframe(k)
@@ -393,7 +383,7 @@ def reprojection_rms_px(atlas: Atlas, map_id: int, camera: CameraCalibration) ->
         p_cam = transform_points(inverse_T(np.asarray(v.T_map_body) @ camera.T_body_cam), p)
         front = p_cam[:, 2] > 1e-6
         xy = p_cam[front, :2] / p_cam[front, 2:3]
-        obs = undistort_normalized(camera, np.asarray(v.keypoints[rows][front]))
+        obs = model.pixels_to_normalized(np.asarray(v.keypoints[rows][front], np.float64))
         errs.append(np.sum((xy - obs) ** 2, axis=1))
     if not errs:
         return 0.0

@@ -39,7 +39,7 @@ from services.cloud.verification import VerificationResult, verify_candidate
 log = logging.getLogger(__name__)
 
 
-def _reason_kind(reason: str) -> str:
+def reason_kind(reason: str) -> str:
     """A verification reason without its numbers (``"tilt 98.2 deg"`` -> ``"tilt deg"``)."""
     return " ".join(w for w in reason.split() if not re.fullmatch(r"[\d./]+", w)) or reason
 
@@ -101,7 +101,7 @@ class MapFusion:
                     self.word_group,
                 )  # fmt: skip
                 events.verifications.append(res)
-                self.verification_counts[_reason_kind(res.reason)] += 1
+                self.verification_counts[reason_kind(res.reason)] += 1
                 log.info(
                     "candidate %d (agent %d) for keyframe %d (agent %d), score %.3f: %s "
                     "(%d inliers, ratio %.2f; totals %s)",

@@ -127,7 +127,7 @@ class RobotSession:
         self._sent_kfs: set[tuple[int, int]] = set()
         # The VIO's own keyframes (no robot features) stay on the edge: uplinked keyframes
         # chain to the previous uplinked keyframe of their map, observations skip the others.
-        self._own_kfs: set[tuple[int, int]] = set()
+        self._own_kfs: dict[int, set[int]] = {}  # map id -> the VIO's own keyframe ids
         self._up_prev: dict[tuple[int, int], int | None] = {}
         self._last_up: dict[int, int] = {}
         # (map id, point id) -> (position sent (3,), observations sent)
@@ -259,7 +259,7 @@ class RobotSession:
             key = (upd.map_id, kf.keyframe_id)
             self._kf_time[key] = kf.timestamp_ns
             if not kf.robot_keyframe:
-                self._own_kfs.add(key)
+                self._own_kfs.setdefault(upd.map_id, set()).add(kf.keyframe_id)
                 continue
             if key not in self._up_prev:
                 self._up_prev[key] = self._last_up.get(upd.map_id)
@@ -338,7 +338,7 @@ class RobotSession:
         """
         out = []
         map_id = upd.map_id
-        own = {k for m, k in self._own_kfs if m == map_id}
+        own = self._own_kfs.get(map_id, set())
         resend2 = self.options.point_resend_m**2
         for p in upd.points:
             pid = int(p.point_id)

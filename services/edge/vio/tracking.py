@@ -170,7 +170,7 @@ def _optimise(
         delta = gfg.optimize()
         step = 1.0
         while True:
-            trial = values.retract(delta.scale(step)) if step != 1.0 else values.retract(delta)
+            trial = values.retract(delta.scale(step))
             new_cost = total_cost(trial)
             if np.isfinite(new_cost) and new_cost <= cost:
                 break
