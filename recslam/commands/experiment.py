@@ -305,7 +305,7 @@ def run_table3(args: argparse.Namespace) -> int:
     from common.vocabulary import DEFAULT_VOCABULARY_PATH, Vocabulary
     from recslam.commands.cloud import find_camera
     from recslam.table3 import run_table3 as table3
-    from recslam.table3 import write_table3
+    from recslam.table3_report import write_table3
 
     if not args.recording.is_file():
         raise RecslamError(f"--recording {args.recording}: no such file")
