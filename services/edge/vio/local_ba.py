@@ -18,6 +18,7 @@ import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import B, L, V, X
 
+from services.edge.vio.ba_solver import Observations, SchurLM, observation_chi2
 from services.edge.vio.imu import make_bias, preintegrate
 from services.edge.vio.state import PinholeUndistorter, VioMap, project
 from services.edge.vio.types import LocalBAOptions, MappingOptions
@@ -152,43 +153,52 @@ def bundle_adjust(
             )
             graph.add(f.cloneWithNewNoiseModel(noise))
             n_imu += 1
-    body_P_cam = _pose(camera.T_body_cam)
-    noise_of = _NoiseCache(options.cauchy_k)
-    var_set = set(variables)
-    n_obs = 0
+    # Observations of the points seen at least twice by the variable keyframes.
+    pose_index = {k: i for i, k in enumerate(variables)}
+    obs_pose: list[int] = []
+    obs_row: list[int] = []
+    obs_point: list[int] = []
     used_points = []
-    # Per variable keyframe: its key, observations and noise sigmas.
-    kf_key = {k: X(k) for k in variables}
-    kf_xy = {k: vmap.keyframes[k].xy for k in variables}
-    kf_sigma = {k: vmap.keyframes[k].sigma.tolist() for k in variables}
-    projection_factor = gtsam.GenericProjectionFactorCal3_S2
     for mp in points:
-        obs = [(k, r) for k, r in mp.observations.items() if k in var_set]
+        obs = [(pose_index[k], r) for k, r in mp.observations.items() if k in pose_index]
         if len(obs) < 2:
             continue
+        j = len(used_points)
         used_points.append(mp)
-        lkey = L(mp.id)
-        values.insert(lkey, np.asarray(mp.p_world, float))
-        for k, r in obs:
-            graph.add(
-                projection_factor(
-                    kf_xy[k][r], noise_of(kf_sigma[k][r]), kf_key[k], lkey, _UNIT_K, body_P_cam
-                )
-            )
-        n_obs += len(obs)
+        for i, r in obs:
+            obs_pose.append(i)
+            obs_row.append(r)
+            obs_point.append(j)
+    n_obs = len(obs_pose)
     if n_obs == 0:
         return BAStats(len(window), len(fixed_set), 0, 0, 0.0, 0.0, 0, 0)
-    params = gtsam.LevenbergMarquardtParams()
-    params.setMaxIterations(max_iterations or options.max_iterations)
-    params.setRelativeErrorTol(options.relative_error_tol)
-    params.setVerbosityLM("SILENT")
-    err0 = graph.error(values)
-    try:
-        result = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
-    except RuntimeError as exc:  # indeterminant system: keep the old estimate
-        logger.warning("local BA failed (%s); estimate kept", exc)
+    kfs = [vmap.keyframes[k] for k in variables]
+    first_row = np.cumsum([0] + [len(kf.xy) for kf in kfs[:-1]])
+    rows = first_row[np.asarray(obs_pose)] + np.asarray(obs_row)
+    obs_arrays = Observations(
+        pose=np.asarray(obs_pose, dtype=np.int64),
+        point=np.asarray(obs_point, dtype=np.int64),
+        xy=np.concatenate([kf.xy for kf in kfs])[rows],
+        sigma=np.concatenate([kf.sigma for kf in kfs])[rows],
+    )
+    p_world = np.array([mp.p_world for mp in used_points], dtype=np.float64)
+    n_iter = max_iterations or options.max_iterations
+    if options.solver == "gtsam":
+        solved = _solve_gtsam(
+            graph, values, variables, p_world, obs_arrays, camera, options, n_iter
+        )
+    elif options.solver == "schur":
+        free = [X(kf.id) for kf in window if kf.id not in fixed_set]
+        if use_imu:
+            free += [key(kf.id) for kf in window for key in (V, B)]
+        solved = _solve_schur(
+            graph, values, free, variables, p_world, obs_arrays, camera, options, n_iter
+        )
+    else:
+        raise ValueError(f"LocalBAOptions.solver: unknown solver {options.solver!r}")
+    result, p_after, err0, err1 = solved
+    if result is None:  # failed: the old estimate is kept
         return BAStats(len(window), len(fixed_set), len(used_points), n_obs, err0, err0, 0, 0)
-    err1 = graph.error(result)
     for kf in window:
         if kf.id in fixed_set:
             continue
@@ -198,11 +208,81 @@ def bundle_adjust(
             bias = result.atConstantBias(B(kf.id))
             kf.bias_accel = np.asarray(bias.accelerometer(), float)
             kf.bias_gyro = np.asarray(bias.gyroscope(), float)
-    for mp in used_points:
-        mp.p_world = np.asarray(result.atPoint3(L(mp.id)), float)
+    for mp, p in zip(used_points, p_after, strict=True):
+        mp.p_world = p.copy()
     vmap.mark_dirty([kf.id for kf in window], [mp.id for mp in used_points])
     n_cobs, n_cpts = cull_observations(vmap, used_points, camera, mapping)
     return BAStats(len(window), len(fixed_set), len(used_points), n_obs, err0, err1, n_cobs, n_cpts)
+
+
+_Solved = tuple[gtsam.Values | None, np.ndarray, float, float]
+
+
+def _solve_gtsam(
+    graph: gtsam.NonlinearFactorGraph,
+    values: gtsam.Values,
+    variables: list[int],
+    p_world: np.ndarray,
+    obs: Observations,
+    camera: PinholeUndistorter,
+    options: LocalBAOptions,
+    max_iterations: int,
+) -> _Solved:
+    """The reference path: one gtsam graph with a projection factor per observation, gtsam's
+    LM. Returns (values or None if it failed, points (N, 3), error before, error after)."""
+    graph = gtsam.NonlinearFactorGraph(graph)
+    values = gtsam.Values(values)
+    body_P_cam = _pose(camera.T_body_cam)
+    noise_of = _NoiseCache(options.cauchy_k)
+    pose_key = [X(k) for k in variables]
+    for j, p in enumerate(p_world):
+        values.insert(L(j), p)
+    projection_factor = gtsam.GenericProjectionFactorCal3_S2
+    for i, j, xy, sigma in zip(
+        obs.pose.tolist(), obs.point.tolist(), obs.xy, obs.sigma.tolist(), strict=True
+    ):
+        graph.add(projection_factor(xy, noise_of(sigma), pose_key[i], L(j), _UNIT_K, body_P_cam))
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(max_iterations)
+    params.setRelativeErrorTol(options.relative_error_tol)
+    params.setVerbosityLM("SILENT")
+    err0 = graph.error(values)
+    try:
+        result = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
+    except RuntimeError as exc:  # indeterminant system: keep the old estimate
+        logger.warning("local BA failed (%s); estimate kept", exc)
+        return None, p_world, err0, err0
+    p_after = np.array([result.atPoint3(L(j)) for j in range(len(p_world))]).reshape(-1, 3)
+    return result, p_after, err0, graph.error(result)
+
+
+def _solve_schur(
+    graph: gtsam.NonlinearFactorGraph,
+    values: gtsam.Values,
+    free_keys: list[int],
+    variables: list[int],
+    p_world: np.ndarray,
+    obs: Observations,
+    camera: PinholeUndistorter,
+    options: LocalBAOptions,
+    max_iterations: int,
+) -> _Solved:
+    """Schur-complement LM (:mod:`services.edge.vio.ba_solver`): reprojection in numpy, the
+    IMU factors and priors of ``graph`` linearised by gtsam. Same return as the gtsam path."""
+    problem = SchurLM(
+        graph, values, free_keys, [X(k) for k in variables], p_world, obs,
+        camera.T_body_cam, options.cauchy_k,
+    )  # fmt: skip
+    err0 = problem.cost(values, p_world)
+    try:
+        res = problem.optimize(max_iterations, options.relative_error_tol)
+    except RuntimeError as exc:  # gtsam failed on the IMU part: keep the old estimate
+        logger.warning("local BA failed (%s); estimate kept", exc)
+        return None, p_world, err0, err0
+    if not (np.isfinite(res.error_after) and np.all(np.isfinite(res.p_world))):
+        logger.warning("local BA diverged (error %s); estimate kept", res.error_after)
+        return None, p_world, err0, err0
+    return res.values, res.p_world, res.error_before, res.error_after
 
 
 def cull_observations(
@@ -210,27 +290,37 @@ def cull_observations(
 ) -> tuple[int, int]:
     """Remove observations with chi2 above ``mapping.cull_chi2`` or behind the camera, then
     points left with fewer than ``mapping.min_observations``. Returns (observations, points)."""
-    n_obs = 0
-    n_pts = 0
-    by_kf: dict[int, list[tuple[int, int]]] = {}
-    for mp in points:
+    pose_index: dict[int, int] = {}
+    obs_pose: list[int] = []
+    obs_row: list[int] = []
+    obs_point: list[int] = []
+    live = [mp for mp in points if mp.id in vmap.points]
+    for j, mp in enumerate(live):
         for k, r in mp.observations.items():
-            by_kf.setdefault(k, []).append((mp.id, r))
-    for k, items in by_kf.items():
-        kf = vmap.keyframes.get(k)
-        if kf is None:
-            continue
-        pids = [p for p, _ in items if p in vmap.points]
-        if not pids:
-            continue
-        rows = np.array([r for p, r in items if p in vmap.points])
-        P = np.array([vmap.points[p].p_world for p in pids])
-        xy, z = project(kf.T_world_body, camera.T_body_cam, P)
-        chi2 = np.sum((xy - kf.xy[rows]) ** 2, axis=1) / kf.sigma[rows] ** 2
-        bad = ~(z > 0) | ~(chi2 < mapping.cull_chi2)
-        for pid in np.asarray(pids)[bad].tolist():
-            vmap.remove_observation(pid, k)
-            n_obs += 1
+            if k not in vmap.keyframes:
+                continue
+            obs_pose.append(pose_index.setdefault(k, len(pose_index)))
+            obs_row.append(r)
+            obs_point.append(j)
+    n_obs = 0
+    if obs_pose:
+        kfs = [vmap.keyframes[k] for k in pose_index]
+        first_row = np.cumsum([0] + [len(kf.xy) for kf in kfs[:-1]])
+        rows = first_row[np.asarray(obs_pose)] + np.asarray(obs_row)
+        obs = Observations(
+            pose=np.asarray(obs_pose, dtype=np.int64),
+            point=np.asarray(obs_point, dtype=np.int64),
+            xy=np.concatenate([kf.xy for kf in kfs])[rows],
+            sigma=np.concatenate([kf.sigma for kf in kfs])[rows],
+        )
+        T = np.array([kf.T_world_body for kf in kfs])
+        P = np.array([mp.p_world for mp in live], dtype=np.float64)
+        chi2 = observation_chi2(T, P, obs, camera.T_body_cam)
+        bad = np.flatnonzero(~(chi2 < mapping.cull_chi2))
+        for i, j in zip(obs.pose[bad].tolist(), obs.point[bad].tolist(), strict=True):
+            vmap.remove_observation(live[j].id, kfs[i].id)
+        n_obs = len(bad)
+    n_pts = 0
     for mp in points:
         if mp.id in vmap.points and len(mp.observations) < mapping.min_observations:
             vmap.remove_point(mp.id, ban=True)

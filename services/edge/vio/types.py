@@ -111,6 +111,9 @@ class LocalBAOptions:
     relative_error_tol: float = 1e-3  # LM stops when the cost falls by less than this share
     max_fixed_observers: int = 5  # observers outside the window kept as fixed poses
     fixed_sigma: float = 1e-6  # prior sigma holding fixed variables
+    # "schur": Schur-complement LM with the reprojection terms in numpy (ba_solver.py);
+    # "gtsam": one gtsam graph and its LM (the reference; same problem, same LM schedule).
+    solver: str = "schur"
     # Cost caps (CPU is the edge's budget: three robots' VIO share two cores). A local BA runs
     # on every robot keyframe and on every ``every_keyframes``-th of the VIO's own ones ...
     every_keyframes: int = 3

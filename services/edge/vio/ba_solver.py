@@ -1,0 +1,400 @@
+"""Sparse Schur-complement Levenberg–Marquardt for the local bundle adjustment.
+
+The reprojection terms (thousands) are linearised in numpy for all observations at once; the
+few other factors (CombinedImuFactor, priors) stay a small gtsam graph that gtsam linearises
+every iteration, and its information matrix joins the camera-side system. Map points are
+eliminated with batched 3×3 inverses (Schur complement), the reduced camera system is solved
+densely, and the points are back-substituted.
+
+The problem and the LM schedule are gtsam's, so both paths of
+:func:`services.edge.vio.local_ba.bundle_adjust` agree: reprojection of a point ``p_world`` into
+the camera of ``T_world_body @ T_body_cam`` on normalised coordinates, whitened by ``sigma``
+and robustified by Cauchy(k) as iteratively reweighted least squares (cost
+``0.5·k²·log(1 + r²/k²)``, as gtsam's ``Robust`` noise model; a point behind the camera gives
+gtsam's constant residual ``(2, 2)`` with zero Jacobians); pose tangent ``(omega, v)`` with
+``T·Exp(xi)``, points retracted additively; ``H + lambda·I`` damping of every variable with
+gtsam's ``LevenbergMarquardtParams`` defaults (initial lambda 1e-5, factor 10, upper bound 1e5,
+minimum model fidelity 1e-3, absolute error tolerance 1e-5). Variables not in ``free_keys`` are
+constants (gtsam holds them with tight priors; the difference is of the order of that sigma).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import gtsam
+import numpy as np
+
+logger = logging.getLogger(__name__)
+
+_LAMBDA_INITIAL = 1e-5
+_LAMBDA_FACTOR = 10.0
+_LAMBDA_UPPER = 1e5
+_MIN_MODEL_FIDELITY = 1e-3
+_ABSOLUTE_ERROR_TOL = 1e-5
+_BEHIND_RESIDUAL = 2.0  # gtsam's reprojection error for a point behind the camera (fx = 1)
+
+
+@dataclass(frozen=True, eq=False)
+class Observations:
+    """``M`` reprojection observations: ``pose`` (M,) index into the problem's pose keys,
+    ``point`` (M,) index into its points, ``xy`` (M, 2) undistorted normalised coordinates,
+    ``sigma`` (M,) noise in normalised units."""
+
+    pose: np.ndarray
+    point: np.ndarray
+    xy: np.ndarray
+    sigma: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class SchurResult:
+    """``values`` the gtsam variables (poses, velocities, biases) and ``p_world`` (N, 3) the
+    points after optimisation; errors are the total cost ``0.5·Σ robust`` (gtsam's graph
+    error of the same problem); ``iterations`` accepted LM steps."""
+
+    values: gtsam.Values
+    p_world: np.ndarray
+    error_before: float
+    error_after: float
+    iterations: int
+
+
+@dataclass(frozen=True, eq=False)
+class _Linearisation:
+    """Gauss–Newton system of the current estimate: camera-side ``H_cc`` (C, C) and ``g_c``
+    (C,), per point ``H_ll`` (N, 3, 3) and ``g_l`` (N, 3), per free-pose observation
+    ``H_pl`` (F, 6, 3)."""
+
+    H_cc: np.ndarray
+    g_c: np.ndarray
+    H_ll: np.ndarray
+    g_l: np.ndarray
+    H_pl: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class _PosePair:
+    """Free poses ``a`` <= ``b`` (camera-side offsets) and the free-pose observations
+    ``obs_a``, ``obs_b`` (P,) of the points both see (for ``a == b``: every observation)."""
+
+    offset_a: int
+    offset_b: int
+    obs_a: np.ndarray
+    obs_b: np.ndarray
+
+
+def _pose_pairs(pose: np.ndarray, point: np.ndarray, offset: np.ndarray) -> list[_PosePair]:
+    """Co-visibility of the free poses: for observations ``pose`` (F,), ``point`` (F,) with
+    camera-side ``offset`` (F,), every pair of poses that share points (Schur fill-in)."""
+    order = np.lexsort((pose, point))  # by point, then pose (a point sees a pose once)
+    p_sorted = point[order]
+    end_of = np.searchsorted(p_sorted, p_sorted, side="right")
+    reps = end_of - np.arange(len(order))  # pairs (i, j >= i) within each point
+    first = np.repeat(np.arange(len(order)), reps)
+    second = first + (np.arange(len(first)) - np.repeat(np.cumsum(reps) - reps, reps))
+    ia, ib = order[first], order[second]
+    key = pose[ia] * (int(pose.max()) + 1) + pose[ib]
+    by_key = np.argsort(key, kind="stable")
+    ia, ib, key = ia[by_key], ib[by_key], key[by_key]
+    cuts = np.flatnonzero(np.diff(key)) + 1
+    return [
+        _PosePair(int(offset[ga[0]]), int(offset[gb[0]]), ga, gb)
+        for ga, gb in zip(np.split(ia, cuts), np.split(ib, cuts), strict=True)
+    ]
+
+
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise ``a × b`` of (M, 3) arrays (np.cross is slower on short rows)."""
+    return np.stack(
+        [
+            a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1],
+            a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2],
+            a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0],
+        ],
+        axis=1,
+    )
+
+
+def _camera_points(
+    T_world_body: np.ndarray, p_world: np.ndarray, obs: Observations, T_body_cam: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per observation ``R_cam_world`` (M, 3, 3) and the point in the camera frame (M, 3)."""
+    R_bc, t_bc = T_body_cam[:3, :3], T_body_cam[:3, 3]
+    R_wc = T_world_body[:, :3, :3] @ R_bc  # (K, 3, 3)
+    t_wc = T_world_body[:, :3, :3] @ t_bc + T_world_body[:, :3, 3]
+    R_cw = R_wc.transpose(0, 2, 1)
+    t_cw = -(R_cw @ t_wc[:, :, None])[:, :, 0]
+    R = R_cw[obs.pose]
+    P = p_world[obs.point]
+    p_cam = R[:, :, 0] * P[:, 0:1] + R[:, :, 1] * P[:, 1:2] + R[:, :, 2] * P[:, 2:3]
+    p_cam += t_cw[obs.pose]
+    return R, p_cam
+
+
+def observation_chi2(
+    T_world_body: np.ndarray, p_world: np.ndarray, obs: Observations, T_body_cam: np.ndarray
+) -> np.ndarray:
+    """Whitened squared reprojection error (M,) of every observation; inf behind the camera
+    or where it is not finite."""
+    _, p_cam = _camera_points(T_world_body, p_world, obs, T_body_cam)
+    z = p_cam[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        e = np.sum((p_cam[:, :2] / z[:, None] - obs.xy) ** 2, axis=1) / obs.sigma**2
+    return np.where(z > 0, np.nan_to_num(e, nan=np.inf), np.inf)
+
+
+def reprojection_terms(
+    T_world_body: np.ndarray,
+    p_world: np.ndarray,
+    obs: Observations,
+    T_body_cam: np.ndarray,
+    cauchy_k: float,
+    jacobians: bool = True,
+) -> tuple[float, np.ndarray | None, np.ndarray | None]:
+    """Robust cost and IRLS-weighted whitened linearisation of every observation.
+
+    ``T_world_body`` (K, 4, 4), ``p_world`` (N, 3). Returns ``(cost, J (M, 2, 9), b (M, 2))``
+    with ``J = [J_pose | J_point]`` (pose tangent ``(omega, v)``, then the point) and
+    ``‖J·(xi, dp) − b‖²`` the Gauss–Newton model of the robust cost (gtsam's
+    ``Robust::WhitenSystem``); ``J`` and ``b`` None when ``jacobians`` is False.
+    """
+    R, p_cam = _camera_points(T_world_body, p_world, obs, T_body_cam)
+    z = p_cam[:, 2]
+    front = z > 0
+    inv_z = np.where(front, 1.0 / np.where(front, z, 1.0), 0.0)
+    proj = p_cam[:, :2] * inv_z[:, None]
+    err = np.where(front[:, None], proj - obs.xy, _BEHIND_RESIDUAL)
+    r = err / obs.sigma[:, None]  # whitened (M, 2)
+    c2 = cauchy_k * cauchy_k
+    s2 = r[:, 0] * r[:, 0] + r[:, 1] * r[:, 1]
+    cost = float(np.sum(0.5 * c2 * np.log1p(s2 / c2)))
+    if not jacobians:
+        return cost, None, None
+    sqrt_w = np.sqrt(1.0 / (1.0 + s2 / c2))
+    b = -r * sqrt_w[:, None]
+    scale = np.where(front, sqrt_w / obs.sigma, 0.0) * inv_z  # whitening, IRLS, 1/z
+    R_bc, t_bc = T_body_cam[:3, :3], T_body_cam[:3, 3]
+    p_body = p_cam @ R_bc.T + t_bc
+    R_cb = R_bc.T
+    J = np.empty((len(z), 2, 9))
+    for i in range(2):
+        # Row i of d proj / d p_cam is (e_i − proj_i·e_z)/z; through R_cw (point) and
+        # R_cb (body): d p_body / d xi = [ [p_body]x , −I ] (right perturbation).
+        s_i = scale[:, None]
+        J[:, i, 6:] = s_i * (R[:, i, :] - proj[:, i, None] * R[:, 2, :])
+        B_i = s_i * (R_cb[i] - proj[:, i, None] * R_cb[2])
+        J[:, i, :3] = _cross(B_i, p_body)  # row a of B times [p]x is a × p
+        J[:, i, 3:6] = -B_i
+    return cost, J, b
+
+
+def _dense_solve(S: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    """``S⁻¹·rhs`` for a symmetric positive definite ``S`` (C, C), by gtsam's (Eigen's) dense
+    Cholesky. Not LAPACK: the multithreaded OpenBLAS that numpy and scipy bundle spends
+    ~250 ms CPU on a 165×165 Cholesky when the other core is busy (threads spin waiting for a
+    preempted peer); Eigen's single-threaded one takes 0.25 ms. Raises RuntimeError if ``S``
+    is not positive definite."""
+    gfg = gtsam.GaussianFactorGraph()
+    gfg.add(gtsam.HessianFactor(0, S, rhs, 0.0))
+    return np.asarray(gfg.optimize().at(0), dtype=np.float64)
+
+
+class SchurLM:
+    """One bundle-adjustment problem: gtsam ``graph`` (non-reprojection factors) over
+    ``values``, reprojection ``obs`` of points ``p_world`` (N, 3) from the poses
+    ``pose_keys`` (K keys of ``values``), optimised over ``free_keys`` and every point."""
+
+    def __init__(
+        self,
+        graph: gtsam.NonlinearFactorGraph,
+        values: gtsam.Values,
+        free_keys: list[int],
+        pose_keys: list[int],
+        p_world: np.ndarray,
+        obs: Observations,
+        T_body_cam: np.ndarray,
+        cauchy_k: float,
+    ) -> None:
+        self.graph = graph
+        self.values = values
+        self.pose_keys = list(pose_keys)
+        self.p_world = np.array(p_world, dtype=np.float64).reshape(-1, 3)
+        self.obs = obs
+        self.T_body_cam = np.asarray(T_body_cam, dtype=np.float64)
+        self.cauchy_k = float(cauchy_k)
+        zero = values.zeroVectors()
+        self.free_keys = list(free_keys)
+        dims = [int(zero.at(k).size) for k in self.free_keys]
+        starts = np.concatenate([[0], np.cumsum(dims)]).astype(np.int64)
+        self.n_c = int(starts[-1])
+        self._slices = {k: (int(starts[i]), dims[i]) for i, k in enumerate(self.free_keys)}
+        # Column offset of each pose in the camera-side vector (-1: constant pose).
+        self._pose_offset = np.array(
+            [self._slices[k][0] if k in self._slices else -1 for k in self.pose_keys],
+            dtype=np.int64,
+        )
+        n = len(self.p_world)
+        off = self._pose_offset[obs.pose]
+        fo = np.flatnonzero(off >= 0)
+        self._free_obs = fo
+        self._free_point = obs.point[fo]
+        rows6 = off[fo][:, None] + np.arange(6)  # (F, 6) camera-side rows of each observation
+        # Sums of per-observation blocks: observations grouped by point (all) and by free pose.
+        if np.any(np.bincount(obs.point, minlength=n) == 0):
+            raise ValueError("SchurLM: every point needs at least one observation")
+        self._by_point = np.argsort(obs.point, kind="stable")
+        self._point_starts = np.searchsorted(obs.point[self._by_point], np.arange(n))
+        fo_pose = obs.pose[fo]
+        self._by_pose = np.argsort(fo_pose, kind="stable")
+        poses_sorted = fo_pose[self._by_pose]
+        self._pose_starts = np.flatnonzero(np.r_[True, np.diff(poses_sorted) != 0])
+        self._pose_rows = (off[fo][self._by_pose][self._pose_starts])[:, None] + np.arange(6)
+        self._idx_c = rows6.ravel()
+        self._idx_lf = (self._free_point[:, None] * 3 + np.arange(3)).ravel()
+        self._rows6 = rows6
+        self._n = n
+        self._pairs = _pose_pairs(obs.pose[fo], self._free_point, off[fo]) if len(fo) else []
+        # The gtsam graph's keys: free ones first (their block of its Hessian), then constants.
+        graph_keys = set(graph.keys())
+        self._graph_free = [k for k in self.free_keys if k in graph_keys]
+        self._graph_idx = (
+            np.concatenate(
+                [self._slices[k][0] + np.arange(self._slices[k][1]) for k in self._graph_free]
+            )
+            if self._graph_free
+            else np.zeros(0, dtype=np.int64)
+        )
+        self._ordering = gtsam.Ordering()
+        for k in self._graph_free + sorted(graph_keys - set(self._graph_free)):
+            self._ordering.push_back(k)
+
+    # ------------------------------------------------------------------ pieces
+    def _poses(self, values: gtsam.Values) -> np.ndarray:
+        return np.array([values.atPose3(k).matrix() for k in self.pose_keys]).reshape(-1, 4, 4)
+
+    def cost(self, values: gtsam.Values, p_world: np.ndarray) -> float:
+        """Total cost ``0.5·Σ robust`` (reprojection plus the gtsam graph)."""
+        c, _, _ = reprojection_terms(
+            self._poses(values), p_world, self.obs, self.T_body_cam, self.cauchy_k, False
+        )
+        return c + (self.graph.error(values) if self.graph.size() else 0.0)
+
+    def _linearise(self, values: gtsam.Values, p_world: np.ndarray) -> _Linearisation:
+        _, J, b = reprojection_terms(
+            self._poses(values), p_world, self.obs, self.T_body_cam, self.cauchy_k
+        )
+        assert J is not None and b is not None
+        n_c, fo = self.n_c, self._free_obs
+        # Per observation the 9×9 block of [pose | point] and its gradient (one batched matmul;
+        # a copied transpose, since numpy hands ``Aᵀ @ A`` of one buffer to BLAS syrk per item).
+        J_t = np.ascontiguousarray(J.transpose(0, 2, 1))
+        H9 = J_t @ J  # (M, 9, 9)
+        g9 = (J_t @ b[:, :, None])[:, :, 0]  # (M, 9)
+        bp, starts = self._by_point, self._point_starts
+        H_ll = np.add.reduceat(H9[bp, 6:, 6:], starts)
+        g_l = np.add.reduceat(g9[bp, 6:], starts)
+        H_pl = H9[fo, :6, 6:]
+        H_cc = np.zeros((n_c, n_c))
+        g_c = np.zeros(n_c)
+        if len(fo):
+            bq, rows, starts = fo[self._by_pose], self._pose_rows, self._pose_starts
+            H_cc[rows[:, :, None], rows[:, None, :]] = np.add.reduceat(H9[bq, :6, :6], starts)
+            g_c[rows] = np.add.reduceat(g9[bq, :6], starts)
+        if self._graph_free:
+            H_g, eta_g = self.graph.linearize(values).hessian(self._ordering)
+            m = len(self._graph_idx)
+            H_cc[np.ix_(self._graph_idx, self._graph_idx)] += H_g[:m, :m]
+            g_c[self._graph_idx] += np.asarray(eta_g).reshape(-1)[:m]
+        return _Linearisation(H_cc, g_c, H_ll, g_l, H_pl)
+
+    def _solve(self, lin: _Linearisation, lam: float) -> tuple[np.ndarray, np.ndarray] | None:
+        """Damped step ``(delta_c (C,), delta_l (N, 3))`` or None if the system is singular.
+
+        Points are eliminated: ``S = H_cc − Σ H_pl·H_ll⁻¹·H_plᵀ`` over co-visible pose pairs,
+        ``S·delta_c = g_c − Σ H_pl·H_ll⁻¹·g_l``, then ``delta_l = H_ll⁻¹·(g_l − H_plᵀ·delta_c)``.
+        """
+        try:
+            H_ll_inv = np.linalg.inv(lin.H_ll + lam * np.eye(3))
+        except np.linalg.LinAlgError:
+            return None
+        if not self.n_c:
+            return np.zeros(0), (H_ll_inv @ lin.g_l[:, :, None])[:, :, 0]
+        n_c, pts = self.n_c, self._free_point
+        W = lin.H_pl @ H_ll_inv[pts]  # (F, 6, 3)
+        Wt = np.ascontiguousarray(W.transpose(0, 2, 1))  # (F, 3, 6)
+        Ht = np.ascontiguousarray(lin.H_pl.transpose(0, 2, 1))
+        S = lin.H_cc.copy()
+        for pair in self._pairs:
+            blk = Wt[pair.obs_a].reshape(-1, 6).T @ Ht[pair.obs_b].reshape(-1, 6)
+            a, b = pair.offset_a, pair.offset_b
+            S[a : a + 6, b : b + 6] -= blk
+            if a != b:
+                S[b : b + 6, a : a + 6] -= blk.T
+        S[np.diag_indices_from(S)] += lam
+        rhs = lin.g_c - np.bincount(self._idx_c, (W @ lin.g_l[pts][:, :, None]).ravel(), n_c)
+        try:
+            delta_c = _dense_solve(S, rhs)
+        except RuntimeError:  # not positive definite
+            return None
+        if not np.all(np.isfinite(delta_c)):
+            return None
+        back = Ht @ delta_c[self._rows6][:, :, None]  # (F, 3, 1): H_plᵀ·delta_pose
+        back = np.bincount(self._idx_lf, back.ravel(), 3 * self._n).reshape(-1, 3)
+        delta_l = (H_ll_inv @ (lin.g_l - back)[:, :, None])[:, :, 0]
+        return delta_c, delta_l
+
+    def _retract(self, values: gtsam.Values, delta_c: np.ndarray) -> gtsam.Values:
+        vv = gtsam.VectorValues()
+        for k in self.free_keys:
+            s, d = self._slices[k]
+            vv.insert(k, delta_c[s : s + d])
+        return values.retract(vv)
+
+    # ------------------------------------------------------------------ LM
+    def optimize(self, max_iterations: int, relative_error_tol: float) -> SchurResult:
+        """gtsam's LevenbergMarquardtOptimizer schedule (``iterate`` / ``tryLambda``)."""
+        values, p = self.values, self.p_world
+        error = self.cost(values, p)
+        error0 = error
+        lam = _LAMBDA_INITIAL
+        iterations = 0
+        while error > 0.0 and iterations < max_iterations:
+            current = error
+            lin = self._linearise(values, p)
+            while True:  # tryLambda until a step is taken or the search stops
+                success = stop = False
+                step = self._solve(lin, lam)
+                if step is not None:
+                    delta_c, delta_l = step
+                    # Decrease of the undamped model: with (H + lam·I)·d = g it is
+                    # g·d − 0.5·d·H·d = 0.5·(g·d + lam·|d|²).
+                    g_dot = float(lin.g_c @ delta_c + np.sum(lin.g_l * delta_l))
+                    sq = float(delta_c @ delta_c + np.sum(delta_l * delta_l))
+                    lin_change = 0.5 * (g_dot + lam * sq)
+                    if lin_change >= 0.0:
+                        new_values = self._retract(values, delta_c)
+                        new_p = p + delta_l
+                        new_error = self.cost(new_values, new_p)
+                        change = error - new_error
+                        if lin_change > np.finfo(float).eps * error:
+                            success = change / lin_change > _MIN_MODEL_FIDELITY
+                        stop = abs(change) < relative_error_tol * error
+                if success:
+                    values, p, error = new_values, new_p, new_error
+                    lam = lam / _LAMBDA_FACTOR
+                    iterations += 1
+                    break
+                if stop:
+                    break
+                lam *= _LAMBDA_FACTOR
+                if lam >= _LAMBDA_UPPER:
+                    logger.debug("Schur LM: no decrease with the largest lambda")
+                    break
+            decrease = current - error
+            if not np.isfinite(current) or decrease <= _ABSOLUTE_ERROR_TOL:
+                break
+            if decrease <= relative_error_tol * current:
+                break
+        return SchurResult(values, p, error0, error, iterations)
