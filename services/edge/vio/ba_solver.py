@@ -249,7 +249,7 @@ class SchurLM:
         fo_pose = obs.pose[fo]
         self._by_pose = np.argsort(fo_pose, kind="stable")
         poses_sorted = fo_pose[self._by_pose]
-        self._pose_starts = np.flatnonzero(np.r_[True, np.diff(poses_sorted) != 0])
+        self._pose_starts = np.flatnonzero(np.diff(poses_sorted, prepend=-1) != 0)
         self._pose_rows = (off[fo][self._by_pose][self._pose_starts])[:, None] + np.arange(6)
         self._idx_c = rows6.ravel()
         self._idx_lf = (self._free_point[:, None] * 3 + np.arange(3)).ravel()
