@@ -59,7 +59,7 @@ from services.cloud.config import CloudConfig, CloudServiceConfig, MbpConfig
 from services.cloud.full_ba import solve_full_ba
 from services.cloud.global_optimization import optimize_pose_graph
 from services.cloud.map_fusion import FusionEvents, MapFusion
-from services.cloud.mbp import select_backbone
+from services.cloud.mbp import REASONS, backbone
 from services.cloud.persistence import CloudStore
 from services.cloud.recording import Record, read_recording
 
@@ -265,32 +265,24 @@ def replay(
 
 
 def backbone_breakdown(app: CloudApp) -> dict[str, int]:
-    """Why the final atlas' keyframes are kept, summed over maps (a diagnostic of MBP's
-    selection, :func:`services.cloud.mbp.select_backbone`, with MBP's settings even when
-    the replay ran without MBP): ``loop_endpoints`` (protected), ``first_or_recent``
-    (protected: each agent's first and ``mbp_keep_recent`` newest, not loop endpoints),
-    ``no_strong_neighbour`` (no strongly covisible keyframe: MBP can never remove them) and
-    ``kept_by_one_more_pass`` (what one more MBP pass on the final map would keep)."""
+    """Why the final atlas' keyframes would be kept by one more MBP pass, summed over maps (a
+    diagnostic of :func:`services.cloud.mbp.backbone` with MBP's settings, even when the
+    replay ran without MBP): ``kept_by_one_more_pass`` and its partition by reason
+    (``protected``: each agent's first and ``mbp_keep_recent`` newest; ``not_covered``: the
+    other keyframes see too little of it; ``covers_removed``: a removed keyframe would lose
+    its coverage; ``connector``: the kept keyframes would fall apart), and
+    ``loop_endpoints``: keyframes at a loop / merge constraint (not protected: MBP moves the
+    constraint onto the absorbing keyframe)."""
     atlas = app.atlas
-    mbp = app.config.domain.mbp
-    keep_recent = app.config.mbp_keep_recent
-    out = {"keyframes": atlas.n_keyframes(), "loop_endpoints": 0, "first_or_recent": 0,
-           "no_strong_neighbour": 0, "kept_by_one_more_pass": 0}  # fmt: skip
+    out = {"keyframes": atlas.n_keyframes(), "loop_endpoints": 0, "kept_by_one_more_pass": 0}
+    out.update(dict.fromkeys(REASONS, 0))
     ends = {k for e in atlas.loops() for k in (e.key_a, e.key_b)}
+    out["loop_endpoints"] = len(ends)
     for m in atlas.maps():
-        keys = atlas.keyframe_keys(map_id=m)
-        out["loop_endpoints"] += len(ends & set(keys))
-        recent: set[int] = set()
-        for agent in atlas.agents_in_map(m):
-            ak = atlas.keyframe_keys(map_id=m, agent_id=agent)
-            recent.update(ak[:1] + (ak[-keep_recent:] if keep_recent > 0 else []))
-        out["first_or_recent"] += len(recent - ends)
-        npts = {k: int((atlas.keyframe(k).map_point_keys >= 0).sum()) for k in keys}
-        for a in keys:
-            strong = [b for b, w in atlas.covisible(a, mbp.min_shared)
-                      if b in npts and w >= mbp.cover_ratio * min(npts[a], npts[b])]  # fmt: skip
-            out["no_strong_neighbour"] += not strong
-        out["kept_by_one_more_pass"] += len(select_backbone(atlas, m, mbp, keep_recent))
+        bb = backbone(atlas, m, app.config.domain.mbp, app.config.mbp_keep_recent)
+        out["kept_by_one_more_pass"] += len(bb.kept)
+        for why in bb.reasons.values():
+            out[why] += 1
     return out
 
 

@@ -82,16 +82,20 @@ def table3_markdown(t: Table3) -> str:
         "(within 5 % + 5 mm): "
         f"**{'met' if ate_ok else 'not met'}** ({_f(j_off, '.4f')} m → {_f(j_on, '.4f')} m).",
         "",
-        "Why keyframes are kept (final atlas; MBP's selection rules, see "
-        "`recslam.table3.backbone_breakdown`; categories overlap except the first two):",
+        "Why keyframes are kept (final atlas; what one more MBP pass would keep, by the first "
+        "of its rules that keeps each, see `services.cloud.mbp.backbone`; loop / merge "
+        "endpoints are not protected: MBP moves their constraints onto the absorbing "
+        "keyframe):",
         "",
-        "| | keyframes | loop / merge endpoints (protected) | first or newest per robot "
-        "(protected) | no strongly covisible neighbour | kept by one more MBP pass now |",
-        "|---|---|---|---|---|---|",
+        "| | keyframes | loop / merge endpoints | kept by one more MBP pass | protected (first "
+        "or newest per robot) | not covered by the others | connector | keeps a removed one "
+        "covered |",
+        "|---|---|---|---|---|---|---|---|",
         *[
             f"| {r.label} | {b.get('keyframes', '–')} | {b.get('loop_endpoints', '–')} | "
-            f"{b.get('first_or_recent', '–')} | {b.get('no_strong_neighbour', '–')} | "
-            f"{b.get('kept_by_one_more_pass', '–')} |"
+            f"{b.get('kept_by_one_more_pass', '–')} | {b.get('protected', '–')} | "
+            f"{b.get('not_covered', '–')} | {b.get('connector', '–')} | "
+            f"{b.get('covers_removed', '–')} |"
             for r, b in ((off, off.backbone), (on, on.backbone))
         ],
         "",
