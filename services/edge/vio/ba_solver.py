@@ -75,19 +75,21 @@ class _Linearisation:
 
 
 @dataclass(frozen=True, eq=False)
-class _PosePair:
-    """Free poses ``a`` <= ``b`` (camera-side offsets) and the free-pose observations
-    ``obs_a``, ``obs_b`` (P,) of the points both see (for ``a == b``: every observation)."""
+class _Covisibility:
+    """Pairs of free-pose observations ``(obs_a, obs_b)`` (P,) of the same point, poses
+    ``a <= b``, grouped by pose pair: group ``g`` is ``bounds[g]:bounds[g + 1]``, between the
+    camera-side offsets ``offset_a[g]`` and ``offset_b[g]`` (Schur fill-in)."""
 
-    offset_a: int
-    offset_b: int
     obs_a: np.ndarray
     obs_b: np.ndarray
+    bounds: list[int]
+    offset_a: list[int]
+    offset_b: list[int]
 
 
-def _pose_pairs(pose: np.ndarray, point: np.ndarray, offset: np.ndarray) -> list[_PosePair]:
-    """Co-visibility of the free poses: for observations ``pose`` (F,), ``point`` (F,) with
-    camera-side ``offset`` (F,), every pair of poses that share points (Schur fill-in)."""
+def _covisibility(pose: np.ndarray, point: np.ndarray, offset: np.ndarray) -> _Covisibility:
+    """For observations ``pose`` (F,), ``point`` (F,) of free poses with camera-side ``offset``
+    (F,): every pair of observations of one point (itself included), grouped by pose pair."""
     order = np.lexsort((pose, point))  # by point, then pose (a point sees a pose once)
     p_sorted = point[order]
     end_of = np.searchsorted(p_sorted, p_sorted, side="right")
@@ -98,11 +100,14 @@ def _pose_pairs(pose: np.ndarray, point: np.ndarray, offset: np.ndarray) -> list
     key = pose[ia] * (int(pose.max()) + 1) + pose[ib]
     by_key = np.argsort(key, kind="stable")
     ia, ib, key = ia[by_key], ib[by_key], key[by_key]
-    cuts = np.flatnonzero(np.diff(key)) + 1
-    return [
-        _PosePair(int(offset[ga[0]]), int(offset[gb[0]]), ga, gb)
-        for ga, gb in zip(np.split(ia, cuts), np.split(ib, cuts), strict=True)
-    ]
+    starts = np.flatnonzero(np.diff(key, prepend=-1) != 0)
+    return _Covisibility(
+        ia,
+        ib,
+        [*starts.tolist(), len(ia)],
+        offset[ia[starts]].tolist(),
+        offset[ib[starts]].tolist(),
+    )
 
 
 def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -236,26 +241,29 @@ class SchurLM:
             dtype=np.int64,
         )
         n = len(self.p_world)
-        off = self._pose_offset[obs.pose]
-        fo = np.flatnonzero(off >= 0)
-        self._free_obs = fo
-        self._free_point = obs.point[fo]
-        rows6 = off[fo][:, None] + np.arange(6)  # (F, 6) camera-side rows of each observation
-        # Sums of per-observation blocks: observations grouped by point (all) and by free pose.
         if np.any(np.bincount(obs.point, minlength=n) == 0):
             raise ValueError("SchurLM: every point needs at least one observation")
+        # Observations reordered once: those of free poses first, grouped by pose.
+        off = self._pose_offset[obs.pose]
+        order = np.lexsort((obs.point, obs.pose, off < 0))
+        obs = Observations(obs.pose[order], obs.point[order], obs.xy[order], obs.sigma[order])
+        self.obs = obs
+        off = off[order]
+        n_free = int(np.sum(off >= 0))
+        self._n_free = n_free
+        self._free_point = obs.point[:n_free]
+        rows6 = off[:n_free, None] + np.arange(6)  # (F, 6) camera-side rows of each observation
+        self._rows6 = rows6
+        self._pose_starts = np.flatnonzero(np.diff(obs.pose[:n_free], prepend=-1) != 0)
+        self._pose_rows = rows6[self._pose_starts]
         self._by_point = np.argsort(obs.point, kind="stable")
         self._point_starts = np.searchsorted(obs.point[self._by_point], np.arange(n))
-        fo_pose = obs.pose[fo]
-        self._by_pose = np.argsort(fo_pose, kind="stable")
-        poses_sorted = fo_pose[self._by_pose]
-        self._pose_starts = np.flatnonzero(np.diff(poses_sorted, prepend=-1) != 0)
-        self._pose_rows = (off[fo][self._by_pose][self._pose_starts])[:, None] + np.arange(6)
         self._idx_c = rows6.ravel()
         self._idx_lf = (self._free_point[:, None] * 3 + np.arange(3)).ravel()
-        self._rows6 = rows6
         self._n = n
-        self._pairs = _pose_pairs(obs.pose[fo], self._free_point, off[fo]) if len(fo) else []
+        self._covis = (
+            _covisibility(obs.pose[:n_free], self._free_point, off[:n_free]) if n_free else None
+        )
         # The gtsam graph's keys: free ones first (their block of its Hessian), then constants.
         graph_keys = set(graph.keys())
         self._graph_free = [k for k in self.free_keys if k in graph_keys]
@@ -286,22 +294,22 @@ class SchurLM:
             self._poses(values), p_world, self.obs, self.T_body_cam, self.cauchy_k
         )
         assert J is not None and b is not None
-        n_c, fo = self.n_c, self._free_obs
-        # Per observation the 9×9 block of [pose | point] and its gradient (one batched matmul;
-        # a copied transpose, since numpy hands ``Aᵀ @ A`` of one buffer to BLAS syrk per item).
-        J_t = np.ascontiguousarray(J.transpose(0, 2, 1))
-        H9 = J_t @ J  # (M, 9, 9)
-        g9 = (J_t @ b[:, :, None])[:, :, 0]  # (M, 9)
+        n_c, f = self.n_c, self._n_free
+        # Transposes are copied: numpy hands ``Aᵀ @ A`` of one buffer to BLAS syrk per item.
+        J_point = J[:, :, 6:]
+        J_point_t = np.ascontiguousarray(J_point.transpose(0, 2, 1))  # (M, 3, 2)
         bp, starts = self._by_point, self._point_starts
-        H_ll = np.add.reduceat(H9[bp, 6:, 6:], starts)
-        g_l = np.add.reduceat(g9[bp, 6:], starts)
-        H_pl = H9[fo, :6, 6:]
+        H_ll = np.add.reduceat((J_point_t @ J_point)[bp], starts)
+        g_l = np.add.reduceat((J_point_t @ b[:, :, None])[bp, :, 0], starts)
+        J_pose_t = np.ascontiguousarray(J[:f, :, :6].transpose(0, 2, 1))  # (F, 6, 2)
+        H_p = J_pose_t @ J[:f]  # (F, 6, 9): pose rows of [pose | point]
+        H_pl = H_p[:, :, 6:]
         H_cc = np.zeros((n_c, n_c))
         g_c = np.zeros(n_c)
-        if len(fo):
-            bq, rows, starts = fo[self._by_pose], self._pose_rows, self._pose_starts
-            H_cc[rows[:, :, None], rows[:, None, :]] = np.add.reduceat(H9[bq, :6, :6], starts)
-            g_c[rows] = np.add.reduceat(g9[bq, :6], starts)
+        if f:
+            rows, starts = self._pose_rows, self._pose_starts
+            H_cc[rows[:, :, None], rows[:, None, :]] = np.add.reduceat(H_p[:, :, :6], starts)
+            g_c[rows] = np.add.reduceat((J_pose_t @ b[:f, :, None])[:, :, 0], starts)
         if self._graph_free:
             H_g, eta_g = self.graph.linearize(values).hessian(self._ordering)
             m = len(self._graph_idx)
@@ -323,12 +331,16 @@ class SchurLM:
             return np.zeros(0), (H_ll_inv @ lin.g_l[:, :, None])[:, :, 0]
         n_c, pts = self.n_c, self._free_point
         W = lin.H_pl @ H_ll_inv[pts]  # (F, 6, 3)
+        cv = self._covis
+        assert cv is not None
         Wt = np.ascontiguousarray(W.transpose(0, 2, 1))  # (F, 3, 6)
         Ht = np.ascontiguousarray(lin.H_pl.transpose(0, 2, 1))
         S = lin.H_cc.copy()
-        for pair in self._pairs:
-            blk = Wt[pair.obs_a].reshape(-1, 6).T @ Ht[pair.obs_b].reshape(-1, 6)
-            a, b = pair.offset_a, pair.offset_b
+        for g in range(len(cv.offset_a)):
+            s0, s1 = cv.bounds[g], cv.bounds[g + 1]
+            # Σ over the points both see of W_a·H_plᵀ_b (6, 6).
+            blk = Wt[cv.obs_a[s0:s1]].reshape(-1, 6).T @ Ht[cv.obs_b[s0:s1]].reshape(-1, 6)
+            a, b = cv.offset_a[g], cv.offset_b[g]
             S[a : a + 6, b : b + 6] -= blk
             if a != b:
                 S[b : b + 6, a : a + 6] -= blk.T
@@ -340,7 +352,7 @@ class SchurLM:
             return None
         if not np.all(np.isfinite(delta_c)):
             return None
-        back = Ht @ delta_c[self._rows6][:, :, None]  # (F, 3, 1): H_plᵀ·delta_pose
+        back = lin.H_pl.transpose(0, 2, 1) @ delta_c[self._rows6][:, :, None]  # H_plᵀ·d_pose
         back = np.bincount(self._idx_lf, back.ravel(), 3 * self._n).reshape(-1, 3)
         delta_l = (H_ll_inv @ (lin.g_l - back)[:, :, None])[:, :, 0]
         return delta_c, delta_l

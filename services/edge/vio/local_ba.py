@@ -20,7 +20,7 @@ from gtsam.symbol_shorthand import B, L, V, X
 
 from services.edge.vio.ba_solver import Observations, SchurLM, observation_chi2
 from services.edge.vio.imu import make_bias, preintegrate
-from services.edge.vio.state import PinholeUndistorter, VioMap, project
+from services.edge.vio.state import MapPoint, PinholeUndistorter, VioMap, project
 from services.edge.vio.types import LocalBAOptions, MappingOptions
 
 logger = logging.getLogger(__name__)
@@ -91,7 +91,7 @@ def bundle_adjust(
     )
     points = [vmap.points[p] for p in point_ids]
     if 0 < options.max_points < len(points):
-        points.sort(key=lambda mp: (-sum(k in in_window for k in mp.observations), mp.id))
+        points.sort(key=lambda mp: (-len(in_window.intersection(mp.observations)), mp.id))
         points = sorted(points[: options.max_points], key=lambda mp: mp.id)
     observers: set[int] = set()
     for mp in points:
@@ -154,33 +154,10 @@ def bundle_adjust(
             graph.add(f.cloneWithNewNoiseModel(noise))
             n_imu += 1
     # Observations of the points seen at least twice by the variable keyframes.
-    pose_index = {k: i for i, k in enumerate(variables)}
-    obs_pose: list[int] = []
-    obs_row: list[int] = []
-    obs_point: list[int] = []
-    used_points = []
-    for mp in points:
-        obs = [(pose_index[k], r) for k, r in mp.observations.items() if k in pose_index]
-        if len(obs) < 2:
-            continue
-        j = len(used_points)
-        used_points.append(mp)
-        for i, r in obs:
-            obs_pose.append(i)
-            obs_row.append(r)
-            obs_point.append(j)
-    n_obs = len(obs_pose)
+    used_points, obs_arrays, _ = _observation_table(vmap, points, variables, min_observations=2)
+    n_obs = len(obs_arrays.pose)
     if n_obs == 0:
         return BAStats(len(window), len(fixed_set), 0, 0, 0.0, 0.0, 0, 0)
-    kfs = [vmap.keyframes[k] for k in variables]
-    first_row = np.cumsum([0] + [len(kf.xy) for kf in kfs[:-1]])
-    rows = first_row[np.asarray(obs_pose)] + np.asarray(obs_row)
-    obs_arrays = Observations(
-        pose=np.asarray(obs_pose, dtype=np.int64),
-        point=np.asarray(obs_point, dtype=np.int64),
-        xy=np.concatenate([kf.xy for kf in kfs])[rows],
-        sigma=np.concatenate([kf.sigma for kf in kfs])[rows],
-    )
     p_world = np.array([mp.p_world for mp in used_points], dtype=np.float64)
     n_iter = max_iterations or options.max_iterations
     if options.solver == "gtsam":
@@ -273,16 +250,56 @@ def _solve_schur(
         graph, values, free_keys, [X(k) for k in variables], p_world, obs,
         camera.T_body_cam, options.cauchy_k,
     )  # fmt: skip
-    err0 = problem.cost(values, p_world)
     try:
         res = problem.optimize(max_iterations, options.relative_error_tol)
     except RuntimeError as exc:  # gtsam failed on the IMU part: keep the old estimate
         logger.warning("local BA failed (%s); estimate kept", exc)
+        err0 = problem.cost(values, p_world)
         return None, p_world, err0, err0
     if not (np.isfinite(res.error_after) and np.all(np.isfinite(res.p_world))):
         logger.warning("local BA diverged (error %s); estimate kept", res.error_after)
-        return None, p_world, err0, err0
+        return None, p_world, res.error_before, res.error_before
     return res.values, res.p_world, res.error_before, res.error_after
+
+
+def _present(vmap: VioMap, keyframe_ids: np.ndarray) -> list[int]:
+    return [k for k in keyframe_ids.tolist() if k in vmap.keyframes]
+
+
+def _observation_table(
+    vmap: VioMap, points: list[MapPoint], keyframe_ids: list[int] | None, min_observations: int
+) -> tuple[list[MapPoint], Observations, list[int]]:
+    """The observations of ``points`` made by ``keyframe_ids`` (every keyframe of the map that
+    observes them when None, in id order) as arrays: ``pose`` indexes the returned keyframe
+    ids, ``point`` the returned points, those with at least ``min_observations`` of them."""
+    counts = [len(mp.observations) for mp in points]
+    items = itertools.chain.from_iterable(mp.observations.items() for mp in points)
+    flat = np.fromiter(itertools.chain.from_iterable(items), np.int64, 2 * sum(counts))
+    kf_id, row = flat[0::2], flat[1::2]
+    point = np.repeat(np.arange(len(points)), counts)
+    ids = np.asarray(
+        _present(vmap, np.unique(kf_id)) if keyframe_ids is None else keyframe_ids, np.int64
+    )
+    if len(ids) == 0 or len(kf_id) == 0:
+        empty = np.zeros(0, np.int64)
+        return [], Observations(empty, empty, np.zeros((0, 2)), np.zeros(0)), ids.tolist()
+    sorter = np.argsort(ids)
+    at = np.minimum(np.searchsorted(ids, kf_id, sorter=sorter), len(ids) - 1)
+    pose = sorter[at]
+    keep = ids[pose] == kf_id
+    used = np.bincount(point[keep], minlength=len(points)) >= min_observations
+    keep &= used[point]
+    new_index = np.cumsum(used) - 1
+    kfs = [vmap.keyframes[k] for k in ids.tolist()]
+    first_row = np.cumsum([0] + [len(kf.xy) for kf in kfs[:-1]])
+    rows = first_row[pose[keep]] + row[keep]
+    obs = Observations(
+        pose=pose[keep],
+        point=new_index[point[keep]],
+        xy=np.concatenate([kf.xy for kf in kfs])[rows],
+        sigma=np.concatenate([kf.sigma for kf in kfs])[rows],
+    )
+    return [mp for mp, u in zip(points, used.tolist(), strict=True) if u], obs, ids.tolist()
 
 
 def cull_observations(
@@ -290,35 +307,16 @@ def cull_observations(
 ) -> tuple[int, int]:
     """Remove observations with chi2 above ``mapping.cull_chi2`` or behind the camera, then
     points left with fewer than ``mapping.min_observations``. Returns (observations, points)."""
-    pose_index: dict[int, int] = {}
-    obs_pose: list[int] = []
-    obs_row: list[int] = []
-    obs_point: list[int] = []
     live = [mp for mp in points if mp.id in vmap.points]
-    for j, mp in enumerate(live):
-        for k, r in mp.observations.items():
-            if k not in vmap.keyframes:
-                continue
-            obs_pose.append(pose_index.setdefault(k, len(pose_index)))
-            obs_row.append(r)
-            obs_point.append(j)
+    live, obs, kf_ids = _observation_table(vmap, live, None, min_observations=1)
     n_obs = 0
-    if obs_pose:
-        kfs = [vmap.keyframes[k] for k in pose_index]
-        first_row = np.cumsum([0] + [len(kf.xy) for kf in kfs[:-1]])
-        rows = first_row[np.asarray(obs_pose)] + np.asarray(obs_row)
-        obs = Observations(
-            pose=np.asarray(obs_pose, dtype=np.int64),
-            point=np.asarray(obs_point, dtype=np.int64),
-            xy=np.concatenate([kf.xy for kf in kfs])[rows],
-            sigma=np.concatenate([kf.sigma for kf in kfs])[rows],
-        )
-        T = np.array([kf.T_world_body for kf in kfs])
+    if len(obs.pose):
+        T = np.array([vmap.keyframes[k].T_world_body for k in kf_ids])
         P = np.array([mp.p_world for mp in live], dtype=np.float64)
         chi2 = observation_chi2(T, P, obs, camera.T_body_cam)
         bad = np.flatnonzero(~(chi2 < mapping.cull_chi2))
         for i, j in zip(obs.pose[bad].tolist(), obs.point[bad].tolist(), strict=True):
-            vmap.remove_observation(live[j].id, kfs[i].id)
+            vmap.remove_observation(live[j].id, kf_ids[i])
         n_obs = len(bad)
     n_pts = 0
     for mp in points:
