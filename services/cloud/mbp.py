@@ -22,8 +22,9 @@ keyframe and a lower fraction, applied to the whole map under a connectivity con
    a reason (:func:`backbone` reports which). Protected: each agent's first keyframe (the
    pose-graph anchor) and its ``keep_recent`` newest (the edge's live window).
 3. Loop and merge constraints are not a reason to keep a keyframe: a constraint ``T_r_b`` of a
-   removed keyframe r moves to its absorber a as ``T_a_b = T_map_a^-1 T_map_r T_r_b`` (current
-   estimates; MBP runs right after an optimisation), so the pose graph keeps every loop.
+   removed keyframe r moves to a kept keyframe a of the same agent next to r in its sequence
+   (:func:`loop_anchors`) as ``T_a_b = T_map_a^-1 T_map_r T_r_b`` (current estimates; MBP runs
+   right after an optimisation), so the pose graph keeps every loop, between the same agents.
 4. Folding: each removed keyframe's good observations (reprojection error ≤
    ``max_virtual_reprojection_px``) of map points its absorber does not see become *virtual
    observations* of the absorber (the point projected into it, with the removed keyframe's
@@ -33,6 +34,7 @@ keyframe and a lower fraction, applied to the whole map under a connectivity con
 
 from __future__ import annotations
 
+import bisect
 import logging
 from collections import deque
 from dataclasses import dataclass
@@ -209,14 +211,39 @@ def select_backbone(atlas: Atlas, map_id: int, config: MbpConfig, keep_recent: i
     return set(backbone(atlas, map_id, config, keep_recent).kept)
 
 
-def _move_loops(atlas: Atlas, absorber: dict[int, int]) -> int:
-    """Re-anchor loop / merge constraints of removed keyframes on their absorbers (step 3);
-    returns how many moved. Constraints whose ends meet in one keyframe are dropped."""
+def loop_anchors(atlas: Atlas, map_id: int, kept: frozenset[int]) -> dict[int, int]:
+    """For each removed keyframe of ``map_id``, the kept keyframe of the same agent its loop
+    constraints move to: the kept one just before or just after it in the agent's sequence,
+    whichever shares more map points with it (then the earlier). The same agent, so that an
+    inter-agent constraint stays between the two agents and composes only with a short
+    stretch of the agent's own odometry."""
+    out = {}
+    for agent in atlas.agents_in_map(map_id):
+        ak = atlas.keyframe_keys(map_id=map_id, agent_id=agent)
+        pos = [i for i, k in enumerate(ak) if k in kept]
+        for i, r in enumerate(ak):
+            if r in kept or not pos:
+                continue
+            j = bisect.bisect_left(pos, i)
+            near = [ak[pos[x]] for x in (j - 1, j) if 0 <= x < len(pos)]
+            w = dict(atlas.covisible(r))
+            out[r] = max(near, key=lambda k: (w.get(k, 0), -k))
+    return out
+
+
+def _move_loops(atlas: Atlas, anchor: dict[int, int]) -> int:
+    """Re-anchor loop / merge constraints of removed keyframes (step 3); returns how many
+    moved. A constraint whose ends meet in one keyframe, or that would join two keyframes
+    already joined by one, is dropped (copies would weigh one relation several times)."""
+    loops = atlas.loops()
+    pairs = {frozenset((e.key_a, e.key_b)) for e in loops
+             if e.key_a not in anchor and e.key_b not in anchor}  # fmt: skip
     moved = 0
-    for e in atlas.loops():
-        a, b = absorber.get(e.key_a, e.key_a), absorber.get(e.key_b, e.key_b)
-        if (a, b) == (e.key_a, e.key_b) or a == b:
+    for e in loops:
+        a, b = anchor.get(e.key_a, e.key_a), anchor.get(e.key_b, e.key_b)
+        if (a, b) == (e.key_a, e.key_b) or a == b or frozenset((a, b)) in pairs:
             continue
+        pairs.add(frozenset((a, b)))
         T_a_ra = inverse_T(atlas.T_map_body(a)) @ atlas.T_map_body(e.key_a)
         T_rb_b = inverse_T(atlas.T_map_body(e.key_b)) @ atlas.T_map_body(b)
         atlas.add_loop(a, b, T_a_ra @ np.asarray(e.T_a_b) @ T_rb_b)
@@ -295,7 +322,7 @@ def run_mbp(
         return MbpReport(map_id, n_kf, n_kf, n_mp, n_mp, 0, (), connected_before, connected_before)
     bb = backbone(atlas, map_id, config, keep_recent)
     removed = [k for k in keys if k not in bb.kept]
-    n_loops = _move_loops(atlas, {r: a[0] for r, a in bb.absorbers.items()})
+    n_loops = _move_loops(atlas, loop_anchors(atlas, map_id, bb.kept))
     n_virtual = 0
     for r in removed:
         n_virtual += _fold(atlas, r, list(bb.absorbers[r]), bb.kept, camera, config)

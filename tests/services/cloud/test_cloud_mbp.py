@@ -17,6 +17,7 @@ from services.cloud.mbp import (
     REASONS,
     backbone,
     covisibility_components,
+    loop_anchors,
     run_mbp,
     select_backbone,
 )
@@ -134,24 +135,44 @@ def test_loop_constraints_of_removed_keyframes_move_to_their_absorbers(chain):
     keys = atlas.keyframe_keys()
     removed = [k for k in keys if k not in bb.kept]
     r1, r2 = removed[0], removed[-1]
-    ends = {bb.absorbers[r1][0], bb.absorbers[r2][0]}
+    anchor = loop_anchors(atlas, 0, bb.kept)
+    a1, a2 = anchor[r1], anchor[r2]
+    # The kept neighbour in the agent's sequence (the chain: the next or the previous key).
+    assert a1 in bb.kept and abs(a1 - r1) == 1 and abs(a2 - r2) == 1
+    ends = {a1, a2}
     kept_far = next(k for k in sorted(bb.kept) if k > keys[len(keys) // 2] and k not in ends)
     # Measurements a little off the current estimates, as a verified loop is.
     off = make_T(np.eye(3), [0.01, -0.02, 0.005])
     T = {k: atlas.T_map_body(k) for k in keys}
     atlas.add_loop(r1, kept_far, inverse_T(T[r1]) @ T[kept_far] @ off)
     atlas.add_loop(r1, r2, inverse_T(T[r1]) @ T[r2] @ off)
-    atlas.add_loop(r1, bb.absorbers[r1][0], off)  # both ends collapse onto one keyframe
+    atlas.add_loop(r1, a1, off)  # both ends collapse onto one keyframe
     report = run_mbp(atlas, 0, CAM, MbpConfig(), keep_recent=1)
     assert report.loops_moved == 2
     loops = {(e.key_a, e.key_b): e for e in atlas.loops()}
-    a1, a2 = bb.absorbers[r1][0], bb.absorbers[r2][0]
     assert set(loops) == {(a1, kept_far), (a1, a2)}
     # T_a_b = T_a_r T_r_b: the same constraint, expressed between the kept keyframes.
     want = inverse_T(T[a1]) @ T[r1] @ inverse_T(T[r1]) @ T[kept_far] @ off
     np.testing.assert_allclose(loops[(a1, kept_far)].T_a_b, want, atol=1e-9)
     want = inverse_T(T[a1]) @ T[r2] @ off @ inverse_T(T[r2]) @ T[a2]
     np.testing.assert_allclose(loops[(a1, a2)].T_a_b, want, atol=1e-9)
+
+
+def test_a_moved_loop_that_repeats_a_kept_one_is_dropped(chain):
+    kfs, mps = chain
+    atlas = _atlas(kfs, mps)
+    bb = backbone(atlas, 0, MbpConfig(), keep_recent=1)
+    anchor = loop_anchors(atlas, 0, bb.kept)
+    r, a = next(iter(sorted(anchor.items())))
+    b = max(k for k in bb.kept if k != a)
+    T_a_b = inverse_T(atlas.T_map_body(a)) @ atlas.T_map_body(b)
+    atlas.add_loop(a, b, T_a_b)
+    atlas.add_loop(r, b, inverse_T(atlas.T_map_body(r)) @ atlas.T_map_body(b))
+    report = run_mbp(atlas, 0, CAM, MbpConfig(), keep_recent=1)
+    assert report.loops_moved == 0
+    [e] = atlas.loops()
+    assert (e.key_a, e.key_b) == (a, b)
+    np.testing.assert_array_equal(e.T_a_b, T_a_b)
 
 
 def test_mbp_disabled_changes_nothing(dense):
