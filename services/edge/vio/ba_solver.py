@@ -131,11 +131,11 @@ def _camera_points(
     t_wc = T_world_body[:, :3, :3] @ t_bc + T_world_body[:, :3, 3]
     R_cw = R_wc.transpose(0, 2, 1)
     t_cw = -(R_cw @ t_wc[:, :, None])[:, :, 0]
-    R = R_cw[obs.pose]
-    P = p_world[obs.point]
-    p_cam = R[:, :, 0] * P[:, 0:1] + R[:, :, 1] * P[:, 1:2] + R[:, :, 2] * P[:, 2:3]
-    p_cam += t_cw[obs.pose]
-    return R, p_cam
+    R_cw_obs = R_cw[obs.pose]
+    p_obs = p_world[obs.point]
+    p_cam = R_cw_obs[:, :, 0] * p_obs[:, 0:1] + R_cw_obs[:, :, 1] * p_obs[:, 1:2]
+    p_cam += R_cw_obs[:, :, 2] * p_obs[:, 2:3] + t_cw[obs.pose]
+    return R_cw_obs, p_cam
 
 
 def observation_chi2(
@@ -165,7 +165,7 @@ def reprojection_terms(
     ``‖J·(xi, dp) − b‖²`` the Gauss–Newton model of the robust cost (gtsam's
     ``Robust::WhitenSystem``); ``J`` and ``b`` None when ``jacobians`` is False.
     """
-    R, p_cam = _camera_points(T_world_body, p_world, obs, T_body_cam)
+    R_cw_obs, p_cam = _camera_points(T_world_body, p_world, obs, T_body_cam)
     z = p_cam[:, 2]
     front = z > 0
     inv_z = np.where(front, 1.0 / np.where(front, z, 1.0), 0.0)
@@ -188,7 +188,7 @@ def reprojection_terms(
         # Row i of d proj / d p_cam is (e_i − proj_i·e_z)/z; through R_cw (point) and
         # R_cb (body): d p_body / d xi = [ [p_body]x , −I ] (right perturbation).
         s_i = scale[:, None]
-        J[:, i, 6:] = s_i * (R[:, i, :] - proj[:, i, None] * R[:, 2, :])
+        J[:, i, 6:] = s_i * (R_cw_obs[:, i, :] - proj[:, i, None] * R_cw_obs[:, 2, :])
         B_i = s_i * (R_cb[i] - proj[:, i, None] * R_cb[2])
         J[:, i, :3] = _cross(B_i, p_body)  # row a of B times [p]x is a × p
         J[:, i, 3:6] = -B_i
@@ -226,7 +226,6 @@ class SchurLM:
         self.values = values
         self.pose_keys = list(pose_keys)
         self.p_world = np.array(p_world, dtype=np.float64).reshape(-1, 3)
-        self.obs = obs
         self.T_body_cam = np.asarray(T_body_cam, dtype=np.float64)
         self.cauchy_k = float(cauchy_k)
         zero = values.zeroVectors()
@@ -300,7 +299,9 @@ class SchurLM:
         J_point_t = np.ascontiguousarray(J_point.transpose(0, 2, 1))  # (M, 3, 2)
         bp, starts = self._by_point, self._point_starts
         H_ll = np.add.reduceat((J_point_t @ J_point)[bp], starts)
-        g_l = np.add.reduceat((J_point_t @ b[:, :, None])[bp, :, 0], starts)
+        g_l = np.add.reduceat(
+            (J_point_t[:, :, 0] * b[:, :1] + J_point_t[:, :, 1] * b[:, 1:])[bp], starts
+        )
         J_pose_t = np.ascontiguousarray(J[:f, :, :6].transpose(0, 2, 1))  # (F, 6, 2)
         H_p = J_pose_t @ J[:f]  # (F, 6, 9): pose rows of [pose | point]
         H_pl = H_p[:, :, 6:]
@@ -309,7 +310,8 @@ class SchurLM:
         if f:
             rows, starts = self._pose_rows, self._pose_starts
             H_cc[rows[:, :, None], rows[:, None, :]] = np.add.reduceat(H_p[:, :, :6], starts)
-            g_c[rows] = np.add.reduceat((J_pose_t @ b[:f, :, None])[:, :, 0], starts)
+            g_p = J_pose_t[:, :, 0] * b[:f, :1] + J_pose_t[:, :, 1] * b[:f, 1:]  # (F, 6)
+            g_c[rows] = np.add.reduceat(g_p, starts)
         if self._graph_free:
             H_g, eta_g = self.graph.linearize(values).hessian(self._ordering)
             m = len(self._graph_idx)

@@ -89,13 +89,17 @@ def bundle_adjust(
     point_ids = sorted(
         {p for kf in window for t in kf.row_of if (p := track_point.get(t)) in all_points}
     )
-    points = [vmap.points[p] for p in point_ids]
-    if 0 < options.max_points < len(points):
-        points.sort(key=lambda mp: (-len(in_window.intersection(mp.observations)), mp.id))
-        points = sorted(points[: options.max_points], key=lambda mp: mp.id)
-    observers: set[int] = set()
-    for mp in points:
-        observers.update(mp.observations)
+    table = _observation_table(vmap, [vmap.points[p] for p in point_ids])
+    obs_kf = np.asarray(table.keyframe_ids, dtype=np.int64)[table.obs.pose]
+    selected = np.ones(len(point_ids), dtype=bool)
+    if 0 < options.max_points < len(point_ids):
+        # The points with the most window observations (ties: lower id).
+        in_win = np.isin(obs_kf, np.fromiter(in_window, np.int64, len(in_window)))
+        n_in_win = np.bincount(table.obs.point[in_win], minlength=len(point_ids))
+        best = np.lexsort((np.asarray(point_ids), -n_in_win))[: options.max_points]
+        selected[:] = False
+        selected[best] = True
+    observers = set(np.unique(obs_kf[selected[table.obs.point]]).tolist())
     fixed = sorted(observers - in_window, key=lambda k: vmap.keyframes[k].timestamp_ns)
     fixed = fixed[-options.max_fixed_observers :]
     use_imu = imu_params is not None
@@ -154,7 +158,8 @@ def bundle_adjust(
             graph.add(f.cloneWithNewNoiseModel(noise))
             n_imu += 1
     # Observations of the points seen at least twice by the variable keyframes.
-    used_points, obs_arrays, _ = _observation_table(vmap, points, variables, min_observations=2)
+    used, obs_arrays = _select(table, selected, variables, min_observations=2)
+    used_points = [mp for mp, u in zip(table.points, used.tolist(), strict=True) if u]
     n_obs = len(obs_arrays.pose)
     if n_obs == 0:
         return BAStats(len(window), len(fixed_set), 0, 0, 0.0, 0.0, 0, 0)
@@ -188,7 +193,8 @@ def bundle_adjust(
     for mp, p in zip(used_points, p_after, strict=True):
         mp.p_world = p.copy()
     vmap.mark_dirty([kf.id for kf in window], [mp.id for mp in used_points])
-    n_cobs, n_cpts = cull_observations(vmap, used_points, camera, mapping)
+    _, cull_obs = _select(table, used, table.keyframe_ids, min_observations=1)
+    n_cobs, n_cpts = _cull(vmap, used_points, cull_obs, table.keyframe_ids, camera, mapping)
     return BAStats(len(window), len(fixed_set), len(used_points), n_obs, err0, err1, n_cobs, n_cpts)
 
 
@@ -262,44 +268,62 @@ def _solve_schur(
     return res.values, res.p_world, res.error_before, res.error_after
 
 
-def _present(vmap: VioMap, keyframe_ids: np.ndarray) -> list[int]:
-    return [k for k in keyframe_ids.tolist() if k in vmap.keyframes]
+@dataclass(frozen=True, eq=False)
+class _ObservationTable:
+    """Every observation of ``points`` by a keyframe of the map: ``obs.pose`` indexes
+    ``keyframe_ids`` (the observers, in id order), ``obs.point`` indexes ``points``."""
+
+    points: list[MapPoint]
+    keyframe_ids: list[int]
+    obs: Observations
 
 
-def _observation_table(
-    vmap: VioMap, points: list[MapPoint], keyframe_ids: list[int] | None, min_observations: int
-) -> tuple[list[MapPoint], Observations, list[int]]:
-    """The observations of ``points`` made by ``keyframe_ids`` (every keyframe of the map that
-    observes them when None, in id order) as arrays: ``pose`` indexes the returned keyframe
-    ids, ``point`` the returned points, those with at least ``min_observations`` of them."""
+def _observation_table(vmap: VioMap, points: list[MapPoint]) -> _ObservationTable:
     counts = [len(mp.observations) for mp in points]
     items = itertools.chain.from_iterable(mp.observations.items() for mp in points)
     flat = np.fromiter(itertools.chain.from_iterable(items), np.int64, 2 * sum(counts))
     kf_id, row = flat[0::2], flat[1::2]
     point = np.repeat(np.arange(len(points)), counts)
-    ids = np.asarray(
-        _present(vmap, np.unique(kf_id)) if keyframe_ids is None else keyframe_ids, np.int64
-    )
-    if len(ids) == 0 or len(kf_id) == 0:
+    ids = np.array([k for k in np.unique(kf_id).tolist() if k in vmap.keyframes], np.int64)
+    if len(ids) == 0:
         empty = np.zeros(0, np.int64)
-        return [], Observations(empty, empty, np.zeros((0, 2)), np.zeros(0)), ids.tolist()
-    sorter = np.argsort(ids)
-    at = np.minimum(np.searchsorted(ids, kf_id, sorter=sorter), len(ids) - 1)
-    pose = sorter[at]
-    keep = ids[pose] == kf_id
-    used = np.bincount(point[keep], minlength=len(points)) >= min_observations
-    keep &= used[point]
-    new_index = np.cumsum(used) - 1
+        return _ObservationTable(
+            points, [], Observations(empty, empty, np.zeros((0, 2)), np.zeros(0))
+        )
+    at = np.minimum(np.searchsorted(ids, kf_id), len(ids) - 1)
+    keep = ids[at] == kf_id
+    pose, point, row = at[keep], point[keep], row[keep]
     kfs = [vmap.keyframes[k] for k in ids.tolist()]
     first_row = np.cumsum([0] + [len(kf.xy) for kf in kfs[:-1]])
-    rows = first_row[pose[keep]] + row[keep]
+    rows = first_row[pose] + row
     obs = Observations(
-        pose=pose[keep],
-        point=new_index[point[keep]],
+        pose=pose,
+        point=point,
         xy=np.concatenate([kf.xy for kf in kfs])[rows],
         sigma=np.concatenate([kf.sigma for kf in kfs])[rows],
     )
-    return [mp for mp, u in zip(points, used.tolist(), strict=True) if u], obs, ids.tolist()
+    return _ObservationTable(points, ids.tolist(), obs)
+
+
+def _select(
+    table: _ObservationTable,
+    points: np.ndarray,
+    keyframe_ids: list[int],
+    min_observations: int,
+) -> tuple[np.ndarray, Observations]:
+    """Observations of the table's points where ``points`` (N,) bool by ``keyframe_ids``;
+    points with fewer than ``min_observations`` of them are dropped. Returns the kept points
+    (N,) bool and their observations (``pose`` indexes ``keyframe_ids``, ``point`` the kept
+    points in table order)."""
+    position = {k: i for i, k in enumerate(keyframe_ids)}
+    pose_of = np.array([position.get(k, -1) for k in table.keyframe_ids], dtype=np.int64)
+    obs = table.obs
+    pose = pose_of[obs.pose] if len(pose_of) else np.zeros(0, np.int64)
+    keep = points[obs.point] & (pose >= 0)
+    used = points & (np.bincount(obs.point[keep], minlength=len(points)) >= min_observations)
+    keep &= used[obs.point]
+    new_index = np.cumsum(used) - 1
+    return used, Observations(pose[keep], new_index[obs.point[keep]], obs.xy[keep], obs.sigma[keep])
 
 
 def cull_observations(
@@ -308,15 +332,29 @@ def cull_observations(
     """Remove observations with chi2 above ``mapping.cull_chi2`` or behind the camera, then
     points left with fewer than ``mapping.min_observations``. Returns (observations, points)."""
     live = [mp for mp in points if mp.id in vmap.points]
-    live, obs, kf_ids = _observation_table(vmap, live, None, min_observations=1)
+    table = _observation_table(vmap, live)
+    _, obs = _select(table, np.ones(len(live), dtype=bool), table.keyframe_ids, 0)
+    return _cull(vmap, live, obs, table.keyframe_ids, camera, mapping)
+
+
+def _cull(
+    vmap: VioMap,
+    points: list[MapPoint],
+    obs: Observations,
+    keyframe_ids: list[int],
+    camera: PinholeUndistorter,
+    mapping: MappingOptions,
+) -> tuple[int, int]:
+    """:func:`cull_observations` on a table of every observation of ``points`` (``obs.pose``
+    indexes ``keyframe_ids``, ``obs.point`` indexes ``points``)."""
     n_obs = 0
     if len(obs.pose):
-        T = np.array([vmap.keyframes[k].T_world_body for k in kf_ids])
-        P = np.array([mp.p_world for mp in live], dtype=np.float64)
+        T = np.array([vmap.keyframes[k].T_world_body for k in keyframe_ids])
+        P = np.array([mp.p_world for mp in points], dtype=np.float64)
         chi2 = observation_chi2(T, P, obs, camera.T_body_cam)
         bad = np.flatnonzero(~(chi2 < mapping.cull_chi2))
         for i, j in zip(obs.pose[bad].tolist(), obs.point[bad].tolist(), strict=True):
-            vmap.remove_observation(live[j].id, kf_ids[i])
+            vmap.remove_observation(points[j].id, keyframe_ids[i])
         n_obs = len(bad)
     n_pts = 0
     for mp in points:
