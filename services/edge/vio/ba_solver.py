@@ -97,7 +97,10 @@ def _covisibility(pose: np.ndarray, point: np.ndarray, offset: np.ndarray) -> _C
     first = np.repeat(np.arange(len(order)), reps)
     second = first + (np.arange(len(first)) - np.repeat(np.cumsum(reps) - reps, reps))
     ia, ib = order[first], order[second]
-    key = pose[ia] * (int(pose.max()) + 1) + pose[ib]
+    n_pose = int(pose.max()) + 1
+    key = pose[ia] * n_pose + pose[ib]
+    if n_pose * n_pose < np.iinfo(np.int16).max:
+        key = key.astype(np.int16)  # numpy's stable sort of 16-bit integers is a radix sort
     by_key = np.argsort(key, kind="stable")
     ia, ib, key = ia[by_key], ib[by_key], key[by_key]
     starts = np.flatnonzero(np.diff(key, prepend=-1) != 0)
@@ -195,6 +198,20 @@ def reprojection_terms(
     return cost, J, b
 
 
+def _inverse_spd3(H: np.ndarray, lam: float) -> np.ndarray | None:
+    """Inverses (N, 3, 3) of the symmetric ``H + lam·I`` (N, 3, 3) by cofactors (several
+    times faster than np.linalg.inv on small matrices); None if one is not positive."""
+    a, b, c = H[:, 0, 0] + lam, H[:, 0, 1], H[:, 0, 2]
+    d, e, f = H[:, 1, 1] + lam, H[:, 1, 2], H[:, 2, 2] + lam
+    A, B, C = d * f - e * e, c * e - b * f, b * e - c * d
+    D, E, F = a * f - c * c, b * c - a * e, a * d - b * b
+    det = a * A + b * B + c * C
+    if not np.all(det > 0.0):
+        return None
+    inv = np.stack([A, B, C, B, D, E, C, E, F], axis=1).reshape(-1, 3, 3)
+    return inv / det[:, None, None]
+
+
 def _dense_solve(S: np.ndarray, rhs: np.ndarray) -> np.ndarray:
     """``S⁻¹·rhs`` for a symmetric positive definite ``S`` (C, C), by gtsam's (Eigen's) dense
     Cholesky. Not LAPACK: the multithreaded OpenBLAS that numpy and scipy bundle spends
@@ -257,7 +274,6 @@ class SchurLM:
         self._pose_rows = rows6[self._pose_starts]
         self._by_point = np.argsort(obs.point, kind="stable")
         self._point_starts = np.searchsorted(obs.point[self._by_point], np.arange(n))
-        self._idx_c = rows6.ravel()
         self._idx_lf = (self._free_point[:, None] * 3 + np.arange(3)).ravel()
         self._n = n
         self._covis = (
@@ -325,13 +341,12 @@ class SchurLM:
         Points are eliminated: ``S = H_cc − Σ H_pl·H_ll⁻¹·H_plᵀ`` over co-visible pose pairs,
         ``S·delta_c = g_c − Σ H_pl·H_ll⁻¹·g_l``, then ``delta_l = H_ll⁻¹·(g_l − H_plᵀ·delta_c)``.
         """
-        try:
-            H_ll_inv = np.linalg.inv(lin.H_ll + lam * np.eye(3))
-        except np.linalg.LinAlgError:
+        H_ll_inv = _inverse_spd3(lin.H_ll, lam)
+        if H_ll_inv is None:
             return None
         if not self.n_c:
             return np.zeros(0), (H_ll_inv @ lin.g_l[:, :, None])[:, :, 0]
-        n_c, pts = self.n_c, self._free_point
+        pts = self._free_point
         W = lin.H_pl @ H_ll_inv[pts]  # (F, 6, 3)
         cv = self._covis
         assert cv is not None
@@ -347,7 +362,12 @@ class SchurLM:
             if a != b:
                 S[b : b + 6, a : a + 6] -= blk.T
         S[np.diag_indices_from(S)] += lam
-        rhs = lin.g_c - np.bincount(self._idx_c, (W @ lin.g_l[pts][:, :, None]).ravel(), n_c)
+        g_pts = lin.g_l[pts]
+        rhs = lin.g_c.copy()
+        rhs[self._pose_rows] -= np.add.reduceat(  # Σ per pose of W·g_l (observations by pose)
+            W[:, :, 0] * g_pts[:, :1] + W[:, :, 1] * g_pts[:, 1:2] + W[:, :, 2] * g_pts[:, 2:],
+            self._pose_starts,
+        )
         try:
             delta_c = _dense_solve(S, rhs)
         except RuntimeError:  # not positive definite

@@ -6,6 +6,13 @@ undistorted normalised coordinates (unit-focal Cal3_S2 with the camera extrinsic
 ``body_P_sensor``) under a Cauchy kernel; a CombinedImuFactor (preintegration + bias random
 walk) under a Huber kernel between consecutive keyframes. Keyframes outside the window that
 observe window points, and the keyframe just before the window, are held fixed by tight priors.
+
+Two solvers of this one problem (``LocalBAOptions.solver``): "schur" (default,
+:mod:`services.edge.vio.ba_solver`: reprojection terms in numpy, points eliminated by Schur
+complement, the IMU factors and priors of the same gtsam graph linearised by gtsam; fixed
+keyframes are constants) and "gtsam" (the whole graph with a projection factor per
+observation, gtsam's LM; the reference). Both follow gtsam's LM schedule and report gtsam's
+graph error.
 """
 
 from __future__ import annotations
@@ -169,15 +176,13 @@ def bundle_adjust(
         solved = _solve_gtsam(
             graph, values, variables, p_world, obs_arrays, camera, options, n_iter
         )
-    elif options.solver == "schur":
+    else:  # "schur" (LocalBAOptions checks the name)
         free = [X(kf.id) for kf in window if kf.id not in fixed_set]
         if use_imu:
             free += [key(kf.id) for kf in window for key in (V, B)]
         solved = _solve_schur(
             graph, values, free, variables, p_world, obs_arrays, camera, options, n_iter
         )
-    else:
-        raise ValueError(f"LocalBAOptions.solver: unknown solver {options.solver!r}")
     result, p_after, err0, err1 = solved
     if result is None:  # failed: the old estimate is kept
         return BAStats(len(window), len(fixed_set), len(used_points), n_obs, err0, err0, 0, 0)
