@@ -11,8 +11,9 @@ Two solvers of this one problem (``LocalBAOptions.solver``): "schur" (default,
 :mod:`services.edge.vio.ba_solver`: reprojection terms in numpy, points eliminated by Schur
 complement, the IMU factors and priors of the same gtsam graph linearised by gtsam; fixed
 keyframes are constants) and "gtsam" (the whole graph with a projection factor per
-observation, gtsam's LM; the reference). Both follow gtsam's LM schedule and report gtsam's
-graph error.
+observation, gtsam's LM; the reference, also used for windows of more than
+``LocalBAOptions.schur_max_keyframes`` free keyframes). Both follow gtsam's LM schedule and
+report gtsam's graph error.
 """
 
 from __future__ import annotations
@@ -172,7 +173,8 @@ def bundle_adjust(
         return BAStats(len(window), len(fixed_set), 0, 0, 0.0, 0.0, 0, 0)
     p_world = np.array([mp.p_world for mp in used_points], dtype=np.float64)
     n_iter = max_iterations or options.max_iterations
-    if options.solver == "gtsam":
+    n_free = sum(kf.id not in fixed_set for kf in window)
+    if options.solver == "gtsam" or n_free > options.schur_max_keyframes:
         solved = _solve_gtsam(
             graph, values, variables, p_world, obs_arrays, camera, options, n_iter
         )

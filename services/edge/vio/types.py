@@ -119,6 +119,11 @@ class LocalBAOptions:
     # "schur": Schur-complement LM with the reprojection terms in numpy (ba_solver.py);
     # "gtsam": one gtsam graph and its LM (the reference; same problem, same LM schedule).
     solver: str = "schur"
+    # ... "schur" up to this many free keyframes: its reduced camera system is solved dense
+    # (O(C³), 15 dims per keyframe); the full VI refinements over every keyframe use gtsam's
+    # sparse elimination beyond it (one full BA, schur vs gtsam: 28 keyframes 179 vs 437 ms,
+    # 43: 349 vs 681 ms, 67: 989 vs 1021 ms).
+    schur_max_keyframes: int = 50
     # Cost caps (CPU is the edge's budget: three robots' VIO share two cores). A local BA runs
     # on every robot keyframe and on every ``every_keyframes``-th of the VIO's own ones ...
     every_keyframes: int = 3
@@ -128,6 +133,10 @@ class LocalBAOptions:
     # Measured on the rendered 3×60 s dataset through the real pipeline (robot0/1/2): with
     # every keyframe, 10 iterations, 20 fixed observers and all points: 63/53/54 ms CPU per
     # frame, ATE 1.7/2.8/5.0 cm; with these defaults: 27/27/29 ms, ATE 1.8/3.4/6.1 cm.
+
+    def __post_init__(self) -> None:
+        if self.solver not in ("schur", "gtsam"):
+            raise VioError(f"LocalBAOptions.solver: {self.solver!r} (expected 'schur' or 'gtsam')")
 
 
 @dataclass(frozen=True)

@@ -13,7 +13,7 @@ from services.edge.vio.ba_solver import Observations, SchurLM, reprojection_term
 from services.edge.vio.imu import make_preintegration_params
 from services.edge.vio.local_ba import bundle_adjust, reprojection_chi2
 from services.edge.vio.simulation import SimOptions, ground_truth_map, simulate
-from services.edge.vio.types import LocalBAOptions, MappingOptions
+from services.edge.vio.types import LocalBAOptions, MappingOptions, VioError
 
 
 @pytest.fixture(scope="module")
@@ -196,3 +196,17 @@ def test_schur_lm_stops_at_max_iterations_and_reports_its_costs(scene):
     assert one.error_before == pytest.approx(problem.cost(values, np.array(P)))
     assert many.error_after < one.error_after < one.error_before
     assert many.error_after == pytest.approx(problem.cost(many.values, many.p_world))
+
+
+def test_large_windows_fall_back_to_gtsam_and_unknown_solvers_are_rejected(scene):
+    vmap, cam, _, window = _perturbed(scene, seed=5)
+    results = []
+    for opts in (LocalBAOptions(solver="gtsam"), LocalBAOptions(schur_max_keyframes=4)):
+        vm = copy.deepcopy(vmap)
+        results.append((vm, bundle_adjust(vm, window, cam, None, opts, MappingOptions())))
+    (va, sa), (vb, sb) = results
+    assert sa == sb  # 8 free keyframes > 4: the gtsam path, bit for bit
+    for k in window:
+        assert np.array_equal(va.keyframes[k].T_world_body, vb.keyframes[k].T_world_body)
+    with pytest.raises(VioError, match="solver"):
+        LocalBAOptions(solver="ceres")
