@@ -193,19 +193,22 @@ class MbpConfig:
     enabled: run MBP at all (default True).
     min_shared: a removed keyframe's absorber shares at least this many map points with it,
         and the kept keyframes stay connected through covisibility edges of at least this
-        weight (default 15).
+        weight (default 50, the pose graph's ``reference_weight``, at which it trusts a
+        relative pose at nominal strength; chosen by measurement: on the recorded 3-robot run
+        (benchmarks/results/table3.md) 15 removed 48 % of the keyframes with joint ATE
+        2.46 -> 3.23 cm, 50 removed 43 % with 2.46 -> 2.92 cm).
     cover_ratio: a keyframe is removed only while the kept keyframes together observe at
         least this fraction of its map points (default 0.5; keyframes reach the cloud
-        sparsely: on the recorded 3-robot run consecutive ones share a median 43 % of their
-        points, all others together see a median 73 %; 0.6 removed 46 % instead of 53 % of
-        the keyframes there; see services/cloud/mbp.py).
+        sparsely: on that run consecutive ones share a median 43 % of their points, all
+        others together see a median 73 %; with min_shared 15, 0.6 removed 46 % with joint
+        ATE 3.17 cm).
     max_virtual_reprojection_px: an observation of a removed keyframe is "good" (and folded
         into the absorbing keyframe) if it reprojects within this many pixels (default 3.0).
     min_observations: map points left with fewer observations are removed (default 2).
     """
 
     enabled: bool = True
-    min_shared: int = 15
+    min_shared: int = 50
     cover_ratio: float = 0.5
     max_virtual_reprojection_px: float = 3.0
     min_observations: int = 2

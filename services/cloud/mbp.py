@@ -20,15 +20,20 @@ keyframe and a lower fraction, applied to the whole map under a connectivity con
    edges of at least ``min_shared`` points (its removal does not separate two of its kept
    neighbours). Passes repeat until none removes anything, so every kept keyframe is kept for
    a reason (:func:`backbone` reports which). Protected: each agent's first keyframe (the
-   pose-graph anchor) and its ``keep_recent`` newest (the edge's live window).
+   pose-graph anchor) and its ``keep_recent`` newest (the edge's live window). A heuristic:
+   the result is minimal (no kept keyframe can go alone) but not minimum.
 3. Loop and merge constraints are not a reason to keep a keyframe: a constraint ``T_r_b`` of a
    removed keyframe r moves to a kept keyframe a of the same agent next to r in its sequence
    (:func:`loop_anchors`) as ``T_a_b = T_map_a^-1 T_map_r T_r_b`` (current estimates; MBP runs
-   right after an optimisation), so the pose graph keeps every loop, between the same agents.
+   right after an optimisation), so the pose graph keeps every loop between the same agents
+   (a moved constraint whose ends meet in one keyframe, or that repeats a pair already
+   constrained, is dropped).
 4. Folding: each removed keyframe's good observations (reprojection error ≤
    ``max_virtual_reprojection_px``) of map points its absorber does not see become *virtual
    observations* of the absorber (the point projected into it, with the removed keyframe's
-   descriptor), which makes the absorber a virtual keyframe.
+   descriptor), which makes the absorber a virtual keyframe; points that would still have
+   fewer than ``min_observations`` kept observers are also folded into the next absorbers
+   (the other kept keyframes sharing ``min_shared`` points with r, strongest first).
 5. Map points left with fewer than ``min_observations`` observations are removed.
 """
 
