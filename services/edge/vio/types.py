@@ -133,6 +133,9 @@ class LocalBAOptions:
     # Measured on the rendered 3×60 s dataset through the real pipeline (robot0/1/2): with
     # every keyframe, 10 iterations, 20 fixed observers and all points: 63/53/54 ms CPU per
     # frame, ATE 1.7/2.8/5.0 cm; with these defaults: 27/27/29 ms, ATE 1.8/3.4/6.1 cm.
+    # solver "schur" vs "gtsam" (3 seeds × 3 robots, same inputs, commit 7470d71): same ATE
+    # and scale error on all 9 robots; one local BA (10 keyframes, 1500 points) 170 -> 53 ms
+    # CPU; VIO CPU 31-34 -> 21-22.5 ms per frame (seed 2 robot2: 49 -> 32).
 
     def __post_init__(self) -> None:
         if self.solver not in ("schur", "gtsam"):
