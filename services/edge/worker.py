@@ -7,7 +7,10 @@ hands each decoded frame as a :class:`WorkItem` to that robot's worker; the work
 - :class:`ProcessWorker`: one spawned process per robot, one pipe. numpy/gtsam hold the GIL
   part of the time, so robots in threads of one process partly serialise; separate processes
   use both cores (measured in ``benchmarks/results/edge_rtf.md``). A process that dies is
-  respawned; the robot re-initialises (fresh VIO, new map id).
+  respawned; the robot re-initialises (fresh VIO, new map id). Worker processes start with
+  single-threaded BLAS (:data:`SINGLE_THREAD_ENV`, unless the operator set those variables):
+  the robots' processes already fill the cores, and OpenBLAS threads waiting for a preempted
+  peer spin, which cost ~250 ms CPU for one 165×165 Cholesky instead of 0.2 ms.
 - :class:`ThreadWorker`: the same runner on a dedicated thread (no process start, no pickling).
 
 An exception inside the VIO is contained in the runner: it is logged, the VIO is replaced by a
@@ -227,6 +230,12 @@ class ThreadWorker:
         await asyncio.get_running_loop().run_in_executor(None, self._pool.shutdown, True)
 
 
+# BLAS/OpenMP thread counts for worker processes (numpy reads them when it is first imported,
+# which in a spawned worker is while unpickling its target, so they must be in the environment
+# the child inherits).
+SINGLE_THREAD_ENV = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+
+
 def _process_main(conn: Connection, spec: WorkerSpec, log_level: int) -> None:
     """Entry point of a worker process: serve ``WorkItem``s from the pipe until EOF/None."""
     logging.basicConfig(level=log_level, format=f"%(asctime)s vio[{spec.agent_id}] %(levelname)s "
@@ -269,6 +278,8 @@ class ProcessWorker:
 
     def _spawn(self) -> None:
         parent, child = self._ctx.Pipe()
+        for name, value in SINGLE_THREAD_ENV.items():
+            os.environ.setdefault(name, value)  # inherited by the spawned child
         spec = WorkerSpec(self.spec.agent_id, self.spec.camera, self.spec.imu,
                           self.spec.options, self.generation)  # fmt: skip
         proc = self._ctx.Process(
