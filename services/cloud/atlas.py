@@ -193,7 +193,9 @@ class Atlas:
         return mp
 
     def add_map_point(self, mp_in: MapPointInput) -> int:
-        """Insert or update a map point (position and observations); returns its key."""
+        """Insert or update a map point (position and observations); returns its key. An update
+        of an unknown point without observations of live keyframes (an edge re-sending a point
+        the cloud removed, e.g. by MBP, because it moved) creates nothing."""
         self._ensure_agent(mp_in.agent_id)
         mkey = make_key(mp_in.agent_id, mp_in.map_point_id)
         fused_into = self._alias.get(mkey)
@@ -201,6 +203,11 @@ class Atlas:
             mkey = fused_into  # fused at a merge: keep the survivor's position, link new obs
         mp = self._mps.get(mkey)
         if mp is None:
+            if not any(
+                make_key(mp_in.agent_id, int(k)) not in self._removed_kfs
+                for k, _ in mp_in.observations
+            ):
+                return mkey  # a moved point the cloud culled (or never had): no observer left
             mp = self._new_map_point(mkey, mp_in.agent_id)
         if fused_into is None:
             mp.p_map = transform_points(self._T_map_agent[mp_in.agent_id], mp_in.p_world)[0]

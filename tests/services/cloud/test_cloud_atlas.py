@@ -7,6 +7,7 @@ import pytest
 
 from common.geometry import inverse_T, transform_points
 from services.cloud.atlas import Atlas, AtlasError, KeyframeInput, make_key, split_key
+from services.cloud.map_types import MapPointInput
 from services.cloud.simulation import circle_poses, default_camera, make_session, make_world, yaw_T
 
 
@@ -165,3 +166,31 @@ def test_remove_keyframe_clears_observations_and_covisibility(session):
     # A late update of the pruned keyframe is ignored.
     atlas.add_keyframe(kfs[3])
     assert not atlas.has_keyframe(key)
+
+
+def test_moved_point_the_cloud_removed_is_not_recreated_without_observers(session):
+    """An edge re-sends a point it moved (no new observation rows) after the cloud removed it
+    (MBP culled it): no observer-less point appears; a new observation brings it back."""
+    kfs, mps = session
+    atlas = Atlas()
+    for k in kfs:
+        atlas.add_keyframe(k)
+    for m in mps:
+        atlas.add_map_point(m)
+    m = mps[0]
+    key = make_key(0, m.map_point_id)
+    atlas.remove_map_point(key)
+    n = atlas.n_map_points()
+    moved = MapPointInput(0, m.map_point_id, m.p_world + 0.05)
+    atlas.add_map_point(moved)
+    assert not atlas.has_map_point(key) and atlas.n_map_points() == n
+    # Observations only of a pruned keyframe do not revive it either.
+    pruned = int(m.observations[0, 0])
+    atlas.remove_keyframe(make_key(0, pruned))
+    atlas.add_map_point(MapPointInput(0, m.map_point_id, m.p_world, m.observations[:1]))
+    assert not atlas.has_map_point(key)
+    # A live keyframe observing it again does.
+    live = MapPointInput(0, m.map_point_id, m.p_world, m.observations[1:2])
+    atlas.add_map_point(live)
+    assert atlas.has_map_point(key)
+    assert set(atlas.map_point_observations(key)) == {make_key(0, int(m.observations[1, 0]))}
