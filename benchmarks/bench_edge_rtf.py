@@ -24,9 +24,11 @@ from __future__ import annotations
 import argparse
 import asyncio
 import logging
+import multiprocessing
 import os
 import platform
 import time
+from multiprocessing.connection import Connection
 from pathlib import Path
 
 import numpy as np
@@ -54,22 +56,58 @@ def _ms(values: list[float]) -> str:
     return f"{np.median(a):.1f} / {np.percentile(a, 95):.1f}"
 
 
-async def run_case(frames_by_robot: dict, camera, imu, vocab, worker: str) -> dict:
-    received: list = []
+async def _peers(frames_by_robot: dict, conn: Connection) -> None:
+    """The robot players and a stub cloud (in the peers process): sends the cloud's port,
+    receives the edge's, plays every robot, and after "done" reports (CPU s, messages)."""
+    received = 0
 
     async def on_cloud(d: Delivery) -> None:
-        received.append(d.message)
+        nonlocal received
+        received += 1
 
+    loop = asyncio.get_running_loop()
     cloud = Server(SessionConfig("cloud", "cloud", SECRET), on_cloud)
     _, cport = await cloud.start()
+    conn.send(cport)
+    port = await loop.run_in_executor(None, conn.recv)
+    cpu0 = time.process_time()
+    done = asyncio.Event()
+    cfg = TransportConfig()
+    tasks = [
+        asyncio.create_task(play(fr, "127.0.0.1", port, name, SECRET, transport=cfg,
+                                 flush_timeout_s=3600.0, linger=done))
+        for name, fr in frames_by_robot.items()
+    ]  # fmt: skip
+    await loop.run_in_executor(None, conn.recv)  # "done": every robot processed
+    cpu = time.process_time() - cpu0
+    done.set()
+    await asyncio.gather(*tasks)
+    await cloud.close()
+    conn.send((cpu, received))
+
+
+def _peers_main(frames_by_robot: dict, conn: Connection) -> None:
+    asyncio.run(_peers(frames_by_robot, conn))
+
+
+async def run_case(frames_by_robot: dict, camera, imu, vocab, worker: str) -> dict:
+    """One measurement. The robots and the stub cloud run in their own process (they are
+    other machines in a deployment; here they still compete for the same cores), so the
+    edge process holds only the edge: event loop, decoding, uplink coding."""
+    loop = asyncio.get_running_loop()
+    ctx = multiprocessing.get_context("spawn")
+    conn, child = ctx.Pipe()
+    peers = ctx.Process(target=_peers_main, args=(frames_by_robot, child), daemon=True)
+    peers.start()
+    cport = await loop.run_in_executor(None, conn.recv)
     edge = EdgeServer(SECRET, camera, imu, vocab, EdgeConfig(worker=worker),
                       EdgeServiceConfig(agent_id="edge", cloud_host="127.0.0.1",
                                         cloud_port=cport))  # fmt: skip
     _, port = await edge.start()
     await edge.app.prepare(list(frames_by_robot))
-    done = asyncio.Event()
     t0 = time.monotonic()
-    cpu0 = time.process_time()  # this process: event loop, decoding, uplink coding, players
+    cpu0 = time.process_time()  # this process: the edge's event loop, decoding, uplink coding
+    conn.send(port)
     finish: dict[str, float] = {}
 
     async def watch() -> None:
@@ -79,31 +117,16 @@ async def run_case(frames_by_robot: dict, camera, imu, vocab, worker: str) -> di
                     finish[name] = time.monotonic() - t0
             await asyncio.sleep(0.02)
 
-    tasks = [
-        asyncio.create_task(
-            play(
-                fr,
-                "127.0.0.1",
-                port,
-                name,
-                SECRET,
-                transport=TransportConfig(),
-                linger=done,
-                flush_timeout_s=3600.0,
-            )
-        )
-        for name, fr in frames_by_robot.items()
-    ]
     await watch()
     wall = time.monotonic() - t0
     main_cpu = time.process_time() - cpu0
-    done.set()
-    await asyncio.gather(*tasks)
+    conn.send("done")
+    peers_cpu, _ = await loop.run_in_executor(None, conn.recv)
+    peers.join(30.0)
     stats = edge.stats()["robots"]
     await edge.stop()
-    await cloud.close()
     out = {"worker": worker, "robots": len(frames_by_robot), "wall": wall, "per_robot": {},
-           "main_cpu": main_cpu}  # fmt: skip
+           "main_cpu": main_cpu, "peers_cpu": peers_cpu}  # fmt: skip
     track, ba, frame = [], [], []
     for name in frames_by_robot:
         s = stats[name]
@@ -186,20 +209,21 @@ def main() -> None:
         f"Machine: {platform.machine()}, {os.cpu_count()} cores (shared with other jobs while "
         f"measured), Python {platform.python_version()}.",
         f"Robots: {source}, sent at max rate over loopback TCP to one in-process `EdgeServer` "
-        "(decode, VIO, feedback, uplink to a stub cloud).",
+        "(decode, VIO, feedback, uplink to a stub cloud). The robot players and the stub cloud "
+        "run in one separate process on the same cores (peers CPU).",
         "RT factor per robot = its frames processed per wall second / 20 Hz (>= 1 keeps up); "
         "aggregate = all robots' frames per wall second / 20 Hz. Track = the VIO's per-frame "
         "tracking; feed_frame = the whole call (keyframes add mapping, local BA, VI init); "
         "local BA = each local BA (median / p95 over all robots of the run). Main process "
         "CPU = the edge's own process (event loop, frame decoding, keyframe re-coding for the "
-        "cloud, plus the robot players replaying recorded bytes); with the process worker the "
+        "cloud); with the process worker the "
         "VIO runs in one process per robot besides it. Load average: "
         "the machine is shared with other engineers' jobs.",
         "",
         "| worker | robots | wall s | RT factor per robot (min) | aggregate | "
         "track ms (med / p95) | feed_frame ms (med / p95) | local BA ms (med / p95) | states | "
-        "main process CPU s (% of wall) | load avg (1 min) |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
+        "main process CPU s (% of wall) | peers CPU s | load avg (1 min) |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         pr = r["per_robot"].values()
@@ -208,7 +232,8 @@ def main() -> None:
             f"{min(v['rtf'] for v in pr):.2f} | {r['aggregate_rtf']:.2f} | {r['track']} | "
             f"{r['frame']} | "
             f"{r['ba']} | {', '.join(v['state'] for v in pr)} | "
-            f"{r['main_cpu']:.1f} ({100 * r['main_cpu'] / r['wall']:.0f} %) | {r['load']} |"
+            f"{r['main_cpu']:.1f} ({100 * r['main_cpu'] / r['wall']:.0f} %) | "
+            f"{r['peers_cpu']:.1f} | {r['load']} |"
         )
     results.write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
