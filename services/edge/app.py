@@ -7,8 +7,9 @@ worker running its VIO (``services.edge.worker``), an input queue and a task dra
   is configured) and queued; the handler returns, so the transport acknowledges, once the
   frame is in the journal. The queue is bounded (``EdgeConfig.max_queued_frames``): a full
   queue makes the handler wait, which back-pressures the robot through the protocol window;
-- the robot's task feeds the worker frame by frame and turns results into messages via the
-  :class:`Sink` (feedback to the robot, uplink to the cloud);
+- the robot's task feeds the worker frame by frame, one frame ahead (the worker computes the
+  next frame while the loop turns the previous result into messages via the :class:`Sink`:
+  feedback to the robot, uplink to the cloud);
 - ``PoseCorrection`` from the cloud is attached to that robot's next frame;
 - on start, :meth:`EdgeApp.replay` re-decodes each journal and fast-forwards the VIO over it
   (no robot feedback during replay; keyframes are uplinked again, the cloud is idempotent).
@@ -121,12 +122,25 @@ class EdgeApp:
         return rb
 
     async def _drain(self, rb: _Robot) -> None:
+        """Feed the robot's worker in order, one frame ahead: the next frame is handed over
+        before the previous result is turned into messages, so the VIO never waits for this
+        loop (the worker runs its steps one after another, in order)."""
         s = rb.session
+        pending: tuple[asyncio.Future, bool] | None = None  # the step in flight
         while True:
+            if pending is not None and rb.queue.empty():
+                await self._finish(rb, *pending)  # nothing to overlap with
+                pending = None
+                if rb.queue.empty():
+                    rb.idle.set()
+                continue
             item, replaying = await rb.queue.get()
             rb.idle.clear()
             rb.space.set()
             if item is None:
+                if pending is not None:
+                    await self._finish(rb, *pending)
+                    pending = None
                 s.finished = True
                 await self.sink.to_cloud(s.status(self.sink.link_counters(s.agent_id)))
                 rb.ended.set()
@@ -136,18 +150,28 @@ class EdgeApp:
             if rb.corrections:
                 item = dataclasses.replace(item, corrections=tuple(rb.corrections))
                 rb.corrections.clear()
-            res = await rb.worker.step(item)
-            if res.failed:
-                logger.error("robot %s: %s (other robots unaffected)", s.agent_id, res.failed)
-            out = s.on_result(res, replaying=replaying)
-            for m in out.robot:
-                self.sink.to_robot(s.agent_id, m)
-            for m in out.cloud:
-                await self.sink.to_cloud(m)
-            if out.status_due:
-                await self.sink.to_cloud(s.status(self.sink.link_counters(s.agent_id)))
-            if rb.queue.empty():
-                rb.idle.set()
+            step = asyncio.ensure_future(rb.worker.step(item))
+            if pending is not None:
+                try:
+                    await self._finish(rb, *pending)
+                except BaseException:  # cancelled (shutdown) or a worker error: drop the next
+                    step.cancel()
+                    raise
+            pending = (step, replaying)
+
+    async def _finish(self, rb: _Robot, step: asyncio.Future, replaying: bool) -> None:
+        """Turn one worker result into feedback and uplink messages."""
+        s = rb.session
+        res = await step
+        if res.failed:
+            logger.error("robot %s: %s (other robots unaffected)", s.agent_id, res.failed)
+        out = s.on_result(res, replaying=replaying)
+        for m in out.robot:
+            self.sink.to_robot(s.agent_id, m)
+        for m in out.cloud:
+            await self.sink.to_cloud(m)
+        if out.status_due:
+            await self.sink.to_cloud(s.status(self.sink.link_counters(s.agent_id)))
 
     async def _enqueue(self, rb: _Robot, item: WorkItem | None, replaying: bool) -> None:
         if not replaying:
