@@ -4,7 +4,9 @@ The reprojection terms (thousands) are linearised in numpy for all observations 
 few other factors (CombinedImuFactor, priors) stay a small gtsam graph that gtsam linearises
 every iteration, and its information matrix joins the camera-side system. Map points are
 eliminated with batched 3×3 inverses (Schur complement), the reduced camera system is solved
-densely, and the points are back-substituted.
+(densely up to ``SPARSE_MIN_DIM`` dimensions, beyond it as a sparse matrix by
+:mod:`services.edge.vio.ba_sparse`: the VI refinements over every keyframe), and the points
+are back-substituted.
 
 The problem and the LM schedule are gtsam's, so both paths of
 :func:`services.edge.vio.local_ba.bundle_adjust` agree: reprojection of a point ``p_world`` into
@@ -26,6 +28,8 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 
+from services.edge.vio.ba_sparse import GraphScatter, SparseCameraSystem, sparse_spd_solve
+
 logger = logging.getLogger(__name__)
 
 _LAMBDA_INITIAL = 1e-5
@@ -34,6 +38,8 @@ _LAMBDA_UPPER = 1e5
 _MIN_MODEL_FIDELITY = 1e-3
 _ABSOLUTE_ERROR_TOL = 1e-5
 _BEHIND_RESIDUAL = 2.0  # gtsam's reprojection error for a point behind the camera (fx = 1)
+# Reduced camera systems of more dimensions than this are kept sparse (ba_sparse.py).
+SPARSE_MIN_DIM = 300
 
 
 @dataclass(frozen=True, eq=False)
@@ -65,13 +71,17 @@ class SchurResult:
 class _Linearisation:
     """Gauss–Newton system of the current estimate: camera-side ``H_cc`` (C, C) and ``g_c``
     (C,), per point ``H_ll`` (N, 3, 3) and ``g_l`` (N, 3), per free-pose observation
-    ``H_pl`` (F, 6, 3)."""
+    ``H_pl`` (F, 6, 3). A sparse problem has ``H_cc`` None and instead ``H_pose`` (P, 6, 6),
+    the reprojection Hessian of each free pose, and ``h_graph``, the gtsam graph's Hessian
+    entries (:class:`services.edge.vio.ba_sparse.GraphScatter`)."""
 
-    H_cc: np.ndarray
+    H_cc: np.ndarray | None
     g_c: np.ndarray
     H_ll: np.ndarray
     g_l: np.ndarray
     H_pl: np.ndarray
+    H_pose: np.ndarray | None = None
+    h_graph: np.ndarray | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -292,6 +302,20 @@ class SchurLM:
         self._ordering = gtsam.Ordering()
         for k in self._graph_free + sorted(graph_keys - set(self._graph_free)):
             self._ordering.push_back(k)
+        # Big problems keep the reduced camera system sparse (the VI refinements).
+        self._system: SparseCameraSystem | None = None
+        self._scatter: GraphScatter | None = None
+        if self.n_c > SPARSE_MIN_DIM and self._covis is not None:
+            key_dims = {k: int(zero.at(k).size) for k in graph_keys}
+            self._scatter = GraphScatter(graph, key_dims, self._slices)
+            cv = self._covis
+            self._system = SparseCameraSystem(
+                self.n_c,
+                self._pose_rows[:, 0],
+                np.asarray(cv.offset_a, np.int64),
+                np.asarray(cv.offset_b, np.int64),
+                self._scatter,
+            )
 
     # ------------------------------------------------------------------ pieces
     def _poses(self, values: gtsam.Values) -> np.ndarray:
@@ -321,8 +345,15 @@ class SchurLM:
         J_pose_t = np.ascontiguousarray(J[:f, :, :6].transpose(0, 2, 1))  # (F, 6, 2)
         H_p = J_pose_t @ J[:f]  # (F, 6, 9): pose rows of [pose | point]
         H_pl = H_p[:, :, 6:]
-        H_cc = np.zeros((n_c, n_c))
         g_c = np.zeros(n_c)
+        if self._scatter is not None:  # sparse (then there are free observations)
+            H_pose = np.add.reduceat(H_p[:, :, :6], self._pose_starts)
+            g_p = J_pose_t[:, :, 0] * b[:f, :1] + J_pose_t[:, :, 1] * b[:f, 1:]  # (F, 6)
+            g_c[self._pose_rows] = np.add.reduceat(g_p, self._pose_starts)
+            h_graph, g_graph = self._scatter.values(self.graph.linearize(values))
+            np.add.at(g_c, self._scatter.g_rows, g_graph)
+            return _Linearisation(None, g_c, H_ll, g_l, H_pl, H_pose, h_graph)
+        H_cc = np.zeros((n_c, n_c))
         if f:
             rows, starts = self._pose_rows, self._pose_starts
             H_cc[rows[:, :, None], rows[:, None, :]] = np.add.reduceat(H_p[:, :, :6], starts)
@@ -352,26 +383,38 @@ class SchurLM:
         assert cv is not None
         Wt = np.ascontiguousarray(W.transpose(0, 2, 1))  # (F, 3, 6)
         Ht = np.ascontiguousarray(lin.H_pl.transpose(0, 2, 1))
-        S = lin.H_cc.copy()
+        S = lin.H_cc.copy() if lin.H_cc is not None else None
+        fill = np.empty((len(cv.offset_a), 6, 6)) if S is None else None
         for g in range(len(cv.offset_a)):
             s0, s1 = cv.bounds[g], cv.bounds[g + 1]
             # Σ over the points both see of W_a·H_plᵀ_b (6, 6).
             blk = Wt[cv.obs_a[s0:s1]].reshape(-1, 6).T @ Ht[cv.obs_b[s0:s1]].reshape(-1, 6)
+            if S is None:
+                fill[g] = blk
+                continue
             a, b = cv.offset_a[g], cv.offset_b[g]
             S[a : a + 6, b : b + 6] -= blk
             if a != b:
                 S[b : b + 6, a : a + 6] -= blk.T
-        S[np.diag_indices_from(S)] += lam
         g_pts = lin.g_l[pts]
         rhs = lin.g_c.copy()
         rhs[self._pose_rows] -= np.add.reduceat(  # Σ per pose of W·g_l (observations by pose)
             W[:, :, 0] * g_pts[:, :1] + W[:, :, 1] * g_pts[:, 1:2] + W[:, :, 2] * g_pts[:, 2:],
             self._pose_starts,
         )
-        try:
-            delta_c = _dense_solve(S, rhs)
-        except RuntimeError:  # not positive definite
-            return None
+        if S is None:
+            assert self._system is not None and lin.H_pose is not None
+            assert lin.h_graph is not None and fill is not None
+            S_sparse = self._system.matrix(lin.H_pose, lin.h_graph, fill, lam)
+            delta_c = sparse_spd_solve(S_sparse, rhs)
+            if delta_c is None:
+                return None
+        else:
+            S[np.diag_indices_from(S)] += lam
+            try:
+                delta_c = _dense_solve(S, rhs)
+            except RuntimeError:  # not positive definite
+                return None
         if not np.all(np.isfinite(delta_c)):
             return None
         back = lin.H_pl.transpose(0, 2, 1) @ delta_c[self._rows6][:, :, None]  # H_plᵀ·d_pose

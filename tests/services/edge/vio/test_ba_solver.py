@@ -9,7 +9,9 @@ import pytest
 from gtsam.symbol_shorthand import L, X
 
 from common.geometry import so3_exp
+from services.edge.vio import ba_solver
 from services.edge.vio.ba_solver import Observations, SchurLM, reprojection_terms
+from services.edge.vio.ba_sparse import sparse_spd_solve
 from services.edge.vio.imu import make_preintegration_params
 from services.edge.vio.local_ba import bundle_adjust, reprojection_chi2
 from services.edge.vio.simulation import SimOptions, ground_truth_map, simulate
@@ -210,3 +212,36 @@ def test_large_windows_fall_back_to_gtsam_and_unknown_solvers_are_rejected(scene
         assert np.array_equal(va.keyframes[k].T_world_body, vb.keyframes[k].T_world_body)
     with pytest.raises(VioError, match="solver"):
         LocalBAOptions(solver="ceres")
+
+
+def test_big_visual_inertial_window_uses_the_sparse_system_and_agrees_with_gtsam(monkeypatch):
+    """A 60-keyframe window with IMU (894 camera-side dimensions, as the VI refinements over
+    every keyframe; the gauge pose held): the Schur solver's sparse reduced camera system gives gtsam's solution,
+    and the dense one's to rounding."""
+    opts = SimOptions(duration_s=15.0, seed=7)
+    seq = simulate(opts)
+    vmap, cam, ids, _ = _perturbed((opts, seq), n_window=60, seed=6, n_keyframes=60)
+    assert len(ids) == 60
+    params = make_preintegration_params(seq.imu, 9.81, 1e-4)
+    kw = {"gauge_ids": (ids[0],), "max_iterations": 10}
+    sparse_solves = []
+
+    def counting_solve(S, rhs):
+        sparse_solves.append(S.shape)
+        return sparse_spd_solve(S, rhs)
+
+    monkeypatch.setattr(ba_solver, "sparse_spd_solve", counting_solve)
+    out = _both(vmap, ids, cam, params, **kw)
+    assert sparse_solves and all(shape == (60 * 15 - 6,) * 2 for shape in sparse_solves)
+    _assert_agree(out, ids)
+    vs, stats = out["schur"]
+    assert stats.error_after < 0.2 * stats.error_before
+    n_sparse = len(sparse_solves)
+    monkeypatch.setattr(ba_solver, "SPARSE_MIN_DIM", 10**6)  # the dense reduced system
+    vd = copy.deepcopy(vmap)
+    dense = bundle_adjust(vd, ids, cam, params, LocalBAOptions(), MappingOptions(), **kw)
+    assert len(sparse_solves) == n_sparse
+    assert dense.error_after == pytest.approx(stats.error_after, rel=1e-9)
+    for k in ids:
+        T_d, T_s = vd.keyframes[k].T_world_body, vs.keyframes[k].T_world_body
+        assert np.allclose(T_d, T_s, atol=1e-7)
