@@ -18,7 +18,9 @@ No sockets, no asyncio: ``services/edge/app.py`` drives it.
 from __future__ import annotations
 
 import logging
+import operator
 from collections import OrderedDict
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -45,7 +47,12 @@ from common.protocol.messages import (
     RobotFrame,
 )
 from common.vocabulary import Vocabulary
-from services.edge.vio.types import FrameObservation, InertialState, MapUpdate
+from services.edge.vio.types import (
+    FrameObservation,
+    InertialState,
+    MapPointSnapshot,
+    MapUpdate,
+)
 from services.edge.worker import WorkItem, WorkResult
 
 logger = logging.getLogger(__name__)
@@ -92,6 +99,121 @@ class Outputs:
     status_due: bool = False  # time for an AgentStatus (the app adds the link counters)
 
 
+_POINT_ID = operator.attrgetter("point_id")
+_P_WORLD = operator.attrgetter("p_world")
+_FEATURE_ROWS = operator.attrgetter("feature_indices")
+
+
+@dataclass(frozen=True, eq=False)
+class PointBatch:
+    """The map points of one :class:`MapUpdate` as flat arrays: ``ids`` (P,) int64,
+    ``p_world`` (P, 3) m, and their observations (O,) in point order: ``owner`` (index into
+    the points), ``keyframe_ids``, ``rows`` (feature row in the keyframe)."""
+
+    ids: np.ndarray
+    p_world: np.ndarray
+    owner: np.ndarray
+    keyframe_ids: np.ndarray
+    rows: np.ndarray
+
+    @staticmethod
+    def of(points: Sequence[MapPointSnapshot]) -> PointBatch:
+        n = len(points)
+        kf_ids = [p.keyframe_ids for p in points]
+        counts = np.fromiter(map(len, kf_ids), np.int64, n)
+        return PointBatch(
+            ids=np.fromiter(map(_POINT_ID, points), np.int64, n),
+            p_world=np.concatenate(list(map(_P_WORLD, points)), dtype=np.float64).reshape(n, 3),
+            owner=np.repeat(np.arange(n), counts),
+            keyframe_ids=np.concatenate(kf_ids, dtype=np.int64),
+            rows=np.concatenate(list(map(_FEATURE_ROWS, points)), dtype=np.int64),
+        )
+
+    def split(self) -> list[PointBatch]:
+        """One batch per point (in order)."""
+        out = []
+        for i in range(len(self.ids)):
+            m = self.owner == i
+            out.append(
+                PointBatch(self.ids[i : i + 1], self.p_world[i : i + 1],
+                           np.zeros(int(m.sum()), np.int64), self.keyframe_ids[m], self.rows[m])
+            )  # fmt: skip
+        return out
+
+
+def _isin_sorted(sorted_values: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """``x`` (N,) in ``sorted_values`` (M,, ascending) as a bool mask (N,)."""
+    if not len(sorted_values):
+        return np.zeros(len(x), bool)
+    i = np.searchsorted(sorted_values, x).clip(max=len(sorted_values) - 1)
+    return sorted_values[i] == x
+
+
+_KEY = np.int64(2**32)  # (point, keyframe) key: point id * 2**32 + keyframe id
+
+
+class SentPoints:
+    """The points of one map the cloud has, as sorted arrays: ``ids`` (n,) point ids,
+    ``p_world`` (n, 3) m the position last sent, ``keys`` (m,) the observations sent as
+    ``point id * 2**32 + keyframe id`` (keyframe ids < 2**32)."""
+
+    def __init__(self) -> None:
+        self.ids = np.zeros(0, np.int64)
+        self.p_world = np.zeros((0, 3))
+        self.keys = np.zeros(0, np.int64)
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+    def select(
+        self, b: PointBatch, own_sorted: np.ndarray, resend_m: float
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """What of ``b`` (distinct point ids) to send (see ``RobotSession._points_to_send``),
+        recorded as sent; ``own_sorted``: the VIO's own keyframe ids, ascending."""
+        n = len(b.ids)
+        robot = ~_isin_sorted(own_sorted, b.keyframe_ids)  # (O,) observation in a robot kf
+        slot = np.searchsorted(self.ids, b.ids)
+        known = slot < len(self.ids)
+        known[known] = self.ids[slot[known]] == b.ids[known]
+        keys = b.ids[b.owner] * _KEY + b.keyframe_ids
+        new = robot & (~known[b.owner] | ~_isin_sorted(self.keys, keys))
+        d = b.p_world[known] - self.p_world[slot[known]]
+        moved = np.zeros(n, bool)
+        moved[known] = (d * d).sum(axis=1) > resend_m**2
+        seen = np.bincount(b.owner[robot], minlength=n) > 0
+        go = seen & (~known | moved | (np.bincount(b.owner[new], minlength=n) > 0))
+        if not go.any():
+            return None
+        self.p_world[slot[go & known]] = b.p_world[go & known]
+        fresh = go & ~known
+        if fresh.any():  # inserted in id order (np.insert keeps the given order at one slot)
+            i = np.flatnonzero(fresh)[np.argsort(b.ids[fresh], kind="stable")]
+            self.ids = np.insert(self.ids, slot[i], b.ids[i])
+            self.p_world = np.insert(self.p_world, slot[i], b.p_world[i], axis=0)
+        if new.any():
+            k = np.sort(keys[new])
+            self.keys = np.insert(self.keys, np.searchsorted(self.keys, k), k)
+        rows = np.stack([b.ids[b.owner[new]], b.keyframe_ids[new], b.rows[new]], axis=1)
+        return b.ids[go], b.p_world[go], rows
+
+    def remove(self, point_ids: np.ndarray) -> np.ndarray:
+        """Forget ``point_ids`` (R,); the ones that were sent, in order (each once)."""
+        first = np.sort(np.unique(point_ids, return_index=True)[1])
+        point_ids = point_ids[first]
+        hit = _isin_sorted(self.ids, point_ids)
+        gone = point_ids[hit]
+        if len(gone):
+            keep = ~_isin_sorted(np.sort(gone), self.ids)
+            self.ids, self.p_world = self.ids[keep], self.p_world[keep]
+            lo = np.searchsorted(self.keys, gone * _KEY)
+            hi = np.searchsorted(self.keys, (gone + 1) * _KEY)
+            drop = np.zeros(len(self.keys) + 1, np.int64)
+            np.add.at(drop, lo, 1)
+            np.add.at(drop, hi, -1)
+            self.keys = self.keys[np.cumsum(drop[:-1]) == 0]
+        return gone
+
+
 class RobotSession:
     """Edge-side state of one robot (see the module docstring)."""
 
@@ -130,8 +252,8 @@ class RobotSession:
         self._own_kfs: dict[int, set[int]] = {}  # map id -> the VIO's own keyframe ids
         self._up_prev: dict[tuple[int, int], int | None] = {}
         self._last_up: dict[int, int] = {}
-        # (map id, point id) -> (position sent (3,), observations sent)
-        self._sent_points: dict[tuple[int, int], tuple[tuple[float, float, float], set[int]]] = {}
+        self._own_sorted: dict[int, np.ndarray] = {}  # map id -> sorted(_own_kfs[map id])
+        self._sent_points: dict[int, SentPoints] = {}  # map id -> the points the cloud has
         self._last_fb: InertialState | None = None
         self._last_fb_frame = -(10**9)
         self._fb_map: int | None = None
@@ -260,6 +382,7 @@ class RobotSession:
             self._kf_time[key] = kf.timestamp_ns
             if not kf.robot_keyframe:
                 self._own_kfs.setdefault(upd.map_id, set()).add(kf.keyframe_id)
+                self._own_sorted.pop(upd.map_id, None)
                 continue
             if key not in self._up_prev:
                 self._up_prev[key] = self._last_up.get(upd.map_id)
@@ -295,12 +418,8 @@ class RobotSession:
                 )
             )
         points = self._points_to_send(upd)
-        if points:
-            ids = np.array([pid for pid, _, _ in points], np.int64)
-            p_world = np.array([p for _, p, _ in points], np.float64).reshape(-1, 3)
-            rows = np.array(
-                [(pid, k, i) for pid, _, new in points for k, i in new], np.int64
-            ).reshape(-1, 3)
+        if points is not None:
+            ids, p_world, rows = points
             msgs.append(
                 MapPointUpdate(
                     agent_id=self.agent_id,
@@ -310,58 +429,47 @@ class RobotSession:
                     observations=pack_array(rows, "<i8"),
                 )
             )
-        removed = [
-            int(pid)
-            for pid in upd.removed_point_ids
-            if self._sent_points.pop((upd.map_id, int(pid)), None) is not None
-        ]
-        if removed:  # points the cloud never heard of need no cull
+        book = self._sent_points.get(upd.map_id)
+        removed = np.zeros(0, np.int64)
+        if book is not None and upd.removed_point_ids:
+            removed = book.remove(np.asarray(upd.removed_point_ids, np.int64))
+        if len(removed):  # points the cloud never heard of need no cull
             msgs.append(
                 CullEvent(
                     agent_id=self.agent_id,
                     map_id=upd.map_id,
                     keyframe_ids=b"",
-                    map_point_ids=pack_array(np.array(removed), "<i8"),
+                    map_point_ids=pack_array(removed, "<i8"),
                 )
             )
         return msgs
 
-    def _points_to_send(
-        self, upd: MapUpdate
-    ) -> list[tuple[int, np.ndarray, list[tuple[int, int]]]]:
-        """The changed points worth sending as ``(id, p_world (3,), new observation rows)``.
+    def _points_to_send(self, upd: MapUpdate) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """The changed points worth sending: ``ids`` (P,), ``p_world`` (P, 3) m and the new
+        observation rows (R, 3) ``[point id, keyframe id, feature row]``, in ``upd`` order;
+        None if nothing is due.
 
         The cloud only knows the robot keyframes (the VIO's own keyframes carry no features),
         so only observations in those count: a point is sent once a robot keyframe observes
         it, again when it gains such observations (only the new rows: the cloud adds them to
         what it has) or moved more than ``point_resend_m`` since it was last sent.
         """
-        out = []
-        map_id = upd.map_id
-        own = self._own_kfs.get(map_id, set())
-        resend2 = self.options.point_resend_m**2
-        for p in upd.points:
-            pid = int(p.point_id)
-            obs = [
-                (k, i)
-                for k, i in zip(p.keyframe_ids.tolist(), p.feature_indices.tolist(), strict=True)
-                if k not in own
-            ]
-            if not obs:
-                continue
-            x, y, z = np.asarray(p.p_world, np.float64).reshape(3).tolist()
-            sent = self._sent_points.get((map_id, pid))
-            if sent is None:
-                self._sent_points[(map_id, pid)] = ((x, y, z), {k for k, _ in obs})
-                out.append((pid, np.array([x, y, z]), obs))
-                continue
-            (sx, sy, sz), known = sent
-            new = [o for o in obs if o[0] not in known]
-            if new or (x - sx) ** 2 + (y - sy) ** 2 + (z - sz) ** 2 > resend2:
-                known.update(k for k, _ in new)
-                self._sent_points[(map_id, pid)] = ((x, y, z), known)
-                out.append((pid, np.array([x, y, z]), new))
-        return out
+        if not upd.points:
+            return None
+        own = self._own_sorted.get(upd.map_id)
+        if own is None:
+            own = np.array(sorted(self._own_kfs.get(upd.map_id, ())), np.int64)
+            self._own_sorted[upd.map_id] = own
+        book = self._sent_points.setdefault(upd.map_id, SentPoints())
+        batch = PointBatch.of(upd.points)
+        if len(np.unique(batch.ids)) < len(batch.ids):  # a point twice: one at a time
+            parts = [book.select(b, own, self.options.point_resend_m) for b in batch.split()]
+            sent = [p for p in parts if p is not None]
+            if not sent:
+                return None
+            ids, p_world, rows = zip(*sent, strict=True)
+            return np.concatenate(ids), np.concatenate(p_world), np.concatenate(rows)
+        return book.select(batch, own, self.options.point_resend_m)
 
     def status(self, link_counters: dict[str, int]) -> AgentStatus:
         """The robot's :class:`AgentStatus` now (``link_counters``: flat int counters)."""
