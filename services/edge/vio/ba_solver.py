@@ -22,6 +22,7 @@ constants (gtsam holds them with tight priors; the difference is of the order of
 
 from __future__ import annotations
 
+import itertools
 import logging
 from dataclasses import dataclass
 
@@ -282,6 +283,7 @@ class SchurLM:
         self._rows6 = rows6
         self._pose_starts = np.flatnonzero(np.diff(obs.pose[:n_free], prepend=-1) != 0)
         self._pose_rows = rows6[self._pose_starts]
+        self._pose_bounds = list(itertools.pairwise([*self._pose_starts.tolist(), n_free]))
         self._by_point = np.argsort(obs.point, kind="stable")
         self._point_starts = np.searchsorted(obs.point[self._by_point], np.arange(n))
         self._idx_lf = (self._free_point[:, None] * 3 + np.arange(3)).ravel()
@@ -342,23 +344,25 @@ class SchurLM:
         g_l = np.add.reduceat(
             (J_point_t[:, :, 0] * b[:, :1] + J_point_t[:, :, 1] * b[:, 1:])[bp], starts
         )
-        J_pose_t = np.ascontiguousarray(J[:f, :, :6].transpose(0, 2, 1))  # (F, 6, 2)
-        H_p = J_pose_t @ J[:f]  # (F, 6, 9): pose rows of [pose | point]
-        H_pl = H_p[:, :, 6:]
+        J_pose = np.ascontiguousarray(J[:f, :, :6])  # (F, 2, 6)
+        J_pose_t = np.ascontiguousarray(J_pose.transpose(0, 2, 1))  # (F, 6, 2)
+        H_pl = J_pose_t @ np.ascontiguousarray(J[:f, :, 6:])  # (F, 6, 3)
+        H_pose = np.empty((len(self._pose_bounds), 6, 6))  # per free pose, one GEMM each
+        for i, (s0, s1) in enumerate(self._pose_bounds):
+            A = J_pose[s0:s1].reshape(-1, 6)
+            H_pose[i] = A.T @ A
         g_c = np.zeros(n_c)
-        if self._scatter is not None:  # sparse (then there are free observations)
-            H_pose = np.add.reduceat(H_p[:, :, :6], self._pose_starts)
+        if f:
             g_p = J_pose_t[:, :, 0] * b[:f, :1] + J_pose_t[:, :, 1] * b[:f, 1:]  # (F, 6)
             g_c[self._pose_rows] = np.add.reduceat(g_p, self._pose_starts)
+        if self._scatter is not None:  # sparse (then there are free observations)
             h_graph, g_graph = self._scatter.values(self.graph.linearize(values))
             np.add.at(g_c, self._scatter.g_rows, g_graph)
             return _Linearisation(None, g_c, H_ll, g_l, H_pl, H_pose, h_graph)
         H_cc = np.zeros((n_c, n_c))
         if f:
-            rows, starts = self._pose_rows, self._pose_starts
-            H_cc[rows[:, :, None], rows[:, None, :]] = np.add.reduceat(H_p[:, :, :6], starts)
-            g_p = J_pose_t[:, :, 0] * b[:f, :1] + J_pose_t[:, :, 1] * b[:f, 1:]  # (F, 6)
-            g_c[rows] = np.add.reduceat(g_p, starts)
+            rows = self._pose_rows
+            H_cc[rows[:, :, None], rows[:, None, :]] = H_pose
         if self._graph_free:
             H_g, eta_g = self.graph.linearize(values).hessian(self._ordering)
             m = len(self._graph_idx)
@@ -378,11 +382,10 @@ class SchurLM:
         if not self.n_c:
             return np.zeros(0), (H_ll_inv @ lin.g_l[:, :, None])[:, :, 0]
         pts = self._free_point
-        W = lin.H_pl @ H_ll_inv[pts]  # (F, 6, 3)
         cv = self._covis
         assert cv is not None
-        Wt = np.ascontiguousarray(W.transpose(0, 2, 1))  # (F, 3, 6)
-        Ht = np.ascontiguousarray(lin.H_pl.transpose(0, 2, 1))
+        Ht = np.ascontiguousarray(lin.H_pl.transpose(0, 2, 1))  # (F, 3, 6)
+        Wt = H_ll_inv[pts] @ Ht  # (F, 3, 6): Wᵀ of W = H_pl·H_ll⁻¹ (H_ll⁻¹ symmetric)
         S = lin.H_cc.copy() if lin.H_cc is not None else None
         fill = np.empty((len(cv.offset_a), 6, 6)) if S is None else None
         for g in range(len(cv.offset_a)):
@@ -399,7 +402,7 @@ class SchurLM:
         g_pts = lin.g_l[pts]
         rhs = lin.g_c.copy()
         rhs[self._pose_rows] -= np.add.reduceat(  # Σ per pose of W·g_l (observations by pose)
-            W[:, :, 0] * g_pts[:, :1] + W[:, :, 1] * g_pts[:, 1:2] + W[:, :, 2] * g_pts[:, 2:],
+            Wt[:, 0] * g_pts[:, :1] + Wt[:, 1] * g_pts[:, 1:2] + Wt[:, 2] * g_pts[:, 2:],
             self._pose_starts,
         )
         if S is None:

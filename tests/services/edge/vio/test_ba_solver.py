@@ -215,9 +215,9 @@ def test_large_windows_fall_back_to_gtsam_and_unknown_solvers_are_rejected(scene
 
 
 def test_big_visual_inertial_window_uses_the_sparse_system_and_agrees_with_gtsam(monkeypatch):
-    """A 60-keyframe window with IMU (894 camera-side dimensions, as the VI refinements over
-    every keyframe; the gauge pose held): the Schur solver's sparse reduced camera system gives gtsam's solution,
-    and the dense one's to rounding."""
+    """A 60-keyframe window with IMU (894 camera-side dimensions, the gauge pose held), as
+    the VI refinements over every keyframe: the Schur solver's sparse reduced camera system
+    gives gtsam's solution, and the dense one's to rounding."""
     opts = SimOptions(duration_s=15.0, seed=7)
     seq = simulate(opts)
     vmap, cam, ids, _ = _perturbed((opts, seq), n_window=60, seed=6, n_keyframes=60)
