@@ -18,9 +18,7 @@ No sockets, no asyncio: ``services/edge/app.py`` drives it.
 from __future__ import annotations
 
 import logging
-import operator
 from collections import OrderedDict
-from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -50,7 +48,7 @@ from common.vocabulary import Vocabulary
 from services.edge.vio.types import (
     FrameObservation,
     InertialState,
-    MapPointSnapshot,
+    MapPointBatch,
     MapUpdate,
 )
 from services.edge.worker import WorkItem, WorkResult
@@ -99,11 +97,6 @@ class Outputs:
     status_due: bool = False  # time for an AgentStatus (the app adds the link counters)
 
 
-_POINT_ID = operator.attrgetter("point_id")
-_P_WORLD = operator.attrgetter("p_world")
-_FEATURE_ROWS = operator.attrgetter("feature_indices")
-
-
 @dataclass(frozen=True, eq=False)
 class PointBatch:
     """The map points of one :class:`MapUpdate` as flat arrays: ``ids`` (P,) int64,
@@ -117,16 +110,13 @@ class PointBatch:
     rows: np.ndarray
 
     @staticmethod
-    def of(points: Sequence[MapPointSnapshot]) -> PointBatch:
-        n = len(points)
-        kf_ids = [p.keyframe_ids for p in points]
-        counts = np.fromiter(map(len, kf_ids), np.int64, n)
+    def of(points: MapPointBatch) -> PointBatch:
         return PointBatch(
-            ids=np.fromiter(map(_POINT_ID, points), np.int64, n),
-            p_world=np.concatenate(list(map(_P_WORLD, points)), dtype=np.float64).reshape(n, 3),
-            owner=np.repeat(np.arange(n), counts),
-            keyframe_ids=np.concatenate(kf_ids, dtype=np.int64),
-            rows=np.concatenate(list(map(_FEATURE_ROWS, points)), dtype=np.int64),
+            ids=np.asarray(points.point_ids, np.int64),
+            p_world=np.asarray(points.p_world, np.float64).reshape(-1, 3),
+            owner=np.repeat(np.arange(len(points)), points.counts),
+            keyframe_ids=np.asarray(points.keyframe_ids, np.int64),
+            rows=np.asarray(points.feature_indices, np.int64),
         )
 
     def split(self) -> list[PointBatch]:

@@ -220,7 +220,7 @@ class VioManager:
             map_id=vmap.map_id,
             vi_initialized=vmap.vi_initialized,
             keyframes=tuple(vmap.keyframe_snapshot(vmap.keyframes[k]) for k in kfs),
-            points=tuple(vmap.point_snapshot(vmap.points[p]) for p in pts),
+            points=vmap.point_batch(pts),
             removed_point_ids=tuple(removed),
         )
 

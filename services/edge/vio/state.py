@@ -15,7 +15,7 @@ import numpy as np
 from common.calibration import CameraCalibration
 from common.geometry import inverse_T
 from services.edge.vio.imu import ImuSegment
-from services.edge.vio.types import KeyframeSnapshot, MapPointSnapshot
+from services.edge.vio.types import KeyframeSnapshot, MapPointBatch, MapPointSnapshot
 
 
 class PinholeUndistorter:
@@ -199,6 +199,22 @@ class VioMap:
             point_ids=point_ids,
             previous_keyframe_id=kf.previous_id,
             robot_keyframe=kf.descriptors is not None,
+        )
+
+    def point_batch(self, point_ids: list[int]) -> MapPointBatch:
+        """These points (in order) as one flat :class:`MapPointBatch`."""
+        pts = [self.points[p] for p in point_ids]
+        n = len(pts)
+        counts = np.fromiter((len(mp.observations) for mp in pts), np.int64, n)
+        m = int(counts.sum())
+        return MapPointBatch(
+            point_ids=np.fromiter((mp.id for mp in pts), np.int64, n),
+            p_world=np.array([mp.p_world for mp in pts], np.float64).reshape(n, 3),
+            counts=counts,
+            keyframe_ids=np.fromiter((k for mp in pts for k in mp.observations), np.int64, m),
+            feature_indices=np.fromiter(
+                (r for mp in pts for r in mp.observations.values()), np.int64, m
+            ),
         )
 
     def point_snapshot(self, mp: MapPoint) -> MapPointSnapshot:

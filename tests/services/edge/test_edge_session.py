@@ -131,7 +131,7 @@ def test_the_clouds_uplink_decoder_accepts_every_message(run) -> None:
 
 def test_map_points_are_resent_only_when_moved_or_reobserved() -> None:
     from common.data.synth import EUROC_CAM0
-    from services.edge.vio.types import MapPointSnapshot, MapUpdate
+    from services.edge.vio.types import MapPointBatch, MapPointSnapshot, MapUpdate
 
     session = RobotSession("r", EUROC_CAM0, Vocabulary.load())
 
@@ -141,7 +141,7 @@ def test_map_points_are_resent_only_when_moved_or_reobserved() -> None:
         )
 
     def sent_ids(*points: MapPointSnapshot) -> list[int]:
-        msgs = session._uplink(MapUpdate(0, True, (), points, ()))
+        msgs = session._uplink(MapUpdate(0, True, (), MapPointBatch.of(points), ()))
         ups = [m for m in msgs if isinstance(m, MapPointUpdate)]
         return [int(i) for m in ups for i in unpack_array(m.ids, "<i8")]
 

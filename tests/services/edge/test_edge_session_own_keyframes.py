@@ -9,7 +9,7 @@ from common.protocol.arrays import unpack_array
 from common.protocol.messages import KeyframeUpdate, MapPointUpdate
 from common.vocabulary import Vocabulary
 from services.edge.robot_session import RobotSession
-from services.edge.vio.types import KeyframeSnapshot, MapPointSnapshot, MapUpdate
+from services.edge.vio.types import KeyframeSnapshot, MapPointBatch, MapPointSnapshot, MapUpdate
 from services.edge.worker import WorkResult
 
 
@@ -27,7 +27,7 @@ def test_own_keyframes_stay_on_the_edge() -> None:
     session = RobotSession("r", cam, Vocabulary.load())
     kfs = (_kf(0, None, True), _kf(1, 0, False), _kf(2, 1, False), _kf(3, 2, True))
     point = MapPointSnapshot(7, 0, np.ones(3), np.array([0, 1, 3]), np.array([0, 1, 2]))
-    upd = MapUpdate(0, False, kfs, (point,), ())
+    upd = MapUpdate(0, False, kfs, MapPointBatch.of((point,)), ())
     out = session.on_result(WorkResult(0, None, None, (upd,)))
     sent = [m for m in out.cloud if isinstance(m, KeyframeUpdate)]
     assert [m.keyframe_id for m in sent] == [0, 3]
@@ -45,7 +45,9 @@ def test_points_seen_only_by_own_keyframes_stay_and_only_new_rows_go() -> None:
     only_own = MapPointSnapshot(8, 0, np.ones(3), np.array([1, 2]), np.array([0, 1]))
     shared = MapPointSnapshot(9, 0, np.ones(3), np.array([0, 1]), np.array([2, 2]))
     out = session.on_result(
-        WorkResult(0, None, None, (MapUpdate(0, False, kfs, (only_own, shared), ()),))
+        WorkResult(
+            0, None, None, (MapUpdate(0, False, kfs, MapPointBatch.of((only_own, shared)), ()),)
+        )
     )
     (mpu,) = [m for m in out.cloud if isinstance(m, MapPointUpdate)]
     assert unpack_array(mpu.ids, "<i8").tolist() == [9]
@@ -53,7 +55,7 @@ def test_points_seen_only_by_own_keyframes_stay_and_only_new_rows_go() -> None:
     # A new observation in own keyframe 2 alone is no reason to resend.
     shared = MapPointSnapshot(9, 0, np.ones(3), np.array([0, 1, 3]), np.array([2, 2, 5]))
     only_own = MapPointSnapshot(8, 0, np.ones(3), np.array([1, 2]), np.array([0, 1]))
-    upd = MapUpdate(0, False, (_kf(3, 2, True),), (only_own, shared), (8,))
+    upd = MapUpdate(0, False, (_kf(3, 2, True),), MapPointBatch.of((only_own, shared)), (8,))
     out = session.on_result(WorkResult(0, None, None, (upd,)))
     (mpu,) = [m for m in out.cloud if isinstance(m, MapPointUpdate)]
     assert unpack_array(mpu.ids, "<i8").tolist() == [9]

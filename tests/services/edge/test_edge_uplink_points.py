@@ -15,7 +15,7 @@ from common.protocol.arrays import unpack_array
 from common.protocol.messages import CullEvent, MapPointUpdate, Message
 from common.vocabulary import Vocabulary
 from services.edge.robot_session import RobotSession
-from services.edge.vio.types import KeyframeSnapshot, MapPointSnapshot, MapUpdate
+from services.edge.vio.types import KeyframeSnapshot, MapPointBatch, MapPointSnapshot, MapUpdate
 
 Sent = tuple[list[int], list[list[float]], list[list[int]]]
 
@@ -51,7 +51,9 @@ class _Uplink:
         kfs: tuple[KeyframeSnapshot, ...] = (),
         map_id: int = 0,
     ) -> tuple[Sent | None, list[int] | None]:
-        msgs: list[Message] = self.session._uplink(MapUpdate(map_id, True, kfs, points, removed))
+        msgs: list[Message] = self.session._uplink(
+            MapUpdate(map_id, True, kfs, MapPointBatch.of(points), removed)
+        )
         ups = [m for m in msgs if isinstance(m, MapPointUpdate)]
         culls = [m for m in msgs if isinstance(m, CullEvent)]
         assert len(ups) <= 1 and len(culls) <= 1
