@@ -122,8 +122,9 @@ class LocalBAOptions:
     solver: str = "schur"
     # ... "schur" up to this many free keyframes, gtsam beyond (an escape hatch; no limit in
     # practice). The Schur solver keeps its reduced camera system sparse above 20 keyframes
-    # (ba_sparse.py), so the VI refinements over every keyframe use it too: one refinement
-    # of 231 keyframes / 28.7k points (seed 1 robot0), schur vs gtsam 1.7 vs 3.7 s CPU.
+    # (ba_sparse.py), so the VI refinements over every keyframe use it too: the last one of
+    # seed 1 robot0 (231 keyframes, 28.7k points) 3.7 -> 1.9 s CPU with this path
+    # (benchmarks/results/vi_refinement.md).
     schur_max_keyframes: int = 100_000
     # Cost caps (CPU is the edge's budget: three robots' VIO share two cores). A local BA runs
     # on every robot keyframe and on every ``every_keyframes``-th of the VIO's own ones ...
