@@ -65,6 +65,8 @@ class JobConfig:
         start_timeout_s: seconds a service may take to listen (default 120, imports are slow).
         record_uplink: the cloud records every applied uplink message to this file
             (``recslam cloud --record``; default: no recording).
+        mbp: run the cloud with map backbone profiling (``recslam cloud --mbp``; default off,
+            like the cloud).
     """
 
     dataset: Path
@@ -77,6 +79,7 @@ class JobConfig:
     robot_links: Callable[[str, int], int] | None = None
     start_timeout_s: float = 120.0
     record_uplink: Path | None = None
+    mbp: bool = False
 
 
 @dataclass
@@ -136,6 +139,7 @@ class Job:
             "--secret-file", str(self.secret_path),
             "--output-every", "0",
             "--stats-out", str(self.run_dir / "stats" / "cloud.json"),
+            "--mbp" if c.mbp else "--no-mbp",
             *record,
         )  # fmt: skip
 
