@@ -97,38 +97,14 @@ class Outputs:
     status_due: bool = False  # time for an AgentStatus (the app adds the link counters)
 
 
-@dataclass(frozen=True, eq=False)
-class PointBatch:
-    """The map points of one :class:`MapUpdate` as flat arrays: ``ids`` (P,) int64,
-    ``p_world`` (P, 3) m, and their observations (O,) in point order: ``owner`` (index into
-    the points), ``keyframe_ids``, ``rows`` (feature row in the keyframe)."""
-
-    ids: np.ndarray
-    p_world: np.ndarray
-    owner: np.ndarray
-    keyframe_ids: np.ndarray
-    rows: np.ndarray
-
-    @staticmethod
-    def of(points: MapPointBatch) -> PointBatch:
-        return PointBatch(
-            ids=np.asarray(points.point_ids, np.int64),
-            p_world=np.asarray(points.p_world, np.float64).reshape(-1, 3),
-            owner=np.repeat(np.arange(len(points)), points.counts),
-            keyframe_ids=np.asarray(points.keyframe_ids, np.int64),
-            rows=np.asarray(points.feature_indices, np.int64),
-        )
-
-    def split(self) -> list[PointBatch]:
-        """One batch per point (in order)."""
-        out = []
-        for i in range(len(self.ids)):
-            m = self.owner == i
-            out.append(
-                PointBatch(self.ids[i : i + 1], self.p_world[i : i + 1],
-                           np.zeros(int(m.sum()), np.int64), self.keyframe_ids[m], self.rows[m])
-            )  # fmt: skip
-        return out
+def _one_point_each(b: MapPointBatch) -> list[MapPointBatch]:
+    """``b`` split into one batch per point (in order)."""
+    ends = np.cumsum(b.counts)
+    return [
+        MapPointBatch(b.point_ids[i : i + 1], b.p_world[i : i + 1], b.counts[i : i + 1],
+                      b.keyframe_ids[e - c : e], b.feature_indices[e - c : e])
+        for i, (c, e) in enumerate(zip(b.counts.tolist(), ends.tolist(), strict=True))
+    ]  # fmt: skip
 
 
 def _isin_sorted(sorted_values: np.ndarray, x: np.ndarray) -> np.ndarray:
@@ -156,35 +132,37 @@ class SentPoints:
         return len(self.ids)
 
     def select(
-        self, b: PointBatch, own_sorted: np.ndarray, resend_m: float
+        self, b: MapPointBatch, own_sorted: np.ndarray, resend_m: float
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
         """What of ``b`` (distinct point ids) to send (see ``RobotSession._points_to_send``),
         recorded as sent; ``own_sorted``: the VIO's own keyframe ids, ascending."""
-        n = len(b.ids)
-        robot = ~_isin_sorted(own_sorted, b.keyframe_ids)  # (O,) observation in a robot kf
-        slot = np.searchsorted(self.ids, b.ids)
+        ids, p_world, kf_ids = b.point_ids, b.p_world, b.keyframe_ids
+        n = len(ids)
+        owner = np.repeat(np.arange(n), b.counts)  # (O,) point index of each observation
+        robot = ~_isin_sorted(own_sorted, kf_ids)  # (O,) observation in a robot kf
+        slot = np.searchsorted(self.ids, ids)
         known = slot < len(self.ids)
-        known[known] = self.ids[slot[known]] == b.ids[known]
-        keys = b.ids[b.owner] * _KEY + b.keyframe_ids
-        new = robot & (~known[b.owner] | ~_isin_sorted(self.keys, keys))
-        d = b.p_world[known] - self.p_world[slot[known]]
+        known[known] = self.ids[slot[known]] == ids[known]
+        keys = ids[owner] * _KEY + kf_ids
+        new = robot & (~known[owner] | ~_isin_sorted(self.keys, keys))
+        d = p_world[known] - self.p_world[slot[known]]
         moved = np.zeros(n, bool)
         moved[known] = (d * d).sum(axis=1) > resend_m**2
-        seen = np.bincount(b.owner[robot], minlength=n) > 0
-        go = seen & (~known | moved | (np.bincount(b.owner[new], minlength=n) > 0))
+        seen = np.bincount(owner[robot], minlength=n) > 0
+        go = seen & (~known | moved | (np.bincount(owner[new], minlength=n) > 0))
         if not go.any():
             return None
-        self.p_world[slot[go & known]] = b.p_world[go & known]
+        self.p_world[slot[go & known]] = p_world[go & known]
         fresh = go & ~known
         if fresh.any():  # inserted in id order (np.insert keeps the given order at one slot)
-            i = np.flatnonzero(fresh)[np.argsort(b.ids[fresh], kind="stable")]
-            self.ids = np.insert(self.ids, slot[i], b.ids[i])
-            self.p_world = np.insert(self.p_world, slot[i], b.p_world[i], axis=0)
+            i = np.flatnonzero(fresh)[np.argsort(ids[fresh], kind="stable")]
+            self.ids = np.insert(self.ids, slot[i], ids[i])
+            self.p_world = np.insert(self.p_world, slot[i], p_world[i], axis=0)
         if new.any():
             k = np.sort(keys[new])
             self.keys = np.insert(self.keys, np.searchsorted(self.keys, k), k)
-        rows = np.stack([b.ids[b.owner[new]], b.keyframe_ids[new], b.rows[new]], axis=1)
-        return b.ids[go], b.p_world[go], rows
+        rows = np.stack([ids[owner[new]], kf_ids[new], b.feature_indices[new]], axis=1)
+        return ids[go], p_world[go], rows
 
     def remove(self, point_ids: np.ndarray) -> np.ndarray:
         """Forget ``point_ids`` (R,); the ones that were sent, in order (each once)."""
@@ -451,9 +429,11 @@ class RobotSession:
             own = np.array(sorted(self._own_kfs.get(upd.map_id, ())), np.int64)
             self._own_sorted[upd.map_id] = own
         book = self._sent_points.setdefault(upd.map_id, SentPoints())
-        batch = PointBatch.of(upd.points)
-        if len(np.unique(batch.ids)) < len(batch.ids):  # a point twice: one at a time
-            parts = [book.select(b, own, self.options.point_resend_m) for b in batch.split()]
+        batch = upd.points
+        if len(np.unique(batch.point_ids)) < len(batch):  # a point twice: one at a time
+            parts = [
+                book.select(b, own, self.options.point_resend_m) for b in _one_point_each(batch)
+            ]
             sent = [p for p in parts if p is not None]
             if not sent:
                 return None

@@ -15,7 +15,7 @@ import numpy as np
 from common.calibration import CameraCalibration
 from common.geometry import inverse_T
 from services.edge.vio.imu import ImuSegment
-from services.edge.vio.types import KeyframeSnapshot, MapPointBatch, MapPointSnapshot
+from services.edge.vio.types import KeyframeSnapshot, MapPointBatch
 
 
 class PinholeUndistorter:
@@ -216,11 +216,6 @@ class VioMap:
                 (r for mp in pts for r in mp.observations.values()), np.int64, m
             ),
         )
-
-    def point_snapshot(self, mp: MapPoint) -> MapPointSnapshot:
-        kf_ids = np.array(list(mp.observations.keys()), dtype=np.int64)
-        rows = np.array(list(mp.observations.values()), dtype=np.int64)
-        return MapPointSnapshot(mp.id, self.map_id, mp.p_world.copy(), kf_ids, rows)
 
     def pop_changes(self) -> tuple[list[int], list[int], list[int]]:
         """(dirty keyframe ids, dirty point ids, removed point ids) since the last call."""
