@@ -20,6 +20,16 @@ def session():
     return kfs, mps
 
 
+def _atlas(kfs, mps) -> Atlas:
+    """An atlas holding ``kfs``, then ``mps``."""
+    atlas = Atlas()
+    for k in kfs:
+        atlas.add_keyframe(k)
+    for m in mps:
+        atlas.add_map_point(m)
+    return atlas
+
+
 def _expected_covisibility(kfs, mps):
     obs_of = {}
     for m in mps:
@@ -82,11 +92,7 @@ def test_spanning_tree_is_a_tree_rooted_at_first_keyframe(session):
 
 def test_snapshot_is_a_read_only_copy(session):
     kfs, mps = session
-    atlas = Atlas()
-    for k in kfs:
-        atlas.add_keyframe(k)
-    for m in mps:
-        atlas.add_map_point(m)
+    atlas = _atlas(kfs, mps)
     snap = atlas.snapshot()
     with pytest.raises(ValueError):
         snap.T_map_body[0, 0, 3] = 5.0
@@ -150,11 +156,7 @@ def test_bad_keyframe_input_names_the_field():
 
 def test_remove_keyframe_clears_observations_and_covisibility(session):
     kfs, mps = session
-    atlas = Atlas()
-    for k in kfs:
-        atlas.add_keyframe(k)
-    for m in mps:
-        atlas.add_map_point(m)
+    atlas = _atlas(kfs, mps)
     key = make_key(0, kfs[3].keyframe_id)
     neighbours = [b for b, _ in atlas.covisible(key)]
     atlas.remove_keyframe(key)
@@ -172,11 +174,7 @@ def test_moved_point_the_cloud_removed_is_not_recreated_without_observers(sessio
     """An edge re-sends a point it moved (no new observation rows) after the cloud removed it
     (MBP culled it): no observer-less point appears; a new observation brings it back."""
     kfs, mps = session
-    atlas = Atlas()
-    for k in kfs:
-        atlas.add_keyframe(k)
-    for m in mps:
-        atlas.add_map_point(m)
+    atlas = _atlas(kfs, mps)
     m = mps[0]
     key = make_key(0, m.map_point_id)
     atlas.remove_map_point(key)
