@@ -58,12 +58,10 @@ def _ms(values: list[float]) -> str:
 
 async def _peers(frames_by_robot: dict, conn: Connection) -> None:
     """The robot players and a stub cloud (in the peers process): sends the cloud's port,
-    receives the edge's, plays every robot, and after "done" reports (CPU s, messages)."""
-    received = 0
+    receives the edge's, plays every robot, and after "done" reports its CPU seconds."""
 
     async def on_cloud(d: Delivery) -> None:
-        nonlocal received
-        received += 1
+        return None  # the uplink is received (and acknowledged) and dropped
 
     loop = asyncio.get_running_loop()
     cloud = Server(SessionConfig("cloud", "cloud", SECRET), on_cloud)
@@ -83,7 +81,7 @@ async def _peers(frames_by_robot: dict, conn: Connection) -> None:
     done.set()
     await asyncio.gather(*tasks)
     await cloud.close()
-    conn.send((cpu, received))
+    conn.send(cpu)
 
 
 def _peers_main(frames_by_robot: dict, conn: Connection) -> None:
@@ -121,7 +119,7 @@ async def run_case(frames_by_robot: dict, camera, imu, vocab, worker: str) -> di
     wall = time.monotonic() - t0
     main_cpu = time.process_time() - cpu0
     conn.send("done")
-    peers_cpu, _ = await loop.run_in_executor(None, conn.recv)
+    peers_cpu = await loop.run_in_executor(None, conn.recv)
     peers.join(30.0)
     stats = edge.stats()["robots"]
     await edge.stop()
