@@ -19,7 +19,9 @@ deterministically:
   after the last new keyframe ("quiet"), and at the end (the server's shutdown budget).
 
 :func:`run_table3` replays twice — MBP on and MBP off, everything else identical — computes
-per-robot and joint ATE of the keyframe trajectories with the cloud report's alignment
+per-robot and joint ATE of the keyframe trajectories (every keyframe received: the ones MBP
+retired through their anchors; and over the kept keyframes only) with the cloud report's
+alignment
 (:func:`common.evaluation.metrics.compute_joint_ate`, SE(3)), scores loop detection of the
 MBP-on replay (:mod:`recslam.loop_scoring`) and writes ``table3.md``, ``loop_detection.md``,
 ``table3.json`` and ``table3.png``.
@@ -104,6 +106,7 @@ class ReplayResult:
     seconds: float
     trajectories: dict[str, Trajectory]
     map_of_robot: dict[str, int]
+    kept_trajectories: dict[str, Trajectory] = field(default_factory=dict)
     info: dict[int, KeyframeInfo] = field(default_factory=dict)
     backbone: dict[str, int] = field(default_factory=dict)
     detections: list[Detection] = field(default_factory=list)
@@ -249,6 +252,7 @@ def replay(
             full_ba_changed(config.full_ba_at_shutdown_s)
         log.info("%s: %d full BA passes", label, counts["full_ba"])
         trajs, maps = app.trajectories()
+        kept, _ = app.trajectories(retired=False)
         a = app.atlas
         return ReplayResult(
             label=label, mbp=config.domain.mbp.enabled, messages=counts["messages"],
@@ -257,7 +261,8 @@ def replay(
             merges=len(a.merges()), loops=len(a.loops()),
             optimizations=counts["optimizations"], mbp_passes=counts["mbp"],
             seconds=time.perf_counter() - t0, trajectories=trajs, map_of_robot=maps,
-            info=obs.info, detections=obs.detections, queries=obs.queries,
+            kept_trajectories=kept, info=obs.info, detections=obs.detections,
+            queries=obs.queries,
             backbone=backbone_breakdown(app),
         )  # fmt: skip
     finally:
@@ -286,19 +291,22 @@ def backbone_breakdown(app: CloudApp) -> dict[str, int]:
     return out
 
 
-def joint_ate(references: dict[str, Trajectory], result: ReplayResult) -> JointAteResult | None:
+def joint_ate(
+    references: dict[str, Trajectory], trajectories: dict[str, Trajectory]
+) -> JointAteResult | None:
     """Joint and per-robot ATE (SE(3), as the cloud's report) of a replay's trajectories."""
-    est = {n: t for n, t in result.trajectories.items() if n in references and len(t) >= 3}
+    est = {n: t for n, t in trajectories.items() if n in references and len(t) >= 3}
     if not est:
         return None
     return compute_joint_ate({n: references[n] for n in est}, est, AteConfig())
 
 
 def common_keyframes(a: ReplayResult, b: ReplayResult) -> tuple[dict, dict]:
-    """Both replays' trajectories restricted to the keyframe stamps both kept."""
+    """Both replays' trajectories of kept keyframes (retired ones left out) restricted to the
+    keyframe stamps both kept."""
     out_a, out_b = {}, {}
-    for name in sorted(set(a.trajectories) & set(b.trajectories)):
-        ta, tb = a.trajectories[name], b.trajectories[name]
+    for name in sorted(set(a.kept_trajectories) & set(b.kept_trajectories)):
+        ta, tb = a.kept_trajectories[name], b.kept_trajectories[name]
         both = np.intersect1d(ta.timestamps_ns, tb.timestamps_ns)
         if both.size >= 3:
             out_a[name] = ta.select(np.flatnonzero(np.isin(ta.timestamps_ns, both)))
@@ -318,6 +326,7 @@ class Table3:
     ate_on: JointAteResult | None
     ate_common_off: JointAteResult | None
     ate_common_on: JointAteResult | None
+    ate_kept_on: JointAteResult | None
     loops: LoopScores
     references: dict[str, Trajectory]
 
@@ -358,9 +367,9 @@ def run_table3(
         references, camera.T_body_cam, (criterion or LoopCriterion()).max_gt_gap_s
     )
     loops = score_loops(on.detections, on.queries, on.info, gt, criterion)
-    return Table3(recording, dataset, off, on, joint_ate(references, off),
-                  joint_ate(references, on), ate_c["off"], ate_c["on"], loops,
-                  references)  # fmt: skip
+    return Table3(recording, dataset, off, on, joint_ate(references, off.trajectories),
+                  joint_ate(references, on.trajectories), ate_c["off"], ate_c["on"],
+                  joint_ate(references, on.kept_trajectories), loops, references)  # fmt: skip
 
 
 # ---------------------------------------------------------------------- report

@@ -363,12 +363,13 @@ class CloudApp:
         return report
 
     # ------------------------------------------------------------------ outputs
-    def trajectories(self) -> tuple[dict[str, Trajectory], dict[str, int]]:
+    def trajectories(self, retired: bool = True) -> tuple[dict[str, Trajectory], dict[str, int]]:
         """Keyframe trajectories ``T_map_body`` per robot name, and each robot's map id.
 
         A robot whose edge started several maps for it contributes the keyframes of those
         maps that ended in the same atlas map as its largest one (the others are in frames
-        the robot's trajectory cannot be expressed in; they are logged)."""
+        the robot's trajectory cannot be expressed in; they are logged). ``retired``: also
+        the keyframes MBP removed, through their anchors (see ``Atlas.retire_keyframe``)."""
         trajs: dict[str, Trajectory] = {}
         maps: dict[str, int] = {}
         by_name: dict[str, list[_Agent]] = {}
@@ -385,11 +386,14 @@ class CloudApp:
                    for k in keys[a.agent_id]]  # fmt: skip
             if len(use) < sum(len(v) for v in keys.values()):
                 log.warning("robot %s: keyframes of unmerged maps left out of its trajectory", name)
-            views = sorted((self.atlas.keyframe(k) for k in use), key=lambda v: v.timestamp)
-            ts = np.array([round(v.timestamp * 1e9) for v in views], np.int64)
+            poses = [(v.timestamp, v.T_map_body) for v in map(self.atlas.keyframe, use)]
+            if retired:
+                poses += [(t, T) for a in agents if self.atlas.map_of_agent(a.agent_id) == map_id
+                          for _, t, T in self.atlas.retired_poses(a.agent_id)]  # fmt: skip
+            poses.sort(key=lambda p: p[0])
+            ts = np.array([round(t * 1e9) for t, _ in poses], np.int64)
             keep = np.concatenate([[True], np.diff(ts) > 0])
-            views = [v for v, k in zip(views, keep, strict=True) if k]
-            T = np.array([v.T_map_body for v in views])
+            T = np.array([p[1] for p, k in zip(poses, keep, strict=True) if k])
             q = np.array([R_to_quat_wxyz(t[:3, :3]) for t in T])
             trajs[name] = Trajectory(ts[keep], T[:, :3, 3], q, name)
             maps[name] = map_id

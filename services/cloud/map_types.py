@@ -169,6 +169,21 @@ class AtlasState:
     loops: tuple[LoopEdge, ...]
     removed_keyframes: frozenset[int]
     aliases: dict[int, int]
+    retired: tuple[RetiredKeyframe, ...] = ()
+
+
+@dataclass(frozen=True)
+class RetiredKeyframe:
+    """A keyframe MBP removed, kept only as its pose relative to a kept keyframe of the same
+    agent (``anchor``), as ORB-SLAM keeps a culled keyframe's pose relative to its parent, so
+    that trajectories still hold every keyframe: ``T_map_body = T_map_body(anchor) @
+    T_anchor_body``. When the anchor goes too, the record moves to the anchor's heir."""
+
+    key: int
+    agent_id: int
+    timestamp: float
+    anchor: int
+    T_anchor_body: np.ndarray
 
 
 @dataclass(frozen=True)

@@ -35,6 +35,9 @@ keyframe and a lower fraction, applied to the whole map under a connectivity con
    fewer than ``min_observations`` kept observers are also folded into the next absorbers
    (the other kept keyframes sharing ``min_shared`` points with r, strongest first).
 5. Map points left with fewer than ``min_observations`` observations are removed.
+6. A removed keyframe is *retired* (:meth:`Atlas.retire_keyframe`): its pose stays, relative
+   to the kept keyframe its loops moved to, so trajectories and the ATE still cover every
+   keyframe (ORB-SLAM reports culled keyframes through their parents the same way).
 """
 
 from __future__ import annotations
@@ -327,12 +330,16 @@ def run_mbp(
         return MbpReport(map_id, n_kf, n_kf, n_mp, n_mp, 0, (), connected_before, connected_before)
     bb = backbone(atlas, map_id, config, keep_recent)
     removed = [k for k in keys if k not in bb.kept]
-    n_loops = _move_loops(atlas, loop_anchors(atlas, map_id, bb.kept))
+    anchors = loop_anchors(atlas, map_id, bb.kept)
+    n_loops = _move_loops(atlas, anchors)
     n_virtual = 0
     for r in removed:
         n_virtual += _fold(atlas, r, list(bb.absorbers[r]), bb.kept, camera, config)
-    for r in removed:
-        atlas.remove_keyframe(r)  # drops its (already re-anchored) loop edges
+    for r in removed:  # drops its (already re-anchored) loop edges
+        if r in anchors:
+            atlas.retire_keyframe(r, anchors[r])
+        else:
+            atlas.remove_keyframe(r)
     for mk in atlas.map_point_keys(map_id):
         if len(atlas.map_point_observations(mk)) < config.min_observations:
             atlas.remove_map_point(mk)

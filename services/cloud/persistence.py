@@ -2,7 +2,8 @@
 
 The store holds keyframes and map points as the atlas has them (poses in their map's frame),
 the atlas bookkeeping (agents' maps and transforms, merges, loops, fused-point aliases,
-pruned keyframes) and, per edge link, the last delivered message sequence. A service calls
+pruned keyframes, the relative poses of those MBP retired) and, per edge link, the last
+delivered message sequence. A service calls
 :meth:`CloudStore.commit` with what a batch of messages changed *and* the new sequence
 numbers in one transaction, and acknowledges to the edge only after it returns: what was
 acknowledged is on disk. :meth:`CloudStore.load` rebuilds an :class:`Atlas` from it.
@@ -38,12 +39,15 @@ from services.cloud.atlas import (
     LoopEdge,
     MapPointView,
     MergeRecord,
+    RetiredKeyframe,
 )
 
 log = logging.getLogger(__name__)
 
 DB_NAME = "cloud.sqlite"
-SCHEMA_VERSION = 3
+SCHEMA_VERSION = 4
+# Older schemas this one only adds tables to (``_SCHEMA`` creates them): opened and upgraded.
+_UPGRADABLE = (3,)
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS meta (name TEXT PRIMARY KEY, value INTEGER NOT NULL);
@@ -63,6 +67,8 @@ CREATE TABLE IF NOT EXISTS loops (seq INTEGER PRIMARY KEY, key_a INTEGER NOT NUL
     key_b INTEGER NOT NULL, T BLOB NOT NULL, inter_agent INTEGER NOT NULL);
 CREATE TABLE IF NOT EXISTS aliases (dropped INTEGER PRIMARY KEY, kept INTEGER NOT NULL);
 CREATE TABLE IF NOT EXISTS removed_keyframes (key INTEGER PRIMARY KEY);
+CREATE TABLE IF NOT EXISTS retired_keyframes (key INTEGER PRIMARY KEY, agent INTEGER NOT NULL,
+    timestamp REAL NOT NULL, anchor INTEGER NOT NULL, T BLOB NOT NULL);
 CREATE TABLE IF NOT EXISTS edge_sequences (edge_id TEXT PRIMARY KEY, last_seq INTEGER NOT NULL);
 CREATE TABLE IF NOT EXISTS edge_positions (edge_id TEXT PRIMARY KEY, stream_id BLOB NOT NULL,
     last_seq INTEGER NOT NULL);
@@ -129,6 +135,8 @@ class CloudStore:
             ) from exc
         if row is None:
             self._db.execute("INSERT INTO meta VALUES ('schema', ?)", (SCHEMA_VERSION,))
+        elif row[0] in _UPGRADABLE:
+            self._db.execute("UPDATE meta SET value = ? WHERE name='schema'", (SCHEMA_VERSION,))
         elif row[0] != SCHEMA_VERSION:
             raise PersistenceError(f"{self.path}: schema {row[0]}, expected {SCHEMA_VERSION}")
 
@@ -269,7 +277,7 @@ class CloudStore:
 
     def _write_state(self, st: AtlasState) -> None:
         db = self._db
-        for table in ("agents", "merges", "loops", "aliases"):
+        for table in ("agents", "merges", "loops", "aliases", "retired_keyframes"):
             db.execute(f"DELETE FROM {table}")
         db.executemany(
             "INSERT INTO agents VALUES (?, ?, ?)",
@@ -291,6 +299,11 @@ class CloudStore:
             ],
         )
         db.executemany("INSERT INTO aliases VALUES (?, ?)", list(st.aliases.items()))
+        db.executemany(
+            "INSERT INTO retired_keyframes VALUES (?, ?, ?, ?, ?)",
+            [(r.key, r.agent_id, r.timestamp, r.anchor,
+              np.asarray(r.T_anchor_body, "<f8").tobytes()) for r in st.retired],
+        )  # fmt: skip
         db.executemany(
             "INSERT OR IGNORE INTO removed_keyframes VALUES (?)",
             [(k,) for k in st.removed_keyframes],
@@ -353,6 +366,12 @@ class CloudStore:
                     r[0] for r in db.execute("SELECT key FROM removed_keyframes")
                 ),
                 aliases=dict(db.execute("SELECT dropped, kept FROM aliases")),
+                retired=tuple(
+                    RetiredKeyframe(k, a, t, n, _pose(T))
+                    for k, a, t, n, T in db.execute(
+                        "SELECT key, agent, timestamp, anchor, T FROM retired_keyframes"
+                    )
+                ),
             )
         except (sqlite3.DatabaseError, ValueError, KeyError, TypeError) as exc:
             raise PersistenceError(f"{self.path}: corrupt cloud state ({exc})") from exc

@@ -192,3 +192,31 @@ def test_moved_point_the_cloud_removed_is_not_recreated_without_observers(sessio
     atlas.add_map_point(live)
     assert atlas.has_map_point(key)
     assert set(atlas.map_point_observations(key)) == {make_key(0, int(m.observations[1, 0]))}
+
+
+def test_retired_keyframe_follows_its_anchor_and_passes_to_an_heir(session):
+    kfs, mps = session
+    atlas = _atlas(kfs, mps)
+    keys = atlas.keyframe_keys()
+    T_map_r = atlas.T_map_body(keys[5])
+    atlas.retire_keyframe(keys[5], keys[4])
+    assert not atlas.has_keyframe(keys[5]) and keys[5] in atlas.removed_keyframes()
+    [(key, t, T)] = atlas.retired_poses(0)
+    assert key == keys[5] and t == kfs[5].timestamp
+    np.testing.assert_allclose(T, T_map_r, atol=1e-12)
+    # A correction of the anchor moves the retired pose with it (relative pose kept).
+    shift = yaw_T(0.2, [0.5, -0.3, 0.1])
+    atlas.set_keyframe_poses({keys[4]: shift @ atlas.T_map_body(keys[4])})
+    np.testing.assert_allclose(atlas.retired_poses(0)[0][2], shift @ T_map_r, atol=1e-12)
+    # Retiring the anchor chains the record onto the anchor's own anchor ...
+    atlas.retire_keyframe(keys[4], keys[3])
+    poses = {k: T for k, _, T in atlas.retired_poses(0)}
+    np.testing.assert_allclose(poses[keys[5]], shift @ T_map_r, atol=1e-12)
+    # ... and removing it outright (an edge cull) hands both to the keyframe nearest in time.
+    atlas.remove_keyframe(keys[3])
+    poses = {k: T for k, _, T in atlas.retired_poses(0)}
+    assert set(poses) == {keys[4], keys[5]}
+    np.testing.assert_allclose(poses[keys[5]], shift @ T_map_r, atol=1e-12)
+    assert atlas.retired_poses(1) == []
+    with pytest.raises(AtlasError, match="anchor"):
+        atlas.retire_keyframe(keys[7], keys[7])

@@ -72,6 +72,13 @@ def test_mbp_removes_40_percent_keeps_graph_connected_and_folds_observations(den
     assert atlas.has_keyframe(make_key(0, 0))  # the anchor is protected
     for key in report.removed_keyframes:
         assert not atlas.has_keyframe(key)
+    # Removed keyframes are retired: their poses stay (through kept anchors), unchanged.
+    retired = {k: T for k, _, T in atlas.retired_poses(0)}
+    assert set(retired) == set(report.removed_keyframes)
+    for k in kfs:
+        key = make_key(0, k.keyframe_id)
+        if key in retired:
+            np.testing.assert_allclose(retired[key], k.T_world_body, atol=1e-9)
     # Every surviving map point keeps at least two observations.
     for mk in atlas.map_point_keys():
         assert len(atlas.map_point_observations(mk)) >= 2

@@ -41,6 +41,7 @@ def test_restart_resumes_with_the_same_state(tmp_path):
             atlas.keyframe_keys(agent_id=0)[2], atlas.keyframe_keys(agent_id=1)[2], np.eye(4)
         )
         atlas.remove_keyframe(atlas.keyframe_keys(agent_id=0)[4])
+        atlas.retire_keyframe(*atlas.keyframe_keys(agent_id=1)[6:4:-1])  # MBP's removal
         store.save_all(atlas)
     with CloudStore(tmp_path) as store:
         restored = store.load()
@@ -57,6 +58,9 @@ def test_restart_resumes_with_the_same_state(tmp_path):
     np.testing.assert_allclose(restored.T_map_agent(1), inverse_T(T_a1))
     assert len(restored.merges()) == 1 and len(restored.loops()) == 1
     assert restored.removed_keyframes() == atlas.removed_keyframes()
+    [(key, t, T)] = restored.retired_poses(1)
+    assert (key, t) == atlas.retired_poses(1)[0][:2]
+    np.testing.assert_allclose(T, atlas.retired_poses(1)[0][2], atol=1e-12)
     # A late update of agent 1 still lands in the merged frame after the restart.
     key = restored.add_keyframe(k1[-1])
     np.testing.assert_allclose(restored.T_map_body(key), atlas.T_map_body(key), atol=1e-12)
