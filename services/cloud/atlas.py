@@ -21,7 +21,6 @@ Nothing mutable leaves this module: :meth:`Atlas.keyframe` returns a frozen copy
 from __future__ import annotations
 
 import logging
-from dataclasses import replace
 
 import numpy as np
 
@@ -41,6 +40,7 @@ from services.cloud.map_types import (
     ro,
     split_key,
 )
+from services.cloud.retired import RetiredKeyframes
 
 __all__ = [
     "Atlas",
@@ -108,7 +108,7 @@ class Atlas:
         self._merges: list[MergeRecord] = []
         self._loops: list[LoopEdge] = []
         self._removed_kfs: set[int] = set()
-        self._retired: dict[int, RetiredKeyframe] = {}  # MBP-removed keyframes' relative poses
+        self._retired = RetiredKeyframes()  # MBP-removed keyframes' relative poses
         self._waiting: dict[int, list[_MapPoint]] = {}  # keyframe not arrived -> its points
         self._alias: dict[int, int] = {}  # fused map point -> surviving map point
 
@@ -379,7 +379,7 @@ class Atlas:
         """``(key, timestamp s, T_map_body (4, 4))`` of ``agent_id``'s retired keyframes (see
         :meth:`retire_keyframe`), poses through their anchors' current estimates."""
         return [(r.key, r.timestamp, self._kfs[r.anchor].T_map_body @ r.T_anchor_body)
-                for r in self._retired.values() if r.agent_id == agent_id]  # fmt: skip
+                for r in self._retired.of_agent(agent_id)]  # fmt: skip
 
     # ------------------------------------------------------------------ corrections
     def add_loop(self, key_a: int, key_b: int, T_a_b: np.ndarray) -> LoopEdge:
@@ -503,29 +503,22 @@ class Atlas:
             raise AtlasError(f"keyframe {split_key(key)}: anchor {split_key(anchor)} is not "
                              "another keyframe of its agent")  # fmt: skip
         T_anchor_body = ro(inverse_T(a.T_map_body) @ k.T_map_body)
-        self._retired[key] = RetiredKeyframe(key, k.agent_id, k.timestamp, anchor, T_anchor_body)
+        self._retired.add(RetiredKeyframe(key, k.agent_id, k.timestamp, anchor, T_anchor_body))
         self.remove_keyframe(key)
 
     def _pass_on_retired(self, key: int) -> None:
         """Re-anchor the retired keyframes anchored on ``key`` (about to go) to its heir: its
         own anchor if it is retired, else the agent's keyframe nearest in time (none: drop)."""
-        orphans = [r for r in self._retired.values() if r.anchor == key]
-        if not orphans:
+        if not self._retired.anchored_on(key):
             return
         own, k = self._retired.get(key), self._kfs[key]
         if own is not None:
-            heir, T_heir_key = own.anchor, own.T_anchor_body
-        else:
-            same = [o for o in self._kfs.values() if o.agent_id == k.agent_id and o.key != key]
-            if not same:
-                for r in orphans:
-                    del self._retired[r.key]
-                return
-            h = min(same, key=lambda o: (abs(o.timestamp - k.timestamp), o.key))
-            heir, T_heir_key = h.key, inverse_T(h.T_map_body) @ k.T_map_body
-        for r in orphans:
-            T = ro(T_heir_key @ r.T_anchor_body)
-            self._retired[r.key] = replace(r, anchor=heir, T_anchor_body=T)
+            self._retired.pass_on(key, own.anchor, own.T_anchor_body)
+            return
+        same = [o for o in self._kfs.values() if o.agent_id == k.agent_id and o.key != key]
+        h = min(same, key=lambda o: (abs(o.timestamp - k.timestamp), o.key), default=None)
+        T_h_k = None if h is None else inverse_T(h.T_map_body) @ k.T_map_body
+        self._retired.pass_on(key, None if h is None else h.key, T_h_k)
 
     def remove_keyframe(self, key: int) -> None:
         """Delete a keyframe, its observations and covisibility; its spanning-tree children are
@@ -593,7 +586,7 @@ class Atlas:
             loops=tuple(self._loops),
             removed_keyframes=frozenset(self._removed_kfs),
             aliases=dict(self._alias),
-            retired=tuple(self._retired.values()),
+            retired=self._retired.records(),
         )
 
     @classmethod
@@ -635,7 +628,7 @@ class Atlas:
         atlas._loops = [e for e in state.loops if e.key_a in atlas._kfs and e.key_b in atlas._kfs]
         atlas._removed_kfs = set(state.removed_keyframes)
         atlas._alias = dict(state.aliases)
-        atlas._retired = {r.key: r for r in state.retired if r.anchor in atlas._kfs}
+        atlas._retired = RetiredKeyframes(r for r in state.retired if r.anchor in atlas._kfs)
         return atlas
 
     # ------------------------------------------------------------------ snapshot
