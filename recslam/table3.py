@@ -16,9 +16,11 @@ deterministically:
 - with ``replay(..., full_ba=True)`` the full bundle adjustment follows the server's
   schedule too: after a map's optimisation once it has ``full_ba_every_keyframes`` new
   keyframes since its last one, before a record that arrived ``full_ba_quiet_s`` or more
-  after the last new keyframe ("quiet"), and at the end (the server's shutdown budget).
+  after the last new keyframe ("quiet"), and at the end (the server's shutdown budget);
+- at the end, MBP over every map when ``mbp_at_shutdown`` (as ``CloudServer.stop``).
 
-:func:`run_table3` replays twice — MBP on and MBP off, everything else identical — computes
+:func:`run_table3` replays three times — MBP off, MBP as the service runs it (at shutdown) and
+MBP also every 100 keyframes while running, everything else identical, full BA on — computes
 per-robot and joint ATE of the keyframe trajectories (every keyframe received: the ones MBP
 retired through their anchors; and over the kept keyframes only) with the cloud report's
 alignment
@@ -68,10 +70,14 @@ from services.cloud.recording import Record, read_recording
 log = logging.getLogger(__name__)
 
 
-def service_config(mbp: bool) -> CloudServiceConfig:
-    """The cloud service's default configuration with MBP switched on or off."""
+def service_config(mbp: bool, every_keyframes: int | None = None) -> CloudServiceConfig:
+    """The cloud service's default configuration with MBP switched on or off (and, if given,
+    MBP also every ``every_keyframes`` new keyframes while running)."""
     domain = CloudConfig(mbp=dataclasses.replace(MbpConfig(), enabled=mbp))
-    return CloudServiceConfig(domain=domain)
+    cfg = CloudServiceConfig(domain=domain)
+    if every_keyframes is not None:
+        cfg = dataclasses.replace(cfg, mbp_every_keyframes=every_keyframes)
+    return cfg
 
 
 def open_app(
@@ -250,6 +256,10 @@ def replay(
             optimize_due()
         if full_on and config.full_ba_at_shutdown_s > 0:
             full_ba_changed(config.full_ba_at_shutdown_s)
+        if config.mbp_at_shutdown and config.domain.mbp.enabled:
+            for m in app.atlas.maps():
+                app.prune(m)
+                counts["mbp"] += 1
         log.info("%s: %d full BA passes", label, counts["full_ba"])
         trajs, maps = app.trajectories()
         kept, _ = app.trajectories(retired=False)
@@ -329,6 +339,9 @@ class Table3:
     ate_kept_on: JointAteResult | None
     loops: LoopScores
     references: dict[str, Trajectory]
+    midrun: ReplayResult | None = None
+    ate_midrun: JointAteResult | None = None
+    ate_kept_midrun: JointAteResult | None = None
 
 
 def run_table3(
@@ -339,18 +352,23 @@ def run_table3(
     criterion: LoopCriterion | None = None,
     work_dir: Path | None = None,
     progress: Callable[[str], None] | None = None,
+    midrun_every: int = 100,
 ) -> Table3:
-    """Replay ``recording`` without and with MBP and evaluate both against ``dataset``."""
+    """Replay ``recording`` without MBP, with MBP as the service runs it (at shutdown) and
+    with MBP also every ``midrun_every`` keyframes while running (0: not), each with the
+    server's full-BA schedule, and evaluate them against ``dataset``."""
     say = progress or (lambda _msg: None)
-    results = {}
+    results: dict[Any, ReplayResult] = {}
+    runs = [(False, "without MBP", None), (True, "with MBP (at shutdown)", None)]
+    if midrun_every > 0:
+        runs.append(("midrun", f"with MBP every {midrun_every} keyframes", midrun_every))
     with tempfile.TemporaryDirectory(dir=work_dir) as tmp:
-        for mbp in (False, True):
-            label = "with MBP" if mbp else "without MBP"
+        for key, label, every in runs:
             say(f"replaying {recording} {label}")
             records = read_recording(recording, allow_truncated_tail=True)
-            results[mbp] = replay(records, camera, vocab, service_config(mbp),
-                                  Path(tmp) / ("mbp" if mbp else "nombp"), label)  # fmt: skip
-            r = results[mbp]
+            results[key] = replay(records, camera, vocab, service_config(key is not False, every),
+                                  Path(tmp) / str(key), label, full_ba=True)  # fmt: skip
+            r = results[key]
             say(f"  {label}: {r.keyframes} keyframes, {r.map_points} map points, maps {r.maps}, "
                 f"{r.merges} merges, {r.loops} loops ({r.seconds:.0f} s)")  # fmt: skip
     off, on = results[False], results[True]
@@ -367,9 +385,12 @@ def run_table3(
         references, camera.T_body_cam, (criterion or LoopCriterion()).max_gt_gap_s
     )
     loops = score_loops(on.detections, on.queries, on.info, gt, criterion)
+    mid = results.get("midrun")
     return Table3(recording, dataset, off, on, joint_ate(references, off.trajectories),
                   joint_ate(references, on.trajectories), ate_c["off"], ate_c["on"],
-                  joint_ate(references, on.kept_trajectories), loops, references)  # fmt: skip
+                  joint_ate(references, on.kept_trajectories), loops, references, mid,
+                  joint_ate(references, mid.trajectories) if mid else None,
+                  joint_ate(references, mid.kept_trajectories) if mid else None)  # fmt: skip
 
 
 # ---------------------------------------------------------------------- report

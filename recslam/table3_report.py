@@ -46,8 +46,10 @@ def table3_markdown(t: Table3) -> str:
         "",
         f"Recording `{t.recording}` ({off.messages} uplink messages, "
         f"{off.keyframes_received} keyframes received) of one `recslam demo` run on "
-        f"`{t.dataset}`, replayed through a fresh `CloudApp` twice with the cloud's default "
-        "configuration, MBP off and on; optimisation and MBP follow the service's schedule "
+        f"`{t.dataset}`, replayed through a fresh `CloudApp` with the cloud's default "
+        "configuration: MBP off; MBP on as the service runs it (one pass at shutdown, after "
+        "the last full BA); and MBP on also every 100 new keyframes while running. "
+        "Optimisation, full BA and MBP follow the service's schedule "
         "synchronously (`recslam/table3.py`). Keyframes / map points: the cloud atlas at the "
         "end. ATE: RMSE of the cloud's keyframe trajectories (`T_map_body`) against ground "
         "truth after SE(3) alignment (the cloud report's), per robot aligned alone and "
@@ -62,17 +64,26 @@ def table3_markdown(t: Table3) -> str:
         "| optimisations | MBP passes |",
         "|---|---|---|" + "---|" * len(names) + "---|---|---|---|---|---|",
     ]
-    for r, ate in ((off, t.ate_off), (on, t.ate_on)):
+    rows = [(off, t.ate_off), (on, t.ate_on)]
+    if t.midrun is not None:
+        rows.append((t.midrun, t.ate_midrun))
+    for r, ate in rows:
         cells = _ate_cells(ate, names)
         lines.append(
             f"| {r.label} | {r.keyframes} | {r.map_points} | {' | '.join(cells)} | "
             f"{len(r.maps)} | {r.merges} | {r.loops} | {r.optimizations} | {r.mbp_passes} |"
         )
-    lines.append(
-        f"| change | {_pct(on.keyframes, off.keyframes)} | {_pct(on.map_points, off.map_points)}"
-        f" | " + " | ".join("" for _ in names) + f" | {_pct(j_on or 0.0, j_off or 0.0)} "
-        "| | | | | |"
-    )
+    for r, ate in rows[1:]:
+        j = ate.stats.rmse if ate is not None else 0.0
+        lines.append(
+            f"| change, {r.label} | {_pct(r.keyframes, off.keyframes)} | "
+            f"{_pct(r.map_points, off.map_points)} | "
+            + " | ".join("" for _ in names)
+            + f" | {_pct(j, j_off or 0.0)} | | | | | |"
+        )
+    m_ate = t.ate_midrun.stats.rmse if t.ate_midrun is not None else None
+    mid_ok = m_ate is not None and j_off is not None and m_ate <= j_off
+    mid = t.midrun
     lines += [
         "",
         "ATE over the kept keyframes only (retired ones left out): with MBP, all kept "
@@ -82,6 +93,14 @@ def table3_markdown(t: Table3) -> str:
         f"| | {head} | ATE joint m |",
         "|---|" + "---|" * len(names) + "---|",
         f"| with MBP, kept keyframes | {' | '.join(_ate_cells(t.ate_kept_on, names))} |",
+        *(
+            [
+                f"| {mid.label}, kept keyframes | "
+                f"{' | '.join(_ate_cells(t.ate_kept_midrun, names))} |"
+            ]
+            if mid
+            else []
+        ),
         f"| without MBP, both kept | {' | '.join(_ate_cells(t.ate_common_off, names))} |",
         f"| with MBP, both kept | {' | '.join(_ate_cells(t.ate_common_on, names))} |",
         "",
@@ -89,7 +108,17 @@ def table3_markdown(t: Table3) -> str:
         f"**{'met' if kf_red >= 40.0 else 'not met'}** ({kf_red:.1f} %); joint ATE not worse: "
         f"**{'met' if ate_ok else 'not met'}** ({_f(j_off, '.4f')} m → {_f(j_on, '.4f')} m, "
         f"{_pct(j_on or 0.0, j_off or 0.0)}; over the kept keyframes only "
-        f"{_f(k_on, '.4f')} m).",
+        f"{_f(k_on, '.4f')} m)."
+        + (
+            f" MBP while running ({mid.label}): {_pct(mid.keyframes, off.keyframes)} "
+            f"keyframes, joint ATE {_f(j_off, '.4f')} m → {_f(m_ate, '.4f')} m "
+            f"({_pct(m_ate or 0.0, j_off or 0.0)}): "
+            f"**{'not worse' if mid_ok else 'worse'}**"
+            ", which is why the service prunes at shutdown by default "
+            "(`mbp_every_keyframes` 0, `mbp_at_shutdown`)."
+            if mid
+            else ""
+        ),
         "",
         "Why keyframes are kept (final atlas; what one more MBP pass would keep, by the first "
         "of its rules that keeps each, see `services.cloud.mbp.backbone`; loop / merge "
@@ -105,11 +134,14 @@ def table3_markdown(t: Table3) -> str:
             f"{b.get('kept_by_one_more_pass', '–')} | {b.get('protected', '–')} | "
             f"{b.get('not_covered', '–')} | {b.get('connector', '–')} | "
             f"{b.get('covers_removed', '–')} |"
-            for r, b in ((off, off.backbone), (on, on.backbone))
+            for r, b in [(r, r.backbone) for r, _ in rows]
         ],
         "",
-        f"Replay time: {off.seconds:.0f} s without, {on.seconds:.0f} s with MBP; "
-        f"messages that failed in a replay: {off.failed} / {on.failed}.",
+        "Replay time: "
+        + ", ".join(f"{r.seconds:.0f} s {r.label}" for r, _ in rows)
+        + "; messages that failed in a replay: "
+        + " / ".join(str(r.failed) for r, _ in rows)
+        + ".",
         "",
         "![trajectories and map size](table3.png)",
         "",

@@ -343,10 +343,11 @@ class CloudApp:
         return out
 
     def prune_due(self, map_id: int) -> bool:
-        if not self.config.domain.mbp.enabled or map_id not in self.atlas.maps():
+        every = self.config.mbp_every_keyframes
+        if not self.config.domain.mbp.enabled or every <= 0 or map_id not in self.atlas.maps():
             return False
         n = self.atlas.n_keyframes(map_id)
-        return n - self._mbp_done.get(map_id, 0) >= self.config.mbp_every_keyframes
+        return n - self._mbp_done.get(map_id, 0) >= every
 
     def prune(self, map_id: int) -> MbpReport:
         """MBP on ``map_id`` (then the whole atlas is saved)."""

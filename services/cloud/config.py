@@ -235,7 +235,12 @@ class CloudServiceConfig:
     debounce_s: after a trigger, wait this long so that a burst of triggers costs one
         optimisation (default 0.5 s).
     mbp_every_keyframes: MBP runs on a map (when ``domain.mbp.enabled``) after this many new
-        keyframes since its last pass, right after an optimisation (default 100).
+        keyframes since its last pass, right after an optimisation (0 = never while running;
+        default 0: on the recorded 3-robot run, pruning every 100 keyframes while loops were
+        still reshaping the map raised the final joint ATE from 1.4 to 3.8 cm, see
+        benchmarks/results/table3.md) ...
+    mbp_at_shutdown: ... and over every map at shutdown, after the last full BA, before the
+        trajectories are written (default True): the persisted map is the pruned one.
     mbp_keep_recent: each agent's newest keyframes MBP never removes (default 5).
     word_group_level: verification matches words within their vocabulary ancestor at this
         tree level (None = same word only; default 3 of a k=10, L=4 vocabulary, so that a
@@ -267,7 +272,8 @@ class CloudServiceConfig:
     domain: CloudConfig = field(default_factory=CloudConfig)
     optimize_every_keyframes: int = 25
     debounce_s: float = 0.5
-    mbp_every_keyframes: int = 100
+    mbp_every_keyframes: int = 0
+    mbp_at_shutdown: bool = True
     mbp_keep_recent: int = 5
     word_group_level: int | None = 3
     output_every_s: float = 30.0

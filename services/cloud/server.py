@@ -151,6 +151,7 @@ class CloudServer:
         self._optimizations = 0
         self._corrections = 0
         self._mbp_passes = 0
+        self._final_stats: CloudStats | None = None
         self.address: tuple[str, int] | None = None
         self._references: dict[str, Trajectory] = {}  # ground truth per robot name
         self._no_reference: set[str] = set()
@@ -215,6 +216,8 @@ class CloudServer:
         self._tasks = []
         if self._app is not None:
             await self._full_ba_at_shutdown()
+            await self._mbp_at_shutdown()
+            self._final_stats = await self.stats()
             if write_output and self.output is not None:
                 await self.write_output(evaluate=True)
             await self._on_worker(self._app.close)
@@ -412,6 +415,19 @@ class CloudServer:
             log.exception("pose-graph optimisation at shutdown failed")
         await self._full_ba_changed("shutdown", deadline, send=False)
 
+    async def _mbp_at_shutdown(self) -> None:
+        """MBP over every map once the last optimisation is in (``mbp_at_shutdown``): the
+        persisted map is pruned, the trajectories keep every pose (retired keyframes)."""
+        app = self._app
+        if app is None or not (self.config.mbp_at_shutdown and self.config.domain.mbp.enabled):
+            return
+        for m in await self._on_worker(app.atlas.maps):
+            try:
+                await self._on_worker(app.prune, m)
+                self._mbp_passes += 1
+            except Exception:
+                log.exception("MBP of map %d at shutdown failed", m)
+
     def _send(self, corrections: list[Correction]) -> None:
         for c in corrections:
             try:
@@ -504,7 +520,10 @@ class CloudServer:
                 log.exception("writing outputs failed")
 
     async def stats(self) -> CloudStats:
+        """Counters now (after :meth:`stop`: as they were when the service stopped)."""
         app = self._app
+        if app is None and self._final_stats is not None:
+            return self._final_stats
         assert app is not None
 
         def collect() -> CloudStats:
