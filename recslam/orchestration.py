@@ -65,8 +65,8 @@ class JobConfig:
         start_timeout_s: seconds a service may take to listen (default 120, imports are slow).
         record_uplink: the cloud records every applied uplink message to this file
             (``recslam cloud --record``; default: no recording).
-        mbp: run the cloud with map backbone profiling (``recslam cloud --mbp``; default off,
-            like the cloud).
+        mbp: run the cloud with map backbone profiling (``recslam cloud --mbp``, one pass at
+            shutdown; default on, like the cloud).
     """
 
     dataset: Path
@@ -79,7 +79,7 @@ class JobConfig:
     robot_links: Callable[[str, int], int] | None = None
     start_timeout_s: float = 120.0
     record_uplink: Path | None = None
-    mbp: bool = False
+    mbp: bool = True
 
 
 @dataclass

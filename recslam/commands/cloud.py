@@ -95,9 +95,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--mbp",
         action=argparse.BooleanOptionalAction,
-        default=False,
-        help="map backbone profiling on/off (default off: it removes ~43 %% of the keyframes "
-        "but costs accuracy, see benchmarks/results/table3.md)",
+        default=True,
+        help="map backbone profiling on/off (default on: one pass over every map at shutdown, "
+        "after the last full BA; pruning while running cost accuracy, see "
+        "benchmarks/results/table3.md)",
     )
     p.add_argument(
         "--full-ba",
