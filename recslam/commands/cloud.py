@@ -134,14 +134,18 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.set_defaults(func=handle)
 
 
-async def write_stats(path: Path, cloud) -> None:
-    """Write the cloud's counters and every edge link's traffic counters to ``path`` (JSON)."""
+async def write_stats(path: Path, cloud, stopped: bool = False) -> None:
+    """Write the cloud's counters and every edge link's traffic counters to ``path`` (JSON);
+    ``stopped``: the service has stopped, keep the link counters written before."""
     import dataclasses
     import json
     import time
 
     stats = dataclasses.asdict(await cloud.stats())
-    stats["links"] = cloud.transport.counters()
+    if stopped and path.exists():
+        stats["links"] = json.loads(path.read_text()).get("links", {})
+    else:
+        stats["links"] = cloud.transport.counters()
     stats["time"] = time.time()
     tmp = path.with_suffix(".tmp")
     tmp.write_text(json.dumps(stats))
@@ -230,6 +234,8 @@ def handle(args: argparse.Namespace) -> int:
             if args.stats_out is not None:
                 await write_stats(args.stats_out, cloud)
             await cloud.stop()
+            if args.stats_out is not None:  # again: shutdown's optimisation and MBP counted
+                await write_stats(args.stats_out, cloud, stopped=True)
         return 0
 
     return run(main())

@@ -89,10 +89,20 @@ def test_mbp_through_the_app_marks_pruned_items_and_is_durable(tmp_path, vocab):
     assert len(view.pruned_keyframes) == report.keyframes_before - report.keyframes_after
     assert not set(view.atlas.keyframe_keys.tolist()) & view.pruned_keyframes
     kept = app.atlas.keyframe_keys()
+    # The trajectory still has every keyframe: the removed ones through their anchors.
+    assert app.agents() == {}  # fed below the uplink: no robot names, so read the atlas
+    retired = app.atlas.retired_poses(0)
+    assert len(retired) + len(kept) == len(kfs)
+    truth = {k.timestamp: k.T_world_body for k in kfs}
+    for _, t, T in retired:
+        np.testing.assert_allclose(T, truth[t], atol=1e-9)
     app.close()
     restarted = _app(tmp_path, vocab)
     try:
         assert restarted.atlas.keyframe_keys() == kept
+        assert sorted(t for _, t, _ in restarted.atlas.retired_poses(0)) == sorted(
+            t for _, t, _ in retired
+        )
     finally:
         restarted.close()
 
