@@ -134,18 +134,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.set_defaults(func=handle)
 
 
-async def write_stats(path: Path, cloud, stopped: bool = False) -> None:
-    """Write the cloud's counters and every edge link's traffic counters to ``path`` (JSON);
-    ``stopped``: the service has stopped, keep the link counters written before."""
+async def write_stats(path: Path, cloud) -> None:
+    """Write the cloud's counters and every edge link's traffic counters to ``path`` (JSON;
+    also after ``cloud.stop()``: both keep their final values)."""
     import dataclasses
     import json
     import time
 
     stats = dataclasses.asdict(await cloud.stats())
-    if stopped and path.exists():
-        stats["links"] = json.loads(path.read_text()).get("links", {})
-    else:
-        stats["links"] = cloud.transport.counters()
+    stats["links"] = cloud.transport.counters()
     stats["time"] = time.time()
     tmp = path.with_suffix(".tmp")
     tmp.write_text(json.dumps(stats))
@@ -235,7 +232,7 @@ def handle(args: argparse.Namespace) -> int:
                 await write_stats(args.stats_out, cloud)
             await cloud.stop()
             if args.stats_out is not None:  # again: shutdown's optimisation and MBP counted
-                await write_stats(args.stats_out, cloud, stopped=True)
+                await write_stats(args.stats_out, cloud)
         return 0
 
     return run(main())

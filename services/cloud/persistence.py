@@ -167,8 +167,8 @@ class CloudStore:
         db = self._db
         db.execute("BEGIN IMMEDIATE")
         try:
-            self._write_points(atlas, keyframes, map_points)
-            self._write_state(atlas.state())
+            removed = self._write_points(atlas, keyframes, map_points)
+            self._write_state(atlas.state(), removals=removed)
             for edge_id, seq in (edge_sequences or {}).items():
                 db.execute(
                     "INSERT INTO edge_sequences VALUES (?, ?) ON CONFLICT(edge_id) DO UPDATE "
@@ -237,12 +237,16 @@ class CloudStore:
 
     def _write_points(
         self, atlas: Atlas, keyframes: Iterable[int], map_points: Iterable[int]
-    ) -> None:
+    ) -> bool:
+        """Write (or delete) the rows of these keyframes and map points; True if a keyframe
+        row was deleted."""
         db = self._db
+        removed = False
         for key in keyframes:
             key = int(key)
             if not atlas.has_keyframe(key):
                 db.execute("DELETE FROM keyframes WHERE key = ?", (key,))
+                removed = True
                 continue
             v = atlas.keyframe(key)
             blob = _pack(
@@ -274,10 +278,13 @@ class CloudStore:
                 (key, m.agent_id, m.map_point_id, m.map_id, m.ref_kf,
                  np.asarray(m.p_map, "<f8").tobytes(), _pack_obs(m.obs_keyframes, m.obs_indices)),
             )  # fmt: skip
+        return removed
 
-    def _write_state(self, st: AtlasState) -> None:
+    def _write_state(self, st: AtlasState, removals: bool = False) -> None:
+        """The atlas bookkeeping; the removed and retired keyframes only with ``removals``
+        (they change only when a keyframe goes: MBP, or the edge culling one)."""
         db = self._db
-        for table in ("agents", "merges", "loops", "aliases", "retired_keyframes"):
+        for table in ("agents", "merges", "loops", "aliases"):
             db.execute(f"DELETE FROM {table}")
         db.executemany(
             "INSERT INTO agents VALUES (?, ?, ?)",
@@ -299,15 +306,18 @@ class CloudStore:
             ],
         )
         db.executemany("INSERT INTO aliases VALUES (?, ?)", list(st.aliases.items()))
+        if not removals:
+            return
+        db.executemany(
+            "INSERT OR IGNORE INTO removed_keyframes VALUES (?)",
+            [(k,) for k in st.removed_keyframes],
+        )
+        db.execute("DELETE FROM retired_keyframes")
         db.executemany(
             "INSERT INTO retired_keyframes VALUES (?, ?, ?, ?, ?)",
             [(r.key, r.agent_id, r.timestamp, r.anchor,
               np.asarray(r.T_anchor_body, "<f8").tobytes()) for r in st.retired],
         )  # fmt: skip
-        db.executemany(
-            "INSERT OR IGNORE INTO removed_keyframes VALUES (?)",
-            [(k,) for k in st.removed_keyframes],
-        )
 
     # ------------------------------------------------------------------ reading
     def last_sequences(self) -> dict[str, int]:
