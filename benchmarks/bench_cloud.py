@@ -242,8 +242,8 @@ def bench_service(tmp: Path) -> list[str]:
     """End to end on loopback: two edges send two robots' keyframes to a CloudServer."""
     import asyncio
 
+    from common.links.edge_cloud import KeyframeUpdate
     from common.protocol import SessionConfig
-    from common.protocol.messages import KeyframeUpdate
     from common.transport import Client, run
     from common.vocabulary import Vocabulary
     from services.cloud.config import CloudServiceConfig

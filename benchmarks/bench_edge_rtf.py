@@ -34,8 +34,8 @@ from pathlib import Path
 import numpy as np
 
 from common.data.euroc import find_mav0, read_camera_yaml, read_imu_yaml
+from common.links.robot_edge import RobotFrame
 from common.protocol import SessionConfig
-from common.protocol.messages import RobotFrame
 from common.transport import Delivery, Server, TransportConfig
 from common.vocabulary import Vocabulary
 from services.edge.app import EdgeConfig

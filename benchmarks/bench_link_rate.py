@@ -35,8 +35,9 @@ from pathlib import Path
 import numpy as np
 
 from common.data.euroc import EurocSequence
+from common.links.robot_edge import RobotFrame, RobotSequenceEnd
 from common.protocol import HEADER_SIZE, SessionConfig
-from common.protocol.messages import RobotFrame, RobotSequenceEnd, encode_payload
+from common.protocol.messages import encode_payload
 from common.transport import Client, Delivery, Server, run
 from common.vocabulary import Vocabulary
 from services.robot.app import RobotApp

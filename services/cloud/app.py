@@ -32,15 +32,15 @@ from common.evaluation.alignment import umeyama
 from common.evaluation.errors import EvaluationError
 from common.evaluation.trajectory import Trajectory
 from common.geometry import R_to_quat_wxyz, inverse_T
-from common.map_view import GroundTruth
-from common.protocol.messages import (
+from common.links.edge_cloud import (
     AgentStatus,
     CullEvent,
     KeyframeUpdate,
     MapPointUpdate,
-    Message,
     PoseCorrection,
 )
+from common.map_view import GroundTruth
+from common.protocol.messages import Message
 from common.protocol.store import InboundPosition
 from common.vocabulary import Vocabulary
 from services.cloud.atlas import Atlas, AtlasSnapshot, KeyframeInput, make_key

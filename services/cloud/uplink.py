@@ -30,9 +30,9 @@ from common.codec.errors import CodecError
 from common.codec.frames import FeatureDecoder, FeatureEncoder
 from common.codec.types import CodecConfig, KeyframeFeatures
 from common.errors import RecslamError
+from common.links.edge_cloud import CullEvent, KeyframeUpdate, MapPointUpdate, PoseCorrection
 from common.protocol.arrays import pack_array, unpack_array
 from common.protocol.errors import RemoteProtocolError
-from common.protocol.messages import CullEvent, KeyframeUpdate, MapPointUpdate, PoseCorrection
 from common.vocabulary import Vocabulary
 from services.cloud.atlas import AtlasError, KeyframeInput, MapPointInput
 

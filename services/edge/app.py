@@ -28,15 +28,10 @@ from typing import Any, Protocol
 import numpy as np
 
 from common.calibration import CameraCalibration, ImuCalibration
+from common.links.edge_cloud import PoseCorrection
+from common.links.robot_edge import RobotFrame, RobotSequenceEnd
 from common.protocol.arrays import unpack_array
-from common.protocol.messages import (
-    Message,
-    PoseCorrection,
-    RobotFrame,
-    RobotSequenceEnd,
-    decode_payload,
-    encode_payload,
-)
+from common.protocol.messages import Message, decode_payload, encode_payload
 from common.transport import Delivery
 from common.vocabulary import Vocabulary
 from services.edge.journal import JournalRecord, JournalStore

@@ -34,16 +34,10 @@ from common.codec import (
 from common.codec.keypoints import kf_track_q
 from common.codec.tracks import next_stream_numbers
 from common.geometry import orthonormalize_T
+from common.links.edge_cloud import AgentStatus, CullEvent, KeyframeUpdate, MapPointUpdate
+from common.links.robot_edge import InertialFeedback, RobotFrame
 from common.protocol.arrays import pack_array
-from common.protocol.messages import (
-    AgentStatus,
-    CullEvent,
-    InertialFeedback,
-    KeyframeUpdate,
-    MapPointUpdate,
-    Message,
-    RobotFrame,
-)
+from common.protocol.messages import Message
 from common.vocabulary import Vocabulary
 from services.edge.vio.types import (
     FrameObservation,

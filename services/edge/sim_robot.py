@@ -28,8 +28,9 @@ from common.codec import (
     NonKeyframeFeatures,
     quantise_uv,
 )
+from common.links.robot_edge import RobotFrame, RobotSequenceEnd
 from common.protocol import SessionConfig
-from common.protocol.messages import Message, RobotFrame, RobotSequenceEnd
+from common.protocol.messages import Message
 from common.transport import Client, Delivery, TransportConfig
 from common.vocabulary import Vocabulary
 from services.edge.vio.simulation import SimSequence

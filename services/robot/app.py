@@ -30,8 +30,8 @@ import numpy as np
 from common.calibration import CameraCalibration, ImuCalibration
 from common.codec import ImuChunk
 from common.errors import RecslamError
+from common.links.robot_edge import InertialFeedback, RobotFrame, RobotSequenceEnd
 from common.protocol.arrays import unpack_array
-from common.protocol.messages import InertialFeedback, RobotFrame, RobotSequenceEnd
 from common.transport import Delivery
 from common.vocabulary import Vocabulary
 from services.robot.coding import (

@@ -47,9 +47,10 @@ from typing import Any
 
 from common.data.euroc import EurocSequence, Frame
 from common.errors import RecslamError
+from common.links.robot_edge import RobotFrame
 from common.protocol import SessionConfig
 from common.protocol.auth import MIN_SECRET_SIZE
-from common.protocol.messages import Message, RobotFrame
+from common.protocol.messages import Message
 from common.transport import Client, TransportConfig
 from common.vocabulary import DEFAULT_VOCABULARY_PATH, Vocabulary
 from services.robot.app import RobotApp

@@ -3,15 +3,11 @@
 import numpy as np
 import pytest
 
+from common.links.edge_cloud import KeyframeUpdate, PoseCorrection
+from common.links.robot_edge import InertialFeedback
 from common.protocol.arrays import pack_array, unpack_array
 from common.protocol.errors import RemoteProtocolError
-from common.protocol.messages import (
-    InertialFeedback,
-    KeyframeUpdate,
-    PoseCorrection,
-    decode_payload,
-    encode_payload,
-)
+from common.protocol.messages import decode_payload, encode_payload
 
 
 def test_array_round_trip_and_size_check() -> None:

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from common.links.edge_cloud import AgentStatus, CullEvent
 from common.protocol.arrays import pack_array
-from common.protocol.messages import AgentStatus, CullEvent
 from services.cloud.recording import MAGIC, RecordingError, RecordingWriter, read_recording
 
 

@@ -14,9 +14,9 @@ import pytest
 from common.evaluation.trajectory import Trajectory
 from common.evaluation.tum import read_tum, write_tum
 from common.geometry import R_to_quat_wxyz, inverse_T, transform_points
+from common.links.edge_cloud import PoseCorrection
 from common.protocol import SessionConfig
 from common.protocol.arrays import pack_array
-from common.protocol.messages import PoseCorrection
 from common.transport import Client, Delivery, TransportConfig, run
 from common.vocabulary import Vocabulary
 from services.cloud.config import CloudServiceConfig

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from common.codec.types import CodecConfig
+from common.links.edge_cloud import CullEvent
 from common.protocol.arrays import pack_array
-from common.protocol.messages import CullEvent
 from common.vocabulary import Vocabulary
 from services.cloud.atlas import Atlas
 from services.cloud.persistence import CloudStore

@@ -17,14 +17,10 @@ import numpy as np
 import pytest
 
 from common.data.euroc import read_camera_yaml, read_imu_yaml
+from common.links.edge_cloud import AgentStatus, KeyframeUpdate, MapPointUpdate
+from common.links.robot_edge import InertialFeedback
 from common.protocol import SessionConfig
 from common.protocol.arrays import unpack_array
-from common.protocol.messages import (
-    AgentStatus,
-    InertialFeedback,
-    KeyframeUpdate,
-    MapPointUpdate,
-)
 from common.transport import Delivery, Server, TransportConfig
 from common.vocabulary import Vocabulary
 from services.edge.app import EdgeConfig

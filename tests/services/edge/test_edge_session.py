@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 
 from common.codec import decode_standalone_keyframe
+from common.links.edge_cloud import KeyframeUpdate, MapPointUpdate
+from common.links.robot_edge import InertialFeedback
 from common.protocol.arrays import unpack_array
-from common.protocol.messages import InertialFeedback, KeyframeUpdate, MapPointUpdate
 from common.vocabulary import Vocabulary
 from services.edge.robot_session import RobotSession
 from services.edge.sim_robot import code_sequence
@@ -108,7 +109,7 @@ def test_cloud_pose_correction_moves_the_tracking_state(run) -> None:
 
 def test_the_clouds_uplink_decoder_accepts_every_message(run) -> None:
     """Contract check against the cloud's own decoders (services.cloud.uplink)."""
-    from common.protocol.messages import CullEvent
+    from common.links.edge_cloud import CullEvent
     from services.cloud.uplink import (
         decode_cull_event,
         decode_keyframe_update,

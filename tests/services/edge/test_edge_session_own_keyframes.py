@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 
 from common.calibration import CameraCalibration
+from common.links.edge_cloud import KeyframeUpdate, MapPointUpdate
 from common.protocol.arrays import unpack_array
-from common.protocol.messages import KeyframeUpdate, MapPointUpdate
 from common.vocabulary import Vocabulary
 from services.edge.robot_session import RobotSession
 from services.edge.vio.types import KeyframeSnapshot, MapPointBatch, MapPointSnapshot, MapUpdate

@@ -11,8 +11,9 @@ from __future__ import annotations
 import numpy as np
 
 from common.calibration import CameraCalibration
+from common.links.edge_cloud import CullEvent, MapPointUpdate
 from common.protocol.arrays import unpack_array
-from common.protocol.messages import CullEvent, MapPointUpdate, Message
+from common.protocol.messages import Message
 from common.vocabulary import Vocabulary
 from services.edge.robot_session import RobotSession
 from services.edge.vio.types import KeyframeSnapshot, MapPointBatch, MapPointSnapshot, MapUpdate

@@ -9,8 +9,9 @@ import numpy as np
 import pytest
 
 from common.data.euroc import EurocSequence
+from common.links.robot_edge import InertialFeedback
 from common.protocol.arrays import pack_array
-from common.protocol.messages import Blob, InertialFeedback
+from common.protocol.messages import Blob
 from common.transport import Delivery
 from common.vocabulary import Vocabulary
 from services.robot.app import RobotApp, feedback_to_state

@@ -19,9 +19,9 @@ from common.codec.keypoints import kf_track_q
 from common.data.euroc import EurocSequence
 from common.faultproxy import FaultConfig, FaultProxy
 from common.geometry import so3_exp
+from common.links.robot_edge import InertialFeedback, RobotFrame, RobotSequenceEnd
 from common.protocol import SessionConfig
 from common.protocol.arrays import pack_array
-from common.protocol.messages import InertialFeedback, RobotFrame, RobotSequenceEnd
 from common.transport import Delivery, Server, TransportConfig, run
 from common.vocabulary import Vocabulary
 from services.robot.app import UsedFrame
