@@ -34,6 +34,7 @@ from common.codec import (
 from common.codec.keypoints import kf_track_q
 from common.codec.tracks import next_stream_numbers
 from common.geometry import orthonormalize_T
+from common.links import WireFormat
 from common.links.edge_cloud import AgentStatus, CullEvent, KeyframeUpdate, MapPointUpdate
 from common.links.robot_edge import InertialFeedback, RobotFrame
 from common.protocol.arrays import pack_array
@@ -80,6 +81,8 @@ class SessionOptions:
     keyframes_kept: int = 300
     imu_history_s: float = 120.0
     point_resend_m: float = 0.01
+    wire: WireFormat = WireFormat.CODED
+    """Encoding of the messages to the robot and to the cloud (``raw``: the schema-1 baseline)."""
 
 
 @dataclass
