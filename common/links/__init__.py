@@ -18,3 +18,27 @@ class WireFormat(enum.Enum):
     RAW = "raw"
     """Schema-1 messages: float64 / int64 arrays as they were before the links were coded,
     kept as the baseline of ``recslam experiment links``."""
+
+
+class CodecTimer:
+    """CPU time spent encoding / decoding link messages, per ``"encode.Type"`` /
+    ``"decode.Type"`` key (``time.process_time`` of the calling thread is not used: the
+    timings are wall-clock ``perf_counter`` spans of pure-CPU codec calls)."""
+
+    def __init__(self) -> None:
+        self._acc: dict[str, list[float]] = {}
+
+    def add(self, key: str, seconds: float, messages: int = 1) -> None:
+        """Count ``messages`` coded in ``seconds``."""
+        entry = self._acc.setdefault(key, [0.0, 0.0])
+        entry[0] += seconds
+        entry[1] += messages
+
+    def merge(self, other: CodecTimer) -> None:
+        """Add ``other``'s counts into these."""
+        for key, (s, n) in other._acc.items():
+            self.add(key, s, int(n))
+
+    def snapshot(self) -> dict[str, dict[str, float]]:
+        """``{"encode.KeyframeUpdate": {"seconds": s, "messages": n}, ...}``."""
+        return {k: {"seconds": s, "messages": int(n)} for k, (s, n) in sorted(self._acc.items())}
