@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 
@@ -32,11 +33,15 @@ from common.evaluation.alignment import umeyama
 from common.evaluation.errors import EvaluationError
 from common.evaluation.trajectory import Trajectory
 from common.geometry import R_to_quat_wxyz, inverse_T
+from common.links import CodecTimer
 from common.links.edge_cloud import (
     AgentStatus,
     CullEvent,
+    KeyframePoses,
     KeyframeUpdate,
+    KeyframeUpdateCoded,
     MapPointUpdate,
+    MapPointUpdateCoded,
     PoseCorrection,
 )
 from common.map_view import GroundTruth
@@ -52,8 +57,10 @@ from services.cloud.map_source import AgentInfo, CloudView
 from services.cloud.mbp import MbpReport
 from services.cloud.persistence import CloudStore
 from services.cloud.uplink import (
+    DecodedKeyframe,
     UplinkError,
     decode_cull_event,
+    decode_keyframe_poses,
     decode_keyframe_update,
     decode_map_point_update,
     pose_correction,
@@ -145,6 +152,7 @@ class CloudApp:
         self._pruned_keyframes: set[int] = set()
         self.messages = 0
         self.rejected = 0
+        self.codec_timer = CodecTimer()
         self._changes = 0  # bumped by every atlas mutation (the view is rebuilt only then)
         self._view_cache: tuple[int, AtlasSnapshot] | None = None
 
@@ -179,9 +187,11 @@ class CloudApp:
         self.messages += 1
         self._changes += 1
         position = {edge_id: (stream_id, seq)}
-        if isinstance(message, KeyframeUpdate):
+        if isinstance(message, KeyframeUpdate | KeyframeUpdateCoded):
             reaction = self._keyframe(edge_id, message, position)
-        elif isinstance(message, MapPointUpdate):
+        elif isinstance(message, KeyframePoses):
+            reaction = self._keyframe_poses(edge_id, message, position)
+        elif isinstance(message, MapPointUpdate | MapPointUpdateCoded):
             reaction = self._map_points(edge_id, message, position)
         elif isinstance(message, CullEvent):
             reaction = self._cull(edge_id, message, position)
@@ -207,36 +217,26 @@ class CloudApp:
         self.positions.set(edge_id, InboundPosition(stream_id, seq))
 
     def _keyframe(
-        self, edge_id: str, msg: KeyframeUpdate, position: dict[str, tuple[bytes, int]]
+        self,
+        edge_id: str,
+        msg: KeyframeUpdate | KeyframeUpdateCoded,
+        position: dict[str, tuple[bytes, int]],
     ) -> Reaction:
         a, _ = self._agent(msg.agent_id, edge_id, msg.map_id)
+        t0 = time.perf_counter()
         try:
             d = decode_keyframe_update(msg, a.agent_id, self.vocabulary)
         except UplinkError:
             self.rejected += 1
             raise
+        self.codec_timer.add(f"decode.{type(msg).__name__}", time.perf_counter() - t0)
         key = make_key(a.agent_id, d.keyframe_id)
         kf = d.keyframe
         if kf is None:  # pose-only update of a keyframe the cloud has
-            if not self.atlas.has_keyframe(key):
-                # A keyframe the cloud pruned (MBP) or the edge culled is routine; others not.
-                routine = key in self.atlas.removed_keyframes()
-                log.log(logging.DEBUG if routine else logging.WARNING,
-                        "pose update of %s keyframe %s/%d", "removed" if routine else "unknown",
-                        msg.agent_id, d.keyframe_id)  # fmt: skip
-                self.store.commit(self.atlas, positions=position,
-                                  agents=self._rows(a))  # fmt: skip
+            kf = self._pose_only(a, d)
+            if kf is None:
+                self.store.commit(self.atlas, positions=position, agents=self._rows(a))
                 return Reaction()
-            v = self.atlas.keyframe(key)
-            real = ~v.virtual
-            ids = d.map_point_ids if d.map_point_ids.size == real.sum() else None
-            kf = KeyframeInput(
-                agent_id=a.agent_id, keyframe_id=d.keyframe_id, timestamp=v.timestamp,
-                T_world_body=d.T_world_body, keypoints=v.keypoints[real], levels=v.levels[real],
-                descriptors=v.descriptors[real], word_ids=v.word_ids[real],
-                map_point_ids=ids if ids is not None else np.full(int(real.sum()), -1),
-                velocity=d.velocity, bias_gyro=d.bias_gyro, bias_accel=d.bias_accel,
-            )  # fmt: skip
         is_new = not self.atlas.has_keyframe(key) and key not in self.atlas.removed_keyframes()
         events = self.fusion.add_keyframe(kf)
         a.last_seen = d.timestamp_ns * 1e-9
@@ -256,15 +256,65 @@ class CloudApp:
             reaction.new_keyframes[self.atlas.map_id_of_keyframe(key)] = 1
         return reaction
 
+    def _pose_only(self, a: _Agent, d: DecodedKeyframe) -> KeyframeInput | None:
+        """The atlas input of a pose-only update (None: the cloud no longer has it)."""
+        key = make_key(a.agent_id, d.keyframe_id)
+        if not self.atlas.has_keyframe(key):
+            # A keyframe the cloud pruned (MBP) or the edge culled is routine; others not.
+            routine = key in self.atlas.removed_keyframes()
+            log.log(logging.DEBUG if routine else logging.WARNING,
+                    "pose update of %s keyframe %s/%d", "removed" if routine else "unknown",
+                    d.agent_name, d.keyframe_id)  # fmt: skip
+            return None
+        v = self.atlas.keyframe(key)
+        real = ~v.virtual
+        ids = d.map_point_ids if d.map_point_ids.size == real.sum() else None
+        return KeyframeInput(
+            agent_id=a.agent_id, keyframe_id=d.keyframe_id, timestamp=v.timestamp,
+            T_world_body=d.T_world_body, keypoints=v.keypoints[real], levels=v.levels[real],
+            descriptors=v.descriptors[real], word_ids=v.word_ids[real],
+            map_point_ids=ids if ids is not None else np.full(int(real.sum()), -1),
+            velocity=d.velocity, bias_gyro=d.bias_gyro, bias_accel=d.bias_accel,
+        )  # fmt: skip
+
+    def _keyframe_poses(
+        self, edge_id: str, msg: KeyframePoses, position: dict[str, tuple[bytes, int]]
+    ) -> Reaction:
+        """New states of known keyframes; each map point follows its reference keyframe."""
+        a, _ = self._agent(msg.agent_id, edge_id, msg.map_id)
+        t0 = time.perf_counter()
+        try:
+            updates = decode_keyframe_poses(msg)
+        except UplinkError:
+            self.rejected += 1
+            raise
+        self.codec_timer.add("decode.KeyframePoses", time.perf_counter() - t0)
+        old: dict[int, np.ndarray] = {}
+        for d in updates:
+            kf = self._pose_only(a, d)
+            if kf is None:
+                continue
+            key = make_key(a.agent_id, d.keyframe_id)
+            old[key] = self.atlas.keyframe(key).T_map_body
+            self.fusion.add_keyframe(kf)
+        moved = self.atlas.move_points_with(old)
+        self.store.commit(self.atlas, list(old), moved, positions=position, agents=self._rows(a))
+        return Reaction()
+
     def _map_points(
-        self, edge_id: str, msg: MapPointUpdate, position: dict[str, tuple[bytes, int]]
+        self,
+        edge_id: str,
+        msg: MapPointUpdate | MapPointUpdateCoded,
+        position: dict[str, tuple[bytes, int]],
     ) -> Reaction:
         a, _ = self._agent(msg.agent_id, edge_id, msg.map_id)
+        t0 = time.perf_counter()
         try:
             points = decode_map_point_update(msg, a.agent_id)
         except UplinkError:
             self.rejected += 1
             raise
+        self.codec_timer.add(f"decode.{type(msg).__name__}", time.perf_counter() - t0)
         keys = [self.fusion.add_map_point(p) for p in points]
         self.store.commit(self.atlas, [], keys, positions=position,
                           agents=self._rows(a))  # fmt: skip

@@ -462,10 +462,21 @@ class Atlas:
             k = self._kf(key)
             old[key] = k.T_map_body
             k.T_map_body = np.array(T, dtype=np.float64)
+        self.move_points_with(old)
+
+    def move_points_with(self, old_poses: dict[int, np.ndarray]) -> list[int]:
+        """Move each map point whose reference keyframe is in ``old_poses`` (key -> its pose
+        before a change, map frame) with that keyframe; returns the moved points' keys."""
+        if not old_poses:
+            return []
+        corr = {k: self._kfs[k].T_map_body @ inverse_T(T) for k, T in old_poses.items()}
+        moved = []
         for m in self._mps.values():
-            if m.ref_kf in old:
-                corr = self._kfs[m.ref_kf].T_map_body @ inverse_T(old[m.ref_kf])
-                m.p_map = corr[:3, :3] @ m.p_map + corr[:3, 3]
+            c = corr.get(m.ref_kf)
+            if c is not None:
+                m.p_map = c[:3, :3] @ m.p_map + c[:3, 3]
+                moved.append(m.key)
+        return moved
 
     def set_map_point_positions(self, positions: dict[int, np.ndarray]) -> None:
         for key, p in positions.items():

@@ -28,9 +28,21 @@ import numpy as np
 
 from common.codec.errors import CodecError
 from common.codec.frames import FeatureDecoder, FeatureEncoder
+from common.codec.imu import ImuDecoder
 from common.codec.types import CodecConfig, KeyframeFeatures
 from common.errors import RecslamError
-from common.links.edge_cloud import CullEvent, KeyframeUpdate, MapPointUpdate, PoseCorrection
+from common.links.edge_cloud import (
+    CullEvent,
+    KeyframePoses,
+    KeyframeUpdate,
+    KeyframeUpdateCoded,
+    MapPointUpdate,
+    MapPointUpdateCoded,
+    PoseCorrection,
+    decode_point_ids,
+    decode_points,
+    decode_states,
+)
 from common.protocol.arrays import pack_array, unpack_array
 from common.protocol.errors import RemoteProtocolError
 from common.vocabulary import Vocabulary
@@ -120,20 +132,37 @@ def _ids(data: bytes, what: str) -> np.ndarray:
 
 
 def decode_keyframe_update(
-    msg: KeyframeUpdate,
+    msg: KeyframeUpdate | KeyframeUpdateCoded,
     agent_id: int,
     vocabulary: Vocabulary,
     codec: CodecConfig | None = None,
 ) -> DecodedKeyframe:
-    """Decode one keyframe; ``agent_id`` is the cloud's integer id of ``msg.agent_id``."""
-    what = f"KeyframeUpdate {msg.agent_id}/{msg.keyframe_id}"
+    """Decode one keyframe (schema-1 or coded); ``agent_id`` is the cloud's integer id of
+    ``msg.agent_id``."""
+    what = f"{type(msg).__name__} {msg.agent_id}/{msg.keyframe_id}"
     if msg.keyframe_id < 0:
         raise UplinkError(f"{what}: negative keyframe id")
-    T = _rigid(_one(msg.T_world_body, (4, 4), f"{what}: T_world_body"), f"{what}: T_world_body")
-    vel = _vec(msg.velocity_world, f"{what}: velocity_world")
-    bg = _vec(msg.bias_gyro, f"{what}: bias_gyro")
-    ba = _vec(msg.bias_accel, f"{what}: bias_accel")
-    mp_ids = _ids(msg.map_point_ids, f"{what}: map_point_ids")
+    if isinstance(msg, KeyframeUpdateCoded):
+        try:
+            st = decode_states(msg.state, f"{what}: state")
+            mp_ids = decode_point_ids(msg.map_point_ids, f"{what}: map_point_ids")
+            if msg.imu:
+                ImuDecoder().decode(msg.imu)
+        except (RemoteProtocolError, CodecError) as exc:
+            raise UplinkError(str(exc)) from exc
+        if len(st) != 1 or int(st.keyframe_ids[0]) != msg.keyframe_id:
+            raise UplinkError(f"{what}: state is not this keyframe's")
+        T = st.T_world_body[0]
+        vel, bg, ba = st.velocity_world[0], st.bias_gyro[0], st.bias_accel[0]
+        if not msg.features:
+            raise UplinkError(f"{what}: no features")
+    else:
+        T = _one(msg.T_world_body, (4, 4), f"{what}: T_world_body")
+        T = _rigid(T, f"{what}: T_world_body")
+        vel = _vec(msg.velocity_world, f"{what}: velocity_world")
+        bg = _vec(msg.bias_gyro, f"{what}: bias_gyro")
+        ba = _vec(msg.bias_accel, f"{what}: bias_accel")
+        mp_ids = _ids(msg.map_point_ids, f"{what}: map_point_ids")
     kf = None
     if msg.features:
         cfg = codec or CodecConfig()
@@ -163,17 +192,42 @@ def decode_keyframe_update(
     )
 
 
-def decode_map_point_update(msg: MapPointUpdate, agent_id: int) -> list[MapPointInput]:
-    """One :class:`MapPointInput` per id (observations grouped by map point id)."""
-    what = f"MapPointUpdate of {msg.agent_id}"
-    ids = _ids(msg.ids, f"{what}: ids")
+def decode_keyframe_poses(msg: KeyframePoses) -> list[DecodedKeyframe]:
+    """The pose-only updates of a :class:`KeyframePoses` (``keyframe`` None in each)."""
+    what = f"KeyframePoses of {msg.agent_id}"
     try:
-        p = unpack_array(msg.p_world, "<f8", (3,), f"{what}: p_world") if msg.p_world else None
-        obs = (
-            unpack_array(msg.observations, "<i8", (3,), f"{what}: observations")
-            if msg.observations
-            else np.zeros((0, 3), np.int64)
+        st = decode_states(msg.states, what)
+    except RemoteProtocolError as exc:
+        raise UplinkError(str(exc)) from exc
+    none = np.zeros(0, np.int64)
+    out = []
+    for i, kf_id in enumerate(st.keyframe_ids.tolist()):
+        vel, bg, ba = st.velocity_world[i], st.bias_gyro[i], st.bias_accel[i]
+        out.append(
+            DecodedKeyframe(
+                msg.agent_id, msg.map_id, kf_id, 0, st.T_world_body[i], vel, bg, ba, none, None
+            )
         )
+    return out
+
+
+def decode_map_point_update(
+    msg: MapPointUpdate | MapPointUpdateCoded, agent_id: int
+) -> list[MapPointInput]:
+    """One :class:`MapPointInput` per id (observations grouped by map point id)."""
+    what = f"{type(msg).__name__} of {msg.agent_id}"
+    try:
+        if isinstance(msg, MapPointUpdateCoded):
+            batch = decode_points(msg.points, what)
+            ids, p, obs = batch.ids, batch.p_world, batch.observations
+        else:
+            ids = _ids(msg.ids, f"{what}: ids")
+            p = unpack_array(msg.p_world, "<f8", (3,), f"{what}: p_world") if msg.p_world else None
+            obs = (
+                unpack_array(msg.observations, "<i8", (3,), f"{what}: observations")
+                if msg.observations
+                else np.zeros((0, 3), np.int64)
+            )
     except RemoteProtocolError as exc:
         raise UplinkError(str(exc)) from exc
     n = ids.shape[0]

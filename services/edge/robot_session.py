@@ -5,9 +5,11 @@
 live here, outside the VIO worker, so that a VIO failure never loses the stream state), and
 turns each :class:`~services.edge.worker.WorkResult` into messages:
 
-- to the robot, :class:`InertialFeedback` after VI initialisation (or a new map) and then
-  whenever biases/velocity moved more than :class:`FeedbackPolicy`'s thresholds or every
-  ``every_frames`` frames; tracks are named by stream numbers (``common.codec.tracks``);
+- to the robot, inertial feedback after VI initialisation (or a new map) and then whenever
+  biases/velocity moved more than :class:`FeedbackPolicy`'s thresholds or every
+  ``every_frames`` frames (``services.edge.feedback``: raw :class:`InertialFeedback` or
+  coded ``InertialFeedbackCoded`` with landmark deltas, per ``SessionOptions.wire``); tracks
+  are named by stream numbers (``common.codec.tracks``);
 - to the cloud, :class:`KeyframeUpdate` (first time with the keyframe's features re-coded
   standalone; later pose-only), :class:`MapPointUpdate`, :class:`CullEvent`, and every
   ``status_every_frames`` an :class:`AgentStatus`.
@@ -18,8 +20,9 @@ No sockets, no asyncio: ``services/edge/app.py`` drives it.
 from __future__ import annotations
 
 import logging
+import time
 from collections import OrderedDict
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -27,44 +30,39 @@ from common.calibration import CameraCalibration
 from common.codec import (
     CodecConfig,
     FeatureDecoder,
+    ImuChunk,
     ImuDecoder,
+    ImuEncoder,
     KeyframeFeatures,
     encode_standalone_keyframe,
 )
 from common.codec.keypoints import kf_track_q
 from common.codec.tracks import next_stream_numbers
-from common.geometry import orthonormalize_T
-from common.links import WireFormat
-from common.links.edge_cloud import AgentStatus, CullEvent, KeyframeUpdate, MapPointUpdate
-from common.links.robot_edge import InertialFeedback, RobotFrame
+from common.geometry import inverse_T, orthonormalize_T, so3_log
+from common.links import CodecTimer, WireFormat
+from common.links.edge_cloud import (
+    AgentStatus,
+    CullEvent,
+    KeyframePoses,
+    KeyframeStates,
+    KeyframeUpdate,
+    KeyframeUpdateCoded,
+    MapPointUpdate,
+    MapPointUpdateCoded,
+    PointBatch,
+    encode_point_ids,
+    encode_points,
+    encode_states,
+)
+from common.links.robot_edge import RobotFrame
 from common.protocol.arrays import pack_array
 from common.protocol.messages import Message
 from common.vocabulary import Vocabulary
-from services.edge.vio.types import (
-    FrameObservation,
-    InertialState,
-    MapPointBatch,
-    MapUpdate,
-)
+from services.edge.feedback import FeedbackPolicy, FeedbackSender
+from services.edge.vio.types import FrameObservation, MapPointBatch, MapUpdate
 from services.edge.worker import WorkItem, WorkResult
 
 logger = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class FeedbackPolicy:
-    """When the edge sends :class:`InertialFeedback` to a robot (after VI initialisation).
-
-    A message goes out on the first initialised frame of a map, then whenever the gyro bias
-    moved by more than ``gyro_bias_rad_s`` (rad/s, norm), the accel bias by more than
-    ``accel_bias_mps2`` (m/s², norm) or the velocity by more than ``velocity_mps`` (m/s, norm)
-    since the last message, and at least every ``every_frames`` frames.
-    """
-
-    gyro_bias_rad_s: float = 2e-3
-    accel_bias_mps2: float = 2e-2
-    velocity_mps: float = 0.1
-    every_frames: int = 20
 
 
 @dataclass(frozen=True)
@@ -76,12 +74,21 @@ class SessionOptions:
     new observations (local BA nudges every window point a little, and resending all of them
     with every observation dominated the edge->cloud link)."""
 
-    feedback: FeedbackPolicy = FeedbackPolicy()
+    feedback: FeedbackPolicy = field(default_factory=FeedbackPolicy)
     status_every_frames: int = 20
     keyframes_kept: int = 300
     imu_history_s: float = 120.0
     point_resend_m: float = 0.01
     wire: WireFormat = WireFormat.CODED
+    pose_resend_m: float = 1e-3
+    """Coded wire only: a keyframe the cloud has gets a new state (``KeyframePoses``) when its
+    position moved more than this (m) since last sent, its rotation more than
+    ``pose_resend_rad``, its velocity more than ``velocity_resend_mps`` or a bias more than
+    ``bias_resend``; each point then follows its reference keyframe at both ends, and is
+    re-sent when it moved more than ``point_resend_m`` from where it followed to."""
+    pose_resend_rad: float = 1e-3
+    velocity_resend_mps: float = 0.01
+    bias_resend: float = 1e-3
     """Encoding of the messages to the robot and to the cloud (``raw``: the schema-1 baseline)."""
 
 
@@ -92,6 +99,17 @@ class Outputs:
     robot: list[Message]
     cloud: list[Message]
     status_due: bool = False  # time for an AgentStatus (the app adds the link counters)
+
+
+_StateRow = tuple[int, np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+"""(keyframe id, T_world_body (4, 4), v (3,) m/s, bias gyro (3,), bias accel (3,))"""
+
+
+def _states(rows: list[_StateRow]) -> KeyframeStates:
+    """Rows of :data:`_StateRow` as KeyframeStates."""
+    ids, T, v, bg, ba = zip(*rows, strict=True)
+    stacked = (np.stack(x) for x in (T, v, bg, ba))
+    return KeyframeStates(np.array(ids, np.int64), *stacked)
 
 
 def _one_point_each(b: MapPointBatch) -> list[MapPointBatch]:
@@ -124,6 +142,21 @@ class SentPoints:
         self.ids = np.zeros(0, np.int64)
         self.p_world = np.zeros((0, 3))
         self.keys = np.zeros(0, np.int64)
+        self.ref = np.zeros(0, np.int64)  # (n,) reference keyframe (first robot observer)
+
+    def add_keys(self, point_ids: np.ndarray, keyframe_id: int) -> None:
+        """Record observations of ``keyframe_id`` the cloud got with the keyframe itself."""
+        k = np.unique(np.asarray(point_ids, np.int64) * _KEY + keyframe_id)
+        k = k[~_isin_sorted(self.keys, k)]
+        self.keys = np.insert(self.keys, np.searchsorted(self.keys, k), k)
+
+    def follow(self, keyframe_id: int, T_old: np.ndarray, T_new: np.ndarray) -> None:
+        """Move the points whose reference keyframe moved from ``T_old`` to ``T_new`` (4, 4),
+        as the cloud does when it gets the keyframe's new pose."""
+        sel = self.ref == keyframe_id
+        if sel.any():
+            corr = T_new @ inverse_T(T_old)
+            self.p_world[sel] = self.p_world[sel] @ corr[:3, :3].T + corr[:3, 3]
 
     def __len__(self) -> int:
         return len(self.ids)
@@ -153,8 +186,11 @@ class SentPoints:
         fresh = go & ~known
         if fresh.any():  # inserted in id order (np.insert keeps the given order at one slot)
             i = np.flatnonzero(fresh)[np.argsort(ids[fresh], kind="stable")]
+            first = np.full(n, np.iinfo(np.int64).max)
+            np.minimum.at(first, owner[robot], kf_ids[robot])
             self.ids = np.insert(self.ids, slot[i], ids[i])
             self.p_world = np.insert(self.p_world, slot[i], p_world[i], axis=0)
+            self.ref = np.insert(self.ref, slot[i], first[i])
         if new.any():
             k = np.sort(keys[new])
             self.keys = np.insert(self.keys, np.searchsorted(self.keys, k), k)
@@ -169,7 +205,7 @@ class SentPoints:
         gone = point_ids[hit]
         if len(gone):
             keep = ~_isin_sorted(np.sort(gone), self.ids)
-            self.ids, self.p_world = self.ids[keep], self.p_world[keep]
+            self.ids, self.p_world, self.ref = self.ids[keep], self.p_world[keep], self.ref[keep]
             lo = np.searchsorted(self.keys, gone * _KEY)
             hi = np.searchsorted(self.keys, (gone + 1) * _KEY)
             drop = np.zeros(len(self.keys) + 1, np.int64)
@@ -204,6 +240,8 @@ class RobotSession:
         self.last_timestamp_ns = 0
         self.finished = False
         self.feedback_sent = 0
+        self.codec_timer = CodecTimer()  # encode time of this robot's messages
+        self.feedback = FeedbackSender(self.options.feedback, self.options.wire, self.codec_timer)
         self.frame_s: list[float] = []
         self.track_s: list[float] = []
         self.local_ba_s: list[float] = []
@@ -219,9 +257,8 @@ class RobotSession:
         self._last_up: dict[int, int] = {}
         self._own_sorted: dict[int, np.ndarray] = {}  # map id -> sorted(_own_kfs[map id])
         self._sent_points: dict[int, SentPoints] = {}  # map id -> the points the cloud has
-        self._last_fb: InertialState | None = None
-        self._last_fb_frame = -(10**9)
-        self._fb_map: int | None = None
+        # (map id, keyframe id) -> (T_world_body, v, bg, ba) the cloud has (coded wire)
+        self._sent_state: dict[tuple[int, int], tuple[np.ndarray, ...]] = {}
 
     def _reset_stream(self) -> None:
         self.features = FeatureDecoder(self.vocabulary, self.codec)
@@ -229,6 +266,11 @@ class RobotSession:
         self.numbers = np.zeros(0, np.int64)
         self.next_number = 0
         self.frames = 0
+        self.feedback.restart()  # the robot's landmarks are unknown: the next one replaces them
+
+    def feedback_lost(self) -> None:
+        """A feedback message could not be queued for the robot: the next one is a reset."""
+        self.feedback.restart()
 
     # ------------------------------------------------------------------ decoding
     def decode(self, msg: RobotFrame) -> WorkItem:
@@ -290,7 +332,7 @@ class RobotSession:
         if res.failed:
             self.failures.append(f"frame {res.frame_index}: {res.failed}")
             self.state, self.reason = "initializing", f"VIO re-initialised after: {res.failed}"
-            self._fb_map = None
+            self.feedback.restart()
         if res.result is not None:
             r = res.result
             self.state = r.status.value
@@ -308,39 +350,131 @@ class RobotSession:
         out.status_due = self.processed % self.options.status_every_frames == 0
         return out
 
-    def _feedback(self, res: WorkResult) -> InertialFeedback | None:
-        s = res.state
-        assert s is not None
-        pol = self.options.feedback
-        last = self._last_fb
-        due = (
-            last is None
-            or self._fb_map != s.map_id
-            or res.frame_index - self._last_fb_frame >= pol.every_frames
-            or np.linalg.norm(s.bias_gyro - last.bias_gyro) > pol.gyro_bias_rad_s
-            or np.linalg.norm(s.bias_accel - last.bias_accel) > pol.accel_bias_mps2
-            or np.linalg.norm(s.v_world - last.v_world) > pol.velocity_mps
+    def _feedback(self, res: WorkResult) -> Message | None:
+        assert res.state is not None
+        msg = self.feedback.on_state(
+            res.frame_index, res.state, res.live_track_ids, res.live_p_world, self.numbers
         )
-        if not due:
-            return None
-        self._last_fb, self._last_fb_frame, self._fb_map = s, res.frame_index, s.map_id
-        self.feedback_sent += 1
-        ids = res.live_track_ids if res.live_track_ids is not None else np.zeros(0, np.int64)
-        pts = res.live_p_world if res.live_p_world is not None else np.zeros((0, 3))
-        g_world = s.T_world_body[:3, :3] @ s.gravity_body
-        return InertialFeedback(
-            timestamp_ns=int(s.timestamp_ns),
-            map_id=int(s.map_id),
-            T_world_body=pack_array(s.T_world_body, "<f8"),
-            velocity_world=pack_array(s.v_world, "<f8"),
-            bias_gyro=pack_array(s.bias_gyro, "<f8"),
-            bias_accel=pack_array(s.bias_accel, "<f8"),
-            gravity_world=pack_array(g_world, "<f8"),
-            track_ids=pack_array(ids, "<i8"),
-            p_world=pack_array(pts, "<f8"),
-        )
+        self.feedback_sent += msg is not None
+        return msg
 
     def _uplink(self, upd: MapUpdate) -> list[Message]:
+        if self.options.wire is WireFormat.CODED:
+            return self._uplink_coded(upd)
+        return self._uplink_raw(upd)
+
+    def _uplink_coded(self, upd: MapUpdate) -> list[Message]:
+        """The coded uplink: new keyframes as KeyframeUpdateCoded, changed states of known
+        ones in one KeyframePoses, points as MapPointUpdateCoded (see ``common.links``)."""
+        msgs: list[Message] = []
+        timer = self.codec_timer
+        book = self._sent_points.setdefault(upd.map_id, SentPoints())
+        moved: list[_StateRow] = []
+        for kf in upd.keyframes:
+            key = (upd.map_id, kf.keyframe_id)
+            self._kf_time[key] = kf.timestamp_ns
+            if not kf.robot_keyframe:
+                self._own_kfs.setdefault(upd.map_id, set()).add(kf.keyframe_id)
+                self._own_sorted.pop(upd.map_id, None)
+                continue
+            if key not in self._up_prev:
+                self._up_prev[key] = self._last_up.get(upd.map_id)
+                self._last_up[upd.map_id] = kf.keyframe_id
+            T = orthonormalize_T(kf.T_world_body)
+            state = (T, *(np.asarray(x, float) for x in (kf.v_world, kf.bias_gyro, kf.bias_accel)))
+            if key in self._sent_kfs:
+                last = self._sent_state.get(key)
+                if last is None or self._state_moved(last, state):
+                    moved.append((kf.keyframe_id, *state))
+                continue
+            feats = self._kf_features.get(kf.timestamp_ns)
+            if feats is None:
+                logger.warning(
+                    "robot %s: features of keyframe %d no longer kept",
+                    self.agent_id,
+                    kf.keyframe_id,
+                )
+                continue
+            t0 = time.perf_counter()
+            prev = self._up_prev[key]
+            t_prev = None if prev is None else self._kf_time.get((upd.map_id, prev))
+            point_ids = np.asarray(kf.point_ids, np.int64)
+            msgs.append(
+                KeyframeUpdateCoded(
+                    agent_id=self.agent_id,
+                    map_id=upd.map_id,
+                    keyframe_id=kf.keyframe_id,
+                    previous_keyframe_id=-1 if prev is None else int(prev),
+                    timestamp_ns=kf.timestamp_ns,
+                    state=encode_states(_states([(kf.keyframe_id, *state)])),
+                    features=encode_standalone_keyframe(self.vocabulary, feats, self.codec),
+                    map_point_ids=encode_point_ids(point_ids),
+                    imu=self._imu_coded(t_prev, kf.timestamp_ns),
+                )
+            )
+            timer.add("encode.KeyframeUpdateCoded", time.perf_counter() - t0)
+            book.add_keys(point_ids[point_ids >= 0], kf.keyframe_id)
+            self._sent_kfs.add(key)
+            self._sent_state[key] = state
+            self.vio_keyframes += 1
+        if moved:
+            t0 = time.perf_counter()
+            msgs.append(KeyframePoses(self.agent_id, upd.map_id, encode_states(_states(moved))))
+            timer.add("encode.KeyframePoses", time.perf_counter() - t0)
+            for kf_id, *state in moved:
+                key = (upd.map_id, kf_id)
+                book.follow(kf_id, self._sent_state[key][0], state[0])
+                self._sent_state[key] = tuple(state)  # type: ignore[assignment]
+        points = self._points_to_send(upd)
+        if points is not None:
+            t0 = time.perf_counter()
+            ids, p_world, rows = points
+            last = len(ids) - 1 - np.unique(ids[::-1], return_index=True)[1]  # a point twice:
+            ids, p_world = ids[last], p_world[last]  # its last position (rows are distinct)
+            body = encode_points(PointBatch(ids, p_world, rows))
+            msgs.append(MapPointUpdateCoded(self.agent_id, upd.map_id, body))
+            timer.add("encode.MapPointUpdateCoded", time.perf_counter() - t0)
+        msgs.extend(self._culls(upd))
+        return msgs
+
+    def _state_moved(
+        self,
+        last: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
+        new: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
+    ) -> bool:
+        o = self.options
+        dT = inverse_T(last[0]) @ new[0]
+        return bool(
+            np.linalg.norm(new[0][:3, 3] - last[0][:3, 3]) > o.pose_resend_m
+            or np.linalg.norm(so3_log(dT[:3, :3])) > o.pose_resend_rad
+            or np.linalg.norm(new[1] - last[1]) > o.velocity_resend_mps
+            or np.abs(new[2] - last[2]).max() > o.bias_resend
+            or np.abs(new[3] - last[3]).max() > o.bias_resend
+        )
+
+    def _imu_coded(self, t0_ns: int | None, t1_ns: int) -> bytes:
+        """The robot's IMU samples with t0 < t <= t1 coded by a fresh ``ImuEncoder``."""
+        if not self._imu_chunks:
+            return b""
+        t = np.concatenate([c[0] for c in self._imu_chunks])
+        v = np.concatenate([c[1] for c in self._imu_chunks])
+        keep = t <= t1_ns
+        if t0_ns is not None:
+            keep &= t > t0_ns
+        if not keep.any():
+            return b""
+        return ImuEncoder().encode(ImuChunk(t[keep], v[keep, :3], v[keep, 3:]))
+
+    def _culls(self, upd: MapUpdate) -> list[Message]:
+        book = self._sent_points.get(upd.map_id)
+        removed = np.zeros(0, np.int64)
+        if book is not None and upd.removed_point_ids:
+            removed = book.remove(np.asarray(upd.removed_point_ids, np.int64))
+        if not len(removed):  # points the cloud never heard of need no cull
+            return []
+        return [CullEvent(self.agent_id, upd.map_id, b"", pack_array(removed, "<i8"))]
+
+    def _uplink_raw(self, upd: MapUpdate) -> list[Message]:
         msgs: list[Message] = []
         for kf in upd.keyframes:
             key = (upd.map_id, kf.keyframe_id)
@@ -394,19 +528,7 @@ class RobotSession:
                     observations=pack_array(rows, "<i8"),
                 )
             )
-        book = self._sent_points.get(upd.map_id)
-        removed = np.zeros(0, np.int64)
-        if book is not None and upd.removed_point_ids:
-            removed = book.remove(np.asarray(upd.removed_point_ids, np.int64))
-        if len(removed):  # points the cloud never heard of need no cull
-            msgs.append(
-                CullEvent(
-                    agent_id=self.agent_id,
-                    map_id=upd.map_id,
-                    keyframe_ids=b"",
-                    map_point_ids=pack_array(removed, "<i8"),
-                )
-            )
+        msgs.extend(self._culls(upd))
         return msgs
 
     def _points_to_send(self, upd: MapUpdate) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:

@@ -8,14 +8,17 @@ import numpy as np
 import pytest
 
 from common.codec import decode_standalone_keyframe
+from common.links import WireFormat
 from common.links.edge_cloud import KeyframeUpdate, MapPointUpdate
 from common.links.robot_edge import InertialFeedback
 from common.protocol.arrays import unpack_array
 from common.vocabulary import Vocabulary
-from services.edge.robot_session import RobotSession
+from services.edge.robot_session import RobotSession, SessionOptions
 from services.edge.sim_robot import code_sequence
 from services.edge.vio.simulation import SimOptions, simulate
 from services.edge.worker import VioRunner, WorkerSpec
+
+RAW = SessionOptions(wire=WireFormat.RAW)  # these tests pin the schema-1 uplink
 
 
 @pytest.fixture(scope="module")
@@ -24,7 +27,7 @@ def run():
     vocab = Vocabulary.load()
     seq = simulate(SimOptions(duration_s=5.0, seed=3))
     frames = code_sequence(seq, vocab)
-    session = RobotSession("r", seq.camera, vocab)
+    session = RobotSession("r", seq.camera, vocab, RAW)
     runner = VioRunner(WorkerSpec("r", seq.camera, seq.imu))
     items, results, robot_msgs, cloud_msgs = [], [], [], []
     for k, msg in enumerate(frames):
@@ -134,7 +137,7 @@ def test_map_points_are_resent_only_when_moved_or_reobserved() -> None:
     from common.data.synth import EUROC_CAM0
     from services.edge.vio.types import MapPointBatch, MapPointSnapshot, MapUpdate
 
-    session = RobotSession("r", EUROC_CAM0, Vocabulary.load())
+    session = RobotSession("r", EUROC_CAM0, Vocabulary.load(), RAW)
 
     def point(pid: int, x: float, n_obs: int) -> MapPointSnapshot:
         return MapPointSnapshot(

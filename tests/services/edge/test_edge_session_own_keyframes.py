@@ -5,12 +5,15 @@ from __future__ import annotations
 import numpy as np
 
 from common.calibration import CameraCalibration
+from common.links import WireFormat
 from common.links.edge_cloud import KeyframeUpdate, MapPointUpdate
 from common.protocol.arrays import unpack_array
 from common.vocabulary import Vocabulary
-from services.edge.robot_session import RobotSession
+from services.edge.robot_session import RobotSession, SessionOptions
 from services.edge.vio.types import KeyframeSnapshot, MapPointBatch, MapPointSnapshot, MapUpdate
 from services.edge.worker import WorkResult
+
+RAW = SessionOptions(wire=WireFormat.RAW)  # these tests pin the schema-1 uplink
 
 
 def _kf(kid: int, prev: int | None, robot: bool) -> KeyframeSnapshot:
@@ -24,7 +27,7 @@ def _kf(kid: int, prev: int | None, robot: bool) -> KeyframeSnapshot:
 
 def test_own_keyframes_stay_on_the_edge() -> None:
     cam = CameraCalibration(fx=400.0, fy=400.0, cx=320.0, cy=240.0, width=640, height=480)
-    session = RobotSession("r", cam, Vocabulary.load())
+    session = RobotSession("r", cam, Vocabulary.load(), RAW)
     kfs = (_kf(0, None, True), _kf(1, 0, False), _kf(2, 1, False), _kf(3, 2, True))
     point = MapPointSnapshot(7, 0, np.ones(3), np.array([0, 1, 3]), np.array([0, 1, 2]))
     upd = MapUpdate(0, False, kfs, MapPointBatch.of((point,)), ())
@@ -40,7 +43,7 @@ def test_own_keyframes_stay_on_the_edge() -> None:
 
 def test_points_seen_only_by_own_keyframes_stay_and_only_new_rows_go() -> None:
     cam = CameraCalibration(fx=400.0, fy=400.0, cx=320.0, cy=240.0, width=640, height=480)
-    session = RobotSession("r", cam, Vocabulary.load())
+    session = RobotSession("r", cam, Vocabulary.load(), RAW)
     kfs = (_kf(0, None, True), _kf(1, 0, False), _kf(2, 1, False))
     only_own = MapPointSnapshot(8, 0, np.ones(3), np.array([1, 2]), np.array([0, 1]))
     shared = MapPointSnapshot(9, 0, np.ones(3), np.array([0, 1]), np.array([2, 2]))

@@ -11,12 +11,15 @@ from __future__ import annotations
 import numpy as np
 
 from common.calibration import CameraCalibration
+from common.links import WireFormat
 from common.links.edge_cloud import CullEvent, MapPointUpdate
 from common.protocol.arrays import unpack_array
 from common.protocol.messages import Message
 from common.vocabulary import Vocabulary
-from services.edge.robot_session import RobotSession
+from services.edge.robot_session import RobotSession, SessionOptions
 from services.edge.vio.types import KeyframeSnapshot, MapPointBatch, MapPointSnapshot, MapUpdate
+
+RAW = SessionOptions(wire=WireFormat.RAW)  # these tests pin the schema-1 uplink
 
 Sent = tuple[list[int], list[list[float]], list[list[int]]]
 
@@ -43,7 +46,7 @@ class _Uplink:
 
     def __init__(self) -> None:
         cam = CameraCalibration(fx=400.0, fy=400.0, cx=320.0, cy=240.0, width=640, height=480)
-        self.session = RobotSession("r", cam, Vocabulary.load())
+        self.session = RobotSession("r", cam, Vocabulary.load(), RAW)
 
     def __call__(
         self,
