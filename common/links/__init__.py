@@ -42,3 +42,10 @@ class CodecTimer:
     def snapshot(self) -> dict[str, dict[str, float]]:
         """``{"encode.KeyframeUpdate": {"seconds": s, "messages": n}, ...}``."""
         return {k: {"seconds": s, "messages": int(n)} for k, (s, n) in sorted(self._acc.items())}
+
+
+# Registers every link's message types with the protocol (importing ``common.links`` is
+# enough for a decoder to know them all); last, since the link modules may use the above.
+from common.links import edge_cloud, robot_edge  # noqa: E402
+
+__all__ = ["CodecTimer", "WireFormat", "edge_cloud", "robot_edge"]

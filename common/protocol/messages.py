@@ -322,8 +322,6 @@ class Blob(Message):
 
 
 # ------------------------------------------------------------------------ link messages
-# The messages of each link live in that link's module (``common.links.robot_edge``,
-# ``common.links.edge_cloud``) with their encoders and decoders; importing them here registers
-# their type ids wherever the protocol decodes (plain module imports: no cycle on names).
-import common.links.edge_cloud  # noqa: E402
-import common.links.robot_edge  # noqa: E402, F401
+# The messages of each link live in that link's module with their encoders and decoders
+# (``common.links.robot_edge``, ``common.links.edge_cloud``); ``import common.links``
+# registers all of them.

@@ -29,6 +29,7 @@ wait forever. Agent ids must be unique: a second connection with the same id rep
 first.
 """
 
+import common.links  # noqa: F401  (registers every link's message types for decoding)
 from common.transport.connection import Delivery, Peer, TransportConfig, run
 from common.transport.endpoints import Client, Server
 

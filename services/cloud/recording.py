@@ -26,6 +26,7 @@ from typing import BinaryIO
 
 import msgpack
 
+import common.links  # noqa: F401  (registers every link's message types for decoding)
 from common.errors import RecslamError
 from common.protocol.errors import ProtocolError
 from common.protocol.messages import Message, decode_payload, encode_payload

@@ -1,0 +1,114 @@
+"""The edge -> cloud codecs (schema 2): round trips within the stated precision, bad input."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from common.geometry import so3_exp
+from common.links.body import LinkDecodeError
+from common.links.edge_cloud import (
+    POSITION_STEP_M,
+    KeyframeStates,
+    PointBatch,
+    decode_point_ids,
+    decode_points,
+    decode_states,
+    encode_point_ids,
+    encode_points,
+    encode_states,
+)
+from common.protocol.errors import RemoteProtocolError
+
+
+def _states(seed: int, k: int) -> KeyframeStates:
+    rng = np.random.default_rng(seed)
+    T = np.tile(np.eye(4), (k, 1, 1))
+    for i in range(k):
+        T[i, :3, :3] = so3_exp(rng.normal(size=3))
+        T[i, :3, 3] = rng.normal(size=3) * 5
+    ids = rng.choice(10_000, k, replace=False)
+    v, bg, ba = rng.normal(size=(k, 3)), rng.normal(size=(k, 3)) * 1e-3, rng.normal(size=(k, 3))
+    return KeyframeStates(ids, T, v, bg, ba * 0.1)
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.integers(0, 2**31), st.integers(0, 40))
+def test_states_round_trip_within_float32(seed: int, k: int) -> None:
+    s = _states(seed, k)
+    d = decode_states(encode_states(s))
+    order = np.argsort(s.keyframe_ids)
+    assert np.array_equal(d.keyframe_ids, s.keyframe_ids[order])
+    assert np.abs(d.T_world_body - s.T_world_body[order]).max(initial=0) < 1e-5
+    assert np.allclose(d.velocity_world, s.velocity_world[order], rtol=1e-6, atol=1e-6)
+    R = d.T_world_body[:, :3, :3]
+    assert np.allclose(R @ R.transpose(0, 2, 1), np.eye(3), atol=1e-12)
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.lists(st.integers(-1, 2**40), max_size=300))
+def test_point_ids_round_trip_exactly(ids: list[int]) -> None:
+    a = np.array(ids, np.int64)
+    assert np.array_equal(decode_point_ids(encode_point_ids(a)), a)
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.integers(0, 2**31), st.integers(0, 300), st.integers(0, 600))
+def test_points_round_trip_on_the_grid(seed: int, n: int, n_obs: int) -> None:
+    rng = np.random.default_rng(seed)
+    ids = rng.choice(1_000_000, n, replace=False)
+    p = rng.normal(size=(n, 3)) * 3
+    obs = np.zeros((0, 3), np.int64)
+    if n:
+        obs = np.stack(
+            [rng.choice(ids, n_obs), rng.integers(0, 30, n_obs), rng.integers(0, 1000, n_obs)], 1
+        )
+        _, first = np.unique(obs[:, 1:], axis=0, return_index=True)
+        obs = obs[np.sort(first)]
+    d = decode_points(encode_points(PointBatch(ids, p, obs)))
+    order = np.argsort(ids)
+    assert np.array_equal(d.ids, ids[order])
+    assert np.abs(d.p_world - p[order]).max(initial=0) <= POSITION_STEP_M / 2 + 1e-9
+    want = obs[np.lexsort((obs[:, 2], obs[:, 1]))]
+    assert np.array_equal(d.observations, want)
+
+
+def test_points_of_a_typical_batch_cost_far_less_than_raw() -> None:
+    rng = np.random.default_rng(3)
+    ids = np.arange(5000, 5600)
+    p = rng.normal(size=(600, 3)) * 2
+    obs = np.stack([ids, np.full(600, 40), np.sort(rng.choice(1000, 600, replace=False))], 1)
+    coded = encode_points(PointBatch(ids, p, obs))
+    raw = 600 * (8 + 24) + 600 * 24
+    assert len(coded) * 4 < raw, (len(coded), raw)
+
+
+@pytest.mark.parametrize(
+    "codec",
+    [
+        lambda: (encode_states(_states(1, 5)), decode_states),
+        lambda: (encode_point_ids(np.array([-1, 4, 9, -1, 2])), decode_point_ids),
+        lambda: (
+            encode_points(PointBatch(np.arange(4), np.zeros((4, 3)), np.array([[1, 2, 3]]))),
+            decode_points,
+        ),
+    ],
+)
+def test_damaged_payloads_are_the_peers_fault(codec) -> None:
+    data, decode = codec()
+    flipped = data[:5] + bytes([data[5] ^ 1]) + data[6:]
+    for bad in (data[:-1], data[:3], b"", bytes([data[0] ^ 0x55]) + data[1:], flipped):
+        with pytest.raises(RemoteProtocolError):
+            decode(bad)
+    assert issubclass(LinkDecodeError, RemoteProtocolError)
+
+
+def test_encoders_refuse_inconsistent_input() -> None:
+    with pytest.raises(ValueError):
+        encode_points(PointBatch(np.array([1, 1]), np.zeros((2, 3)), np.zeros((0, 3))))
+    with pytest.raises(ValueError):
+        encode_points(PointBatch(np.array([1]), np.zeros((1, 3)), np.array([[7, 0, 0]])))
+    with pytest.raises(ValueError):
+        encode_point_ids(np.array([-2]))
