@@ -33,6 +33,7 @@ from pathlib import Path
 from typing import Any
 
 from common.errors import RecslamError
+from common.links import WireFormat
 
 log = logging.getLogger(__name__)
 
@@ -67,6 +68,8 @@ class JobConfig:
             (``recslam cloud --record``; default: no recording).
         mbp: run the cloud with map backbone profiling (``recslam cloud --mbp``, one pass at
             shutdown; default on, like the cloud).
+        wire: how the edge encodes what it sends to the robots and the cloud (``recslam edge
+            --wire``; default coded; robots and cloud accept both).
     """
 
     dataset: Path
@@ -80,6 +83,7 @@ class JobConfig:
     start_timeout_s: float = 120.0
     record_uplink: Path | None = None
     mbp: bool = True
+    wire: WireFormat = WireFormat.CODED
 
 
 @dataclass
@@ -152,6 +156,7 @@ class Job:
             "--secret-file", str(self.secret_path),
             "--camera", str(Path(c.dataset) / self.robot_names[0]),
             "--worker", c.worker,
+            "--wire", c.wire.value,
             "--stats-out", str(self.run_dir / "stats" / "edge.json"),
         )  # fmt: skip
 
@@ -348,3 +353,57 @@ def robot_frames(dataset: Path, names: Sequence[str]) -> dict[str, int]:
         lines = [ln for ln in csv.read_text().splitlines() if ln and not ln.startswith("#")]
         out[name] = len(lines)
     return out
+
+
+def progress_line(sample: dict[str, Any], elapsed: float) -> str:
+    """One progress line from a :meth:`Job.sample` (edge and cloud counters)."""
+    robots = sample["edge"].get("robots", {})
+    parts = [
+        f"{n} {r['frames_decoded']}f/{r['keyframes_uplinked']}kf {r['state']}"
+        for n, r in sorted(robots.items())
+    ]
+    c = sample["cloud"]
+    cloud = (
+        f"cloud {c.get('keyframes', 0)} kf, {c.get('map_points', 0)} pts, maps {c.get('maps')}, "
+        f"merges {c.get('merges', 0)}, loops {c.get('loops', 0)}"
+    )
+    return f"[{elapsed:6.1f} s] " + (" | ".join(parts) or "robots connecting") + " | " + cloud
+
+
+def run_and_report(
+    config: JobConfig,
+    report_dir: Path,
+    timeout_s: float = 1800.0,
+    progress: Callable[[dict[str, Any], float], None] | None = None,
+    say: Callable[[str], None] = log.info,
+) -> dict[str, Any]:
+    """One whole run as ``recslam demo`` does it, then its report.
+
+    Starts the cloud, the edge and the robots, waits for the robots (at most ``timeout_s``),
+    lets the edge and the cloud drain, stops them and writes ``report_dir/report.{md,json}``
+    from ``config.run_dir`` (``recslam.report``). ``progress(sample, elapsed_s)`` sees every
+    sample (about one a second), ``say`` the few milestone lines. Returns the report data.
+    """
+    from recslam.report import RunFacts, write_report
+
+    t0 = time.perf_counter()
+
+    def tick(sample: dict[str, Any]) -> None:
+        if progress is not None:
+            progress(sample, time.perf_counter() - t0)
+
+    with Job(config) as job:
+        say(f"starting cloud, edge and {len(job.robot_names)} robots (run folder {job.run_dir})")
+        job.start()
+        if config.dashboard_port:
+            say(f"dashboard: http://127.0.0.1:{config.dashboard_port}")
+        robots_t0 = time.perf_counter()
+        codes = job.wait_robots(timeout_s, tick)
+        stream_s = time.perf_counter() - robots_t0
+        say(f"robots done in {stream_s:.1f} s: exit codes {codes}; draining edge and cloud")
+        job.wait_edge_idle()
+        say(progress_line(job.sample(), time.perf_counter() - t0))
+        codes = job.stop()
+        frames = robot_frames(config.dataset, job.robot_names)
+    facts = RunFacts(stream_s, time.perf_counter() - t0, codes, frames)
+    return write_report(job.run_dir, report_dir, facts)

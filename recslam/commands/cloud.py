@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+from collections.abc import Sequence
 from pathlib import Path
 
 from common.protocol.credentials import SECRET_ENV, load_secret, parse_address
@@ -134,14 +135,21 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.set_defaults(func=handle)
 
 
-async def write_stats(path: Path, cloud) -> None:
+async def write_stats(path: Path, cloud, codec_owners: Sequence[object] = ()) -> None:
     """Write the cloud's counters and every edge link's traffic counters to ``path`` (JSON;
-    also after ``cloud.stop()``: both keep their final values)."""
+    also after ``cloud.stop()``: both keep their final values), with the codec CPU of the
+    ``codec_owners`` that have a ``codec_timer`` (``codec_cpu``; the application's timer
+    keeps its counts after ``stop()``)."""
     import dataclasses
     import json
     import time
 
+    from recslam.commands.edge import codec_cpu
+
     stats = dataclasses.asdict(await cloud.stats())
+    cpu = codec_cpu([cloud, *codec_owners])
+    if cpu is not None:
+        stats["codec_cpu"] = cpu
     stats["links"] = cloud.transport.counters()
     stats["time"] = time.time()
     tmp = path.with_suffix(".tmp")
@@ -210,6 +218,8 @@ def handle(args: argparse.Namespace) -> int:
         for sig in (signal.SIGINT, signal.SIGTERM):
             loop.add_signal_handler(sig, stop.set)
         host, port = await cloud.start(*args.listen)
+        # The application's codec_timer (if it has one) stays readable after stop().
+        codec_owners = [await cloud.call(lambda app: app)]
         print(f"cloud listening on {host}:{port}, state {args.state_dir}", flush=True)
         dashboard = None
         if args.dashboard_port:
@@ -221,7 +231,7 @@ def handle(args: argparse.Namespace) -> int:
         try:
             while not stop.is_set():
                 if args.stats_out is not None:
-                    await write_stats(args.stats_out, cloud)
+                    await write_stats(args.stats_out, cloud, codec_owners)
                 with contextlib.suppress(TimeoutError):
                     await asyncio.wait_for(stop.wait(), 1.0)
         finally:
@@ -229,10 +239,10 @@ def handle(args: argparse.Namespace) -> int:
             if dashboard is not None:
                 dashboard.stop()
             if args.stats_out is not None:
-                await write_stats(args.stats_out, cloud)
+                await write_stats(args.stats_out, cloud, codec_owners)
             await cloud.stop()
             if args.stats_out is not None:  # again: shutdown's optimisation and MBP counted
-                await write_stats(args.stats_out, cloud)
+                await write_stats(args.stats_out, cloud, codec_owners)
         return 0
 
     return run(main())

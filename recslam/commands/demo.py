@@ -21,6 +21,8 @@ import json
 import time
 from pathlib import Path
 
+from common.links import WireFormat
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
@@ -55,6 +57,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         metavar="FILE",
         help="the cloud records every applied uplink message here (for 'recslam experiment "
         "table3'; default: off)",
+    )
+    p.add_argument(
+        "--wire",
+        choices=[w.value for w in WireFormat],
+        default=WireFormat.CODED.value,
+        help="how the edge encodes its messages to the robots and the cloud: coded (default) "
+        "or raw (the float64 schema-1 baseline of 'recslam experiment links')",
     )
     p.set_defaults(func=run)
 
@@ -109,26 +118,10 @@ def build_dataset(args: argparse.Namespace) -> None:
     print(f"dataset ready in {built:.1f} s\n", flush=True)
 
 
-def progress_line(sample: dict, elapsed: float) -> str:
-    """One progress line from an orchestration sample (edge and cloud counters)."""
-    robots = sample["edge"].get("robots", {})
-    parts = [
-        f"{n} {r['frames_decoded']}f/{r['keyframes_uplinked']}kf {r['state']}"
-        for n, r in sorted(robots.items())
-    ]
-    c = sample["cloud"]
-    cloud = (
-        f"cloud {c.get('keyframes', 0)} kf, {c.get('map_points', 0)} pts, maps {c.get('maps')}, "
-        f"merges {c.get('merges', 0)}, loops {c.get('loops', 0)}"
-    )
-    return f"[{elapsed:6.1f} s] " + (" | ".join(parts) or "robots connecting") + " | " + cloud
-
-
 def run(args: argparse.Namespace) -> int:
     import shutil
 
-    from recslam.orchestration import Job, JobConfig, robot_frames
-    from recslam.report import RunFacts, write_report
+    from recslam.orchestration import JobConfig, progress_line, run_and_report
 
     start = time.perf_counter()
     build_dataset(args)
@@ -138,33 +131,25 @@ def run(args: argparse.Namespace) -> int:
     port = 0 if args.no_dashboard else args.dashboard_port
     record = args.record_uplink.resolve() if args.record_uplink is not None else None
     config = JobConfig(
-        dataset=args.data, run_dir=run_dir, dashboard_port=port, rate=args.rate,
-        record_uplink=record, mbp=args.mbp,
-    )  # fmt: skip
-    t0 = time.perf_counter()
+        dataset=args.data,
+        run_dir=run_dir,
+        dashboard_port=port,
+        rate=args.rate,
+        record_uplink=record,
+        mbp=args.mbp,
+        wire=WireFormat(args.wire),
+    )
     last_print = [0.0]
 
-    def progress(sample: dict) -> None:
-        now = time.perf_counter() - t0
-        if now - last_print[0] >= 5.0:
-            last_print[0] = now
-            print(progress_line(sample, now), flush=True)
+    def progress(sample: dict, elapsed: float) -> None:
+        if elapsed - last_print[0] >= 5.0:
+            last_print[0] = elapsed
+            print(progress_line(sample, elapsed), flush=True)
 
-    with Job(config) as job:
-        print(f"starting cloud, edge and {len(job.robot_names)} robots (run folder {run_dir})")
-        job.start()
-        if port:
-            print(f"dashboard: http://127.0.0.1:{port}", flush=True)
-        robots_t0 = time.perf_counter()
-        codes = job.wait_robots(args.timeout, progress)
-        stream_s = time.perf_counter() - robots_t0
-        print(f"robots done in {stream_s:.1f} s: exit codes {codes}; draining edge and cloud")
-        job.wait_edge_idle()
-        print(progress_line(job.sample(), time.perf_counter() - t0))
-        codes = job.stop()
-        frames = robot_frames(args.data, job.robot_names)
-    facts = RunFacts(stream_s, time.perf_counter() - t0, codes, frames)
-    data = write_report(run_dir, args.out, facts)
+    def say(line: str) -> None:
+        print(line, flush=True)
+
+    data = run_and_report(config, args.out, args.timeout, progress, say)
     print()
     print((args.out / "report.md").read_text())
     print(f"report: {args.out / 'report.md'} (total {time.perf_counter() - start:.0f} s)")

@@ -18,8 +18,11 @@ from __future__ import annotations
 
 import argparse
 import logging
+from collections.abc import Iterable
 from pathlib import Path
+from typing import Any
 
+from common.links import WireFormat
 from common.protocol.credentials import SECRET_ENV, load_secret, parse_address
 
 log = logging.getLogger(__name__)
@@ -50,14 +53,43 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="where each robot's VIO runs (default: one process per robot)")  # fmt: skip
     p.add_argument("--vocabulary", type=Path, default=None, metavar="NPZ",
                    help="vocabulary file (default: common/assets/orb_vocabulary.npz)")  # fmt: skip
+    p.add_argument(
+        "--wire",
+        choices=[w.value for w in WireFormat],
+        default=WireFormat.CODED.value,
+        help="encoding of the messages to the robots and the cloud: coded (default) or raw "
+        "(the float64 schema-1 baseline; robots and cloud accept both)",
+    )
     p.add_argument("--stats-out", type=Path, default=None, metavar="FILE",
                    help="rewrite service and per-link traffic counters as JSON here every "
                    "second and at exit (default: none)")  # fmt: skip
     p.set_defaults(func=handle)
 
 
+def codec_cpu(owners: Iterable[object]) -> dict[str, dict[str, float]] | None:
+    """The merged ``codec_timer.snapshot()`` of those ``owners`` that have a ``codec_timer``
+    (``common.links.CodecTimer``; a timer shared by two owners counts once): ``{"encode.Type":
+    {"seconds": s, "messages": n}, ...}``; None when no owner has one."""
+    timers: dict[int, Any] = {}
+    for owner in owners:
+        timer = getattr(owner, "codec_timer", None)
+        if timer is not None:
+            timers.setdefault(id(timer), timer)
+    if not timers:
+        return None
+    out: dict[str, dict[str, float]] = {}
+    for timer in timers.values():
+        for key, entry in timer.snapshot().items():
+            acc = out.setdefault(key, {"seconds": 0.0, "messages": 0})
+            acc["seconds"] += float(entry["seconds"])
+            acc["messages"] += int(entry["messages"])
+    return dict(sorted(out.items()))
+
+
 def write_stats(path: Path, edge) -> None:
-    """Write the edge's counters and every robot link's traffic counters to ``path`` (JSON)."""
+    """Write the edge's counters and every robot link's traffic counters to ``path`` (JSON),
+    with the codec CPU (``codec_cpu``: all robots' sessions merged, and per robot) once the
+    sessions time their codecs."""
     import json
     import time
 
@@ -68,6 +100,14 @@ def write_stats(path: Path, edge) -> None:
             robot[key.removesuffix("_s") + "_mean_s"] = (
                 sum(values) / len(values) if values else None
             )
+    sessions = {name: rb.session for name, rb in edge.app.robots.items()}
+    for name, session in sessions.items():
+        cpu = codec_cpu([session])
+        if cpu is not None and name in stats["robots"]:
+            stats["robots"][name]["codec_cpu"] = cpu
+    cpu = codec_cpu([edge, edge.app, getattr(edge, "cloud", None), *sessions.values()])
+    if cpu is not None:
+        stats["codec_cpu"] = cpu
     stats["links"] = edge.server.counters()
     stats["time"] = time.time()
     tmp = path.with_suffix(".tmp")
@@ -100,6 +140,7 @@ def handle(args: argparse.Namespace) -> int:
     from common.transport import run
     from common.vocabulary import DEFAULT_VOCABULARY_PATH, Vocabulary
     from services.edge.app import EdgeConfig
+    from services.edge.robot_session import SessionOptions
     from services.edge.server import EdgeServer, EdgeServiceConfig
 
     try:
@@ -114,8 +155,8 @@ def handle(args: argparse.Namespace) -> int:
                                 cloud_port=cloud_port)  # fmt: skip
 
     async def main() -> int:
-        edge = EdgeServer(secret, camera, imu, vocab, EdgeConfig(worker=args.worker), service,
-                          state_dir=args.state_dir)  # fmt: skip
+        config = EdgeConfig(worker=args.worker, session=SessionOptions(wire=WireFormat(args.wire)))
+        edge = EdgeServer(secret, camera, imu, vocab, config, service, state_dir=args.state_dir)
         stop = asyncio.Event()
         loop = asyncio.get_running_loop()
         for sig in (signal.SIGINT, signal.SIGTERM):
