@@ -12,6 +12,7 @@ COPY recslam recslam
 COPY common common
 COPY services services
 COPY dashboard dashboard
+COPY lab lab
 RUN pip install --no-cache-dir -c requirements.lock .
 COPY docker/entrypoint.sh /usr/local/bin/recslam-entrypoint
 RUN chmod 0755 /usr/local/bin/recslam-entrypoint

@@ -1,7 +1,9 @@
 """``recslam experiment bandwidth``: the whole job with the robot→edge links rate-limited.
 
 (``recslam experiment table3``: keyframes, map points and ATE with and without MBP from a
-recorded run, and loop-detection precision / recall; see :mod:`recslam.table3`.)
+recorded run, and loop-detection precision / recall; see :mod:`recslam.table3`.
+``recslam experiment links``: the bit budget of every link, raw vs coded wire; see
+:mod:`lab.links`.)
 
     recslam experiment bandwidth --data data/synth --budgets unlimited,500,200,100,50
 
@@ -77,6 +79,42 @@ def register(sub: argparse._SubParsersAction) -> None:
     t.add_argument("--camera", type=Path, default=None, help="EuRoC cam0 sensor.yaml")
     t.add_argument("--vocabulary", type=Path, default=None, help="vocabulary file")
     t.set_defaults(func=run_table3)
+    k = which.add_parser(
+        "links",
+        help="kbit/s per link, direction and message type, bits per message, codec CPU and "
+        "ATE: raw vs coded wire, side by side (whole runs)",
+        description="Runs the whole job (as 'recslam demo --no-dashboard') per dataset, run "
+        "and wire format into OUT/<dataset>/<wire>/run<k>/ and writes OUT/links.md, "
+        "links.json and links.png (see lab/links.py). A run takes ~5 min on 2 cores.",
+    )
+    k.add_argument(
+        "--data",
+        action="append",
+        default=None,
+        metavar="DIR[,DIR...]",
+        help="dataset folder(s), repeatable or comma-separated (default data/synth)",
+    )
+    k.add_argument("--runs", type=int, default=1, help="runs per dataset and format (default 1)")
+    k.add_argument(
+        "--wire", default="raw,coded", help="comma-separated formats (default %(default)s)"
+    )
+    k.add_argument("--out", type=Path, default=Path("out/links"), help="output folder")
+    k.add_argument(
+        "--results",
+        type=Path,
+        default=Path("benchmarks/results"),
+        help="also copy links.md and links.png here (default %(default)s; '' = no copy)",
+    )
+    k.add_argument(
+        "--rate", choices=("realtime", "max"), default="realtime", help="robots' playback rate"
+    )
+    k.add_argument("--timeout", type=float, default=1800.0, help="per-run timeout (s)")
+    k.add_argument(
+        "--from-runs",
+        action="store_true",
+        help="do not run: build the tables from the finished runs already under --out",
+    )
+    k.set_defaults(func=run_links)
 
 
 def parse_budgets(text: str) -> list[float | None]:
@@ -322,3 +360,35 @@ def run_table3(args: argparse.Namespace) -> int:
     print((args.out / "loop_detection.md").read_text())
     print("wrote " + ", ".join(str(f) for f in files))
     return 0
+
+
+def links_config(args: argparse.Namespace, argv: list[str] | None = None):
+    """The :class:`lab.links.LinksConfig` of ``recslam experiment links`` arguments."""
+    import shlex
+    import sys
+
+    from lab.links import LinksConfig, parse_datasets, parse_wires
+
+    words = sys.argv[1:] if argv is None else argv
+    return LinksConfig(
+        datasets=parse_datasets(args.data or ["data/synth"]),
+        out=args.out,
+        runs=args.runs,
+        wires=parse_wires(args.wire),
+        results=args.results if str(args.results) not in ("", ".") else None,
+        timeout_s=args.timeout,
+        rate=args.rate,
+        from_runs=args.from_runs,
+        command=shlex.join(["recslam", *words]),
+    )
+
+
+def run_links(args: argparse.Namespace) -> int:
+    """``recslam experiment links`` (logic in :mod:`lab.links`)."""
+    from lab.links import run_links as links
+
+    logging.getLogger("lab").setLevel(logging.INFO)  # progress: one line per run step
+    data, files = links(links_config(args))
+    print((args.out / "links.md").read_text())
+    print("wrote " + ", ".join(str(f) for f in files))
+    return 1 if data["errors"] else 0
