@@ -1,6 +1,7 @@
 """One module per link: the wire messages of a link and their encoders and decoders.
 
-- ``robot_edge``: RobotFrame, RobotSequenceEnd (robot -> edge), InertialFeedback (edge -> robot);
+- ``robot_edge``: RobotFrame, RobotSequenceEnd (robot -> edge), InertialFeedback and
+  InertialFeedbackCoded (edge -> robot; both decode into one FeedbackContent);
 - ``edge_cloud``: KeyframeUpdate, MapPointUpdate, CullEvent, AgentStatus (edge -> cloud),
   PoseCorrection (cloud -> edge).
 """
