@@ -61,7 +61,10 @@ class EdgeConfig:
 class Sink(Protocol):
     """Where the app's messages go (the server implements it with the transport)."""
 
-    def to_robot(self, agent_id: str, message: Message) -> None: ...
+    def to_robot(self, agent_id: str, message: Message) -> bool:
+        """Queue ``message`` for the robot; False if it was dropped (no such peer, outbox
+        full): the robot's next feedback must then replace its landmarks, not update them."""
+        ...
 
     async def to_cloud(self, message: Message) -> None: ...
 
@@ -162,7 +165,8 @@ class EdgeApp:
             logger.error("robot %s: %s (other robots unaffected)", s.agent_id, res.failed)
         out = s.on_result(res, replaying=replaying)
         for m in out.robot:
-            self.sink.to_robot(s.agent_id, m)
+            if not self.sink.to_robot(s.agent_id, m):
+                s.feedback_lost()
         for m in out.cloud:
             await self.sink.to_cloud(m)
         if out.status_due:

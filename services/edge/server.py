@@ -111,16 +111,18 @@ class EdgeServer:
         self.address: tuple[str, int] | None = None
 
     # ------------------------------------------------------------------ Sink
-    def to_robot(self, agent_id: str, message: Message) -> None:
+    def to_robot(self, agent_id: str, message: Message) -> bool:
         peer = self.server.peers.get(agent_id)
         if peer is None:
             self.dropped_feedback += 1
-            return
+            return False
         try:
             peer.send_nowait(message)
         except OutboxFullError:
             self.dropped_feedback += 1
             logger.warning("robot %s: outbox full, %s dropped", agent_id, type(message).__name__)
+            return False
+        return True
 
     async def to_cloud(self, message: Message) -> None:
         if self.cloud is None:

@@ -10,9 +10,11 @@ import pytest
 from common.codec import decode_standalone_keyframe
 from common.links import WireFormat
 from common.links.edge_cloud import KeyframeUpdate, MapPointUpdate
-from common.links.robot_edge import InertialFeedback
+from common.links.robot_edge import InertialFeedback, InertialFeedbackCoded, decode_feedback
 from common.protocol.arrays import unpack_array
+from common.protocol.messages import encode_payload
 from common.vocabulary import Vocabulary
+from services.edge.feedback import FeedbackPolicy, FeedbackSender
 from services.edge.robot_session import RobotSession, SessionOptions
 from services.edge.sim_robot import code_sequence
 from services.edge.vio.simulation import SimOptions, simulate
@@ -71,15 +73,55 @@ def test_stream_numbers_name_each_simulated_track_consistently(run) -> None:
 
 def test_feedback_after_vi_init_names_live_tracks(run) -> None:
     _, _, session, items, results, robot_msgs, _ = run
-    fbs = [m for m in robot_msgs if isinstance(m, InertialFeedback)]
+    fbs = [m for m in robot_msgs if isinstance(m, InertialFeedback | InertialFeedbackCoded)]
     first_state = next(k for k, r in enumerate(results) if r.state is not None)
     assert fbs and fbs[0].timestamp_ns == items[first_state].obs.timestamp_ns
     assert len(fbs) < len(results) - first_state  # thresholds / period, not every frame
+    assert decode_feedback(fbs[0]).reset and len(decode_feedback(fbs[0]).track_numbers) > 0
     for fb in fbs:
-        ids = unpack_array(fb.track_ids, "<i8")
+        c = decode_feedback(fb)
         frame = next(i for i in items if i.obs.timestamp_ns == fb.timestamp_ns)
-        assert np.isin(ids, frame.obs.track_ids).all() and len(ids) > 0
+        assert np.isin(c.track_numbers, frame.obs.track_ids).all()
+        assert np.isin(c.forget, frame.obs.track_ids).all()
     assert session.feedback_sent == len(fbs)
+    timed = session.codec_timer.snapshot()[f"encode.{type(fbs[0]).__name__}"]
+    assert timed["messages"] == len(fbs)
+
+
+def test_coded_feedback_gives_the_robot_the_raw_landmarks_in_deltas(run) -> None:
+    """The same results through a RAW and a CODED sender: same messages due, and the robot's
+    set rebuilt from the coded deltas is the raw set (1 mm lattice + 2 cm resend threshold)."""
+    _, _, _, items, results, _, _ = run
+    raw = FeedbackSender(FeedbackPolicy(), WireFormat.RAW)
+    coded = FeedbackSender(FeedbackPolicy(), WireFormat.CODED)
+    view: dict[int, np.ndarray] = {}
+    raw_bytes = coded_bytes = n = 0
+    for item, res in zip(items, results, strict=True):
+        if res.state is None:
+            continue
+        args = (res.frame_index, res.state, res.live_track_ids, res.live_p_world)
+        r = raw.on_state(*args, item.obs.track_ids)
+        c = coded.on_state(*args, item.obs.track_ids)
+        assert (r is None) == (c is None)
+        if r is None:
+            continue
+        full, delta = decode_feedback(r), decode_feedback(c)
+        raw_bytes += len(encode_payload(r))
+        coded_bytes += len(encode_payload(c))
+        n += 1
+        if delta.reset:
+            view = {}
+        view.update(zip(delta.track_numbers.tolist(), delta.p_world, strict=True))
+        for k in delta.forget.tolist():
+            del view[k]
+        tracked = set(item.obs.track_ids.tolist())
+        view = {k: p for k, p in view.items() if k in tracked}  # the robot drops ended tracks
+        assert sorted(view) == sorted(full.track_numbers.tolist())
+        got = np.array([view[k] for k in full.track_numbers.tolist()]).reshape(-1, 3)
+        err = np.linalg.norm(got - full.p_world, axis=1)
+        assert err.max(initial=0) <= 0.02 + 1e-3 * np.sqrt(3)
+        assert np.abs(delta.T_world_body - full.T_world_body).max() < 1e-5
+    assert n > 3 and coded_bytes < raw_bytes / 5, (n, raw_bytes, coded_bytes)
 
 
 def test_keyframe_uplink_is_standalone_and_consistent(run) -> None:
