@@ -6,14 +6,19 @@ one worker thread; :meth:`RobotApp.on_message` runs on the event loop. Feedback 
 edge is applied to the front end between frames, never while one is being tracked: if a
 frame is in progress the newest feedback waits and is applied before the next frame.
 
-Inertial feedback conversion (``InertialFeedback`` -> ``FrontEnd.set_inertial_state``):
-``T_world_body`` "<f8 (4,4)" gives ``R_world_imu``/``p_world_imu`` (EuRoC's body frame is the
-IMU frame), the other arrays map one to one. ``track_ids`` are stream track numbers (see
-``services.robot.coding``: the edge numbers tracks from the decoded stream); they are mapped
-to the tracker's ids and points of tracks no longer active are dropped. Map points replace
-the previous set; an empty set keeps the previous one unless ``map_id`` changed (points of
-another map are meaningless, so they are dropped). Feedback the front end refuses (too old
-for the IMU buffer, malformed arrays) is logged and counted, never retried.
+Inertial feedback: the edge sends :class:`InertialFeedback` (raw) or
+:class:`InertialFeedbackCoded`; both decode into one ``FeedbackContent``
+(``common.links.robot_edge.decode_feedback``) applied in arrival order. ``T_world_body`` gives
+``R_world_imu``/``p_world_imu`` (EuRoC's body frame is the IMU frame), the other vectors map
+one to one. Track numbers are stream track numbers (see ``services.robot.coding``: the edge
+numbers tracks from the decoded stream); they are mapped to the tracker's ids, and points of
+tracks no longer active are dropped. A *reset* replaces the landmark set, an update merges
+into it (new or moved points) and removes the tracks it forgets; a raw message with points is
+a reset, one without keeps the set. Points of another map are meaningless: a new ``map_id``
+without a reset drops the old set. The landmarks are applied even when the state is refused
+(too old for the IMU buffer): points live in the world frame, and the next update builds on
+them. A refused message (does not decode, not a rotation, too old) is logged and counted,
+never retried. Messages that arrive while a frame is tracked wait, all of them, in order.
 
 With ``record=True`` every frame's :class:`UsedFrame` (what the pipeline used and what was
 coded) is kept in memory, for tests that compare it with what the edge decoded.
@@ -23,6 +28,7 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -30,8 +36,15 @@ import numpy as np
 from common.calibration import CameraCalibration, ImuCalibration
 from common.codec import ImuChunk
 from common.errors import RecslamError
-from common.links.robot_edge import InertialFeedback, RobotFrame, RobotSequenceEnd
-from common.protocol.arrays import unpack_array
+from common.links import CodecTimer
+from common.links.robot_edge import (
+    FeedbackContent,
+    InertialFeedback,
+    InertialFeedbackCoded,
+    RobotFrame,
+    RobotSequenceEnd,
+    decode_feedback,
+)
 from common.transport import Delivery
 from common.vocabulary import Vocabulary
 from services.robot.coding import (
@@ -97,8 +110,9 @@ class RobotApp:
         self.feedback_received = 0
         self.feedback_applied = 0
         self.feedback_rejected = 0
+        self.codec_timer = CodecTimer()  # decode time of the edge's feedback
         self._map_id: int | None = None
-        self._pending: InertialFeedback | None = None
+        self._pending: list[InertialFeedback | InertialFeedbackCoded] = []
         self._pending_lock = threading.Lock()  # guards _pending (loop vs worker thread)
         self._lock = threading.Lock()  # held while the front end is in use
 
@@ -138,10 +152,10 @@ class RobotApp:
     async def on_message(self, delivery: Delivery) -> None:
         """Handler for the edge's messages (never raises: a refused message is not retried)."""
         msg = delivery.message
-        if isinstance(msg, InertialFeedback):
+        if isinstance(msg, InertialFeedback | InertialFeedbackCoded):
             self.feedback_received += 1
             with self._pending_lock:
-                self._pending = msg
+                self._pending.append(msg)
             if self._lock.acquire(blocking=False):  # no frame in progress: apply now
                 try:
                     self._apply_pending_locked()
@@ -157,59 +171,51 @@ class RobotApp:
 
     def _apply_pending_locked(self) -> None:
         with self._pending_lock:
-            msg, self._pending = self._pending, None
-        if msg is None:
-            return
+            msgs, self._pending = self._pending, []
+        for msg in msgs:
+            self._apply_locked(msg)
+
+    def _apply_locked(self, msg: InertialFeedback | InertialFeedbackCoded) -> None:
         try:
-            state, numbers, points = feedback_to_state(msg)
-            ids = None
-            if numbers is not None and points is not None:
-                ids = self.frame_coder.tracker_ids_of(numbers)
-                live = ids >= 0  # tracks that ended since the edge's frame have no use
-                ids, points = ids[live], points[live]
-            if self._map_id is not None and msg.map_id != self._map_id and ids is None:
-                ids, points = np.zeros(0, np.int64), np.zeros((0, 3))  # drop the old map's
-            self.front_end.set_inertial_state(state, ids, points)
+            t0 = time.perf_counter()
+            content = decode_feedback(msg)
+            self.codec_timer.add(f"decode.{type(msg).__name__}", time.perf_counter() - t0)
+            state = content_to_state(content)
+            self._apply_landmarks(content)
+            self.front_end.set_inertial_state(state)
         except RecslamError as exc:
             self.feedback_rejected += 1
             logger.warning("inertial feedback at %d ns refused: %s", msg.timestamp_ns, exc)
             return
-        self._map_id = msg.map_id
         self.feedback_applied += 1
         logger.debug("inertial feedback at %d ns applied (map %d)", msg.timestamp_ns, msg.map_id)
 
+    def _apply_landmarks(self, c: FeedbackContent) -> None:
+        """Reset or update the front end's landmarks (tracker ids of the numbers still active)."""
+        coder = self.frame_coder
+        ids = coder.tracker_ids_of(c.track_numbers)
+        live = ids >= 0  # tracks that ended since the edge's frame have no use
+        forget = coder.tracker_ids_of(c.forget)
+        other_map = self._map_id is not None and c.map_id != self._map_id
+        self.front_end.update_landmarks(
+            ids[live],
+            c.p_world[live],
+            replace=c.reset or other_map,
+            forget=forget[forget >= 0],
+            active=coder.track_ids,
+        )
+        self._map_id = c.map_id
 
-def feedback_to_state(
-    msg: InertialFeedback,
-) -> tuple[InertialState, np.ndarray | None, np.ndarray | None]:
-    """Convert the edge's message: (state, stream track numbers (M,) or None, points (M, 3)
-    or None).
 
-    Raises RemoteProtocolError (malformed arrays) or ImuPredictionError (not a rotation).
-    """
-    T = unpack_array(msg.T_world_body, "<f8", (4, 4), "InertialFeedback.T_world_body")
-    vecs = {}
-    for name in ("velocity_world", "bias_gyro", "bias_accel", "gravity_world"):
-        vecs[name] = unpack_array(getattr(msg, name), "<f8", (3,), f"InertialFeedback.{name}")
-    if len(T) != 1 or any(len(v) != 1 for v in vecs.values()):
-        raise FeedbackError("InertialFeedback: expected one pose and one row per vector")
-    ids = points = None
-    if msg.track_ids or msg.p_world:
-        ids = unpack_array(msg.track_ids, "<i8", (), "InertialFeedback.track_ids")
-        points = unpack_array(msg.p_world, "<f8", (3,), "InertialFeedback.p_world")
-        if len(ids) != len(points):
-            raise FeedbackError(f"InertialFeedback: {len(ids)} track ids but {len(points)} points")
-    state = InertialState(
-        timestamp_ns=msg.timestamp_ns,
-        R_world_imu=T[0, :3, :3],
-        p_world_imu=T[0, :3, 3],
-        v_world_imu=vecs["velocity_world"][0],
-        bias_gyro=vecs["bias_gyro"][0],
-        bias_accel=vecs["bias_accel"][0],
-        gravity_world=vecs["gravity_world"][0],
+def content_to_state(c: FeedbackContent) -> InertialState:
+    """The front end's :class:`InertialState` of decoded feedback (ImuPredictionError if the
+    pose is not a rotation or a vector is not finite)."""
+    return InertialState(
+        timestamp_ns=c.timestamp_ns,
+        R_world_imu=c.T_world_body[:3, :3],
+        p_world_imu=c.T_world_body[:3, 3],
+        v_world_imu=c.velocity_world,
+        bias_gyro=c.bias_gyro,
+        bias_accel=c.bias_accel,
+        gravity_world=c.gravity_world,
     )
-    return state, ids, points
-
-
-class FeedbackError(RecslamError):
-    """An InertialFeedback message whose arrays do not fit together."""

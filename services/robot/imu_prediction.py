@@ -312,14 +312,43 @@ class MotionPredictor:
                 f"inertial state at {state.timestamp_ns} ns is older than the IMU buffer "
                 f"(starts {int(self.buffer.timestamps_ns[0])} ns); raise imu_buffer_s"
             )
+        if track_ids is not None and p_world is not None:
+            self.update_landmarks(track_ids, p_world, replace=True)
         self._base = state
         self._at_prev = None
-        if track_ids is not None and p_world is not None:
-            ids = np.asarray(track_ids, dtype=np.int64).reshape(-1)
-            pts = np.asarray(p_world, dtype=np.float64).reshape(-1, 3)
-            if len(ids) != len(pts):
-                raise ImuPredictionError(f"{len(ids)} track ids but {len(pts)} points")
-            self._landmarks = {int(i): p for i, p in zip(ids, pts, strict=True)}
+
+    def update_landmarks(
+        self,
+        track_ids: np.ndarray,
+        p_world: np.ndarray,
+        *,
+        replace: bool = False,
+        forget: np.ndarray | None = None,
+        active: np.ndarray | None = None,
+    ) -> None:
+        """Points (M, 3) [m, world] of tracks (M,) (tracker ids): the new set (``replace``) or
+        merged into it (a track's point is overwritten); then the tracks in ``forget`` (K,) are
+        dropped and, if ``active`` (A,) is given, every track not in it (tracks that ended)."""
+        ids = np.asarray(track_ids, dtype=np.int64).reshape(-1)
+        pts = np.asarray(p_world, dtype=np.float64).reshape(-1, 3)
+        if len(ids) != len(pts):
+            raise ImuPredictionError(f"{len(ids)} track ids but {len(pts)} points")
+        if not np.isfinite(pts).all():
+            raise ImuPredictionError("landmark points must be finite")
+        if replace:
+            self._landmarks = {}
+        self._landmarks.update(zip(ids.tolist(), pts, strict=True))
+        if forget is not None:
+            for i in np.asarray(forget, dtype=np.int64).reshape(-1).tolist():
+                self._landmarks.pop(i, None)
+        if active is not None and self._landmarks:
+            keep = set(np.asarray(active, dtype=np.int64).reshape(-1).tolist())
+            self._landmarks = {i: p for i, p in self._landmarks.items() if i in keep}
+
+    @property
+    def landmark_ids(self) -> np.ndarray:
+        """Tracks (M,) ascending with a 3D point from the edge."""
+        return np.array(sorted(self._landmarks), dtype=np.int64)
 
     def state_at(self, t_ns: int) -> InertialState | None:
         """The edge's state propagated to ``t_ns`` (None before VI initialisation)."""

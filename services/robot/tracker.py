@@ -172,6 +172,21 @@ class FrontEnd:
         """Apply the edge's inertial estimate (and 3D points (M, 3) of tracks (M,), if any)."""
         self.predictor.set_inertial_state(state, track_ids, p_world)
 
+    def update_landmarks(
+        self,
+        track_ids: np.ndarray,
+        p_world: np.ndarray,
+        *,
+        replace: bool = False,
+        forget: np.ndarray | None = None,
+        active: np.ndarray | None = None,
+    ) -> None:
+        """Edge 3D points (M, 3) [m, world] of tracks (M,): see
+        :meth:`MotionPredictor.update_landmarks`."""
+        self.predictor.update_landmarks(
+            track_ids, p_world, replace=replace, forget=forget, active=active
+        )
+
     def _new_ids(self, n: int) -> np.ndarray:
         ids = np.arange(self._next_id, self._next_id + n, dtype=np.int64)
         self._next_id += n
