@@ -372,14 +372,8 @@ class RobotSession:
         moved: list[_StateRow] = []
         for kf in upd.keyframes:
             key = (upd.map_id, kf.keyframe_id)
-            self._kf_time[key] = kf.timestamp_ns
-            if not kf.robot_keyframe:
-                self._own_kfs.setdefault(upd.map_id, set()).add(kf.keyframe_id)
-                self._own_sorted.pop(upd.map_id, None)
+            if not self._register(key, kf.timestamp_ns, kf.robot_keyframe):
                 continue
-            if key not in self._up_prev:
-                self._up_prev[key] = self._last_up.get(upd.map_id)
-                self._last_up[upd.map_id] = kf.keyframe_id
             T = orthonormalize_T(kf.T_world_body)
             state = (T, *(np.asarray(x, float) for x in (kf.v_world, kf.bias_gyro, kf.bias_accel)))
             if key in self._sent_kfs:
@@ -474,18 +468,26 @@ class RobotSession:
             return []
         return [CullEvent(self.agent_id, upd.map_id, b"", pack_array(removed, "<i8"))]
 
+    def _register(self, key: tuple[int, int], timestamp_ns: int, robot_keyframe: bool) -> bool:
+        """Note a keyframe ``(map id, keyframe id)`` of an update; False for the VIO's own
+        keyframes, which stay on the edge (uplinked ones chain to the previous uplinked one)."""
+        map_id, kf_id = key
+        self._kf_time[key] = timestamp_ns
+        if not robot_keyframe:
+            self._own_kfs.setdefault(map_id, set()).add(kf_id)
+            self._own_sorted.pop(map_id, None)
+            return False
+        if key not in self._up_prev:
+            self._up_prev[key] = self._last_up.get(map_id)
+            self._last_up[map_id] = kf_id
+        return True
+
     def _uplink_raw(self, upd: MapUpdate) -> list[Message]:
         msgs: list[Message] = []
         for kf in upd.keyframes:
             key = (upd.map_id, kf.keyframe_id)
-            self._kf_time[key] = kf.timestamp_ns
-            if not kf.robot_keyframe:
-                self._own_kfs.setdefault(upd.map_id, set()).add(kf.keyframe_id)
-                self._own_sorted.pop(upd.map_id, None)
+            if not self._register(key, kf.timestamp_ns, kf.robot_keyframe):
                 continue
-            if key not in self._up_prev:
-                self._up_prev[key] = self._last_up.get(upd.map_id)
-                self._last_up[upd.map_id] = kf.keyframe_id
             prev = self._up_prev[key]
             features = b""
             imu = np.zeros((0, 7))
