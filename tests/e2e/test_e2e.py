@@ -101,7 +101,11 @@ def test_three_robots_nothing_lost_or_duplicated(clean_run) -> None:
     run_dir, data = clean_run
     _assert_nothing_lost(run_dir, data)
     link = data["links"]["edge->cloud"]
-    assert link["by_type_kbit_s"]["KeyframeUpdate"] > 0
+    assert link["by_type_kbit_s"]["KeyframeUpdateCoded"] > 0  # the coded wire is the default
+    assert (
+        "KeyframeUpdate" not in link["by_type_kbit_s"]
+        and "MapPointUpdate" not in link["by_type_kbit_s"]
+    )
     assert (run_dir / "report" / "report.md").is_file()
 
 
