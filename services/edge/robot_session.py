@@ -174,7 +174,7 @@ class SentPoints:
         known = slot < len(self.ids)
         known[known] = self.ids[slot[known]] == ids[known]
         keys = ids[owner] * _KEY + kf_ids
-        new = robot & (~known[owner] | ~_isin_sorted(self.keys, keys))
+        new = robot & ~_isin_sorted(self.keys, keys)  # keys: rows sent, or carried by a keyframe
         d = p_world[known] - self.p_world[slot[known]]
         moved = np.zeros(n, bool)
         moved[known] = (d * d).sum(axis=1) > resend_m**2

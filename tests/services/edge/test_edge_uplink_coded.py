@@ -1,0 +1,93 @@
+"""The coded edge -> cloud uplink of one robot session (``SessionOptions.wire`` CODED).
+
+Hand-computed expectations: a new keyframe goes as KeyframeUpdateCoded and the observations
+its point ids carry are not sent again as rows; a keyframe that moved goes in one
+KeyframePoses, and the points anchored on it follow it without being re-sent unless they moved
+beyond ``point_resend_m`` relative to it; a state change under the thresholds sends nothing.
+Every message is read back with the cloud's own decoders.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from common.calibration import CameraCalibration
+from common.codec import KeyframeFeatures
+from common.geometry import so3_exp
+from common.links.edge_cloud import KeyframePoses, KeyframeUpdateCoded, MapPointUpdateCoded
+from common.protocol.messages import Message
+from common.vocabulary import Vocabulary
+from services.cloud.uplink import (
+    decode_keyframe_poses,
+    decode_keyframe_update,
+    decode_map_point_update,
+)
+from services.edge.robot_session import RobotSession
+from services.edge.vio.types import KeyframeSnapshot, MapPointBatch, MapPointSnapshot, MapUpdate
+
+VOCAB = Vocabulary.load()
+
+
+def _session() -> RobotSession:
+    cam = CameraCalibration(fx=400.0, fy=400.0, cx=320.0, cy=240.0, width=640, height=480)
+    s = RobotSession("r", cam, VOCAB)
+    rng = np.random.default_rng(0)
+    kp = np.array([[10, 20, 0, 3], [100, 50, 0, 7], [300, 200, 1, 30]], np.int32)
+    desc = rng.integers(0, 256, (3, 32), dtype=np.uint8)
+    s._kf_features[1000] = KeyframeFeatures(kp, desc, np.full(3, -1, np.int32)).canonical()
+    return s
+
+
+def _kf(T: np.ndarray, point_ids: list[int]) -> KeyframeSnapshot:
+    z = np.zeros(3)
+    ids = np.array(point_ids, np.int64)
+    return KeyframeSnapshot(0, 0, 1000, T, z, z, z, np.arange(3), ids, None, robot_keyframe=True)
+
+
+def _pt(pid: int, p: np.ndarray, obs: dict[int, int]) -> MapPointSnapshot:
+    kfs, rows = np.array(list(obs), np.int64), np.array(list(obs.values()), np.int64)
+    return MapPointSnapshot(pid, 0, np.asarray(p, float), kfs, rows)
+
+
+def _step(s: RobotSession, kfs: tuple, points: tuple) -> list[Message]:
+    return s._uplink(MapUpdate(0, True, kfs, MapPointBatch.of(points), ()))
+
+
+def _of(msgs: list[Message], cls: type) -> list:
+    return [m for m in msgs if isinstance(m, cls)]
+
+
+def test_coded_uplink_sends_each_fact_once_and_points_follow_their_keyframe() -> None:
+    s = _session()
+    p5, p3 = np.array([1.0, 0.5, 3.0]), np.array([-0.5, 0.2, 2.0])
+    msgs = _step(s, (_kf(np.eye(4), [5, -1, 3]),), (_pt(5, p5, {0: 0}), _pt(3, p3, {0: 2})))
+    (kf,) = _of(msgs, KeyframeUpdateCoded)
+    d = decode_keyframe_update(kf, 0, VOCAB)
+    assert d.keyframe is not None and d.map_point_ids.tolist() == [5, -1, 3]
+    (up,) = _of(msgs, MapPointUpdateCoded)
+    (pts,) = [decode_map_point_update(up, 0)]
+    assert [p.map_point_id for p in pts] == [3, 5]
+    assert all(len(p.observations) == 0 for p in pts)  # carried by the keyframe already
+    assert np.abs(pts[1].p_world - p5).max() <= 5e-4  # the 1 mm grid
+
+    # The keyframe moves by 5 cm and 0.1 rad; point 5 moves with it exactly, point 3 moves
+    # 3 cm more than that: only the keyframe's state and point 3 go.
+    T = np.eye(4)
+    T[:3, :3] = so3_exp(np.array([0.0, 0.0, 0.1]))
+    T[:3, 3] = [0.05, 0.0, 0.0]
+    follow5 = T[:3, :3] @ p5 + T[:3, 3]
+    moved3 = T[:3, :3] @ p3 + T[:3, 3] + np.array([0.0, 0.03, 0.0])
+    msgs = _step(s, (_kf(T, [5, -1, 3]),), (_pt(5, follow5, {0: 0}), _pt(3, moved3, {0: 2})))
+    assert not _of(msgs, KeyframeUpdateCoded)
+    (poses,) = _of(msgs, KeyframePoses)
+    (upd,) = decode_keyframe_poses(poses)
+    assert upd.keyframe_id == 0 and upd.keyframe is None
+    assert np.abs(upd.T_world_body - T).max() < 1e-6
+    (up,) = _of(msgs, MapPointUpdateCoded)
+    assert [p.map_point_id for p in decode_map_point_update(up, 0)] == [3]
+
+    # Half a millimetre and 1e-4 rad: under the thresholds, nothing goes.
+    T2 = T.copy()
+    T2[:3, 3] += [0.0005, 0.0, 0.0]
+    T2[:3, :3] = so3_exp(np.array([0.0, 0.0, 0.1001]))
+    assert _step(s, (_kf(T2, [5, -1, 3]),), (_pt(5, follow5, {0: 0}), _pt(3, moved3, {0: 2}))) == []
