@@ -144,6 +144,7 @@ class Job:
             "--output-every", "0",
             "--stats-out", str(self.run_dir / "stats" / "cloud.json"),
             "--mbp" if c.mbp else "--no-mbp",
+            "--wire", c.wire.value,
             *record,
         )  # fmt: skip
 

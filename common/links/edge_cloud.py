@@ -22,6 +22,7 @@ from common.links.body import (
     put_scaled_signed,
     seal,
 )
+from common.protocol.arrays import pack_array, unpack_array
 from common.protocol.messages import Message, message
 
 
@@ -394,3 +395,83 @@ def decode_points(data: bytes, what: str = "map points") -> PointBatch:
     point_ids = ids[point_index] if n_rows else np.zeros(0, np.int64)
     obs = np.stack([point_ids, kf_ids[group], feat], axis=1).astype(np.int64).reshape(-1, 3)
     return PointBatch(ids, q * POSITION_STEP_M, obs)
+
+
+@message(0x0502)
+class PoseCorrectionCoded(Message):
+    """The coded form of :class:`PoseCorrection`: :func:`encode_poses` of the corrected
+    keyframes, in the frame of the robot's own map ``map_id``."""
+
+    agent_id: str
+    map_id: int
+    poses: bytes
+
+
+POSES_VERSION = 1
+
+
+def encode_poses(keyframe_ids: np.ndarray, T_world_body: np.ndarray) -> bytes:
+    """Keyframe ids (ascending gaps) and per keyframe 7 float32: position (3) and rotation as a
+    unit quaternion wxyz (4) (precision as :func:`encode_states`)."""
+    ids = np.asarray(keyframe_ids, np.int64).reshape(-1)
+    T = np.asarray(T_world_body, np.float64).reshape(-1, 4, 4)
+    if len(ids) != len(T):
+        raise ValueError(f"{len(ids)} keyframe ids but {len(T)} poses")
+    order = np.argsort(ids, kind="stable")
+    ids, T = ids[order], T[order]
+    if len(ids) and (ids[0] < 0 or np.any(np.diff(ids) <= 0)):
+        raise ValueError("keyframe ids must be distinct and >= 0")
+    rows = np.concatenate([T[:, :3, 3], R_to_quat_wxyz(T[:, :3, :3]).reshape(-1, 4)], axis=1)
+    w = BitWriter()
+    _put_ids(w, ids)
+    w.put_raw(np.ascontiguousarray(rows, "<f4").view("<u4").astype(np.uint64), 32, "pose")
+    return seal(POSES_VERSION, w)
+
+
+def decode_poses(data: bytes, what: str = "poses") -> tuple[np.ndarray, np.ndarray]:
+    """Inverse of :func:`encode_poses`: (ids (N,) ascending, T_world_body (N, 4, 4))."""
+    r = open_sealed(data, POSES_VERSION, what)
+    with _decoding(what):
+        ids = _get_ids(r, what)
+        rows = r.get_raw(len(ids) * 7, 32).astype("<u4").view("<f4").astype(np.float64)
+    rows = rows.reshape(-1, 7)
+    if not np.all(np.isfinite(rows)):
+        raise LinkDecodeError(f"{what}: non-finite values")
+    T = np.tile(np.eye(4), (len(ids), 1, 1))
+    with _decoding(what):
+        if len(ids):
+            T[:, :3, :3] = quat_wxyz_to_R(rows[:, 3:7])
+    T[:, :3, 3] = rows[:, :3]
+    return ids, T
+
+
+def encode_pose_correction(
+    agent_id: str,
+    map_id: int,
+    keyframe_ids: np.ndarray,
+    T_world_body: np.ndarray,
+    coded: bool = True,
+) -> PoseCorrection | PoseCorrectionCoded:
+    """Corrected poses ``T_world_body`` (N, 4, 4) (robot's own map frame) of ``keyframe_ids``
+    (N,): coded, or the schema-1 float64 message (``coded=False``, the raw wire)."""
+    ids = np.asarray(keyframe_ids, np.int64).reshape(-1)
+    T = np.asarray(T_world_body, np.float64).reshape(ids.shape[0], 4, 4)
+    if coded:
+        return PoseCorrectionCoded(agent_id, int(map_id), encode_poses(ids, T))
+    return PoseCorrection(agent_id, int(map_id), pack_array(ids, "<i8"), pack_array(T, "<f8"))
+
+
+def decode_pose_correction(
+    msg: PoseCorrection | PoseCorrectionCoded,
+) -> tuple[np.ndarray, np.ndarray]:
+    """(keyframe ids (N,), T_world_body (N, 4, 4)) of either form; RemoteProtocolError."""
+    what = f"{type(msg).__name__} of {msg.agent_id}"
+    if isinstance(msg, PoseCorrectionCoded):
+        return decode_poses(msg.poses, what)
+    ids = unpack_array(msg.keyframe_ids, "<i8", (), f"{what}: keyframe_ids")
+    T = unpack_array(msg.T_world_body, "<f8", (4, 4), f"{what}: T_world_body")
+    if T.shape[0] != ids.shape[0]:
+        raise LinkDecodeError(f"{what}: {ids.shape[0]} ids but {T.shape[0]} poses")
+    if not np.all(np.isfinite(T)):
+        raise LinkDecodeError(f"{what}: non-finite poses")
+    return ids, T

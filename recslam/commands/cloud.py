@@ -110,6 +110,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--agent-id", default="cloud", help="this service's agent id (default cloud)")
     p.add_argument(
+        "--wire",
+        choices=("coded", "raw"),
+        default="coded",
+        help="encoding of the pose corrections to the edges: coded (default) or raw (the "
+        "float64 schema-1 baseline; edges accept both)",
+    )
+    p.add_argument(
         "--output-every",
         type=float,
         default=30.0,
@@ -181,6 +188,7 @@ def handle(args: argparse.Namespace) -> int:
     import signal
 
     from common.errors import RecslamError
+    from common.links import WireFormat
     from common.protocol import SessionConfig
     from common.transport import TransportConfig, run
     from common.vocabulary import DEFAULT_VOCABULARY_PATH, Vocabulary
@@ -198,7 +206,9 @@ def handle(args: argparse.Namespace) -> int:
         mbp=dataclasses.replace(MbpConfig(), enabled=args.mbp),
         full_ba=dataclasses.replace(FullBAConfig(), enabled=args.full_ba),
     )
-    config = CloudServiceConfig(domain=domain, output_every_s=args.output_every)
+    config = CloudServiceConfig(
+        domain=domain, output_every_s=args.output_every, wire=WireFormat(args.wire)
+    )
     session = SessionConfig("cloud", args.agent_id, secret)
 
     async def main() -> int:

@@ -33,7 +33,7 @@ from common.evaluation.alignment import umeyama
 from common.evaluation.errors import EvaluationError
 from common.evaluation.trajectory import Trajectory
 from common.geometry import R_to_quat_wxyz, inverse_T
-from common.links import CodecTimer
+from common.links import CodecTimer, WireFormat
 from common.links.edge_cloud import (
     AgentStatus,
     CullEvent,
@@ -43,6 +43,8 @@ from common.links.edge_cloud import (
     MapPointUpdate,
     MapPointUpdateCoded,
     PoseCorrection,
+    PoseCorrectionCoded,
+    encode_pose_correction,
 )
 from common.map_view import GroundTruth
 from common.protocol.messages import Message
@@ -63,7 +65,6 @@ from services.cloud.uplink import (
     decode_keyframe_poses,
     decode_keyframe_update,
     decode_map_point_update,
-    pose_correction,
 )
 
 log = logging.getLogger(__name__)
@@ -120,7 +121,7 @@ class Correction:
     """A pose correction to send: the edge serving the robot, and the message."""
 
     edge_id: str
-    message: PoseCorrection
+    message: PoseCorrection | PoseCorrectionCoded
 
 
 class CloudApp:
@@ -389,7 +390,9 @@ class CloudApp:
             T_agent_map = inverse_T(self.atlas.T_map_agent(a.agent_id))
             ids = np.array([self.atlas.keyframe(k).keyframe_id for k in keys], np.int64)
             T = np.array([T_agent_map @ self.atlas.T_map_body(k) for k in keys])
-            out.append(Correction(a.edge_id, pose_correction(a.name, a.edge_map, ids, T)))
+            coded = self.config.wire is WireFormat.CODED
+            msg = encode_pose_correction(a.name, a.edge_map, ids, T, coded)
+            out.append(Correction(a.edge_id, msg))
         return out
 
     def prune_due(self, map_id: int) -> bool:

@@ -9,6 +9,8 @@ from __future__ import annotations
 import enum
 from dataclasses import dataclass, field
 
+from common.links import WireFormat
+
 
 class AlignmentMode(enum.Enum):
     """Degrees of freedom of the transform that aligns one map onto another.
@@ -268,6 +270,10 @@ class CloudServiceConfig:
         after the pending pose graphs, within this many seconds in all (default 30 s: the
         orchestration's stop waits 120 s; 0 = not at shutdown).
     """
+
+    wire: WireFormat = WireFormat.CODED
+    """How corrections go to the edges (``PoseCorrectionCoded``; ``raw``: the schema-1
+    float64 ``PoseCorrection``)."""
 
     domain: CloudConfig = field(default_factory=CloudConfig)
     optimize_every_keyframes: int = 25

@@ -11,7 +11,7 @@ Decoding turns the wire messages of ``common.protocol.messages`` into the atlas'
 - :class:`MapPointUpdate` -> one :class:`MapPointInput` per point id.
 - :class:`CullEvent` -> keyframe and map point ids.
 
-Encoding: :func:`pose_correction` packs corrected keyframe poses for an edge, and
+Corrections for the edges are built by ``common.links.edge_cloud.encode_pose_correction``;
 :func:`encode_keyframe_update` / :func:`encode_map_point_update` build what an edge sends
 (tests, benchmarks and simulations use them as the edge's side of the link).
 
@@ -38,7 +38,6 @@ from common.links.edge_cloud import (
     KeyframeUpdateCoded,
     MapPointUpdate,
     MapPointUpdateCoded,
-    PoseCorrection,
     decode_point_ids,
     decode_points,
     decode_states,
@@ -260,26 +259,6 @@ def decode_cull_event(msg: CullEvent) -> tuple[np.ndarray, np.ndarray]:
     if (kf.size and kf.min() < 0) or (mp.size and mp.min() < 0):
         raise UplinkError(f"{what}: negative ids")
     return kf, mp
-
-
-def pose_correction(
-    agent_name: str, edge_map_id: int, keyframe_ids: np.ndarray, T_world_body: np.ndarray
-) -> PoseCorrection:
-    """Corrected poses ``T_world_body (N, 4, 4)`` (robot's own map frame) of ``keyframe_ids``."""
-    ids = np.asarray(keyframe_ids, np.int64).reshape(-1)
-    T = np.asarray(T_world_body, np.float64).reshape(ids.shape[0], 4, 4)
-    return PoseCorrection(
-        agent_name, int(edge_map_id), pack_array(ids, "<i8"), pack_array(T, "<f8")
-    )
-
-
-def decode_pose_correction(msg: PoseCorrection) -> tuple[np.ndarray, np.ndarray]:
-    """(keyframe ids (N,), T_world_body (N, 4, 4)) of a correction (the edge's side)."""
-    ids = unpack_array(msg.keyframe_ids, "<i8", (), "PoseCorrection.keyframe_ids")
-    T = unpack_array(msg.T_world_body, "<f8", (4, 4), "PoseCorrection.T_world_body")
-    if T.shape[0] != ids.shape[0]:
-        raise UplinkError(f"PoseCorrection: {ids.shape[0]} ids but {T.shape[0]} poses")
-    return ids, T
 
 
 # ----------------------------------------------------------------------------- edge side

@@ -28,9 +28,9 @@ from typing import Any, Protocol
 import numpy as np
 
 from common.calibration import CameraCalibration, ImuCalibration
-from common.links.edge_cloud import PoseCorrection
+from common.links.edge_cloud import PoseCorrection, PoseCorrectionCoded, decode_pose_correction
 from common.links.robot_edge import RobotFrame, RobotSequenceEnd
-from common.protocol.arrays import unpack_array
+from common.protocol.errors import RemoteProtocolError
 from common.protocol.messages import Message, decode_payload, encode_payload
 from common.transport import Delivery
 from common.vocabulary import Vocabulary
@@ -209,18 +209,17 @@ class EdgeApp:
     async def on_cloud_message(self, d: Delivery) -> None:
         """Handler of the cloud link: pose corrections for a robot's map."""
         m = d.message
-        if not isinstance(m, PoseCorrection):
+        if not isinstance(m, PoseCorrection | PoseCorrectionCoded):
             logger.warning("cloud sent an unexpected %s; ignored", type(m).__name__)
             return
         rb = self.robots.get(m.agent_id)
         if rb is None:
             logger.warning("pose correction for unknown robot %s; ignored", m.agent_id)
             return
-        ids = unpack_array(m.keyframe_ids, "<i8", (), "PoseCorrection.keyframe_ids")
-        T = unpack_array(m.T_world_body, "<f8", (4, 4), "PoseCorrection.T_world_body")
-        if len(ids) != len(T):
-            logger.warning("pose correction for %s: %d ids, %d poses; ignored", m.agent_id,
-                           len(ids), len(T))  # fmt: skip
+        try:
+            ids, T = decode_pose_correction(m)
+        except RemoteProtocolError as exc:
+            logger.warning("pose correction for %s refused: %s", m.agent_id, exc)
             return
         poses = {int(k): np.array(t) for k, t in zip(ids, T, strict=True)}
         rb.corrections.append((m.map_id, poses))

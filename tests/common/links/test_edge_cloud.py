@@ -13,11 +13,15 @@ from common.links.edge_cloud import (
     POSITION_STEP_M,
     KeyframeStates,
     PointBatch,
+    PoseCorrection,
+    PoseCorrectionCoded,
     decode_point_ids,
     decode_points,
+    decode_pose_correction,
     decode_states,
     encode_point_ids,
     encode_points,
+    encode_pose_correction,
     encode_states,
 )
 from common.protocol.errors import RemoteProtocolError
@@ -112,3 +116,22 @@ def test_encoders_refuse_inconsistent_input() -> None:
         encode_points(PointBatch(np.array([1]), np.zeros((1, 3)), np.array([[7, 0, 0]])))
     with pytest.raises(ValueError):
         encode_point_ids(np.array([-2]))
+
+
+def test_pose_corrections_round_trip_in_both_forms() -> None:
+    s = _states(4, 6)
+    for coded in (True, False):
+        msg = encode_pose_correction("r", 2, s.keyframe_ids, s.T_world_body, coded)
+        assert isinstance(msg, PoseCorrectionCoded if coded else PoseCorrection)
+        ids, T = decode_pose_correction(msg)
+        order = np.argsort(s.keyframe_ids) if coded else np.arange(6)
+        assert np.array_equal(ids, s.keyframe_ids[order])
+        assert np.abs(T - s.T_world_body[order]).max() < (1e-5 if coded else 1e-15)
+    coded_msg = encode_pose_correction("r", 2, s.keyframe_ids, s.T_world_body)
+    raw_msg = encode_pose_correction("r", 2, s.keyframe_ids, s.T_world_body, coded=False)
+    assert len(coded_msg.poses) * 3 < len(raw_msg.T_world_body) + len(raw_msg.keyframe_ids)
+    with pytest.raises(RemoteProtocolError):
+        decode_pose_correction(PoseCorrectionCoded("r", 2, coded_msg.poses[:-2]))
+    with pytest.raises(RemoteProtocolError):
+        bad = PoseCorrection("r", 2, raw_msg.keyframe_ids[:8], raw_msg.T_world_body)
+        decode_pose_correction(bad)

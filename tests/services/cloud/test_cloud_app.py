@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from common.links.edge_cloud import AgentStatus, CullEvent
+from common.links.edge_cloud import AgentStatus, CullEvent, decode_pose_correction
 from common.protocol.arrays import pack_array
 from common.vocabulary import Vocabulary
 from services.cloud.app import CloudApp
@@ -14,7 +14,7 @@ from services.cloud.config import CloudServiceConfig
 from services.cloud.map_fusion import MapFusion
 from services.cloud.persistence import CloudStore
 from services.cloud.simulation import circle_poses, default_camera, make_session, make_world
-from services.cloud.uplink import decode_pose_correction, encode_keyframe_update
+from services.cloud.uplink import encode_keyframe_update
 
 
 @pytest.fixture(scope="module")

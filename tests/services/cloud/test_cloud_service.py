@@ -14,7 +14,7 @@ import pytest
 from common.evaluation.trajectory import Trajectory
 from common.evaluation.tum import read_tum, write_tum
 from common.geometry import R_to_quat_wxyz, inverse_T, transform_points
-from common.links.edge_cloud import PoseCorrection
+from common.links.edge_cloud import PoseCorrection, PoseCorrectionCoded, decode_pose_correction
 from common.protocol import SessionConfig
 from common.protocol.arrays import pack_array
 from common.transport import Client, Delivery, TransportConfig, run
@@ -25,7 +25,6 @@ from services.cloud.merge import yaw_of
 from services.cloud.server import CloudServer
 from services.cloud.simulation import circle_poses, default_camera, make_session, make_world, yaw_T
 from services.cloud.uplink import (
-    decode_pose_correction,
     encode_keyframe_update,
     encode_map_point_update,
 )
@@ -76,14 +75,14 @@ class Edge:
     """An edge-like client: sends messages, collects PoseCorrections."""
 
     def __init__(self, name: str, port: int, **session_kw) -> None:
-        self.corrections: list[PoseCorrection] = []
+        self.corrections: list[PoseCorrection | PoseCorrectionCoded] = []
         self.client = Client(
             SessionConfig("edge", name, SECRET, **session_kw), self._on, "127.0.0.1", port,
             transport=FAST,
         )  # fmt: skip
 
     async def _on(self, d: Delivery) -> None:
-        assert isinstance(d.message, PoseCorrection)
+        assert isinstance(d.message, PoseCorrectionCoded)  # the coded wire is the default
         self.corrections.append(d.message)
 
     async def start(self) -> Edge:

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from common.codec.types import CodecConfig
-from common.links.edge_cloud import CullEvent
+from common.links.edge_cloud import CullEvent, decode_pose_correction, encode_pose_correction
 from common.protocol.arrays import pack_array
 from common.vocabulary import Vocabulary
 from services.cloud.atlas import Atlas
@@ -20,10 +20,8 @@ from services.cloud.uplink import (
     decode_cull_event,
     decode_keyframe_update,
     decode_map_point_update,
-    decode_pose_correction,
     encode_keyframe_update,
     encode_map_point_update,
-    pose_correction,
 )
 
 
@@ -98,7 +96,8 @@ def test_malformed_messages_name_the_field(vocab, session):
 def test_pose_correction_round_trip():
     T = np.repeat(np.eye(4)[None], 3, axis=0)
     T[:, :3, 3] = np.arange(9).reshape(3, 3)
-    ids, back = decode_pose_correction(pose_correction("r", 4, np.array([5, 6, 7]), T))
+    msg = encode_pose_correction("r", 4, np.array([5, 6, 7]), T, coded=False)
+    ids, back = decode_pose_correction(msg)
     assert ids.tolist() == [5, 6, 7] and np.array_equal(back, T)
 
 

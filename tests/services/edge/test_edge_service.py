@@ -268,13 +268,12 @@ def test_edge_killed_and_restarted_loses_no_frame(tmp_path, vocab, sim_frames) -
     assert result.frames == len(frames) and killed_at < len(frames)
     final = [m for m in cloud.of(AgentStatus) if m.state == "finished"][-1]
     assert final.frames == len(frames)  # journal replay + robot replay: each frame once
-    kfs = cloud.of(KeyframeUpdate, "robot-1")
+    kfs = cloud.of(KeyframeUpdateCoded, "robot-1")
     by_map: dict[int, set[int]] = {}
     prev_of: dict[tuple[int, int], int] = {}
     for m in kfs:
-        if m.features:
-            by_map.setdefault(m.map_id, set()).add(m.keyframe_id)
-            prev_of[(m.map_id, m.keyframe_id)] = m.previous_keyframe_id
+        by_map.setdefault(m.map_id, set()).add(m.keyframe_id)
+        prev_of[(m.map_id, m.keyframe_id)] = m.previous_keyframe_id
     assert by_map, "no keyframes uplinked"
     for map_id, ids in by_map.items():
         # The VIO's own keyframes are not uplinked: the uplinked ones form one unbroken chain.
@@ -351,5 +350,5 @@ def test_synthetic_robot_initialises_and_receives_feedback(tmp_path) -> None:
     assert s["failures"] == [] and s["frames_decoded"] == s["frames_processed"] == result.frames
     assert s["feedback_sent"] >= 1, s["reason"]
     assert result.feedback_applied >= 1
-    kfs = [m for m in cloud.of(KeyframeUpdate, "synth-0") if m.features]
+    kfs = cloud.of(KeyframeUpdateCoded, "synth-0")
     assert len(kfs) == s["keyframes_uplinked"] >= 5
