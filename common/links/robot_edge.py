@@ -4,8 +4,10 @@ robot) and their encoders and decoders, used by both ends and by every test and 
 Edge -> robot feedback has two wire formats that decode into one :class:`FeedbackContent`
 (:func:`decode_feedback`): :class:`InertialFeedback` (0x0301, the raw float64 baseline: every
 message carries the whole landmark set) and :class:`InertialFeedbackCoded` (0x0302: float32
-state, landmarks quantised to :data:`POINT_STEP_M`, range-coded, and sent as a delta against
-what the robot already holds; see ``services.edge.feedback`` for the sender's bookkeeping).
+state; landmarks as a delta against what the robot already holds, each point as its depth
+along the ray of the track's own keypoint in the frame of the state, which both ends have
+from the feature stream (:class:`Anchors`); range-coded. ``services.edge.feedback`` keeps the
+sender's bookkeeping).
 """
 
 from __future__ import annotations
@@ -15,6 +17,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from common.calibration import CameraCalibration
+from common.camera import PinholeRadtan
 from common.codec.entropy import BitReader, BitWriter, best_scale_index, signed_cost
 from common.codec.errors import CodecError
 from common.geometry import R_to_quat_wxyz, quat_wxyz_to_R
@@ -75,21 +79,23 @@ class InertialFeedback(Message):
 
 
 # ------------------------------------------------------------------- edge -> robot, coded
-FEEDBACK_VERSION = 1
+FEEDBACK_VERSION = 2
 """Version byte of the sealed ``InertialFeedbackCoded.landmarks`` payload."""
-POINT_STEP_M = 0.002
-"""Lattice step of coded map points [m] (relative to the body position): error <= 1 mm per
-axis, <= 1.8 mm in norm."""
-MAX_POINT_RANGE_M = 1000.0
-"""Coded points lie within this distance [m] per axis of the body (farther: not sendable)."""
+DEPTH_STEP = 0.005
+"""Relative step of the coded depths: ``z = (1 + DEPTH_STEP) ** q`` m, error <= 0.25 %."""
+MIN_DEPTH_M = 0.05
+MAX_DEPTH_M = 1000.0
+"""Camera-frame depths [m] a coded point may have (others are not sendable)."""
 MAX_FEEDBACK_POINTS = 1 << 16
 """Most tracks (and most forgotten tracks) one message may carry."""
 MAX_TRACK_NUMBER = 1 << 62
 """Largest stream track number a coded message may carry."""
 _STATE = struct.Struct("<19f")
 _MAX_GAP = (1 << 32) - 1  # track number gaps are geometric-coded with a 32-bit escape
-_MAX_Q = int(MAX_POINT_RANGE_M / POINT_STEP_M)
-_MAX_SHIFT = 20  # low bits of lattice indices sent raw (2**20 steps > 2 MAX_POINT_RANGE_M)
+_LOG_STEP = float(np.log1p(DEPTH_STEP))
+_Q_MIN = int(np.floor(np.log(MIN_DEPTH_M) / _LOG_STEP))
+_Q_MAX = int(np.ceil(np.log(MAX_DEPTH_M) / _LOG_STEP))
+_MAX_SHIFT = 12  # low bits of depth offsets sent raw (2**12 > _Q_MAX - _Q_MIN)
 _WIDE_LIMIT = 1000  # |high part| kept inside the Laplace tables (+-2047 at most)
 
 
@@ -105,12 +111,14 @@ class InertialFeedbackCoded(Message):
     ``landmarks``: ``b""`` when there is nothing to add or forget, else sealed
     (``common.links.body``: version :data:`FEEDBACK_VERSION`, range-coded body, CRC-32):
     ``count M``; the M stream track numbers ascending (the first as a count, then the gaps
-    minus one, geometric of a sent scale); their points as lattice indices
-    ``round((p_world - p_ref) / POINT_STEP_M)`` per axis, ``p_ref`` the float32 body position
-    of ``state``: error <= 1 mm per axis (per axis: a shift ``k``, ``index >> k`` Laplace of a
-    sent scale, the ``k`` low bits raw; ``k`` > 0 only for points spread over metres); then
-    ``count K`` and the K track numbers the robot should forget (their point was culled or
-    replaced by none), coded like the first list.
+    minus one, geometric of a sent scale); their points, each as the depth ``z`` (camera
+    frame) of the point on the ray of the track's keypoint at ``timestamp_ns`` (the frame of
+    the state; the keypoint both ends have from the feature stream, see :class:`Anchors`):
+    ``q = round(ln z / ln(1 + DEPTH_STEP))``, depth error <= 0.25 %, coded as their median
+    (Laplace) and the offsets from it (Laplace of a sent scale, or ``q >> k`` and ``k`` raw
+    low bits when spread wide). The direction is the robot's own measurement: the VIO
+    point's reprojection residual in that frame (typically < 1 px) is not sent. Then
+    ``count K`` and the K track numbers the robot should forget, coded like the first list.
 
     ``reset``: True: the robot's landmark set becomes exactly these tracks (first message to
     the robot, a new map, after a restart of either end); False: the tracks are added or
@@ -126,15 +134,39 @@ class InertialFeedbackCoded(Message):
 
 
 @dataclass(frozen=True, eq=False)
+class Anchors:
+    """The robot's tracks in one frame of its feature stream, as both ends have them:
+    ``numbers`` (N,) int64 stream track numbers and ``keypoints_px`` (N, 2) their level-0
+    distorted keypoints [px] (the robot: what it coded; the edge: what it decoded)."""
+
+    numbers: np.ndarray
+    keypoints_px: np.ndarray
+
+    def of(self, numbers: np.ndarray) -> np.ndarray:
+        """Keypoints (M, 2) [px] of tracks ``numbers`` (M,); NaN rows for tracks not here."""
+        numbers = np.asarray(numbers, np.int64).reshape(-1)
+        out = np.full((len(numbers), 2), np.nan)
+        if len(self.numbers) and len(numbers):
+            order = np.argsort(self.numbers, kind="stable")
+            srt = self.numbers[order]
+            at = np.searchsorted(srt, numbers).clip(max=len(srt) - 1)
+            hit = srt[at] == numbers
+            out[hit] = np.asarray(self.keypoints_px, np.float64)[order[at[hit]]]
+        return out
+
+
+@dataclass(frozen=True, eq=False)
 class FeedbackContent:
     """What either feedback message says, decoded (:func:`decode_feedback`).
 
     ``T_world_body`` (4, 4) pose of the body (IMU) at ``timestamp_ns`` in the edge's map
     ``map_id``; ``velocity_world`` (3,) m/s; ``bias_gyro`` (3,) rad/s; ``bias_accel`` (3,)
     m/s^2; ``gravity_world`` (3,) m/s^2. ``track_numbers`` (M,) int64 stream track numbers
-    and ``p_world`` (M, 3) m their map points (world frame); ``forget`` (K,) int64 tracks
-    whose point the robot should drop. ``reset``: the tracks replace the robot's whole set
-    (else they are merged into it).
+    and ``p_world`` (M, 3) m their map points (world frame; NaN rows: a coded point whose
+    keypoint the decoder was not given); ``forget`` (K,) int64 tracks whose point the robot
+    should drop. ``reset``: the tracks replace the robot's whole set (else they are merged
+    into it). ``keypoints_px`` (M, 2) or None: each track's keypoint at ``timestamp_ns``, the
+    anchor of its coded point (needed to encode points on the coded wire).
     """
 
     timestamp_ns: int
@@ -148,17 +180,19 @@ class FeedbackContent:
     track_numbers: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     p_world: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     forget: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    keypoints_px: np.ndarray | None = None
 
 
 def encode_feedback(
-    content: FeedbackContent, wire: WireFormat
+    content: FeedbackContent, wire: WireFormat, camera: CameraCalibration | None = None
 ) -> InertialFeedback | InertialFeedbackCoded:
     """``content`` as the message of ``wire``.
 
     RAW: the schema-1 :class:`InertialFeedback`, float64 arrays as given (its receiver
     replaces its set when tracks are present, so ``content`` must carry all of them and
-    forget nothing). CODED: :class:`InertialFeedbackCoded` (tracks sorted by number; points
-    must pass :func:`points_sendable`). Raises ValueError for content a wire cannot carry.
+    forget nothing). CODED: :class:`InertialFeedbackCoded`; points need ``camera`` (the
+    robot's cam0) and ``content.keypoints_px``, and must pass :func:`points_sendable`.
+    Raises ValueError for content a wire cannot carry.
     """
     if wire is WireFormat.RAW:
         if len(content.forget) or not content.reset:
@@ -180,16 +214,22 @@ def encode_feedback(
     numbers = np.asarray(content.track_numbers, np.int64).reshape(-1)
     order = np.argsort(numbers, kind="stable")
     numbers = numbers[order]
-    p = np.asarray(content.p_world, np.float64).reshape(-1, 3)[order]
     forget = np.sort(np.asarray(content.forget, np.int64).reshape(-1))
     landmarks = b""
     if len(numbers) or len(forget):
         w = BitWriter()
         _put_numbers(w, numbers, "track_numbers")
         if len(numbers):
-            q = _lattice(p, _reference(state))
-            for axis in range(3):
-                _put_lattice(w, q[:, axis], "points")
+            if camera is None or content.keypoints_px is None:
+                raise ValueError("coded points need the camera and each track's keypoint")
+            p = np.asarray(content.p_world, np.float64).reshape(-1, 3)[order]
+            uv = np.asarray(content.keypoints_px, np.float64).reshape(-1, 2)[order]
+            q = _depth_index(p, state, camera)
+            if not points_sendable(p, content.T_world_body, uv, camera).all():
+                raise ValueError("a point is not sendable (see points_sendable)")
+            mid = int(np.median(q))
+            body.put_scaled_signed(w, np.array([mid]), "depth")
+            _put_wide(w, q - mid, "depth")
         _put_numbers(w, forget, "forget")
         landmarks = body.seal(FEEDBACK_VERSION, w)
     return InertialFeedbackCoded(
@@ -201,28 +241,49 @@ def encode_feedback(
     )
 
 
-def points_sendable(p_world: np.ndarray, T_world_body: np.ndarray) -> np.ndarray:
-    """Mask (M,) of the points (M, 3) the coded message can carry: finite and within
-    :data:`MAX_POINT_RANGE_M` per axis of the body position of ``T_world_body`` (4, 4)."""
+def points_sendable(
+    p_world: np.ndarray,
+    T_world_body: np.ndarray,
+    keypoints_px: np.ndarray,
+    camera: CameraCalibration,
+) -> np.ndarray:
+    """Mask (M,) of the points (M, 3) [m] the coded message can carry at pose ``T_world_body``
+    (4, 4): finite, with a finite keypoint (M, 2) [px], a camera-frame depth in
+    [:data:`MIN_DEPTH_M`, :data:`MAX_DEPTH_M`]."""
     p = np.asarray(p_world, np.float64).reshape(-1, 3)
-    d = p - _reference_of(T_world_body)
+    uv = np.asarray(keypoints_px, np.float64).reshape(-1, 2)
+    ok = np.isfinite(p).all(axis=1) & np.isfinite(uv).all(axis=1)
+    z = np.full(len(p), np.nan)
+    z[ok] = _depth(p[ok], _pack_state_pose(T_world_body), camera)
     with np.errstate(invalid="ignore"):
-        return np.isfinite(p).all(axis=1) & (np.abs(d) < MAX_POINT_RANGE_M - 1.0).all(axis=1)
+        return ok & (z >= MIN_DEPTH_M * (1 + DEPTH_STEP)) & (z <= MAX_DEPTH_M / (1 + DEPTH_STEP))
 
 
-def coded_points(p_world: np.ndarray, T_world_body: np.ndarray) -> np.ndarray:
-    """The points (M, 3) [m] the robot decodes from a coded message at pose ``T_world_body``
-    (4, 4) for the sendable points ``p_world`` (M, 3): what the edge should remember as sent."""
-    ref = _reference_of(T_world_body)
-    return ref + _lattice(np.asarray(p_world, np.float64).reshape(-1, 3), ref) * POINT_STEP_M
+def coded_points(
+    p_world: np.ndarray,
+    T_world_body: np.ndarray,
+    keypoints_px: np.ndarray,
+    camera: CameraCalibration,
+) -> np.ndarray:
+    """The points (M, 3) [m] the robot decodes for the sendable points ``p_world`` (M, 3) with
+    keypoints (M, 2) [px] at pose ``T_world_body`` (4, 4): what the edge remembers as sent."""
+    pose = _pack_state_pose(T_world_body)
+    q = _depth_index(np.asarray(p_world, np.float64).reshape(-1, 3), pose, camera)
+    return _anchored(pose, np.asarray(keypoints_px, np.float64).reshape(-1, 2), q, camera)
 
 
-def decode_feedback(msg: InertialFeedback | InertialFeedbackCoded) -> FeedbackContent:
+def decode_feedback(
+    msg: InertialFeedback | InertialFeedbackCoded,
+    camera: CameraCalibration | None = None,
+    anchors: Anchors | None = None,
+) -> FeedbackContent:
     """The content of either feedback message (raw: a reset with all its tracks, or, without
-    tracks, an update that changes none). Raises RemoteProtocolError (the peer's fault)
-    naming the field when a message does not decode."""
+    tracks, an update that changes none). Coded points are rebuilt from ``anchors``, the
+    robot's tracks in the frame at ``msg.timestamp_ns``, and ``camera`` (its cam0); without
+    them, or for tracks the anchors lack, their rows of ``p_world`` are NaN. Raises
+    RemoteProtocolError (the peer's fault) naming the field when a message does not decode."""
     if isinstance(msg, InertialFeedbackCoded):
-        return _decode_coded(msg)
+        return _decode_coded(msg, camera, anchors)
     if not isinstance(msg, InertialFeedback):
         raise TypeError(f"not a feedback message: {type(msg).__name__}")
     T = unpack_array(msg.T_world_body, "<f8", (4, 4), "InertialFeedback.T_world_body")
@@ -278,18 +339,37 @@ def _pack_state(c: FeedbackContent) -> bytes:
     return out
 
 
-def _reference(state: bytes) -> np.ndarray:
-    """``p_ref`` (3,) [m]: the float32 body position of a packed state, as float64."""
-    return np.frombuffer(state[16:28], "<f4").astype(np.float64)
+def _state_T(pose: bytes) -> np.ndarray:
+    """``T_world_body`` (4, 4) of the first 28 bytes of a packed state (quaternion, position),
+    exactly as both ends compute it."""
+    s = np.frombuffer(pose[:28], "<f4").astype(np.float64)
+    T = np.eye(4)
+    T[:3, :3] = quat_wxyz_to_R(s[:4])
+    T[:3, 3] = s[4:7]
+    return T
 
 
-def _reference_of(T_world_body: np.ndarray) -> np.ndarray:
-    """``p_ref`` (3,) of a pose (4, 4): what :func:`_reference` reads from its packed state."""
-    return np.asarray(T_world_body, np.float64)[:3, 3].astype("<f4").astype(np.float64)
+def _depth(p_world: np.ndarray, pose: bytes, camera: CameraCalibration) -> np.ndarray:
+    """Camera-frame depths (M,) [m] of points (M, 3) seen from the packed pose."""
+    T_wc = _state_T(pose) @ camera.T_body_cam
+    return (p_world - T_wc[:3, 3]) @ T_wc[:3, 2]
 
 
-def _lattice(p: np.ndarray, ref: np.ndarray) -> np.ndarray:
-    return np.round((p - ref) / POINT_STEP_M).astype(np.int64)
+def _depth_index(p_world: np.ndarray, pose: bytes, camera: CameraCalibration) -> np.ndarray:
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.round(np.log(_depth(p_world, pose, camera)) / _LOG_STEP).astype(np.int64)
+
+
+def _anchored(pose: bytes, uv: np.ndarray, q: np.ndarray, camera: CameraCalibration) -> np.ndarray:
+    """World points (M, 3) [m] at depth index ``q`` (M,) on the rays of keypoints ``uv``
+    (M, 2) [px] from the packed pose (the decoder's reconstruction, shared by the edge)."""
+    if not len(q):
+        return np.zeros((0, 3))
+    xy = PinholeRadtan.from_calibration(camera).pixels_to_normalized(uv)
+    z = np.exp(np.asarray(q, np.float64) * _LOG_STEP)
+    p_cam = np.concatenate([xy * z[:, None], z[:, None]], axis=1)
+    T_wc = _state_T(pose) @ camera.T_body_cam
+    return p_cam @ T_wc[:3, :3].T + T_wc[:3, 3]
 
 
 def _put_numbers(w: BitWriter, numbers: np.ndarray, part: str) -> None:
@@ -319,7 +399,7 @@ def _get_numbers(r: BitReader, field_name: str) -> np.ndarray:
     first = r.get_count(MAX_TRACK_NUMBER)
     wide = int(r.get_uniform(1, 2)[0])
     gaps = (body.get_scaled_signed if wide else body.get_scaled_geometric)(r, n - 1)
-    if (gaps < 0).any() or (gaps > MAX_TRACK_NUMBER).any():
+    if (gaps < 0).any() or first + float(gaps.sum(dtype=np.float64)) + n > MAX_TRACK_NUMBER:
         raise FeedbackDecodeError(f"{field_name}: track numbers out of order or beyond 2**62")
     numbers = first + np.concatenate([[0], np.cumsum(gaps + 1)]).astype(np.int64)
     if (numbers > MAX_TRACK_NUMBER).any():
@@ -327,7 +407,7 @@ def _get_numbers(r: BitReader, field_name: str) -> np.ndarray:
     return numbers
 
 
-def _put_lattice(w: BitWriter, q: np.ndarray, part: str) -> None:
+def _put_wide(w: BitWriter, q: np.ndarray, part: str) -> None:
     """Integers (N,) of any spread: ``q >> k`` Laplace-coded (scale sent), the ``k`` low bits
     raw; ``k`` (sent first) is the cheapest that keeps the high part in the Laplace tables."""
     q = np.asarray(q, np.int64)
@@ -347,16 +427,18 @@ def _put_lattice(w: BitWriter, q: np.ndarray, part: str) -> None:
         w.put_raw((q & ((1 << best_k) - 1)).astype(np.uint64), best_k, part)
 
 
-def _get_lattice(r: BitReader, n: int) -> np.ndarray:
+def _get_wide(r: BitReader, n: int) -> np.ndarray:
     k = int(r.get_uniform(1, _MAX_SHIFT + 1)[0])
     hi = body.get_scaled_signed(r, n)
-    if (np.abs(hi) > _MAX_Q).any():  # (keeps the shift below from overflowing)
-        raise CodecError(f"a point beyond {MAX_POINT_RANGE_M:.0f} m")
+    if (np.abs(hi) > _Q_MAX - _Q_MIN).any():  # (keeps the shift below from overflowing)
+        raise CodecError(f"a depth beyond [{MIN_DEPTH_M}, {MAX_DEPTH_M:.0f}] m")
     lo = r.get_raw(n, k).astype(np.int64) if k else 0
     return (hi << k) + lo
 
 
-def _decode_coded(msg: InertialFeedbackCoded) -> FeedbackContent:
+def _decode_coded(
+    msg: InertialFeedbackCoded, camera: CameraCalibration | None, anchors: Anchors | None
+) -> FeedbackContent:
     name = "InertialFeedbackCoded"
     if len(msg.state) != _STATE.size:
         raise FeedbackDecodeError(f"{name}.state: {len(msg.state)} bytes, expected {_STATE.size}")
@@ -366,34 +448,38 @@ def _decode_coded(msg: InertialFeedbackCoded) -> FeedbackContent:
     s = s32.astype(np.float64)
     if abs(np.linalg.norm(s[:4]) - 1.0) > 1e-3:
         raise FeedbackDecodeError(f"{name}.state: the rotation is not a unit quaternion")
-    T = np.eye(4)
-    T[:3, :3] = quat_wxyz_to_R(s[:4])
-    T[:3, 3] = s[4:7]
     numbers = forget = np.zeros(0, np.int64)
     p = np.zeros((0, 3))
+    uv = None
     if msg.landmarks:
         field_name = f"{name}.landmarks"
         r = body.open_sealed(msg.landmarks, FEEDBACK_VERSION, field_name)
         try:
             numbers = _get_numbers(r, f"{field_name} track numbers")
-            q = np.zeros((len(numbers), 3), np.int64)
+            q = np.zeros(0, np.int64)
             if len(numbers):
-                for axis in range(3):
-                    q[:, axis] = _get_lattice(r, len(numbers))
+                mid = int(body.get_scaled_signed(r, 1)[0])
+                q = mid + _get_wide(r, len(numbers))
             forget = _get_numbers(r, f"{field_name} forget")
         except CodecError as exc:
             raise FeedbackDecodeError(f"{field_name}: {exc}") from exc
-        if (np.abs(q) > _MAX_Q).any():
-            raise FeedbackDecodeError(f"{field_name}: a point beyond {MAX_POINT_RANGE_M:.0f} m")
+        if ((q < _Q_MIN) | (q > _Q_MAX)).any():
+            raise FeedbackDecodeError(
+                f"{field_name}: a depth beyond [{MIN_DEPTH_M}, {MAX_DEPTH_M:.0f}] m"
+            )
         if msg.reset and len(forget):
             raise FeedbackDecodeError(f"{field_name}: a reset that forgets tracks")
         if len(np.intersect1d(numbers, forget)):
             raise FeedbackDecodeError(f"{field_name}: a track both sent and forgotten")
-        p = _reference(msg.state) + q * POINT_STEP_M
+        p = np.full((len(numbers), 3), np.nan)
+        if camera is not None and anchors is not None and len(numbers):
+            uv = anchors.of(numbers)
+            ok = np.isfinite(uv).all(axis=1)
+            p[ok] = _anchored(msg.state, uv[ok], q[ok], camera)
     return FeedbackContent(
         timestamp_ns=msg.timestamp_ns,
         map_id=msg.map_id,
-        T_world_body=T,
+        T_world_body=_state_T(msg.state),
         velocity_world=s[7:10],
         bias_gyro=s[10:13],
         bias_accel=s[13:16],
@@ -402,4 +488,5 @@ def _decode_coded(msg: InertialFeedbackCoded) -> FeedbackContent:
         track_numbers=numbers,
         p_world=p,
         forget=forget,
+        keypoints_px=uv,
     )

@@ -10,14 +10,17 @@ tracks into the feedback message of the session's wire format (``common.links.ro
   point, exactly the schema-1 message;
 - **what**, CODED: :class:`~common.links.robot_edge.InertialFeedbackCoded` with only what the
   robot does not hold yet: tracks whose point is new to it, or moved more than
-  ``point_resend_m`` from the (quantised) point it was sent, and the tracks it should forget
-  (no point any more while the robot still tracks them). The sender remembers, per robot, the
-  point the robot decoded for each track (not the VIO's float64 value), so quantisation never
-  accumulates. A message *resets* the robot's set (sends all live points) when it is the
-  first one, the map changed, or :meth:`FeedbackSender.restart` was called: after the robot
-  restarted its stream, after the VIO re-initialised, and when a message could not be queued
-  for the robot (the deltas after it would refer to a set the robot never got). Delivery is
-  otherwise exactly-once and in order, so a robot that reconnects keeps a valid set.
+  ``point_resend_m`` from the point it was sent, and the tracks it should forget (no point
+  any more while the robot still tracks them). A point travels as its depth along the ray of
+  the track's keypoint in the state's frame (``anchors``: the frame's tracks as the edge
+  decoded them, the same the robot coded). The sender remembers, per robot, the point the
+  robot decodes for each track (on that ray, depth quantised; not the VIO's float64 value),
+  so quantisation never accumulates. A message *resets* the robot's set (sends all live
+  points) when it is the first one, the map changed, or :meth:`FeedbackSender.restart` was
+  called: after the robot restarted its stream, after the VIO re-initialised, and when a
+  message could not be queued for the robot (the deltas after it would refer to a set the
+  robot never got). Delivery is otherwise exactly-once and in order, so a robot that
+  reconnects keeps a valid set.
 
 Tracks the robot no longer tracks are dropped from the bookkeeping without a message: the
 robot drops their points itself. No sockets, no clocks (``CodecTimer`` spans only).
@@ -32,8 +35,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from common.calibration import CameraCalibration
 from common.links import CodecTimer, WireFormat
 from common.links.robot_edge import (
+    Anchors,
     FeedbackContent,
     InertialFeedback,
     InertialFeedbackCoded,
@@ -67,16 +72,19 @@ class FeedbackPolicy:
 
 class FeedbackSender:
     """Feedback to one robot: the policy and the robot's landmark bookkeeping (see the module
-    docstring). ``codec_timer`` gets the encode time under ``"encode.<message type>"``."""
+    docstring). ``codec_timer`` gets the encode time under ``"encode.<message type>"``;
+    ``camera``: the robot's cam0 (coded wire: points are sent along its rays)."""
 
     def __init__(
         self,
         policy: FeedbackPolicy | None = None,
         wire: WireFormat = WireFormat.CODED,
         codec_timer: CodecTimer | None = None,
+        camera: CameraCalibration | None = None,
     ) -> None:
         self.policy = policy or FeedbackPolicy()
         self.wire = wire
+        self.camera = camera
         self.codec_timer = codec_timer if codec_timer is not None else CodecTimer()
         self.sent = 0  # messages returned
         self.resets = 0  # of which replaced the robot's set (coded)
@@ -85,6 +93,7 @@ class FeedbackSender:
         self._map: int | None = None  # None: the next message is a reset
         self._numbers = np.zeros(0, np.int64)  # (n,) ascending: tracks the robot has a point of
         self._held = np.zeros((0, 3))  # (n, 3) m: the point the robot decoded for each
+        self._sent = np.zeros((0, 3))  # (n, 3) m: the VIO's point when it was last sent
 
     @property
     def held(self) -> tuple[np.ndarray, np.ndarray]:
@@ -102,12 +111,15 @@ class FeedbackSender:
         live_numbers: np.ndarray | None,
         live_p_world: np.ndarray | None,
         tracked_numbers: np.ndarray,
+        anchors: Anchors | None = None,
     ) -> InertialFeedback | InertialFeedbackCoded | None:
         """The message for the VIO's ``state`` at frame ``frame_index``, or None if none is due.
 
         ``live_numbers`` (L,) stream track numbers of the frame's tracks with a map point and
         ``live_p_world`` (L, 3) m their points (None: no map); ``tracked_numbers`` (T,) the
-        tracks of the newest frame decoded from the robot (tracks the robot still follows).
+        tracks of the newest frame decoded from the robot (tracks the robot still follows);
+        ``anchors``: the tracks and keypoints of frame ``frame_index`` (coded wire: the rays
+        the points are sent along; None or no ``camera``: no points are sent).
         """
         pol = self.policy
         last = self._last
@@ -138,42 +150,66 @@ class FeedbackSender:
             p_world=pts,
         )
         if self.wire is WireFormat.CODED:
-            content = self._delta(content, reset, tracked_numbers)
+            content = self._delta(content, reset, tracked_numbers, anchors)
         t0 = time.perf_counter()
-        msg = encode_feedback(content, self.wire)
+        msg = encode_feedback(content, self.wire, self.camera)
         self.codec_timer.add(f"encode.{type(msg).__name__}", time.perf_counter() - t0)
         self.sent += 1
         self.resets += int(content.reset)
         return msg
 
     def _delta(
-        self, full: FeedbackContent, reset: bool, tracked_numbers: np.ndarray
+        self,
+        full: FeedbackContent,
+        reset: bool,
+        tracked_numbers: np.ndarray,
+        anchors: Anchors | None,
     ) -> FeedbackContent:
         """``full`` (every live point) reduced to what the robot lacks; bookkeeping updated."""
-        ok = points_sendable(full.p_world, full.T_world_body)
+        uv = np.full((len(full.track_numbers), 2), np.nan)
+        if anchors is not None and self.camera is not None:
+            uv = anchors.of(full.track_numbers)
+            ok = points_sendable(full.p_world, full.T_world_body, uv, self.camera)
+        else:
+            ok = np.zeros(len(uv), bool)
         if not ok.all():
-            logger.debug("feedback: %d points not sendable (non-finite or far)", (~ok).sum())
+            logger.debug("feedback: %d of %d points not sendable", (~ok).sum(), len(ok))
         order = np.argsort(full.track_numbers[ok], kind="stable")
-        ids, pts = full.track_numbers[ok][order], full.p_world[ok][order]
+        ids, pts, uv = full.track_numbers[ok][order], full.p_world[ok][order], uv[ok][order]
         if len(ids) > 1 and not (np.diff(ids) > 0).all():  # one point per track number
             ids, first = np.unique(ids, return_index=True)
-            pts = pts[first]
-        held = coded_points(pts, full.T_world_body)
+            pts, uv = pts[first], uv[first]
+        held = np.zeros((0, 3))
+        if len(ids):
+            assert self.camera is not None
+            held = coded_points(pts, full.T_world_body, uv, self.camera)
         forget = np.zeros(0, np.int64)
         send = np.ones(len(ids), bool)
         if not reset:
-            book, book_p = self._numbers, self._held
+            book = self._numbers
             slot = np.searchsorted(book, ids).clip(max=max(len(book) - 1, 0))
             known = np.zeros(len(ids), bool)
             if len(book):
                 known = book[slot] == ids
-            d = pts[known] - book_p[slot[known]]
-            moved = (d * d).sum(axis=1) > self.policy.point_resend_m**2
-            send[known] = moved
-            held[known & ~send] = book_p[slot[known & ~send]]
+            # against the VIO's point as sent, not the robot's copy: that one lies on the
+            # keypoint's ray, off the VIO point by its reprojection residual, which a resend
+            # would not remove
+            d = pts[known] - self._sent[slot[known]]
+            send[known] = (d * d).sum(axis=1) > self.policy.point_resend_m**2
+            keep = known & ~send
+            held[keep] = self._held[slot[keep]]
+            pts_sent = pts.copy()
+            pts_sent[keep] = self._sent[slot[keep]]
             gone = book[~np.isin(book, ids)]
             forget = gone[np.isin(gone, np.asarray(tracked_numbers, np.int64))]
-        self._numbers, self._held = ids, held
+        else:
+            pts_sent = pts
+        self._numbers, self._held, self._sent = ids, held, pts_sent
         return dataclasses.replace(
-            full, reset=reset, track_numbers=ids[send], p_world=pts[send], forget=forget
+            full,
+            reset=reset,
+            track_numbers=ids[send],
+            p_world=pts[send],
+            forget=forget,
+            keypoints_px=uv[send],
         )

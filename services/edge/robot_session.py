@@ -54,7 +54,7 @@ from common.links.edge_cloud import (
     encode_points,
     encode_states,
 )
-from common.links.robot_edge import RobotFrame
+from common.links.robot_edge import Anchors, RobotFrame
 from common.protocol.arrays import pack_array
 from common.protocol.messages import Message
 from common.vocabulary import Vocabulary
@@ -63,6 +63,8 @@ from services.edge.vio.types import FrameObservation, MapPointBatch, MapUpdate
 from services.edge.worker import WorkItem, WorkResult
 
 logger = logging.getLogger(__name__)
+
+_ANCHOR_FRAMES = 64  # decoded frames kept for their VIO result (the pipeline is shallower)
 
 
 @dataclass(frozen=True)
@@ -241,7 +243,12 @@ class RobotSession:
         self.finished = False
         self.feedback_sent = 0
         self.codec_timer = CodecTimer()  # encode time of this robot's messages
-        self.feedback = FeedbackSender(self.options.feedback, self.options.wire, self.codec_timer)
+        self.feedback = FeedbackSender(
+            self.options.feedback, self.options.wire, self.codec_timer, camera
+        )
+        # frame index -> the frame's tracks and keypoints, until its VIO result (feedback
+        # points are sent along these rays)
+        self._anchors: OrderedDict[int, Anchors] = OrderedDict()
         self.frame_s: list[float] = []
         self.track_s: list[float] = []
         self.local_ba_s: list[float] = []
@@ -267,6 +274,7 @@ class RobotSession:
         self.next_number = 0
         self.frames = 0
         self.feedback.restart()  # the robot's landmarks are unknown: the next one replaces them
+        self._anchors.clear()
 
     def feedback_lost(self) -> None:
         """A feedback message could not be queued for the robot: the next one is a reset."""
@@ -294,6 +302,9 @@ class RobotSession:
             uv = feats.keypoints[:, :2]
             levels = feats.keypoints[:, 2].astype(np.uint8)
             desc = None
+        self._anchors[msg.frame_index] = Anchors(self.numbers, uv)
+        while len(self._anchors) > _ANCHOR_FRAMES:
+            self._anchors.popitem(last=False)
         obs = FrameObservation(
             timestamp_ns=msg.timestamp_ns,
             track_ids=self.numbers,
@@ -347,13 +358,20 @@ class RobotSession:
             fb = self._feedback(res)
             if fb is not None:
                 out.robot.append(fb)
+        while self._anchors and next(iter(self._anchors)) <= res.frame_index:
+            self._anchors.popitem(last=False)  # results come in frame order
         out.status_due = self.processed % self.options.status_every_frames == 0
         return out
 
     def _feedback(self, res: WorkResult) -> Message | None:
         assert res.state is not None
         msg = self.feedback.on_state(
-            res.frame_index, res.state, res.live_track_ids, res.live_p_world, self.numbers
+            res.frame_index,
+            res.state,
+            res.live_track_ids,
+            res.live_p_world,
+            self.numbers,
+            self._anchors.get(res.frame_index),
         )
         self.feedback_sent += msg is not None
         return msg

@@ -3,22 +3,25 @@
 No sockets and no bytes on the wire here (``services.robot.server`` does the lifecycle and
 the transport). :meth:`RobotApp.process` is CPU work (tracking, ORB, coding) meant to run in
 one worker thread; :meth:`RobotApp.on_message` runs on the event loop. Feedback from the
-edge is applied to the front end between frames, never while one is being tracked: if a
-frame is in progress the newest feedback waits and is applied before the next frame.
+edge is applied to the front end between frames, never while one is being tracked: what
+arrives while a frame is in progress waits and is applied before the next frame.
 
 Inertial feedback: the edge sends :class:`InertialFeedback` (raw) or
 :class:`InertialFeedbackCoded`; both decode into one ``FeedbackContent``
-(``common.links.robot_edge.decode_feedback``) applied in arrival order. ``T_world_body`` gives
-``R_world_imu``/``p_world_imu`` (EuRoC's body frame is the IMU frame), the other vectors map
-one to one. Track numbers are stream track numbers (see ``services.robot.coding``: the edge
-numbers tracks from the decoded stream); they are mapped to the tracker's ids, and points of
-tracks no longer active are dropped. A *reset* replaces the landmark set, an update merges
-into it (new or moved points) and removes the tracks it forgets; a raw message with points is
-a reset, one without keeps the set. Points of another map are meaningless: a new ``map_id``
-without a reset drops the old set. The landmarks are applied even when the state is refused
-(too old for the IMU buffer): points live in the world frame, and the next update builds on
-them. A refused message (does not decode, not a rotation, too old) is logged and counted,
-never retried. Messages that arrive while a frame is tracked wait, all of them, in order.
+(``common.links.robot_edge.decode_feedback``) applied in arrival order. ``T_world_body``
+gives ``R_world_imu``/``p_world_imu`` (EuRoC's body frame is the IMU frame), the other
+vectors map one to one. Track numbers are stream track numbers (see
+``services.robot.coding``: the edge numbers tracks from the decoded stream); they are mapped
+to the tracker's ids, and points of tracks no longer active are dropped. Coded points are
+rebuilt on the rays of the keypoints the robot coded in the frame of the state (the last
+``anchor_frames`` frames are kept; points about an older frame are dropped and counted). A
+*reset* replaces the landmark set, an update merges into it (new or moved points) and removes
+the tracks it forgets; a raw message with points is a reset, one without keeps the set.
+Points of another map are meaningless: a new ``map_id`` without a reset drops the old set.
+The landmarks are applied even when the state is refused (too old for the IMU buffer): points
+live in the world frame, and the next update builds on them. A refused message (does not
+decode, not a rotation, too old) is logged and counted, never retried. Messages that arrive
+while a frame is tracked wait, all of them, in order.
 
 With ``record=True`` every frame's :class:`UsedFrame` (what the pipeline used and what was
 coded) is kept in memory, for tests that compare it with what the edge decoded.
@@ -29,6 +32,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections import OrderedDict
 from dataclasses import dataclass
 
 import numpy as np
@@ -38,6 +42,7 @@ from common.codec import ImuChunk
 from common.errors import RecslamError
 from common.links import CodecTimer
 from common.links.robot_edge import (
+    Anchors,
     FeedbackContent,
     InertialFeedback,
     InertialFeedbackCoded,
@@ -84,6 +89,9 @@ class RobotApp:
         preroll_imu_s: IMU samples older than this before the first frame are not used or
             sent (EuRoC's first frame carries the whole pre-roll).
         code_links: code keyframe continuation links (False: the intra-only baseline).
+        anchor_frames: frames whose coded keypoints are kept (timestamp -> tracks and
+            keypoints) to rebuild the coded feedback's points, which are sent along them;
+            feedback about an older frame gets no points.
     """
 
     def __init__(
@@ -96,7 +104,9 @@ class RobotApp:
         record: bool = False,
         preroll_imu_s: float = 1.0,
         code_links: bool = True,
+        anchor_frames: int = 200,
     ) -> None:
+        self.camera = camera
         self.front_end = FrontEnd(config, camera, imu)
         self.codec_config = codec_config_for(config, camera.width, camera.height)
         install_codec_grid(self.front_end, self.codec_config)
@@ -113,6 +123,9 @@ class RobotApp:
         self.codec_timer = CodecTimer()  # decode time of the edge's feedback
         self._map_id: int | None = None
         self._pending: list[InertialFeedback | InertialFeedbackCoded] = []
+        self.anchor_frames = anchor_frames
+        self._anchors: OrderedDict[int, Anchors] = OrderedDict()  # guarded by _lock
+        self.feedback_points_unanchored = 0  # coded points of frames no longer kept
         self._pending_lock = threading.Lock()  # guards _pending (loop vs worker thread)
         self._lock = threading.Lock()  # held while the front end is in use
 
@@ -131,6 +144,7 @@ class RobotApp:
             chunk = imu_used(ts, gyro, accel)
             tracked = self.front_end.process(image, timestamp_ns, chunk)
             coded = self.frame_coder.encode(tracked)
+            self._keep_anchors(int(timestamp_ns), tracked, coded)
             imu_payload = self.imu_coder.encode(chunk)
             if self.record:
                 self.recorded.append(UsedFrame(tracked, coded, chunk, imu_payload))
@@ -144,6 +158,14 @@ class RobotApp:
             self.frames += 1
             self.keyframes += int(tracked.is_keyframe)
             return msg
+
+    def _keep_anchors(self, timestamp_ns: int, tracked: TrackedFrame, coded: CodedFrame) -> None:
+        """Keep the frame's stream numbers and keypoints (codec order, the edge's decoding)."""
+        order = np.argsort(tracked.track_ids, kind="stable")
+        rows = order[np.searchsorted(tracked.track_ids[order], coded.track_ids)]
+        self._anchors[timestamp_ns] = Anchors(coded.stream_ids, tracked.keypoints[rows])
+        while len(self._anchors) > self.anchor_frames:
+            self._anchors.popitem(last=False)
 
     def end_message(self) -> RobotSequenceEnd:
         return RobotSequenceEnd(frames=self.frames)
@@ -178,7 +200,7 @@ class RobotApp:
     def _apply_locked(self, msg: InertialFeedback | InertialFeedbackCoded) -> None:
         try:
             t0 = time.perf_counter()
-            content = decode_feedback(msg)
+            content = decode_feedback(msg, self.camera, self._anchors.get(msg.timestamp_ns))
             self.codec_timer.add(f"decode.{type(msg).__name__}", time.perf_counter() - t0)
             state = content_to_state(content)
             self._apply_landmarks(content)
@@ -194,7 +216,12 @@ class RobotApp:
         """Reset or update the front end's landmarks (tracker ids of the numbers still active)."""
         coder = self.frame_coder
         ids = coder.tracker_ids_of(c.track_numbers)
-        live = ids >= 0  # tracks that ended since the edge's frame have no use
+        anchored = np.isfinite(c.p_world).all(axis=1)
+        if not anchored.all():
+            n = int((~anchored).sum())
+            self.feedback_points_unanchored += n
+            logger.debug("feedback at %d ns: %d points of an unkept frame", c.timestamp_ns, n)
+        live = (ids >= 0) & anchored  # tracks that ended since the edge's frame have no use
         forget = coder.tracker_ids_of(c.forget)
         other_map = self._map_id is not None and c.map_id != self._map_id
         self.front_end.update_landmarks(

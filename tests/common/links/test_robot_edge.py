@@ -11,10 +11,13 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import common.links.robot_edge as robot_edge
+from common.calibration import CameraCalibration
+from common.camera import PinholeRadtan
 from common.geometry import so3_exp
 from common.links import WireFormat
 from common.links.robot_edge import (
-    POINT_STEP_M,
+    DEPTH_STEP,
+    Anchors,
     FeedbackContent,
     InertialFeedback,
     InertialFeedbackCoded,
@@ -27,15 +30,40 @@ from common.protocol.arrays import pack_array
 from common.protocol.errors import RemoteProtocolError
 from common.protocol.messages import decode_payload, encode_payload
 
+T_BODY_CAM = np.eye(4)  # a camera turned about the body axes and set off a few cm
+T_BODY_CAM[:3, :3] = so3_exp(np.array([0.3, -1.4, 1.2]))
+T_BODY_CAM[:3, 3] = [-0.02, -0.06, 0.01]
+CAM = CameraCalibration(
+    width=752,
+    height=480,
+    fx=458.654,
+    fy=457.296,
+    cx=367.215,
+    cy=248.375,
+    distortion=(-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05),
+    T_body_cam=T_BODY_CAM,
+)
+
+
+def on_rays(T_world_body: np.ndarray, uv: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """World points (N, 3) at camera depths ``z`` (N,) on the rays of pixels ``uv`` (N, 2)."""
+    xy = PinholeRadtan.from_calibration(CAM).pixels_to_normalized(uv)
+    p_cam = np.concatenate([xy * z[:, None], z[:, None]], axis=1)
+    T_wc = T_world_body @ CAM.T_body_cam
+    return p_cam @ T_wc[:3, :3].T + T_wc[:3, 3]
+
 
 def content(
     n: int = 20, *, seed: int = 0, reset: bool = True, forget: tuple[int, ...] = ()
 ) -> FeedbackContent:
+    """Tracks seen at random pixels, their points at 0.3-30 m on (or 1 px off) their rays."""
     rng = np.random.default_rng(seed)
     T = np.eye(4)
     T[:3, :3] = so3_exp(rng.normal(size=3))
     T[:3, 3] = rng.uniform(-30, 30, 3)
     numbers = np.sort(rng.choice(10 * n + 10, n, replace=False)).astype(np.int64) + 1000
+    uv = rng.uniform([5, 5], [747, 475], (n, 2))
+    p = on_rays(T, uv + rng.normal(size=(n, 2)), np.exp(rng.uniform(np.log(0.3), np.log(30), n)))
     return FeedbackContent(
         timestamp_ns=1_600_000_000_123_456_789,
         map_id=3,
@@ -46,9 +74,21 @@ def content(
         gravity_world=np.array([0.01, -0.02, -9.81]),
         reset=reset,
         track_numbers=numbers,
-        p_world=T[:3, 3] + rng.normal(size=(n, 3)) * 3.0,
+        p_world=p,
         forget=np.array(forget, np.int64),
+        keypoints_px=uv,
     )
+
+
+def anchors_of(c: FeedbackContent) -> Anchors:
+    """What the robot has of the frame: every track of ``c`` and a few others."""
+    extra = np.array([1, 2, 3], np.int64)
+    uv = np.concatenate([c.keypoints_px, np.full((3, 2), 100.0)])
+    return Anchors(np.concatenate([c.track_numbers, extra]), uv)
+
+
+def encode(c: FeedbackContent):
+    return encode_feedback(c, WireFormat.CODED, CAM)
 
 
 def wire_round_trip(msg):
@@ -88,29 +128,40 @@ def test_raw_is_the_schema_1_message_bit_for_bit() -> None:
     n=st.integers(0, 300),
     n_forget=st.integers(0, 40),
     reset=st.booleans(),
-    spread=st.sampled_from([0.01, 1.0, 10.0, 300.0]),
 )
-def test_coded_round_trip_within_the_stated_precision(seed, n, n_forget, reset, spread) -> None:
+def test_coded_round_trip_within_the_stated_precision(seed, n, n_forget, reset) -> None:
     rng = np.random.default_rng(seed)
     c = content(n, seed=seed, reset=reset)
-    p = c.T_world_body[:3, 3] + rng.normal(size=(n, 3)) * spread
-    p = np.clip(p, c.T_world_body[:3, 3] - 900, c.T_world_body[:3, 3] + 900)
-    numbers = rng.permutation(c.track_numbers)  # any order in, ascending out
+    perm = rng.permutation(n)  # any order in, ascending out
     forget = np.zeros(0, np.int64)
     if not reset:
         forget = np.unique(rng.integers(0, 2**40, n_forget)) + 2**41  # disjoint from numbers
-    c = dataclasses.replace(c, track_numbers=numbers, p_world=p, forget=forget)
-    assert points_sendable(p, c.T_world_body).all()
-    msg = encode_feedback(c, WireFormat.CODED)
+    c = dataclasses.replace(
+        c,
+        track_numbers=c.track_numbers[perm],
+        p_world=c.p_world[perm],
+        keypoints_px=c.keypoints_px[perm],
+        forget=forget,
+    )
+    assert points_sendable(c.p_world, c.T_world_body, c.keypoints_px, CAM).all()
+    msg = encode(c)
     assert isinstance(msg, InertialFeedbackCoded) and len(msg.state) == 76
-    d = decode_feedback(wire_round_trip(msg))
-    order = np.argsort(numbers)
+    d = decode_feedback(wire_round_trip(msg), CAM, anchors_of(c))
+    order = np.argsort(c.track_numbers)
     assert d.reset == reset and d.map_id == c.map_id and d.timestamp_ns == c.timestamp_ns
-    assert np.array_equal(d.track_numbers, numbers[order])
+    assert np.array_equal(d.track_numbers, c.track_numbers[order])
     assert np.array_equal(d.forget, forget)
-    # points: <= half a step per axis, exactly what coded_points says the robot holds
-    assert np.abs(d.p_world - p[order]).max(initial=0) <= POINT_STEP_M / 2 + 1e-9
-    assert np.array_equal(d.p_world, coded_points(p[order], c.T_world_body))
+    # points: on the ray of their keypoint, at the depth to DEPTH_STEP / 2, exactly what
+    # coded_points says the robot holds
+    T_cw = np.linalg.inv(d.T_world_body @ CAM.T_body_cam)
+    got = d.p_world @ T_cw[:3, :3].T + T_cw[:3, 3]
+    want = c.p_world[order] @ T_cw[:3, :3].T + T_cw[:3, 3]
+    assert np.abs(got[:, 2] / want[:, 2] - 1).max(initial=0) <= DEPTH_STEP / 2 + 1e-9
+    px = PinholeRadtan.from_calibration(CAM).project(got)
+    assert np.abs(px - c.keypoints_px[order]).max(initial=0) < 1e-6
+    held = coded_points(c.p_world[order], c.T_world_body, c.keypoints_px[order], CAM)
+    assert np.array_equal(d.p_world, held)
+    assert np.array_equal(d.keypoints_px if n else c.keypoints_px[:0], c.keypoints_px[order])
     # state: float32
     assert np.abs(d.T_world_body[:3, :3] - c.T_world_body[:3, :3]).max() < 1e-6
     assert np.abs(d.T_world_body[:3, 3] - c.T_world_body[:3, 3]).max() < 4e-6
@@ -121,39 +172,50 @@ def test_coded_round_trip_within_the_stated_precision(seed, n, n_forget, reset, 
     assert np.allclose(R.T @ R, np.eye(3), atol=1e-12)
 
 
+def test_points_need_the_robots_keypoints() -> None:
+    c = content(10)
+    msg = encode(c)
+    assert np.isnan(decode_feedback(msg).p_world).all()  # no camera, no anchors
+    some = Anchors(c.track_numbers[:4], c.keypoints_px[:4])
+    d = decode_feedback(msg, CAM, some)
+    assert np.isfinite(d.p_world[:4]).all() and np.isnan(d.p_world[4:]).all()
+    with pytest.raises(ValueError, match="camera"):
+        encode_feedback(c, WireFormat.CODED)
+    behind = c.p_world.copy()
+    behind[0] = c.T_world_body[:3, 3] - 5.0 * (c.T_world_body @ CAM.T_body_cam)[:3, 2]
+    ok = points_sendable(behind, c.T_world_body, c.keypoints_px, CAM)
+    assert not ok[0] and ok[1:].all()
+    with pytest.raises(ValueError, match="sendable"):
+        encode(dataclasses.replace(c, p_world=behind))
+
+
 def test_nothing_to_say_costs_no_landmark_bytes() -> None:
     c = dataclasses.replace(
         content(0), reset=False, track_numbers=np.zeros(0, np.int64), p_world=np.zeros((0, 3))
     )
-    msg = encode_feedback(c, WireFormat.CODED)
+    msg = encode(c)
     assert msg.landmarks == b"" and len(encode_payload(msg)) < 100
     d = decode_feedback(msg)
     assert not d.reset and len(d.track_numbers) == len(d.forget) == 0
 
 
 def test_coded_points_are_compact() -> None:
-    msg = encode_feedback(content(200), WireFormat.CODED)
+    msg = encode(content(200))
     raw = encode_feedback(content(200), WireFormat.RAW)
-    assert len(encode_payload(msg)) < len(encode_payload(raw)) / 4
+    assert len(encode_payload(msg)) < len(encode_payload(raw)) / 10
 
 
 def test_encoder_refuses_what_the_wire_cannot_carry() -> None:
     c = content(3)
     with pytest.raises(ValueError, match="reset"):
-        encode_feedback(dataclasses.replace(c, forget=np.array([1])), WireFormat.CODED)
-    dup = np.array([5, 5, 6])
+        encode(dataclasses.replace(c, forget=np.array([1])))
     with pytest.raises(ValueError, match="distinct"):
-        encode_feedback(dataclasses.replace(c, track_numbers=dup), WireFormat.CODED)
-    far = c.p_world.copy()
-    far[0, 0] += 5000.0
-    assert not points_sendable(far, c.T_world_body)[0]
+        encode(dataclasses.replace(c, track_numbers=np.array([5, 5, 6])))
 
 
 # ------------------------------------------------------------------ refused input
 def coded(**over) -> InertialFeedbackCoded:
-    msg = encode_feedback(
-        dataclasses.replace(content(30), reset=False, forget=np.array([7, 9])), WireFormat.CODED
-    )
+    msg = encode(dataclasses.replace(content(30), reset=False, forget=np.array([7, 9])))
     return dataclasses.replace(msg, **over)
 
 
@@ -189,8 +251,8 @@ def test_counts_and_ranges_over_the_limits_are_refused(monkeypatch) -> None:
     with pytest.raises(RemoteProtocolError, match="landmarks: count 30 exceeds the limit 10"):
         decode_feedback(msg)
     monkeypatch.undo()
-    monkeypatch.setattr(robot_edge, "_MAX_Q", 10)
-    with pytest.raises(RemoteProtocolError, match="landmarks: a point beyond"):
+    monkeypatch.setattr(robot_edge, "_Q_MAX", -1000)
+    with pytest.raises(RemoteProtocolError, match="landmarks: a depth beyond"):
         decode_feedback(msg)
 
 
@@ -200,7 +262,7 @@ def test_fuzzed_coded_fields_decode_or_raise_remote_errors(data, state) -> None:
     msg = coded()
     for bad in (dataclasses.replace(msg, landmarks=data), dataclasses.replace(msg, state=state)):
         with contextlib.suppress(RemoteProtocolError):
-            decode_feedback(bad)
+            decode_feedback(bad, CAM, anchors_of(content(30)))
 
 
 @pytest.mark.parametrize(

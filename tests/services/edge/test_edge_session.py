@@ -10,7 +10,12 @@ import pytest
 from common.codec import decode_standalone_keyframe
 from common.links import WireFormat
 from common.links.edge_cloud import KeyframeUpdate, MapPointUpdate
-from common.links.robot_edge import InertialFeedback, InertialFeedbackCoded, decode_feedback
+from common.links.robot_edge import (
+    Anchors,
+    InertialFeedback,
+    InertialFeedbackCoded,
+    decode_feedback,
+)
 from common.protocol.arrays import unpack_array
 from common.protocol.messages import encode_payload
 from common.vocabulary import Vocabulary
@@ -90,22 +95,26 @@ def test_feedback_after_vi_init_names_live_tracks(run) -> None:
 
 def test_coded_feedback_gives_the_robot_the_raw_landmarks_in_deltas(run) -> None:
     """The same results through a RAW and a CODED sender: same messages due, and the robot's
-    set rebuilt from the coded deltas is the raw set (1 mm lattice + 2 cm resend threshold)."""
-    _, _, _, items, results, _, _ = run
+    set rebuilt from the coded deltas holds the raw set's tracks, each point on the ray of
+    its keypoint (the VIO point's reprojection residual is not sent), depth to 0.25 %, at
+    most ``point_resend_m`` (2 cm) behind the VIO."""
+    seq, _, _, items, results, _, _ = run
     raw = FeedbackSender(FeedbackPolicy(), WireFormat.RAW)
-    coded = FeedbackSender(FeedbackPolicy(), WireFormat.CODED)
+    coded = FeedbackSender(FeedbackPolicy(), WireFormat.CODED, camera=seq.camera)
     view: dict[int, np.ndarray] = {}
     raw_bytes = coded_bytes = n = 0
+    errs = []
     for item, res in zip(items, results, strict=True):
         if res.state is None:
             continue
+        frame = Anchors(item.obs.track_ids, item.obs.keypoints_px)
         args = (res.frame_index, res.state, res.live_track_ids, res.live_p_world)
         r = raw.on_state(*args, item.obs.track_ids)
-        c = coded.on_state(*args, item.obs.track_ids)
+        c = coded.on_state(*args, item.obs.track_ids, frame)
         assert (r is None) == (c is None)
         if r is None:
             continue
-        full, delta = decode_feedback(r), decode_feedback(c)
+        full, delta = decode_feedback(r), decode_feedback(c, seq.camera, frame)
         raw_bytes += len(encode_payload(r))
         coded_bytes += len(encode_payload(c))
         n += 1
@@ -118,10 +127,13 @@ def test_coded_feedback_gives_the_robot_the_raw_landmarks_in_deltas(run) -> None
         view = {k: p for k, p in view.items() if k in tracked}  # the robot drops ended tracks
         assert sorted(view) == sorted(full.track_numbers.tolist())
         got = np.array([view[k] for k in full.track_numbers.tolist()]).reshape(-1, 3)
-        err = np.linalg.norm(got - full.p_world, axis=1)
-        assert err.max(initial=0) <= 0.02 + 1e-3 * np.sqrt(3)
+        errs.append(np.linalg.norm(got - full.p_world, axis=1))
         assert np.abs(delta.T_world_body - full.T_world_body).max() < 1e-5
-    assert n > 3 and coded_bytes < raw_bytes / 5, (n, raw_bytes, coded_bytes)
+    assert n > 3 and coded_bytes < raw_bytes / 20, (n, raw_bytes, coded_bytes)
+    # the robot's copy lies on the ray of the track's keypoint: the VIO points' reprojection
+    # residuals (large for a few just after initialisation) are not in it, hence the tail
+    err = np.concatenate(errs)
+    assert np.median(err) < 0.02 and np.percentile(err, 90) < 0.05
 
 
 def test_keyframe_uplink_is_standalone_and_consistent(run) -> None:

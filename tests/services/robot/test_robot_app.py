@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from common.camera import PinholeRadtan
 from common.data.euroc import EurocSequence
 from common.links import WireFormat
 from common.links.robot_edge import (
@@ -21,6 +22,7 @@ from common.protocol.arrays import pack_array
 from common.protocol.messages import Blob
 from common.transport import Delivery
 from common.vocabulary import Vocabulary
+from services.edge.robot_session import RobotSession
 from services.robot.app import RobotApp, content_to_state
 from services.robot.config import FrontEndConfig
 
@@ -82,8 +84,12 @@ def test_feedback_conversion_and_refusals():
     assert app.frames == 4
 
 
-def coded(ts: int, numbers, p=None, *, map_id: int = 0, reset: bool, forget=()):
-    n = len(numbers)
+def coded(app: RobotApp, ts: int, numbers, z=2.0, *, map_id=0, reset: bool, forget=(), at=None):
+    """A coded message about the frame at ``at`` (default ``ts``) of ``app``: points of the
+    tracks ``numbers`` at depth ``z`` [m] on the rays of their keypoints (body at the origin)."""
+    frame = app._anchors[ts if at is None else at]
+    numbers = np.asarray(numbers, np.int64)
+    uv = frame.of(numbers)
     c = FeedbackContent(
         timestamp_ns=ts,
         map_id=map_id,
@@ -93,11 +99,36 @@ def coded(ts: int, numbers, p=None, *, map_id: int = 0, reset: bool, forget=()):
         bias_accel=np.zeros(3),
         gravity_world=np.array([0.0, 0.0, -9.81]),
         reset=reset,
-        track_numbers=np.asarray(numbers, np.int64),
-        p_world=np.ones((n, 3)) if p is None else np.asarray(p, float),
+        track_numbers=numbers,
+        p_world=ray_points(app, uv, np.broadcast_to(z, len(numbers))),
         forget=np.asarray(forget, np.int64),
+        keypoints_px=uv,
     )
-    return encode_feedback(c, WireFormat.CODED)
+    return encode_feedback(c, WireFormat.CODED, app.camera)
+
+
+def ray_points(app: RobotApp, uv: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """World points (N, 3) at camera depth ``z`` (N,) on the rays of ``uv`` (N, 2), body at
+    the origin."""
+    xy = PinholeRadtan.from_calibration(app.camera).pixels_to_normalized(uv)
+    p_cam = np.concatenate([xy * z[:, None], z[:, None]], axis=1)
+    T = app.camera.T_body_cam
+    return p_cam @ T[:3, :3].T + T[:3, 3]
+
+
+def test_robot_keeps_the_keypoints_the_edge_decodes():
+    """The coded feedback's points are sent along the rays of the frame's keypoints: both ends
+    must have the same (the robot: what it coded; the edge: what it decoded)."""
+    seq = EurocSequence(EXCERPT)
+    vocab = Vocabulary.load()
+    app = RobotApp(FrontEndConfig(), seq.cam0, seq.imu, vocab, anchor_frames=3)
+    session = RobotSession("r", seq.cam0, vocab)
+    for fr in seq.frames(0, 5):  # a keyframe, then non-keyframes
+        item = session.decode(app.process(fr.timestamp_ns, fr.image, fr.imu))
+        mine = app._anchors[fr.timestamp_ns]
+        assert np.array_equal(mine.numbers, item.obs.track_ids)
+        assert np.array_equal(mine.keypoints_px, item.obs.keypoints_px)
+    assert len(app._anchors) == 3
 
 
 def test_coded_feedback_resets_updates_and_forgets():
@@ -110,40 +141,44 @@ def test_coded_feedback_resets_updates_and_forgets():
     s = app.frame_coder.stream_ids
     tid = dict(zip(s.tolist(), app.frame_coder.track_ids.tolist(), strict=True))
 
-    def landmarks() -> dict[int, list[float]]:
-        return {k: v.round(3).tolist() for k, v in app.front_end.predictor._landmarks.items()}
+    def landmarks() -> dict[int, float]:
+        """Tracker id -> camera depth [m] of its landmark (body at the origin)."""
+        T_cb = np.linalg.inv(app.camera.T_body_cam)
+        return {
+            k: round(float((T_cb[:3, :3] @ v + T_cb[:3, 3])[2]), 1)  # depth to 0.25 %
+            for k, v in app.front_end.predictor._landmarks.items()
+        }
 
-    deliver(app, coded(t, [s[0], s[5], s[9], 10**9], reset=True))  # 10**9: ended, dropped
+    deliver(app, coded(app, t, s[[0, 5, 9]], reset=True))
     assert app.feedback_applied == 1 and app.front_end.vi_initialised
-    assert sorted(landmarks()) == sorted(tid[int(k)] for k in s[[0, 5, 9]])
+    assert landmarks() == {tid[int(k)]: 2.0 for k in s[[0, 5, 9]]}
     # update: a new track, a moved one, a forgotten one; the others stay
-    deliver(app, coded(t, [s[2], s[5]], [[1, 2, 3], [4, 5, 6]], reset=False, forget=[s[9]]))
-    want = {tid[int(s[0])]: [1.0] * 3, tid[int(s[2])]: [1, 2, 3], tid[int(s[5])]: [4, 5, 6]}
-    assert landmarks() == want
+    deliver(app, coded(app, t, s[[2, 5]], [3.0, 5.0], reset=False, forget=[s[9]]))
+    assert landmarks() == {tid[int(s[0])]: 2.0, tid[int(s[2])]: 3.0, tid[int(s[5])]: 5.0}
     # messages that arrive during a frame wait, all of them, and are applied in order
     with app._lock:
-        deliver(app, coded(t, [s[1]], reset=False))
-        deliver(app, coded(t, [], reset=False, forget=[s[0]]))
+        deliver(app, coded(app, t, s[[1]], reset=False))
+        deliver(app, coded(app, t, [], reset=False, forget=[s[0]]))
     assert app.feedback_applied == 2
     app.apply_pending()
     assert app.feedback_applied == 4 and sorted(landmarks()) == sorted(
         tid[int(k)] for k in s[[1, 2, 5]]
     )
     # refused: a damaged payload (counted, nothing applied); a state too old for the IMU
-    # buffer (counted, its landmarks applied: they do not depend on the IMU)
-    bad = coded(t, [s[3]], reset=False)
+    # buffer (counted; its points are of a frame the robot no longer keeps: dropped)
+    bad = coded(app, t, s[[3]], reset=False)
     deliver(app, dataclasses.replace(bad, landmarks=bad.landmarks[:-1]))
-    deliver(app, coded(t - 10**10, [s[3]], reset=False))
+    deliver(app, coded(app, t - 10**10, s[[3]], reset=False, at=t))
     assert (app.feedback_rejected, app.feedback_applied) == (2, 4)
-    assert tid[int(s[3])] in landmarks()
+    assert tid[int(s[3])] not in landmarks() and app.feedback_points_unanchored == 1
     # another map: a reset replaces the set; an update of another map drops the old set first
-    deliver(app, coded(t, [s[4]], map_id=1, reset=False))
+    deliver(app, coded(app, t, s[[4]], map_id=1, reset=False))
     assert sorted(landmarks()) == [tid[int(s[4])]]
-    deliver(app, coded(t, [s[6], s[7]], map_id=1, reset=True))
+    deliver(app, coded(app, t, s[[6, 7]], map_id=1, reset=True))
     assert sorted(landmarks()) == sorted(tid[int(k)] for k in s[[6, 7]])
     decoded = app.codec_timer.snapshot()["decode.InertialFeedbackCoded"]["messages"]
     assert decoded == 7  # all but the damaged one
     fr = next(seq.frames(3, 4))
     app.process(fr.timestamp_ns, fr.image, fr.imu)  # ended tracks' points are dropped
-    deliver(app, coded(fr.timestamp_ns, [], map_id=1, reset=False))
+    deliver(app, coded(app, fr.timestamp_ns, [], map_id=1, reset=False))
     assert set(landmarks()) <= set(app.frame_coder.track_ids.tolist())
