@@ -33,7 +33,9 @@ import msgpack
 
 from common.protocol.errors import LocalProtocolError, ProtocolError, RemoteProtocolError
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
+"""2: the coded link messages (0x0302, 0x0405-0x0407, 0x0502) exist; a schema-1 peer would not
+know them, so it is refused at the handshake with a clear reason."""
 CONTROL_MAX_TYPE_ID = 0x00FF
 
 _Converter = Callable[[Any, str], Any]

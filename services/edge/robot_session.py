@@ -64,7 +64,12 @@ from services.edge.worker import WorkItem, WorkResult
 
 logger = logging.getLogger(__name__)
 
-_ANCHOR_FRAMES = 64  # decoded frames kept for their VIO result (the pipeline is shallower)
+_ANCHOR_FRAMES = 1000
+"""Safety cap of decoded frames kept for their VIO result (a frame's anchors go when its result
+comes): above the edge's frame queue (``EdgeConfig.max_queued_frames``, 200) plus the frames in
+flight. A cap of 64 dropped the anchors of every frame whose result came more than 3 s after it
+was decoded, as it does whenever the edge runs behind the robots, and then the coded feedback
+carried no points at all."""
 
 
 @dataclass(frozen=True)

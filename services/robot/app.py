@@ -104,7 +104,7 @@ class RobotApp:
         record: bool = False,
         preroll_imu_s: float = 1.0,
         code_links: bool = True,
-        anchor_frames: int = 200,
+        anchor_frames: int = 600,
     ) -> None:
         self.camera = camera
         self.front_end = FrontEnd(config, camera, imu)

@@ -207,3 +207,20 @@ def test_map_points_are_resent_only_when_moved_or_reobserved() -> None:
     # a BA nudge of 1 mm: nothing to send; 5 cm or a new observation: resend that point
     assert sent_ids(point(1, 0.001, 2), point(2, 0.001, 2)) == []
     assert sent_ids(point(1, 0.05, 2), point(2, 0.001, 3)) == [1, 2]
+
+
+def test_coded_feedback_keeps_its_points_when_the_vio_runs_far_behind() -> None:
+    """Every frame decoded before the VIO sees the first (an edge far behind its robots, as
+    when the queue fills): the feedback still finds each result's frame and sends points."""
+    vocab = Vocabulary.load()
+    seq = simulate(SimOptions(duration_s=8.0, seed=5))
+    session = RobotSession("r", seq.camera, vocab)  # the coded wire
+    items = [session.decode(msg) for msg in code_sequence(seq, vocab)]
+    runner = VioRunner(WorkerSpec("r", seq.camera, seq.imu))
+    fbs = []
+    for item in items:
+        fbs += session.on_result(runner.step(item)).robot
+    assert fbs and all(isinstance(m, InertialFeedbackCoded) for m in fbs)
+    assert fbs[0].reset and fbs[0].landmarks, "the first feedback carries no points"
+    with_points = sum(bool(m.landmarks) for m in fbs)
+    assert with_points >= len(fbs) // 2, (with_points, len(fbs))
