@@ -23,7 +23,7 @@ from common.protocol import (
     SessionConfig,
 )
 from common.protocol.framing import FLAG_RETRANSMIT, FrameDecoder, encode_frame
-from common.protocol.messages import Auth, Hello, encode_payload
+from common.protocol.messages import SCHEMA_VERSION, Auth, Hello, encode_payload
 
 SECRET = b"0123456789abcdef-secret"
 
@@ -127,7 +127,10 @@ def test_wrong_secret_refused_by_client_and_server():
     # a forged Auth from an impostor who cannot compute the MAC: the server refuses
     s = Session(cfg("e", "edge"), client=False, now=0.0)
     link = cfg("r", "robot").new_link()
-    hello = Hello(1, 1, "robot", "mallory", b"n" * 32, link.out_stream_id, 1, b"", 0, 8, 1 << 20)
+    v = SCHEMA_VERSION
+    hello = Hello(1, v, "robot", "mallory", b"n" * 32, link.out_stream_id, 1, b"", 0, 8, 1 << 20)
+        1, SCHEMA_VERSION, "robot", "mallory", b"n" * 32, link.out_stream_id, 1, b"", 0, 8, 1 << 20
+    )
     s.receive_data(encode_frame(1, encode_payload(hello)), 0.0)
     assert s.data_to_send(0.0)  # the Challenge
     with pytest.raises(AuthenticationError, match="mallory"):
