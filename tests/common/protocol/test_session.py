@@ -129,8 +129,6 @@ def test_wrong_secret_refused_by_client_and_server():
     link = cfg("r", "robot").new_link()
     v = SCHEMA_VERSION
     hello = Hello(1, v, "robot", "mallory", b"n" * 32, link.out_stream_id, 1, b"", 0, 8, 1 << 20)
-        1, SCHEMA_VERSION, "robot", "mallory", b"n" * 32, link.out_stream_id, 1, b"", 0, 8, 1 << 20
-    )
     s.receive_data(encode_frame(1, encode_payload(hello)), 0.0)
     assert s.data_to_send(0.0)  # the Challenge
     with pytest.raises(AuthenticationError, match="mallory"):
