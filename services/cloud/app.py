@@ -263,20 +263,31 @@ class CloudApp:
         if not self.atlas.has_keyframe(key):
             # A keyframe the cloud pruned (MBP) or the edge culled is routine; others not.
             routine = key in self.atlas.removed_keyframes()
-            log.log(logging.DEBUG if routine else logging.WARNING,
-                    "pose update of %s keyframe %s/%d", "removed" if routine else "unknown",
-                    d.agent_name, d.keyframe_id)  # fmt: skip
+            log.log(
+                logging.DEBUG if routine else logging.WARNING,
+                "pose update of %s keyframe %s/%d",
+                "removed" if routine else "unknown",
+                d.agent_name,
+                d.keyframe_id,
+            )
             return None
         v = self.atlas.keyframe(key)
         real = ~v.virtual
         ids = d.map_point_ids if d.map_point_ids.size == real.sum() else None
         return KeyframeInput(
-            agent_id=a.agent_id, keyframe_id=d.keyframe_id, timestamp=v.timestamp,
-            T_world_body=d.T_world_body, keypoints=v.keypoints[real], levels=v.levels[real],
-            descriptors=v.descriptors[real], word_ids=v.word_ids[real],
+            agent_id=a.agent_id,
+            keyframe_id=d.keyframe_id,
+            timestamp=v.timestamp,
+            T_world_body=d.T_world_body,
+            keypoints=v.keypoints[real],
+            levels=v.levels[real],
+            descriptors=v.descriptors[real],
+            word_ids=v.word_ids[real],
             map_point_ids=ids if ids is not None else np.full(int(real.sum()), -1),
-            velocity=d.velocity, bias_gyro=d.bias_gyro, bias_accel=d.bias_accel,
-        )  # fmt: skip
+            velocity=d.velocity,
+            bias_gyro=d.bias_gyro,
+            bias_accel=d.bias_accel,
+        )
 
     def _keyframe_poses(
         self, edge_id: str, msg: KeyframePoses, position: dict[str, tuple[bytes, int]]
