@@ -329,16 +329,22 @@ class RobotSession:
         self.last_timestamp_ns = msg.timestamp_ns
         return WorkItem(msg.frame_index, imu.timestamps_ns, imu.gyro, imu.accel, obs)
 
-    def _imu_between(self, t0_ns: int | None, t1_ns: int) -> np.ndarray:
-        """IMU rows "<f8 (M,7)" [t_s, gyro, accel] with t0 < t <= t1 (all up to t1 if None)."""
+    def _imu_window(self, t0_ns: int | None, t1_ns: int) -> tuple[np.ndarray, np.ndarray]:
+        """IMU samples with t0 < t <= t1 (all up to t1 if None): ``t_ns`` (M,) int64 and
+        ``[gyro, accel]`` (M, 6)."""
         if not self._imu_chunks:
-            return np.zeros((0, 7))
+            return np.zeros(0, np.int64), np.zeros((0, 6))
         t = np.concatenate([c[0] for c in self._imu_chunks])
         v = np.concatenate([c[1] for c in self._imu_chunks])
         keep = t <= t1_ns
         if t0_ns is not None:
             keep &= t > t0_ns
-        return np.concatenate([t[keep, None] * 1e-9, v[keep]], axis=1)
+        return t[keep], v[keep]
+
+    def _imu_between(self, t0_ns: int | None, t1_ns: int) -> np.ndarray:
+        """IMU rows "<f8 (M,7)" [t_s, gyro, accel] of :meth:`_imu_window` (the raw wire)."""
+        t, v = self._imu_window(t0_ns, t1_ns)
+        return np.concatenate([t[:, None] * 1e-9, v], axis=1)
 
     # ------------------------------------------------------------------ outputs
     def on_result(self, res: WorkResult, *, replaying: bool = False) -> Outputs:
@@ -470,17 +476,11 @@ class RobotSession:
         )
 
     def _imu_coded(self, t0_ns: int | None, t1_ns: int) -> bytes:
-        """The robot's IMU samples with t0 < t <= t1 coded by a fresh ``ImuEncoder``."""
-        if not self._imu_chunks:
+        """:meth:`_imu_window` coded by a fresh ``ImuEncoder`` (the coded wire)."""
+        t, v = self._imu_window(t0_ns, t1_ns)
+        if not len(t):
             return b""
-        t = np.concatenate([c[0] for c in self._imu_chunks])
-        v = np.concatenate([c[1] for c in self._imu_chunks])
-        keep = t <= t1_ns
-        if t0_ns is not None:
-            keep &= t > t0_ns
-        if not keep.any():
-            return b""
-        return ImuEncoder().encode(ImuChunk(t[keep], v[keep, :3], v[keep, 3:]))
+        return ImuEncoder().encode(ImuChunk(t, v[:, :3], v[:, 3:]))
 
     def _culls(self, upd: MapUpdate) -> list[Message]:
         book = self._sent_points.get(upd.map_id)
