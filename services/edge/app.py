@@ -140,6 +140,8 @@ class EdgeApp:
                     await self._finish(rb, *pending)
                     pending = None
                 s.finished = True
+                for m in s.release_points():  # the points still settling
+                    await self.sink.to_cloud(m)
                 await self.sink.to_cloud(s.status(self.sink.link_counters(s.agent_id)))
                 rb.ended.set()
                 if rb.queue.empty():

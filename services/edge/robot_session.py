@@ -59,7 +59,8 @@ from common.protocol.arrays import pack_array
 from common.protocol.messages import Message
 from common.vocabulary import Vocabulary
 from services.edge.feedback import FeedbackPolicy, FeedbackSender
-from services.edge.vio.types import FrameObservation, MapPointBatch, MapUpdate
+from services.edge.point_uplink import Selection, SentPoints, one_point_each
+from services.edge.vio.types import FrameObservation, MapUpdate
 from services.edge.worker import WorkItem, WorkResult
 
 logger = logging.getLogger(__name__)
@@ -87,6 +88,7 @@ class SessionOptions:
     imu_history_s: float = 120.0
     point_resend_m: float = 0.01
     wire: WireFormat = WireFormat.CODED
+    """Encoding of the messages to the robot and to the cloud (``raw``: the schema-1 baseline)."""
     pose_resend_m: float = 1e-3
     """Coded wire only: a keyframe the cloud has gets a new state (``KeyframePoses``) when its
     position moved more than this (m) since last sent, its rotation more than
@@ -96,7 +98,10 @@ class SessionOptions:
     pose_resend_rad: float = 1e-3
     velocity_resend_mps: float = 0.01
     bias_resend: float = 1e-3
-    """Encoding of the messages to the robot and to the cloud (``raw``: the schema-1 baseline)."""
+    point_settle_keyframes: int = 3
+    """Coded wire only: a new map point goes up once this many robot keyframes were uplinked
+    after its first robot observer (``services.edge.point_uplink``; 0: at once, as the raw
+    wire does)."""
 
 
 @dataclass
@@ -117,109 +122,6 @@ def _states(rows: list[_StateRow]) -> KeyframeStates:
     ids, T, v, bg, ba = zip(*rows, strict=True)
     stacked = (np.stack(x) for x in (T, v, bg, ba))
     return KeyframeStates(np.array(ids, np.int64), *stacked)
-
-
-def _one_point_each(b: MapPointBatch) -> list[MapPointBatch]:
-    """``b`` split into one batch per point (in order)."""
-    ends = np.cumsum(b.counts)
-    return [
-        MapPointBatch(b.point_ids[i : i + 1], b.p_world[i : i + 1], b.counts[i : i + 1],
-                      b.keyframe_ids[e - c : e], b.feature_indices[e - c : e])
-        for i, (c, e) in enumerate(zip(b.counts.tolist(), ends.tolist(), strict=True))
-    ]  # fmt: skip
-
-
-def _isin_sorted(sorted_values: np.ndarray, x: np.ndarray) -> np.ndarray:
-    """``x`` (N,) in ``sorted_values`` (M,, ascending) as a bool mask (N,)."""
-    if not len(sorted_values):
-        return np.zeros(len(x), bool)
-    i = np.searchsorted(sorted_values, x).clip(max=len(sorted_values) - 1)
-    return sorted_values[i] == x
-
-
-_KEY = np.int64(2**32)  # (point, keyframe) key: point id * 2**32 + keyframe id
-
-
-class SentPoints:
-    """The points of one map the cloud has, as sorted arrays: ``ids`` (n,) point ids,
-    ``p_world`` (n, 3) m the position last sent, ``keys`` (m,) the observations sent as
-    ``point id * 2**32 + keyframe id`` (keyframe ids < 2**32)."""
-
-    def __init__(self) -> None:
-        self.ids = np.zeros(0, np.int64)
-        self.p_world = np.zeros((0, 3))
-        self.keys = np.zeros(0, np.int64)
-        self.ref = np.zeros(0, np.int64)  # (n,) reference keyframe (first robot observer)
-
-    def add_keys(self, point_ids: np.ndarray, keyframe_id: int) -> None:
-        """Record observations of ``keyframe_id`` the cloud got with the keyframe itself."""
-        k = np.unique(np.asarray(point_ids, np.int64) * _KEY + keyframe_id)
-        k = k[~_isin_sorted(self.keys, k)]
-        self.keys = np.insert(self.keys, np.searchsorted(self.keys, k), k)
-
-    def follow(self, keyframe_id: int, T_old: np.ndarray, T_new: np.ndarray) -> None:
-        """Move the points whose reference keyframe moved from ``T_old`` to ``T_new`` (4, 4),
-        as the cloud does when it gets the keyframe's new pose."""
-        sel = self.ref == keyframe_id
-        if sel.any():
-            corr = T_new @ inverse_T(T_old)
-            self.p_world[sel] = self.p_world[sel] @ corr[:3, :3].T + corr[:3, 3]
-
-    def __len__(self) -> int:
-        return len(self.ids)
-
-    def select(
-        self, b: MapPointBatch, own_sorted: np.ndarray, resend_m: float
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-        """What of ``b`` (distinct point ids) to send (see ``RobotSession._points_to_send``),
-        recorded as sent; ``own_sorted``: the VIO's own keyframe ids, ascending."""
-        ids, p_world, kf_ids = b.point_ids, b.p_world, b.keyframe_ids
-        n = len(ids)
-        owner = np.repeat(np.arange(n), b.counts)  # (O,) point index of each observation
-        robot = ~_isin_sorted(own_sorted, kf_ids)  # (O,) observation in a robot kf
-        slot = np.searchsorted(self.ids, ids)
-        known = slot < len(self.ids)
-        known[known] = self.ids[slot[known]] == ids[known]
-        keys = ids[owner] * _KEY + kf_ids
-        new = robot & ~_isin_sorted(self.keys, keys)  # keys: rows sent, or carried by a keyframe
-        d = p_world[known] - self.p_world[slot[known]]
-        moved = np.zeros(n, bool)
-        moved[known] = (d * d).sum(axis=1) > resend_m**2
-        seen = np.bincount(owner[robot], minlength=n) > 0
-        go = seen & (~known | moved | (np.bincount(owner[new], minlength=n) > 0))
-        if not go.any():
-            return None
-        self.p_world[slot[go & known]] = p_world[go & known]
-        fresh = go & ~known
-        if fresh.any():  # inserted in id order (np.insert keeps the given order at one slot)
-            i = np.flatnonzero(fresh)[np.argsort(ids[fresh], kind="stable")]
-            first = np.full(n, np.iinfo(np.int64).max)
-            np.minimum.at(first, owner[robot], kf_ids[robot])
-            self.ids = np.insert(self.ids, slot[i], ids[i])
-            self.p_world = np.insert(self.p_world, slot[i], p_world[i], axis=0)
-            self.ref = np.insert(self.ref, slot[i], first[i])
-        if new.any():
-            k = np.sort(keys[new])
-            self.keys = np.insert(self.keys, np.searchsorted(self.keys, k), k)
-        rows = np.stack([ids[owner[new]], kf_ids[new], b.feature_indices[new]], axis=1)
-        return ids[go], p_world[go], rows
-
-    def remove(self, point_ids: np.ndarray) -> np.ndarray:
-        """Forget ``point_ids`` (R,); the ones that were sent, in order (each once)."""
-        first = np.sort(np.unique(point_ids, return_index=True)[1])
-        point_ids = point_ids[first]
-        hit = _isin_sorted(self.ids, point_ids)
-        gone = point_ids[hit]
-        if len(gone):
-            keep = ~_isin_sorted(np.sort(gone), self.ids)
-            self.ids, self.p_world, self.ref = self.ids[keep], self.p_world[keep], self.ref[keep]
-            lo = np.searchsorted(self.keys, gone * _KEY)
-            hi = np.searchsorted(self.keys, (gone + 1) * _KEY)
-            drop = np.zeros(len(self.keys) + 1, np.int64)
-            np.add.at(drop, lo, 1)
-            np.add.at(drop, hi, -1)
-            self.keys = self.keys[np.cumsum(drop[:-1]) == 0]
-        return gone
 
 
 class RobotSession:
@@ -397,7 +299,7 @@ class RobotSession:
         ones in one KeyframePoses, points as MapPointUpdateCoded (see ``common.links``)."""
         msgs: list[Message] = []
         timer = self.codec_timer
-        book = self._sent_points.setdefault(upd.map_id, SentPoints())
+        book = self._book(upd.map_id)
         moved: list[_StateRow] = []
         for kf in upd.keyframes:
             key = (upd.map_id, kf.keyframe_id)
@@ -448,16 +350,48 @@ class RobotSession:
                 key = (upd.map_id, kf_id)
                 book.follow(kf_id, self._sent_state[key][0], state[0])
                 self._sent_state[key] = tuple(state)  # type: ignore[assignment]
+        msgs.extend(self.release_points(keep_map=upd.map_id))
         points = self._points_to_send(upd)
         if points is not None:
-            t0 = time.perf_counter()
-            ids, p_world, rows = points
-            last = len(ids) - 1 - np.unique(ids[::-1], return_index=True)[1]  # a point twice:
-            ids, p_world = ids[last], p_world[last]  # its last position (rows are distinct)
-            body = encode_points(PointBatch(ids, p_world, rows))
-            msgs.append(MapPointUpdateCoded(self.agent_id, upd.map_id, body))
-            timer.add("encode.MapPointUpdateCoded", time.perf_counter() - t0)
+            msgs.append(self._points_coded(upd.map_id, points))
         msgs.extend(self._culls(upd))
+        return msgs
+
+    def _points_coded(self, map_id: int, points: Selection) -> MapPointUpdateCoded:
+        t0 = time.perf_counter()
+        ids, p_world, rows = points
+        last = len(ids) - 1 - np.unique(ids[::-1], return_index=True)[1]  # a point twice:
+        ids, p_world = ids[last], p_world[last]  # its last position (rows are distinct)
+        body = encode_points(PointBatch(ids, p_world, rows))
+        self.codec_timer.add("encode.MapPointUpdateCoded", time.perf_counter() - t0)
+        return MapPointUpdateCoded(self.agent_id, map_id, body)
+
+    def _book(self, map_id: int) -> SentPoints:
+        book = self._sent_points.get(map_id)
+        if book is None:
+            settle = self.options.point_settle_keyframes
+            book = SentPoints(settle if self.options.wire is WireFormat.CODED else 0)
+            self._sent_points[map_id] = book
+        return book
+
+    def _own(self, map_id: int) -> np.ndarray:
+        """The VIO's own keyframe ids of a map, ascending."""
+        own = self._own_sorted.get(map_id)
+        if own is None:
+            own = np.array(sorted(self._own_kfs.get(map_id, ())), np.int64)
+            self._own_sorted[map_id] = own
+        return own
+
+    def release_points(self, keep_map: int | None = None) -> list[Message]:
+        """The held points of every map but ``keep_map`` (all at the end of the robot's
+        sequence; a map the robot left gets no keyframe that would settle them)."""
+        msgs: list[Message] = []
+        for map_id, book in self._sent_points.items():
+            if map_id == keep_map or not book.n_held:
+                continue
+            points = book.release(self._own(map_id), self.options.point_resend_m)
+            if points is not None:
+                msgs.append(self._points_coded(map_id, points))
         return msgs
 
     def _state_moved(
@@ -556,7 +490,7 @@ class RobotSession:
         msgs.extend(self._culls(upd))
         return msgs
 
-    def _points_to_send(self, upd: MapUpdate) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    def _points_to_send(self, upd: MapUpdate) -> Selection | None:
         """The changed points worth sending: ``ids`` (P,), ``p_world`` (P, 3) m and the new
         observation rows (R, 3) ``[point id, keyframe id, feature row]``, in ``upd`` order;
         None if nothing is due.
@@ -566,17 +500,14 @@ class RobotSession:
         it, again when it gains such observations (only the new rows: the cloud adds them to
         what it has) or moved more than ``point_resend_m`` since it was last sent.
         """
-        if not upd.points:
+        book = self._book(upd.map_id)
+        if not upd.points and not book.n_held:
             return None
-        own = self._own_sorted.get(upd.map_id)
-        if own is None:
-            own = np.array(sorted(self._own_kfs.get(upd.map_id, ())), np.int64)
-            self._own_sorted[upd.map_id] = own
-        book = self._sent_points.setdefault(upd.map_id, SentPoints())
+        own = self._own(upd.map_id)
         batch = upd.points
         if len(np.unique(batch.point_ids)) < len(batch):  # a point twice: one at a time
             parts = [
-                book.select(b, own, self.options.point_resend_m) for b in _one_point_each(batch)
+                book.select(b, own, self.options.point_resend_m) for b in one_point_each(batch)
             ]
             sent = [p for p in parts if p is not None]
             if not sent:

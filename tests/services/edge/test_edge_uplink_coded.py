@@ -4,6 +4,7 @@ Hand-computed expectations: a new keyframe goes as KeyframeUpdateCoded and the o
 its point ids carry are not sent again as rows; a keyframe that moved goes in one
 KeyframePoses, and the points anchored on it follow it without being re-sent unless they moved
 beyond ``point_resend_m`` relative to it; a state change under the thresholds sends nothing.
+Points go up at once here (``point_settle_keyframes=0``; settling: test_edge_point_settling).
 Every message is read back with the cloud's own decoders.
 """
 
@@ -22,7 +23,7 @@ from services.cloud.uplink import (
     decode_keyframe_update,
     decode_map_point_update,
 )
-from services.edge.robot_session import RobotSession
+from services.edge.robot_session import RobotSession, SessionOptions
 from services.edge.vio.types import KeyframeSnapshot, MapPointBatch, MapPointSnapshot, MapUpdate
 
 VOCAB = Vocabulary.load()
@@ -30,7 +31,7 @@ VOCAB = Vocabulary.load()
 
 def _session() -> RobotSession:
     cam = CameraCalibration(fx=400.0, fy=400.0, cx=320.0, cy=240.0, width=640, height=480)
-    s = RobotSession("r", cam, VOCAB)
+    s = RobotSession("r", cam, VOCAB, SessionOptions(point_settle_keyframes=0))  # at once
     rng = np.random.default_rng(0)
     kp = np.array([[10, 20, 0, 3], [100, 50, 0, 7], [300, 200, 1, 30]], np.int32)
     desc = rng.integers(0, 256, (3, 32), dtype=np.uint8)
