@@ -123,6 +123,10 @@ class PinholeRadtan:
         z = p_cam[:, 2]
         with np.errstate(divide="ignore", invalid="ignore"):
             xy = p_cam[:, :2] / np.where(z > 0, z, np.nan)[:, None]
+        return self.normalized_to_pixels(xy)
+
+    def normalized_to_pixels(self, xy: np.ndarray) -> np.ndarray:
+        """Undistorted normalised points (N, 2) -> distorted pixels (N, 2)."""
         xy_d = self.distort(xy)
         return np.stack([self.fx * xy_d[:, 0] + self.cx, self.fy * xy_d[:, 1] + self.cy], axis=1)
 

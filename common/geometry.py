@@ -1,4 +1,4 @@
-"""Rotation and rigid-transform helpers (pure numpy; SO(3), SE(3), quaternions).
+"""Rotation and rigid-transform helpers (pure numpy; SO(3), SE(3), Sim(3), quaternions).
 
 Conventions: ``R_a_b`` rotates vectors from frame ``b`` into frame ``a``; ``T_a_b`` (4, 4)
 maps homogeneous points from ``b`` to ``a``. Quaternions are Hamilton, stored ``(w, x, y, z)``
@@ -14,6 +14,14 @@ from common.errors import RecslamError
 
 class GeometryError(RecslamError):
     """Input is not a valid rotation, transform or quaternion."""
+
+
+class DegenerateAlignmentError(GeometryError):
+    """A point alignment has no unique solution (too few, collinear or identical points)."""
+
+
+Sim3 = tuple[np.ndarray, np.ndarray, float]
+"""``(R_dst_src (3, 3), t_dst_src (3,), scale)`` of ``p_dst = scale * R_dst_src @ p_src + t``."""
 
 
 def hat(w: np.ndarray) -> np.ndarray:
@@ -132,3 +140,40 @@ def orthonormalize_T(T: np.ndarray) -> np.ndarray:
     out = np.array(T, dtype=np.float64)
     out[:3, :3] = nearest_rotation(out[:3, :3])
     return out
+
+
+def umeyama_alignment(p_src: np.ndarray, p_dst: np.ndarray, with_scale: bool = False) -> Sim3:
+    """Least-squares similarity ``p_dst ≈ s R p_src + t`` for (N, 3) point sets (Umeyama 1991,
+    the closed form evo uses); ``s = 1`` without scale (Horn's / Kabsch's rigid solution).
+
+    The one copy of this primitive: evaluation, the cloud's map merging and the VIO's
+    simulation all call it. Raises DegenerateAlignmentError when fewer than three points are
+    given or the cross-covariance has rank < 2 (collinear or identical points), where the
+    rotation is not unique.
+    """
+    x = np.asarray(p_src, dtype=np.float64)
+    y = np.asarray(p_dst, dtype=np.float64)
+    if x.shape != y.shape or x.ndim != 2 or x.shape[1] != 3:
+        raise DegenerateAlignmentError(
+            f"point sets must both be (N, 3), got {x.shape} and {y.shape}"
+        )
+    n = x.shape[0]
+    if n < 3:
+        raise DegenerateAlignmentError(f"alignment needs at least 3 point pairs, got {n}")
+    mean_x = x.mean(axis=0)
+    mean_y = y.mean(axis=0)
+    xc = x - mean_x
+    yc = y - mean_y
+    U, d, Vt = np.linalg.svd((yc.T @ xc) / n)
+    # Rank < 2 (relative to the largest singular value): the rotation about the line is free.
+    if not d[1] > 1e-10 * d[0]:
+        raise DegenerateAlignmentError(
+            f"degenerate alignment: the {n} points are (nearly) collinear or identical, "
+            f"singular values of the cross-covariance {d.tolist()}"
+        )
+    S = np.eye(3)
+    if np.linalg.det(U) * np.linalg.det(Vt) < 0.0:
+        S[2, 2] = -1.0
+    R = U @ S @ Vt
+    s = float(np.trace(np.diag(d) @ S)) / (float(np.sum(xc * xc)) / n) if with_scale else 1.0
+    return R, mean_y - s * (R @ mean_x), s

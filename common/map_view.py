@@ -55,7 +55,7 @@ def _ro(a: object, dtype: type, shape: tuple[int | None, ...], what: str) -> np.
     return arr
 
 
-class AgentStatus(enum.Enum):
+class AgentState(enum.Enum):
     """Life cycle of one agent as the cloud sees it."""
 
     INITIALISING = "initialising"
@@ -199,7 +199,7 @@ class AgentRecord:
     the map it belongs to, and its live ATE RMSE in metres when the source knows it."""
 
     agent_id: int
-    status: AgentStatus
+    status: AgentState
     frames: int
     keyframes: int
     last_seen: float
@@ -355,7 +355,7 @@ def load_recording(path: str | Path) -> tuple[MapDelta, StatsSnapshot]:
             ground_truth=gts,
         )
         agents = tuple(
-            AgentRecord(**{**a, "status": AgentStatus(a["status"])}) for a in meta["agents"]
+            AgentRecord(**{**a, "status": AgentState(a["status"])}) for a in meta["agents"]
         )
         bw = tuple(
             BandwidthSample(float(t), str(link), Direction(d), str(m), int(n))
@@ -476,7 +476,7 @@ class StaticMapSource:
                 a,
                 keyframes=int(np.count_nonzero(kf & (self._map.keyframes.agent == a.agent_id))),
                 frames=round(a.frames * frac),
-                status=AgentStatus.TRACKING if a.status is AgentStatus.MERGED else a.status,
+                status=AgentState.TRACKING if a.status is AgentState.MERGED else a.status,
             )
             for a in s.agents
         )

@@ -15,7 +15,7 @@ import numpy as np
 from common.geometry import make_T, so3_exp
 from common.map_view import (
     AgentRecord,
-    AgentStatus,
+    AgentState,
     BandwidthSample,
     Direction,
     GroundTruth,
@@ -146,7 +146,7 @@ def make_demo_map(config: DemoConfig | None = None) -> tuple[MapDelta, StatsSnap
     records = tuple(
         AgentRecord(
             agent_id=a,
-            status=AgentStatus.MERGED if a > 0 else AgentStatus.TRACKING,
+            status=AgentState.MERGED if a > 0 else AgentState.TRACKING,
             frames=int(cfg.duration_s * 20),
             keyframes=K,
             last_seen=cfg.duration_s,

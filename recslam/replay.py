@@ -138,7 +138,7 @@ class ReplayScore:
 
 
 def score(results: list[FrameResult], groundtruth, last_map_only: bool = True) -> ReplayScore:
-    """Score ``results`` against a :class:`common.data.euroc.GroundTruth` (TRACKING frames of
+    """Score ``results`` against a :class:`common.data.euroc.EurocGroundTruth` (TRACKING frames of
     the last map when ``last_map_only``, else of every map, each map aligned on its own is not
     done: use it only with one map)."""
     from common.evaluation import AlignMode, AteConfig, Trajectory, compute_ate

@@ -82,7 +82,7 @@ class ImuBatch:
 
 
 @dataclass(frozen=True, eq=False)
-class GroundTruth:
+class EurocGroundTruth:
     """EuRoC ``state_groundtruth_estimate0``: body (IMU) state in the world frame.
 
     ``timestamps_ns`` (K,) int64; ``p_world_body`` (K, 3) m; ``q_world_body_wxyz`` (K, 4)
@@ -142,7 +142,7 @@ class CameraStream:
 
 
 @dataclass(frozen=True, eq=False)
-class Frame:
+class EurocFrame:
     """One camera frame with the IMU samples ``previous_frame_ts < t <= timestamp_ns``
     (for frame 0: every IMU sample up to and including its timestamp).
     ``image`` is uint8 (H, W) grayscale, or None when iterated with ``load_images=False``."""
@@ -246,7 +246,7 @@ def read_imu_csv(path: Path | str) -> ImuBatch:
     return ImuBatch(timestamps_ns=ts, gyro=values[:, 0:3], accel=values[:, 3:6])
 
 
-def read_groundtruth(csv_path: Path | str) -> GroundTruth:
+def read_groundtruth(csv_path: Path | str) -> EurocGroundTruth:
     """Read ``state_groundtruth_estimate0/data.csv`` (17 columns: t, p, q_wxyz, v, b_w, b_a).
 
     Pose-only files with 8 columns (t, p, q_wxyz) are accepted too; their velocities and
@@ -263,7 +263,7 @@ def read_groundtruth(csv_path: Path | str) -> GroundTruth:
         raise EurocError(f"{path}:{lines[i]}: quaternion norm {norms[i]:.6g} is not 1")
     if values.shape[1] == 7:
         values = np.concatenate([values, np.full((len(values), 9), np.nan)], axis=1)
-    return GroundTruth(
+    return EurocGroundTruth(
         timestamps_ns=ts,
         p_world_body=values[:, 0:3],
         q_world_body_wxyz=values[:, 3:7],
@@ -447,7 +447,7 @@ class EurocSequence:
     Attributes: ``name``; ``cam0``/``cam1`` (:class:`CameraCalibration`, cam1 may be None);
     ``imu`` (:class:`ImuCalibration`); ``frame_timestamps_ns`` (N,) int64 and ``image_paths``
     of cam0; ``imu_timestamps_ns`` (M,) int64, ``gyro`` (M, 3) rad/s, ``accel`` (M, 3) m/s²;
-    ``groundtruth`` (:class:`GroundTruth` or None).
+    ``groundtruth`` (:class:`EurocGroundTruth` or None).
     """
 
     def __init__(self, root: Path | str) -> None:
@@ -470,7 +470,7 @@ class EurocSequence:
         self.imu: ImuCalibration = read_imu_yaml(imu_dir / "sensor.yaml")
         self._imu = read_imu_csv(imu_dir / "data.csv")
         gt_csv = self.mav0 / GROUNDTRUTH_DIR / "data.csv"
-        self.groundtruth: GroundTruth | None = (
+        self.groundtruth: EurocGroundTruth | None = (
             read_groundtruth(gt_csv) if (self.mav0 / GROUNDTRUTH_DIR).exists() else None
         )
         self.cam0: CameraCalibration = self._calibs[0]
@@ -536,7 +536,7 @@ class EurocSequence:
 
     def frames(
         self, start: int = 0, stop: int | None = None, cam: int = 0, load_images: bool = True
-    ) -> Iterator[Frame]:
+    ) -> Iterator[EurocFrame]:
         """Yield frames ``start..stop-1`` of camera ``cam`` with their IMU batches.
 
         Frame ``i`` carries the IMU samples in ``(t[i-1], t[i]]``, whatever ``start`` is, so
@@ -552,7 +552,7 @@ class EurocSequence:
         for i in range(start, stop):
             a = 0 if i == 0 else int(ends[i - 1])
             b = int(ends[i])
-            yield Frame(
+            yield EurocFrame(
                 index=i,
                 timestamp_ns=int(ts[i]),
                 image=self.load_image(i, cam) if load_images else None,

@@ -27,7 +27,7 @@ from common.data.euroc import (
     GROUNDTRUTH_DIR,
     IMU_CSV_HEADER,
     EurocError,
-    GroundTruth,
+    EurocGroundTruth,
 )
 
 logger = logging.getLogger(__name__)
@@ -223,7 +223,7 @@ class EurocWriter:
         (folder / "sensor.yaml").write_text(text)
         _write_rows(folder / "data.csv", IMU_CSV_HEADER, ts, np.hstack([gyro, accel]))
 
-    def write_groundtruth(self, gt: GroundTruth) -> None:
+    def write_groundtruth(self, gt: EurocGroundTruth) -> None:
         """Write ``state_groundtruth_estimate0/{sensor.yaml, data.csv}`` (17 columns)."""
         ts = _check_timestamps(gt.timestamps_ns, GROUNDTRUTH_DIR)
         folder = self.mav0 / GROUNDTRUTH_DIR

@@ -17,6 +17,7 @@ import numpy as np
 
 from common.evaluation.errors import AlignmentError
 from common.evaluation.trajectory import Trajectory
+from common.geometry import DegenerateAlignmentError, umeyama_alignment
 
 log = logging.getLogger(__name__)
 
@@ -77,41 +78,15 @@ class SimilarityTransform:
 def umeyama(p_src: np.ndarray, p_dst: np.ndarray, with_scale: bool = False) -> SimilarityTransform:
     """Least-squares similarity ``p_dst ≈ s R p_src + t`` for (N, 3) point sets (Umeyama 1991).
 
-    Without scale this is Horn's / Kabsch's rigid solution. Raises AlignmentError when fewer
-    than three points are given or the cross-covariance has rank < 2 (e.g. collinear points),
-    where the rotation is not unique.
+    :func:`common.geometry.umeyama_alignment` as a :class:`SimilarityTransform`. Without scale
+    this is Horn's / Kabsch's rigid solution. Raises AlignmentError when fewer than three
+    points are given or the cross-covariance has rank < 2 (e.g. collinear points), where the
+    rotation is not unique.
     """
-    x = np.asarray(p_src, dtype=np.float64)
-    y = np.asarray(p_dst, dtype=np.float64)
-    if x.shape != y.shape or x.ndim != 2 or x.shape[1] != 3:
-        raise AlignmentError(f"point sets must both be (N, 3), got {x.shape} and {y.shape}")
-    n = x.shape[0]
-    if n < 3:
-        raise AlignmentError(f"alignment needs at least 3 associated positions, got {n}")
-    mean_x = x.mean(axis=0)
-    mean_y = y.mean(axis=0)
-    xc = x - mean_x
-    yc = y - mean_y
-    sigma_x = float(np.sum(xc * xc)) / n
-    cov = (yc.T @ xc) / n
-    U, d, Vt = np.linalg.svd(cov)
-    # Rank < 2 (relative to the largest singular value): the rotation about the line is free.
-    if not d[1] > 1e-10 * d[0]:
-        raise AlignmentError(
-            f"degenerate alignment: the {n} positions are (nearly) collinear or identical, "
-            f"singular values of the cross-covariance {d.tolist()}"
-        )
-    S = np.eye(3)
-    if np.linalg.det(U) * np.linalg.det(Vt) < 0.0:
-        S[2, 2] = -1.0
-    R = U @ S @ Vt
-    if with_scale:
-        if sigma_x <= 0.0:
-            raise AlignmentError("cannot estimate scale: the estimated positions do not spread")
-        s = float(np.trace(np.diag(d) @ S)) / sigma_x
-    else:
-        s = 1.0
-    t = mean_y - s * (R @ mean_x)
+    try:
+        R, t, s = umeyama_alignment(p_src, p_dst, with_scale)
+    except DegenerateAlignmentError as exc:
+        raise AlignmentError(str(exc)) from exc
     return SimilarityTransform(R, t, s)
 
 

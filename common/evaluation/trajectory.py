@@ -19,7 +19,7 @@ from common.geometry import R_to_quat_wxyz, quat_wxyz_to_R
 
 
 class PoseSeries(Protocol):
-    """Anything with ground-truth pose arrays, e.g. ``common.data.euroc.GroundTruth``."""
+    """Anything with ground-truth pose arrays, e.g. ``common.data.euroc.EurocGroundTruth``."""
 
     timestamps_ns: np.ndarray
     p_world_body: np.ndarray
@@ -96,7 +96,7 @@ class Trajectory:
 
     @classmethod
     def from_groundtruth(cls, gt: PoseSeries, name: str = "") -> Trajectory:
-        """Pose part of a ``common.data.euroc.GroundTruth`` (or any :class:`PoseSeries`)."""
+        """Pose part of a ``common.data.euroc.EurocGroundTruth`` (or any :class:`PoseSeries`)."""
         return cls(gt.timestamps_ns, gt.p_world_body, gt.q_world_body_wxyz, name)
 
     @property

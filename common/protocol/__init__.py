@@ -24,14 +24,14 @@ from common.protocol.events import (
     PeerClosed,
 )
 from common.protocol.framing import HEADER_SIZE, PROTOCOL_VERSION, FrameDecoder, encode_frame
-from common.protocol.link import Link, LinkLimits, OutboundState
+from common.protocol.link import Link, LinkLimits
+from common.protocol.link_state import InboundPosition, OutboundState
 from common.protocol.messages import SCHEMA_VERSION, Blob, Message, message
 from common.protocol.session import Session, State
 from common.protocol.store import (
     DeliveryStore,
     FileDeliveryStore,
     FileOutboxStore,
-    InboundPosition,
     MemoryDeliveryStore,
 )
 

@@ -17,30 +17,12 @@ from dataclasses import dataclass
 from common.protocol.accounting import TrafficCounters
 from common.protocol.errors import LocalProtocolError, OutboxFullError
 from common.protocol.framing import HEADER_SIZE, MAX_SEQ
+from common.protocol.link_state import InboundPosition, OutboundState, OutboxEntry
 from common.protocol.messages import Message, encode_payload
-from common.protocol.store import InboundPosition
 
 logger = logging.getLogger(__name__)
 
 STREAM_ID_SIZE = 16
-
-
-@dataclass(frozen=True, slots=True)
-class OutboxEntry:
-    """One queued application message, already encoded."""
-
-    type_id: int
-    type_name: str
-    payload: bytes
-
-
-@dataclass(frozen=True)
-class OutboundState:
-    """Persistable sending side: stream id, next sequence and the unacknowledged entries."""
-
-    stream_id: bytes
-    next_seq: int
-    pending: tuple[tuple[int, OutboxEntry], ...]
 
 
 @dataclass(frozen=True)

@@ -26,24 +26,13 @@ from __future__ import annotations
 import json
 import os
 import re
-from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Protocol
+from typing import Protocol
 
 import msgpack
 
 from common.protocol.errors import LocalProtocolError
-
-if TYPE_CHECKING:
-    from common.protocol.link import OutboundState
-
-
-@dataclass(frozen=True)
-class InboundPosition:
-    """Receiver's durable position on one link: peer stream id and last delivered sequence."""
-
-    stream_id: bytes
-    last_delivered: int
+from common.protocol.link_state import InboundPosition, OutboundState, OutboxEntry
 
 
 class DeliveryStore(Protocol):
@@ -140,8 +129,6 @@ class FileOutboxStore:
         _atomic_write(self.path, data, self.fsync)
 
     def load(self) -> OutboundState | None:
-        from common.protocol.link import OutboundState, OutboxEntry
-
         try:
             raw = self.path.read_bytes()
         except FileNotFoundError:

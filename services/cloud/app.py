@@ -30,6 +30,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from common.evaluation.alignment import umeyama
+from common.evaluation.association import match_timestamps
 from common.evaluation.errors import EvaluationError
 from common.evaluation.trajectory import Trajectory
 from common.geometry import R_to_quat_wxyz, inverse_T
@@ -465,13 +466,16 @@ class CloudApp:
         return trajs, maps
 
     def ground_truth(
-        self, references: Mapping[str, Trajectory], max_points: int = 3000
+        self,
+        references: Mapping[str, Trajectory],
+        max_points: int = 3000,
+        max_dt_ns: int = 20_000_000,
     ) -> tuple[GroundTruth, ...]:
         """Each robot's reference trajectory in its map's frame, for the dashboard.
 
         All robots of one map are aligned to it with one rigid transform (Umeyama on the
-        keyframe positions associated by time within 20 ms); maps with fewer than 3 such
-        pairs are left out."""
+        keyframe positions associated by time within ``max_dt_ns``, 20 ms, by the evaluation's
+        ``match_timestamps``); maps with fewer than 3 such pairs are left out."""
         by_name: dict[str, list[_Agent]] = {}
         for a in self._agents.values():
             if a.name in references and a.agent_id in self.atlas.agents():
@@ -480,21 +484,18 @@ class CloudApp:
         owner: dict[str, int] = {}
         for name, agents in by_name.items():
             ref = references[name]
-            t_ref = ref.timestamps_ns * 1e-9
             main = max(agents, key=lambda a: len(self.atlas.keyframe_keys(agent_id=a.agent_id)))
             main_id = main.agent_id
             owner[name] = main_id
-            keys = self.atlas.keyframe_keys(agent_id=main_id)
-            if not keys or t_ref.size == 0:
-                continue
-            t_est = np.array([self.atlas.keyframe(k).timestamp for k in keys])
-            j = np.clip(np.searchsorted(t_ref, t_est), 1, max(t_ref.size - 1, 1))
-            j = np.where(np.abs(t_ref[j - 1] - t_est) < np.abs(t_ref[j] - t_est), j - 1, j)
-            j = np.minimum(j, t_ref.size - 1)
-            ok = np.abs(t_ref[j] - t_est) < 0.02
-            p_est = np.array([self.atlas.T_map_body(k)[:3, 3] for k in keys])[ok]
+            kfs = sorted(
+                map(self.atlas.keyframe, self.atlas.keyframe_keys(agent_id=main_id)),
+                key=lambda kf: kf.timestamp,
+            )
+            t_est_ns = np.array([round(kf.timestamp * 1e9) for kf in kfs], np.int64)
+            i_est, i_ref = match_timestamps(t_est_ns, ref.timestamps_ns, max_dt_ns)
+            p_est = np.array([kfs[i].T_map_body[:3, 3] for i in i_est]).reshape(-1, 3)
             pairs.setdefault(self.atlas.map_of_agent(main_id), []).append(
-                (ref.p_world_body[j[ok]], p_est)
+                (ref.p_world_body[i_ref], p_est)
             )
         align = {}
         for m, lst in pairs.items():

@@ -30,7 +30,7 @@ import numpy as np
 
 from common.map_view import (
     AgentRecord,
-    AgentStatus,
+    AgentState,
     BandwidthSample,
     Direction,
     GroundTruth,
@@ -138,11 +138,11 @@ def _merge_items(
 
 
 _STATUS = {
-    "initializing": AgentStatus.INITIALISING,
-    "initialising": AgentStatus.INITIALISING,
-    "tracking": AgentStatus.TRACKING,
-    "lost": AgentStatus.LOST,
-    "finished": AgentStatus.TRACKING,
+    "initializing": AgentState.INITIALISING,
+    "initialising": AgentState.INITIALISING,
+    "tracking": AgentState.TRACKING,
+    "lost": AgentState.LOST,
+    "finished": AgentState.TRACKING,
 }
 
 
@@ -239,9 +239,9 @@ class CloudMapSource:
         shared = {m for m in own_map.values() if list(own_map.values()).count(m) > 1}
         agents = []
         for a in view.agents:
-            status = _STATUS.get(a.status, AgentStatus.TRACKING)
+            status = _STATUS.get(a.status, AgentState.TRACKING)
             if a.map_id != a.agent_id or a.map_id in shared:
-                status = AgentStatus.MERGED
+                status = AgentState.MERGED
             agents.append(AgentRecord(a.agent_id, status, a.frames, a.keyframes, a.last_seen,
                                       a.map_id))  # fmt: skip
         for edge, snap in view.edge_counters.items():

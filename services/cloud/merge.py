@@ -21,7 +21,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from common.errors import RecslamError
-from common.geometry import make_T, transform_points
+from common.geometry import DegenerateAlignmentError, make_T, transform_points, umeyama_alignment
 from services.cloud.atlas import Atlas, LoopEdge, MergeRecord
 from services.cloud.config import AlignmentMode, MergeConfig
 from services.cloud.verification import VerificationResult, hamming
@@ -51,25 +51,19 @@ def align_points(p_src: np.ndarray, p_tgt: np.ndarray, mode: AlignmentMode) -> n
     tgt = np.asarray(p_tgt, dtype=np.float64).reshape(-1, 3)
     if src.shape != tgt.shape or src.shape[0] < 3:
         raise MergeError(f"need >= 3 point pairs of equal count, got {src.shape} / {tgt.shape}")
+    if mode is not AlignmentMode.YAW_TRANSLATION:
+        try:
+            R, t, scale = umeyama_alignment(src, tgt, with_scale=mode is AlignmentMode.SIM3)
+        except DegenerateAlignmentError as exc:
+            raise MergeError(str(exc)) from exc
+        return make_T(scale * R, t)
     cs, ct = src.mean(0), tgt.mean(0)
     a, b = src - cs, tgt - ct
-    if mode is AlignmentMode.YAW_TRANSLATION:
-        yaw = np.arctan2(np.sum(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]),
-                         np.sum(a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1]))  # fmt: skip
-        R = _rot_z(float(yaw))
-        return make_T(R, ct - R @ cs)
-    U, S, Vt = np.linalg.svd(b.T @ a / src.shape[0])
-    D = np.eye(3)
-    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
-        D[2, 2] = -1.0
-    R = U @ D @ Vt
-    s = 1.0
-    if mode is AlignmentMode.SIM3:
-        s = float(np.trace(np.diag(S) @ D) / (a**2).sum(axis=1).mean())
-    T = np.eye(4)
-    T[:3, :3] = s * R
-    T[:3, 3] = ct - s * R @ cs
-    return T
+    yaw = np.arctan2(
+        np.sum(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]), np.sum(a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1])
+    )
+    R = _rot_z(float(yaw))
+    return make_T(R, ct - R @ cs)
 
 
 def project_transform(T: np.ndarray, mode: AlignmentMode) -> np.ndarray:
@@ -152,14 +146,19 @@ def apply_match(atlas: Atlas, result: VerificationResult, config: MergeConfig) -
         pairs = pairs[
             [atlas.has_map_point(int(a)) and atlas.has_map_point(int(b)) for a, b in pairs]
         ]
+        T = None
         if pairs.shape[0] >= config.min_3d_pairs:
-            T, keep = robust_align(
-                atlas.map_point_positions(pairs[:, 0]),
-                atlas.map_point_positions(pairs[:, 1]),
-                config.mode,
-            )
-            pairs = pairs[keep]
-        else:
+            try:
+                T, keep = robust_align(
+                    atlas.map_point_positions(pairs[:, 0]),
+                    atlas.map_point_positions(pairs[:, 1]),
+                    config.mode,
+                )
+                pairs = pairs[keep]
+            except MergeError as exc:  # degenerate pairs (e.g. collinear points)
+                log.warning("merge of map %d into %d: %s; using the verified pose", q_map,
+                            c_map, exc)  # fmt: skip
+        if T is None:
             T = project_transform(result.T_cmap_qmap, config.mode)
         src_points = atlas.map_point_keys(q_map)
         atlas.merge_maps(c_map, q_map, T, result.query_key, result.candidate_key)

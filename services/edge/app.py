@@ -37,7 +37,7 @@ from common.vocabulary import Vocabulary
 from services.edge.journal import JournalRecord, JournalStore
 from services.edge.robot_session import RobotSession, SessionOptions
 from services.edge.vio.types import VioOptions
-from services.edge.worker import Worker, WorkerSpec, WorkItem, make_worker
+from services.edge.worker import Worker, WorkerFactory, WorkerSpec, WorkItem, make_worker
 
 logger = logging.getLogger(__name__)
 
@@ -95,11 +95,13 @@ class EdgeApp:
         sink: Sink,
         config: EdgeConfig | None = None,
         journal: JournalStore | None = None,
+        worker_factory: WorkerFactory = make_worker,
     ) -> None:
         self.camera, self.imu, self.vocabulary = camera, imu, vocabulary
         self.sink = sink
         self.config = config or EdgeConfig()
         self.journal = journal
+        self.worker_factory = worker_factory
         self.robots: dict[str, _Robot] = {}
         self.on_robot_added: Callable[[str], None] | None = None
 
@@ -109,7 +111,7 @@ class EdgeApp:
         if rb is None:
             session = RobotSession(agent_id, self.camera, self.vocabulary, self.config.session)
             spec = WorkerSpec(agent_id, self.camera, self.imu, self.config.vio)
-            rb = _Robot(session, make_worker(spec, self.config.worker), asyncio.Queue(),
+            rb = _Robot(session, self.worker_factory(spec, self.config.worker), asyncio.Queue(),
                         asyncio.Event())  # fmt: skip
             rb.idle.set()
             rb.task = asyncio.create_task(self._drain(rb), name=f"edge-robot-{agent_id}")

@@ -28,7 +28,7 @@ from pathlib import Path
 import msgpack
 
 from common.errors import RecslamError
-from common.protocol.store import InboundPosition
+from common.protocol.link_state import InboundPosition
 
 logger = logging.getLogger(__name__)
 

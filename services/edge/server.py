@@ -30,6 +30,7 @@ from common.transport import Client, Server, TransportConfig
 from common.vocabulary import Vocabulary
 from services.edge.app import EdgeApp, EdgeConfig
 from services.edge.journal import JournalStore
+from services.edge.worker import WorkerFactory, make_worker
 
 logger = logging.getLogger(__name__)
 
@@ -72,6 +73,7 @@ class EdgeServer:
         service: network options.
         state_dir: journal directory (None: restarts lose state; see module docstring).
         transport: socket settings of the robot server.
+        worker_factory: builds each robot's VIO worker (tests inject faulty ones).
     """
 
     def __init__(
@@ -84,6 +86,7 @@ class EdgeServer:
         service: EdgeServiceConfig | None = None,
         state_dir: str | Path | None = None,
         transport: TransportConfig | None = None,
+        worker_factory: WorkerFactory = make_worker,
     ) -> None:
         self.service = service or EdgeServiceConfig()
         self.config = config or EdgeConfig()
@@ -93,7 +96,7 @@ class EdgeServer:
             "edge", sv.agent_id, secret,
             heartbeat_interval=sv.heartbeat_interval_s, idle_timeout=sv.idle_timeout_s,
         )  # fmt: skip
-        self.app = EdgeApp(camera, imu, vocabulary, self, self.config, self.store)
+        self.app = EdgeApp(camera, imu, vocabulary, self, self.config, self.store, worker_factory)
         tr = transport or TransportConfig(accept_roles=("robot",))
         self.server = Server(self.robot_session, self.app.on_robot_message, transport=tr,
                              store=self.store)  # fmt: skip

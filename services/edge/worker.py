@@ -25,6 +25,7 @@ import logging
 import multiprocessing
 import os
 import threading
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from multiprocessing.connection import Connection
@@ -45,21 +46,12 @@ from services.edge.vio.types import (
 
 logger = logging.getLogger(__name__)
 
-FAIL_ENV = "RECSLAM_EDGE_FAIL_AT"
-"""Test-only fault injection: ``"robot-2:30"`` makes robot-2's VIO raise at its frame 30,
-``"robot-2:60:exit"`` makes its worker process exit there (comma-separated, several allowed).
-Read by the runner, so it works in worker processes."""
-
 MAP_ID_STRIDE = 1000
 """Map ids of a re-initialised VIO start at ``generation * MAP_ID_STRIDE`` (no reuse)."""
 
 
 class EdgeWorkerError(RecslamError):
     """A worker could not run (process died and could not be restarted, bad request)."""
-
-
-class InjectedFaultError(RecslamError):
-    """Raised by the test-only fault injection (see ``FAIL_ENV``)."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -105,16 +97,6 @@ class WorkerSpec:
     generation: int = 0
 
 
-def _faults(agent_id: str) -> dict[int, str]:
-    """Injected faults of ``agent_id``: frame index -> "raise" | "exit" (see ``FAIL_ENV``)."""
-    out = {}
-    for part in os.environ.get(FAIL_ENV, "").split(","):
-        fields = part.strip().split(":")
-        if len(fields) >= 2 and fields[0] == agent_id and fields[1].isdigit():
-            out[int(fields[1])] = fields[2] if len(fields) > 2 else "raise"
-    return out
-
-
 def _offset_update(u: MapUpdate, base: int) -> MapUpdate:
     if base == 0:
         return u
@@ -128,7 +110,6 @@ class VioRunner:
     def __init__(self, spec: WorkerSpec) -> None:
         self.spec = spec
         self.generation = spec.generation
-        self.faults = _faults(spec.agent_id)
         self.vio = self._new_vio()
 
     def _new_vio(self) -> VioManager:
@@ -152,12 +133,6 @@ class VioRunner:
                 self.vio.feed_imu(item.imu_t_ns, item.gyro, item.accel)
             if item.obs is None:
                 return WorkResult(item.frame_index, None, None, (), generation=self.generation)
-            fault = self.faults.pop(item.frame_index, None)
-            if fault == "exit" and multiprocessing.parent_process() is not None:
-                os._exit(3)  # a crashing worker process (test only)
-            if fault is not None:
-                raise InjectedFaultError(f"{self.spec.agent_id}: injected VIO fault at frame "
-                                    f"{item.frame_index}")  # fmt: skip
             t0 = time.perf_counter()
             result = self.vio.feed_frame(item.obs)
             frame_s = time.perf_counter() - t0
@@ -353,6 +328,10 @@ class ProcessWorker:
 
 
 Worker = ThreadWorker | ProcessWorker
+
+WorkerFactory = Callable[[WorkerSpec, str], Worker]
+"""Builds a robot's worker from its spec and the kind ("process" or "thread"): :func:`make_worker`
+unless a test injects its own (e.g. one that crashes its process at a chosen frame)."""
 
 
 def make_worker(spec: WorkerSpec, kind: str) -> Worker:

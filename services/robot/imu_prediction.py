@@ -26,6 +26,7 @@ import cv2
 import numpy as np
 
 from common.calibration import CameraCalibration, ImuCalibration
+from common.camera import PinholeRadtan
 from common.errors import RecslamError
 from common.geometry import inverse_T, so3_exp
 
@@ -190,18 +191,6 @@ def undistort_normalised(camera: CameraCalibration, pts_px: np.ndarray) -> np.nd
     return cv2.undistortPoints(pts, camera.K, camera.dist_coeffs).reshape(-1, 2)
 
 
-def distort_to_pixels(camera: CameraCalibration, xy: np.ndarray) -> np.ndarray:
-    """Undistorted normalised coordinates (N, 2) -> distorted pixels (N, 2) (radtan model)."""
-    xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
-    k1, k2, p1, p2 = camera.distortion
-    x, y = xy[:, 0], xy[:, 1]
-    r2 = x * x + y * y
-    radial = 1.0 + k1 * r2 + k2 * r2 * r2
-    xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
-    yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
-    return np.stack([camera.fx * xd + camera.cx, camera.fy * yd + camera.cy], axis=1)
-
-
 def project_points(camera: CameraCalibration, p_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Camera-frame points (N, 3) -> distorted pixels (N, 2) and a mask (N,) of points in
     front of the camera (pixels of the others are NaN)."""
@@ -210,7 +199,7 @@ def project_points(camera: CameraCalibration, p_cam: np.ndarray) -> tuple[np.nda
     out = np.full((len(p_cam), 2), np.nan)
     if np.any(front):
         xy = p_cam[front, :2] / p_cam[front, 2:3]
-        out[front] = distort_to_pixels(camera, xy)
+        out[front] = PinholeRadtan.from_calibration(camera).normalized_to_pixels(xy)
     return out, front
 
 

@@ -45,7 +45,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from common.data.euroc import EurocSequence, Frame
+from common.data.euroc import EurocFrame, EurocSequence
 from common.errors import RecslamError
 from common.links.robot_edge import RobotFrame
 from common.protocol import SessionConfig
@@ -330,7 +330,7 @@ class RobotService:
         return True
 
 
-def _next_frame(frames: Iterator[Frame]) -> Frame | None:
+def _next_frame(frames: Iterator[EurocFrame]) -> EurocFrame | None:
     """Read (and decode) the next frame; runs in the worker thread."""
     return next(frames, None)
 

@@ -81,3 +81,21 @@ def test_calibration_round_trip_and_bad_input() -> None:
         CAM.project(np.zeros((3, 2)))
     with pytest.raises(CameraModelError, match="focal"):
         PinholeRadtan(10, 10, -1.0, 1.0, 5.0, 5.0)
+
+
+def test_normalized_to_pixels_is_project_and_inverts_pixels_to_normalized() -> None:
+    """The one radtan model the robot's IMU prediction and the VIO simulator call."""
+    p = _random_points(300, seed=3)
+    xy = p[:, :2] / p[:, 2:3]
+    px = CAM.normalized_to_pixels(xy)
+    np.testing.assert_array_equal(px, CAM.project(np.c_[xy, np.ones(len(xy))]))
+    np.testing.assert_allclose(CAM.pixels_to_normalized(px), xy, atol=1e-10)
+    k1, k2, p1, p2 = CAM.dist_coeffs
+    x, y = xy.T
+    r2 = x * x + y * y
+    radial = 1.0 + k1 * r2 + k2 * r2 * r2  # the callers' former copies, term by term
+    xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
+    yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
+    np.testing.assert_allclose(
+        px, np.c_[CAM.fx * xd + CAM.cx, CAM.fy * yd + CAM.cy], rtol=1e-13, atol=1e-9
+    )

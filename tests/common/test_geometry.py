@@ -1,7 +1,10 @@
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from common.geometry import (
+    DegenerateAlignmentError,
     GeometryError,
     R_to_quat_wxyz,
     check_rotation,
@@ -12,6 +15,7 @@ from common.geometry import (
     so3_exp,
     so3_log,
     transform_points,
+    umeyama_alignment,
 )
 
 rng = np.random.default_rng(7)
@@ -77,3 +81,42 @@ def test_nearest_rotation_repairs_drift() -> None:
     out = orthonormalize_T(T)
     check_rotation(out[:3, :3], atol=1e-12)
     np.testing.assert_array_equal(out[:3, 3], [1.0, 2.0, 3.0])
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    n=st.integers(3, 40),
+    scale=st.floats(0.05, 20.0),
+    with_scale=st.booleans(),
+)
+def test_umeyama_recovers_any_similarity(seed: int, n: int, scale: float, with_scale: bool) -> None:
+    """Exact pairs ``p_dst = s R p_src + t``: the alignment gives back R, t (and s), and with
+    noise it is no worse than the true transform (it is the least-squares optimum)."""
+    g = np.random.default_rng(seed)
+    p_src = g.normal(size=(n, 3)) * g.uniform(0.1, 10.0, size=3)
+    R_true = so3_exp(g.uniform(-np.pi, np.pi, 3) * 0.99)
+    t_true = g.normal(size=3) * 5.0
+    s_true = scale if with_scale else 1.0
+    p_dst = s_true * p_src @ R_true.T + t_true
+    R, t, s = umeyama_alignment(p_src, p_dst, with_scale)
+    check_rotation(R)
+    np.testing.assert_allclose(R, R_true, atol=1e-7)
+    np.testing.assert_allclose(t, t_true, atol=1e-6 * (1.0 + np.abs(p_dst).max()))
+    assert s == pytest.approx(s_true, rel=1e-7)
+    noisy = p_dst + g.normal(scale=0.1, size=p_dst.shape)
+    R, t, s = umeyama_alignment(p_src, noisy, with_scale)
+    cost = np.sum((noisy - (s * p_src @ R.T + t)) ** 2)
+    assert cost <= np.sum((noisy - p_dst) ** 2) * (1 + 1e-9)
+
+
+def test_umeyama_rejects_degenerate_point_sets() -> None:
+    line = np.outer(np.arange(10.0), [1.0, 2.0, 3.0])
+    with pytest.raises(DegenerateAlignmentError, match="collinear"):
+        umeyama_alignment(line, line + 1.0)
+    with pytest.raises(DegenerateAlignmentError, match="collinear"):
+        umeyama_alignment(np.ones((5, 3)), np.ones((5, 3)), with_scale=True)
+    with pytest.raises(DegenerateAlignmentError, match="at least 3"):
+        umeyama_alignment(line[:2], line[:2])
+    with pytest.raises(DegenerateAlignmentError, match=r"\(N, 3\)"):
+        umeyama_alignment(line, line[:, :2])

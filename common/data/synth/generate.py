@@ -27,7 +27,7 @@ import numpy as np
 
 from common.calibration import EUROC_IMU, CameraCalibration, ImuCalibration
 from common.camera import PinholeRadtan
-from common.data.euroc import GroundTruth
+from common.data.euroc import EurocGroundTruth
 from common.data.euroc_write import EurocWriter
 from common.data.synth.imu_sim import ImuNoiseConfig, simulate_imu
 from common.data.synth.plots import contact_sheet, plot_top_view
@@ -175,7 +175,7 @@ def _write_robot(out: Path, k: int, config: SynthConfig, traj: LoopTrajectory,
     imu = simulate_imu(traj, ts, t0, imu_calib, config.imu_noise,
                        np.random.default_rng([config.seed, 202, k]))  # fmt: skip
     st = traj.evaluate(t)
-    gt = GroundTruth(
+    gt = EurocGroundTruth(
         timestamps_ns=ts,
         p_world_body=st.p_world_body,
         q_world_body_wxyz=_continuous(R_to_quat_wxyz(st.R_world_body)),

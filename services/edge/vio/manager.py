@@ -517,11 +517,7 @@ class VioManager:
             if kfs[i].imu_from_previous is None or kfs[i].previous_id != kfs[i - 1].id:
                 start = i
         kfs = kfs[start:]
-        first = vmap.vi_init_runs == 0
-        if first:
-            t_last = kfs[-1].timestamp_ns
-            kfs = [k for k in kfs if (t_last - k.timestamp_ns) * 1e-9 <= vopt.max_span_s]
-        if not first:
+        if vmap.vi_init_runs > 0:
             # Re-runs: the map is already metric and gravity-aligned; the joint visual-inertial
             # BA over every keyframe is the well-posed estimator of scale (the inertial-only
             # problem with fixed, noisy visual poses would shift it by its own bias).
@@ -538,13 +534,13 @@ class VioManager:
             logger.info("%s: VI refinement #%d of map %d: %s", self.name, vmap.vi_init_runs,
                         vmap.map_id, stats)  # fmt: skip
             return True
-        ba0 = np.zeros(3) if first else kfs[-1].bias_accel
-        bg0 = self._bias_guess[1] if first else kfs[-1].bias_gyro
+        # First run: inertial-only MAP over the last ``max_span_s`` of keyframes.
+        t_last = kfs[-1].timestamp_ns
+        kfs = [k for k in kfs if (t_last - k.timestamp_ns) * 1e-9 <= vopt.max_span_s]
         sub = subsample_keyframes(kfs, vopt.min_interval_s)
         res, reason = inertial_only_map(
-            sub, self.imu_params, self.options.gravity_mps2, ba0, bg0,
-            vopt.accel_bias_prior_sigma_first if first else vopt.accel_bias_prior_sigma,
-            vopt.gyro_bias_prior_sigma_first if first else vopt.gyro_bias_prior_sigma,
+            sub, self.imu_params, self.options.gravity_mps2, np.zeros(3), self._bias_guess[1],
+            vopt.accel_bias_prior_sigma_first, vopt.gyro_bias_prior_sigma_first,
             vopt.visual_position_sigma_rel * self._median_depth(vmap),
             np.radians(vopt.visual_rotation_sigma_deg),
         )  # fmt: skip
@@ -561,8 +557,7 @@ class VioManager:
             logger.warning(
                 "%s: VI initialisation of map %d failed: %s", self.name, vmap.map_id, why
             )
-            if first:
-                vmap.vi_init_runs = 0  # retry at the next keyframe
+            vmap.vi_init_runs = 0  # retry at the next keyframe
             self.stats.vi_init_s.append(time.perf_counter() - t0)
             return False
         vmap.transform(make_T(res.R_world_v, np.zeros(3)), res.scale)

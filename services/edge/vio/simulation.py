@@ -15,7 +15,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from common.calibration import EUROC_IMU, CameraCalibration, ImuCalibration
-from common.geometry import inverse_T
+from common.camera import PinholeRadtan
+from common.geometry import inverse_T, umeyama_alignment
 from services.edge.vio.types import FrameObservation
 
 EUROC_CAM0 = CameraCalibration(
@@ -131,17 +132,6 @@ def trajectory(t: np.ndarray, o: SimOptions):
     return R, p, v, acc, w_body
 
 
-def distort(xy: np.ndarray, camera: CameraCalibration) -> np.ndarray:
-    """Normalised (N, 2) -> distorted pixels (N, 2) (radial-tangential)."""
-    k1, k2, p1, p2 = camera.distortion
-    x, y = xy[:, 0], xy[:, 1]
-    r2 = x * x + y * y
-    radial = 1 + k1 * r2 + k2 * r2 * r2
-    xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
-    yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
-    return np.stack([camera.fx * xd + camera.cx, camera.fy * yd + camera.cy], axis=1)
-
-
 def _landmarks(o: SimOptions, rng: np.random.Generator) -> np.ndarray:
     n = o.n_landmarks
     h, H = o.room_half_size_m, o.room_height_m
@@ -205,12 +195,13 @@ def simulate(
     last_kf_tracks: set[int] = set()
     frames = []
     margin = 10.0
+    model = PinholeRadtan.from_calibration(camera)
     for i, t in enumerate(t_cam):
         T_cw = inverse_T(T_wb[i] @ T_bc)
         p_c = lm @ T_cw[:3, :3].T + T_cw[:3, 3]
         z = p_c[:, 2]
         with np.errstate(divide="ignore", invalid="ignore"):
-            uv = distort(p_c[:, :2] / z[:, None], camera)
+            uv = model.normalized_to_pixels(p_c[:, :2] / z[:, None])
         vis = (
             (z > 0.2)
             & (uv[:, 0] > margin)
@@ -264,21 +255,6 @@ def simulate(
         camera=camera,
         imu=imu,
     )
-
-
-def umeyama_alignment(
-    est: np.ndarray, gt: np.ndarray, with_scale: bool
-) -> tuple[np.ndarray, np.ndarray, float]:
-    """(R, t, s) minimising ``|gt - (s R est + t)|`` for points (N, 3) each (Umeyama 1991)."""
-    mu_e, mu_g = est.mean(0), gt.mean(0)
-    E, G = est - mu_e, gt - mu_g
-    U, D, Vt = np.linalg.svd(G.T @ E / len(est))
-    S = np.eye(3)
-    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
-        S[2, 2] = -1
-    R = U @ S @ Vt
-    s = float(np.trace(np.diag(D) @ S) / (E**2).sum(1).mean()) if with_scale else 1.0
-    return R, mu_g - s * R @ mu_e, s
 
 
 def ate_rmse(est: np.ndarray, gt: np.ndarray, with_scale: bool = False) -> tuple[float, float]:

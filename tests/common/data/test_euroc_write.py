@@ -15,8 +15,8 @@ from common.calibration import EUROC_IMU, CameraCalibration, ImuCalibration
 from common.data.euroc import (
     GROUNDTRUTH_CSV_HEADER,
     EurocError,
+    EurocGroundTruth,
     EurocSequence,
-    GroundTruth,
     read_camera_yaml,
     read_imu_yaml,
 )
@@ -54,10 +54,10 @@ def _imu_calib() -> ImuCalibration:
     )
 
 
-def _groundtruth(ts: np.ndarray, rng: np.random.Generator) -> GroundTruth:
+def _groundtruth(ts: np.ndarray, rng: np.random.Generator) -> EurocGroundTruth:
     k = len(ts)
     q = R_to_quat_wxyz(np.stack([so3_exp(w) for w in rng.normal(size=(k, 3))]))
-    return GroundTruth(
+    return EurocGroundTruth(
         timestamps_ns=ts,
         p_world_body=rng.normal(size=(k, 3)),
         q_world_body_wxyz=q,

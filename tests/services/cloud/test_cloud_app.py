@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from common.geometry import so3_exp
 from common.links.edge_cloud import AgentStatus, CullEvent, decode_pose_correction
 from common.protocol.arrays import pack_array
 from common.vocabulary import Vocabulary
@@ -142,3 +143,37 @@ def test_applied_optimisation_is_durable(tmp_path, vocab):
         assert np.allclose(restarted.atlas.map_point_positions(np.array(mk)), P)
     finally:
         restarted.close()
+
+
+def test_ground_truth_is_associated_by_time_and_aligned_onto_the_keyframes(tmp_path, vocab):
+    """The robot's reference (200 Hz, in the world frame) comes back in the map frame of its
+    keyframes; stamps further than ``max_dt_ns`` from every keyframe give no alignment."""
+    from common.evaluation.trajectory import Trajectory
+    from common.geometry import R_to_quat_wxyz
+
+    world = make_world(8, n_points=1500)
+    T_agent_world = np.eye(4)
+    T_agent_world[:3, :3] = so3_exp([0.0, 0.0, 0.7])
+    T_agent_world[:3, 3] = [1.0, -2.0, 0.3]
+    truth = circle_poses(12, turns=0.5)
+    kfs, _ = make_session(world, default_camera(), 0, truth, T_agent_world, dt=0.5)
+    app = _app(tmp_path, vocab)
+    try:
+        for seq, k in enumerate(kfs, start=1):
+            msg, _ = encode_keyframe_update(k, "robot", vocab, edge_map_id=0)
+            app.handle("edge-a", msg, b"stream", seq)
+        # A 200 Hz reference through the keyframe positions, its clock 2 ms ahead.
+        t_kf = np.array([k.timestamp for k in kfs])
+        t = np.arange(round(t_kf[0] * 200), round(t_kf[-1] * 200) + 1) / 200
+        p_ref = np.stack([np.interp(t, t_kf, truth[:, c, 3]) for c in range(3)], axis=1)
+        t_ref = t + 0.002
+        q = R_to_quat_wxyz(np.repeat(np.eye(3)[None], len(t_ref), 0))
+        ref = Trajectory(np.round(t_ref * 1e9).astype(np.int64), p_ref, q, "robot")
+        (gt,) = app.ground_truth({"robot": ref})
+        assert gt.agent_id == 0
+        idx = np.searchsorted(gt.timestamp, t_kf)
+        p_kf = np.array([k.T_world_body[:3, 3] for k in kfs])
+        assert np.max(np.linalg.norm(gt.p_world[idx] - p_kf, axis=1)) < 1e-6
+        assert app.ground_truth({"robot": ref}, max_dt_ns=1_000_000) == ()
+    finally:
+        app.close()

@@ -121,6 +121,9 @@ def test_align_points_recovers_each_mode():
     )
     with pytest.raises(MergeError):
         align_points(p[:2], p[:2], AlignmentMode.SE3)
+    line = np.outer(np.arange(6.0), [1.0, 0.5, 0.2])
+    with pytest.raises(MergeError, match="collinear"):
+        align_points(line, line, AlignmentMode.SIM3)
 
 
 def test_two_maps_with_known_offset_merge_to_the_right_transform(world):

@@ -2,7 +2,7 @@
 
 from pathlib import Path
 
-from common.protocol.store import InboundPosition
+from common.protocol.link_state import InboundPosition
 from services.edge.journal import JournalRecord, JournalStore, RobotJournal
 
 

@@ -33,7 +33,7 @@ from services.edge.app import EdgeConfig
 from services.edge.server import EdgeServer, EdgeServiceConfig
 from services.edge.sim_robot import code_sequence, play
 from services.edge.vio.simulation import SimOptions, simulate
-from services.edge.worker import FAIL_ENV, MAP_ID_STRIDE
+from services.edge.worker import MAP_ID_STRIDE, ProcessWorker, WorkerSpec, WorkItem, WorkResult
 
 EXCERPT = Path("/work/shared/datasets/euroc-micro-V1_01")
 SECRET = b"edge-test-secret-0123456789"
@@ -137,18 +137,43 @@ def test_excerpt_robot_to_edge_to_real_cloud(tmp_path, vocab) -> None:
 
 
 # ------------------------------------------------------------------ containment
-def test_failing_robot_vio_does_not_disturb_another(monkeypatch, vocab, sim_frames) -> None:
+RAISE_AT, CRASH_AT = 25, 60
+
+
+class _FaultyWorker(ProcessWorker):
+    """A real VIO process that gets a frame out of time order at RAISE_AT (the VIO raises)
+    and is SIGKILLed just before it would receive frame CRASH_AT (the process dies)."""
+
+    def _roundtrip(self, item: WorkItem) -> WorkResult:
+        if item.frame_index == RAISE_AT and item.obs is not None:
+            item = dataclasses.replace(item, obs=dataclasses.replace(item.obs, timestamp_ns=0))
+        if item.frame_index == CRASH_AT and self._proc is not None:
+            os.kill(self._proc.pid, signal.SIGKILL)
+            self._proc.join(10.0)
+        return super()._roundtrip(item)
+
+
+def _faulty_for(name: str):
+    def make(spec: WorkerSpec, kind: str):
+        assert kind == "process"
+        return _FaultyWorker(spec) if spec.agent_id == name else ProcessWorker(spec)
+
+    return make
+
+
+def test_failing_robot_vio_does_not_disturb_another(vocab, sim_frames) -> None:
     """Robot "bad" gets a VIO exception at frame 25 and its worker process dies at frame 60;
     each time it re-initialises (fresh VIO, new map id range, process respawned). Robot "good"
     on the same edge initialises, gets feedback with stream-numbered map points and uplinks
     keyframes, untouched."""
     seq, frames = sim_frames
-    monkeypatch.setenv(FAIL_ENV, "bad:25,bad:60:exit")
 
     async def main():
         cloud = CloudStub()
         cport = await cloud.start()
-        edge = _edge(seq.camera, seq.imu, vocab, cport, "process")
+        edge = _edge(
+            seq.camera, seq.imu, vocab, cport, "process", worker_factory=_faulty_for("bad")
+        )
         _, port = await edge.start()
         done = asyncio.Event()
         try:
@@ -176,8 +201,8 @@ def test_failing_robot_vio_does_not_disturb_another(monkeypatch, vocab, sim_fram
     assert g["failures"] == [] and g["frames_processed"] == len(frames)
     assert g["state"] == "tracking" and g["map_id"] == 0
     assert len(b["failures"]) == 2, b["failures"]
-    assert "injected VIO fault at frame 25" in b["failures"][0]
-    assert "frame 60: VIO process died" in b["failures"][1]
+    assert "frame 25" in b["failures"][0] and "timestamp 0 not after previous" in b["failures"][0]
+    assert "frame 60: VIO process died (exit -9)" in b["failures"][1]
     assert b["frames_processed"] == len(frames)
     # Good robot: feedback after VI init, tracks named by stream numbers with map points.
     fbs = [decode_feedback(m) for m in good.feedback if isinstance(m, InertialFeedbackCoded)]
@@ -216,7 +241,6 @@ def _free_port() -> int:
 
 def _start_edge(port: int, cloud_port: int, state: Path, log: Path) -> subprocess.Popen:
     env = dict(os.environ, RECSLAM_SECRET=SECRET.decode())
-    env.pop(FAIL_ENV, None)
     cmd = [sys.executable, "-m", "services.edge", "--listen", f"127.0.0.1:{port}",
            "--cloud", f"127.0.0.1:{cloud_port}", "--state-dir", str(state),
            "--camera", str(EXCERPT), "--worker", "thread", "--agent-id", "edge-1"]  # fmt: skip

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from common.calibration import EUROC_IMU, CameraCalibration
+from common.camera import PinholeRadtan
 from common.geometry import make_T, so3_exp
 from services.robot.imu_prediction import (
     ImuBuffer,
@@ -17,10 +18,10 @@ from services.robot.imu_prediction import (
     InertialState,
     MotionPredictor,
     StaticGyroBias,
-    distort_to_pixels,
     gyro_rotation,
     mean_angular_velocity,
     predict_rotation,
+    project_points,
     propagate,
     undistort_normalised,
     warp_by_rotation,
@@ -78,11 +79,35 @@ def test_mean_angular_velocity_is_time_weighted() -> None:
     assert mean_angular_velocity(buf, 0, 100_000_000)[2] == pytest.approx(0.05)
 
 
+def _to_pixels(xy: np.ndarray) -> np.ndarray:
+    return PinholeRadtan.from_calibration(EUROC_CAM).normalized_to_pixels(xy)
+
+
+def _radtan_pixels_before_issue_15(camera: CameraCalibration, xy: np.ndarray) -> np.ndarray:
+    """The robot's own copy of the radial-tangential model, as it was before it called
+    ``common.camera`` (the reference the shared model must reproduce)."""
+    k1, k2, p1, p2 = camera.distortion
+    x, y = xy[:, 0], xy[:, 1]
+    r2 = x * x + y * y
+    radial = 1.0 + k1 * r2 + k2 * r2 * r2
+    xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
+    yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
+    return np.stack([camera.fx * xd + camera.cx, camera.fy * yd + camera.cy], axis=1)
+
+
+def test_projection_through_the_shared_camera_model_is_unchanged() -> None:
+    rng = np.random.default_rng(15)
+    p_cam = np.c_[rng.uniform(-3.0, 3.0, size=(2000, 2)), rng.uniform(-1.0, 8.0, 2000)]
+    got, front = project_points(EUROC_CAM, p_cam)
+    assert 0 < front.sum() < len(p_cam) and np.isnan(got[~front]).all()
+    want = _radtan_pixels_before_issue_15(EUROC_CAM, p_cam[front, :2] / p_cam[front, 2:3])
+    np.testing.assert_allclose(got[front], want, rtol=1e-13, atol=1e-9)
+
+
 def test_undistort_and_distort_round_trip_and_match_opencv() -> None:
     rng = np.random.default_rng(0)
     px = rng.uniform([0, 0], [752, 480], size=(400, 2))
-    err = np.linalg.norm(distort_to_pixels(EUROC_CAM, undistort_normalised(EUROC_CAM, px)) - px,
-                         axis=1)  # fmt: skip
+    err = np.linalg.norm(_to_pixels(undistort_normalised(EUROC_CAM, px)) - px, axis=1)
     # OpenCV's 5 fixed-point iterations: exact in the middle, <= 0.3 px in the far corners.
     central = np.linalg.norm(px - [367.2, 248.4], axis=1) < 250
     assert err[central].max() < 0.01 and err.max() < 0.3
@@ -90,7 +115,7 @@ def test_undistort_and_distort_round_trip_and_match_opencv() -> None:
     ref, _ = cv2.projectPoints(
         np.c_[xy, np.ones(len(xy))], np.zeros(3), np.zeros(3), EUROC_CAM.K, EUROC_CAM.dist_coeffs
     )
-    np.testing.assert_allclose(distort_to_pixels(EUROC_CAM, xy), ref.reshape(-1, 2), atol=1e-9)
+    np.testing.assert_allclose(_to_pixels(xy), ref.reshape(-1, 2), atol=1e-9)
 
 
 def test_rotation_prediction_is_the_infinite_homography() -> None:
@@ -204,7 +229,7 @@ def test_preintegration_prediction_and_landmark_reprojection() -> None:
     np.testing.assert_allclose(motion.R_cur_prev, (R_imu_cam.T @ R_gyro @ R_imu_cam).T, atol=1e-9)
     # Pose: rotated by Exp(w (t1 - state.t)) about z, no translation.
     np.testing.assert_allclose(motion.T_cam_world, T_cam_world, atol=1e-9)
-    expected = distort_to_pixels(EUROC_CAM, p_cam[:, :2] / p_cam[:, 2:])
+    expected = _to_pixels(p_cam[:, :2] / p_cam[:, 2:])
     prev_px = np.array([[100.0, 100.0], [200.0, 200.0], [300.0, 300.0]])
     pred, by_point = predictor.predict_points(motion, prev_px, np.array([9, 1, 7]))
     assert by_point.tolist() == [True, False, True]

@@ -3,14 +3,9 @@
 import numpy as np
 import pytest
 
+from common.geometry import umeyama_alignment
 from services.edge.vio.manager import VioManager
-from services.edge.vio.simulation import (
-    SimOptions,
-    evaluate_run,
-    run_sequence,
-    simulate,
-    umeyama_alignment,
-)
+from services.edge.vio.simulation import SimOptions, evaluate_run, run_sequence, simulate
 from services.edge.vio.types import FrameObservation, TrackingStatus, VioError
 
 
