@@ -277,6 +277,7 @@ class CloudCore:
 
     def flush(self, now: float) -> list[Action]:
         """The pose graphs of every scheduled map now, without waiting for the debounce."""
+        self._check_idle()
         self._triggered, self._trigger_t = False, None
         maps, self._dirty = sorted(self._dirty), set()
         return self._start([_PoseGraph(m) for m in maps], now)
@@ -284,6 +285,7 @@ class CloudCore:
     def shutdown(self, now: float) -> list[Action]:
         """The shutdown sequence (module docstring); the full BAs share what is left of
         ``full_ba_at_shutdown_s`` counted from ``now``."""
+        self._check_idle()
         cfg = self.config
         steps: list[_Step] = []
         budget = cfg.full_ba_at_shutdown_s
@@ -357,9 +359,12 @@ class CloudCore:
         return step
 
     # ------------------------------------------------------------------ stepping
-    def _start(self, steps: Iterable[_Step], now: float) -> list[Action]:
+    def _check_idle(self) -> None:
         if self._busy:
             raise CloudCoreError("a round is already running")
+
+    def _start(self, steps: Iterable[_Step], now: float) -> list[Action]:
+        self._check_idle()
         self._busy = True
         self._steps = deque(steps)
         return self._advance(now)

@@ -156,27 +156,35 @@ def test_a_merge_during_a_solve_reschedules_the_map(feed):
     core = f.core
     for i in range(24):
         f.keyframe("r0", 0.1 * i)
-    [req] = core.optimize(0, 3.0)
-    with pytest.raises(CloudCoreError):
-        core.flush(3.0)  # a round is already running
-    merged = False
-    for i in range(12):
-        merged = f.keyframe("r1", 3.1 + 0.1 * i)
+    run_inline(core, core.flush(2.5), 2.5)  # r0's loop closure: nothing scheduled after it
+    assert core.next_deadline() is None
+    # r1's own map (1) is optimised before each of its keyframes; one of them merges it into
+    # r0's map (0) while that solve is out.
+    req, merged, now = None, False, 3.0
+    for _ in range(12):
+        now += 0.1
+        started = core.optimize(1, now) if 1 in f.app.atlas.maps() else []
+        req = started[0] if started else None  # none while map 1 has a single keyframe
+        merged = f.keyframe("r1", now)
         if merged:
             break
-    assert merged and len(f.app.atlas.maps()) == 1
-    t_end = 5.0
-    actions = core.solved(req, solve(req), t_end)
-    # The result is in a stale frame: nothing applied or sent, the map is scheduled again.
-    assert actions == [Outcome(0, SolveKind.POSE_GRAPH, False)]
-    assert core.optimizations == 0 and 0 in core.dirty
-    assert core.next_deadline() == pytest.approx(t_end + 0.5)
-    [m] = f.app.atlas.maps()
-    out = run_inline(core, core.on_timer(t_end + 0.5), t_end + 0.5)
-    assert Outcome(m, SolveKind.POSE_GRAPH, True) in out and core.optimizations == 1
+        if req is not None:
+            run_inline(core, core.solved(req, solve(req), now), now)
+    assert merged and req is not None and req.map_id == 1 and f.app.atlas.maps() == [0]
+    with pytest.raises(CloudCoreError):
+        core.flush(now)  # a round is already running
+    assert core.dirty == {0}  # the merge scheduled the merged map
+    n_opt = core.optimizations
+    actions = core.solved(req, solve(req), now + 2.0)
+    # The result is in a stale frame: nothing applied or sent, map 1 is scheduled again.
+    assert actions == [Outcome(1, SolveKind.POSE_GRAPH, False)]
+    assert core.optimizations == n_opt and core.dirty == {0, 1}
+    assert core.next_deadline() == pytest.approx(now + 2.5)  # debounced from the round's end
+    out = run_inline(core, core.on_timer(now + 2.5), now + 2.5)
+    assert [o for o in out if isinstance(o, Outcome)] == [Outcome(0, SolveKind.POSE_GRAPH, True)]
     sent = {c.message.agent_id for a in out if isinstance(a, SendCorrections)
             for c in a.corrections}  # fmt: skip
-    assert sent == {"r0", "r1"}
+    assert sent == {"r0", "r1"} and core.dirty == frozenset()
 
 
 def test_a_full_ba_follows_the_pose_graph_after_full_ba_every_keyframes(feed):
