@@ -227,7 +227,8 @@ class CloudServer:
         self._tasks = []
         if self._app is not None and self._core is not None:
             loop = asyncio.get_running_loop()
-            await self._on_worker(self._core.cancel, loop.time())  # a round cut short
+            async with self._round_lock:  # a round cut short by the cancel: reschedule it
+                await self._on_worker(self._core.cancel, loop.time())
             await self._round(self._core.shutdown)
             self._final_stats = await self.stats()
             if write_output and self.output is not None:
