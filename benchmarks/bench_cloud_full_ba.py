@@ -9,7 +9,7 @@ landmarks; keyframe poses (1 cm / 0.6° per axis) and points (3 cm) perturbed; p
 (atlas -> plain arrays, on the service's worker) and solve (in the optimiser process) timed
 separately, one run each, with the service's default options.
 
-Part 2 (``--recording``): :func:`recslam.table3.replay` of an uplink recording with the
+Part 2 (``--recording``): :func:`lab.table3.replay` of an uplink recording with the
 service's default configuration (MBP on), pose graph only vs pose graph + full BA on the
 server's schedule; joint ATE (SE(3), the cloud report's) of the keyframe trajectories, and
 the size and solve time of every full BA the replay ran.
@@ -84,23 +84,25 @@ def synthetic_rows(sizes: list[tuple[int, int]]) -> list[str]:
 
 def replay_rows(recording: Path, data: Path) -> list[str]:
     """Replay with and without full BA (MBP on in both); table rows."""
-    import recslam.table3 as table3
+    import lab.table3 as table3
     from common.evaluation.results import load_groundtruth
     from common.vocabulary import DEFAULT_VOCABULARY_PATH, Vocabulary
     from recslam.commands.cloud import find_camera
+    from services.cloud.core import SolveRequest, SolveResult, solve
+    from services.cloud.full_ba import FullBAResult
     from services.cloud.recording import read_recording
 
     camera = find_camera(None, data)
     vocab = Vocabulary.load(DEFAULT_VOCABULARY_PATH)
     solves: list[tuple[FullBAProblem, float, int, float, float]] = []
-    inner = table3.solve_full_ba
 
-    def timed(problem: FullBAProblem, *args: object) -> object:
-        res = inner(problem, *args)  # type: ignore[arg-type]
-        solves.append((problem, res.seconds, res.iterations, res.initial_rms_px, res.final_rms_px))
+    def timed(request: SolveRequest) -> SolveResult:
+        res = solve(request)
+        if isinstance(res, FullBAResult) and isinstance(request.problem, FullBAProblem):
+            solves.append((request.problem, res.seconds, res.iterations, res.initial_rms_px,
+                           res.final_rms_px))  # fmt: skip
         return res
 
-    table3.solve_full_ba = timed  # type: ignore[assignment]
     results = {}
     with tempfile.TemporaryDirectory() as tmp:
         for full in (False, True):
@@ -108,7 +110,7 @@ def replay_rows(recording: Path, data: Path) -> list[str]:
             records = read_recording(recording, allow_truncated_tail=True)
             results[full] = table3.replay(
                 records, camera, vocab, table3.service_config(True), Path(tmp) / str(full),
-                label, full_ba=full,
+                label, full_ba=full, solve_fn=timed,
             )  # fmt: skip
             log.info("%s: %.0f s", label, results[full].seconds)
         names = sorted(set(results[False].trajectories) | set(results[True].trajectories))
@@ -118,7 +120,7 @@ def replay_rows(recording: Path, data: Path) -> list[str]:
             "ATE joint m | replay s |", "|---|---|---|---|---|---|---|---|"]  # fmt: skip
     for full in (False, True):
         r = results[full]
-        ate = table3.joint_ate(refs, r)
+        ate = table3.joint_ate(refs, r.trajectories)
         under = sorted(ate.under_joint.items()) if ate else []
         per = ", ".join(f"{n} {a.stats.rmse:.3f}" for n, a in under)
         joint = f"{ate.stats.rmse:.4f}" if ate else "n/a"
@@ -143,7 +145,7 @@ def sigma_sweep(state_dir: Path, camera: object, vocab: object, refs: dict) -> l
     """Full BA of the final map of a replay's state directory with several odometry sigmas."""
     import dataclasses
 
-    import recslam.table3 as table3
+    import lab.table3 as table3
     from common.evaluation.alignment import AlignMode
     from common.evaluation.metrics import AteConfig, compute_joint_ate
     from services.cloud.full_ba import apply_full_ba
@@ -220,7 +222,7 @@ def main() -> None:
             "## Replay of a recorded run: joint ATE with and without full BA",
             "",
             f"Recording `{args.recording}`, ground truth `{args.data}`; "
-            "`recslam.table3.replay` with the service's defaults (MBP on), pose graph only vs "
+            "`lab.table3.replay` with the service's defaults (MBP on), pose graph only vs "
             "pose graph + full BA on the server's schedule (every "
             "`full_ba_every_keyframes`, on quiet, and at the end).",
             "",

@@ -4,6 +4,9 @@ runs into tables and plots. Services never import this package.
 
 - :mod:`lab.links`: ``recslam experiment links``, the bit budget of every link, raw vs coded
   wire (tables and plot in :mod:`lab.links_report`).
+- :mod:`lab.table3`: ``recslam experiment table3``, the paper's Table 3 (MBP) from replays of
+  a recorded uplink through the cloud's own core (tables and plot in
+  :mod:`lab.table3_report`).
 """
 
 from __future__ import annotations

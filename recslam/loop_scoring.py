@@ -1,6 +1,6 @@
 """Precision and recall of the cloud's loop / merge detection against ground truth.
 
-Inputs are what a replay observed (``recslam.table3``): every keyframe that reached the cloud
+Inputs are what a replay observed (``lab.table3``): every keyframe that reached the cloud
 (:class:`KeyframeInfo`: robot name, timestamp), every verified candidate
 (:class:`Detection`: query keyframe, matched keyframe, the verified relative body pose,
 accepted or not) and, for every new keyframe, the keyframes the cloud held when it was

@@ -1,7 +1,7 @@
 """``recslam experiment bandwidth``: the whole job with the robot→edge links rate-limited.
 
 (``recslam experiment table3``: keyframes, map points and ATE with and without MBP from a
-recorded run, and loop-detection precision / recall; see :mod:`recslam.table3`.
+recorded run, and loop-detection precision / recall; see :mod:`lab.table3`.
 ``recslam experiment links``: the bit budget of every link, raw vs coded wire; see
 :mod:`lab.links`.)
 
@@ -338,12 +338,12 @@ def run(args: argparse.Namespace) -> int:
 
 
 def run_table3(args: argparse.Namespace) -> int:
-    """``recslam experiment table3`` (logic in :mod:`recslam.table3`)."""
+    """``recslam experiment table3`` (logic in :mod:`lab.table3`)."""
     from common.errors import RecslamError
     from common.vocabulary import DEFAULT_VOCABULARY_PATH, Vocabulary
+    from lab.table3 import run_table3 as table3
+    from lab.table3_report import write_table3
     from recslam.commands.cloud import find_camera
-    from recslam.table3 import run_table3 as table3
-    from recslam.table3_report import write_table3
 
     if not args.recording.is_file():
         raise RecslamError(f"--recording {args.recording}: no such file")

@@ -7,8 +7,10 @@ covisibility, spanning tree), ``place_recognition`` (BoW database, loop candidat
 ``map_fusion`` (front object over them), ``simulation`` (synthetic world for tests).
 
 Service: ``uplink`` (edge messages <-> domain inputs), ``app`` (reacts to messages on one
-worker thread, commits before acknowledging), ``server`` (asyncio lifecycle, debounced
-optimisation in a separate process, corrections back to the edges), ``map_source`` (the
+worker thread, commits before acknowledging), ``core`` (sans-I/O schedule: debounced pose
+graphs, full BA, MBP, shutdown; takes ``now``, returns solve requests and corrections),
+``server`` (asyncio runner of the core: lifecycle, solves in a separate process, corrections
+back to the edges), ``map_source`` (the
 dashboard's ``common.map_view.MapSource``), ``output`` (TUM trajectories, ATE report).
 Command: ``recslam cloud`` (``recslam/commands/cloud.py``).
 """

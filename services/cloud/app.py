@@ -55,7 +55,7 @@ from services.cloud.atlas import Atlas, AtlasSnapshot, KeyframeInput, make_key
 from services.cloud.config import CloudServiceConfig
 from services.cloud.full_ba import FullBAProblem, FullBAResult
 from services.cloud.global_optimization import PoseGraphProblem, PoseGraphResult
-from services.cloud.map_fusion import MapFusion
+from services.cloud.map_fusion import FusionEvents, MapFusion
 from services.cloud.map_source import AgentInfo, CloudView
 from services.cloud.mbp import MbpReport
 from services.cloud.persistence import CloudStore
@@ -98,11 +98,13 @@ class PositionStore:
 @dataclass
 class Reaction:
     """What one message changed: maps that need an optimisation now (loop / merge), new
-    keyframes per map, and whether maps were merged."""
+    keyframes per map, whether maps were merged, and what map fusion did with the message's
+    keyframe (``events``: its verifications and loops / merges; None for other messages)."""
 
     urgent_maps: set[int] = field(default_factory=set)
     new_keyframes: dict[int, int] = field(default_factory=dict)
     merged: bool = False
+    events: FusionEvents | None = None
 
 
 @dataclass
@@ -242,7 +244,7 @@ class CloudApp:
         is_new = not self.atlas.has_keyframe(key) and key not in self.atlas.removed_keyframes()
         events = self.fusion.add_keyframe(kf)
         a.last_seen = d.timestamp_ns * 1e-9
-        reaction = Reaction(urgent_maps=set(events.maps_to_optimize))
+        reaction = Reaction(urgent_maps=set(events.maps_to_optimize), events=events)
         merged = any(o.merge is not None for o in events.outcomes)
         agents = self._rows(a)
         if merged or events.outcomes:

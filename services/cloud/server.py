@@ -1,31 +1,25 @@
 """The cloud network service: edges connect, keyframes flow in, corrections flow back.
 
-:class:`CloudServer` runs on an asyncio loop and owns the lifecycle:
+:class:`CloudServer` is the asyncio runner of the cloud's sans-I/O
+:class:`~services.cloud.core.CloudCore` (the schedule of pose graphs, full BA and MBP is
+described there, once) and owns the lifecycle:
 
 - a :class:`common.transport.Server` accepts any number of edges (each serving several
   robots; the connection's agent id is the edge id, ``KeyframeUpdate.agent_id`` the robot);
-- every message goes to :class:`~services.cloud.app.CloudApp` on a single *worker* thread
-  (decode, place recognition, verification, merging, SQLite commit). The transport
-  acknowledges after the handler returns, i.e. after the commit: acknowledged = durable.
-  A malformed message (any ``RecslamError`` but a storage failure) makes the handler raise,
-  which closes that edge's connection only;
-  a message that fails ``max_failures`` times in a row is logged and skipped so that one
-  bad message cannot wedge an edge's stream forever;
-- global optimisation is debounced: a map is scheduled at once after a loop or merge and
-  after every ``optimize_every_keyframes`` new keyframes; ``debounce_s`` later the pose
-  graph is built on the worker, solved in a separate *optimizer* process (gtsam holds the
-  GIL for most of a solve, so a thread would starve the event loop: measured in
-  ``benchmarks/results/cloud_service.md``; ``optimizer_process=False`` uses a thread),
-  written back on the worker, and the corrected poses go to the edges as
-  ``PoseCorrection`` in each robot's own map frame;
-- MBP runs on the worker right after an optimisation when due (it mutates the atlas);
-- the full bundle adjustment (:mod:`services.cloud.full_ba`, when
-  ``domain.full_ba.enabled``) is built on the worker, solved in the same optimizer process
-  and applied like a pose graph (corrections to the edges included): right after a map's
-  pose-graph optimisation once it has ``full_ba_every_keyframes`` new keyframes since its
-  last one, when no keyframe has arrived and nothing is scheduled for ``full_ba_quiet_s``,
-  and at :meth:`CloudServer.stop` (pending pose graphs first, then at most
-  ``full_ba_at_shutdown_s`` in all for the changed maps) before the trajectories are written;
+- every message goes to the core (and its :class:`~services.cloud.app.CloudApp`) on a single
+  *worker* thread (decode, place recognition, verification, merging, SQLite commit); every
+  call of the core and the app runs there. The transport acknowledges after the handler
+  returns, i.e. after the commit: acknowledged = durable. A malformed message (any
+  ``RecslamError`` but a storage failure) makes the handler raise, which closes that edge's
+  connection only; a message that fails ``max_failures`` times in a row is logged and
+  skipped so that one bad message cannot wedge an edge's stream forever;
+- the core's one timer (:meth:`CloudCore.next_deadline`) is a task on the event loop, with
+  loop time as ``now``; the solves it asks for run in a separate *optimizer* process (gtsam
+  holds the GIL for most of a solve, so a thread would starve the event loop: measured in
+  ``benchmarks/results/cloud_service.md``; ``optimizer_process=False`` uses a thread), and
+  the corrected poses go to the edges as ``PoseCorrection`` in each robot's own map frame;
+- at :meth:`CloudServer.stop`: the core's shutdown sequence, then the trajectories are
+  written;
 - the dashboard's :class:`~services.cloud.map_source.CloudMapSource` is refreshed every
   ``publish_every_s``; trajectories (and the ATE report with ground truth) are written every
   ``output_every_s`` and at :meth:`CloudServer.stop`;
@@ -37,12 +31,13 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import dataclasses
 import logging
+import math
 import multiprocessing
 import os
 import time
-from collections.abc import Callable
+from collections import deque
+from collections.abc import Callable, Iterable
 from concurrent.futures import BrokenExecutor, Executor, ProcessPoolExecutor, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
@@ -57,14 +52,18 @@ from common.protocol import OutboxFullError, SessionConfig
 from common.protocol.errors import LocalProtocolError
 from common.transport import Delivery, Server, TransportConfig
 from common.vocabulary import Vocabulary
-from services.cloud.app import CloudApp, Correction, PositionStore, Reaction
+from services.cloud.app import CloudApp, Correction, PositionStore
 from services.cloud.config import CloudServiceConfig
-from services.cloud.full_ba import solve_full_ba
-from services.cloud.global_optimization import (
-    optimize_pose_graph,
-    optimizer_process_init,
-    warm_up,
+from services.cloud.core import (
+    Action,
+    CloudCore,
+    Outcome,
+    SendCorrections,
+    SolveKind,
+    SolveRequest,
+    SolveResult,
 )
+from services.cloud.global_optimization import optimizer_process_init, warm_up
 from services.cloud.map_fusion import MapFusion
 from services.cloud.map_source import CloudMapSource
 from services.cloud.output import OutputWriter
@@ -74,6 +73,28 @@ from services.cloud.recording import RecordingWriter
 log = logging.getLogger(__name__)
 
 T = TypeVar("T")
+
+
+def open_app(
+    state_dir: str | Path,
+    camera: CameraCalibration,
+    vocabulary: Vocabulary,
+    config: CloudServiceConfig,
+    positions: PositionStore | None = None,
+) -> CloudApp:
+    """The cloud's :class:`CloudApp` on ``state_dir`` (resumed if it holds a previous run)."""
+    store = CloudStore(Path(state_dir))
+    atlas = store.load()
+    wg = None
+    if config.word_group_level is not None:
+        words = range(vocabulary.n_words)
+        wg = vocabulary.ancestor_at_level(list(words), config.word_group_level)
+    fusion = MapFusion(camera, vocabulary.idf, config.domain, atlas, wg)
+    return CloudApp(fusion, store, vocabulary, config, positions)
+
+
+def _applied(outcomes: Iterable[Outcome], map_id: int, kind: SolveKind) -> bool:
+    return not any(o.map_id == map_id and o.kind is kind and not o.applied for o in outcomes)
 
 
 @dataclass(frozen=True)
@@ -138,19 +159,15 @@ class CloudServer:
         self._io = ThreadPoolExecutor(1, thread_name_prefix="cloud-io")
         self._optimizer = self._new_optimizer()
         self._app: CloudApp | None = None
+        self._core: CloudCore | None = None
         self._server = Server(session, self._on_message, transport=transport, store=self.positions)
         self._max_failures = max_failures
         self._failures: dict[tuple[str, bytes, int], int] = {}
-        self._dirty: set[int] = set()
-        self._since_opt: dict[int, int] = {}
-        self._since_full: dict[int, int] = {}  # map -> changes since its last full BA
-        self._last_keyframe_t = 0.0  # loop time of the last new keyframe
-        self._full_bas = 0
-        self._trigger = asyncio.Event()
+        self._wake = asyncio.Event()  # the core's deadline moved
+        self._armed: float | None = math.nan  # the deadline the timer sleeps on (nan: none yet)
+        self._round_lock = asyncio.Lock()  # one round of the core at a time
         self._tasks: list[asyncio.Task[None]] = []
-        self._optimizations = 0
         self._corrections = 0
-        self._mbp_passes = 0
         self._final_stats: CloudStats | None = None
         self.address: tuple[str, int] | None = None
         self._references: dict[str, Trajectory] = {}  # ground truth per robot name
@@ -174,28 +191,22 @@ class CloudServer:
     async def _on_worker(self, fn: Callable[..., T], *args: Any) -> T:
         return await asyncio.get_running_loop().run_in_executor(self._worker, fn, *args)
 
-    def _open(self) -> CloudApp:
-        store = CloudStore(self.state_dir)
-        atlas = store.load()
-        wg = None
-        if self.config.word_group_level is not None:
-            words = range(self.vocabulary.n_words)
-            wg = self.vocabulary.ancestor_at_level(list(words), self.config.word_group_level)
-        fusion = MapFusion(self.camera, self.vocabulary.idf, self.config.domain, atlas, wg)
-        return CloudApp(fusion, store, self.vocabulary, self.config, self.positions)
+    def _open(self, now: float) -> tuple[CloudApp, CloudCore]:
+        app = open_app(self.state_dir, self.camera, self.vocabulary, self.config, self.positions)
+        core = CloudCore(app)
+        core.resume(now)  # a restart re-sends fresh corrections
+        return app, core
 
     async def start(self, host: str = "127.0.0.1", port: int = 0) -> tuple[str, int]:
         """Load the state directory, then listen; returns the bound address."""
         self._optimizer.submit(warm_up)  # import gtsam in the optimizer now, not at a merge
-        self._app = await self._on_worker(self._open)
+        now = asyncio.get_running_loop().time()
+        self._app, self._core = await self._on_worker(self._open, now)
         if self._record_path is not None:
             self._recorder = RecordingWriter(self._record_path)
         n = self._app.atlas.n_keyframes()
         log.info("cloud state %s: %d keyframes, %d map points, maps %s", self.state_dir, n,
                  self._app.atlas.n_map_points(), self._app.atlas.maps())  # fmt: skip
-        self._dirty.update(self._app.atlas.maps())  # a restart re-sends fresh corrections
-        if self._dirty:
-            self._trigger.set()
         self.address = await self._server.start(host, port)
         self._tasks = [
             asyncio.create_task(self._optimize_loop(), name="cloud-optimize"),
@@ -214,14 +225,16 @@ class CloudServer:
             with contextlib.suppress(asyncio.CancelledError):
                 await t
         self._tasks = []
-        if self._app is not None:
-            await self._full_ba_at_shutdown()
-            await self._mbp_at_shutdown()
+        if self._app is not None and self._core is not None:
+            loop = asyncio.get_running_loop()
+            async with self._round_lock:  # a round cut short by the cancel: reschedule it
+                await self._on_worker(self._core.cancel, loop.time())
+            await self._round(self._core.shutdown)
             self._final_stats = await self.stats()
             if write_output and self.output is not None:
                 await self.write_output(evaluate=True)
             await self._on_worker(self._app.close)
-            self._app = None
+            self._app, self._core = None, None
         if self._recorder is not None:
             await self._on_worker(self._recorder.close)
             self._recorder = None
@@ -237,12 +250,13 @@ class CloudServer:
 
     # ------------------------------------------------------------------ messages
     async def _on_message(self, d: Delivery) -> None:
-        app = self._app
-        if app is None:
+        app, core = self._app, self._core
+        if app is None or core is None:
             raise LocalProtocolError("cloud is not running")
         key = (d.peer, d.stream_id, d.seq)
+        clock = asyncio.get_running_loop().time  # read on the worker, when the message is applied
         try:
-            reaction = await self._on_worker(self._handle, app, d, time.time())
+            deadline = await self._on_worker(self._handle, core, d, clock, time.time())
         except PersistenceError:
             raise  # not the message's fault: no ack, it is redelivered
         except RecslamError as exc:  # malformed or inconsistent input (UplinkError, AtlasError)
@@ -258,177 +272,79 @@ class CloudServer:
                         type(d.message).__name__, d.seq, exc)  # fmt: skip
             raise
         self._failures.pop(key, None)
-        self._react(reaction)
+        if deadline != self._armed:  # the schedule changed: the timer re-arms
+            self._wake.set()
 
-    def _handle(self, app: CloudApp, d: Delivery, t_recv: float) -> Reaction:
-        """Apply one message (worker thread), then record it when recording."""
-        reaction = app.handle(d.peer, d.message, d.stream_id, d.seq)
+    def _handle(
+        self, core: CloudCore, d: Delivery, clock: Callable[[], float], t_recv: float
+    ) -> float | None:
+        """Apply one message (worker thread), record it when recording; the core's next
+        deadline after it."""
+        core.handle(d.peer, d.message, d.stream_id, d.seq, clock())
         if self._recorder is not None:
             self._recorder.write(d.peer, d.stream_id, d.seq, d.message, t_recv)
-        return reaction
-
-    def _react(self, reaction: Reaction) -> None:
-        trigger = bool(reaction.urgent_maps)
-        self._dirty.update(reaction.urgent_maps)
-        for m in reaction.urgent_maps:
-            self._since_full[m] = self._since_full.get(m, 0) + 1
-        if reaction.new_keyframes:
-            self._last_keyframe_t = asyncio.get_running_loop().time()
-        for m, n in reaction.new_keyframes.items():
-            self._since_full[m] = self._since_full.get(m, 0) + n
-            self._since_opt[m] = self._since_opt.get(m, 0) + n
-            if self._since_opt[m] >= self.config.optimize_every_keyframes:
-                self._dirty.add(m)
-                trigger = True
-        if trigger:
-            self._trigger.set()
+        return core.next_deadline()
 
     # ------------------------------------------------------------------ optimisation
     async def _optimize_loop(self) -> None:
+        """The core's single timer: sleep until its deadline (or until a message moved it),
+        then run the round that is due."""
+        core = self._core
+        assert core is not None
+        loop = asyncio.get_running_loop()
         while True:
-            if not await self._wait_trigger_or_quiet():
-                await self._full_ba_changed("quiet")
+            self._armed = math.nan  # a message handled meanwhile wakes the loop
+            self._wake.clear()
+            deadline = await self._on_worker(core.next_deadline)
+            self._armed = deadline
+            left = None if deadline is None else deadline - loop.time()
+            if left is None or left > 0:
+                with contextlib.suppress(TimeoutError):
+                    await asyncio.wait_for(self._wake.wait(), left)
                 continue
-            await asyncio.sleep(self.config.debounce_s)
-            self._trigger.clear()
-            maps, self._dirty = sorted(self._dirty), set()
-            for m in maps:
-                try:
-                    await self.optimize_map(m)
-                except asyncio.CancelledError:
-                    raise
-                except Exception:
-                    log.exception("optimisation of map %d failed", m)
+            await self._round(core.on_timer)
 
-    async def optimize_map(self, map_id: int) -> bool:
-        """Optimise one map now (off the event loop), apply, send corrections, run MBP if
-        due. Returns False if the map changed shape meanwhile (it is rescheduled)."""
-        app = self._app
-        assert app is not None
-        self._since_opt[map_id] = 0
-        built = await self._on_worker(app.optimization_problem, map_id)
-        if built is None:
-            return True
-        problem, token = built
-        result = await self._solve(map_id, optimize_pose_graph, problem,
-                                   self.config.domain.optimization)  # fmt: skip
-        corrections = await self._on_worker(app.apply_optimization, map_id, result, token)
-        if corrections is None:
-            log.info("map %d merged while optimising; rescheduling", map_id)
-            self._dirty.add(map_id)
-            self._trigger.set()
-            return False
-        self._optimizations += 1
-        self._send(corrections)
-        if await self._on_worker(app.prune_due, map_id):
-            await self._on_worker(app.prune, map_id)
-            self._mbp_passes += 1
-        if self._since_full.get(map_id, 0) >= self.config.full_ba_every_keyframes:
-            await self.full_ba_map(map_id)
-        return True
+    async def _round(self, start: Callable[..., list[Action]], *args: Any) -> list[Outcome]:
+        """Start a round of the core (``start(*args, now)`` on the worker) and run it to its
+        end: solves in the optimizer, corrections to the edges. One round at a time. Returns
+        the outcomes of its solves."""
+        core = self._core
+        assert core is not None
+        loop = asyncio.get_running_loop()
+        outcomes: list[Outcome] = []
+        async with self._round_lock:
+            pending = deque(await self._on_worker(start, *args, loop.time()))
+            while pending:
+                action = pending.popleft()
+                if isinstance(action, Outcome):
+                    outcomes.append(action)
+                elif isinstance(action, SendCorrections):
+                    self._send(action.corrections)
+                elif isinstance(action, SolveRequest):
+                    try:
+                        result = await self._solve(action)
+                    except asyncio.CancelledError:
+                        raise
+                    except Exception:
+                        log.exception("%s of map %d failed", action.kind.value, action.map_id)
+                        more = await self._on_worker(core.failed, action, loop.time())
+                    else:
+                        more = await self._on_worker(core.solved, action, result, loop.time())
+                    pending.extend(more)
+        return outcomes
 
-    async def _solve(self, map_id: int, fn: Callable[..., T], *args: Any) -> T:
+    async def _solve(self, request: SolveRequest) -> SolveResult:
         """Run a pure solver in the optimizer (restarted if its process died)."""
         loop = asyncio.get_running_loop()
         try:
-            return await loop.run_in_executor(self._optimizer, fn, *args)
+            return await loop.run_in_executor(self._optimizer, request.job())
         except BrokenExecutor:
-            log.error("optimizer process died on map %d; starting a new one", map_id)
+            log.error("optimizer process died on map %d; starting a new one", request.map_id)
             self._optimizer.shutdown(wait=False)
             self._optimizer = self._new_optimizer()
             raise
 
-    async def full_ba_map(
-        self, map_id: int, max_seconds: float | None = None, send: bool = True
-    ) -> bool:
-        """Full bundle adjustment of one map now (off the event loop), applied like a pose
-        graph; corrections go to the edges when ``send``. ``max_seconds`` overrides the
-        solver's time budget. Returns False if the map was merged meanwhile (rescheduled)."""
-        app = self._app
-        assert app is not None
-        self._since_full[map_id] = 0
-        built = await self._on_worker(app.full_ba_problem, map_id)
-        if built is None:
-            return True
-        problem, token = built
-        cfg = self.config.domain.full_ba
-        if max_seconds is not None:
-            cfg = dataclasses.replace(cfg, max_seconds=max_seconds)
-        result = await self._solve(map_id, solve_full_ba, problem, cfg,
-                                   self.config.domain.optimization)  # fmt: skip
-        corrections = await self._on_worker(app.apply_optimization, map_id, result, token)
-        if corrections is None:
-            log.info("map %d merged during its full BA; rescheduling", map_id)
-            self._since_full[map_id] = self._since_full.get(map_id, 0) + 1
-            return False
-        self._full_bas += 1
-        if send:
-            self._send(corrections)
-        return True
-
-    async def _wait_trigger_or_quiet(self) -> bool:
-        """Wait for an optimisation trigger (True), or until the maps have been quiet for
-        ``full_ba_quiet_s`` while one changed since its last full BA (False)."""
-        quiet = self.config.full_ba_quiet_s
-        loop = asyncio.get_running_loop()
-        while True:
-            pending = any(n > 0 for n in self._since_full.values())
-            if not (self.config.domain.full_ba.enabled and quiet > 0 and pending):
-                await self._trigger.wait()
-                return True
-            left = self._last_keyframe_t + quiet - loop.time()
-            if left <= 0 and not self._dirty:
-                return False
-            try:
-                await asyncio.wait_for(self._trigger.wait(), max(left, 0.1))
-                return True
-            except TimeoutError:
-                continue
-
-    async def _full_ba_changed(self, why: str, deadline: float | None = None,
-                               send: bool = True) -> None:  # fmt: skip
-        """Full BA of every map that changed since its last one (errors are logged); with
-        ``deadline`` (loop time) the solves share what is left until then."""
-        loop = asyncio.get_running_loop()
-        for m in sorted(m for m, n in self._since_full.items() if n > 0):
-            left = None if deadline is None else deadline - loop.time()
-            if left is not None and left <= 0:
-                log.info("no time left for the full BA of map %d (%s)", m, why)
-                continue
-            log.info("full BA of map %d (%s)", m, why)
-            try:
-                await self.full_ba_map(m, left, send)
-            except asyncio.CancelledError:
-                raise
-            except Exception:
-                log.exception("full BA of map %d failed", m)
-
-    async def _full_ba_at_shutdown(self) -> None:
-        """Pending pose graphs, then a time-bounded full BA of the changed maps."""
-        budget = self.config.full_ba_at_shutdown_s
-        if not self.config.domain.full_ba.enabled or budget <= 0:
-            return
-        deadline = asyncio.get_running_loop().time() + budget
-        try:
-            await self.flush_optimizations()
-        except Exception:
-            log.exception("pose-graph optimisation at shutdown failed")
-        await self._full_ba_changed("shutdown", deadline, send=False)
-
-    async def _mbp_at_shutdown(self) -> None:
-        """MBP over every map once the last optimisation is in (``mbp_at_shutdown``): the
-        persisted map is pruned, the trajectories keep every pose (retired keyframes)."""
-        app = self._app
-        if app is None or not (self.config.mbp_at_shutdown and self.config.domain.mbp.enabled):
-            return
-        for m in await self._on_worker(app.atlas.maps):
-            try:
-                await self._on_worker(app.prune, m)
-                self._mbp_passes += 1
-            except Exception:
-                log.exception("MBP of map %d at shutdown failed", m)
-
-    def _send(self, corrections: list[Correction]) -> None:
+    def _send(self, corrections: Iterable[Correction]) -> None:
         for c in corrections:
             try:
                 self._server.peer(c.edge_id).send_nowait(c.message)
@@ -440,11 +356,33 @@ class CloudServer:
                 log.warning("edge %s outbox full; correction of %s dropped", c.edge_id,
                             c.message.agent_id)  # fmt: skip
 
+    async def optimize_map(self, map_id: int) -> bool:
+        """Optimise one map now (off the event loop), apply, send corrections, run MBP and the
+        full BA if due. Returns False if the map was merged meanwhile (it is rescheduled)."""
+        core = self._core
+        assert core is not None
+        outcomes = await self._round(core.optimize, map_id)
+        return _applied(outcomes, map_id, SolveKind.POSE_GRAPH)
+
+    async def full_ba_map(
+        self, map_id: int, max_seconds: float | None = None, send: bool = True
+    ) -> bool:
+        """Full bundle adjustment of one map now (off the event loop), applied like a pose
+        graph; corrections go to the edges when ``send``. ``max_seconds`` overrides the
+        solver's time budget. Returns False if the map was merged meanwhile (rescheduled)."""
+        core = self._core
+        assert core is not None
+
+        def start(now: float) -> list[Action]:
+            return core.full_ba(map_id, now, max_seconds, send)
+
+        return _applied(await self._round(start), map_id, SolveKind.FULL_BA)
+
     async def flush_optimizations(self) -> None:
-        """Optimise every map that is scheduled, now (tests, shutdown)."""
-        maps, self._dirty = sorted(self._dirty), set()
-        for m in maps:
-            await self.optimize_map(m)
+        """Optimise every map that is scheduled, now (tests, benchmarks)."""
+        core = self._core
+        assert core is not None
+        await self._round(core.flush)
 
     async def optimize_all(self) -> None:
         """Optimise every map now (tests, benchmarks)."""
@@ -521,17 +459,17 @@ class CloudServer:
 
     async def stats(self) -> CloudStats:
         """Counters now (after :meth:`stop`: as they were when the service stopped)."""
-        app = self._app
+        app, core = self._app, self._core
         if app is None and self._final_stats is not None:
             return self._final_stats
-        assert app is not None
+        assert app is not None and core is not None
 
         def collect() -> CloudStats:
             a = app.atlas
             return CloudStats(
-                app.messages, app.rejected, self._optimizations, self._corrections,
-                self._mbp_passes, a.n_keyframes(), a.n_map_points(), tuple(a.maps()),
-                len(a.merges()), len(a.loops()), self._full_bas,
+                app.messages, app.rejected, core.optimizations, self._corrections,
+                core.mbp_passes, a.n_keyframes(), a.n_map_points(), tuple(a.maps()),
+                len(a.merges()), len(a.loops()), core.full_bas,
             )  # fmt: skip
 
         return await self._on_worker(collect)

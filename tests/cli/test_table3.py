@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from common.vocabulary import Vocabulary
-from recslam.table3 import replay, service_config
+from lab.table3 import replay, service_config
 from services.cloud.recording import RecordingWriter, read_recording
 from services.cloud.simulation import (
     circle_poses,

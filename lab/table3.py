@@ -2,22 +2,13 @@
 
 ``recslam demo --record-uplink FILE`` (``recslam cloud --record``) records every uplink
 message the cloud applied, in order, with its receive time. :func:`replay` feeds such a
-recording to a fresh :class:`~services.cloud.app.CloudApp` (own SQLite state directory) and
-replicates :class:`~services.cloud.server.CloudServer`'s schedule synchronously and
-deterministically:
-
-- after each message, the maps it made urgent (loop / merge) and every map with
-  ``optimize_every_keyframes`` new keyframes are scheduled, as in ``CloudServer._react``;
-- the server optimises ``debounce_s`` after the first trigger; the replay does it before
-  the first recorded message received ``debounce_s`` or more after the triggering one (the
-  solve itself is taken as instantaneous), and once more after the last message;
-- each optimisation is built, solved in this process and applied, then MBP runs on the map
-  when ``prune_due`` (as ``CloudServer.optimize_map``);
-- with ``replay(..., full_ba=True)`` the full bundle adjustment follows the server's
-  schedule too: after a map's optimisation once it has ``full_ba_every_keyframes`` new
-  keyframes since its last one, before a record that arrived ``full_ba_quiet_s`` or more
-  after the last new keyframe ("quiet"), and at the end (the server's shutdown budget);
-- at the end, MBP over every map when ``mbp_at_shutdown`` (as ``CloudServer.stop``).
+recording to a fresh :class:`~services.cloud.app.CloudApp` (own SQLite state directory)
+through the service's own :class:`~services.cloud.core.CloudCore`, synchronously and
+deterministically: ``now`` is each record's receive time, the core's timer fires before the
+first record received at or after its deadline, every solve runs in this process and takes
+no time; after the last record the scheduled pose graphs run (the service's debounce timer
+would fire), then the core's shutdown sequence. So the optimisation / full BA / MBP schedule
+is the service's, not a copy of it (``services/cloud/core.py`` describes it).
 
 :func:`run_table3` replays three times — MBP off, MBP as the service runs it (at shutdown) and
 MBP also every 100 keyframes while running, everything else identical, full BA on — computes
@@ -33,6 +24,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import math
 import tempfile
 import time
 from collections.abc import Callable, Iterable
@@ -47,6 +39,7 @@ from common.errors import RecslamError
 from common.evaluation.metrics import AteConfig, JointAteResult, compute_joint_ate
 from common.evaluation.results import load_groundtruth
 from common.evaluation.trajectory import Trajectory
+from common.links.edge_cloud import KeyframeUpdate, KeyframeUpdateCoded
 from common.vocabulary import Vocabulary
 from recslam.loop_scoring import (
     Detection,
@@ -57,15 +50,12 @@ from recslam.loop_scoring import (
     QueryEvent,
     score_loops,
 )
-from services.cloud.app import CloudApp
-from services.cloud.atlas import make_key
+from services.cloud.app import CloudApp, Reaction
 from services.cloud.config import CloudConfig, CloudServiceConfig, MbpConfig
-from services.cloud.full_ba import solve_full_ba
-from services.cloud.global_optimization import optimize_pose_graph
-from services.cloud.map_fusion import FusionEvents, MapFusion
+from services.cloud.core import CloudCore, SolveRequest, SolveResult, run_inline, solve
 from services.cloud.mbp import REASONS, backbone
-from services.cloud.persistence import CloudStore
 from services.cloud.recording import Record, read_recording
+from services.cloud.server import open_app
 
 log = logging.getLogger(__name__)
 
@@ -80,17 +70,10 @@ def service_config(mbp: bool, every_keyframes: int | None = None) -> CloudServic
     return cfg
 
 
-def open_app(
-    state_dir: Path, camera: CameraCalibration, vocab: Vocabulary, config: CloudServiceConfig
-) -> CloudApp:
-    """A CloudApp on ``state_dir`` built as ``CloudServer`` builds it."""
-    store = CloudStore(state_dir)
-    atlas = store.load()
-    wg = None
-    if config.word_group_level is not None:
-        wg = vocab.ancestor_at_level(list(range(vocab.n_words)), config.word_group_level)
-    fusion = MapFusion(camera, vocab.idf, config.domain, atlas, wg)
-    return CloudApp(fusion, store, vocab, config)
+def without_full_ba(config: CloudServiceConfig) -> CloudServiceConfig:
+    """``config`` with the full bundle adjustment switched off."""
+    full = dataclasses.replace(config.domain.full_ba, enabled=False)
+    return dataclasses.replace(config, domain=dataclasses.replace(config.domain, full_ba=full))
 
 
 @dataclass
@@ -119,8 +102,9 @@ class ReplayResult:
     queries: list[QueryEvent] = field(default_factory=list)
 
 
-class _Observer:
-    """Wraps ``fusion.add_keyframe`` of one app to collect queries and verifications."""
+class _Observations:
+    """What map fusion did with each new keyframe (from the core's reactions): the
+    keyframes the cloud held when it was queried and every verified candidate."""
 
     def __init__(self, app: CloudApp) -> None:
         self.app = app
@@ -128,25 +112,20 @@ class _Observer:
         self.detections: list[Detection] = []
         self.queries: list[QueryEvent] = []
         self._names: dict[int, str] = {}
-        self._add = app.fusion.add_keyframe
-        app.fusion.add_keyframe = self._add_keyframe  # type: ignore[method-assign]
 
     def _name(self, agent_id: int) -> str:
         if agent_id not in self._names:
             self._names = {a: n for a, (n, _, _) in self.app.agents().items()}
         return self._names.get(agent_id, str(agent_id))
 
-    def _add_keyframe(self, kf: Any, detect: bool = True) -> FusionEvents:
-        atlas = self.app.atlas
-        key = make_key(kf.agent_id, kf.keyframe_id)
-        new = not atlas.has_keyframe(key)
-        held = np.array(atlas.keyframe_keys(), np.int64) if new else None
-        events = self._add(kf, detect)
-        if not new or not atlas.has_keyframe(key):
-            return events
-        self.info[key] = KeyframeInfo(key, self._name(kf.agent_id), float(kf.timestamp))
-        assert held is not None
-        self.queries.append(QueryEvent(key, held))
+    def add(self, reaction: Reaction, held: np.ndarray) -> None:
+        """``reaction`` of a keyframe message; ``held (K,)`` the keys before it."""
+        events = reaction.events
+        if events is None or not reaction.new_keyframes:
+            return  # not a new keyframe (an update, or one the cloud pruned)
+        kf = self.app.atlas.keyframe(events.key)
+        self.info[events.key] = KeyframeInfo(events.key, self._name(kf.agent_id), kf.timestamp)
+        self.queries.append(QueryEvent(events.key, held))
         accepted = {(o.loop.key_b, o.loop.key_a): o for o in events.outcomes}
         for v in events.verifications:
             o = accepted.get((v.query_key, v.candidate_key)) if v.accepted else None
@@ -155,7 +134,6 @@ class _Observer:
                 Detection(v.query_key, v.candidate_key, np.array(v.T_cbody_qbody),
                           o is not None, kind, v.reason, int(v.n_inliers))
             )  # fmt: skip
-        return events
 
 
 def replay(
@@ -166,110 +144,53 @@ def replay(
     state_dir: Path,
     label: str = "",
     full_ba: bool = False,
+    solve_fn: Callable[[SolveRequest], SolveResult] = solve,
 ) -> ReplayResult:
-    """Feed ``records`` to a fresh CloudApp on ``state_dir`` (must be empty) with the
-    server's optimisation / MBP schedule (module docstring); ``full_ba`` adds the full
-    bundle adjustment's schedule (when ``config.domain.full_ba.enabled``)."""
+    """Feed ``records`` to a fresh CloudApp on ``state_dir`` (must be empty) through the
+    service's core (module docstring); without ``full_ba`` the full bundle adjustment is
+    switched off (else it runs when ``config.domain.full_ba.enabled``). ``solve_fn`` solves
+    each of the core's requests (default: :func:`services.cloud.core.solve`)."""
     t0 = time.perf_counter()
+    if not full_ba:
+        config = without_full_ba(config)
     app = open_app(state_dir, camera, vocab, config)
     if app.atlas.n_keyframes():
         app.close()
         raise RecslamError(f"{state_dir}: not an empty state directory")
-    obs = _Observer(app)
-    dirty: set[int] = set()
-    since: dict[int, int] = {}
-    counts = {"optimizations": 0, "mbp": 0, "failed": 0, "messages": 0, "full_ba": 0}
-    trigger_t: float | None = None
-    full_on = full_ba and config.domain.full_ba.enabled
-    since_full: dict[int, int] = {}
-    last_kf_t = -1e18
-
-    def full_ba_map(m: int, max_seconds: float | None = None) -> None:
-        since_full[m] = 0
-        built = app.full_ba_problem(m)
-        if built is None:
-            return
-        cfg = config.domain.full_ba
-        if max_seconds is not None:
-            cfg = dataclasses.replace(cfg, max_seconds=max_seconds)
-        result = solve_full_ba(built[0], cfg, config.domain.optimization)
-        if app.apply_optimization(m, result, built[1]) is not None:
-            counts["full_ba"] += 1
-
-    def full_ba_changed(max_seconds: float | None = None) -> None:
-        for m in sorted(m for m, n in since_full.items() if n > 0):
-            full_ba_map(m, max_seconds)
-
-    def optimize_due() -> None:
-        nonlocal dirty
-        maps, dirty = sorted(dirty), set()
-        for m in maps:
-            since[m] = 0
-            built = app.optimization_problem(m)
-            if built is None:
-                continue
-            problem, token = built
-            result = optimize_pose_graph(problem, config.domain.optimization)
-            if app.apply_optimization(m, result, token) is None:
-                dirty.add(m)  # cannot happen synchronously; kept for parity with the server
-                continue
-            counts["optimizations"] += 1
-            if app.prune_due(m):
-                app.prune(m)
-                counts["mbp"] += 1
-            if full_on and since_full.get(m, 0) >= config.full_ba_every_keyframes:
-                full_ba_map(m)
-
+    core = CloudCore(app)
+    obs = _Observations(app)
+    messages = failed = 0
+    now = -math.inf
     try:
         for rec in records:
-            if trigger_t is not None and rec.t_recv >= trigger_t + config.debounce_s:
-                trigger_t = None
-                optimize_due()
-            quiet = config.full_ba_quiet_s
-            if (full_on and quiet > 0 and trigger_t is None and not dirty
-                    and rec.t_recv >= last_kf_t + quiet):  # fmt: skip
-                full_ba_changed()
-            counts["messages"] += 1
+            now = rec.t_recv
+            while (deadline := core.next_deadline()) is not None and deadline <= now:
+                run_inline(core, core.on_timer(now), now, solve_fn)
+            messages += 1
+            keyframe = isinstance(rec.message, KeyframeUpdate | KeyframeUpdateCoded)
+            held = np.array(app.atlas.keyframe_keys(), np.int64) if keyframe else None
             try:
-                reaction = app.handle(rec.edge_id, rec.message, rec.stream_id, rec.seq)
+                reaction = core.handle(rec.edge_id, rec.message, rec.stream_id, rec.seq, now)
             except RecslamError as exc:  # applied live, so this replay's config differs
                 log.warning("record at offset %d (%s) failed: %s; skipped", rec.offset,
                             type(rec.message).__name__, exc)  # fmt: skip
-                counts["failed"] += 1
+                failed += 1
                 app.skip(rec.edge_id, rec.stream_id, rec.seq)
                 continue
-            trigger = bool(reaction.urgent_maps)
-            dirty.update(reaction.urgent_maps)
-            for m in reaction.urgent_maps:
-                since_full[m] = since_full.get(m, 0) + 1
-            if reaction.new_keyframes:
-                last_kf_t = rec.t_recv
-            for m, n in reaction.new_keyframes.items():
-                since_full[m] = since_full.get(m, 0) + n
-                since[m] = since.get(m, 0) + n
-                if since[m] >= config.optimize_every_keyframes:
-                    dirty.add(m)
-                    trigger = True
-            if trigger and trigger_t is None:
-                trigger_t = rec.t_recv
-        if dirty:
-            optimize_due()
-        if full_on and config.full_ba_at_shutdown_s > 0:
-            full_ba_changed(config.full_ba_at_shutdown_s)
-        if config.mbp_at_shutdown and config.domain.mbp.enabled:
-            for m in app.atlas.maps():
-                app.prune(m)
-                counts["mbp"] += 1
-        log.info("%s: %d full BA passes", label, counts["full_ba"])
+            if held is not None:
+                obs.add(reaction, held)
+        run_inline(core, core.flush(now), now, solve_fn)
+        run_inline(core, core.shutdown(now), now, solve_fn)
+        log.info("%s: %d full BA passes", label, core.full_bas)
         trajs, maps = app.trajectories()
         kept, _ = app.trajectories(retired=False)
         a = app.atlas
         return ReplayResult(
-            label=label, mbp=config.domain.mbp.enabled, messages=counts["messages"],
-            failed=counts["failed"], keyframes_received=len(obs.info),
+            label=label, mbp=config.domain.mbp.enabled, messages=messages,
+            failed=failed, keyframes_received=len(obs.info),
             keyframes=a.n_keyframes(), map_points=a.n_map_points(), maps=a.maps(),
             merges=len(a.merges()), loops=len(a.loops()),
-            optimizations=counts["optimizations"], mbp_passes=counts["mbp"],
+            optimizations=core.optimizations, mbp_passes=core.mbp_passes,
             seconds=time.perf_counter() - t0, trajectories=trajs, map_of_robot=maps,
             kept_trajectories=kept, info=obs.info, detections=obs.detections,
             queries=obs.queries,
