@@ -110,6 +110,10 @@ class Atlas:
         self._removed_kfs: set[int] = set()
         self._retired = RetiredKeyframes()  # MBP-removed keyframes' relative poses
         self._waiting: dict[int, list[_MapPoint]] = {}  # keyframe not arrived -> its points
+        # Points a keyframe names that have not arrived: point key -> {keyframe key: keypoint
+        # index}. They become map points with their first position (a point without one would
+        # sit at the map's origin for verification, BA and the map view until it came).
+        self._announced: dict[int, dict[int, int]] = {}
         self._alias: dict[int, int] = {}  # fused map point -> surviving map point
 
     # ------------------------------------------------------------------ agents and maps
@@ -180,8 +184,9 @@ class Atlas:
             mkey = make_key(kf.agent_id, int(kf.map_point_ids[idx]))
             mkey = self._alias.get(mkey, mkey)
             mp = self._mps.get(mkey)
-            if mp is None:
-                mp = self._new_map_point(mkey, kf.agent_id)
+            if mp is None:  # not received yet: no position, so not a map point yet either
+                self._announced.setdefault(mkey, {}).setdefault(key, int(idx))
+                continue
             mp.pending.setdefault(key, int(idx))
             self._link_pending(mp)
         if new:
@@ -207,12 +212,13 @@ class Atlas:
             mkey = fused_into  # fused at a merge: keep the survivor's position, link new obs
         mp = self._mps.get(mkey)
         if mp is None:
-            if not any(
+            if mkey not in self._announced and not any(
                 make_key(mp_in.agent_id, int(k)) not in self._removed_kfs
                 for k, _ in mp_in.observations
             ):
                 return mkey  # a moved point the cloud culled (or never had): no observer left
             mp = self._new_map_point(mkey, mp_in.agent_id)
+            mp.pending.update(self._announced.pop(mkey, {}))
         if fused_into is None:
             mp.p_map = transform_points(self._T_map_agent[mp_in.agent_id], mp_in.p_world)[0]
         for kf_id, kp_idx in mp_in.observations:
@@ -546,6 +552,9 @@ class Atlas:
             self._covis[other].pop(key, None)
         del self._covis[key]
         del self._kfs[key]
+        for mkey in [m for m, kfs in self._announced.items() if kfs.pop(key, None) is not None]:
+            if not self._announced[mkey]:
+                del self._announced[mkey]
         self._removed_kfs.add(key)
         self._loops = [e for e in self._loops if key not in (e.key_a, e.key_b)]
 

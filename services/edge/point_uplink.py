@@ -111,6 +111,19 @@ class SentPoints:
         k = k[~isin_sorted(self.keys, k)]
         self.keys = np.insert(self.keys, np.searchsorted(self.keys, k), k)
 
+    def carried(self, point_ids: np.ndarray, keyframe_id: int) -> np.ndarray:
+        """The feature -> point ids (N,) a keyframe message names: -1 for the points the cloud
+        does not have (held, or never sent), whose rows in this keyframe then go with the
+        point (their keys are forgotten); the cloud thus never hears of a point without its
+        position."""
+        ids = np.array(point_ids, np.int64)
+        unsent = (ids >= 0) & ~isin_sorted(self.ids, ids)
+        if unsent.any():
+            gone = np.sort(ids[unsent] * _KEY + keyframe_id)
+            self.keys = self.keys[~isin_sorted(gone, self.keys)]
+            ids[unsent] = -1
+        return ids
+
     def follow(self, keyframe_id: int, T_old: np.ndarray, T_new: np.ndarray) -> None:
         """Move the points whose reference keyframe moved from ``T_old`` to ``T_new`` (4, 4),
         as the cloud does when it gets the keyframe's new pose."""

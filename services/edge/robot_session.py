@@ -60,7 +60,7 @@ from common.protocol.messages import Message
 from common.vocabulary import Vocabulary
 from services.edge.feedback import FeedbackPolicy, FeedbackSender
 from services.edge.point_uplink import Selection, SentPoints, one_point_each
-from services.edge.vio.types import FrameObservation, MapUpdate
+from services.edge.vio.types import FrameObservation, KeyframeSnapshot, MapUpdate
 from services.edge.worker import WorkItem, WorkResult
 
 logger = logging.getLogger(__name__)
@@ -301,6 +301,8 @@ class RobotSession:
         timer = self.codec_timer
         book = self._book(upd.map_id)
         moved: list[_StateRow] = []
+        fresh: list[tuple[KeyframeSnapshot, tuple[np.ndarray, ...], KeyframeFeatures, np.ndarray]]
+        fresh = []
         for kf in upd.keyframes:
             key = (upd.map_id, kf.keyframe_id)
             if not self._register(key, kf.timestamp_ns, kf.robot_keyframe):
@@ -320,25 +322,9 @@ class RobotSession:
                     kf.keyframe_id,
                 )
                 continue
-            t0 = time.perf_counter()
-            prev = self._up_prev[key]
-            t_prev = None if prev is None else self._kf_time.get((upd.map_id, prev))
             point_ids = np.asarray(kf.point_ids, np.int64)
-            msgs.append(
-                KeyframeUpdateCoded(
-                    agent_id=self.agent_id,
-                    map_id=upd.map_id,
-                    keyframe_id=kf.keyframe_id,
-                    previous_keyframe_id=-1 if prev is None else int(prev),
-                    timestamp_ns=kf.timestamp_ns,
-                    state=encode_states(_states([(kf.keyframe_id, *state)])),
-                    features=encode_standalone_keyframe(self.vocabulary, feats, self.codec),
-                    map_point_ids=encode_point_ids(point_ids),
-                    imu=self._imu_coded(t_prev, kf.timestamp_ns),
-                )
-            )
-            timer.add("encode.KeyframeUpdateCoded", time.perf_counter() - t0)
             book.add_keys(point_ids[point_ids >= 0], kf.keyframe_id)
+            fresh.append((kf, state, feats, point_ids))
             self._sent_kfs.add(key)
             self._sent_state[key] = state
             self.vio_keyframes += 1
@@ -350,8 +336,28 @@ class RobotSession:
                 key = (upd.map_id, kf_id)
                 book.follow(kf_id, self._sent_state[key][0], state[0])
                 self._sent_state[key] = tuple(state)  # type: ignore[assignment]
+        points = self._points_to_send(upd)  # after the follows: compared where they moved to
+        kf_msgs: list[Message] = []
+        for kf, state, feats, point_ids in fresh:  # after the points: what they may name
+            t0 = time.perf_counter()
+            prev = self._up_prev[(upd.map_id, kf.keyframe_id)]
+            t_prev = None if prev is None else self._kf_time.get((upd.map_id, prev))
+            kf_msgs.append(
+                KeyframeUpdateCoded(
+                    agent_id=self.agent_id,
+                    map_id=upd.map_id,
+                    keyframe_id=kf.keyframe_id,
+                    previous_keyframe_id=-1 if prev is None else int(prev),
+                    timestamp_ns=kf.timestamp_ns,
+                    state=encode_states(_states([(kf.keyframe_id, *state)])),
+                    features=encode_standalone_keyframe(self.vocabulary, feats, self.codec),
+                    map_point_ids=encode_point_ids(book.carried(point_ids, kf.keyframe_id)),
+                    imu=self._imu_coded(t_prev, kf.timestamp_ns),
+                )
+            )
+            timer.add("encode.KeyframeUpdateCoded", time.perf_counter() - t0)
+        msgs[:0] = kf_msgs
         msgs.extend(self.release_points(keep_map=upd.map_id))
-        points = self._points_to_send(upd)
         if points is not None:
             msgs.append(self._points_coded(upd.map_id, points))
         msgs.extend(self._culls(upd))

@@ -220,3 +220,31 @@ def test_retired_keyframe_follows_its_anchor_and_passes_to_an_heir(session):
     assert atlas.retired_poses(1) == []
     with pytest.raises(AtlasError, match="anchor"):
         atlas.retire_keyframe(keys[7], keys[7])
+
+
+def test_a_point_a_keyframe_names_before_it_arrives_is_no_map_point_until_it_does(session):
+    """Keyframes name their points by id; a point the cloud has not received has no position,
+    so it is not a map point (no point at the map's origin for verification, BA or the view)
+    until it arrives, and then it has the observation the keyframe named."""
+    kfs, mps = session
+    kf = kfs[0]
+    atlas = Atlas()
+    atlas.add_keyframe(kf)
+    key = make_key(0, kf.keyframe_id)
+    assert atlas.n_map_points() == 0
+    assert (atlas.keyframe(key).map_point_keys == -1).all()
+    named = int(np.flatnonzero(kf.map_point_ids >= 0)[0])
+    pid = int(kf.map_point_ids[named])
+    m = next(m for m in mps if m.map_point_id == pid)
+    atlas.add_map_point(MapPointInput(0, pid, m.p_world))  # no rows: the keyframe named it
+    mkey = make_key(0, pid)
+    assert atlas.has_map_point(mkey)
+    assert atlas.map_point_observations(mkey) == {key: named}
+    assert atlas.keyframe(key).map_point_keys[named] == mkey
+    np.testing.assert_allclose(atlas.map_point_positions(np.array([mkey]))[0], m.p_world)
+    # A keyframe removed before its named point arrives leaves nothing to link.
+    other = Atlas()
+    other.add_keyframe(kf)
+    other.remove_keyframe(key)
+    other.add_map_point(MapPointInput(0, pid, m.p_world))
+    assert not other.has_map_point(mkey)

@@ -1,11 +1,11 @@
 """Settling of new map points on the coded uplink (``SessionOptions.point_settle_keyframes``).
 
 Hand-computed expectations with ``settle = 2``: a point first seen by robot keyframe 0 is
-held while keyframes 1 goes up, goes up (once, at its newest position, with the rows the
-keyframes did not carry) when keyframe 2 does; a point culled while held costs nothing (no
-CullEvent); a point already sent is re-sent on a move as before; a map the robot leaves
-releases its held points; the end of the sequence releases the rest. Every message is read
-back with the cloud's own decoder.
+held while keyframe 1 goes up (the keyframes' messages do not name it), goes up (once, at
+its newest position, with its rows in those keyframes) when keyframe 2 does; a point culled
+while held costs nothing (no CullEvent); a point already sent is re-sent on a move as before;
+a map the robot leaves releases its held points; the end of the sequence releases the rest.
+Every message is read back with the cloud's own decoder.
 """
 
 from __future__ import annotations
@@ -14,7 +14,12 @@ import numpy as np
 
 from common.calibration import CameraCalibration
 from common.codec import KeyframeFeatures
-from common.links.edge_cloud import CullEvent, MapPointUpdateCoded
+from common.links.edge_cloud import (
+    CullEvent,
+    KeyframeUpdateCoded,
+    MapPointUpdateCoded,
+    decode_point_ids,
+)
 from common.protocol.messages import Message
 from common.vocabulary import Vocabulary
 from services.cloud.uplink import decode_map_point_update
@@ -71,22 +76,34 @@ def _points(msgs: list[Message]) -> list[tuple[int, list[int], list[float], list
     return out
 
 
+def _named(msgs: list[Message]) -> list[list[int]]:
+    """The feature -> point ids of every KeyframeUpdateCoded, decoded."""
+    return [
+        decode_point_ids(m.map_point_ids).tolist()
+        for m in msgs
+        if isinstance(m, KeyframeUpdateCoded)
+    ]
+
+
 def test_new_points_wait_until_settled_and_go_up_once_at_their_newest_position() -> None:
     s = _session(settle=2)
-    # Keyframe 0 sees points 1 and 2 (its point ids carry rows (1, 0, 0) and (2, 0, 1)).
-    assert (
-        _points(_step(s, (_kf(0, [1, 2, -1]),), (_pt(1, 0.10, {0: 0}), _pt(2, 0.20, {0: 1})))) == []
-    )
-    # Keyframe 1: local BA moved both; point 1 also seen at row 2 of keyframe 1 (not carried
-    # by keyframe 1's ids, so it is a row to send); still held (1 keyframe after its first).
-    msgs = _step(s, (_kf(1, [-1, -1, -1]),), (_pt(1, 0.15, {0: 0, 1: 2}), _pt(2, 0.25, {0: 1})))
-    assert _points(msgs) == []
+    # Keyframe 0 sees points 1 and 2, which are held: its message names neither (the cloud
+    # never hears of a point without its position), so their rows in it go with the points.
+    msgs = _step(s, (_kf(0, [1, 2, -1]),), (_pt(1, 0.10, {0: 0}), _pt(2, 0.20, {0: 1})))
+    assert _points(msgs) == [] and _named(msgs) == [[-1, -1, -1]]
+    # Keyframe 1: local BA moved both; point 1 also seen at row 2 of keyframe 1; still held
+    # (1 keyframe after its first).
+    msgs = _step(s, (_kf(1, [-1, -1, 1]),), (_pt(1, 0.15, {0: 0, 1: 2}), _pt(2, 0.25, {0: 1})))
+    assert _points(msgs) == [] and _named(msgs) == [[-1, -1, -1]]
     # Point 2 is culled while held: the cloud never heard of it, so no CullEvent.
     msgs = _step(s, (), (), removed=(2,))
     assert not [m for m in msgs if isinstance(m, CullEvent)] and _points(msgs) == []
     # Keyframe 2 goes up: point 1 has settled and goes up once, at its newest position, with
-    # the one row no keyframe carried. Point 1 is not in this update (it left the window).
-    assert _points(_step(s, (_kf(2, [-1, -1, -1]),), ())) == [(0, [1], [0.15], [[1, 1, 2]])]
+    # both rows. Point 1 is not in this update (it left the window). Keyframe 3 then names it.
+    msgs = _step(s, (_kf(2, [-1, -1, -1]),), ())
+    assert _points(msgs) == [(0, [1], [0.15], [[1, 0, 0], [1, 1, 2]])]
+    msgs = _step(s, (_kf(3, [1, -1, -1]),), (_pt(1, 0.15, {0: 0, 1: 2, 3: 0}),))
+    assert _named(msgs) == [[1, -1, -1]] and _points(msgs) == []  # the row went with keyframe 3
     # Sent now: a small move sends nothing, a move beyond point_resend_m (1 cm) re-sends it.
     assert _points(_step(s, (), (_pt(1, 0.155, {0: 0, 1: 2}),))) == []
     assert _points(_step(s, (), (_pt(1, 0.17, {0: 0, 1: 2}),))) == [(0, [1], [0.17], [])]
@@ -97,9 +114,9 @@ def test_a_map_left_behind_and_the_sequence_end_release_the_held_points() -> Non
     assert _points(_step(s, (_kf(0, [4, -1, -1]),), (_pt(4, 0.4, {0: 0}),))) == []
     # The VIO starts map 1: map 0 gets no more keyframes, so its held point goes up now.
     msgs = _step(s, (_kf(3, [7, -1, -1], map_id=1),), (_pt(7, 0.7, {3: 0}, map_id=1),), map_id=1)
-    assert _points(msgs) == [(0, [4], [0.4], [])]
+    assert _points(msgs) == [(0, [4], [0.4], [[4, 0, 0]])]
     # The sequence ends: map 1's held point goes up too, then nothing is left.
-    assert _points(s.release_points()) == [(1, [7], [0.7], [])]
+    assert _points(s.release_points()) == [(1, [7], [0.7], [[7, 3, 0]])]
     assert s.release_points() == []
 
 
