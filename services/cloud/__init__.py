@@ -10,5 +10,6 @@ Service: ``uplink`` (edge messages <-> domain inputs), ``app`` (reacts to messag
 worker thread, commits before acknowledging), ``server`` (asyncio lifecycle, debounced
 optimisation in a separate process, corrections back to the edges), ``map_source`` (the
 dashboard's ``common.map_view.MapSource``), ``output`` (TUM trajectories, ATE report).
-Command: ``recslam cloud`` (``recslam/commands/cloud.py``).
+Process: ``runner`` (options, run config, run loop, dashboard wiring), started by ``recslam
+cloud`` or ``python -m services.cloud``.
 """
