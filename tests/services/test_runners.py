@@ -36,23 +36,10 @@ def _both(tier: str, argv: list[str]):
 
 
 def test_cloud_options_build_one_config_both_ways(tmp_path) -> None:
-    argv = [
-        "--listen",
-        "127.0.0.1:7101",
-        "--state-dir",
-        str(tmp_path),
-        "--no-mbp",
-        "--dashboard-port",
-        "0",
-        "--wire",
-        "raw",
-        "--output-every",
-        "5",
-        "--stats-out",
-        str(tmp_path / "s.json"),
-        "--record",
-        str(tmp_path / "u.rec"),
-    ]
+    argv = ["--listen", "127.0.0.1:7101", "--no-mbp", "--dashboard-port", "0", "--wire", "raw"]
+    argv += ["--output-every", "5"]
+    argv += ["--state-dir", str(tmp_path), "--stats-out", str(tmp_path / "s.json")]
+    argv += ["--record", str(tmp_path / "u.rec")]
     cli, main = _both("cloud", argv)
     config = cloud_config(cli)
     assert config == cloud_config(main)
@@ -63,20 +50,8 @@ def test_cloud_options_build_one_config_both_ways(tmp_path) -> None:
 
 
 def test_edge_options_build_one_config_both_ways(tmp_path) -> None:
-    argv = [
-        "--listen",
-        "127.0.0.1:7001",
-        "--cloud",
-        "cloud:7100",
-        "--state-dir",
-        str(tmp_path),
-        "--worker",
-        "thread",
-        "--agent-id",
-        "edge-2",
-        "--wire",
-        "raw",
-    ]
+    argv = ["--listen", "127.0.0.1:7001", "--cloud", "cloud:7100", "--worker", "thread"]
+    argv += ["--agent-id", "edge-2", "--wire", "raw", "--state-dir", str(tmp_path)]
     cli, main = _both("edge", argv)
     config = edge_config(cli)
     assert config == edge_config(main)
@@ -87,18 +62,8 @@ def test_edge_options_build_one_config_both_ways(tmp_path) -> None:
 
 def test_robot_options_build_one_config_both_ways(tmp_path, monkeypatch) -> None:
     monkeypatch.setenv("RECSLAM_SECRET", SECRET)
-    argv = [
-        "--dataset",
-        str(tmp_path),
-        "--edge",
-        "edge:7000",
-        "--agent-id",
-        "r1",
-        "--rate",
-        "max",
-        "--max-frames",
-        "9",
-    ]
+    argv = ["--dataset", str(tmp_path), "--edge", "edge:7000", "--agent-id", "r1"]
+    argv += ["--rate", "max", "--max-frames", "9"]
     cli, main = _both("robot", argv)
     config = robot_config(cli)
     assert config == robot_config(main)
@@ -149,19 +114,8 @@ def test_cloud_module_runs_and_stops_on_sigterm(tmp_path) -> None:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
     stats = tmp_path / "cloud.json"
-    argv = [
-        "--listen",
-        f"127.0.0.1:{port}",
-        "--state-dir",
-        str(tmp_path / "state"),
-        "--dashboard-port",
-        "0",
-        "--output-every",
-        "0",
-        "--stats-out",
-        str(stats),
-        "-v",
-    ]
+    argv = ["--listen", f"127.0.0.1:{port}", "--state-dir", str(tmp_path / "state"), "-v"]
+    argv += ["--dashboard-port", "0", "--output-every", "0", "--stats-out", str(stats)]
     env = {**os.environ, "RECSLAM_SECRET": SECRET}
     with (tmp_path / "cloud.log").open("w") as log:
         proc = subprocess.Popen(
