@@ -87,10 +87,10 @@ def replay_rows(recording: Path, data: Path) -> list[str]:
     import lab.table3 as table3
     from common.evaluation.results import load_groundtruth
     from common.vocabulary import DEFAULT_VOCABULARY_PATH, Vocabulary
-    from recslam.commands.cloud import find_camera
     from services.cloud.core import SolveRequest, SolveResult, solve
     from services.cloud.full_ba import FullBAResult
     from services.cloud.recording import read_recording
+    from services.cloud.runner import find_camera
 
     camera = find_camera(None, data)
     vocab = Vocabulary.load(DEFAULT_VOCABULARY_PATH)

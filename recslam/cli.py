@@ -13,6 +13,7 @@ import logging
 import sys
 
 from common.errors import RecslamError
+from common.logs import add_verbosity_argument, setup_logging
 
 # Order is the order shown by ``recslam --help``.
 COMMAND_MODULES = (
@@ -35,20 +36,11 @@ def build_parser() -> argparse.ArgumentParser:
         prog="recslam",
         description="Robot-edge-cloud collaborative visual-inertial SLAM.",
     )
-    parser.add_argument(
-        "-v", "--verbose", action="count", default=0, help="more logging (-v info, -vv debug)"
-    )
+    add_verbosity_argument(parser)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for name in COMMAND_MODULES:
         importlib.import_module(f"recslam.commands.{name}").register(sub)
     return parser
-
-
-def setup_logging(verbosity: int) -> None:
-    level = logging.WARNING - 10 * min(verbosity, 2)
-    logging.basicConfig(
-        level=level, format="%(asctime)s %(levelname)-7s %(name)s: %(message)s", stream=sys.stderr
-    )
 
 
 def main(argv: list[str] | None = None) -> int:

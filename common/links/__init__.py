@@ -9,6 +9,7 @@
 from __future__ import annotations
 
 import enum
+from collections.abc import Iterable
 
 
 class WireFormat(enum.Enum):
@@ -45,8 +46,28 @@ class CodecTimer:
         return {k: {"seconds": s, "messages": int(n)} for k, (s, n) in sorted(self._acc.items())}
 
 
+def codec_cpu(owners: Iterable[object]) -> dict[str, dict[str, float]] | None:
+    """The merged ``codec_timer.snapshot()`` of those ``owners`` that have a ``codec_timer``
+    (a :class:`CodecTimer`; a timer shared by two owners counts once): ``{"encode.Type":
+    {"seconds": s, "messages": n}, ...}``; None when no owner has one."""
+    timers: dict[int, CodecTimer] = {}
+    for owner in owners:
+        timer = getattr(owner, "codec_timer", None)
+        if timer is not None:
+            timers.setdefault(id(timer), timer)
+    if not timers:
+        return None
+    out: dict[str, dict[str, float]] = {}
+    for timer in timers.values():
+        for key, entry in timer.snapshot().items():
+            acc = out.setdefault(key, {"seconds": 0.0, "messages": 0})
+            acc["seconds"] += float(entry["seconds"])
+            acc["messages"] += int(entry["messages"])
+    return dict(sorted(out.items()))
+
+
 # Registers every link's message types with the protocol (importing ``common.links`` is
 # enough for a decoder to know them all); last, since the link modules may use the above.
 from common.links import edge_cloud, robot_edge  # noqa: E402
 
-__all__ = ["CodecTimer", "WireFormat", "edge_cloud", "robot_edge"]
+__all__ = ["CodecTimer", "WireFormat", "codec_cpu", "edge_cloud", "robot_edge"]

@@ -12,5 +12,6 @@ graphs, full BA, MBP, shutdown; takes ``now``, returns solve requests and correc
 ``server`` (asyncio runner of the core: lifecycle, solves in a separate process, corrections
 back to the edges), ``map_source`` (the
 dashboard's ``common.map_view.MapSource``), ``output`` (TUM trajectories, ATE report).
-Command: ``recslam cloud`` (``recslam/commands/cloud.py``).
+Process: ``runner`` (options, run config, run loop, dashboard wiring), started by ``recslam
+cloud`` or ``python -m services.cloud``.
 """

@@ -1,32 +1,38 @@
-"""``python -m services.robot`` = ``recslam robot`` (same arguments, see commands/robot.py)."""
+"""``python -m services.robot ARGS``: the robot service, with the options of ``recslam robot``
+(defined once in :mod:`services.robot.runner`) and its logging (``-v`` info, ``-vv`` debug)."""
 
 from __future__ import annotations
 
 import argparse
-import logging
 import sys
 
 from common.errors import RecslamError
-from recslam.commands import robot
+from common.logs import add_verbosity_argument, setup_logging
+from services.robot.runner import add_arguments, config_from_args, serve
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="python -m services.robot",
+        description="A robot: play a sequence, track, code and send frames to an edge.",
+    )
+    add_verbosity_argument(parser)
+    add_arguments(parser)
+    return parser
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m services.robot")
-    sub = parser.add_subparsers(dest="command", required=True)
-    robot.register(sub)
-    sub.choices["robot"].add_argument(
-        "-v", "--verbose", action="count", default=0, help="more logging"
-    )
-    args = parser.parse_args(["robot", *(sys.argv[1:] if argv is None else argv)])
-    logging.basicConfig(
-        level=logging.WARNING - 10 * min(args.verbose, 2),
-        format="%(asctime)s %(levelname)-7s %(name)s: %(message)s",
-    )
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    setup_logging(args.verbose)
     try:
-        return int(args.func(args))
+        return serve(config_from_args(args))
     except RecslamError as exc:
-        print(f"robot: error: {exc}", file=sys.stderr)
+        print(f"{parser.prog}: error: {exc}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
 
 
 if __name__ == "__main__":

@@ -1,0 +1,339 @@
+"""The cloud service as a process: its arguments, its run config and its run loop.
+
+``add_arguments`` defines the options once, for ``recslam cloud`` and ``python -m
+services.cloud`` alike; ``config_from_args`` turns them into a :class:`CloudRunConfig`;
+``serve`` runs the service until SIGINT / SIGTERM:
+
+- loads the shared secret (``--secret-file``, else ``$RECSLAM_SECRET``, at least 16 bytes),
+  the robots' camera (:func:`find_camera`) and the vocabulary; a bad one is logged and the
+  exit code is 2;
+- starts the :class:`~services.cloud.server.CloudServer` (edges connect with role "edge"),
+  announces ``cloud listening on HOST:PORT, state DIR`` and, with a dashboard port, the
+  dashboard's address;
+- rewrites ``--stats-out`` every second; on a signal stops the dashboard and the server
+  (connections closed, last optimisation, MBP, outputs written) and returns 0.
+
+Heavy modules (the server, gtsam, viser) are imported inside ``serve`` so that parsing and
+``--help`` stay fast.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import dataclasses
+import json
+import logging
+import signal
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from common.links import WireFormat, codec_cpu
+from common.protocol.credentials import SECRET_ENV, load_secret, parse_address
+
+if TYPE_CHECKING:
+    from common.calibration import CameraCalibration
+    from common.vocabulary import Vocabulary
+    from services.cloud.server import CloudServer
+
+logger = logging.getLogger(__name__)
+
+Announce = Callable[[str], None]
+"""Where the service's status lines go (the entry points print them on stdout)."""
+
+
+@dataclass(frozen=True)
+class CloudRunConfig:
+    """What ``recslam cloud`` / ``python -m services.cloud`` were asked to run.
+
+    Attributes:
+        state_dir: SQLite state directory (created; resumed when it exists).
+        listen: address edges connect to.
+        dashboard_port: viser dashboard port, 0 = no dashboard.
+        results: result folder for ``trajectories/`` and ``eval/`` (None: none).
+        groundtruth: ground truth for the ATE report (dataset folder or file).
+        secret_file: shared secret file (None: ``$RECSLAM_SECRET``).
+        camera: EuRoC cam0 ``sensor.yaml`` of the robots' camera (None: see
+            :func:`find_camera`).
+        vocabulary: vocabulary file (None: the repository's default).
+        mbp: map backbone profiling on/off.
+        full_ba: full bundle adjustment after the pose graph on/off.
+        agent_id: this service's agent id.
+        wire: encoding of the pose corrections to the edges.
+        output_every_s: rewrite outputs every so many seconds, 0 = only at exit.
+        stats_out: JSON counters file rewritten every second and at exit (None: none).
+        record: uplink recording appended to (None: off).
+    """
+
+    state_dir: Path
+    listen: tuple[str, int] = ("0.0.0.0", 7100)
+    dashboard_port: int = 8080
+    results: Path | None = None
+    groundtruth: Path | None = None
+    secret_file: Path | None = None
+    camera: Path | None = None
+    vocabulary: Path | None = None
+    mbp: bool = True
+    full_ba: bool = True
+    agent_id: str = "cloud"
+    wire: WireFormat = WireFormat.CODED
+    output_every_s: float = 30.0
+    stats_out: Path | None = None
+    record: Path | None = None
+
+
+def _address(text: str) -> tuple[str, int]:
+    return parse_address(text, default_host="0.0.0.0")
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The cloud's options (their defaults are :class:`CloudRunConfig`'s)."""
+    p.add_argument(
+        "--listen",
+        type=_address,
+        default=("0.0.0.0", 7100),
+        metavar="HOST:PORT",
+        help="address edges connect to (default 0.0.0.0:7100)",
+    )
+    p.add_argument(
+        "--state-dir",
+        type=Path,
+        required=True,
+        metavar="DIR",
+        help="SQLite state directory (created; resumed when it exists)",
+    )
+    p.add_argument(
+        "--dashboard-port",
+        type=int,
+        default=8080,
+        metavar="PORT",
+        help="viser dashboard port, 0 disables it (default 8080)",
+    )
+    p.add_argument(
+        "--results",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="result folder for trajectories/ and eval/ (default: none)",
+    )
+    p.add_argument(
+        "--groundtruth",
+        type=Path,
+        default=None,
+        metavar="DATASET",
+        help="ground truth for the ATE report (dataset folder or file)",
+    )
+    p.add_argument(
+        "--secret-file",
+        type=Path,
+        default=None,
+        metavar="F",
+        help=f"shared secret file (default: ${SECRET_ENV})",
+    )
+    p.add_argument(
+        "--camera",
+        type=Path,
+        default=None,
+        metavar="SENSOR_YAML",
+        help="EuRoC cam0 sensor.yaml of the robots' camera",
+    )
+    p.add_argument(
+        "--vocabulary",
+        type=Path,
+        default=None,
+        metavar="NPZ",
+        help="vocabulary file (default: common/assets/orb_vocabulary.npz)",
+    )
+    p.add_argument(
+        "--mbp",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="map backbone profiling on/off (default on: one pass over every map at shutdown, "
+        "after the last full BA; pruning while running cost accuracy, see "
+        "benchmarks/results/table3.md)",
+    )
+    p.add_argument(
+        "--full-ba",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="full bundle adjustment after the pose graph when there is time, and at exit "
+        "(default on; --no-full-ba: pose graph only)",
+    )
+    p.add_argument("--agent-id", default="cloud", help="this service's agent id (default cloud)")
+    p.add_argument(
+        "--wire",
+        choices=("coded", "raw"),
+        default="coded",
+        help="encoding of the pose corrections to the edges: coded (default) or raw (the "
+        "float64 schema-1 baseline; edges accept both)",
+    )
+    p.add_argument(
+        "--output-every",
+        type=float,
+        default=30.0,
+        metavar="S",
+        help="rewrite outputs every S seconds, 0 = only at exit (default 30)",
+    )
+    p.add_argument(
+        "--stats-out",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help="rewrite service counters and per-edge traffic counters as JSON here every "
+        "second and at exit (default: none)",
+    )
+    p.add_argument(
+        "--record",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help="append every applied uplink message to this recording (replayed by "
+        "'recslam experiment table3'; default: off)",
+    )
+
+
+def config_from_args(args: argparse.Namespace) -> CloudRunConfig:
+    """The run config of arguments parsed by a parser that :func:`add_arguments` filled."""
+    return CloudRunConfig(
+        state_dir=args.state_dir,
+        listen=args.listen,
+        dashboard_port=args.dashboard_port,
+        results=args.results,
+        groundtruth=args.groundtruth,
+        secret_file=args.secret_file,
+        camera=args.camera,
+        vocabulary=args.vocabulary,
+        mbp=args.mbp,
+        full_ba=args.full_ba,
+        agent_id=args.agent_id,
+        wire=WireFormat(args.wire),
+        output_every_s=args.output_every,
+        stats_out=args.stats_out,
+        record=args.record,
+    )
+
+
+def find_camera(camera: Path | None, groundtruth: Path | None) -> CameraCalibration:
+    """The robots' camera: ``camera`` (an EuRoC cam0 ``sensor.yaml``), else the first
+    ``<robot>/mav0/cam0/sensor.yaml`` (or ``mav0/cam0/sensor.yaml``) under the ``groundtruth``
+    folder, else the synthetic dataset's EuRoC-like camera (with a warning)."""
+    from common.data.euroc import read_camera_yaml
+    from services.cloud.simulation import default_camera
+
+    if camera is not None:
+        return read_camera_yaml(camera)
+    if groundtruth is not None and groundtruth.is_dir():
+        for yaml in sorted(groundtruth.glob("*/mav0/cam0/sensor.yaml")) + sorted(
+            groundtruth.glob("mav0/cam0/sensor.yaml")
+        ):
+            logger.info("camera calibration from %s", yaml)
+            return read_camera_yaml(yaml)
+    logger.warning("no --camera: using the synthetic dataset's EuRoC-like camera")
+    return default_camera()
+
+
+async def write_stats(path: Path, cloud: CloudServer, codec_owners: Sequence[object] = ()) -> None:
+    """Write the cloud's counters and every edge link's traffic counters to ``path`` (JSON;
+    also after ``cloud.stop()``: both keep their final values), with the codec CPU of the
+    ``codec_owners`` that have a ``codec_timer`` (``codec_cpu``; the application's timer
+    keeps its counts after ``stop()``)."""
+    stats: dict[str, Any] = dataclasses.asdict(await cloud.stats())
+    cpu = codec_cpu([cloud, *codec_owners])
+    if cpu is not None:
+        stats["codec_cpu"] = cpu
+    stats["links"] = cloud.transport.counters()
+    stats["time"] = time.time()
+    tmp = path.with_suffix(".tmp")
+    tmp.write_text(json.dumps(stats))
+    tmp.replace(path)
+
+
+def serve(config: CloudRunConfig, announce: Announce = logger.info) -> int:
+    """Run the cloud until SIGINT / SIGTERM (see the module docstring); the exit code: 0, or
+    2 when the secret, the camera or the vocabulary cannot be loaded."""
+    from common.errors import RecslamError
+    from common.transport import run
+    from common.vocabulary import DEFAULT_VOCABULARY_PATH, Vocabulary
+
+    try:
+        secret = load_secret(config.secret_file)
+        camera = find_camera(config.camera, config.groundtruth)
+        vocab = Vocabulary.load(config.vocabulary or DEFAULT_VOCABULARY_PATH)
+    except RecslamError as exc:
+        logger.error("%s", exc)
+        return 2
+    return run(_run(config, secret, camera, vocab, announce))
+
+
+def _server(
+    config: CloudRunConfig, secret: bytes, camera: CameraCalibration, vocab: Vocabulary
+) -> CloudServer:
+    from common.protocol import SessionConfig
+    from common.transport import TransportConfig
+    from services.cloud.config import CloudConfig, CloudServiceConfig, FullBAConfig, MbpConfig
+    from services.cloud.server import CloudServer
+
+    domain = CloudConfig(
+        mbp=dataclasses.replace(MbpConfig(), enabled=config.mbp),
+        full_ba=dataclasses.replace(FullBAConfig(), enabled=config.full_ba),
+    )
+    service = CloudServiceConfig(
+        domain=domain, output_every_s=config.output_every_s, wire=config.wire
+    )
+    return CloudServer(
+        SessionConfig("cloud", config.agent_id, secret),
+        config.state_dir,
+        camera,
+        vocab,
+        service,
+        results_dir=config.results,
+        groundtruth=config.groundtruth,
+        transport=TransportConfig(accept_roles=("edge",)),
+        record=config.record,
+    )
+
+
+async def _run(
+    config: CloudRunConfig,
+    secret: bytes,
+    camera: CameraCalibration,
+    vocab: Vocabulary,
+    announce: Announce,
+) -> int:
+    cloud = _server(config, secret, camera, vocab)
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, stop.set)
+    host, port = await cloud.start(*config.listen)
+    # The application's codec_timer (if it has one) stays readable after stop().
+    codec_owners = [await cloud.call(lambda app: app)]
+    announce(f"cloud listening on {host}:{port}, state {config.state_dir}")
+    dashboard = None
+    if config.dashboard_port:
+        from dashboard.viewer import Dashboard, DashboardConfig
+
+        dashboard = Dashboard(cloud.map_source, DashboardConfig(port=config.dashboard_port))
+        dashboard.start()
+        announce(f"dashboard at {dashboard.url}")
+    stats_out = config.stats_out
+    try:
+        while not stop.is_set():
+            if stats_out is not None:
+                await write_stats(stats_out, cloud, codec_owners)
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(stop.wait(), 1.0)
+    finally:
+        announce("cloud stopping")
+        if dashboard is not None:
+            dashboard.stop()
+        if stats_out is not None:
+            await write_stats(stats_out, cloud, codec_owners)
+        await cloud.stop()
+        if stats_out is not None:  # again: shutdown's optimisation and MBP counted
+            await write_stats(stats_out, cloud, codec_owners)
+    return 0

@@ -1,0 +1,272 @@
+"""The edge service as a process: its arguments, its run config and its run loop.
+
+``add_arguments`` defines the options once, for ``recslam edge`` and ``python -m
+services.edge`` alike; ``config_from_args`` turns them into an :class:`EdgeRunConfig`;
+``serve`` runs the service until SIGINT / SIGTERM:
+
+- loads the shared secret (``--secret-file``, else ``$RECSLAM_SECRET``, at least 16 bytes),
+  the robots' calibration (:func:`read_calibration`) and the vocabulary; a bad one is logged
+  and the exit code is 2;
+- starts the :class:`~services.edge.server.EdgeServer` (connects to the cloud, replays the
+  journals of ``--state-dir``, then listens for robots) and announces ``edge listening on
+  HOST:PORT, replayed N frames``;
+- rewrites ``--stats-out`` every second; on a signal stops the server (workers drained,
+  journals fsynced) and returns 0.
+
+Heavy modules (the server, the VIO, gtsam) are imported inside ``serve`` so that parsing and
+``--help`` stay fast.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import json
+import logging
+import signal
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from common.links import WireFormat, codec_cpu
+from common.protocol.credentials import SECRET_ENV, load_secret, parse_address
+
+if TYPE_CHECKING:
+    from common.calibration import CameraCalibration, ImuCalibration
+    from common.vocabulary import Vocabulary
+    from services.edge.server import EdgeServer
+
+logger = logging.getLogger(__name__)
+
+Announce = Callable[[str], None]
+"""Where the service's status lines go (the entry points print them on stdout)."""
+
+
+@dataclass(frozen=True)
+class EdgeRunConfig:
+    """What ``recslam edge`` / ``python -m services.edge`` were asked to run.
+
+    Attributes:
+        listen: address robots connect to.
+        cloud: the cloud's address (None: no cloud, the uplink is dropped and counted).
+        state_dir: journal directory for restarts without loss (None: none).
+        secret_file: shared secret file (None: ``$RECSLAM_SECRET``).
+        camera: EuRoC dataset folder or cam0 ``sensor.yaml`` (required to run; see
+            :func:`read_calibration`).
+        agent_id: this edge's agent id.
+        worker: where each robot's VIO runs: "process" (one per robot) or "thread".
+        vocabulary: vocabulary file (None: the repository's default).
+        wire: encoding of the messages to the robots and the cloud.
+        stats_out: JSON counters file rewritten every second and at exit (None: none).
+    """
+
+    listen: tuple[str, int] = ("0.0.0.0", 7000)
+    cloud: tuple[str, int] | None = None
+    state_dir: Path | None = None
+    secret_file: Path | None = None
+    camera: Path | None = None
+    agent_id: str = "edge"
+    worker: str = "process"
+    vocabulary: Path | None = None
+    wire: WireFormat = WireFormat.CODED
+    stats_out: Path | None = None
+
+
+def _address(text: str) -> tuple[str, int]:
+    return parse_address(text, default_host="0.0.0.0")
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The edge's options (their defaults are :class:`EdgeRunConfig`'s)."""
+    p.add_argument(
+        "--listen",
+        type=_address,
+        default=("0.0.0.0", 7000),
+        metavar="HOST:PORT",
+        help="address robots connect to (default 0.0.0.0:7000)",
+    )
+    p.add_argument(
+        "--cloud",
+        type=_address,
+        default=None,
+        metavar="HOST:PORT",
+        help="cloud address (default: none, the uplink is dropped)",
+    )
+    p.add_argument(
+        "--state-dir",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="journal directory for restarts without loss (default: none)",
+    )
+    p.add_argument(
+        "--secret-file",
+        type=Path,
+        default=None,
+        metavar="F",
+        help=f"shared secret file (default: ${SECRET_ENV})",
+    )
+    p.add_argument(
+        "--camera",
+        type=Path,
+        default=None,
+        metavar="PATH",
+        help="EuRoC dataset folder or cam0 sensor.yaml (required)",
+    )
+    p.add_argument("--agent-id", default="edge", help="this edge's agent id (default edge)")
+    p.add_argument(
+        "--worker",
+        choices=("process", "thread"),
+        default="process",
+        help="where each robot's VIO runs (default: one process per robot)",
+    )
+    p.add_argument(
+        "--vocabulary",
+        type=Path,
+        default=None,
+        metavar="NPZ",
+        help="vocabulary file (default: common/assets/orb_vocabulary.npz)",
+    )
+    p.add_argument(
+        "--wire",
+        choices=[w.value for w in WireFormat],
+        default=WireFormat.CODED.value,
+        help="encoding of the messages to the robots and the cloud: coded (default) or raw "
+        "(the float64 schema-1 baseline; robots and cloud accept both)",
+    )
+    p.add_argument(
+        "--stats-out",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help="rewrite service and per-link traffic counters as JSON here every second and at "
+        "exit (default: none)",
+    )
+
+
+def config_from_args(args: argparse.Namespace) -> EdgeRunConfig:
+    """The run config of arguments parsed by a parser that :func:`add_arguments` filled."""
+    return EdgeRunConfig(
+        listen=args.listen,
+        cloud=args.cloud,
+        state_dir=args.state_dir,
+        secret_file=args.secret_file,
+        camera=args.camera,
+        agent_id=args.agent_id,
+        worker=args.worker,
+        vocabulary=args.vocabulary,
+        wire=WireFormat(args.wire),
+        stats_out=args.stats_out,
+    )
+
+
+def read_calibration(path: Path | None) -> tuple[CameraCalibration, ImuCalibration]:
+    """(camera, IMU) from a dataset folder (``mav0/cam0`` and ``mav0/imu0`` sensor.yaml; the
+    IMU falls back to EuRoC's ADIS16448) or from a cam0 ``sensor.yaml`` (IMU: ADIS16448)."""
+    from common.calibration import EUROC_IMU
+    from common.data.euroc import find_mav0, read_camera_yaml, read_imu_yaml
+    from common.errors import RecslamError
+
+    if path is None:
+        raise RecslamError("--camera is required (EuRoC dataset folder or cam0 sensor.yaml)")
+    if path.is_dir():
+        mav0 = find_mav0(path)
+        imu_yaml = mav0 / "imu0" / "sensor.yaml"
+        imu = read_imu_yaml(imu_yaml) if imu_yaml.exists() else EUROC_IMU
+        return read_camera_yaml(mav0 / "cam0" / "sensor.yaml"), imu
+    return read_camera_yaml(path), EUROC_IMU
+
+
+def write_stats(path: Path, edge: EdgeServer) -> None:
+    """Write the edge's counters and every robot link's traffic counters to ``path`` (JSON),
+    with the codec CPU (``codec_cpu``: all robots' sessions merged, and per robot) once the
+    sessions time their codecs."""
+    stats: dict[str, Any] = edge.stats()
+    for robot in stats["robots"].values():
+        for key in ("frame_s", "track_s", "local_ba_s"):
+            values = robot.pop(key)
+            robot[key.removesuffix("_s") + "_mean_s"] = (
+                sum(values) / len(values) if values else None
+            )
+    sessions = {name: rb.session for name, rb in edge.app.robots.items()}
+    for name, session in sessions.items():
+        cpu = codec_cpu([session])
+        if cpu is not None and name in stats["robots"]:
+            stats["robots"][name]["codec_cpu"] = cpu
+    cpu = codec_cpu([edge, edge.app, getattr(edge, "cloud", None), *sessions.values()])
+    if cpu is not None:
+        stats["codec_cpu"] = cpu
+    stats["links"] = edge.server.counters()
+    stats["time"] = time.time()
+    tmp = path.with_suffix(".tmp")
+    tmp.write_text(json.dumps(stats))
+    tmp.replace(path)
+
+
+def serve(config: EdgeRunConfig, announce: Announce = logger.info) -> int:
+    """Run the edge until SIGINT / SIGTERM (see the module docstring); the exit code: 0, or
+    2 when the secret, the calibration or the vocabulary cannot be loaded."""
+    from common.errors import RecslamError
+    from common.transport import run
+    from common.vocabulary import DEFAULT_VOCABULARY_PATH, Vocabulary
+
+    try:
+        secret = load_secret(config.secret_file)
+        camera, imu = read_calibration(config.camera)
+        vocab = Vocabulary.load(config.vocabulary or DEFAULT_VOCABULARY_PATH)
+    except RecslamError as exc:
+        logger.error("%s", exc)
+        return 2
+    return run(_run(config, secret, camera, imu, vocab, announce))
+
+
+def _server(
+    config: EdgeRunConfig,
+    secret: bytes,
+    camera: CameraCalibration,
+    imu: ImuCalibration,
+    vocab: Vocabulary,
+) -> EdgeServer:
+    from services.edge.app import EdgeConfig
+    from services.edge.robot_session import SessionOptions
+    from services.edge.server import EdgeServer, EdgeServiceConfig
+
+    cloud_host, cloud_port = config.cloud if config.cloud is not None else (None, 0)
+    service = EdgeServiceConfig(
+        agent_id=config.agent_id, cloud_host=cloud_host, cloud_port=cloud_port
+    )
+    app = EdgeConfig(worker=config.worker, session=SessionOptions(wire=config.wire))
+    return EdgeServer(secret, camera, imu, vocab, app, service, state_dir=config.state_dir)
+
+
+async def _run(
+    config: EdgeRunConfig,
+    secret: bytes,
+    camera: CameraCalibration,
+    imu: ImuCalibration,
+    vocab: Vocabulary,
+    announce: Announce,
+) -> int:
+    edge = _server(config, secret, camera, imu, vocab)
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, stop.set)
+    host, port = await edge.start(*config.listen)
+    announce(f"edge listening on {host}:{port}, replayed {edge.replayed_frames} frames")
+    stats_out = config.stats_out
+    try:
+        while not stop.is_set():
+            if stats_out is not None:
+                write_stats(stats_out, edge)
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(stop.wait(), 1.0)
+    finally:
+        announce("edge stopping")
+        await edge.stop()  # drains the workers: their last uplinks count in the stats
+        if stats_out is not None:
+            write_stats(stats_out, edge)
+    return 0

@@ -1,0 +1,109 @@
+"""The robot service as a process: its arguments, its run config and its run.
+
+``add_arguments`` defines the options once, for ``recslam robot`` and ``python -m
+services.robot`` alike (``--dataset``, ``--edge`` and ``--agent-id`` default to the
+environment variables of :data:`ENV_DEFAULTS`, for containers); ``config_from_args`` turns
+them into a :class:`~services.robot.server.RobotServiceConfig` (the shared secret loaded:
+``--secret-file``, else ``$RECSLAM_SECRET``, else a development default with a warning);
+``serve`` plays the sequence with SIGINT / SIGTERM handled
+(:func:`services.robot.server.serve`). Exit code 0 once the edge has taken every frame, 130
+when interrupted, 1 when ``--flush-timeout`` expired; a configuration error raises
+:class:`~common.errors.RecslamError` (the entry points exit with 2).
+
+The service modules (OpenCV, the front end) are imported inside the functions so that
+parsing and ``--help`` stay fast.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from services.robot.server import RobotServiceConfig
+
+ENV_DEFAULTS = {
+    "dataset": "RECSLAM_DATASET",
+    "edge": "RECSLAM_EDGE",
+    "agent_id": "RECSLAM_AGENT_ID",
+}
+"""Argument (``dest``) -> the environment variable that supplies it when it is not given."""
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The robot's options; the environment (:data:`ENV_DEFAULTS`) is read now."""
+    env = {k: os.environ.get(v) for k, v in ENV_DEFAULTS.items()}
+    p.add_argument(
+        "--dataset",
+        type=Path,
+        default=env["dataset"],
+        required=env["dataset"] is None,
+        help="EuRoC-layout sequence folder ($RECSLAM_DATASET)",
+    )
+    p.add_argument(
+        "--edge",
+        metavar="HOST:PORT",
+        default=env["edge"],
+        required=env["edge"] is None,
+        help="the edge's address ($RECSLAM_EDGE)",
+    )
+    p.add_argument(
+        "--agent-id",
+        default=env["agent_id"],
+        required=env["agent_id"] is None,
+        help="this robot's id, unique per edge ($RECSLAM_AGENT_ID)",
+    )
+    p.add_argument(
+        "--rate",
+        choices=("realtime", "max"),
+        default="realtime",
+        help="realtime: camera rate (default); max: as fast as the front end runs",
+    )
+    p.add_argument("--secret-file", type=Path, default=None, help="file holding the shared secret")
+    p.add_argument("--start", type=int, default=0, help="first frame to play (default 0)")
+    p.add_argument("--max-frames", type=int, default=None, help="play at most this many frames")
+    p.add_argument(
+        "--backlog-minutes",
+        type=float,
+        default=30.0,
+        help="edge outage absorbed before back-pressure (default 30 min)",
+    )
+    p.add_argument(
+        "--flush-timeout",
+        type=float,
+        default=None,
+        help="seconds to wait at the end for the edge to take the rest (default: wait)",
+    )
+
+
+def config_from_args(args: argparse.Namespace) -> RobotServiceConfig:
+    """RobotServiceConfig from parsed arguments (RobotConfigError on bad values,
+    CredentialsError on a bad address or secret)."""
+    from common.protocol.credentials import load_secret, parse_address
+    from services.robot.server import DEV_SECRET, Rate, RobotConfigError, RobotServiceConfig
+
+    host, port = parse_address(args.edge)
+    if args.backlog_minutes is None or args.backlog_minutes <= 0:
+        raise RobotConfigError(f"--backlog-minutes must be positive, got {args.backlog_minutes}")
+    return RobotServiceConfig(
+        dataset=args.dataset,
+        edge_host=host,
+        edge_port=port,
+        agent_id=args.agent_id,
+        secret=load_secret(args.secret_file, dev_default=DEV_SECRET),
+        rate=Rate(args.rate),
+        start_frame=args.start,
+        max_frames=args.max_frames,
+        backlog_s=60.0 * args.backlog_minutes,
+        flush_timeout_s=args.flush_timeout,
+    )
+
+
+def serve(config: RobotServiceConfig) -> int:
+    """Play the sequence on a fresh event loop (see the module docstring for the exit code)."""
+    from common.transport import run
+    from services.robot.server import serve as serve_async
+
+    return run(serve_async(config))
