@@ -162,7 +162,7 @@ def bench_detection(n: int) -> str:
 # ----------------------------------------------------------------------------- service
 def _service_scenario(vocab):
     """Two robots in one room, coded as an edge sends them (keyframe, then new map points)."""
-    from services.cloud.uplink import encode_keyframe_update, encode_map_point_update
+    from services.cloud.uplink import encode_session
 
     world = make_world(51)
     cam = default_camera()
@@ -171,21 +171,10 @@ def _service_scenario(vocab):
         "r1": make_session(world, cam, 1, circle_poses(12, turns=0.5, phase=2.0),
                            yaw_T(np.radians(-60.0), [-1.5, 0.5, 0.0]), seed=2, t0=50.0),
     }  # fmt: skip
-    out = {}
-    for name, (kfs, mps) in runs.items():
-        coded, inv = {}, {}
-        for k in kfs:
-            coded[k.keyframe_id], order = encode_keyframe_update(k, name, vocab)
-            inv[k.keyframe_id] = np.argsort(order)
-        first = {m.map_point_id: int(m.observations[:, 0].min()) for m in mps}
-        msgs = []
-        for k in kfs:
-            msgs.append(coded[k.keyframe_id])
-            new = [m for m in mps if first[m.map_point_id] == k.keyframe_id]
-            if new:
-                msgs.append(encode_map_point_update(new, name, 0, coded_index=inv))
-        out[name] = msgs
-    return out
+    return {
+        name: [m for group in encode_session(kfs, mps, name, vocab) for m in group]
+        for name, (kfs, mps) in runs.items()
+    }
 
 
 def bench_gil(n: int) -> str:
@@ -323,7 +312,7 @@ def bench_service(tmp: Path) -> list[str]:
 def _fusion_scenario(vocab, n_kf: int, drift_deg: float, drift_m: float):
     """Three robots with odometry drift in one room, each in its own map frame; coded as an
     edge sends them. Returns {robot: (messages, truth T_world_body (K, 4, 4), stamps ns)}."""
-    from services.cloud.uplink import encode_keyframe_update, encode_map_point_update
+    from services.cloud.uplink import encode_session
 
     world = make_world(61, n_points=5000)
     cam = default_camera()
@@ -339,17 +328,7 @@ def _fusion_scenario(vocab, n_kf: int, drift_deg: float, drift_m: float):
     for i, (name, (poses, T_agent_world, t0)) in enumerate(specs.items()):
         kfs, mps = make_session(world, cam, i, poses, T_agent_world, seed=10 + i, t0=t0,
                                 drift_T=drift)  # fmt: skip
-        coded, inv = {}, {}
-        for k in kfs:
-            coded[k.keyframe_id], order = encode_keyframe_update(k, name, vocab)
-            inv[k.keyframe_id] = np.argsort(order)
-        first = {m.map_point_id: int(m.observations[:, 0].min()) for m in mps}
-        msgs = []
-        for k in kfs:
-            msgs.append(coded[k.keyframe_id])
-            new = [m for m in mps if first[m.map_point_id] == k.keyframe_id]
-            if new:
-                msgs.append(encode_map_point_update(new, name, 0, coded_index=inv))
+        msgs = [m for group in encode_session(kfs, mps, name, vocab) for m in group]
         stamps = np.array([round(k.timestamp * 1e9) for k in kfs], np.int64)
         odometry = np.array([k.T_world_body for k in kfs])
         out[name] = (msgs, poses, stamps, odometry)

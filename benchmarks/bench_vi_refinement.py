@@ -23,7 +23,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from common.data.euroc import EurocSequence
-from recslam.replay import DecodedFrame, ReplayScore, load_decoded, score
+from lab.vio_replay import DecodedFrame, ReplayScore, load_decoded, score
 from services.edge.vio.manager import VioManager
 from services.edge.vio.state import VioMap
 from services.edge.vio.types import VioOptions

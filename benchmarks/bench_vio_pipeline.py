@@ -2,7 +2,7 @@
 
 For each robot of a rendered synthetic dataset (``recslam dataset synth``): the robot's front
 end and codecs run in process (no network, no feedback), the edge decodes the frames
-(:mod:`recslam.replay`), the decoded inputs are cached in ``--cache`` (reused when
+(:mod:`lab.vio_replay`), the decoded inputs are cached in ``--cache`` (reused when
 present), and the VIO runs on the first ``--seconds``. ATE [m] of the frames tracked in the
 last map after SE(3) and Sim(3) alignment, the Sim(3) scale error, maps started and when
 tracking (metric, VI-initialised) began.
@@ -21,7 +21,7 @@ import time
 from pathlib import Path
 
 from common.data.euroc import EurocSequence
-from recslam.replay import decode_sequence, load_decoded, run_vio, save_decoded, score
+from lab.vio_replay import decode_sequence, load_decoded, run_vio, save_decoded, score
 
 log = logging.getLogger("bench_vio_pipeline")
 RESULTS = Path(__file__).resolve().parent / "results" / "vio_pipeline.md"

@@ -6,7 +6,9 @@ runs into tables and plots. Services never import this package.
   wire (tables and plot in :mod:`lab.links_report`).
 - :mod:`lab.table3`: ``recslam experiment table3``, the paper's Table 3 (MBP) from replays of
   a recorded uplink through the cloud's own core (tables and plot in
-  :mod:`lab.table3_report`).
+  :mod:`lab.table3_report`; loop-detection precision / recall in :mod:`lab.loop_scoring`).
+- :mod:`lab.vio_replay`: the robot front end, codecs and edge decoding of a sequence replayed
+  in process into the edge's VIO, with ATE (``benchmarks/bench_vio_pipeline.py``).
 """
 
 from __future__ import annotations

@@ -16,7 +16,7 @@ per-robot and joint ATE of the keyframe trajectories (every keyframe received: t
 retired through their anchors; and over the kept keyframes only) with the cloud report's
 alignment
 (:func:`common.evaluation.metrics.compute_joint_ate`, SE(3)), scores loop detection of the
-MBP-on replay (:mod:`recslam.loop_scoring`) and writes ``table3.md``, ``loop_detection.md``,
+MBP-on replay (:mod:`lab.loop_scoring`) and writes ``table3.md``, ``loop_detection.md``,
 ``table3.json`` and ``table3.png``.
 """
 
@@ -41,7 +41,7 @@ from common.evaluation.results import load_groundtruth
 from common.evaluation.trajectory import Trajectory
 from common.links.edge_cloud import KeyframeUpdate, KeyframeUpdateCoded
 from common.vocabulary import Vocabulary
-from recslam.loop_scoring import (
+from lab.loop_scoring import (
     Detection,
     GroundTruthPoses,
     KeyframeInfo,

@@ -157,7 +157,7 @@ def loop_markdown(t: Table3) -> str:
         "# Loop / merge detection against ground truth (synthetic 3-robot dataset)",
         "",
         f"From the MBP-on replay of `{t.recording}` (`recslam experiment table3`, "
-        "`recslam/loop_scoring.py`). Ground truth: each robot's body pose at the keyframe's "
+        "`lab/loop_scoring.py`). Ground truth: each robot's body pose at the keyframe's "
         f"stamp (nearest within {c.max_gt_gap_s * 1e3:.0f} ms) in the dataset's common room "
         "frame; camera pose = body pose · `T_body_cam` of the dataset's calibration.",
         "",

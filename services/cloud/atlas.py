@@ -12,7 +12,8 @@ Covisibility (ORB-SLAM): the weight between two keyframes is the number of map p
 observe; it is kept up to date as observations arrive in any order (a map point may reference
 a keyframe that has not arrived yet; the observation is linked when it does). The spanning
 tree attaches every keyframe to its strongest covisible keyframe already in the tree; each
-agent's first keyframe is a root.
+agent's first keyframe is a root. The graph is :mod:`services.cloud.atlas_graph`; the records
+the atlas mutates and their frozen views are :mod:`services.cloud.atlas_records`.
 
 Nothing mutable leaves this module: :meth:`Atlas.keyframe` returns a frozen copy and
 :meth:`Atlas.snapshot` plain read-only arrays for the dashboard.
@@ -25,6 +26,8 @@ import logging
 import numpy as np
 
 from common.geometry import inverse_T, transform_points
+from services.cloud.atlas_graph import CovisibilityGraph
+from services.cloud.atlas_records import KeyframeRecord, MapPointRecord
 from services.cloud.map_types import (
     AtlasError,
     AtlasSnapshot,
@@ -61,55 +64,20 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 
-class _Keyframe:
-    __slots__ = (
-        "T_map_body",
-        "agent_id",
-        "bias_accel",
-        "bias_gyro",
-        "descriptors",
-        "key",
-        "keyframe_id",
-        "keypoints",
-        "levels",
-        "map_id",
-        "mp_keys",
-        "timestamp",
-        "velocity",
-        "virtual",
-        "word_ids",
-    )  # fmt: skip
-
-
-class _MapPoint:
-    __slots__ = ("agent_id", "key", "map_id", "map_point_id", "obs", "p_map", "pending", "ref_kf")
-
-    def __init__(self, key: int, agent_id: int, map_point_id: int, map_id: int) -> None:
-        self.key = key
-        self.agent_id = agent_id
-        self.map_point_id = map_point_id
-        self.map_id = map_id
-        self.p_map = np.zeros(3)
-        self.obs: dict[int, int] = {}  # linked keyframe key -> keypoint index
-        self.pending: dict[int, int] = {}  # keyframe not arrived yet -> keypoint index
-        self.ref_kf = -1
-
-
 class Atlas:
     """All maps of the cloud. Not thread-safe: one owner mutates it (the service's app)."""
 
     def __init__(self) -> None:
-        self._kfs: dict[int, _Keyframe] = {}
-        self._mps: dict[int, _MapPoint] = {}
-        self._covis: dict[int, dict[int, int]] = {}
-        self._parent: dict[int, int] = {}  # child -> parent; roots map to -1
+        self._kfs: dict[int, KeyframeRecord] = {}
+        self._mps: dict[int, MapPointRecord] = {}
+        self._graph = CovisibilityGraph()  # covisibility weights and spanning tree
         self._map_of_agent: dict[int, int] = {}
         self._T_map_agent: dict[int, np.ndarray] = {}
         self._merges: list[MergeRecord] = []
         self._loops: list[LoopEdge] = []
         self._removed_kfs: set[int] = set()
         self._retired = RetiredKeyframes()  # MBP-removed keyframes' relative poses
-        self._waiting: dict[int, list[_MapPoint]] = {}  # keyframe not arrived -> its points
+        self._waiting: dict[int, list[MapPointRecord]] = {}  # keyframe not arrived -> its points
         # Points a keyframe names that have not arrived: point key -> {keyframe key: keypoint
         # index}. They become map points with their first position (a point without one would
         # sit at the map's origin for verification, BA and the map view until it came).
@@ -156,19 +124,11 @@ class Atlas:
         T_ma = self._T_map_agent[kf.agent_id]
         new = key not in self._kfs
         if new:
-            k = _Keyframe()
-            k.key, k.agent_id, k.keyframe_id = key, kf.agent_id, kf.keyframe_id
-            k.map_id = self._map_of_agent[kf.agent_id]
-            k.keypoints = kf.keypoints
-            k.levels = kf.levels
-            k.descriptors = kf.descriptors
-            k.word_ids = kf.word_ids
-            k.mp_keys = np.full(kf.keypoints.shape[0], -1, dtype=np.int64)
-            k.virtual = np.zeros(kf.keypoints.shape[0], dtype=bool)
+            k = KeyframeRecord.new(key, kf, self._map_of_agent[kf.agent_id])
             self._kfs[key] = k
-            self._covis[key] = {}
-            if not any(p.agent_id == kf.agent_id for p in self._kfs.values() if p is not k):
-                self._parent[key] = -1  # first keyframe of the agent: a root
+            # The first keyframe of the agent is a root.
+            root = not any(p.agent_id == kf.agent_id for p in self._kfs.values() if p is not k)
+            self._graph.add_keyframe(key, root)
         else:
             k = self._kfs[key]
             n_real = int((~k.virtual).sum())
@@ -193,11 +153,11 @@ class Atlas:
             # Map points that referenced this keyframe before it arrived.
             for mp in self._waiting.pop(key, ()):
                 self._link_pending(mp)
-            self._try_attach(key)
+            self._graph.attach(key)
         return key
 
-    def _new_map_point(self, mkey: int, agent_id: int) -> _MapPoint:
-        mp = _MapPoint(mkey, agent_id, split_key(mkey)[1], self._map_of_agent[agent_id])
+    def _new_map_point(self, mkey: int, agent_id: int) -> MapPointRecord:
+        mp = MapPointRecord(mkey, agent_id, split_key(mkey)[1], self._map_of_agent[agent_id])
         self._mps[mkey] = mp
         return mp
 
@@ -228,7 +188,7 @@ class Atlas:
         self._link_pending(mp)
         return mkey
 
-    def _link_pending(self, mp: _MapPoint) -> None:
+    def _link_pending(self, mp: MapPointRecord) -> None:
         for kkey in list(mp.pending):
             k = self._kfs.get(kkey)
             if k is None:
@@ -242,7 +202,7 @@ class Atlas:
                 continue
             self._link(mp, k, idx)
 
-    def _link(self, mp: _MapPoint, k: _Keyframe, idx: int) -> None:
+    def _link(self, mp: MapPointRecord, k: KeyframeRecord, idx: int) -> None:
         if k.key in mp.obs:
             return
         old = int(k.mp_keys[idx])
@@ -250,37 +210,12 @@ class Atlas:
             return  # keypoint already bound to another point; keep the first binding
         k.mp_keys[idx] = mp.key
         for other in mp.obs:
-            self._add_covis(k.key, other, 1)
+            self._graph.add_weight(k.key, other, 1)
         mp.obs[k.key] = idx
         if mp.ref_kf < 0:
             mp.ref_kf = k.key
-        if k.key not in self._parent:
-            self._try_attach(k.key)
-
-    def _add_covis(self, a: int, b: int, w: int) -> None:
-        if a == b:
-            return
-        ca, cb = self._covis[a], self._covis[b]
-        na = ca.get(b, 0) + w
-        if na <= 0:
-            ca.pop(b, None)
-            cb.pop(a, None)
-        else:
-            ca[b] = na
-            cb[a] = na
-
-    def _try_attach(self, key: int) -> None:
-        """Attach ``key`` (and, transitively, waiting neighbours) to the spanning tree."""
-        stack = [key]
-        while stack:
-            k = stack.pop()
-            if k in self._parent:
-                continue
-            in_tree = [(w, o) for o, w in self._covis[k].items() if o in self._parent]
-            if not in_tree:
-                continue
-            self._parent[k] = max(in_tree)[1]
-            stack.extend(o for o in self._covis[k] if o not in self._parent)
+        if not self._graph.is_attached(k.key):
+            self._graph.attach(k.key)
 
     # ------------------------------------------------------------------ queries
     def has_keyframe(self, key: int) -> bool:
@@ -309,16 +244,9 @@ class Atlas:
         return sorted(m.key for m in self._mps.values() if map_id is None or m.map_id == map_id)
 
     def keyframe(self, key: int) -> KeyframeView:
-        k = self._kf(key)
-        return KeyframeView(
-            key=k.key, agent_id=k.agent_id, keyframe_id=k.keyframe_id, map_id=k.map_id,
-            timestamp=k.timestamp, T_map_body=ro(k.T_map_body), velocity=ro(k.velocity),
-            bias_gyro=ro(k.bias_gyro), bias_accel=ro(k.bias_accel), keypoints=ro(k.keypoints),
-            levels=ro(k.levels), descriptors=ro(k.descriptors), word_ids=ro(k.word_ids),
-            map_point_keys=ro(k.mp_keys), virtual=ro(k.virtual),
-        )  # fmt: skip
+        return self._kf(key).view()
 
-    def _kf(self, key: int) -> _Keyframe:
+    def _kf(self, key: int) -> KeyframeRecord:
         k = self._kfs.get(key)
         if k is None:
             raise AtlasError(f"unknown keyframe {split_key(key)}")
@@ -333,8 +261,7 @@ class Atlas:
     def covisible(self, key: int, min_weight: int = 1) -> list[tuple[int, int]]:
         """``[(keyframe key, weight)]`` sorted by decreasing weight (then key)."""
         self._kf(key)
-        items = [(o, w) for o, w in self._covis[key].items() if w >= min_weight]
-        return sorted(items, key=lambda t: (-t[1], t[0]))
+        return self._graph.covisible(key, min_weight)
 
     def best_covisible(self, key: int, n: int) -> list[int]:
         return [o for o, _ in self.covisible(key)[:n]]
@@ -342,7 +269,7 @@ class Atlas:
     def spanning_parent(self, key: int) -> int | None:
         """Parent in the spanning tree, -1 for a root, None if not attached yet."""
         self._kf(key)
-        return self._parent.get(key)
+        return self._graph.parent(key)
 
     def map_point_positions(self, keys: np.ndarray) -> np.ndarray:
         """Positions (N, 3) in their map's frame of the given map point keys (must exist)."""
@@ -351,7 +278,7 @@ class Atlas:
             out[i] = self._mp(mk).p_map
         return out
 
-    def _mp(self, key: int) -> _MapPoint:
+    def _mp(self, key: int) -> MapPointRecord:
         m = self._mps.get(key)
         if m is None:
             raise AtlasError(f"unknown map point {split_key(key)}")
@@ -495,7 +422,7 @@ class Atlas:
         for i, a in enumerate(keys):
             self._kfs[a].mp_keys[m.obs[a]] = -1
             for b in keys[i + 1 :]:
-                self._add_covis(a, b, -1)
+                self._graph.add_weight(a, b, -1)
         for lst in self._waiting.values():
             if m in lst:
                 lst.remove(m)
@@ -508,7 +435,7 @@ class Atlas:
             return
         self._kfs[kf_key].mp_keys[idx] = -1
         for other in m.obs:
-            self._add_covis(kf_key, other, -1)
+            self._graph.add_weight(kf_key, other, -1)
         if m.ref_kf == kf_key:
             m.ref_kf = min(m.obs) if m.obs else -1
 
@@ -544,13 +471,7 @@ class Atlas:
         self._pass_on_retired(key)
         for mk in np.unique(k.mp_keys[k.mp_keys >= 0]).tolist():
             self.remove_observation(int(mk), key)
-        parent = self._parent.pop(key, None)
-        for child, p in list(self._parent.items()):
-            if p == key:
-                self._parent[child] = -1 if parent is None else parent
-        for other in list(self._covis[key]):
-            self._covis[other].pop(key, None)
-        del self._covis[key]
+        self._graph.remove_keyframe(key)
         del self._kfs[key]
         for mkey in [m for m, kfs in self._announced.items() if kfs.pop(key, None) is not None]:
             if not self._announced[mkey]:
@@ -590,13 +511,7 @@ class Atlas:
         return linked
 
     def map_point(self, key: int) -> MapPointView:
-        m = self._mp(key)
-        items = sorted(m.obs.items())
-        return MapPointView(
-            key=m.key, agent_id=m.agent_id, map_point_id=m.map_point_id, map_id=m.map_id,
-            p_map=ro(m.p_map), obs_keyframes=ro(np.array([a for a, _ in items], np.int64)),
-            obs_indices=ro(np.array([b for _, b in items], np.int64)), ref_kf=m.ref_kf,
-        )  # fmt: skip
+        return self._mp(key).view()
 
     def state(self) -> AtlasState:
         return AtlasState(
@@ -619,22 +534,12 @@ class Atlas:
         atlas._map_of_agent = dict(state.map_of_agent)
         atlas._T_map_agent = {a: np.array(T) for a, T in state.T_map_agent.items()}
         for v in sorted(keyframes, key=lambda v: v.key):
-            k = _Keyframe()
-            k.key, k.agent_id, k.keyframe_id, k.map_id = v.key, v.agent_id, v.keyframe_id, v.map_id
-            k.timestamp = float(v.timestamp)
-            k.T_map_body = np.array(v.T_map_body)
-            k.velocity, k.bias_gyro = np.array(v.velocity), np.array(v.bias_gyro)
-            k.bias_accel = np.array(v.bias_accel)
-            k.keypoints, k.levels = np.array(v.keypoints), np.array(v.levels)
-            k.descriptors, k.word_ids = np.array(v.descriptors), np.array(v.word_ids)
-            k.mp_keys = np.full(k.keypoints.shape[0], -1, np.int64)
-            k.virtual = np.array(v.virtual, dtype=bool)
+            k = KeyframeRecord.from_view(v)
             atlas._kfs[k.key] = k
-            atlas._covis[k.key] = {}
-            if not any(p.agent_id == k.agent_id for p in atlas._kfs.values() if p is not k):
-                atlas._parent[k.key] = -1
+            root = not any(p.agent_id == k.agent_id for p in atlas._kfs.values() if p is not k)
+            atlas._graph.add_keyframe(k.key, root)
         for v in map_points:
-            m = _MapPoint(v.key, v.agent_id, v.map_point_id, v.map_id)
+            m = MapPointRecord(v.key, v.agent_id, v.map_point_id, v.map_id)
             m.p_map = np.array(v.p_map)
             atlas._mps[m.key] = m
             for kk, idx in zip(v.obs_keyframes.tolist(), v.obs_indices.tolist(), strict=True):
@@ -643,7 +548,7 @@ class Atlas:
             if v.ref_kf in m.obs:
                 m.ref_kf = v.ref_kf
         for key in atlas._kfs:
-            atlas._try_attach(key)
+            atlas._graph.attach(key)
         atlas._merges = list(state.merges)
         atlas._loops = [e for e in state.loops if e.key_a in atlas._kfs and e.key_b in atlas._kfs]
         atlas._removed_kfs = set(state.removed_keyframes)
@@ -655,9 +560,8 @@ class Atlas:
     def snapshot(self) -> AtlasSnapshot:
         kfs = [self._kfs[k] for k in sorted(self._kfs)]
         mps = [self._mps[k] for k in sorted(self._mps)]
-        cov = [(a, b, w) for a, d in self._covis.items() for b, w in d.items() if a < b]
-        cov.sort()
-        tree = sorted((c, p) for c, p in self._parent.items() if p >= 0)
+        cov = self._graph.edges()
+        tree = self._graph.tree()
         i64 = np.int64
         return AtlasSnapshot(
             keyframe_keys=ro(np.array([k.key for k in kfs], i64)),

@@ -12,7 +12,8 @@ Decoding turns the wire messages of ``common.protocol.messages`` into the atlas'
 - :class:`CullEvent` -> keyframe and map point ids.
 
 Corrections for the edges are built by ``common.links.edge_cloud.encode_pose_correction``;
-:func:`encode_keyframe_update` / :func:`encode_map_point_update` build what an edge sends
+:func:`encode_keyframe_update` / :func:`encode_map_point_update` (and :func:`encode_session`, a
+simulated session's every message) build what an edge sends
 (tests, benchmarks and simulations use them as the edge's side of the link).
 
 Everything that can be wrong in a peer's message raises :class:`UplinkError` naming the
@@ -329,3 +330,31 @@ def encode_map_point_update(
         agent_name, edge_map_id, pack_array(ids, "<i8"), pack_array(P, "<f8"),
         pack_array(obs, "<i8"),
     )  # fmt: skip
+
+
+def encode_session(
+    keyframes: list[KeyframeInput],
+    map_points: list[MapPointInput],
+    agent_name: str,
+    vocabulary: Vocabulary,
+    edge_map_id: int = 0,
+) -> list[list[KeyframeUpdate | MapPointUpdate]]:
+    """What an edge sends for one agent's session, per keyframe in order: its
+    :class:`KeyframeUpdate`, then (if any) one :class:`MapPointUpdate` of the map points that
+    keyframe observed first (the lowest keyframe id in a point's observations); observations
+    in coded feature indices. For simulations (``services.cloud.simulation.make_session``),
+    tests and benchmarks."""
+    coded: dict[int, KeyframeUpdate] = {}
+    inv: dict[int, np.ndarray] = {}
+    for k in keyframes:  # every keyframe first: observations need the coded indices
+        coded[k.keyframe_id], order = encode_keyframe_update(k, agent_name, vocabulary, edge_map_id)
+        inv[k.keyframe_id] = np.argsort(order)
+    first = {m.map_point_id: int(m.observations[:, 0].min()) for m in map_points}
+    out: list[list[KeyframeUpdate | MapPointUpdate]] = []
+    for k in keyframes:
+        msgs: list[KeyframeUpdate | MapPointUpdate] = [coded[k.keyframe_id]]
+        new = [m for m in map_points if first[m.map_point_id] == k.keyframe_id]
+        if new:
+            msgs.append(encode_map_point_update(new, agent_name, edge_map_id, coded_index=inv))
+        out.append(msgs)
+    return out

@@ -1,43 +1,49 @@
-"""``recslam experiment``: argument parsing, budgets and the timing estimates (the full runs are
-exercised by tests/e2e and benchmarks/results/bandwidth.md)."""
+"""``recslam experiment bandwidth``: its options become a :class:`lab.bandwidth.BandwidthConfig`
+(the experiment itself is tested in tests/lab/test_bandwidth.py)."""
 
 from __future__ import annotations
 
 import argparse
-import json
+from pathlib import Path
 
 import pytest
 
 from common.errors import RecslamError
+from lab.bandwidth import BandwidthConfig
 from recslam.commands import experiment
 
 
-def test_bandwidth_subcommand_parses_budgets() -> None:
+def parse(argv: list[str]) -> argparse.Namespace:
     parser = argparse.ArgumentParser()
     experiment.register(parser.add_subparsers())
-    args = parser.parse_args(["experiment", "bandwidth", "--budgets", "unlimited,200,50"])
+    return parser.parse_args(["experiment", "bandwidth", *argv])
+
+
+def test_bandwidth_defaults() -> None:
+    args = parse([])
     assert args.func is experiment.run
-    assert experiment.parse_budgets(args.budgets) == [None, 200.0, 50.0]
-    with pytest.raises(RecslamError, match="'fast'"):
-        experiment.parse_budgets("unlimited,fast")
-    with pytest.raises(RecslamError, match="positive"):
-        experiment.parse_budgets("0")
-
-
-def test_timing_from_samples(tmp_path) -> None:
-    # Robot "a" (10 frames): frames 0-4 decoded at t=100 (on time for frame 0), the rest at
-    # t=102; camera time of frame i is 100 + i/20, so frame 9 is 102 - 100.45 = 1.55 s late.
-    def sample(t: float, frames: int, keyframes: int) -> dict:
-        return {"time": t, "edge": {"robots": {"a": {"frames_decoded": frames}}},
-                "cloud": {"keyframes": keyframes}}  # fmt: skip
-
-    samples = [sample(100.0, 5, 1), sample(102.0, 10, 2), sample(103.0, 10, 2)]
-    path = tmp_path / "samples.jsonl"
-    path.write_text("".join(json.dumps(s) + "\n" for s in samples))
-    t = experiment.timing(path, {"a": 10})
-    assert t["frame_delay_max_s"] == pytest.approx(2.0 - 5 / 20)
-    late = [102.0 - (100.0 + i / 20) for i in range(5, 10)]
-    assert t["frame_delay_mean_s"] == pytest.approx(
-        sum(late) / 10 - sum(i / 20 for i in range(5)) / 10
+    assert experiment.bandwidth_config(args) == BandwidthConfig(
+        data=Path("data/synth"),
+        budgets=(None, 500.0, 200.0, 100.0, 50.0),
+        robots=(),
+        out=Path("out/bandwidth"),
+        timeout_s=1800.0,
     )
-    assert t["kf_lag_s"] == pytest.approx(102.0 - (100.0 + 10 / 20))
+
+
+def test_bandwidth_options_reach_the_config() -> None:
+    argv = ["--data", "d", "--budgets", "unlimited,200,50", "--robots", "robot0,robot2,"]
+    config = experiment.bandwidth_config(parse([*argv, "--out", "o", "--timeout", "60"]))
+    assert config.data == Path("d") and config.out == Path("o") and config.timeout_s == 60.0
+    assert config.budgets == (None, 200.0, 50.0)
+    assert config.robots == ("robot0", "robot2")
+    with pytest.raises(RecslamError, match="'fast'"):
+        experiment.bandwidth_config(parse(["--budgets", "unlimited,fast"]))
+
+
+def test_a_missing_dataset_is_a_usage_error(tmp_path: Path, capsys) -> None:
+    from recslam.cli import main
+
+    code = main(["experiment", "bandwidth", "--data", str(tmp_path / "no"), "--out", str(tmp_path)])
+    assert code == 2
+    assert "no such dataset folder" in capsys.readouterr().err

@@ -24,7 +24,7 @@ from services.cloud.core import (
 )
 from services.cloud.server import open_app
 from services.cloud.simulation import circle_poses, default_camera, make_session, make_world, yaw_T
-from services.cloud.uplink import encode_keyframe_update, encode_map_point_update
+from services.cloud.uplink import encode_session
 
 
 @pytest.fixture(scope="module")
@@ -45,21 +45,7 @@ def steps(vocab) -> dict[str, list[list]]:
                            yaw_T(np.radians(-60.0), np.array([-1.5, 0.5, 0.0])), seed=2,
                            t0=50.0),
     }  # fmt: skip
-    out = {}
-    for name, (kfs, mps) in sessions.items():
-        first = {m.map_point_id: int(m.observations[:, 0].min()) for m in mps}
-        coded, inv = {}, {}
-        for k in kfs:
-            coded[k.keyframe_id], order = encode_keyframe_update(k, name, vocab, edge_map_id=7)
-            inv[k.keyframe_id] = np.argsort(order)
-        out[name] = []
-        for k in kfs:
-            msgs = [coded[k.keyframe_id]]
-            new = [m for m in mps if first[m.map_point_id] == k.keyframe_id]
-            if new:
-                msgs.append(encode_map_point_update(new, name, 7, coded_index=inv))
-            out[name].append(msgs)
-    return out
+    return {name: encode_session(kfs, mps, name, vocab, 7) for name, (kfs, mps) in sessions.items()}
 
 
 def _config(full_ba: bool = False, mbp: bool = False, **kw) -> CloudServiceConfig:

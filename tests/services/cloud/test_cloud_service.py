@@ -24,10 +24,7 @@ from services.cloud.map_source import CloudMapSource
 from services.cloud.merge import yaw_of
 from services.cloud.server import CloudServer
 from services.cloud.simulation import circle_poses, default_camera, make_session, make_world, yaw_T
-from services.cloud.uplink import (
-    encode_keyframe_update,
-    encode_map_point_update,
-)
+from services.cloud.uplink import encode_session
 
 SECRET = b"cloud-service-test-secret"
 FAST = TransportConfig(reconnect_initial_delay=0.01, reconnect_max_delay=0.2)
@@ -54,18 +51,7 @@ def scenario(vocab):
     }  # fmt: skip
     out = {}
     for name, ((kfs, mps), poses, T_agent_world) in sessions.items():
-        inv: dict[int, np.ndarray] = {}
-        msgs = []
-        first_obs = {m.map_point_id: int(m.observations[:, 0].min()) for m in mps}
-        coded = {}
-        for k in kfs:  # code every keyframe first: observations need the coded indices
-            coded[k.keyframe_id], order = encode_keyframe_update(k, name, vocab, edge_map_id=7)
-            inv[k.keyframe_id] = np.argsort(order)
-        for k in kfs:
-            msgs.append(coded[k.keyframe_id])
-            new = [m for m in mps if first_obs[m.map_point_id] == k.keyframe_id]
-            if new:
-                msgs.append(encode_map_point_update(new, name, 7, coded_index=inv))
+        msgs = [m for group in encode_session(kfs, mps, name, vocab, 7) for m in group]
         out[name] = {"messages": msgs, "truth": poses, "T_agent_world": T_agent_world,
                      "n_keyframes": len(kfs)}  # fmt: skip
     return out

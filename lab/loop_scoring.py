@@ -48,7 +48,7 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class LoopCriterion:
-    """Thresholds of :mod:`recslam.loop_scoring` (see the module docstring).
+    """Thresholds of :mod:`lab.loop_scoring` (see the module docstring).
 
     max_trans_err_m / max_rot_err_deg: a verified relative pose this close to the truth is a
     true positive (default 0.3 m, 10 deg). revisit_dist_m / revisit_angle_deg: camera centres

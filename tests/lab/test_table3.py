@@ -17,7 +17,7 @@ from services.cloud.simulation import (
     make_world,
     yaw_T,
 )
-from services.cloud.uplink import encode_keyframe_update, encode_map_point_update
+from services.cloud.uplink import encode_session
 
 
 @pytest.fixture(scope="module")
@@ -42,16 +42,7 @@ def recording(tmp_path_factory, vocab):
     t, seq = 100.0, 0
     with RecordingWriter(path) as w:
         for name, (kfs, mps) in sessions.items():
-            first = {m.map_point_id: int(m.observations[:, 0].min()) for m in mps}
-            coded, inv = {}, {}
-            for k in kfs:
-                coded[k.keyframe_id], order = encode_keyframe_update(k, name, vocab, 7)
-                inv[k.keyframe_id] = np.argsort(order)
-            for k in kfs:
-                msgs = [coded[k.keyframe_id]]
-                new = [m for m in mps if first[m.map_point_id] == k.keyframe_id]
-                if new:
-                    msgs.append(encode_map_point_update(new, name, 7, coded_index=inv))
+            for msgs in encode_session(kfs, mps, name, vocab, 7):
                 for m in msgs:
                     seq += 1
                     t += 0.2

@@ -1,5 +1,5 @@
 """The edge VIO on the real pipeline's data: a freshly rendered 10 s synthetic robot through the
-robot front end, the codecs and the edge's decoding (recslam.replay)."""
+robot front end, the codecs and the edge's decoding (lab.vio_replay)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import numpy as np
 
 from common.data.euroc import EurocSequence
 from common.data.synth import SynthConfig, generate_dataset
-from recslam.replay import decode_sequence, load_decoded, run_vio, save_decoded, score
+from lab.vio_replay import decode_sequence, load_decoded, run_vio, save_decoded, score
 from services.edge.vio.types import TrackingStatus
 
 

@@ -6,7 +6,7 @@ import numpy as np
 
 from common.evaluation.trajectory import Trajectory
 from common.geometry import inverse_T
-from recslam.loop_scoring import (
+from lab.loop_scoring import (
     Detection,
     GroundTruthPoses,
     KeyframeInfo,

@@ -1,0 +1,277 @@
+"""``recslam experiment bandwidth``: the whole job with the robot→edge links rate-limited.
+
+    recslam experiment bandwidth --data data/synth --budgets unlimited,500,200,100,50
+
+For each budget (kbit/s per robot link, each direction) the cloud, the edge and the robots run
+as separate processes (``recslam.orchestration``); every robot connects to the edge through
+its own throttling TCP proxy (``common.faultproxy.FaultProxy`` with ``rate_bytes_per_s``, in a
+thread of this process): an application-level token bucket on the byte stream. Kernel ``tbf``
+shaping in network namespaces (``common.netem``) is not used by this experiment: the services
+would have to run inside the namespaces; see docs/deployment.md for tc-netem with Docker.
+
+Below the robots' data rate nothing is lost — the robots' outboxes absorb the backlog (up to
+``recslam robot --backlog-minutes``) and frames arrive late. Per budget the table gives:
+
+- ATE: joint RMSE (cloud's report) and the mean of the per-robot RMSEs (own alignment), m
+- frames sent / decoded at the edge (lost = sent - decoded)
+- achieved robot→edge rate: bytes received from all robots / streaming time / robots, kbit/s
+- frame delay: when the edge decoded frame i, minus when the camera took it (first decoded
+  frame + i / 20 Hz), from the edge's once-a-second counters; mean and max over frames, s
+- KF lag: last keyframe at the cloud minus the robots' nominal end of stream, s
+
+Writes ``OUT/bandwidth.md``, ``bandwidth.json`` and ``bandwidth.png``; each run's folder and
+report under ``OUT/<budget>/``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from common.errors import RecslamError
+
+log = logging.getLogger(__name__)
+
+CAMERA_HZ = 20.0
+
+
+@dataclass(frozen=True)
+class BandwidthConfig:
+    """Options of the experiment (built once by the CLI).
+
+    data: dataset folder. budgets: kbit/s per robot link, None = unlimited, run in this order.
+    robots: sequence folders to run (empty = all). out: output folder. timeout_s: per run.
+    """
+
+    data: Path
+    budgets: tuple[float | None, ...]
+    robots: tuple[str, ...] = ()
+    out: Path = Path("out/bandwidth")
+    timeout_s: float = 1800.0
+
+
+def parse_budgets(text: str) -> list[float | None]:
+    """``"unlimited,500,50"`` -> ``[None, 500.0, 50.0]`` (kbit/s; None = unlimited)."""
+    out: list[float | None] = []
+    for item in text.split(","):
+        item = item.strip().lower()
+        if item in ("unlimited", "inf", "none"):
+            out.append(None)
+            continue
+        try:
+            value = float(item)
+        except ValueError:
+            raise RecslamError(f"--budgets: {item!r} is not a number or 'unlimited'") from None
+        if value <= 0:
+            raise RecslamError(f"--budgets: {item!r} must be positive")
+        out.append(value)
+    return out
+
+
+class ThrottledLinks:
+    """One throttling FaultProxy per robot, served by an asyncio loop in a thread."""
+
+    def __init__(self, kbit_s: float | None) -> None:
+        import asyncio
+        import threading
+
+        self.kbit_s = kbit_s
+        self.loop = asyncio.new_event_loop()
+        self.thread = threading.Thread(target=self.loop.run_forever, daemon=True)
+        self.thread.start()
+        self.proxies: list[Any] = []
+
+    def link(self, robot: str, edge_port: int) -> int:
+        """Start a proxy to the edge for ``robot``; returns its port (JobConfig.robot_links)."""
+        import asyncio
+
+        from common.faultproxy import FaultConfig, FaultProxy
+
+        if self.kbit_s is None:
+            return edge_port
+        # Small pieces: the proxy sleeps per forwarded piece, so a 64 KiB read forwarded whole
+        # would arrive after 10 s of silence at 50 kbit/s (and trip the peers' timeouts).
+        config = FaultConfig(rate_bytes_per_s=self.kbit_s * 1000.0 / 8.0, max_write_bytes=1460)
+        proxy = FaultProxy("127.0.0.1", edge_port, config)
+        _, port = asyncio.run_coroutine_threadsafe(proxy.start(), self.loop).result(10)
+        self.proxies.append(proxy)
+        log.info("%s: %g kbit/s proxy on port %d", robot, self.kbit_s, port)
+        return port
+
+    def close(self) -> None:
+        import asyncio
+
+        for proxy in self.proxies:
+            asyncio.run_coroutine_threadsafe(proxy.close(), self.loop).result(10)
+        self.loop.call_soon_threadsafe(self.loop.stop)
+        self.thread.join(10)
+        self.loop.close()
+
+
+def timing(samples_path: Path, frames: dict[str, int]) -> dict[str, Any]:
+    """Frame delays and the last keyframe's lag from ``stats/samples.jsonl`` (see docstring)."""
+    samples = [json.loads(line) for line in samples_path.read_text().splitlines() if line]
+    delays: list[float] = []
+    first_times = []
+    for name, n in frames.items():
+        series = [
+            (s["time"], s["edge"]["robots"][name]["frames_decoded"])
+            for s in samples
+            if name in s["edge"].get("robots", {})
+        ]
+        if not series:
+            continue
+        t0 = next(t for t, f in series if f > 0)
+        first_times.append(t0)
+        for i in range(n):
+            t = next((t for t, f in series if f > i), None)
+            if t is not None:
+                delays.append(t - (t0 + i / CAMERA_HZ))
+    kf = [(s["time"], s["cloud"].get("keyframes", 0)) for s in samples]
+    last_kf = max((c for _, c in kf), default=0)
+    t_last = next((t for t, c in kf if c == last_kf), None)
+    end = (min(first_times) + max(frames.values()) / CAMERA_HZ) if first_times else None
+    return {
+        "frame_delay_mean_s": sum(delays) / len(delays) if delays else None,
+        "frame_delay_max_s": max(delays) if delays else None,
+        "kf_lag_s": (t_last - end) if t_last is not None and end is not None else None,
+    }
+
+
+def run_budget(
+    data: Path, robots: tuple[str, ...], kbit_s: float | None, out: Path, timeout: float
+) -> dict[str, Any]:
+    """One run at ``kbit_s`` (None = unlimited); returns its table row."""
+    import shutil
+
+    from recslam.orchestration import Job, JobConfig, robot_frames
+    from recslam.report import RunFacts, write_report
+
+    if out.exists():
+        shutil.rmtree(out)
+    links = ThrottledLinks(kbit_s)
+    try:
+        config = JobConfig(dataset=data, run_dir=out / "run", robots=robots, robot_links=links.link)
+        t0 = time.perf_counter()
+        with Job(config) as job:
+            job.start()
+            t_robots = time.perf_counter()
+            job.wait_robots(timeout, every_s=0.5)
+            stream_s = time.perf_counter() - t_robots
+            job.wait_edge_idle()
+            codes = job.stop()
+            frames = robot_frames(data, job.robot_names)
+    finally:
+        links.close()
+    facts = RunFacts(stream_s, time.perf_counter() - t0, codes, frames)
+    report = write_report(out / "run", out, facts)
+    rs = report["robots"]
+    own = [r["ate_rmse_m"] for r in rs.values() if r["ate_rmse_m"] is not None]
+    robot_links = [v for k, v in report["links"].items() if not k.endswith("->cloud")]
+    row = {
+        "budget_kbit_s": kbit_s,
+        "ate_joint_m": report["ate"]["joint_rmse_m"],
+        "ate_own_mean_m": sum(own) / len(own) if own else None,
+        "frames_sent": sum(r["frames_sent"] for r in rs.values()),
+        "frames_decoded": sum(r["frames_decoded"] for r in rs.values()),
+        "achieved_kbit_s": (
+            sum(v["kbit_s"] for v in robot_links) / len(robot_links) if robot_links else None
+        ),
+        "stream_s": stream_s,
+        "keyframes": report["map"]["keyframes_after_mbp"],
+        "failed": report["failed"],
+    }
+    row.update(timing(out / "run" / "stats" / "samples.jsonl", frames))
+    return row
+
+
+def _f(x: Any, spec: str) -> str:
+    return "–" if x is None else format(x, spec)
+
+
+def write_table(rows: list[dict[str, Any]], out: Path, note: str) -> str:
+    """``bandwidth.md`` text, plus ``bandwidth.json`` and ``bandwidth.png`` in ``out``."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    lines = [
+        "# Bandwidth experiment",
+        "",
+        note,
+        "",
+        "| budget kbit/s | ATE joint m | ATE per robot (mean) m | frames sent | decoded | lost "
+        "| achieved kbit/s | frame delay mean / max s | KF lag s | streaming s | keyframes |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        budget = "unlimited" if r["budget_kbit_s"] is None else f"{r['budget_kbit_s']:g}"
+        lines.append(
+            f"| {budget} | {_f(r['ate_joint_m'], '.3f')} | {_f(r['ate_own_mean_m'], '.3f')} | "
+            f"{r['frames_sent']} | {r['frames_decoded']} | "
+            f"{r['frames_sent'] - r['frames_decoded']} | {_f(r['achieved_kbit_s'], '.1f')} | "
+            f"{_f(r['frame_delay_mean_s'], '.1f')} / {_f(r['frame_delay_max_s'], '.1f')} | "
+            f"{_f(r['kf_lag_s'], '.1f')} | {r['stream_s']:.0f} | {r['keyframes']} |"
+        )
+    text = "\n".join(lines) + "\n"
+    (out / "bandwidth.md").write_text(text)
+    (out / "bandwidth.json").write_text(json.dumps(rows, indent=2))
+
+    limited = [r for r in rows if r["budget_kbit_s"] is not None]
+    fig, axes = plt.subplots(1, 3, figsize=(13, 3.8))
+    xs = [r["budget_kbit_s"] for r in limited]
+    for ax, key, label in (
+        (axes[0], "ate_own_mean_m", "ATE per robot, mean (m)"),
+        (axes[1], "frame_delay_max_s", "max frame delay (s)"),
+        (axes[2], "achieved_kbit_s", "achieved rate per robot (kbit/s)"),
+    ):
+        ax.plot(xs, [r[key] for r in limited], "o-", label="limited")
+        base = [r[key] for r in rows if r["budget_kbit_s"] is None and r[key] is not None]
+        if base:
+            ax.axhline(base[0], color="grey", ls="--", label="unlimited")
+        ax.set_xscale("log")
+        ax.set_xlabel("budget per robot link (kbit/s)")
+        ax.set_ylabel(label)
+        ax.legend()
+    axes[2].plot(xs, xs, ":", color="k", label="budget")
+    fig.tight_layout()
+    fig.savefig(out / "bandwidth.png", dpi=110)
+    plt.close(fig)
+    return text
+
+
+def budget_name(kbit_s: float | None) -> str:
+    """The run folder's name under ``OUT/``: ``unlimited`` or ``<kbit_s>kbit``."""
+    return "unlimited" if kbit_s is None else f"{kbit_s:g}kbit"
+
+
+def run_bandwidth(
+    config: BandwidthConfig, progress: Callable[[str], None] = log.info
+) -> tuple[list[dict[str, Any]], str]:
+    """Every budget of ``config`` in turn; writes the table files and returns the rows and
+    ``bandwidth.md``'s text (``progress`` gets one line before and after each run)."""
+    if not config.data.is_dir():
+        raise RecslamError(f"--data {config.data}: no such dataset folder (recslam dataset synth)")
+    config.out.mkdir(parents=True, exist_ok=True)
+    rows = []
+    for kbit_s in config.budgets:
+        name = budget_name(kbit_s)
+        progress(f"== budget {name}")
+        t = time.perf_counter()
+        row = run_budget(config.data, config.robots, kbit_s, config.out / name, config.timeout_s)
+        rows.append(row)
+        progress(f"   done in {time.perf_counter() - t:.0f} s: {row}")
+    note = (
+        f"Dataset `{config.data}`, robots {', '.join(config.robots) or 'all'}; application-level "
+        "token bucket (throttling TCP proxy per robot→edge link, both directions), not kernel "
+        "tbf. Frame delay = edge decode time − camera time (first decoded frame + i/20 Hz), "
+        "sampled once a second; KF lag = last keyframe at the cloud − nominal end of the robots' "
+        "streams."
+    )
+    return rows, write_table(rows, config.out, note)

@@ -1,0 +1,132 @@
+"""The atlas's mutable keyframe and map-point records, and their frozen views.
+
+:class:`~services.cloud.atlas.Atlas` owns and mutates these records; what leaves it is a
+:class:`~services.cloud.map_types.KeyframeView` / :class:`~services.cloud.map_types.MapPointView`
+(read-only copies), and :meth:`KeyframeRecord.from_view` turns a view back into a record when
+an atlas is restored. Poses are in the record's map frame (``map_id``).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from services.cloud.map_types import KeyframeInput, KeyframeView, MapPointView, ro
+
+
+class KeyframeRecord:
+    """One keyframe as the atlas holds it. ``mp_keys (N,)`` global map point keys or -1;
+    ``virtual (N,)`` marks observations added by MBP (see ``KeyframeView``)."""
+
+    __slots__ = (
+        "T_map_body",
+        "agent_id",
+        "bias_accel",
+        "bias_gyro",
+        "descriptors",
+        "key",
+        "keyframe_id",
+        "keypoints",
+        "levels",
+        "map_id",
+        "mp_keys",
+        "timestamp",
+        "velocity",
+        "virtual",
+        "word_ids",
+    )
+
+    key: int
+    agent_id: int
+    keyframe_id: int
+    map_id: int
+    timestamp: float
+    T_map_body: np.ndarray
+    velocity: np.ndarray
+    bias_gyro: np.ndarray
+    bias_accel: np.ndarray
+    keypoints: np.ndarray
+    levels: np.ndarray
+    descriptors: np.ndarray
+    word_ids: np.ndarray
+    mp_keys: np.ndarray
+    virtual: np.ndarray
+
+    @classmethod
+    def new(cls, key: int, kf: KeyframeInput, map_id: int) -> KeyframeRecord:
+        """A record of ``kf``'s image data, no map point linked yet; the caller sets the state
+        (timestamp, pose, velocity, biases) in the map's frame."""
+        k = cls()
+        k.key, k.agent_id, k.keyframe_id, k.map_id = key, kf.agent_id, kf.keyframe_id, map_id
+        k.keypoints = kf.keypoints
+        k.levels = kf.levels
+        k.descriptors = kf.descriptors
+        k.word_ids = kf.word_ids
+        k.mp_keys = np.full(kf.keypoints.shape[0], -1, dtype=np.int64)
+        k.virtual = np.zeros(kf.keypoints.shape[0], dtype=bool)
+        return k
+
+    @classmethod
+    def from_view(cls, v: KeyframeView) -> KeyframeRecord:
+        """A writable record of ``v``, no map point linked yet (``mp_keys`` all -1)."""
+        k = cls()
+        k.key, k.agent_id, k.keyframe_id, k.map_id = v.key, v.agent_id, v.keyframe_id, v.map_id
+        k.timestamp = float(v.timestamp)
+        k.T_map_body = np.array(v.T_map_body)
+        k.velocity, k.bias_gyro = np.array(v.velocity), np.array(v.bias_gyro)
+        k.bias_accel = np.array(v.bias_accel)
+        k.keypoints, k.levels = np.array(v.keypoints), np.array(v.levels)
+        k.descriptors, k.word_ids = np.array(v.descriptors), np.array(v.word_ids)
+        k.mp_keys = np.full(k.keypoints.shape[0], -1, np.int64)
+        k.virtual = np.array(v.virtual, dtype=bool)
+        return k
+
+    def view(self) -> KeyframeView:
+        """A read-only copy."""
+        return KeyframeView(
+            key=self.key,
+            agent_id=self.agent_id,
+            keyframe_id=self.keyframe_id,
+            map_id=self.map_id,
+            timestamp=self.timestamp,
+            T_map_body=ro(self.T_map_body),
+            velocity=ro(self.velocity),
+            bias_gyro=ro(self.bias_gyro),
+            bias_accel=ro(self.bias_accel),
+            keypoints=ro(self.keypoints),
+            levels=ro(self.levels),
+            descriptors=ro(self.descriptors),
+            word_ids=ro(self.word_ids),
+            map_point_keys=ro(self.mp_keys),
+            virtual=ro(self.virtual),
+        )
+
+
+class MapPointRecord:
+    """One map point as the atlas holds it: ``p_map (3,)`` in its map's frame, the linked
+    observations, those of keyframes not arrived yet, and its reference keyframe (-1: none)."""
+
+    __slots__ = ("agent_id", "key", "map_id", "map_point_id", "obs", "p_map", "pending", "ref_kf")
+
+    def __init__(self, key: int, agent_id: int, map_point_id: int, map_id: int) -> None:
+        self.key = key
+        self.agent_id = agent_id
+        self.map_point_id = map_point_id
+        self.map_id = map_id
+        self.p_map = np.zeros(3)
+        self.obs: dict[int, int] = {}  # linked keyframe key -> keypoint index
+        self.pending: dict[int, int] = {}  # keyframe not arrived yet -> keypoint index
+        self.ref_kf = -1
+
+    def view(self) -> MapPointView:
+        """A read-only copy (observations sorted by keyframe key)."""
+        items = sorted(self.obs.items())
+        return MapPointView(
+            key=self.key,
+            agent_id=self.agent_id,
+            map_point_id=self.map_point_id,
+            map_id=self.map_id,
+            p_map=ro(self.p_map),
+            obs_keyframes=ro(np.array([a for a, _ in items], np.int64)),
+            obs_indices=ro(np.array([b for _, b in items], np.int64)),
+            ref_kf=self.ref_kf,
+        )
