@@ -80,6 +80,22 @@ class _Keyframe:
         "word_ids",
     )  # fmt: skip
 
+    key: int
+    agent_id: int
+    keyframe_id: int
+    map_id: int
+    timestamp: float  # s
+    T_map_body: np.ndarray  # (4, 4)
+    velocity: np.ndarray  # (3,) m/s, map frame
+    bias_gyro: np.ndarray  # (3,) rad/s
+    bias_accel: np.ndarray  # (3,) m/s^2
+    keypoints: np.ndarray  # (N, 2) distorted px at level 0; MBP virtual ones appended
+    levels: np.ndarray  # (N,) pyramid level
+    descriptors: np.ndarray  # (N, 32) uint8
+    word_ids: np.ndarray  # (N,) visual word of each keypoint
+    mp_keys: np.ndarray  # (N,) int64 map point key per keypoint, -1 if none
+    virtual: np.ndarray  # (N,) bool, True for a virtual (MBP) observation
+
 
 class _MapPoint:
     __slots__ = ("agent_id", "key", "map_id", "map_point_id", "obs", "p_map", "pending", "ref_kf")
