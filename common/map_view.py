@@ -308,9 +308,7 @@ def save_recording(path: str | Path, delta: MapDelta, stats: StatsSnapshot) -> N
         "kf_pruned": delta.keyframes.pruned,
         "loops": delta.loops,
         "merges": delta.merges,
-        "current_pose": np.array(
-            [delta.current_pose[a] for a in pose_agents]
-        ).reshape(-1, 4, 4),
+        "current_pose": np.array([delta.current_pose[a] for a in pose_agents]).reshape(-1, 4, 4),
     }
     for i, g in enumerate(delta.ground_truth):
         arrays[f"gt{i}_timestamp"] = g.timestamp

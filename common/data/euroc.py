@@ -22,6 +22,7 @@ import os
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -560,7 +561,7 @@ class EurocSequence:
                 imu=ImuBatch(self.imu_timestamps_ns[a:b], self.gyro[a:b], self.accel[a:b]),
             )
 
-    def summary(self) -> dict[str, object]:
+    def summary(self) -> dict[str, Any]:
         """Plain facts for CLI display: frames, durations [s], rates [Hz], cameras, ground truth."""
         ts, its = self.frame_timestamps_ns, self.imu_timestamps_ns
         frame_span = float(ts[-1] - ts[0]) * 1e-9

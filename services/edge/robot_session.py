@@ -113,8 +113,10 @@ class Outputs:
     status_due: bool = False  # time for an AgentStatus (the app adds the link counters)
 
 
+_State = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+"""(T_world_body (4, 4), v (3,) m/s, bias gyro (3,), bias accel (3,)) of one keyframe"""
 _StateRow = tuple[int, np.ndarray, np.ndarray, np.ndarray, np.ndarray]
-"""(keyframe id, T_world_body (4, 4), v (3,) m/s, bias gyro (3,), bias accel (3,))"""
+"""(keyframe id, *:data:`_State`)"""
 
 
 def _states(rows: list[_StateRow]) -> KeyframeStates:
@@ -172,7 +174,7 @@ class RobotSession:
         self._own_sorted: dict[int, np.ndarray] = {}  # map id -> sorted(_own_kfs[map id])
         self._sent_points: dict[int, SentPoints] = {}  # map id -> the points the cloud has
         # (map id, keyframe id) -> (T_world_body, v, bg, ba) the cloud has (coded wire)
-        self._sent_state: dict[tuple[int, int], tuple[np.ndarray, ...]] = {}
+        self._sent_state: dict[tuple[int, int], _State] = {}
 
     def _reset_stream(self) -> None:
         self.features = FeatureDecoder(self.vocabulary, self.codec)
@@ -306,7 +308,12 @@ class RobotSession:
             if not self._register(key, kf.timestamp_ns, kf.robot_keyframe):
                 continue
             T = orthonormalize_T(kf.T_world_body)
-            state = (T, *(np.asarray(x, float) for x in (kf.v_world, kf.bias_gyro, kf.bias_accel)))
+            state: _State = (
+                T,
+                np.asarray(kf.v_world, float),
+                np.asarray(kf.bias_gyro, float),
+                np.asarray(kf.bias_accel, float),
+            )
             if key in self._sent_kfs:
                 last = self._sent_state.get(key)
                 if last is None or self._state_moved(last, state):
@@ -346,10 +353,11 @@ class RobotSession:
             t0 = time.perf_counter()
             msgs.append(KeyframePoses(self.agent_id, upd.map_id, encode_states(_states(moved))))
             timer.add("encode.KeyframePoses", time.perf_counter() - t0)
-            for kf_id, *state in moved:
+            for kf_id, *new_state in moved:
                 key = (upd.map_id, kf_id)
-                book.follow(kf_id, self._sent_state[key][0], state[0])
-                self._sent_state[key] = tuple(state)  # type: ignore[assignment]
+                T_new, v, bg, ba = new_state
+                book.follow(kf_id, self._sent_state[key][0], T_new)
+                self._sent_state[key] = (T_new, v, bg, ba)
         msgs.extend(self.release_points(keep_map=upd.map_id))
         points = self._points_to_send(upd)
         if points is not None:
@@ -396,8 +404,8 @@ class RobotSession:
 
     def _state_moved(
         self,
-        last: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
-        new: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
+        last: _State,
+        new: _State,
     ) -> bool:
         o = self.options
         dT = inverse_T(last[0]) @ new[0]
@@ -471,7 +479,9 @@ class RobotSession:
                     bias_gyro=pack_array(kf.bias_gyro, "<f8"),
                     bias_accel=pack_array(kf.bias_accel, "<f8"),
                     features=features,
-                    map_point_ids=pack_array(kf.point_ids if features else [], "<i8"),
+                    map_point_ids=pack_array(
+                        kf.point_ids if features else np.zeros(0, np.int64), "<i8"
+                    ),
                     imu=pack_array(imu, "<f8"),
                 )
             )
