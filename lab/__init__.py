@@ -4,6 +4,7 @@ runs into tables and plots. Services never import this package.
 
 - :mod:`lab.links`: ``recslam experiment links``, the bit budget of every link, raw vs coded
   wire (tables and plot in :mod:`lab.links_report`).
+- :mod:`lab.datasets`: where the development datasets are (the shared EuRoC excerpt).
 """
 
 from __future__ import annotations
