@@ -8,7 +8,7 @@ SEED   ?= 0
 ROBOTS ?= 3
 SECONDS ?= 60
 
-.PHONY: setup demo test lint bench clean
+.PHONY: setup demo test lint typecheck bench clean
 
 $(STAMP): pyproject.toml requirements.lock
 	@$(PYTHON) -c 'import sys; assert sys.version_info[:2] == (3, 11), "recslam needs Python 3.11, found " + sys.version' 
@@ -23,15 +23,21 @@ setup: $(STAMP)
 demo: $(STAMP)
 	$(BIN)/recslam demo --data $(DATA) --robots $(ROBOTS) --seconds $(SECONDS) --seed $(SEED)
 
-## The test suite (what CI runs).
+## The test suite (what CI runs): lint, format check, type check, then pytest.
 test: $(STAMP)
 	@bash scripts/install-browser.sh
 	$(BIN)/ruff check .
+	$(BIN)/ruff format --check .
+	$(BIN)/python -m mypy
 	$(BIN)/python -m pytest
 
 lint: $(STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
+
+## mypy over the packages listed in pyproject.toml ([tool.mypy] files).
+typecheck: $(STAMP)
+	$(BIN)/python -m mypy
 
 bench: $(STAMP)
 	@for b in benchmarks/bench_*.py; do echo "== $$b"; $(BIN)/python $$b || exit 1; done

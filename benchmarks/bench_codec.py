@@ -42,10 +42,11 @@ from common.codec import (
 )
 from common.codec import keypoints as kpc
 from common.vocabulary import Vocabulary
+from lab.datasets import euroc_micro_path
 
 log = logging.getLogger("bench_codec")
 RESULTS = Path(__file__).resolve().parent / "results" / "codec.md"
-DEFAULT_DATASET = Path(__file__).resolve().parents[2] / "shared/datasets/euroc-micro-V1_01"
+DEFAULT_DATASET = euroc_micro_path()
 KF_EVERY = 5
 SPEED_NOTE = [
     "Keyframe coder speed-up (payloads byte-identical to the previous coder, so every bit "

@@ -40,12 +40,13 @@ from common.protocol import HEADER_SIZE, SessionConfig
 from common.protocol.messages import encode_payload
 from common.transport import Client, Delivery, Server, run
 from common.vocabulary import Vocabulary
+from lab.datasets import euroc_micro_path
 from services.robot.app import RobotApp
 from services.robot.config import FrontEndConfig, KeyframeDecisionConfig
 
 log = logging.getLogger("bench_link_rate")
 RESULTS = Path(__file__).resolve().parent / "results" / "link_rate.md"
-EXCERPT = Path(__file__).resolve().parents[2] / "shared/datasets/euroc-micro-V1_01"
+EXCERPT = euroc_micro_path()
 SYNTH = Path("/tmp/synth_bench")
 TARGET_RATIO = 0.12
 SECRET = b"bench-link-rate-secret"

@@ -29,6 +29,7 @@ import numpy as np
 from common.calibration import CameraCalibration
 from common.data.euroc import EurocSequence
 from common.geometry import so3_exp
+from lab.datasets import euroc_micro_path
 from services.robot.config import (
     FrontEndConfig,
     KeyframeDecisionConfig,
@@ -50,7 +51,7 @@ from services.robot.tracker import FrontEnd, TrackedFrame
 logger = logging.getLogger("bench_tracker")
 
 ROOT = Path(__file__).resolve().parents[1]
-DEFAULT_DATASET = ROOT.parent / "shared" / "datasets" / "euroc-micro-V1_01"
+DEFAULT_DATASET = euroc_micro_path()
 TARGET_NON_KF_MS = 5.0
 SKIPS = (1, 2, 4)
 RATES_DEG_S = (0.0, 30.0, 60.0)

@@ -21,11 +21,12 @@ import numpy as np
 
 from common.codec import FeatureDecoder, FeatureEncoder, KeyframeFeatures
 from common.vocabulary import Vocabulary, VocabularyTrainingConfig
+from lab.datasets import euroc_micro_path
 from recslam.commands.vocab import collect_descriptors
 
 log = logging.getLogger("bench_vocabulary")
 RESULTS = Path(__file__).resolve().parent / "results" / "vocabulary.md"
-DEFAULT_DATASET = Path(__file__).resolve().parents[2] / "shared/datasets/euroc-micro-V1_01"
+DEFAULT_DATASET = euroc_micro_path()
 CONFIGS = ((10, 3), (10, 4), (16, 4), (10, 5), (8, 6))
 DEFAULT_K, DEFAULT_DEPTH = 16, 4
 

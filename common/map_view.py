@@ -43,7 +43,7 @@ class MapViewError(RecslamError):
 
 
 def _ro(a: object, dtype: type, shape: tuple[int | None, ...], what: str) -> np.ndarray:
-    arr = np.array(a, dtype=dtype, copy=True)
+    arr: np.ndarray = np.array(a, dtype=dtype, copy=True)
     if arr.size == 0 and len(shape) > 1:
         arr = arr.reshape((0, *[s or 0 for s in shape[1:]]))
     ok = arr.ndim == len(shape) and all(
@@ -283,6 +283,7 @@ def save_recording(path: str | Path, delta: MapDelta, stats: StatsSnapshot) -> N
     """Write a full ``delta`` and ``stats`` to an ``.npz`` file (no pickles)."""
     if not delta.full:
         raise MapViewError("save_recording needs a full delta (snapshot(-1))")
+    pose_agents = sorted(delta.current_pose)
     meta = {
         "format": RECORDING_FORMAT,
         "version": delta.version,
@@ -291,7 +292,7 @@ def save_recording(path: str | Path, delta: MapDelta, stats: StatsSnapshot) -> N
         "bandwidth": [
             [b.time, b.link, b.direction.value, b.message_type, b.n_bytes] for b in stats.bandwidth
         ],
-        "current_pose_agents": sorted(delta.current_pose),
+        "current_pose_agents": pose_agents,
         "ground_truth_agents": [g.agent_id for g in delta.ground_truth],
     }
     arrays: dict[str, np.ndarray] = {
@@ -307,15 +308,13 @@ def save_recording(path: str | Path, delta: MapDelta, stats: StatsSnapshot) -> N
         "kf_pruned": delta.keyframes.pruned,
         "loops": delta.loops,
         "merges": delta.merges,
-        "current_pose": np.array(
-            [delta.current_pose[a] for a in meta["current_pose_agents"]]
-        ).reshape(-1, 4, 4),
+        "current_pose": np.array([delta.current_pose[a] for a in pose_agents]).reshape(-1, 4, 4),
     }
     for i, g in enumerate(delta.ground_truth):
         arrays[f"gt{i}_timestamp"] = g.timestamp
         arrays[f"gt{i}_p_world"] = g.p_world
     with open(path, "wb") as f:
-        np.savez_compressed(f, **arrays)
+        np.savez_compressed(f, allow_pickle=False, **arrays)
 
 
 def load_recording(path: str | Path) -> tuple[MapDelta, StatsSnapshot]:

@@ -323,7 +323,7 @@ class Vocabulary:
             node = best
         return int(self.word_of_node[node])
 
-    def ancestor_at_level(self, words: np.ndarray, level: int) -> np.ndarray:
+    def ancestor_at_level(self, words: np.ndarray | Sequence[int], level: int) -> np.ndarray:
         """Direct index: node id ``(N,)`` of each word's ancestor at ``level`` (0 = root).
 
         Words shallower than ``level`` map to themselves (their leaf node)."""

@@ -103,8 +103,12 @@ def make_demo_map(config: DemoConfig | None = None) -> tuple[MapDelta, StatsSnap
     pt_ids = (owner.astype(np.int64) << 32) | np.arange(cfg.n_points)
     pts = PointSet(pt_ids, p_world, owner, rng.random(cfg.n_points) < cfg.pruned_points)
 
-    ids, agents, stamps, poses, gts = [], [], [], [], []
-    current = {}
+    ids: list[int] = []
+    agents: list[int] = []
+    stamps: list[float] = []
+    poses: list[np.ndarray] = []
+    gts: list[GroundTruth] = []
+    current: dict[int, np.ndarray] = {}
     for a in range(A):
         t = np.linspace(0, cfg.duration_s, K)
         phase = 2 * np.pi * a / A
@@ -129,7 +133,13 @@ def make_demo_map(config: DemoConfig | None = None) -> tuple[MapDelta, StatsSnap
     kf_pruned = rng.random(A * K) < cfg.pruned_keyframes
     kf_pruned[::K] = False
     kf_pruned[K - 1 :: K] = False
-    kfs = KeyframeSet(ids, agents, stamps, np.array(poses), kf_pruned)
+    kfs = KeyframeSet(
+        np.array(ids, np.int64),
+        np.array(agents, np.int32),
+        np.array(stamps),
+        np.array(poses),
+        kf_pruned,
+    )
     loops = [((a << 32) | (K - 1), (a << 32) | 2) for a in range(A)]
     merges = [((((a + 1) % A) << 32) | (K // 2), (a << 32) | (K // 2)) for a in range(A - 1)]
     delta = MapDelta(

@@ -39,6 +39,12 @@ def agent_color(agent: int) -> tuple[int, int, int]:
     return AGENT_COLORS[agent % len(AGENT_COLORS)]
 
 
+def _paler(color: tuple[int, int, int], keep: float) -> tuple[int, int, int]:
+    """``color`` mixed with white: ``keep`` of the colour, the rest white."""
+    r, g, b = (int(keep * c + (1.0 - keep) * 255) for c in color)
+    return r, g, b
+
+
 @dataclass(frozen=True)
 class SceneConfig:
     """Look of the scene.
@@ -193,7 +199,7 @@ class MapScene:
         sub[:: self._cfg.frustum_every] = True
         if T.shape[0]:
             sub[-1] = True
-        dim = tuple(int(0.5 * c + 0.5 * 255) for c in color)
+        dim = _paler(color, 0.5)
         for part, sel, vis in (
             ("kept", sub & ~pruned, True),
             ("pruned", sub & pruned, not self.mbp),
@@ -223,7 +229,7 @@ class MapScene:
     def _send_ground_truth(self) -> None:
         self._gt_dirty = False
         for a, g in self._ground_truth.items():
-            pale = tuple(int(0.35 * c + 0.65 * 255) for c in agent_color(a))
+            pale = _paler(agent_color(a), 0.35)
             self._lines(f"/map/gt/a{a}", _polyline(g.p_world), pale, self.show_ground_truth)
 
     def _send_pose(self, agent: int, T_world_body: np.ndarray) -> None:

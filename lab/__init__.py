@@ -9,6 +9,7 @@ runs into tables and plots. Services never import this package.
   :mod:`lab.table3_report`; loop-detection precision / recall in :mod:`lab.loop_scoring`).
 - :mod:`lab.vio_replay`: the robot front end, codecs and edge decoding of a sequence replayed
   in process into the edge's VIO, with ATE (``benchmarks/bench_vio_pipeline.py``).
+- :mod:`lab.datasets`: where the development datasets are (the shared EuRoC excerpt).
 """
 
 from __future__ import annotations

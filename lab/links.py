@@ -34,6 +34,7 @@ import subprocess
 import time
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import asdict, dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -349,6 +350,11 @@ def codec_ms(run: RunMetrics, where: str, key: str) -> float | None:
     return 1000.0 * e["seconds"] / e["messages"]
 
 
+def link_value(run: RunMetrics, direction: str, key: str) -> float | None:
+    """``key`` of the run's link ``direction`` (e.g. "kbit_s")."""
+    return run["links"][direction][key]
+
+
 def verdict(runs: Sequence[RunMetrics], targets: Targets) -> list[dict[str, Any]]:
     """The budget checks of one (dataset, wire): robot→edge and edge→robot of the worst
     robot, edge→cloud in total (limit scaled to the number of robots); means over runs."""
@@ -361,7 +367,7 @@ def verdict(runs: Sequence[RunMetrics], targets: Targets) -> list[dict[str, Any]
     ]
     out = []
     for direction, key, limit, what in checks:
-        s = stat_of(runs, lambda r, d=direction, k=key: r["links"][d][k])
+        s = stat_of(runs, partial(link_value, direction=direction, key=key))
         value = s["mean"] if s is not None else None
         ok = None if value is None else value <= limit
         out.append({"link": direction, "value": value, "limit": limit, "ok": ok, "what": what})

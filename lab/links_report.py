@@ -164,7 +164,7 @@ def rate_table(runs: Runs, wires: Sequence[str]) -> list[str]:
             lines.append(_row("| all, worst robot", runs, wires, at("links", d, "kbit_s_max")))
         rows, small = _split_small(runs, d)
         for fam, members in rows.items():
-            get = partial(family_sum, direction=d, fam=fam, key="kbit_s")
+            get: Getter = partial(family_sum, direction=d, fam=fam, key="kbit_s")
             lines.append(_row(f"| {family_label(fam, members)}", runs, wires, get))
         if small:
             get = _sum_of([partial(family_sum, direction=d, fam=f, key="kbit_s") for f in small])

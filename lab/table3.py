@@ -280,7 +280,10 @@ def run_table3(
     server's full-BA schedule, and evaluate them against ``dataset``."""
     say = progress or (lambda _msg: None)
     results: dict[Any, ReplayResult] = {}
-    runs = [(False, "without MBP", None), (True, "with MBP (at shutdown)", None)]
+    runs: list[tuple[bool | str, str, int | None]] = [
+        (False, "without MBP", None),
+        (True, "with MBP (at shutdown)", None),
+    ]
     if midrun_every > 0:
         runs.append(("midrun", f"with MBP every {midrun_every} keyframes", midrun_every))
     with tempfile.TemporaryDirectory(dir=work_dir) as tmp:

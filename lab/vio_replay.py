@@ -49,6 +49,7 @@ def decode_sequence(root: Path | str, seconds: float | None = None) -> list[Deco
     stop = len(ts) if seconds is None else int(np.searchsorted(ts, ts[0] + seconds * 1e9))
     out = []
     for fr in seq.frames(0, stop):
+        assert fr.image is not None  # frames() loads the images
         msg = app.process(fr.timestamp_ns, fr.image, fr.imu)
         item = session.decode(msg)
         assert item.obs is not None

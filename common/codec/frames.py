@@ -279,6 +279,7 @@ class FeatureDecoder(_Base):
             )
         r = BitReader(framed[HEADER.size :])
         kind = vk & 0xF
+        out: KeyframeFeatures | NonKeyframeFeatures
         if kind == KIND_KEYFRAME:
             st = self.state.copy_sharing_tables()
             undo: UndoLog = []

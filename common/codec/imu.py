@@ -171,9 +171,8 @@ class ImuEncoder:
                 w.put_signed(corr, si, "imu_ulp")
                 st.last_si[6 + c] = si
                 st.last_q[c] = q[-1]
-        body = w.finish()
         head = struct.pack("<BBH", MAGIC, VERSION, st.seq & 0xFFFF)
-        payload = head + body
+        payload = head + w.finish()
         payload += struct.pack("<I", zlib.crc32(payload))
         st.seq += 1
         self.state = st

@@ -22,6 +22,7 @@ import os
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -52,7 +53,7 @@ class EurocError(RecslamError):
 
 
 def _readonly(a: np.ndarray, dtype: type, shape_tail: tuple[int, ...], what: str) -> np.ndarray:
-    arr = np.array(a, dtype=dtype)
+    arr: np.ndarray = np.array(a, dtype=dtype)
     if arr.ndim != 1 + len(shape_tail) or arr.shape[1:] != shape_tail:
         raise ValueError(f"{what}: expected shape (K, {shape_tail}), got {arr.shape}")
     arr.setflags(write=False)
@@ -344,7 +345,7 @@ class _Yaml:
     def number(self, key: str, positive: bool = False) -> float:
         value = self.get(key)
         try:
-            if isinstance(value, bool):
+            if isinstance(value, bool) or not isinstance(value, int | float | str):
                 raise TypeError
             x = float(value)  # PyYAML reads "1e-3" (no dot) as a string
         except (TypeError, ValueError):
@@ -399,6 +400,7 @@ def read_camera_yaml(path: Path | str) -> CameraCalibration:
     fx, fy, cx, cy = y.numbers("intrinsics", 4)
     if fx <= 0 or fy <= 0:
         raise EurocError(f"{y.where('intrinsics')}: focal lengths must be positive")
+    k1, k2, p1, p2 = y.numbers("distortion_coefficients", 4)
     return CameraCalibration(
         width=int(width),
         height=int(height),
@@ -406,7 +408,7 @@ def read_camera_yaml(path: Path | str) -> CameraCalibration:
         fy=fy,
         cx=cx,
         cy=cy,
-        distortion=tuple(y.numbers("distortion_coefficients", 4)),
+        distortion=(k1, k2, p1, p2),
         T_body_cam=y.transform(),
         rate_hz=y.number("rate_hz", positive=True),
     )
@@ -559,7 +561,7 @@ class EurocSequence:
                 imu=ImuBatch(self.imu_timestamps_ns[a:b], self.gyro[a:b], self.accel[a:b]),
             )
 
-    def summary(self) -> dict[str, object]:
+    def summary(self) -> dict[str, Any]:
         """Plain facts for CLI display: frames, durations [s], rates [Hz], cameras, ground truth."""
         ts, its = self.frame_timestamps_ns, self.imu_timestamps_ns
         frame_span = float(ts[-1] - ts[0]) * 1e-9

@@ -19,11 +19,16 @@ from common.geometry import R_to_quat_wxyz, quat_wxyz_to_R
 
 
 class PoseSeries(Protocol):
-    """Anything with ground-truth pose arrays, e.g. ``common.data.euroc.EurocGroundTruth``."""
+    """Anything with ground-truth pose arrays, e.g. ``common.data.euroc.EurocGroundTruth``.
 
-    timestamps_ns: np.ndarray
-    p_world_body: np.ndarray
-    q_world_body_wxyz: np.ndarray
+    Read-only members, so that frozen dataclasses match."""
+
+    @property
+    def timestamps_ns(self) -> np.ndarray: ...
+    @property
+    def p_world_body(self) -> np.ndarray: ...
+    @property
+    def q_world_body_wxyz(self) -> np.ndarray: ...
 
 
 def _readonly(a: np.ndarray) -> np.ndarray:

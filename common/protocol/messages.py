@@ -27,7 +27,7 @@ import dataclasses
 import types
 import typing
 from collections.abc import Callable
-from typing import Any, ClassVar, TypeVar
+from typing import Any, ClassVar, TypeVar, dataclass_transform
 
 import msgpack
 
@@ -55,13 +55,14 @@ class Message:
 
 _REGISTRY: dict[int, type[Message]] = {}
 
-M = TypeVar("M", bound=type[Message])
+M = TypeVar("M", bound=Message)
 
 
-def message(type_id: int) -> Callable[[M], M]:
+@dataclass_transform(frozen_default=True)
+def message(type_id: int) -> Callable[[type[M]], type[M]]:
     """Class decorator: make a frozen, slotted dataclass and register it under ``type_id``."""
 
-    def wrap(cls: M) -> M:
+    def wrap(cls: type[M]) -> type[M]:
         if not 1 <= type_id <= 0xFFFF:
             raise ValueError(f"type id {type_id} out of range 1..65535")
         if type_id in _REGISTRY:

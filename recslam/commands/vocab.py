@@ -32,7 +32,7 @@ def orb_extractor(nfeatures: int = 1000):
     """ORB as the robot runs it on keyframes (8 levels, scale 1.2)."""
     import cv2
 
-    return cv2.ORB_create(nfeatures=nfeatures, scaleFactor=1.2, nlevels=8)
+    return cv2.ORB.create(nfeatures=nfeatures, scaleFactor=1.2, nlevels=8)
 
 
 def _to_gray_u8(img: np.ndarray) -> np.ndarray:

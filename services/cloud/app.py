@@ -509,13 +509,13 @@ class CloudApp:
                 except EvaluationError:
                     continue
         out = []
-        for name, main in sorted(owner.items()):
-            tf = align.get(self.atlas.map_of_agent(main))
+        for name, main_id in sorted(owner.items()):
+            tf = align.get(self.atlas.map_of_agent(main_id))
             if tf is None:
                 continue
             ref = references[name]
             step = max(1, len(ref.timestamps_ns) // max_points)
-            out.append(GroundTruth(main, ref.timestamps_ns[::step] * 1e-9,
+            out.append(GroundTruth(main_id, ref.timestamps_ns[::step] * 1e-9,
                                    tf.apply_points(ref.p_world_body[::step])))  # fmt: skip
         return tuple(out)
 

@@ -538,15 +538,15 @@ class Atlas:
             atlas._kfs[k.key] = k
             root = not any(p.agent_id == k.agent_id for p in atlas._kfs.values() if p is not k)
             atlas._graph.add_keyframe(k.key, root)
-        for v in map_points:
-            m = MapPointRecord(v.key, v.agent_id, v.map_point_id, v.map_id)
-            m.p_map = np.array(v.p_map)
+        for pv in map_points:
+            m = MapPointRecord(pv.key, pv.agent_id, pv.map_point_id, pv.map_id)
+            m.p_map = np.array(pv.p_map)
             atlas._mps[m.key] = m
-            for kk, idx in zip(v.obs_keyframes.tolist(), v.obs_indices.tolist(), strict=True):
+            for kk, idx in zip(pv.obs_keyframes.tolist(), pv.obs_indices.tolist(), strict=True):
                 if kk in atlas._kfs:
                     atlas._link(m, atlas._kfs[kk], idx)
-            if v.ref_kf in m.obs:
-                m.ref_kf = v.ref_kf
+            if pv.ref_kf in m.obs:
+                m.ref_kf = pv.ref_kf
         for key in atlas._kfs:
             atlas._graph.attach(key)
         atlas._merges = list(state.merges)

@@ -94,8 +94,10 @@ class SolveRequest:
     def job(self) -> Callable[[], SolveResult]:
         """The pure solve as a picklable zero-argument callable (a process pool's child
         imports only the solver's module to run it)."""
-        if self.kind is SolveKind.POSE_GRAPH:
+        if isinstance(self.problem, PoseGraphProblem):
             return functools.partial(optimize_pose_graph, self.problem, self.optimization)
+        if self.full_ba is None:
+            raise CloudCoreError(f"map {self.map_id}: a full BA request without its options")
         return functools.partial(solve_full_ba, self.problem, self.full_ba, self.optimization)
 
 
@@ -407,13 +409,13 @@ class CloudCore:
                 return None
             log.info("full BA of map %d (%s)", m, step.why)
             self._since_full[m] = 0
-            built = self.app.full_ba_problem(m)
-            if built is None:
+            full = self.app.full_ba_problem(m)
+            if full is None:
                 return None
             cfg = self.config.domain.full_ba
             if left is not None:
                 cfg = dataclasses.replace(cfg, max_seconds=left)
-            return SolveRequest(m, SolveKind.FULL_BA, built[0], built[1], opt, cfg)
+            return SolveRequest(m, SolveKind.FULL_BA, full[0], full[1], opt, cfg)
         if isinstance(step, _FullBAChanged):
             maps = sorted(m for m, n in self._since_full.items() if n > 0)
             steps = [_FullBA(m, step.why, step.deadline, step.send) for m in maps]

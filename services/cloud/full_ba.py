@@ -284,7 +284,7 @@ def solve_full_ba(
     for e in range(problem.edge_i.shape[0]):
         i, j = int(problem.edge_i[e]), int(problem.edge_j[e])
         meas = _pose3(problem.T_i_j[e])
-        noise = gtsam.noiseModel.Diagonal.Sigmas(problem.sigmas[e])
+        noise: gtsam.noiseModel.Base = gtsam.noiseModel.Diagonal.Sigmas(problem.sigmas[e])
         if problem.robust[e]:
             rel = _pose3(problem.T_world_body[i]).between(_pose3(problem.T_world_body[j]))
             err = np.asarray(gtsam.Pose3.Logmap(meas.between(rel))) / problem.sigmas[e]
@@ -300,13 +300,13 @@ def solve_full_ba(
     factor = gtsam.GenericProjectionFactorCal3_S2
     for kf, pt, xy, s in zip(problem.obs_kf.tolist(), problem.obs_point.tolist(),
                              problem.obs_xy, problem.obs_sigma.tolist(), strict=True):  # fmt: skip
-        noise = noise_of.get(s)
-        if noise is None:
-            noise = gtsam.noiseModel.Isotropic.Sigma(2, s)
+        obs_noise = noise_of.get(s)
+        if obs_noise is None:
+            obs_noise = gtsam.noiseModel.Isotropic.Sigma(2, s)
             if kernel is not None:
-                noise = gtsam.noiseModel.Robust.Create(kernel, noise)
-            noise_of[s] = noise
-        graph.add(factor(xy, noise, X(kf), L(pt), _UNIT_K, body_P_cam))
+                obs_noise = gtsam.noiseModel.Robust.Create(kernel, obs_noise)
+            noise_of[s] = obs_noise
+        graph.add(factor(xy, obs_noise, X(kf), L(pt), _UNIT_K, body_P_cam))
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(config.max_iterations)
     params.setRelativeErrorTol(config.relative_error_tol)

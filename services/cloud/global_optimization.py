@@ -29,6 +29,7 @@ import os
 import signal
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import gtsam
@@ -165,10 +166,11 @@ def optimize_pose_graph(
     graph.add(
         gtsam.PriorFactorPose3(problem.fixed, _pose3(problem.T_world_body[problem.fixed]), prior)
     )
-    kernel = {
-        "cauchy": gtsam.noiseModel.mEstimator.Cauchy,
-        "huber": gtsam.noiseModel.mEstimator.Huber,
-    }.get(config.loop_robust_kernel)
+    kernels: dict[str, Callable[[float], gtsam.noiseModel.mEstimator.Base]] = {
+        "cauchy": gtsam.noiseModel.mEstimator.Cauchy.Create,
+        "huber": gtsam.noiseModel.mEstimator.Huber.Create,
+    }
+    kernel = kernels.get(config.loop_robust_kernel)
     if kernel is None and config.loop_robust_kernel != "none":
         raise GlobalOptimizationError(f"unknown robust kernel {config.loop_robust_kernel!r}")
     base_graph = gtsam.NonlinearFactorGraph(graph)
@@ -177,11 +179,9 @@ def optimize_pose_graph(
     for _ in range(2):
         graph = gtsam.NonlinearFactorGraph(base_graph)
         for e in np.flatnonzero(use).tolist():
-            noise = gtsam.noiseModel.Diagonal.Sigmas(problem.sigmas[e])
+            noise: gtsam.noiseModel.Base = gtsam.noiseModel.Diagonal.Sigmas(problem.sigmas[e])
             if problem.robust[e] and kernel is not None:
-                noise = gtsam.noiseModel.Robust.Create(
-                    kernel.Create(config.loop_kernel_scale), noise
-                )
+                noise = gtsam.noiseModel.Robust.Create(kernel(config.loop_kernel_scale), noise)
             graph.add(
                 gtsam.BetweenFactorPose3(
                     int(problem.edge_i[e]), int(problem.edge_j[e]), _pose3(problem.T_i_j[e]), noise

@@ -215,7 +215,7 @@ class CloudMapSource:
             )
             merges = np.array([(m.query_key, m.candidate_key) for m in s.merges], np.int64)
             gt_changed = view.ground_truth is not None
-            if gt_changed:
+            if view.ground_truth is not None:
                 map_of = {a.agent_id: a.map_id for a in view.agents}
                 self._gt = tuple(
                     GroundTruth(g.agent_id, g.timestamp,

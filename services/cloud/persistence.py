@@ -83,7 +83,7 @@ class PersistenceError(RecslamError):
 
 def _pack(**arrays: np.ndarray) -> bytes:
     buf = io.BytesIO()
-    np.savez(buf, **arrays)
+    np.savez(buf, allow_pickle=False, **arrays)
     return buf.getvalue()
 
 

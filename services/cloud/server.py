@@ -201,12 +201,13 @@ class CloudServer:
         """Load the state directory, then listen; returns the bound address."""
         self._optimizer.submit(warm_up)  # import gtsam in the optimizer now, not at a merge
         now = asyncio.get_running_loop().time()
-        self._app, self._core = await self._on_worker(self._open, now)
+        app, self._core = await self._on_worker(self._open, now)
+        self._app = app
         if self._record_path is not None:
             self._recorder = RecordingWriter(self._record_path)
-        n = self._app.atlas.n_keyframes()
+        n = app.atlas.n_keyframes()
         log.info("cloud state %s: %d keyframes, %d map points, maps %s", self.state_dir, n,
-                 self._app.atlas.n_map_points(), self._app.atlas.maps())  # fmt: skip
+                 app.atlas.n_map_points(), app.atlas.maps())  # fmt: skip
         self.address = await self._server.start(host, port)
         self._tasks = [
             asyncio.create_task(self._optimize_loop(), name="cloud-optimize"),

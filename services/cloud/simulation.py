@@ -28,7 +28,7 @@ def default_camera() -> CameraCalibration:
     return CameraCalibration(
         width=752, height=480, fx=458.654, fy=457.296, cx=367.215, cy=248.375,
         distortion=(-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05),
-        T_body_cam=make_T(R_BODY_CAM, [0.05, 0.0, 0.0]),
+        T_body_cam=make_T(R_BODY_CAM, np.array([0.05, 0.0, 0.0])),
     )  # fmt: skip
 
 
@@ -72,7 +72,9 @@ def circle_poses(n: int, radius: float = 2.0, height: float = 1.5, turns: float 
                  phase: float = 0.0) -> np.ndarray:  # fmt: skip
     """(n, 4, 4) T_world_body on a circle, looking outwards (yaw = position angle)."""
     ang = phase + np.linspace(0.0, 2 * np.pi * turns, n, endpoint=False)
-    return np.stack([yaw_T(a, [radius * np.cos(a), radius * np.sin(a), height]) for a in ang])
+    return np.stack(
+        [yaw_T(a, np.array([radius * np.cos(a), radius * np.sin(a), height])) for a in ang]
+    )
 
 
 def observe(
@@ -111,7 +113,7 @@ def observe(
     c_desc = rng.integers(0, 256, (n_clutter, 32), dtype=np.uint8)
     c_words = rng.integers(0, world.n_words, n_clutter).astype(np.int32)
     kps = np.concatenate([uv, c_uv])
-    levels = rng.integers(0, 3, kps.shape[0]).astype(np.int16)
+    levels = rng.integers(0, 3, len(kps)).astype(np.int16)
     return (
         kps,
         levels,

@@ -216,6 +216,7 @@ def decode_map_point_update(
 ) -> list[MapPointInput]:
     """One :class:`MapPointInput` per id (observations grouped by map point id)."""
     what = f"{type(msg).__name__} of {msg.agent_id}"
+    p: np.ndarray | None
     try:
         if isinstance(msg, MapPointUpdateCoded):
             batch = decode_points(msg.points, what)

@@ -113,8 +113,10 @@ class Outputs:
     status_due: bool = False  # time for an AgentStatus (the app adds the link counters)
 
 
+_State = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+"""(T_world_body (4, 4), v (3,) m/s, bias gyro (3,), bias accel (3,)) of one keyframe"""
 _StateRow = tuple[int, np.ndarray, np.ndarray, np.ndarray, np.ndarray]
-"""(keyframe id, T_world_body (4, 4), v (3,) m/s, bias gyro (3,), bias accel (3,))"""
+"""(keyframe id, *:data:`_State`)"""
 
 
 def _states(rows: list[_StateRow]) -> KeyframeStates:
@@ -172,7 +174,7 @@ class RobotSession:
         self._own_sorted: dict[int, np.ndarray] = {}  # map id -> sorted(_own_kfs[map id])
         self._sent_points: dict[int, SentPoints] = {}  # map id -> the points the cloud has
         # (map id, keyframe id) -> (T_world_body, v, bg, ba) the cloud has (coded wire)
-        self._sent_state: dict[tuple[int, int], tuple[np.ndarray, ...]] = {}
+        self._sent_state: dict[tuple[int, int], _State] = {}
 
     def _reset_stream(self) -> None:
         self.features = FeatureDecoder(self.vocabulary, self.codec)
@@ -301,14 +303,18 @@ class RobotSession:
         timer = self.codec_timer
         book = self._book(upd.map_id)
         moved: list[_StateRow] = []
-        fresh: list[tuple[KeyframeSnapshot, tuple[np.ndarray, ...], KeyframeFeatures, np.ndarray]]
-        fresh = []
+        fresh: list[tuple[KeyframeSnapshot, _State, KeyframeFeatures, np.ndarray]] = []
         for kf in upd.keyframes:
             key = (upd.map_id, kf.keyframe_id)
             if not self._register(key, kf.timestamp_ns, kf.robot_keyframe):
                 continue
             T = orthonormalize_T(kf.T_world_body)
-            state = (T, *(np.asarray(x, float) for x in (kf.v_world, kf.bias_gyro, kf.bias_accel)))
+            state: _State = (
+                T,
+                np.asarray(kf.v_world, float),
+                np.asarray(kf.bias_gyro, float),
+                np.asarray(kf.bias_accel, float),
+            )
             if key in self._sent_kfs:
                 last = self._sent_state.get(key)
                 if last is None or self._state_moved(last, state):
@@ -332,10 +338,11 @@ class RobotSession:
             t0 = time.perf_counter()
             msgs.append(KeyframePoses(self.agent_id, upd.map_id, encode_states(_states(moved))))
             timer.add("encode.KeyframePoses", time.perf_counter() - t0)
-            for kf_id, *state in moved:
+            for kf_id, *new_state in moved:
                 key = (upd.map_id, kf_id)
-                book.follow(kf_id, self._sent_state[key][0], state[0])
-                self._sent_state[key] = tuple(state)  # type: ignore[assignment]
+                T_new, v, bg, ba = new_state
+                book.follow(kf_id, self._sent_state[key][0], T_new)
+                self._sent_state[key] = (T_new, v, bg, ba)
         points = self._points_to_send(upd)  # after the follows: compared where they moved to
         kf_msgs: list[Message] = []
         for kf, state, feats, point_ids in fresh:  # after the points: what they may name
@@ -402,8 +409,8 @@ class RobotSession:
 
     def _state_moved(
         self,
-        last: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
-        new: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
+        last: _State,
+        new: _State,
     ) -> bool:
         o = self.options
         dT = inverse_T(last[0]) @ new[0]
@@ -477,7 +484,9 @@ class RobotSession:
                     bias_gyro=pack_array(kf.bias_gyro, "<f8"),
                     bias_accel=pack_array(kf.bias_accel, "<f8"),
                     features=features,
-                    map_point_ids=pack_array(kf.point_ids if features else [], "<i8"),
+                    map_point_ids=pack_array(
+                        kf.point_ids if features else np.zeros(0, np.int64), "<i8"
+                    ),
                     imu=pack_array(imu, "<f8"),
                 )
             )

@@ -188,12 +188,15 @@ class FrameCoder:
 
     def encode(self, frame: TrackedFrame) -> CodedFrame:
         """Code one frame; raises :class:`CodingMismatchError` if the models disagree."""
+        features: KeyframeFeatures | NonKeyframeFeatures
         if frame.is_keyframe:
-            features, ids = self._keyframe(frame)
-            payload = self.encoder.encode_keyframe(features)
+            kf_features, ids = self._keyframe(frame)
+            payload = self.encoder.encode_keyframe(kf_features)
+            features = kf_features
         else:
-            features, ids = self._non_keyframe(frame)
-            payload = self.encoder.encode_non_keyframe(features)
+            nkf_features, ids = self._non_keyframe(frame)
+            payload = self.encoder.encode_non_keyframe(nkf_features)
+            features = nkf_features
         self.stream_ids, self.next_stream_id = next_stream_numbers(
             self.stream_ids, self.next_stream_id, features
         )

@@ -118,14 +118,14 @@ def track_points(
     if n == 0:
         return PointTrackResult(np.zeros((0, 2)), np.zeros(0, bool), 0, 0, 0, 0, 0.0, 0.0)
     p0 = np.ascontiguousarray(prev_pts, dtype=np.float32).reshape(-1, 1, 2)
-    p1 = np.ascontiguousarray(guess_pts, dtype=np.float32).reshape(-1, 1, 2)
+    guess = np.ascontiguousarray(guess_pts, dtype=np.float32).reshape(-1, 1, 2)
     win = (config.win_size, config.win_size)
     t0 = time.perf_counter()
     p1, status, _ = cv2.calcOpticalFlowPyrLK(
         prev_image,
         cur_image,
         p0,
-        p1,
+        guess,
         winSize=win,
         maxLevel=config.max_level,
         criteria=_criteria(config),
@@ -216,8 +216,8 @@ def top_up_corners(
     sparse = occ < cfg.min_per_cell
     if not sparse.any():
         return np.zeros((0, 2))
-    mask = np.repeat(np.repeat(sparse, cfg.cell_px, axis=0), cfg.cell_px, axis=1)[:h, :w]
-    mask = mask.astype(np.uint8) * 255
+    cells = np.repeat(np.repeat(sparse, cfg.cell_px, axis=0), cfg.cell_px, axis=1)[:h, :w]
+    mask = cells.astype(np.uint8) * 255
     border = config.lk.win_size // 2 + 1
     mask[:border], mask[-border:], mask[:, :border], mask[:, -border:] = 0, 0, 0, 0
     kps = detector.detect(image, mask)

@@ -85,7 +85,7 @@ class OrbExtractor:
         if config.n_features <= 0 or config.n_levels <= 0 or config.scale_factor <= 1.0:
             raise OrbExtractorError(f"invalid ORB configuration {config}")
         self.config = config
-        self._orb = cv2.ORB_create(
+        self._orb = cv2.ORB.create(
             nfeatures=int(config.n_features * config.oversample),
             scaleFactor=config.scale_factor,
             nlevels=config.n_levels,

@@ -247,7 +247,7 @@ class RobotService:
         )
 
     async def _play(self, executor: ThreadPoolExecutor) -> None:
-        assert self.client is not None
+        assert self.client is not None and self.client.peer is not None  # run() started it
         loop = asyncio.get_running_loop()
         frames = self.sequence.frames(self.config.start_frame, self._stop_index)
         t0_wall: float | None = None

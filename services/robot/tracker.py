@@ -56,11 +56,15 @@ class FrontEndError(RecslamError):
 
 class ImuSamples(Protocol):
     """IMU samples since the previous frame (e.g. ``common.data.euroc.ImuBatch``):
-    ``timestamps_ns`` (K,) int64, ``gyro`` (K, 3) rad/s, ``accel`` (K, 3) m/s², IMU frame."""
+    ``timestamps_ns`` (K,) int64, ``gyro`` (K, 3) rad/s, ``accel`` (K, 3) m/s², IMU frame.
+    Read-only members, so that frozen dataclasses match."""
 
-    timestamps_ns: np.ndarray
-    gyro: np.ndarray
-    accel: np.ndarray
+    @property
+    def timestamps_ns(self) -> np.ndarray: ...
+    @property
+    def gyro(self) -> np.ndarray: ...
+    @property
+    def accel(self) -> np.ndarray: ...
 
 
 @dataclass(frozen=True)
@@ -140,7 +144,7 @@ class FrontEnd:
             camera, imu, config.imu_buffer_s, config.static_bias.min_static_frames
         )
         self.orb = OrbExtractor(config.orb)
-        self._fast = cv2.FastFeatureDetector_create(threshold=config.top_up.fast_threshold)
+        self._fast = cv2.FastFeatureDetector.create(threshold=config.top_up.fast_threshold)
         self._matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
         self._frame_index = -1
         self._prev_t: int | None = None
@@ -378,7 +382,7 @@ class FrontEnd:
         t_start: float,
     ) -> TrackedFrame:
         stats["total_time_s"] = time.perf_counter() - t_start
-        arrays = [self._ids, self._kf_index, self._pts, self._levels, survived]
+        arrays: list[np.ndarray] = [self._ids, self._kf_index, self._pts, self._levels, survived]
         out = [a.copy() for a in arrays]
         for a in out:
             a.setflags(write=False)

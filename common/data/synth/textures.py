@@ -109,8 +109,8 @@ def _tiled_photo(
             tile = np.rot90(photo[y0 : y0 + c, x0 : x0 + c], int(rng.integers(4)))
             if rng.random() < 0.5:
                 tile = tile[:, ::-1]
-            tile = cv2.resize(np.ascontiguousarray(tile), (n, n), interpolation=cv2.INTER_AREA)
-            out[y : y + n, x : x + n] = tile[: h - y, : w - x]
+            cell = cv2.resize(np.ascontiguousarray(tile), (n, n), interpolation=cv2.INTER_AREA)
+            out[y : y + n, x : x + n] = cell[: h - y, : w - x]
     return out
 
 
@@ -349,7 +349,8 @@ def build_atlas(scene: Scene, seed: int, cfg: TextureConfig = TextureConfig()) -
     image = np.zeros((height, w0 + w0 // 2), np.uint8)
     image[:, :w0] = level0
     origins = [(0, 0)]
-    lvl_img, ly = level0, 0
+    lvl_img: np.ndarray = level0
+    ly = 0
     for _ in range(1, cfg.levels):
         lvl_img = cv2.resize(lvl_img, (lvl_img.shape[1] // 2, lvl_img.shape[0] // 2),
                              interpolation=cv2.INTER_AREA)  # fmt: skip

@@ -393,6 +393,7 @@ class SchurLM:
             # Σ over the points both see of W_a·H_plᵀ_b (6, 6).
             blk = Wt[cv.obs_a[s0:s1]].reshape(-1, 6).T @ Ht[cv.obs_b[s0:s1]].reshape(-1, 6)
             if S is None:
+                assert fill is not None  # allocated exactly when S is None
                 fill[g] = blk
                 continue
             a, b = cv.offset_a[g], cv.offset_b[g]

@@ -130,7 +130,7 @@ def bundle_adjust(
         if k in fixed_set:
             graph.add(gtsam.PriorFactorPose3(X(k), _pose(kf.T_world_body), tight6))
     n_imu = 0
-    if use_imu:
+    if imu_params is not None:
         huber = gtsam.noiseModel.mEstimator.Huber.Create(options.imu_huber_k)
         chain = ([vmap.keyframes[prev_fixed]] if prev_fixed is not None else []) + window
         for kf in chain:

@@ -68,7 +68,7 @@ def match_by_projection(
         return 0
     cands = [mp for mp, f in zip(cands, front.tolist(), strict=True) if f]
     xy_c = xy_c[front]
-    desc_c = np.stack([mp.descriptor for mp in cands])
+    desc_c = np.stack([d for mp in cands if (d := mp.descriptor) is not None])  # all have one
     rows = np.array([r for _, r in free])
     radius = options.match_radius_px * 1.2 ** kf.levels[rows].astype(float) / camera.focal
     d2 = np.sum((kf.xy[rows][:, None, :] - xy_c[None, :, :]) ** 2, axis=2)

@@ -226,8 +226,8 @@ class VioManager:
 
     def _trim_imu(self) -> None:
         keep = []
-        if self._map is not None and self._map.keyframes:
-            keep.append(self._map.last_keyframe().timestamp_ns)
+        if self._map is not None and (last := self._map.last_keyframe()) is not None:
+            keep.append(last.timestamp_ns)
         if self._ref is not None:
             keep.append(self._ref.obs.timestamp_ns)
         if self._last_t is not None:
@@ -394,6 +394,7 @@ class VioManager:
             return self._result(frame, None, TrackingStatus.LOST, 0, False, f"lost: {reason}")
         self._prev_T, self._last_T = self._last_T, res.T_world_body
         if res.v_world is not None:
+            assert res.bias_accel is not None and res.bias_gyro is not None  # set with v_world
             self._last_v = res.v_world
             self._last_bias = (res.bias_accel, res.bias_gyro)
         n_inl = len(res.inlier_ids)

@@ -162,9 +162,11 @@ def _optimise(
         return c + (graph.error(vals) if prior is not None else 0.0)
 
     cost = total_cost(values)
+    trial: gtsam.Values | None
     for _ in range(options.max_iterations):
         T = values.atPose3(X(0)).matrix()
         A, b, _ = _visual_system(T, T_body_cam, P, xy, sigma, c2)
+        assert A is not None and b is not None  # jacobians=True
         gfg = graph.linearize(values) if prior is not None else gtsam.GaussianFactorGraph()
         gfg.add(gtsam.JacobianFactor(X(0), A, b, unit))
         delta = gfg.optimize()

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 import logging
-from pathlib import Path
 
 import pytest
 
@@ -12,8 +11,6 @@ from common.errors import RecslamError
 from common.protocol.credentials import CredentialsError, load_secret, parse_address
 from recslam.commands import robot
 from services.robot.server import DEV_SECRET, Rate, RobotConfigError, RobotService
-
-EXCERPT = Path(__file__).resolve().parents[3].parent / "shared/datasets/euroc-micro-V1_01"
 
 
 def parse(argv: list[str]) -> argparse.Namespace:
@@ -78,9 +75,10 @@ def test_bad_dataset_is_a_clear_error(tmp_path):
         RobotService(cfg)
 
 
-@pytest.mark.skipif(not EXCERPT.exists(), reason="EuRoC excerpt not available")
-def test_start_beyond_the_sequence_is_a_clear_error():
-    args = parse(["--dataset", str(EXCERPT), "--edge", "h:1", "--agent-id", "r", "--start", "500"])
+def test_start_beyond_the_sequence_is_a_clear_error(euroc_micro):
+    args = parse(
+        ["--dataset", str(euroc_micro), "--edge", "h:1", "--agent-id", "r", "--start", "500"]
+    )
     with pytest.raises(RobotConfigError, match="start frame 500 leaves no frames"):
         RobotService(robot.build_config(args))
 

@@ -12,10 +12,6 @@ from hypothesis import strategies as st
 from common.codec import CodecError, ImuChunk, ImuDecoder, ImuEncoder
 from common.codec.imu import dequantise_imu
 
-EUROC_IMU = (
-    Path(__file__).resolve().parents[4] / "shared/datasets/euroc-micro-V1_01/mav0/imu0/data.csv"
-)
-
 
 def euroc_like(n: int, seed: int = 0) -> ImuChunk:
     rng = np.random.default_rng(seed)
@@ -41,9 +37,8 @@ def test_lattice_values_roundtrip_cheaply():
     assert np.mean(sizes[1:5]) * 8 / 10 < 6 * 16  # well below 6 x 64-bit floats per sample
 
 
-@pytest.mark.skipif(not EUROC_IMU.exists(), reason="EuRoC excerpt not present")
-def test_real_euroc_imu_is_bit_exact():
-    lines = EUROC_IMU.read_text().splitlines()[1:401]
+def test_real_euroc_imu_is_bit_exact(euroc_micro: Path):
+    lines = (euroc_micro / "mav0/imu0/data.csv").read_text().splitlines()[1:401]
     ts = np.array([int(line.split(",")[0]) for line in lines], dtype=np.int64)
     d = np.array([[float(x) for x in line.split(",")] for line in lines])
     chunks = [

@@ -18,12 +18,6 @@ from common.data.euroc import (
 )
 from common.errors import RecslamError
 
-EXCERPT = Path(__file__).resolve().parents[3] / ".." / "shared" / "datasets" / "euroc-micro-V1_01"
-needs_excerpt = pytest.mark.skipif(
-    not (EXCERPT / "mav0").is_dir(),
-    reason=f"real EuRoC excerpt not found at {EXCERPT} (shared dataset folder absent)",
-)
-
 # Two rows in the exact format of V1_01's state_groundtruth_estimate0/data.csv.
 GT_TEXT = (
     "#timestamp, p_RS_R_x [m], p_RS_R_y [m], p_RS_R_z [m], q_RS_w [], q_RS_x [], q_RS_y [], "
@@ -38,19 +32,16 @@ GT_TEXT = (
 
 
 @pytest.fixture(scope="module")
-def seq() -> EurocSequence:
-    if not (EXCERPT / "mav0").is_dir():
-        pytest.skip(f"real EuRoC excerpt not found at {EXCERPT}")
-    return EurocSequence(EXCERPT)
+def seq(euroc_micro: Path) -> EurocSequence:
+    return EurocSequence(euroc_micro)
 
 
 # ------------------------------------------------------------------ the real excerpt
 
 
-@needs_excerpt
-def test_excerpt_calibration(seq: EurocSequence) -> None:
+def test_excerpt_calibration(seq: EurocSequence, euroc_micro: Path) -> None:
     assert len(seq) == 95
-    assert seq.name == "euroc-micro-V1_01"
+    assert seq.name == euroc_micro.name  # "euroc-micro-V1_01" unless relocated
     c = seq.cam0
     assert (c.width, c.height) == (752, 480)
     assert (c.fx, c.fy, c.cx, c.cy) == (458.654, 457.296, 367.215, 248.375)
@@ -75,7 +66,6 @@ def test_excerpt_calibration(seq: EurocSequence) -> None:
     assert seq.groundtruth is None
 
 
-@needs_excerpt
 def test_excerpt_arrays(seq: EurocSequence) -> None:
     ts = seq.frame_timestamps_ns
     assert ts.dtype == np.int64 and ts.shape == (95,)
@@ -96,7 +86,6 @@ def test_excerpt_arrays(seq: EurocSequence) -> None:
     assert not seq.gyro.flags.writeable
 
 
-@needs_excerpt
 def test_excerpt_imu_batches_tile_timeline(seq: EurocSequence) -> None:
     frames = list(seq.frames(load_images=False))
     assert [f.index for f in frames] == list(range(95))
@@ -120,7 +109,6 @@ def test_excerpt_imu_batches_tile_timeline(seq: EurocSequence) -> None:
     assert frames[0].imu.timestamps_ns.tolist() == [frames[0].timestamp_ns]
 
 
-@needs_excerpt
 def test_excerpt_images_and_partial_iteration(seq: EurocSequence) -> None:
     frames = list(seq.frames(start=92, stop=95))
     assert [f.index for f in frames] == [92, 93, 94]
@@ -140,9 +128,8 @@ def test_excerpt_images_and_partial_iteration(seq: EurocSequence) -> None:
         seq.load_image(0, cam=1)
 
 
-@needs_excerpt
-def test_excerpt_mav0_root_and_summary(seq: EurocSequence) -> None:
-    other = EurocSequence(EXCERPT / "mav0")
+def test_excerpt_mav0_root_and_summary(seq: EurocSequence, euroc_micro: Path) -> None:
+    other = EurocSequence(euroc_micro / "mav0")
     assert other.name == seq.name and len(other) == len(seq)
     s = seq.summary()
     assert s["frames"] == 95
@@ -202,11 +189,9 @@ def test_read_imu_and_camera_csv(tmp_path: Path) -> None:
 
 
 @pytest.fixture
-def small(tmp_path: Path) -> Path:
+def small(tmp_path: Path, euroc_micro: Path) -> Path:
     """A 5-frame, 200-sample copy of the excerpt in tmp_path (never touches /work/shared)."""
-    if not (EXCERPT / "mav0").is_dir():
-        pytest.skip(f"real EuRoC excerpt not found at {EXCERPT}")
-    src, dst = EXCERPT / "mav0", tmp_path / "seq" / "mav0"
+    src, dst = euroc_micro / "mav0", tmp_path / "seq" / "mav0"
     (dst / "cam0" / "data").mkdir(parents=True)
     (dst / "imu0").mkdir()
     for f in ("cam0/sensor.yaml", "imu0/sensor.yaml", "body.yaml"):

@@ -23,8 +23,6 @@ from common.data.euroc import (
 from common.data.euroc_write import EurocWriter, format_float
 from common.geometry import R_to_quat_wxyz, make_T, so3_exp
 
-EXCERPT = Path(__file__).resolve().parents[3] / ".." / "shared" / "datasets" / "euroc-micro-V1_01"
-
 W, H = 64, 48
 
 
@@ -181,10 +179,9 @@ def test_readable_by_other_tools(written: dict) -> None:
     np.testing.assert_array_equal(imu[:, 1:4], written["gyro"])
 
 
-@pytest.mark.skipif(not (EXCERPT / "mav0").is_dir(), reason=f"EuRoC excerpt not at {EXCERPT}")
-def test_rewrites_real_calibration_exactly(tmp_path: Path) -> None:
-    cam = read_camera_yaml(EXCERPT / "mav0" / "cam0" / "sensor.yaml")
-    imu = read_imu_yaml(EXCERPT / "mav0" / "imu0" / "sensor.yaml")
+def test_rewrites_real_calibration_exactly(tmp_path: Path, euroc_micro: Path) -> None:
+    cam = read_camera_yaml(euroc_micro / "mav0" / "cam0" / "sensor.yaml")
+    imu = read_imu_yaml(euroc_micro / "mav0" / "imu0" / "sensor.yaml")
     w = EurocWriter(tmp_path)
     w.add_camera("cam0", cam, comment="VI-Sensor cam0 (MT9M034)")
     w.write_imu(imu, np.array([0, 5_000_000]), np.zeros((2, 3)), np.ones((2, 3)))

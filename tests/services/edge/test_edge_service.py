@@ -35,7 +35,6 @@ from services.edge.sim_robot import code_sequence, play
 from services.edge.vio.simulation import SimOptions, simulate
 from services.edge.worker import MAP_ID_STRIDE, ProcessWorker, WorkerSpec, WorkItem, WorkResult
 
-EXCERPT = Path("/work/shared/datasets/euroc-micro-V1_01")
 SECRET = b"edge-test-secret-0123456789"
 FAST = TransportConfig(reconnect_initial_delay=0.02, reconnect_max_delay=0.3)
 ROOT = Path(__file__).resolve().parents[3]
@@ -85,7 +84,7 @@ def _edge(camera, imu, vocab, cloud_port: int, worker: str, **kw) -> EdgeServer:
 
 
 # ------------------------------------------------------------------ EuRoC excerpt, real cloud
-def test_excerpt_robot_to_edge_to_real_cloud(tmp_path, vocab) -> None:
+def test_excerpt_robot_to_edge_to_real_cloud(tmp_path, vocab, euroc_micro) -> None:
     """The image-based robot plays the excerpt into the edge (VIO in a worker process), which
     reports to the real cloud service: every frame decoded, status received, no VIO failure,
     and the VIO says why it has not initialised (too little motion)."""
@@ -93,8 +92,8 @@ def test_excerpt_robot_to_edge_to_real_cloud(tmp_path, vocab) -> None:
     from services.cloud.server import CloudServer
     from services.robot.server import Rate, RobotService, RobotServiceConfig
 
-    camera = read_camera_yaml(EXCERPT / "mav0/cam0/sensor.yaml")
-    imu = read_imu_yaml(EXCERPT / "mav0/imu0/sensor.yaml")
+    camera = read_camera_yaml(euroc_micro / "mav0/cam0/sensor.yaml")
+    imu = read_imu_yaml(euroc_micro / "mav0/imu0/sensor.yaml")
 
     async def main():
         cloud = CloudServer(
@@ -108,7 +107,7 @@ def test_excerpt_robot_to_edge_to_real_cloud(tmp_path, vocab) -> None:
         _, port = await edge.start()
         try:
             robot = RobotService(
-                RobotServiceConfig(dataset=EXCERPT, edge_host="127.0.0.1", edge_port=port,
+                RobotServiceConfig(dataset=euroc_micro, edge_host="127.0.0.1", edge_port=port,
                                    agent_id="robot-1", secret=SECRET, rate=Rate.MAX,
                                    heartbeat_interval_s=0.2, idle_timeout_s=2.0),
                 transport=FAST,
@@ -239,16 +238,18 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-def _start_edge(port: int, cloud_port: int, state: Path, log: Path) -> subprocess.Popen:
+def _start_edge(
+    port: int, cloud_port: int, state: Path, log: Path, camera: Path
+) -> subprocess.Popen:
     env = dict(os.environ, RECSLAM_SECRET=SECRET.decode())
     cmd = [sys.executable, "-m", "services.edge", "--listen", f"127.0.0.1:{port}",
            "--cloud", f"127.0.0.1:{cloud_port}", "--state-dir", str(state),
-           "--camera", str(EXCERPT), "--worker", "thread", "--agent-id", "edge-1"]  # fmt: skip
+           "--camera", str(camera), "--worker", "thread", "--agent-id", "edge-1"]  # fmt: skip
     with log.open("ab") as out:
         return subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=out, stderr=subprocess.STDOUT)
 
 
-def test_edge_killed_and_restarted_loses_no_frame(tmp_path, vocab, sim_frames) -> None:
+def test_edge_killed_and_restarted_loses_no_frame(tmp_path, vocab, sim_frames, euroc_micro) -> None:
     """SIGKILL the edge process mid-stream, restart it on the same state directory: the
     journal replay plus the robot's replay give every frame exactly once, and the keyframes
     uplinked cover every keyframe id of the final map."""
@@ -259,7 +260,7 @@ def test_edge_killed_and_restarted_loses_no_frame(tmp_path, vocab, sim_frames) -
     async def main():
         cloud = CloudStub()
         cport = await cloud.start()
-        proc = _start_edge(port, cport, tmp_path / "state", log)
+        proc = _start_edge(port, cport, tmp_path / "state", log, euroc_micro)
         try:
             task = asyncio.create_task(
                 play(frames, "127.0.0.1", port, "robot-1", SECRET, rate_hz=20.0, transport=FAST)
@@ -271,7 +272,7 @@ def test_edge_killed_and_restarted_loses_no_frame(tmp_path, vocab, sim_frames) -
             proc.send_signal(signal.SIGKILL)
             proc.wait(10)
             killed_at = max(m.frames for m in cloud.of(AgentStatus))
-            proc = _start_edge(port, cport, tmp_path / "state", log)
+            proc = _start_edge(port, cport, tmp_path / "state", log, euroc_micro)
             result = await asyncio.wait_for(task, 120)
             while not any(m.state == "finished" for m in cloud.of(AgentStatus)[-3:]):
                 assert proc.poll() is None, log.read_text()
@@ -309,7 +310,9 @@ def test_edge_killed_and_restarted_loses_no_frame(tmp_path, vocab, sim_frames) -
 
 
 # ------------------------------------------------------------------ command line
-def test_edge_command_parses_and_names_missing_inputs(tmp_path, monkeypatch, caplog) -> None:
+def test_edge_command_parses_and_names_missing_inputs(
+    tmp_path, monkeypatch, caplog, euroc_micro
+) -> None:
     import argparse
 
     from recslam.commands import edge as edge_cmd
@@ -324,7 +327,7 @@ def test_edge_command_parses_and_names_missing_inputs(tmp_path, monkeypatch, cap
     assert args.func(args) == 2  # no --camera
     assert "--camera is required" in caplog.text
     monkeypatch.setenv("RECSLAM_SECRET", "short")
-    args = parser.parse_args(["edge", "--camera", str(EXCERPT)])
+    args = parser.parse_args(["edge", "--camera", str(euroc_micro)])
     assert args.func(args) == 2
     assert "at least 16 bytes" in caplog.text
     with pytest.raises(SystemExit):

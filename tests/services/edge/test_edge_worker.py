@@ -5,16 +5,12 @@ from __future__ import annotations
 import asyncio
 from pathlib import Path
 
-import pytest
-
 from common.data.euroc import find_mav0, read_camera_yaml, read_imu_yaml
 from services.edge.worker import SINGLE_THREAD_ENV, ProcessWorker, WorkerSpec
 
-EXCERPT = Path("/work/shared/datasets/euroc-micro-V1_01")
 
-
-def _child_env(monkeypatch: pytest.MonkeyPatch) -> dict[str, str]:
-    mav0 = find_mav0(EXCERPT)
+def _child_env(excerpt: Path) -> dict[str, str]:
+    mav0 = find_mav0(excerpt)
     spec = WorkerSpec(
         "r0",
         read_camera_yaml(mav0 / "cam0" / "sensor.yaml"),
@@ -34,14 +30,14 @@ def _child_env(monkeypatch: pytest.MonkeyPatch) -> dict[str, str]:
     return asyncio.run(run())
 
 
-def test_worker_process_runs_single_threaded_blas(monkeypatch) -> None:
+def test_worker_process_runs_single_threaded_blas(monkeypatch, euroc_micro: Path) -> None:
     for name in SINGLE_THREAD_ENV:
         monkeypatch.delenv(name, raising=False)
-    env = _child_env(monkeypatch)
+    env = _child_env(euroc_micro)
     assert {k: env.get(k) for k in SINGLE_THREAD_ENV} == SINGLE_THREAD_ENV
 
 
-def test_operator_blas_threads_are_kept(monkeypatch) -> None:
+def test_operator_blas_threads_are_kept(monkeypatch, euroc_micro: Path) -> None:
     monkeypatch.setenv("OPENBLAS_NUM_THREADS", "2")
-    env = _child_env(monkeypatch)
+    env = _child_env(euroc_micro)
     assert env["OPENBLAS_NUM_THREADS"] == "2"

@@ -27,8 +27,6 @@ from services.robot.imu_prediction import (
     warp_by_rotation,
 )
 
-EXCERPT = Path(__file__).resolve().parents[3].parent / "shared/datasets/euroc-micro-V1_01"
-
 # EuRoC cam0 (V1_01 sensor.yaml).
 T_BODY_CAM = np.array(
     [
@@ -46,10 +44,9 @@ PINHOLE_CAM = CameraCalibration(752, 480, 458.654, 457.296, 367.215, 248.375, T_
 
 
 @pytest.fixture(scope="module")
-def image() -> np.ndarray:
-    paths = sorted((EXCERPT / "mav0/cam0/data").glob("*.png"))
-    if not paths:
-        pytest.skip(f"EuRoC excerpt not found at {EXCERPT}")
+def image(euroc_micro: Path) -> np.ndarray:
+    paths = sorted((euroc_micro / "mav0/cam0/data").glob("*.png"))
+    assert paths, f"no images in {euroc_micro}/mav0/cam0/data"
     return cv2.imread(str(paths[30]), cv2.IMREAD_GRAYSCALE)
 
 

@@ -11,14 +11,11 @@ import pytest
 from services.robot.config import OrbConfig
 from services.robot.orb_extractor import OrbExtractor, OrbExtractorError, select_grid
 
-EXCERPT = Path(__file__).resolve().parents[3].parent / "shared/datasets/euroc-micro-V1_01"
-
 
 @pytest.fixture(scope="module")
-def image() -> np.ndarray:
-    paths = sorted((EXCERPT / "mav0/cam0/data").glob("*.png"))
-    if not paths:
-        pytest.skip(f"EuRoC excerpt not found at {EXCERPT}")
+def image(euroc_micro: Path) -> np.ndarray:
+    paths = sorted((euroc_micro / "mav0/cam0/data").glob("*.png"))
+    assert paths, f"no images in {euroc_micro}/mav0/cam0/data"
     return cv2.imread(str(paths[10]), cv2.IMREAD_GRAYSCALE)
 
 

@@ -4,10 +4,8 @@ from __future__ import annotations
 
 import asyncio
 import dataclasses
-from pathlib import Path
 
 import numpy as np
-import pytest
 
 from common.camera import PinholeRadtan
 from common.data.euroc import EurocSequence
@@ -25,9 +23,6 @@ from common.vocabulary import Vocabulary
 from services.edge.robot_session import RobotSession
 from services.robot.app import RobotApp, content_to_state
 from services.robot.config import FrontEndConfig
-
-EXCERPT = Path(__file__).resolve().parents[3].parent / "shared/datasets/euroc-micro-V1_01"
-pytestmark = pytest.mark.skipif(not EXCERPT.exists(), reason="EuRoC excerpt not available")
 
 
 def feedback(ts: int, map_id: int = 0, n_points: int = 0, **over) -> InertialFeedback:
@@ -50,8 +45,8 @@ def deliver(app: RobotApp, msg) -> None:
     asyncio.run(app.on_message(Delivery("edge", "edge", msg, 1, b"s" * 16)))
 
 
-def test_feedback_conversion_and_refusals():
-    seq = EurocSequence(EXCERPT)
+def test_feedback_conversion_and_refusals(euroc_micro):
+    seq = EurocSequence(euroc_micro)
     app = RobotApp(FrontEndConfig(), seq.cam0, seq.imu, Vocabulary.load())
     frames = list(seq.frames(0, 3))
     for fr in frames:
@@ -116,10 +111,10 @@ def ray_points(app: RobotApp, uv: np.ndarray, z: np.ndarray) -> np.ndarray:
     return p_cam @ T[:3, :3].T + T[:3, 3]
 
 
-def test_robot_keeps_the_keypoints_the_edge_decodes():
+def test_robot_keeps_the_keypoints_the_edge_decodes(euroc_micro):
     """The coded feedback's points are sent along the rays of the frame's keypoints: both ends
     must have the same (the robot: what it coded; the edge: what it decoded)."""
-    seq = EurocSequence(EXCERPT)
+    seq = EurocSequence(euroc_micro)
     vocab = Vocabulary.load()
     app = RobotApp(FrontEndConfig(), seq.cam0, seq.imu, vocab, anchor_frames=3)
     session = RobotSession("r", seq.cam0, vocab)
@@ -131,8 +126,8 @@ def test_robot_keeps_the_keypoints_the_edge_decodes():
     assert len(app._anchors) == 3
 
 
-def test_coded_feedback_resets_updates_and_forgets():
-    seq = EurocSequence(EXCERPT)
+def test_coded_feedback_resets_updates_and_forgets(euroc_micro):
+    seq = EurocSequence(euroc_micro)
     app = RobotApp(FrontEndConfig(), seq.cam0, seq.imu, Vocabulary.load())
     frames = list(seq.frames(0, 3))
     for fr in frames:

@@ -29,13 +29,10 @@ from services.robot.config import (
 from services.robot.orb_extractor import OrbExtractor
 from services.robot.tracker import FrontEnd
 
-EXCERPT = Path(__file__).resolve().parents[3].parent / "shared/datasets/euroc-micro-V1_01"
-pytestmark = pytest.mark.skipif(not EXCERPT.exists(), reason="EuRoC excerpt not available")
-
 
 @pytest.fixture(scope="module")
-def seq() -> EurocSequence:
-    return EurocSequence(EXCERPT)
+def seq(euroc_micro: Path) -> EurocSequence:
+    return EurocSequence(euroc_micro)
 
 
 @pytest.fixture(scope="module")

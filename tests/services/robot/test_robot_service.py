@@ -29,12 +29,9 @@ from services.robot.coding import next_stream_numbers
 from services.robot.server import Rate, RobotService, RobotServiceConfig
 
 ROOT = Path(__file__).resolve().parents[3]
-EXCERPT = ROOT.parent / "shared/datasets/euroc-micro-V1_01"
 SECRET = b"robot-service-test-secret"
 FAST = TransportConfig(reconnect_initial_delay=0.02, reconnect_max_delay=0.3)
 N_FRAMES = 40
-
-pytestmark = pytest.mark.skipif(not EXCERPT.exists(), reason="EuRoC excerpt not available")
 
 
 @pytest.fixture(scope="module")
@@ -90,9 +87,9 @@ class EdgeStub:
         return await self.server.start()
 
 
-def robot_config(port: int, **kw) -> RobotServiceConfig:
+def robot_config(dataset: Path, port: int, **kw) -> RobotServiceConfig:
     base = dict(
-        dataset=EXCERPT,
+        dataset=dataset,
         edge_host="127.0.0.1",
         edge_port=port,
         agent_id="robot-1",
@@ -174,8 +171,8 @@ def feedback_for(
     )
 
 
-def test_frames_decode_to_what_the_robot_used_and_feedback_is_applied(vocabulary):
-    seq = EurocSequence(EXCERPT)
+def test_frames_decode_to_what_the_robot_used_and_feedback_is_applied(vocabulary, euroc_micro):
+    seq = EurocSequence(euroc_micro)
     fb_at = 10
 
     async def hook(edge: EdgeStub, d: Delivery, m: RobotFrame) -> None:
@@ -188,7 +185,7 @@ def test_frames_decode_to_what_the_robot_used_and_feedback_is_applied(vocabulary
         edge = EdgeStub(vocabulary, hook)
         _, port = await edge.start()
         try:
-            service = RobotService(robot_config(port), FAST)
+            service = RobotService(robot_config(euroc_micro, port), FAST)
             before = service.app.front_end.vi_initialised
             result = await service.run()
             await asyncio.wait_for(edge.ended.wait(), 5)
@@ -221,10 +218,10 @@ def test_frames_decode_to_what_the_robot_used_and_feedback_is_applied(vocabulary
 
 
 @pytest.mark.parametrize("rate,backlog_s", [(Rate.REALTIME, 1800.0), (Rate.MAX, 0.05)])
-def test_edge_outage_loses_nothing(vocabulary, rate, backlog_s, caplog):
+def test_edge_outage_loses_nothing(vocabulary, rate, backlog_s, caplog, euroc_micro):
     """The edge vanishes (black hole + cut) mid-run: the robot keeps tracking and queueing
     (realtime), or waits on a tiny backlog (back-pressure); it catches up; nothing is lost."""
-    seq = EurocSequence(EXCERPT)
+    seq = EurocSequence(euroc_micro)
     marks: dict[str, int] = {}
     service_box: list[RobotService] = []
 
@@ -261,7 +258,9 @@ def test_edge_outage_loses_nothing(vocabulary, rate, backlog_s, caplog):
         proxy = FaultProxy(host, port, FaultConfig())
         _, pport = await proxy.start()
         try:
-            service = RobotService(robot_config(pport, rate=rate, backlog_s=backlog_s), FAST)
+            service = RobotService(
+                robot_config(euroc_micro, pport, rate=rate, backlog_s=backlog_s), FAST
+            )
             service_box.append(service)
             result = await service.run()
             await asyncio.wait_for(edge.ended.wait(), 5)
@@ -285,7 +284,7 @@ def test_edge_outage_loses_nothing(vocabulary, rate, backlog_s, caplog):
         assert "backlog full" in caplog.text
 
 
-def test_robot_process_runs_to_the_end_and_stops_on_sigterm(vocabulary, tmp_path):
+def test_robot_process_runs_to_the_end_and_stops_on_sigterm(vocabulary, tmp_path, euroc_micro):
     """``python -m services.robot`` as a real process: secret file, --rate max to the end
     (exit 0, every frame); realtime with SIGTERM mid-run (exit 130, sequence end sent)."""
     secret_file = tmp_path / "secret"
@@ -300,7 +299,7 @@ def test_robot_process_runs_to_the_end_and_stops_on_sigterm(vocabulary, tmp_path
         _, port = await edge.start()
         env = {k: v for k, v in os.environ.items() if k != "RECSLAM_SECRET"}
         proc = await asyncio.create_subprocess_exec(
-            sys.executable, "-m", "services.robot", "--dataset", str(EXCERPT),
+            sys.executable, "-m", "services.robot", "--dataset", str(euroc_micro),
             "--edge", f"127.0.0.1:{port}", "--agent-id", "robot-7",
             "--secret-file", str(secret_file), *extra,
             cwd=ROOT, env=env, stderr=asyncio.subprocess.PIPE,
@@ -324,10 +323,10 @@ def test_robot_process_runs_to_the_end_and_stops_on_sigterm(vocabulary, tmp_path
     assert edge.end is not None and 5 <= edge.end.frames == len(edge.frames) < 95
 
 
-def test_config_dataclass_rejects_nonsense():
+def test_config_dataclass_rejects_nonsense(tmp_path):
     from services.robot.server import RobotConfigError
 
-    ok = robot_config(7000)
+    ok = robot_config(tmp_path, 7000)
     for change, what in [
         ({"edge_port": 0}, "port"),
         ({"agent_id": ""}, "agent id"),
@@ -340,7 +339,7 @@ def test_config_dataclass_rejects_nonsense():
             dataclasses.replace(ok, **change)
 
 
-def test_unreachable_edge_keeps_frames_until_a_second_stop(vocabulary):
+def test_unreachable_edge_keeps_frames_until_a_second_stop(vocabulary, euroc_micro):
     """No edge at all: every frame is tracked and queued; a first stop request waits for the
     edge, a second gives up (interrupted, not flushed)."""
     with socket.socket() as sock:  # a port nobody listens on
@@ -348,7 +347,9 @@ def test_unreachable_edge_keeps_frames_until_a_second_stop(vocabulary):
         port = sock.getsockname()[1]
 
     async def main():
-        service = RobotService(robot_config(port, max_frames=6, flush_timeout_s=None), FAST)
+        service = RobotService(
+            robot_config(euroc_micro, port, max_frames=6, flush_timeout_s=None), FAST
+        )
         task = asyncio.ensure_future(service.run())
         while service.client is None or service.client.counters()["outbox_messages"] < 7:
             await asyncio.sleep(0.05)  # 6 frames + the sequence end, queued

@@ -22,14 +22,10 @@ from services.robot.imu_prediction import InertialState, R_imu_cam_from, warp_by
 from services.robot.keyframe_decision import KeyframeReason, decide_keyframe
 from services.robot.tracker import FrontEnd, FrontEndError, TrackedFrame
 
-EXCERPT = Path(__file__).resolve().parents[3].parent / "shared/datasets/euroc-micro-V1_01"
-
 
 @pytest.fixture(scope="module")
-def seq() -> EurocSequence:
-    if not (EXCERPT / "mav0").is_dir():
-        pytest.skip(f"EuRoC excerpt not found at {EXCERPT}")
-    return EurocSequence(EXCERPT)
+def seq(euroc_micro: Path) -> EurocSequence:
+    return EurocSequence(euroc_micro)
 
 
 @pytest.fixture(scope="module")

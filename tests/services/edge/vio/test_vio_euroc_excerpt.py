@@ -5,13 +5,10 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-import pytest
 
 from common.data.euroc import read_camera_csv, read_camera_yaml, read_imu_csv, read_imu_yaml
 from services.edge.vio.manager import VioManager
 from services.edge.vio.types import FrameObservation, TrackingStatus
-
-SEQ = Path(__file__).resolve().parents[4] / ".." / "shared" / "datasets" / "euroc-micro-V1_01"
 
 
 def _lk_frames(mav0: Path, keyframe_every: int = 5, max_features: int = 150):
@@ -42,9 +39,8 @@ def _lk_frames(mav0: Path, keyframe_every: int = 5, max_features: int = 150):
         yield FrameObservation(int(t), ids, pts.astype(np.float64), np.zeros(len(ids)), is_kf)
 
 
-@pytest.mark.skipif(not SEQ.is_dir(), reason="EuRoC excerpt not present")
-def test_euroc_excerpt_initialises_or_says_why(caplog):
-    mav0 = SEQ.resolve() / "mav0"
+def test_euroc_excerpt_initialises_or_says_why(caplog, euroc_micro: Path):
+    mav0 = euroc_micro.resolve() / "mav0"
     camera = read_camera_yaml(mav0 / "cam0" / "sensor.yaml")
     imu_cal = read_imu_yaml(mav0 / "imu0" / "sensor.yaml")
     imu = read_imu_csv(mav0 / "imu0" / "data.csv")
