@@ -90,9 +90,15 @@ def _pose_graph(n: int) -> PoseGraphProblem:
         sig.append([0.02] * 3 + [0.05] * 3)
         rob.append(True)
     return PoseGraphProblem(
-        keys=np.arange(n), T_world_body=est, edge_i=np.array(ei), edge_j=np.array(ej),
-        T_i_j=np.array(meas), sigmas=np.array(sig, float), robust=np.array(rob), fixed=0,
-    )  # fmt: skip
+        keys=np.arange(n),
+        T_world_body=est,
+        edge_i=np.array(ei),
+        edge_j=np.array(ej),
+        T_i_j=np.array(meas),
+        sigmas=np.array(sig, float),
+        robust=np.array(rob),
+        fixed=0,
+    )
 
 
 def bench_pose_graph(sizes: list[int]) -> list[str]:
@@ -114,8 +120,9 @@ def bench_pose_graph(sizes: list[int]) -> list[str]:
 def bench_mbp(n_kf: int) -> list[str]:
     world = make_world(31, n_points=4000)
     cam = default_camera()
-    kfs, mps = make_session(world, cam, 0, circle_poses(n_kf, turns=1.0), np.eye(4), seed=6,
-                            dt=0.2, track_gap=n_kf)  # fmt: skip
+    kfs, mps = make_session(
+        world, cam, 0, circle_poses(n_kf, turns=1.0), np.eye(4), seed=6, dt=0.2, track_gap=n_kf
+    )
     atlas = Atlas()
     for k in kfs:
         atlas.add_keyframe(k)
@@ -136,8 +143,9 @@ def bench_mbp(n_kf: int) -> list[str]:
 def bench_detection(n: int) -> str:
     """End-to-end detection cost per keyframe on a 2-lap synthetic run (atlas + database)."""
     world = make_world(7)
-    kfs, mps = make_session(world, default_camera(), 0, circle_poses(n, turns=2.0), np.eye(4),
-                            seed=1, dt=1.0)  # fmt: skip
+    kfs, mps = make_session(
+        world, default_camera(), 0, circle_poses(n, turns=2.0), np.eye(4), seed=1, dt=1.0
+    )
     atlas = Atlas()
     for k in kfs:
         atlas.add_keyframe(k)
@@ -168,9 +176,16 @@ def _service_scenario(vocab):
     cam = default_camera()
     runs = {
         "r0": make_session(world, cam, 0, circle_poses(24, turns=1.0), np.eye(4), seed=1),
-        "r1": make_session(world, cam, 1, circle_poses(12, turns=0.5, phase=2.0),
-                           yaw_T(np.radians(-60.0), [-1.5, 0.5, 0.0]), seed=2, t0=50.0),
-    }  # fmt: skip
+        "r1": make_session(
+            world,
+            cam,
+            1,
+            circle_poses(12, turns=0.5, phase=2.0),
+            yaw_T(np.radians(-60.0), [-1.5, 0.5, 0.0]),
+            seed=2,
+            t0=50.0,
+        ),
+    }
     return {
         name: [m for group in encode_session(kfs, mps, name, vocab) for m in group]
         for name, (kfs, mps) in runs.items()
@@ -246,8 +261,9 @@ def bench_service(tmp: Path) -> list[str]:
     for m in kf_msgs:
         decode_keyframe_update(m, 0, vocab)
     decode_ms = 1e3 * (time.perf_counter() - t0) / len(kf_msgs)
-    n_feat = np.mean([len(decode_keyframe_update(m, 0, vocab).keyframe.keypoints)
-                      for m in kf_msgs[:5]])  # fmt: skip
+    n_feat = np.mean(
+        [len(decode_keyframe_update(m, 0, vocab).keyframe.keypoints) for m in kf_msgs[:5]]
+    )
     secret = b"bench-cloud-service-secret"
 
     async def main() -> tuple[float, float, float, object]:
@@ -269,8 +285,10 @@ def bench_service(tmp: Path) -> list[str]:
             return None
 
         tick = asyncio.create_task(ticker())
-        clients = [Client(SessionConfig("edge", f"edge-{i}", secret), nothing, "127.0.0.1", port)
-                   for i in range(2)]  # fmt: skip
+        clients = [
+            Client(SessionConfig("edge", f"edge-{i}", secret), nothing, "127.0.0.1", port)
+            for i in range(2)
+        ]
         for c in clients:
             await c.start()
         t0 = time.perf_counter()
@@ -319,15 +337,22 @@ def _fusion_scenario(vocab, n_kf: int, drift_deg: float, drift_m: float):
     drift = yaw_T(np.radians(drift_deg), [drift_m, 0.0, 0.0])
     specs = {
         "r0": (circle_poses(n_kf, radius=2.0, turns=1.25), np.eye(4), 0.0),
-        "r1": (circle_poses(n_kf, radius=1.6, turns=1.25, phase=2.1),
-               yaw_T(np.radians(-60.0), [-1.5, 0.5, 0.0]), 100.0),
-        "r2": (circle_poses(n_kf, radius=2.4, turns=1.25, phase=4.2),
-               yaw_T(np.radians(75.0), [1.0, -2.0, 0.0]), 200.0),
-    }  # fmt: skip
+        "r1": (
+            circle_poses(n_kf, radius=1.6, turns=1.25, phase=2.1),
+            yaw_T(np.radians(-60.0), [-1.5, 0.5, 0.0]),
+            100.0,
+        ),
+        "r2": (
+            circle_poses(n_kf, radius=2.4, turns=1.25, phase=4.2),
+            yaw_T(np.radians(75.0), [1.0, -2.0, 0.0]),
+            200.0,
+        ),
+    }
     out = {}
     for i, (name, (poses, T_agent_world, t0)) in enumerate(specs.items()):
-        kfs, mps = make_session(world, cam, i, poses, T_agent_world, seed=10 + i, t0=t0,
-                                drift_T=drift)  # fmt: skip
+        kfs, mps = make_session(
+            world, cam, i, poses, T_agent_world, seed=10 + i, t0=t0, drift_T=drift
+        )
         msgs = [m for group in encode_session(kfs, mps, name, vocab) for m in group]
         stamps = np.array([round(k.timestamp * 1e9) for k in kfs], np.int64)
         odometry = np.array([k.T_world_body for k in kfs])

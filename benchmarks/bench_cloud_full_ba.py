@@ -99,8 +99,9 @@ def replay_rows(recording: Path, data: Path) -> list[str]:
     def timed(request: SolveRequest) -> SolveResult:
         res = solve(request)
         if isinstance(res, FullBAResult) and isinstance(request.problem, FullBAProblem):
-            solves.append((request.problem, res.seconds, res.iterations, res.initial_rms_px,
-                           res.final_rms_px))  # fmt: skip
+            solves.append(
+                (request.problem, res.seconds, res.iterations, res.initial_rms_px, res.final_rms_px)
+            )
         return res
 
     results = {}
@@ -109,15 +110,24 @@ def replay_rows(recording: Path, data: Path) -> list[str]:
             label = "pose graph + full BA" if full else "pose graph only"
             records = read_recording(recording, allow_truncated_tail=True)
             results[full] = table3.replay(
-                records, camera, vocab, table3.service_config(True), Path(tmp) / str(full),
-                label, full_ba=full, solve_fn=timed,
-            )  # fmt: skip
+                records,
+                camera,
+                vocab,
+                table3.service_config(True),
+                Path(tmp) / str(full),
+                label,
+                full_ba=full,
+                solve_fn=timed,
+            )
             log.info("%s: %.0f s", label, results[full].seconds)
         names = sorted(set(results[False].trajectories) | set(results[True].trajectories))
         refs, _ = load_groundtruth(names, data)
         sweep = sigma_sweep(Path(tmp) / "False", camera, vocab, refs)
-    rows = ["| | keyframes | maps | loops | full BA passes | ATE per robot m | "
-            "ATE joint m | replay s |", "|---|---|---|---|---|---|---|---|"]  # fmt: skip
+    rows = [
+        "| | keyframes | maps | loops | full BA passes | ATE per robot m | "
+        "ATE joint m | replay s |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
     for full in (False, True):
         r = results[full]
         ate = table3.joint_ate(refs, r.trajectories)
@@ -128,16 +138,29 @@ def replay_rows(recording: Path, data: Path) -> list[str]:
             f"| {r.label} | {r.keyframes} | {len(r.maps)} | {r.loops} | "
             f"{len(solves) if full else 0} | {per} | {joint} | {r.seconds:.0f} |"
         )
-    rows += ["", "Every full BA of the replay (in order):", "",
-             "| keyframes | points | observations | solve s | iterations | RMS before px | "
-             "RMS after px |", "|---|---|---|---|---|---|---|"]  # fmt: skip
+    rows += [
+        "",
+        "Every full BA of the replay (in order):",
+        "",
+        "| keyframes | points | observations | solve s | iterations | RMS before px | "
+        "RMS after px |",
+        "|---|---|---|---|---|---|---|",
+    ]
     for p, s, it, r0, r1 in solves:
-        rows.append(f"| {p.keys.size} | {p.point_keys.size} | {p.n_observations} | {s:.1f} | "
-                    f"{it} | {r0:.2f} | {r1:.2f} |")  # fmt: skip
-    rows += ["", "One full BA of the final map of the pose-graph-only replay, by the sigmas of the "
-             "relative-pose terms (their measurement is the current estimate, drift included):",
-             "", "| odometry sigmas rad / m | iterations | solve s | RMS after px | ATE joint m "
-             "(SE(3)) | ATE joint m (Sim(3)) |", "|---|---|---|---|---|---|", *sweep]  # fmt: skip
+        rows.append(
+            f"| {p.keys.size} | {p.point_keys.size} | {p.n_observations} | {s:.1f} | "
+            f"{it} | {r0:.2f} | {r1:.2f} |"
+        )
+    rows += [
+        "",
+        "One full BA of the final map of the pose-graph-only replay, by the sigmas of the "
+        "relative-pose terms (their measurement is the current estimate, drift included):",
+        "",
+        "| odometry sigmas rad / m | iterations | solve s | RMS after px | ATE joint m "
+        "(SE(3)) | ATE joint m (Sim(3)) |",
+        "|---|---|---|---|---|---|",
+        *sweep,
+    ]
     return rows
 
 
@@ -165,8 +188,10 @@ def sigma_sweep(state_dir: Path, camera: object, vocab: object, refs: dict) -> l
             cfg = dataclasses.replace(AteConfig(), align=mode)
             return compute_joint_ate({n: refs[n] for n in est}, est, cfg).stats.rmse
 
-        rows = [f"| (before: pose graph only) | | | | {ate(AlignMode.SE3):.4f} | "
-                f"{ate(AlignMode.SIM3):.4f} |"]  # fmt: skip
+        rows = [
+            f"| (before: pose graph only) | | | | {ate(AlignMode.SE3):.4f} | "
+            f"{ate(AlignMode.SIM3):.4f} |"
+        ]
         for rot, trans in ((0.01, 0.02), (0.05, 0.1), (0.1, 0.2), (0.3, 0.6), (1.0, 2.0)):
             atlas.set_keyframe_poses(T0)
             atlas.set_map_point_positions(dict(zip(pk.tolist(), P0, strict=True)))
@@ -176,9 +201,11 @@ def sigma_sweep(state_dir: Path, camera: object, vocab: object, refs: dict) -> l
             gcfg = GlobalOptimizationConfig()
             res = solve_full_ba(build_full_ba(atlas, m, camera, cfg, gcfg), cfg, gcfg)  # type: ignore[arg-type]
             apply_full_ba(atlas, res)
-            rows.append(f"| {rot} / {trans} | {res.iterations} | {res.seconds:.1f} | "
-                        f"{res.final_rms_px:.2f} | {ate(AlignMode.SE3):.4f} | "
-                        f"{ate(AlignMode.SIM3):.4f} |")  # fmt: skip
+            rows.append(
+                f"| {rot} / {trans} | {res.iterations} | {res.seconds:.1f} | "
+                f"{res.final_rms_px:.2f} | {ate(AlignMode.SE3):.4f} | "
+                f"{ate(AlignMode.SIM3):.4f} |"
+            )
         return rows
     finally:
         app.close()
@@ -191,8 +218,11 @@ def main() -> None:
     ap.add_argument("--data", type=Path, default=None, help="dataset folder (ground truth)")
     args = ap.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
-    sizes = [(20, 1500), (50, 3000)] if args.quick else [(20, 1500), (50, 3000), (100, 6000),
-                                                         (200, 12000)]  # fmt: skip
+    sizes = (
+        [(20, 1500), (50, 3000)]
+        if args.quick
+        else [(20, 1500), (50, 3000), (100, 6000), (200, 12000)]
+    )
     cfg = FullBAConfig()
     lines = [
         "# Cloud full bundle adjustment (Eq. 20, full stage)",

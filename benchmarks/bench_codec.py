@@ -368,8 +368,9 @@ def main() -> int:
     ]
     intra = kf["intra"].total
     verdict = "met" if intra <= 200 else f"missed by {intra - 200:.1f} bits"
-    lines.append(f"- Keyframe intra ≤ 200 bits/feature: {intra:.1f} — {verdict} "
-                 f"(paper {PAPER_KF}).")  # fmt: skip
+    lines.append(
+        f"- Keyframe intra ≤ 200 bits/feature: {intra:.1f} — {verdict} (paper {PAPER_KF})."
+    )
     inter = kf["inter"].total
     lines.append(
         f"- Keyframe inter lower than intra: {inter:.1f} vs {intra:.1f} — "

@@ -72,10 +72,20 @@ async def _peers(frames_by_robot: dict, conn: Connection) -> None:
     done = asyncio.Event()
     cfg = TransportConfig()
     tasks = [
-        asyncio.create_task(play(fr, "127.0.0.1", port, name, SECRET, transport=cfg,
-                                 flush_timeout_s=3600.0, linger=done))
+        asyncio.create_task(
+            play(
+                fr,
+                "127.0.0.1",
+                port,
+                name,
+                SECRET,
+                transport=cfg,
+                flush_timeout_s=3600.0,
+                linger=done,
+            )
+        )
         for name, fr in frames_by_robot.items()
-    ]  # fmt: skip
+    ]
     await loop.run_in_executor(None, conn.recv)  # "done": every robot processed
     cpu = time.process_time() - cpu0
     done.set()
@@ -98,9 +108,14 @@ async def run_case(frames_by_robot: dict, camera, imu, vocab, worker: str) -> di
     peers = ctx.Process(target=_peers_main, args=(frames_by_robot, child), daemon=True)
     peers.start()
     cport = await loop.run_in_executor(None, conn.recv)
-    edge = EdgeServer(SECRET, camera, imu, vocab, EdgeConfig(worker=worker),
-                      EdgeServiceConfig(agent_id="edge", cloud_host="127.0.0.1",
-                                        cloud_port=cport))  # fmt: skip
+    edge = EdgeServer(
+        SECRET,
+        camera,
+        imu,
+        vocab,
+        EdgeConfig(worker=worker),
+        EdgeServiceConfig(agent_id="edge", cloud_host="127.0.0.1", cloud_port=cport),
+    )
     _, port = await edge.start()
     await edge.app.prepare(list(frames_by_robot))
     t0 = time.monotonic()
@@ -123,8 +138,14 @@ async def run_case(frames_by_robot: dict, camera, imu, vocab, worker: str) -> di
     peers.join(30.0)
     stats = edge.stats()["robots"]
     await edge.stop()
-    out = {"worker": worker, "robots": len(frames_by_robot), "wall": wall, "per_robot": {},
-           "main_cpu": main_cpu, "peers_cpu": peers_cpu}  # fmt: skip
+    out = {
+        "worker": worker,
+        "robots": len(frames_by_robot),
+        "wall": wall,
+        "per_robot": {},
+        "main_cpu": main_cpu,
+        "peers_cpu": peers_cpu,
+    }
     track, ba, frame = [], [], []
     for name in frames_by_robot:
         s = stats[name]
@@ -156,8 +177,14 @@ async def record_robot(dataset: Path, name: str) -> list:
 
     stub = Server(SessionConfig("edge", "recorder", SECRET), on_message)
     _, port = await stub.start()
-    cfg = RobotServiceConfig(dataset=dataset, edge_host="127.0.0.1", edge_port=port,
-                             agent_id=name, secret=SECRET, rate=Rate.MAX)  # fmt: skip
+    cfg = RobotServiceConfig(
+        dataset=dataset,
+        edge_host="127.0.0.1",
+        edge_port=port,
+        agent_id=name,
+        secret=SECRET,
+        rate=Rate.MAX,
+    )
     await RobotService(cfg).run()
     await stub.close()
     return frames

@@ -55,11 +55,29 @@ def _tls_contexts(tmp: Path) -> tuple[ssl.SSLContext, ssl.SSLContext] | None:
         return None
     key, cert = tmp / "key.pem", tmp / "cert.pem"
     subprocess.run(
-        ["openssl", "req", "-x509", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:prime256v1",
-         "-nodes", "-keyout", str(key), "-out", str(cert), "-days", "1", "-subj", "/CN=localhost",
-         "-addext", "subjectAltName=DNS:localhost"],
-        check=True, capture_output=True,
-    )  # fmt: skip
+        [
+            "openssl",
+            "req",
+            "-x509",
+            "-newkey",
+            "ec",
+            "-pkeyopt",
+            "ec_paramgen_curve:prime256v1",
+            "-nodes",
+            "-keyout",
+            str(key),
+            "-out",
+            str(cert),
+            "-days",
+            "1",
+            "-subj",
+            "/CN=localhost",
+            "-addext",
+            "subjectAltName=DNS:localhost",
+        ],
+        check=True,
+        capture_output=True,
+    )
     server_ctx = ssl.create_default_context(ssl.Purpose.CLIENT_AUTH)
     server_ctx.load_cert_chain(cert, key)
     return server_ctx, ssl.create_default_context(cafile=str(cert))
@@ -166,10 +184,25 @@ def _shaped(rate_kbit: int, count: int, size: int) -> dict:
         )
         try:
             subprocess.run(
-                link.exec_argv(link.ns_a, [*me, "--child", "sender", "--host", link.addr_b,
-                               "--count", str(count), "--size", str(size), "--out", str(out)]),
-                check=True, timeout=300,
-            )  # fmt: skip
+                link.exec_argv(
+                    link.ns_a,
+                    [
+                        *me,
+                        "--child",
+                        "sender",
+                        "--host",
+                        link.addr_b,
+                        "--count",
+                        str(count),
+                        "--size",
+                        str(size),
+                        "--out",
+                        str(out),
+                    ],
+                ),
+                check=True,
+                timeout=300,
+            )
         finally:
             receiver.kill()
             receiver.wait()

@@ -39,8 +39,12 @@ DEFAULT_FRAMES = 3 * 60 * 20
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--frames", type=int, default=200, help="frames for the render timing")
-    parser.add_argument("--pipeline-seconds", type=float, default=10.0,
-                        help="length of the 1-robot end-to-end run [s]")  # fmt: skip
+    parser.add_argument(
+        "--pipeline-seconds",
+        type=float,
+        default=10.0,
+        help="length of the 1-robot end-to-end run [s]",
+    )
     args = parser.parse_args()
     cv2.setNumThreads(1)
 
@@ -75,8 +79,9 @@ def main() -> int:
     per_frame_ms = render_ms + 1e3 * np.median(png)
 
     with tempfile.TemporaryDirectory() as tmp:
-        cfg = SynthConfig(robots=1, seconds=args.pipeline_seconds, seed=0, progress=False,
-                          contact_sheet=False)  # fmt: skip
+        cfg = SynthConfig(
+            robots=1, seconds=args.pipeline_seconds, seed=0, progress=False, contact_sheet=False
+        )
         t0 = time.perf_counter()
         summary = generate_dataset(Path(tmp) / "synth", cfg)
         pipe_s = time.perf_counter() - t0
@@ -87,16 +92,23 @@ def main() -> int:
         ("texture atlas build (once per run)", f"{atlas_s:.1f} s"),
         ("renderer setup (pixel rays, once)", f"{1e3 * setup_s:.0f} ms"),
         ("ray cast + trilinear lookup, median", f"{1e3 * np.median(cast):.1f} ms"),
-        ("full frame render (+ blur, vignetting, exposure, noise), median / p95",
-         f"{render_ms:.1f} / {1e3 * np.percentile(full, 95):.1f} ms"),
+        (
+            "full frame render (+ blur, vignetting, exposure, noise), median / p95",
+            f"{render_ms:.1f} / {1e3 * np.percentile(full, 95):.1f} ms",
+        ),
         ("PNG encode, median", f"{1e3 * np.median(png):.1f} ms"),
         ("render rate", f"{render_fps:.1f} frames/s"),
         ("render + PNG rate", f"{1e3 / per_frame_ms:.1f} frames/s"),
-        (f"end-to-end generate_dataset, 1 robot x {args.pipeline_seconds:g} s ({pipe_frames} "
-         "frames, excl. atlas)", f"{pipe_fps:.1f} frames/s ({pipe_s:.1f} s total)"),
-        ("extrapolated default set (3 robots x 60 s = 3600 frames)",
-         f"{(DEFAULT_FRAMES / pipe_fps + atlas_s) / 60:.1f} min"),
-    ]  # fmt: skip
+        (
+            f"end-to-end generate_dataset, 1 robot x {args.pipeline_seconds:g} s ({pipe_frames} "
+            "frames, excl. atlas)",
+            f"{pipe_fps:.1f} frames/s ({pipe_s:.1f} s total)",
+        ),
+        (
+            "extrapolated default set (3 robots x 60 s = 3600 frames)",
+            f"{(DEFAULT_FRAMES / pipe_fps + atlas_s) / 60:.1f} min",
+        ),
+    ]
     lines = [
         "# Synthetic dataset generator: speed on one core",
         "",

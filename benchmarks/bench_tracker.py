@@ -84,9 +84,15 @@ def virtual_camera(cam: CameraCalibration, zoom: float = VIRTUAL_ZOOM) -> Camera
     """Undistorted pinhole camera at the same pose with a ``zoom`` × longer focal length: views
     rendered through it after rotations up to ~12° stay inside the real image (no borders)."""
     return CameraCalibration(
-        cam.width, cam.height, cam.fx * zoom, cam.fy * zoom, cam.cx, cam.cy,
-        T_body_cam=cam.T_body_cam, rate_hz=cam.rate_hz,
-    )  # fmt: skip
+        cam.width,
+        cam.height,
+        cam.fx * zoom,
+        cam.fy * zoom,
+        cam.cx,
+        cam.cy,
+        T_body_cam=cam.T_body_cam,
+        rate_hz=cam.rate_hz,
+    )
 
 
 def rotated_sequence(

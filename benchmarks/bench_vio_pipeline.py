@@ -30,9 +30,12 @@ RESULTS = Path(__file__).resolve().parent / "results" / "vio_pipeline.md"
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument(
-        "--dataset", type=Path, nargs="+", default=[Path("/tmp/synth_default")],
+        "--dataset",
+        type=Path,
+        nargs="+",
+        default=[Path("/tmp/synth_default")],
         help="one or more rendered datasets (e.g. seeds 0, 1, 2)",
-    )  # fmt: skip
+    )
     ap.add_argument("--robots", default="robot0,robot1,robot2")
     ap.add_argument("--seconds", type=float, default=60.0)
     ap.add_argument("--cache", type=Path, default=Path("/tmp/vio_pipeline_cache"))

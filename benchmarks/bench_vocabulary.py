@@ -89,8 +89,9 @@ def main() -> int:
         near = np.mean([Vocabulary.score(a, b) for a, b in itertools.pairwise(bows)])
         unrelated = np.mean([Vocabulary.score(b, voc.bow(t)) for b in bows for t in train[::24]])
         bits = codec_intra_bits(voc, kfs)
-        rows.append((k, depth, voc, size, t_train, lookup_rate(voc, all_desc), ham, near,
-                     unrelated, bits))  # fmt: skip
+        rows.append(
+            (k, depth, voc, size, t_train, lookup_rate(voc, all_desc), ham, near, unrelated, bits)
+        )
         log.info("k=%d L=%d: %d words, %.1f bits/feature", k, depth, voc.n_words, bits["total"])
     lines = [
         "# Visual vocabulary",

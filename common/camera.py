@@ -157,14 +157,27 @@ class PinholeRadtan:
         ``u' + 0.5 = factor * (u + 0.5)``). Distortion coefficients are unchanged."""
         w, h = round(self.width * factor), round(self.height * factor)
         return PinholeRadtan(
-            w, h, self.fx * factor, self.fy * factor,
-            (self.cx + 0.5) * factor - 0.5, (self.cy + 0.5) * factor - 0.5,
-            self.k1, self.k2, self.p1, self.p2,
-        )  # fmt: skip
+            w,
+            h,
+            self.fx * factor,
+            self.fy * factor,
+            (self.cx + 0.5) * factor - 0.5,
+            (self.cy + 0.5) * factor - 0.5,
+            self.k1,
+            self.k2,
+            self.p1,
+            self.p2,
+        )
 
     def to_calibration(self, T_body_cam: np.ndarray, rate_hz: float) -> CameraCalibration:
         return CameraCalibration(
-            width=self.width, height=self.height, fx=self.fx, fy=self.fy, cx=self.cx,
-            cy=self.cy, distortion=(self.k1, self.k2, self.p1, self.p2),
-            T_body_cam=T_body_cam, rate_hz=rate_hz,
-        )  # fmt: skip
+            width=self.width,
+            height=self.height,
+            fx=self.fx,
+            fy=self.fy,
+            cx=self.cx,
+            cy=self.cy,
+            distortion=(self.k1, self.k2, self.p1, self.p2),
+            T_body_cam=T_body_cam,
+            rate_hz=rate_hz,
+        )

@@ -58,8 +58,27 @@ def shaping_unavailable() -> str | None:
     except ShapingError as exc:
         return f"cannot create a network namespace: {exc}"
     try:
-        _run(["ip", "netns", "exec", probe, "tc", "qdisc", "add", "dev", "lo", "root", "tbf",
-              "rate", "1mbit", "burst", "4kb", "latency", "50ms"])  # fmt: skip
+        _run(
+            [
+                "ip",
+                "netns",
+                "exec",
+                probe,
+                "tc",
+                "qdisc",
+                "add",
+                "dev",
+                "lo",
+                "root",
+                "tbf",
+                "rate",
+                "1mbit",
+                "burst",
+                "4kb",
+                "latency",
+                "50ms",
+            ]
+        )
     except ShapingError as exc:
         return f"tbf qdisc unavailable: {exc}"
     finally:
@@ -94,24 +113,47 @@ def shaped_link(
     veth_a, veth_b = f"rsv{tag}a", f"rsv{tag}b"
     octet = os.getpid() % 250
     addr_a, addr_b = f"10.213.{octet}.1", f"10.213.{octet}.2"
-    tbf = ["tbf", "rate", f"{rate_kbit}kbit", "burst", str(burst_bytes),
-           "latency", f"{latency_ms}ms"]  # fmt: skip
+    tbf = [
+        "tbf",
+        "rate",
+        f"{rate_kbit}kbit",
+        "burst",
+        str(burst_bytes),
+        "latency",
+        f"{latency_ms}ms",
+    ]
     created: list[str] = []
     try:
         for ns in (ns_a, ns_b):
             _run(["ip", "netns", "add", ns])
             created.append(ns)
             _run(["ip", "-n", ns, "link", "set", "lo", "up"])
-        _run(["ip", "link", "add", veth_a, "netns", ns_a, "type", "veth",
-              "peer", "name", veth_b, "netns", ns_b])  # fmt: skip
+        _run(
+            [
+                "ip",
+                "link",
+                "add",
+                veth_a,
+                "netns",
+                ns_a,
+                "type",
+                "veth",
+                "peer",
+                "name",
+                veth_b,
+                "netns",
+                ns_b,
+            ]
+        )
         for ns, dev, addr in ((ns_a, veth_a, addr_a), (ns_b, veth_b, addr_b)):
             _run(["ip", "-n", ns, "addr", "add", f"{addr}/30", "dev", dev])
             _run(["ip", "-n", ns, "link", "set", dev, "up"])
         _run(["ip", "netns", "exec", ns_a, "tc", "qdisc", "add", "dev", veth_a, "root", *tbf])
         if both_directions:
             _run(["ip", "netns", "exec", ns_b, "tc", "qdisc", "add", "dev", veth_b, "root", *tbf])
-        logger.info("shaped link %s(%s) <-> %s(%s) at %d kbit/s", ns_a, addr_a, ns_b, addr_b,
-                    rate_kbit)  # fmt: skip
+        logger.info(
+            "shaped link %s(%s) <-> %s(%s) at %d kbit/s", ns_a, addr_a, ns_b, addr_b, rate_kbit
+        )
         yield ShapedLink(ns_a, ns_b, addr_a, addr_b, rate_kbit)
     finally:
         for ns in created:

@@ -131,9 +131,16 @@ class _Observations:
             o = accepted.get((v.query_key, v.candidate_key)) if v.accepted else None
             kind = "rejected" if o is None else ("merge" if o.merge is not None else "loop")
             self.detections.append(
-                Detection(v.query_key, v.candidate_key, np.array(v.T_cbody_qbody),
-                          o is not None, kind, v.reason, int(v.n_inliers))
-            )  # fmt: skip
+                Detection(
+                    v.query_key,
+                    v.candidate_key,
+                    np.array(v.T_cbody_qbody),
+                    o is not None,
+                    kind,
+                    v.reason,
+                    int(v.n_inliers),
+                )
+            )
 
 
 def replay(
@@ -172,8 +179,12 @@ def replay(
             try:
                 reaction = core.handle(rec.edge_id, rec.message, rec.stream_id, rec.seq, now)
             except RecslamError as exc:  # applied live, so this replay's config differs
-                log.warning("record at offset %d (%s) failed: %s; skipped", rec.offset,
-                            type(rec.message).__name__, exc)  # fmt: skip
+                log.warning(
+                    "record at offset %d (%s) failed: %s; skipped",
+                    rec.offset,
+                    type(rec.message).__name__,
+                    exc,
+                )
                 failed += 1
                 app.skip(rec.edge_id, rec.stream_id, rec.seq)
                 continue
@@ -186,16 +197,27 @@ def replay(
         kept, _ = app.trajectories(retired=False)
         a = app.atlas
         return ReplayResult(
-            label=label, mbp=config.domain.mbp.enabled, messages=messages,
-            failed=failed, keyframes_received=len(obs.info),
-            keyframes=a.n_keyframes(), map_points=a.n_map_points(), maps=a.maps(),
-            merges=len(a.merges()), loops=len(a.loops()),
-            optimizations=core.optimizations, mbp_passes=core.mbp_passes,
-            seconds=time.perf_counter() - t0, trajectories=trajs, map_of_robot=maps,
-            kept_trajectories=kept, info=obs.info, detections=obs.detections,
+            label=label,
+            mbp=config.domain.mbp.enabled,
+            messages=messages,
+            failed=failed,
+            keyframes_received=len(obs.info),
+            keyframes=a.n_keyframes(),
+            map_points=a.n_map_points(),
+            maps=a.maps(),
+            merges=len(a.merges()),
+            loops=len(a.loops()),
+            optimizations=core.optimizations,
+            mbp_passes=core.mbp_passes,
+            seconds=time.perf_counter() - t0,
+            trajectories=trajs,
+            map_of_robot=maps,
+            kept_trajectories=kept,
+            info=obs.info,
+            detections=obs.detections,
             queries=obs.queries,
             backbone=backbone_breakdown(app),
-        )  # fmt: skip
+        )
     finally:
         app.close()
 
@@ -290,11 +312,20 @@ def run_table3(
         for key, label, every in runs:
             say(f"replaying {recording} {label}")
             records = read_recording(recording, allow_truncated_tail=True)
-            results[key] = replay(records, camera, vocab, service_config(key is not False, every),
-                                  Path(tmp) / str(key), label, full_ba=True)  # fmt: skip
+            results[key] = replay(
+                records,
+                camera,
+                vocab,
+                service_config(key is not False, every),
+                Path(tmp) / str(key),
+                label,
+                full_ba=True,
+            )
             r = results[key]
-            say(f"  {label}: {r.keyframes} keyframes, {r.map_points} map points, maps {r.maps}, "
-                f"{r.merges} merges, {r.loops} loops ({r.seconds:.0f} s)")  # fmt: skip
+            say(
+                f"  {label}: {r.keyframes} keyframes, {r.map_points} map points, maps {r.maps}, "
+                f"{r.merges} merges, {r.loops} loops ({r.seconds:.0f} s)"
+            )
     off, on = results[False], results[True]
     names = sorted(
         set(off.trajectories) | set(on.trajectories) | {i.robot for i in on.info.values()}
@@ -303,18 +334,32 @@ def run_table3(
     a_off, a_on = common_keyframes(off, on)
     ate_c = {}
     for key, trajs in (("off", a_off), ("on", a_on)):
-        ate_c[key] = compute_joint_ate({n: references[n] for n in trajs}, trajs, AteConfig()) \
-            if trajs else None  # fmt: skip
+        ate_c[key] = (
+            compute_joint_ate({n: references[n] for n in trajs}, trajs, AteConfig())
+            if trajs
+            else None
+        )
     gt = GroundTruthPoses(
         references, camera.T_body_cam, (criterion or LoopCriterion()).max_gt_gap_s
     )
     loops = score_loops(on.detections, on.queries, on.info, gt, criterion)
     mid = results.get("midrun")
-    return Table3(recording, dataset, off, on, joint_ate(references, off.trajectories),
-                  joint_ate(references, on.trajectories), ate_c["off"], ate_c["on"],
-                  joint_ate(references, on.kept_trajectories), loops, references, mid,
-                  joint_ate(references, mid.trajectories) if mid else None,
-                  joint_ate(references, mid.kept_trajectories) if mid else None)  # fmt: skip
+    return Table3(
+        recording,
+        dataset,
+        off,
+        on,
+        joint_ate(references, off.trajectories),
+        joint_ate(references, on.trajectories),
+        ate_c["off"],
+        ate_c["on"],
+        joint_ate(references, on.kept_trajectories),
+        loops,
+        references,
+        mid,
+        joint_ate(references, mid.trajectories) if mid else None,
+        joint_ate(references, mid.kept_trajectories) if mid else None,
+    )
 
 
 # ---------------------------------------------------------------------- report

@@ -215,14 +215,21 @@ def table3_json(t: Table3) -> dict[str, Any]:
 
     def row(r: ReplayResult, ate: JointAteResult | None) -> dict[str, Any]:
         return {
-            "keyframes": r.keyframes, "keyframes_received": r.keyframes_received,
-            "map_points": r.map_points, "maps": r.maps, "merges": r.merges, "loops": r.loops,
-            "optimizations": r.optimizations, "mbp_passes": r.mbp_passes,
-            "messages": r.messages, "failed": r.failed, "seconds": r.seconds,
+            "keyframes": r.keyframes,
+            "keyframes_received": r.keyframes_received,
+            "map_points": r.map_points,
+            "maps": r.maps,
+            "merges": r.merges,
+            "loops": r.loops,
+            "optimizations": r.optimizations,
+            "mbp_passes": r.mbp_passes,
+            "messages": r.messages,
+            "failed": r.failed,
+            "seconds": r.seconds,
             "ate_joint_m": ate.stats.rmse if ate is not None else None,
             "ate_m": {n: a.stats.rmse for n, a in ate.individual.items()} if ate else {},
             "backbone": r.backbone,
-        }  # fmt: skip
+        }
 
     s = t.loops
     return {
@@ -276,8 +283,7 @@ def plot_table3(t: Table3, path: Path) -> Path:
     x = np.arange(2)
     ax.bar(x - 0.2, [t.off.keyframes, t.on.keyframes], 0.4, label="keyframes")
     ax2 = ax.twinx()
-    ax2.bar(x + 0.2, [t.off.map_points, t.on.map_points], 0.4, color=colors[1],
-            label="map points")  # fmt: skip
+    ax2.bar(x + 0.2, [t.off.map_points, t.on.map_points], 0.4, color=colors[1], label="map points")
     ax.set_xticks(x, ["without MBP", "with MBP"])
     ax.set_ylabel("keyframes")
     ax2.set_ylabel("map points")

@@ -161,6 +161,11 @@ def score(results: list[FrameResult], groundtruth, last_map_only: bool = True) -
     se3 = compute_ate(ref, est, AteConfig(align=AlignMode.SE3))
     sim3 = compute_ate(ref, est, AteConfig(align=AlignMode.SIM3))
     return ReplayScore(
-        len(results), len(ok), maps, first, float(se3.stats.rmse), float(sim3.stats.rmse),
+        len(results),
+        len(ok),
+        maps,
+        first,
+        float(se3.stats.rmse),
+        float(sim3.stats.rmse),
         float(sim3.scale_error),
-    )  # fmt: skip
+    )

@@ -135,40 +135,67 @@ class Job:
         c = self.config
         record = [] if c.record_uplink is None else ["--record", str(c.record_uplink)]
         return self._recslam(
-            "cloud", "--listen", f"127.0.0.1:{self.cloud_port}",
-            "--state-dir", str(self.run_dir / "state" / "cloud"),
-            "--dashboard-port", str(c.dashboard_port),
-            "--results", str(self.run_dir / "results"),
-            "--groundtruth", str(c.dataset),
-            "--secret-file", str(self.secret_path),
-            "--output-every", "0",
-            "--stats-out", str(self.run_dir / "stats" / "cloud.json"),
+            "cloud",
+            "--listen",
+            f"127.0.0.1:{self.cloud_port}",
+            "--state-dir",
+            str(self.run_dir / "state" / "cloud"),
+            "--dashboard-port",
+            str(c.dashboard_port),
+            "--results",
+            str(self.run_dir / "results"),
+            "--groundtruth",
+            str(c.dataset),
+            "--secret-file",
+            str(self.secret_path),
+            "--output-every",
+            "0",
+            "--stats-out",
+            str(self.run_dir / "stats" / "cloud.json"),
             "--mbp" if c.mbp else "--no-mbp",
-            "--wire", c.wire.value,
+            "--wire",
+            c.wire.value,
             *record,
-        )  # fmt: skip
+        )
 
     def edge_argv(self) -> list[str]:
         c = self.config
         return self._recslam(
-            "edge", "--listen", f"127.0.0.1:{self.edge_port}",
-            "--cloud", f"127.0.0.1:{self.cloud_port}",
-            "--state-dir", str(self.run_dir / "state" / "edge"),
-            "--secret-file", str(self.secret_path),
-            "--camera", str(Path(c.dataset) / self.robot_names[0]),
-            "--worker", c.worker,
-            "--wire", c.wire.value,
-            "--stats-out", str(self.run_dir / "stats" / "edge.json"),
-        )  # fmt: skip
+            "edge",
+            "--listen",
+            f"127.0.0.1:{self.edge_port}",
+            "--cloud",
+            f"127.0.0.1:{self.cloud_port}",
+            "--state-dir",
+            str(self.run_dir / "state" / "edge"),
+            "--secret-file",
+            str(self.secret_path),
+            "--camera",
+            str(Path(c.dataset) / self.robot_names[0]),
+            "--worker",
+            c.worker,
+            "--wire",
+            c.wire.value,
+            "--stats-out",
+            str(self.run_dir / "stats" / "edge.json"),
+        )
 
     def robot_argv(self, name: str) -> list[str]:
         c = self.config
         port = self.edge_port if c.robot_links is None else c.robot_links(name, self.edge_port)
         argv = self._recslam(
-            "robot", "--dataset", str(Path(c.dataset) / name),
-            "--edge", f"127.0.0.1:{port}", "--agent-id", name,
-            "--rate", c.rate, "--secret-file", str(self.secret_path),
-        )  # fmt: skip
+            "robot",
+            "--dataset",
+            str(Path(c.dataset) / name),
+            "--edge",
+            f"127.0.0.1:{port}",
+            "--agent-id",
+            name,
+            "--rate",
+            c.rate,
+            "--secret-file",
+            str(self.secret_path),
+        )
         if c.max_frames is not None:
             argv += ["--max-frames", str(c.max_frames)]
         return argv
@@ -295,8 +322,9 @@ class Job:
         while time.monotonic() < deadline:
             s = self.sample()
             robots = s["edge"].get("robots", {})
-            busy = any(r["frames_processed"] < r["frames_decoded"] or r["queued"]
-                       for r in robots.values())  # fmt: skip
+            busy = any(
+                r["frames_processed"] < r["frames_decoded"] or r["queued"] for r in robots.values()
+            )
             key = (s["cloud"].get("keyframes"), s["cloud"].get("messages"))
             if key != last or busy:
                 last, since = key, time.monotonic()

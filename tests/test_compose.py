@@ -106,8 +106,13 @@ def test_ports_volumes_and_addresses_agree_with_the_flags() -> None:
     assert cloud_port == "7100" and cloud_port in " ".join(s["cloud"]["healthcheck"]["test"])
     assert edge_port in " ".join(s["edge"]["healthcheck"]["test"])
     # State, results and datasets live on mounts.
-    for name, flag in (("cloud", "--state-dir"), ("cloud", "--results"), ("edge", "--state-dir"),
-                       ("cloud", "--groundtruth"), ("edge", "--camera")):  # fmt: skip
+    for name, flag in (
+        ("cloud", "--state-dir"),
+        ("cloud", "--results"),
+        ("edge", "--state-dir"),
+        ("cloud", "--groundtruth"),
+        ("edge", "--camera"),
+    ):
         command = cloud if name == "cloud" else edge
         path = _flag(command, flag)
         assert any(path.startswith(t) for t in _mount_targets(s[name])), (name, flag, path)

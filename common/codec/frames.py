@@ -221,18 +221,24 @@ class FeatureEncoder(_Base):
                 f"keypoints must lie on the 1/{cfg.subpixel} px grid (use quantise_uv)"
             )
         lev = kp[:, 2]
-        if len(nkf) and (not np.array_equal(lev, np.round(lev)) or lev.min() < 0
-                         or lev.max() >= cfg.n_levels):  # fmt: skip
+        if len(nkf) and (
+            not np.array_equal(lev, np.round(lev)) or lev.min() < 0 or lev.max() >= cfg.n_levels
+        ):
             raise CodecUsageError(f"levels must be integers in [0, {cfg.n_levels})")
         n_surv = int(nkf.survived.sum())
         w_img, h_img = cfg.image_width, cfg.image_height
         new = kp[n_surv:]
-        if new.size and (new[:, :2].min() < 0 or new[:, 0].max() >= w_img
-                         or new[:, 1].max() >= h_img):  # fmt: skip
+        if new.size and (
+            new[:, :2].min() < 0 or new[:, 0].max() >= w_img or new[:, 1].max() >= h_img
+        ):
             raise CodecUsageError(f"new keypoints must lie inside the {w_img}x{h_img} image")
         old = kp[:n_surv]
-        if old.size and (old[:, 0].min() < -w_img or old[:, 0].max() >= 2 * w_img
-                         or old[:, 1].min() < -h_img or old[:, 1].max() >= 2 * h_img):  # fmt: skip
+        if old.size and (
+            old[:, 0].min() < -w_img
+            or old[:, 0].max() >= 2 * w_img
+            or old[:, 1].min() < -h_img
+            or old[:, 1].max() >= 2 * h_img
+        ):
             raise CodecUsageError("tracked keypoints far outside the image")
         st = self.state.copy(descriptors=False)
         w = BitWriter()

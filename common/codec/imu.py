@@ -96,8 +96,9 @@ class ImuState:
     last_si: np.ndarray = field(default_factory=lambda: np.full(12, 24, dtype=np.int64))
 
     def copy(self) -> ImuState:
-        return ImuState(self.last_ts, self.last_dt, self.last_q.copy(), self.seq,
-                        self.last_si.copy())  # fmt: skip
+        return ImuState(
+            self.last_ts, self.last_dt, self.last_q.copy(), self.seq, self.last_si.copy()
+        )
 
 
 def _steps(config: ImuCodecConfig) -> np.ndarray:

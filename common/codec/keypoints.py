@@ -269,8 +269,14 @@ def fit_affine(prev_q: np.ndarray, cur_q: np.ndarray, config: CodecConfig) -> np
         keep = new_keep
     scale = float(1 << AFFINE_SHIFT)
     lim = 1 << 28
-    vals = [coef[0, 0] * scale, coef[1, 0] * scale, coef[2, 0], coef[0, 1] * scale,
-            coef[1, 1] * scale, coef[2, 1]]  # fmt: skip
+    vals = [
+        coef[0, 0] * scale,
+        coef[1, 0] * scale,
+        coef[2, 0],
+        coef[0, 1] * scale,
+        coef[1, 1] * scale,
+        coef[2, 1],
+    ]
     return np.clip(np.round(np.nan_to_num(vals)), -lim, lim).astype(np.int64)
 
 

@@ -487,8 +487,12 @@ class EurocSequence:
             logger.warning("%s: IMU does not overlap the images in time", self.name)
         logger.info(
             "%s: %d frames, %d IMU samples, cameras %s, ground truth %s",
-            self.name, len(self), len(self._imu), self.cameras, self.groundtruth is not None,
-        )  # fmt: skip
+            self.name,
+            len(self),
+            len(self._imu),
+            self.cameras,
+            self.groundtruth is not None,
+        )
 
     def __len__(self) -> int:
         return len(self.frame_timestamps_ns)

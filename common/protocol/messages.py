@@ -113,8 +113,15 @@ def decode_payload(type_id: int, payload: bytes) -> Message:
         )
     except _FieldTypeError as exc:
         raise RemoteProtocolError(f"{name}: {exc}") from None
-    except (ValueError, TypeError, msgpack.ExtraData, msgpack.FormatError, msgpack.StackError,
-            UnicodeDecodeError, RecursionError) as exc:  # fmt: skip
+    except (
+        ValueError,
+        TypeError,
+        msgpack.ExtraData,
+        msgpack.FormatError,
+        msgpack.StackError,
+        UnicodeDecodeError,
+        RecursionError,
+    ) as exc:
         raise RemoteProtocolError(f"{name}: undecodable msgpack payload ({exc})") from None
     spec = cls._fields_spec
     if not isinstance(values, list) or len(values) != len(spec):

@@ -28,8 +28,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     s.add_argument("--robots", type=int, default=3, help="number of robots (default 3)")
     s.add_argument("--seconds", type=float, default=60.0, help="length per robot (default 60)")
     s.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    s.add_argument("--no-noise", action="store_true",
-                   help="noise-free IMU and images (no biases, no read noise)")  # fmt: skip
+    s.add_argument(
+        "--no-noise",
+        action="store_true",
+        help="noise-free IMU and images (no biases, no read noise)",
+    )
     s.add_argument("--no-progress", action="store_true", help="no progress bar")
     s.set_defaults(func=run_synth)
     i = inner.add_parser("info", help="describe a dataset folder or one EuRoC sequence")
@@ -44,8 +47,9 @@ def run_synth(args: argparse.Namespace) -> int:
     from common.data.synth import SynthConfig, SynthError, generate_dataset
 
     try:
-        config = SynthConfig(robots=args.robots, seconds=args.seconds, seed=args.seed,
-                             progress=not args.no_progress)  # fmt: skip
+        config = SynthConfig(
+            robots=args.robots, seconds=args.seconds, seed=args.seed, progress=not args.no_progress
+        )
         if args.no_noise:
             config = replace(
                 config,
@@ -58,9 +62,11 @@ def run_synth(args: argparse.Namespace) -> int:
         return 2
     print(f"dataset: {summary.out} ({summary.version}, seed {summary.seed})")
     for s in summary.sequences:
-        print(f"  {s.name}: {s.frames} frames, {s.imu_samples} IMU samples, "
-              f"path {s.path_length_m:.1f} m, max {s.max_speed_mps:.2f} m/s, "
-              f"{s.max_rate_radps:.2f} rad/s")  # fmt: skip
+        print(
+            f"  {s.name}: {s.frames} frames, {s.imu_samples} IMU samples, "
+            f"path {s.path_length_m:.1f} m, max {s.max_speed_mps:.2f} m/s, "
+            f"{s.max_rate_radps:.2f} rad/s"
+        )
     print(f"wall time {summary.wall_time_s:.1f} s, rendering {summary.render_fps:.1f} frames/s")
     return 0
 
@@ -91,15 +97,26 @@ def run_info(args: argparse.Namespace) -> int:
         print(f"error: {e}", file=sys.stderr)
         return 2
     if args.json:
-        print(json.dumps({"dataset": meta and {k: meta.get(k) for k in
-                                              ("generator", "robots", "seconds", "seed")},
-                          "sequences": rows}, indent=2))  # fmt: skip
+        print(
+            json.dumps(
+                {
+                    "dataset": meta
+                    and {k: meta.get(k) for k in ("generator", "robots", "seconds", "seed")},
+                    "sequences": rows,
+                },
+                indent=2,
+            )
+        )
         return 0
     if meta is not None:
-        print(f"{root}: {meta.get('generator')} robots={meta.get('robots')} "
-              f"seconds={meta.get('seconds')} seed={meta.get('seed')}")  # fmt: skip
-    print(f"{'sequence':<12}{'frames':>8}{'cam Hz':>8}{'imu':>8}{'imu Hz':>8}{'secs':>8}"
-          f"{'res':>10}{'gt':>7}{'path m':>8}")  # fmt: skip
+        print(
+            f"{root}: {meta.get('generator')} robots={meta.get('robots')} "
+            f"seconds={meta.get('seconds')} seed={meta.get('seed')}"
+        )
+    print(
+        f"{'sequence':<12}{'frames':>8}{'cam Hz':>8}{'imu':>8}{'imu Hz':>8}{'secs':>8}"
+        f"{'res':>10}{'gt':>7}{'path m':>8}"
+    )
     for s in rows:
         res = "x".join(str(v) for v in s["resolution"])
         path = s.get("path_length_m")

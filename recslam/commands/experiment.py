@@ -135,8 +135,14 @@ def run_table3(args: argparse.Namespace) -> int:
     camera = find_camera(args.camera, args.data)
     vocab = Vocabulary.load(args.vocabulary or DEFAULT_VOCABULARY_PATH)
     args.out.mkdir(parents=True, exist_ok=True)
-    result = table3(args.recording, args.data, camera, vocab, work_dir=args.out,
-                    progress=lambda m: print(m, flush=True))  # fmt: skip
+    result = table3(
+        args.recording,
+        args.data,
+        camera,
+        vocab,
+        work_dir=args.out,
+        progress=lambda m: print(m, flush=True),
+    )
     results = args.results if str(args.results) not in ("", ".") else None
     files = write_table3(result, args.out, results)
     print((args.out / "table3.md").read_text())

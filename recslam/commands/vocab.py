@@ -18,10 +18,25 @@ import numpy as np
 log = logging.getLogger(__name__)
 
 SKIMAGE_NAMES = (
-    "astronaut", "coffee", "chelsea", "rocket", "camera", "brick", "grass", "gravel", "page",
-    "text", "coins", "moon", "hubble_deep_field", "immunohistochemistry", "retina", "cell",
-    "clock", "cat",
-)  # fmt: skip
+    "astronaut",
+    "coffee",
+    "chelsea",
+    "rocket",
+    "camera",
+    "brick",
+    "grass",
+    "gravel",
+    "page",
+    "text",
+    "coins",
+    "moon",
+    "hubble_deep_field",
+    "immunohistochemistry",
+    "retina",
+    "cell",
+    "clock",
+    "cat",
+)
 SKIMAGE_SCALES = (0.6, 0.85, 1.2, 1.7)
 SKIMAGE_ROTATIONS_DEG = (0.0, 25.0)
 SKIMAGE_BLURS = (0.0, 1.5)

@@ -331,8 +331,7 @@ class CloudApp:
             raise
         self.codec_timer.add(f"decode.{type(msg).__name__}", time.perf_counter() - t0)
         keys = [self.fusion.add_map_point(p) for p in points]
-        self.store.commit(self.atlas, [], keys, positions=position,
-                          agents=self._rows(a))  # fmt: skip
+        self.store.commit(self.atlas, [], keys, positions=position, agents=self._rows(a))
         return Reaction()
 
     def _cull(
@@ -355,8 +354,9 @@ class CloudApp:
         for m in mp_keys:
             if self.atlas.has_map_point(m):
                 self.atlas.remove_map_point(m)
-        self.store.commit(self.atlas, kf_keys, [*mp_keys, *touched], positions=position,
-                          agents=self._rows(a))  # fmt: skip
+        self.store.commit(
+            self.atlas, kf_keys, [*mp_keys, *touched], positions=position, agents=self._rows(a)
+        )
         return Reaction()
 
     # ------------------------------------------------------------------ optimisation
@@ -388,8 +388,13 @@ class CloudApp:
         self.store.commit_poses(
             self.atlas, self.atlas.keyframe_keys(map_id), self.atlas.map_point_keys(map_id)
         )
-        log.info("map %d: applied optimisation of %d keyframes (error %.3g -> %.3g)",
-                 map_id, n, result.initial_error, result.final_error)  # fmt: skip
+        log.info(
+            "map %d: applied optimisation of %d keyframes (error %.3g -> %.3g)",
+            map_id,
+            n,
+            result.initial_error,
+            result.final_error,
+        )
         return self.corrections(map_id)
 
     def corrections(self, map_id: int) -> list[Correction]:
@@ -425,9 +430,14 @@ class CloudApp:
         self._pruned_keyframes.update(report.removed_keyframes)
         self._mbp_done[map_id] = self.atlas.n_keyframes(map_id)
         self.store.save_all(self.atlas)
-        log.info("MBP map %d: keyframes %d -> %d, map points %d -> %d", map_id,
-                 report.keyframes_before, report.keyframes_after, report.map_points_before,
-                 report.map_points_after)  # fmt: skip
+        log.info(
+            "MBP map %d: keyframes %d -> %d, map points %d -> %d",
+            map_id,
+            report.keyframes_before,
+            report.keyframes_after,
+            report.map_points_before,
+            report.map_points_after,
+        )
         return report
 
     # ------------------------------------------------------------------ outputs
@@ -450,14 +460,22 @@ class CloudApp:
             if not keys[main]:
                 continue
             map_id = self.atlas.map_of_agent(main)
-            use = [k for a in agents if self.atlas.map_of_agent(a.agent_id) == map_id
-                   for k in keys[a.agent_id]]  # fmt: skip
+            use = [
+                k
+                for a in agents
+                if self.atlas.map_of_agent(a.agent_id) == map_id
+                for k in keys[a.agent_id]
+            ]
             if len(use) < sum(len(v) for v in keys.values()):
                 log.warning("robot %s: keyframes of unmerged maps left out of its trajectory", name)
             poses = [(v.timestamp, v.T_map_body) for v in map(self.atlas.keyframe, use)]
             if retired:
-                poses += [(t, T) for a in agents if self.atlas.map_of_agent(a.agent_id) == map_id
-                          for _, t, T in self.atlas.retired_poses(a.agent_id)]  # fmt: skip
+                poses += [
+                    (t, T)
+                    for a in agents
+                    if self.atlas.map_of_agent(a.agent_id) == map_id
+                    for _, t, T in self.atlas.retired_poses(a.agent_id)
+                ]
             poses.sort(key=lambda p: p[0])
             ts = np.array([round(t * 1e9) for t, _ in poses], np.int64)
             keep = np.concatenate([[True], np.diff(ts) > 0])
@@ -515,8 +533,13 @@ class CloudApp:
                 continue
             ref = references[name]
             step = max(1, len(ref.timestamps_ns) // max_points)
-            out.append(GroundTruth(main_id, ref.timestamps_ns[::step] * 1e-9,
-                                   tf.apply_points(ref.p_world_body[::step])))  # fmt: skip
+            out.append(
+                GroundTruth(
+                    main_id,
+                    ref.timestamps_ns[::step] * 1e-9,
+                    tf.apply_points(ref.p_world_body[::step]),
+                )
+            )
         return tuple(out)
 
     def view(
@@ -531,16 +554,20 @@ class CloudApp:
         snap = self._view_cache[1]
         agents = tuple(
             AgentInfo(
-                agent_id=a.agent_id, name=a.name, edge_id=a.edge_id, status=a.status,
+                agent_id=a.agent_id,
+                name=a.name,
+                edge_id=a.edge_id,
+                status=a.status,
                 frames=a.frames,
                 keyframes=len(self.atlas.keyframe_keys(agent_id=a.agent_id)),
                 last_seen=a.last_seen,
                 map_id=self.atlas.map_of_agent(a.agent_id)
-                if a.agent_id in self.atlas.agents() else a.agent_id,
+                if a.agent_id in self.atlas.agents()
+                else a.agent_id,
                 link_counters=dict(a.link_counters),
             )
             for a in sorted(self._agents.values(), key=lambda x: x.agent_id)
-        )  # fmt: skip
+        )
         return CloudView(
             atlas=snap,
             agents=agents,

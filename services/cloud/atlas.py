@@ -133,8 +133,10 @@ class Atlas:
             k = self._kfs[key]
             n_real = int((~k.virtual).sum())
             if kf.keypoints.shape[0] != n_real:
-                raise AtlasError(f"keyframe {kf.agent_id}/{kf.keyframe_id}: update changes the "
-                                 f"keypoint count {n_real} -> {kf.keypoints.shape[0]}")  # fmt: skip
+                raise AtlasError(
+                    f"keyframe {kf.agent_id}/{kf.keyframe_id}: update changes the "
+                    f"keypoint count {n_real} -> {kf.keypoints.shape[0]}"
+                )
         k.timestamp = float(kf.timestamp)
         k.T_map_body = T_ma @ kf.T_world_body
         k.velocity = T_ma[:3, :3] @ kf.velocity
@@ -311,8 +313,10 @@ class Atlas:
     def retired_poses(self, agent_id: int) -> list[tuple[int, float, np.ndarray]]:
         """``(key, timestamp s, T_map_body (4, 4))`` of ``agent_id``'s retired keyframes (see
         :meth:`retire_keyframe`), poses through their anchors' current estimates."""
-        return [(r.key, r.timestamp, self._kfs[r.anchor].T_map_body @ r.T_anchor_body)
-                for r in self._retired.of_agent(agent_id)]  # fmt: skip
+        return [
+            (r.key, r.timestamp, self._kfs[r.anchor].T_map_body @ r.T_anchor_body)
+            for r in self._retired.of_agent(agent_id)
+        ]
 
     # ------------------------------------------------------------------ corrections
     def add_loop(self, key_a: int, key_b: int, T_a_b: np.ndarray) -> LoopEdge:
@@ -444,8 +448,10 @@ class Atlas:
         ``anchor``, another keyframe of the same agent (a :class:`RetiredKeyframe`)."""
         k, a = self._kf(key), self._kf(anchor)
         if a.agent_id != k.agent_id or anchor == key:
-            raise AtlasError(f"keyframe {split_key(key)}: anchor {split_key(anchor)} is not "
-                             "another keyframe of its agent")  # fmt: skip
+            raise AtlasError(
+                f"keyframe {split_key(key)}: anchor {split_key(anchor)} is not "
+                "another keyframe of its agent"
+            )
         T_anchor_body = ro(inverse_T(a.T_map_body) @ k.T_map_body)
         self._retired.add(RetiredKeyframe(key, k.agent_id, k.timestamp, anchor, T_anchor_body))
         self.remove_keyframe(key)

@@ -354,8 +354,7 @@ class CloudCore:
 
     def _take(self, request: SolveRequest) -> _PoseGraph | _FullBA:
         if self._outstanding is None or self._outstanding[0] is not request:
-            raise CloudCoreError(f"no such solve out: {request.kind.value} of map "
-                                 f"{request.map_id}")  # fmt: skip
+            raise CloudCoreError(f"no such solve out: {request.kind.value} of map {request.map_id}")
         step = self._outstanding[1]
         self._outstanding = None
         return step

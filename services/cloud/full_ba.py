@@ -298,8 +298,13 @@ def solve_full_ba(
     body_P_cam = _pose3(problem.T_body_cam)
     noise_of: dict[float, gtsam.noiseModel.Base] = {}
     factor = gtsam.GenericProjectionFactorCal3_S2
-    for kf, pt, xy, s in zip(problem.obs_kf.tolist(), problem.obs_point.tolist(),
-                             problem.obs_xy, problem.obs_sigma.tolist(), strict=True):  # fmt: skip
+    for kf, pt, xy, s in zip(
+        problem.obs_kf.tolist(),
+        problem.obs_point.tolist(),
+        problem.obs_xy,
+        problem.obs_sigma.tolist(),
+        strict=True,
+    ):
         obs_noise = noise_of.get(s)
         if obs_noise is None:
             obs_noise = gtsam.noiseModel.Isotropic.Sigma(2, s)
@@ -320,30 +325,47 @@ def solve_full_ba(
             iterations += 1
             new_error = float(optimizer.error())
             done = gtsam.checkConvergence(
-                params.getRelativeErrorTol(), params.getAbsoluteErrorTol(),
-                params.getErrorTol(), error, new_error,
-            )  # fmt: skip
+                params.getRelativeErrorTol(),
+                params.getAbsoluteErrorTol(),
+                params.getErrorTol(),
+                error,
+                new_error,
+            )
             error = new_error
             if done or time.perf_counter() - t0 > config.max_seconds:
                 break
     except RuntimeError as exc:  # indeterminant system: keep the last good estimate
-        log.warning("full BA: Levenberg-Marquardt stopped after %d iterations: %s", iterations,
-                    exc)  # fmt: skip
+        log.warning("full BA: Levenberg-Marquardt stopped after %d iterations: %s", iterations, exc)
     result = optimizer.values()
     T_out = np.array([result.atPose3(X(i)).matrix() for i in range(n)])
     p_out = np.array([result.atPoint3(L(j)) for j in range(n_pts)]).reshape(n_pts, 3)
     seconds = time.perf_counter() - t0
     out = FullBAResult(
-        keys=problem.keys.copy(), T_world_body=T_out, point_keys=problem.point_keys.copy(),
-        p_world=p_out, initial_error=initial_error, final_error=float(graph.error(result)),
+        keys=problem.keys.copy(),
+        T_world_body=T_out,
+        point_keys=problem.point_keys.copy(),
+        p_world=p_out,
+        initial_error=initial_error,
+        final_error=float(graph.error(result)),
         initial_rms_px=_rms_px(problem, problem.T_world_body, problem.p_world),
-        final_rms_px=_rms_px(problem, T_out, p_out), iterations=iterations,
-        rejected_edges=np.array(rejected, np.int64), seconds=seconds,
-    )  # fmt: skip
-    log.info("full BA: %d keyframes, %d points, %d observations, %d iterations in %.2f s: "
-             "error %.4g -> %.4g, reprojection RMS %.2f -> %.2f px", n, n_pts,
-             problem.n_observations, iterations, seconds, out.initial_error, out.final_error,
-             out.initial_rms_px, out.final_rms_px)  # fmt: skip
+        final_rms_px=_rms_px(problem, T_out, p_out),
+        iterations=iterations,
+        rejected_edges=np.array(rejected, np.int64),
+        seconds=seconds,
+    )
+    log.info(
+        "full BA: %d keyframes, %d points, %d observations, %d iterations in %.2f s: "
+        "error %.4g -> %.4g, reprojection RMS %.2f -> %.2f px",
+        n,
+        n_pts,
+        problem.n_observations,
+        iterations,
+        seconds,
+        out.initial_error,
+        out.final_error,
+        out.initial_rms_px,
+        out.final_rms_px,
+    )
     return out
 
 
@@ -357,14 +379,21 @@ def apply_full_ba(atlas: Atlas, result: FullBAResult) -> int:
     n = apply_pose_graph(
         atlas,
         PoseGraphResult(
-            result.keys, result.T_world_body, result.initial_error, result.final_error,
-            result.iterations, result.rejected_edges,
+            result.keys,
+            result.T_world_body,
+            result.initial_error,
+            result.final_error,
+            result.iterations,
+            result.rejected_edges,
         ),
-    )  # fmt: skip
-    atlas.set_map_point_positions({
-        k: result.p_world[i] for i, k in enumerate(result.point_keys.tolist())
-        if atlas.has_map_point(k)
-    })  # fmt: skip
+    )
+    atlas.set_map_point_positions(
+        {
+            k: result.p_world[i]
+            for i, k in enumerate(result.point_keys.tolist())
+            if atlas.has_map_point(k)
+        }
+    )
     return n
 
 

@@ -194,9 +194,10 @@ def optimize_pose_graph(
         result = optimizer.optimize()
         # Loop edges still far off after the robust solve are outliers: drop them, solve again.
         bad = [
-            e for e in np.flatnonzero(use & problem.robust).tolist()
+            e
+            for e in np.flatnonzero(use & problem.robust).tolist()
             if _whitened(problem, e, result) > config.loop_outlier_whitened
-        ]  # fmt: skip
+        ]
         if not bad:
             break
         use[bad] = False
@@ -206,9 +207,13 @@ def optimize_pose_graph(
     final_error = float(graph.error(result))
     log.debug("pose graph %d nodes: error %.3g -> %.3g", n, initial_error, final_error)
     return PoseGraphResult(
-        problem.keys.copy(), out, initial_error, final_error, optimizer.iterations(),
+        problem.keys.copy(),
+        out,
+        initial_error,
+        final_error,
+        optimizer.iterations(),
         np.array(sorted(rejected), np.int64),
-    )  # fmt: skip
+    )
 
 
 def _whitened(problem: PoseGraphProblem, e: int, values: gtsam.Values) -> float:

@@ -97,18 +97,28 @@ class MapFusion:
                 if same_map and any(o.loop.key_b == key for o in events.outcomes):
                     continue
                 res = verify_candidate(
-                    self.atlas, key, cand.candidate_key, self.camera, self.config.verification,
+                    self.atlas,
+                    key,
+                    cand.candidate_key,
+                    self.camera,
+                    self.config.verification,
                     self.word_group,
-                )  # fmt: skip
+                )
                 events.verifications.append(res)
                 self.verification_counts[reason_kind(res.reason)] += 1
                 log.info(
                     "candidate %d (agent %d) for keyframe %d (agent %d), score %.3f: %s "
                     "(%d inliers, ratio %.2f; totals %s)",
-                    cand.candidate_key, self.atlas.keyframe(cand.candidate_key).agent_id, key,
-                    kf.agent_id, cand.score, "accepted" if res.accepted else res.reason,
-                    res.n_inliers, res.inlier_ratio, dict(self.verification_counts),
-                )  # fmt: skip
+                    cand.candidate_key,
+                    self.atlas.keyframe(cand.candidate_key).agent_id,
+                    key,
+                    kf.agent_id,
+                    cand.score,
+                    "accepted" if res.accepted else res.reason,
+                    res.n_inliers,
+                    res.inlier_ratio,
+                    dict(self.verification_counts),
+                )
                 if not res.accepted:
                     continue
                 outcome = apply_match(self.atlas, res, self.config.merge)

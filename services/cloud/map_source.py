@@ -120,9 +120,11 @@ def _merge_items(
     pruned = pruned[order]
     pos = np.searchsorted(old.ids, all_ids)
     pos_c = np.minimum(pos, max(old.ids.shape[0] - 1, 0))
-    known = (pos < old.ids.shape[0]) & (old.ids[pos_c] == all_ids) if old.ids.size else (
-        np.zeros(all_ids.shape[0], bool)
-    )  # fmt: skip
+    known = (
+        (pos < old.ids.shape[0]) & (old.ids[pos_c] == all_ids)
+        if old.ids.size
+        else (np.zeros(all_ids.shape[0], bool))
+    )
     stamp = np.full(all_ids.shape[0], version, np.int64)
     if old.ids.size:
         same = known.copy()
@@ -132,8 +134,14 @@ def _merge_items(
         stamp[same] = old.stamp[pos_c[same]]
     removed = old.ids[np.isin(old.ids, all_ids, invert=True)]
     changed = bool(np.any(stamp == version) or removed.size)
-    items = _Items(_ro(all_ids), _ro(agent.astype(np.int32)), _ro(data), _ro(timestamp),
-                   _ro(pruned), _ro(stamp))  # fmt: skip
+    items = _Items(
+        _ro(all_ids),
+        _ro(agent.astype(np.int32)),
+        _ro(data),
+        _ro(timestamp),
+        _ro(pruned),
+        _ro(stamp),
+    )
     return items, removed, changed
 
 
@@ -199,13 +207,23 @@ class CloudMapSource:
         with self._lock:
             v = self._version + 1
             kfs, kf_removed, kf_changed = _merge_items(
-                self._kfs, s.keyframe_keys, s.keyframe_agent, T, s.keyframe_timestamp,
-                view.pruned_keyframes, v,
-            )  # fmt: skip
+                self._kfs,
+                s.keyframe_keys,
+                s.keyframe_agent,
+                T,
+                s.keyframe_timestamp,
+                view.pruned_keyframes,
+                v,
+            )
             pts, pt_removed, pt_changed = _merge_items(
-                self._pts, s.point_keys, (s.point_keys >> _LOCAL_BITS), P.astype(np.float32)
-                .astype(np.float64), np.zeros(s.point_keys.shape[0]), view.pruned_points, v,
-            )  # fmt: skip
+                self._pts,
+                s.point_keys,
+                (s.point_keys >> _LOCAL_BITS),
+                P.astype(np.float32).astype(np.float64),
+                np.zeros(s.point_keys.shape[0]),
+                view.pruned_points,
+                v,
+            )
             poses = {}
             for a in np.unique(s.keyframe_agent).tolist():
                 idx = np.flatnonzero(s.keyframe_agent == a)
@@ -218,10 +236,13 @@ class CloudMapSource:
             if view.ground_truth is not None:
                 map_of = {a.agent_id: a.map_id for a in view.agents}
                 self._gt = tuple(
-                    GroundTruth(g.agent_id, g.timestamp,
-                                g.p_world + offset.get(map_of.get(g.agent_id, -1), 0.0))
+                    GroundTruth(
+                        g.agent_id,
+                        g.timestamp,
+                        g.p_world + offset.get(map_of.get(g.agent_id, -1), 0.0),
+                    )
                     for g in view.ground_truth
-                )  # fmt: skip
+                )
                 self._gt_version = v
             if kf_changed or pt_changed or pose_changed or gt_changed:
                 self._version = v
@@ -242,8 +263,9 @@ class CloudMapSource:
             status = _STATUS.get(a.status, AgentState.TRACKING)
             if a.map_id != a.agent_id or a.map_id in shared:
                 status = AgentState.MERGED
-            agents.append(AgentRecord(a.agent_id, status, a.frames, a.keyframes, a.last_seen,
-                                      a.map_id))  # fmt: skip
+            agents.append(
+                AgentRecord(a.agent_id, status, a.frames, a.keyframes, a.last_seen, a.map_id)
+            )
         for edge, snap in view.edge_counters.items():
             for key, direction in (("rx", Direction.UP), ("tx", Direction.DOWN)):
                 for mtype, c in snap.get(key, {}).get("by_type", {}).items():
@@ -259,10 +281,13 @@ class CloudMapSource:
         kf_pruned = int(self._kfs.pruned.sum())
         pt_pruned = int(self._pts.pruned.sum())
         counts = MapCounts(
-            keyframes=len(self._kfs.ids), keyframes_kept=len(self._kfs.ids) - kf_pruned,
-            map_points=len(self._pts.ids), map_points_kept=len(self._pts.ids) - pt_pruned,
-            loops=len(self._loops), merges=len(self._merges),
-        )  # fmt: skip
+            keyframes=len(self._kfs.ids),
+            keyframes_kept=len(self._kfs.ids) - kf_pruned,
+            map_points=len(self._pts.ids),
+            map_points_kept=len(self._pts.ids) - pt_pruned,
+            loops=len(self._loops),
+            merges=len(self._merges),
+        )
         self._stats = StatsSnapshot(now, tuple(agents), counts, tuple(self._bandwidth))
 
     def _sample(self, now: float, link: str, direction: Direction, mtype: str, total: int) -> None:

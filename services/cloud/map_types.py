@@ -87,8 +87,9 @@ class KeyframeInput:
         }
         desc = np.asarray(self.descriptors)
         if desc.shape != (n, 32) or desc.dtype != np.uint8:
-            raise AtlasError(f"{what}: descriptors must be ({n}, 32) uint8, got {desc.shape} "
-                             f"{desc.dtype}")  # fmt: skip
+            raise AtlasError(
+                f"{what}: descriptors must be ({n}, 32) uint8, got {desc.shape} {desc.dtype}"
+            )
         fields["descriptors"] = np.array(desc, copy=True)
         R = fields["T_world_body"][:3, :3]
         if not np.allclose(R.T @ R, np.eye(3), atol=1e-5):
@@ -111,8 +112,12 @@ class MapPointInput:
     def __post_init__(self) -> None:
         what = f"map point {self.agent_id}/{self.map_point_id}"
         p = _check(self.p_world, (3,), np.float64, f"{what}: p_world")
-        obs = _check(np.asarray(self.observations).reshape(-1, 2), (None, 2), np.int64,
-                     f"{what}: observations")  # fmt: skip
+        obs = _check(
+            np.asarray(self.observations).reshape(-1, 2),
+            (None, 2),
+            np.int64,
+            f"{what}: observations",
+        )
         for v in (p, obs):
             v.setflags(write=False)
         object.__setattr__(self, "p_world", p)

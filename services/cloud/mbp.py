@@ -207,10 +207,13 @@ def backbone(atlas: Atlas, map_id: int, config: MbpConfig, keep_recent: int = 5)
     for k in kept:
         reasons[k] = PROTECTED if k in protected else reasons.get(k, NOT_COVERED)
     absorbers = {
-        r: tuple(b for b, _ in sorted(w_of[r].items(), key=lambda t: (-t[1], t[0]))
-                 if b in kept and w_of[r][b] >= config.min_shared)
+        r: tuple(
+            b
+            for b, _ in sorted(w_of[r].items(), key=lambda t: (-t[1], t[0]))
+            if b in kept and w_of[r][b] >= config.min_shared
+        )
         for r in removed
-    }  # fmt: skip
+    }
     return Backbone(frozenset(kept), {k: reasons[k] for k in sorted(kept)}, absorbers)
 
 
@@ -244,8 +247,11 @@ def _move_loops(atlas: Atlas, anchor: dict[int, int]) -> int:
     moved. A constraint whose ends meet in one keyframe, or that would join two keyframes
     already joined by one, is dropped (copies would weigh one relation several times)."""
     loops = atlas.loops()
-    pairs = {frozenset((e.key_a, e.key_b)) for e in loops
-             if e.key_a not in anchor and e.key_b not in anchor}  # fmt: skip
+    pairs = {
+        frozenset((e.key_a, e.key_b))
+        for e in loops
+        if e.key_a not in anchor and e.key_b not in anchor
+    }
     moved = 0
     for e in loops:
         a, b = anchor.get(e.key_a, e.key_a), anchor.get(e.key_b, e.key_b)
@@ -356,6 +362,13 @@ def run_mbp(
         connected_after=covisibility_components(atlas, after) == 1,
         loops_moved=n_loops,
     )
-    log.info("MBP map %d: keyframes %d -> %d, map points %d -> %d, %d loop edges moved", map_id,
-             n_kf, report.keyframes_after, n_mp, report.map_points_after, n_loops)  # fmt: skip
+    log.info(
+        "MBP map %d: keyframes %d -> %d, map points %d -> %d, %d loop edges moved",
+        map_id,
+        n_kf,
+        report.keyframes_after,
+        n_mp,
+        report.map_points_after,
+        n_loops,
+    )
     return report

@@ -156,8 +156,9 @@ def apply_match(atlas: Atlas, result: VerificationResult, config: MergeConfig) -
                 )
                 pairs = pairs[keep]
             except MergeError as exc:  # degenerate pairs (e.g. collinear points)
-                log.warning("merge of map %d into %d: %s; using the verified pose", q_map,
-                            c_map, exc)  # fmt: skip
+                log.warning(
+                    "merge of map %d into %d: %s; using the verified pose", q_map, c_map, exc
+                )
         if T is None:
             T = project_transform(result.T_cmap_qmap, config.mode)
         src_points = atlas.map_point_keys(q_map)

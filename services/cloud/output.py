@@ -56,8 +56,12 @@ class OutputWriter:
             else "maps not merged: each robot's trajectory is in its own map's frame, a joint "
             "ATE across different maps is not meaningful"
         )
-        info = {"robots": dict(sorted(map_of_robot.items())), "maps": maps,
-                "joint_frame": joint, "note": note}  # fmt: skip
+        info = {
+            "robots": dict(sorted(map_of_robot.items())),
+            "maps": maps,
+            "joint_frame": joint,
+            "note": note,
+        }
         (self.results_dir / MAPS_FILE).write_text(json.dumps(info, indent=2) + "\n")
         files.append(self.results_dir / MAPS_FILE)
         if not joint:
@@ -69,6 +73,7 @@ class OutputWriter:
                 log.warning("ATE report not written: %s", exc)
             else:
                 files.extend(report.files)
-                log.info("joint ATE RMSE %.4f m over %s", report.joint.stats.rmse,
-                         sorted(trajectories))  # fmt: skip
+                log.info(
+                    "joint ATE RMSE %.4f m over %s", report.joint.stats.rmse, sorted(trajectories)
+                )
         return files

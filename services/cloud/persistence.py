@@ -206,9 +206,15 @@ class CloudStore:
         try:
             db.executemany(
                 "UPDATE keyframes SET pose = ?, map_id = ? WHERE key = ?",
-                [(np.asarray(atlas.T_map_body(k), "<f8").tobytes(),
-                  atlas.map_id_of_keyframe(k), k) for k in kf],
-            )  # fmt: skip
+                [
+                    (
+                        np.asarray(atlas.T_map_body(k), "<f8").tobytes(),
+                        atlas.map_id_of_keyframe(k),
+                        k,
+                    )
+                    for k in kf
+                ],
+            )
             db.executemany(
                 "UPDATE map_points SET p = ? WHERE key = ?",
                 [(np.asarray(P[i], "<f8").tobytes(), int(k)) for i, k in enumerate(mp.tolist())],
@@ -250,11 +256,16 @@ class CloudStore:
                 continue
             v = atlas.keyframe(key)
             blob = _pack(
-                velocity=v.velocity, bias_gyro=v.bias_gyro,
-                bias_accel=v.bias_accel, keypoints=v.keypoints, levels=v.levels,
-                descriptors=v.descriptors, word_ids=v.word_ids, map_point_keys=v.map_point_keys,
+                velocity=v.velocity,
+                bias_gyro=v.bias_gyro,
+                bias_accel=v.bias_accel,
+                keypoints=v.keypoints,
+                levels=v.levels,
+                descriptors=v.descriptors,
+                word_ids=v.word_ids,
+                map_point_keys=v.map_point_keys,
                 virtual=v.virtual,
-            )  # fmt: skip
+            )
             db.execute(
                 "INSERT OR REPLACE INTO keyframes VALUES (?, ?, ?, ?, ?, ?, ?)",
                 (
@@ -275,9 +286,16 @@ class CloudStore:
             m = atlas.map_point(key)
             db.execute(
                 "INSERT OR REPLACE INTO map_points VALUES (?, ?, ?, ?, ?, ?, ?)",
-                (key, m.agent_id, m.map_point_id, m.map_id, m.ref_kf,
-                 np.asarray(m.p_map, "<f8").tobytes(), _pack_obs(m.obs_keyframes, m.obs_indices)),
-            )  # fmt: skip
+                (
+                    key,
+                    m.agent_id,
+                    m.map_point_id,
+                    m.map_id,
+                    m.ref_kf,
+                    np.asarray(m.p_map, "<f8").tobytes(),
+                    _pack_obs(m.obs_keyframes, m.obs_indices),
+                ),
+            )
         return removed
 
     def _write_state(self, st: AtlasState, removals: bool = False) -> None:
@@ -293,11 +311,18 @@ class CloudStore:
         db.executemany(
             "INSERT INTO merges VALUES (?, ?, ?, ?, ?, ?, ?)",
             [
-                (i, m.target_map, m.source_map, _pack(a=m.T_target_source), m.query_key,
-                 m.candidate_key, m.fused_points)
+                (
+                    i,
+                    m.target_map,
+                    m.source_map,
+                    _pack(a=m.T_target_source),
+                    m.query_key,
+                    m.candidate_key,
+                    m.fused_points,
+                )
                 for i, m in enumerate(st.merges)
             ],
-        )  # fmt: skip
+        )
         db.executemany(
             "INSERT INTO loops VALUES (?, ?, ?, ?, ?)",
             [
@@ -315,9 +340,17 @@ class CloudStore:
         db.execute("DELETE FROM retired_keyframes")
         db.executemany(
             "INSERT INTO retired_keyframes VALUES (?, ?, ?, ?, ?)",
-            [(r.key, r.agent_id, r.timestamp, r.anchor,
-              np.asarray(r.T_anchor_body, "<f8").tobytes()) for r in st.retired],
-        )  # fmt: skip
+            [
+                (
+                    r.key,
+                    r.agent_id,
+                    r.timestamp,
+                    r.anchor,
+                    np.asarray(r.T_anchor_body, "<f8").tobytes(),
+                )
+                for r in st.retired
+            ],
+        )
 
     # ------------------------------------------------------------------ reading
     def last_sequences(self) -> dict[str, int]:
@@ -344,15 +377,21 @@ class CloudStore:
                 "ORDER BY key"
             ):
                 d = {**_unpack(blob), "T_map_body": _pose(pose)}
-                kfs.append(KeyframeView(key=key, agent_id=agent, keyframe_id=kf_id, map_id=map_id,
-                                        timestamp=ts, **d))  # fmt: skip
+                kfs.append(
+                    KeyframeView(
+                        key=key, agent_id=agent, keyframe_id=kf_id, map_id=map_id, timestamp=ts, **d
+                    )
+                )
             mps = []
             for key, agent, mp_id, map_id, ref, p, blob in db.execute(
                 "SELECT key, agent, map_point_id, map_id, ref_kf, p, data FROM map_points"
             ):
                 d = _unpack_point(p, blob)
-                mps.append(MapPointView(key=key, agent_id=agent, map_point_id=mp_id, map_id=map_id,
-                                        ref_kf=ref, **d))  # fmt: skip
+                mps.append(
+                    MapPointView(
+                        key=key, agent_id=agent, map_point_id=mp_id, map_id=map_id, ref_kf=ref, **d
+                    )
+                )
             agents = list(db.execute("SELECT agent, map_id, T_map_agent FROM agents"))
             merges = tuple(
                 MergeRecord(t, s, _arr(T), q, c, f)

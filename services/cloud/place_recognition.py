@@ -302,10 +302,14 @@ class PlaceRecognizer:
             if count >= cfg.min_consistency and len(accepted) < cfg.max_candidates:
                 accepted.append(
                     LoopCandidate(
-                        key, ckey, score, acc, count,
+                        key,
+                        ckey,
+                        score,
+                        acc,
+                        count,
                         atlas.keyframe(ckey).agent_id != agent,
                     )
-                )  # fmt: skip
+                )
         self._groups[agent] = current
         if accepted:
             log.debug("query %d: %d consistent candidates", key, len(accepted))

@@ -87,10 +87,16 @@ class RecordingWriter:
     ) -> None:
         """Append one message (its protocol payload; ``t_recv`` defaults to now)."""
         body = msgpack.packb(
-            [edge_id, bytes(stream_id), int(seq), int(message.TYPE_ID), encode_payload(message),
-             float(time.time() if t_recv is None else t_recv)],
+            [
+                edge_id,
+                bytes(stream_id),
+                int(seq),
+                int(message.TYPE_ID),
+                encode_payload(message),
+                float(time.time() if t_recv is None else t_recv),
+            ],
             use_bin_type=True,
-        )  # fmt: skip
+        )
         self._f.write(_LEN.pack(len(body)) + body)
         self.records += 1
 
@@ -115,15 +121,26 @@ def _decode(body: bytes, path: Path, offset: int) -> Record:
 
     try:
         values = msgpack.unpackb(body, raw=False, use_list=True)
-    except (ValueError, TypeError, msgpack.ExtraData, msgpack.FormatError,
-            msgpack.StackError, UnicodeDecodeError) as exc:  # fmt: skip
+    except (
+        ValueError,
+        TypeError,
+        msgpack.ExtraData,
+        msgpack.FormatError,
+        msgpack.StackError,
+        UnicodeDecodeError,
+    ) as exc:
         raise bad(f"undecodable msgpack ({exc})") from None
     if not isinstance(values, list) or len(values) != 6:
         raise bad("expected an array of 6 fields")
     edge_id, stream_id, seq, type_id, payload, t_recv = values
-    if not (isinstance(edge_id, str) and isinstance(stream_id, bytes) and isinstance(seq, int)
-            and isinstance(type_id, int) and isinstance(payload, bytes)
-            and isinstance(t_recv, float | int)):  # fmt: skip
+    if not (
+        isinstance(edge_id, str)
+        and isinstance(stream_id, bytes)
+        and isinstance(seq, int)
+        and isinstance(type_id, int)
+        and isinstance(payload, bytes)
+        and isinstance(t_recv, float | int)
+    ):
         raise bad("field of the wrong type")
     try:
         message = decode_payload(type_id, payload)

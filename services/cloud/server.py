@@ -206,8 +206,13 @@ class CloudServer:
         if self._record_path is not None:
             self._recorder = RecordingWriter(self._record_path)
         n = app.atlas.n_keyframes()
-        log.info("cloud state %s: %d keyframes, %d map points, maps %s", self.state_dir, n,
-                 app.atlas.n_map_points(), app.atlas.maps())  # fmt: skip
+        log.info(
+            "cloud state %s: %d keyframes, %d map points, maps %s",
+            self.state_dir,
+            n,
+            app.atlas.n_map_points(),
+            app.atlas.maps(),
+        )
         self.address = await self._server.start(host, port)
         self._tasks = [
             asyncio.create_task(self._optimize_loop(), name="cloud-optimize"),
@@ -264,13 +269,19 @@ class CloudServer:
             n = self._failures.get(key, 0) + 1
             self._failures[key] = n
             if n >= self._max_failures:
-                log.error("edge %s: skipping message %d after %d failures: %s", d.peer, d.seq,
-                          n, exc)  # fmt: skip
+                log.error(
+                    "edge %s: skipping message %d after %d failures: %s", d.peer, d.seq, n, exc
+                )
                 self._failures.pop(key, None)
                 await self._on_worker(app.skip, d.peer, d.stream_id, d.seq)
                 return
-            log.warning("edge %s: malformed %s (seq %d): %s; closing its connection", d.peer,
-                        type(d.message).__name__, d.seq, exc)  # fmt: skip
+            log.warning(
+                "edge %s: malformed %s (seq %d): %s; closing its connection",
+                d.peer,
+                type(d.message).__name__,
+                d.seq,
+                exc,
+            )
             raise
         self._failures.pop(key, None)
         if deadline != self._armed:  # the schedule changed: the timer re-arms
@@ -351,11 +362,15 @@ class CloudServer:
                 self._server.peer(c.edge_id).send_nowait(c.message)
                 self._corrections += 1
             except LocalProtocolError:
-                log.info("edge %s not connected; correction of %s dropped (next one follows)",
-                         c.edge_id, c.message.agent_id)  # fmt: skip
+                log.info(
+                    "edge %s not connected; correction of %s dropped (next one follows)",
+                    c.edge_id,
+                    c.message.agent_id,
+                )
             except OutboxFullError:
-                log.warning("edge %s outbox full; correction of %s dropped", c.edge_id,
-                            c.message.agent_id)  # fmt: skip
+                log.warning(
+                    "edge %s outbox full; correction of %s dropped", c.edge_id, c.message.agent_id
+                )
 
     async def optimize_map(self, map_id: int) -> bool:
         """Optimise one map now (off the event loop), apply, send corrections, run MBP and the
@@ -468,10 +483,18 @@ class CloudServer:
         def collect() -> CloudStats:
             a = app.atlas
             return CloudStats(
-                app.messages, app.rejected, core.optimizations, self._corrections,
-                core.mbp_passes, a.n_keyframes(), a.n_map_points(), tuple(a.maps()),
-                len(a.merges()), len(a.loops()), core.full_bas,
-            )  # fmt: skip
+                app.messages,
+                app.rejected,
+                core.optimizations,
+                self._corrections,
+                core.mbp_passes,
+                a.n_keyframes(),
+                a.n_map_points(),
+                tuple(a.maps()),
+                len(a.merges()),
+                len(a.loops()),
+                core.full_bas,
+            )
 
         return await self._on_worker(collect)
 

@@ -26,10 +26,15 @@ R_BODY_CAM = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
 def default_camera() -> CameraCalibration:
     """EuRoC-like 752×480 camera with radial-tangential distortion, forward-looking."""
     return CameraCalibration(
-        width=752, height=480, fx=458.654, fy=457.296, cx=367.215, cy=248.375,
+        width=752,
+        height=480,
+        fx=458.654,
+        fy=457.296,
+        cx=367.215,
+        cy=248.375,
         distortion=(-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05),
         T_body_cam=make_T(R_BODY_CAM, np.array([0.05, 0.0, 0.0])),
-    )  # fmt: skip
+    )
 
 
 def yaw_T(yaw: float, t: np.ndarray) -> np.ndarray:
@@ -68,8 +73,9 @@ def make_world(
     return World(pts, desc, words, n_words, idf)
 
 
-def circle_poses(n: int, radius: float = 2.0, height: float = 1.5, turns: float = 1.0,
-                 phase: float = 0.0) -> np.ndarray:  # fmt: skip
+def circle_poses(
+    n: int, radius: float = 2.0, height: float = 1.5, turns: float = 1.0, phase: float = 0.0
+) -> np.ndarray:
     """(n, 4, 4) T_world_body on a circle, looking outwards (yaw = position angle)."""
     ang = phase + np.linspace(0.0, 2 * np.pi * turns, n, endpoint=False)
     return np.stack(
@@ -98,9 +104,13 @@ def observe(
     # Undistorted normalised coordinates must be in a sane range for the model to hold.
     xn = p_cam[idx, :2] / p_cam[idx, 2:3]
     inside = (
-        (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
-        & (np.abs(xn[:, 0]) < 1.0) & (np.abs(xn[:, 1]) < 0.8)
-    )  # fmt: skip
+        (uv[:, 0] >= 0)
+        & (uv[:, 0] < cam.width)
+        & (uv[:, 1] >= 0)
+        & (uv[:, 1] < cam.height)
+        & (np.abs(xn[:, 0]) < 1.0)
+        & (np.abs(xn[:, 1]) < 0.8)
+    )
     idx, uv = idx[inside], uv[inside] + rng.normal(0.0, pixel_noise, (int(inside.sum()), 2))
     desc = world.descriptors[idx].copy()
     if flip_bits > 0 and desc.shape[0]:
@@ -176,10 +186,17 @@ def make_session(
             obs.setdefault(current[L], []).append((kid, int(j)))
         kfs.append(
             KeyframeInput(
-                agent_id=agent_id, keyframe_id=kid, timestamp=t0 + i * dt, T_world_body=T_est,
-                keypoints=kps, levels=lv, descriptors=desc, word_ids=words, map_point_ids=mp_ids,
+                agent_id=agent_id,
+                keyframe_id=kid,
+                timestamp=t0 + i * dt,
+                T_world_body=T_est,
+                keypoints=kps,
+                levels=lv,
+                descriptors=desc,
+                word_ids=words,
+                map_point_ids=mp_ids,
             )
-        )  # fmt: skip
+        )
     mps = []
     for mp_id, o in sorted(obs.items()):
         if len(o) < 2:
@@ -194,9 +211,15 @@ def make_session(
         ids = np.array([i if i in kept else -1 for i in k.map_point_ids.tolist()], np.int64)
         out.append(
             KeyframeInput(
-                agent_id=k.agent_id, keyframe_id=k.keyframe_id, timestamp=k.timestamp,
-                T_world_body=k.T_world_body, keypoints=k.keypoints, levels=k.levels,
-                descriptors=k.descriptors, word_ids=k.word_ids, map_point_ids=ids,
+                agent_id=k.agent_id,
+                keyframe_id=k.keyframe_id,
+                timestamp=k.timestamp,
+                T_world_body=k.T_world_body,
+                keypoints=k.keypoints,
+                levels=k.levels,
+                descriptors=k.descriptors,
+                word_ids=k.word_ids,
+                map_point_ids=ids,
             )
-        )  # fmt: skip
+        )
     return out, mps

@@ -180,11 +180,19 @@ def decode_keyframe_update(
         words = vocabulary.lookup(feats.descriptors) if n else np.zeros(0, np.int32)
         try:
             kf = KeyframeInput(
-                agent_id=agent_id, keyframe_id=msg.keyframe_id, timestamp=msg.timestamp_ns * 1e-9,
-                T_world_body=T, keypoints=feats.uv(cfg), levels=feats.keypoints[:, 2],
-                descriptors=feats.descriptors, word_ids=words, map_point_ids=mp_ids,
-                velocity=vel, bias_gyro=bg, bias_accel=ba,
-            )  # fmt: skip
+                agent_id=agent_id,
+                keyframe_id=msg.keyframe_id,
+                timestamp=msg.timestamp_ns * 1e-9,
+                T_world_body=T,
+                keypoints=feats.uv(cfg),
+                levels=feats.keypoints[:, 2],
+                descriptors=feats.descriptors,
+                word_ids=words,
+                map_point_ids=mp_ids,
+                velocity=vel,
+                bias_gyro=bg,
+                bias_accel=ba,
+            )
         except AtlasError as exc:
             raise UplinkError(f"{what}: {exc}") from exc
     return DecodedKeyframe(
@@ -302,20 +310,28 @@ def encode_keyframe_update(
     payload = FeatureEncoder(vocabulary, cfg).encode_keyframe(feats)
     ts = round(kf.timestamp * 1e9) if timestamp_ns is None else int(timestamp_ns)
     msg = KeyframeUpdate(
-        agent_id=agent_name, map_id=edge_map_id, keyframe_id=kf.keyframe_id,
-        previous_keyframe_id=previous_keyframe_id, timestamp_ns=ts,
+        agent_id=agent_name,
+        map_id=edge_map_id,
+        keyframe_id=kf.keyframe_id,
+        previous_keyframe_id=previous_keyframe_id,
+        timestamp_ns=ts,
         T_world_body=pack_array(kf.T_world_body, "<f8"),
-        velocity_world=pack_array(kf.velocity, "<f8"), bias_gyro=pack_array(kf.bias_gyro, "<f8"),
-        bias_accel=pack_array(kf.bias_accel, "<f8"), features=payload,
-        map_point_ids=pack_array(kf.map_point_ids[order], "<i8"), imu=b"",
-    )  # fmt: skip
+        velocity_world=pack_array(kf.velocity, "<f8"),
+        bias_gyro=pack_array(kf.bias_gyro, "<f8"),
+        bias_accel=pack_array(kf.bias_accel, "<f8"),
+        features=payload,
+        map_point_ids=pack_array(kf.map_point_ids[order], "<i8"),
+        imu=b"",
+    )
     return msg, order
 
 
 def encode_map_point_update(
-    points: list[MapPointInput], agent_name: str, edge_map_id: int = 0,
+    points: list[MapPointInput],
+    agent_name: str,
+    edge_map_id: int = 0,
     coded_index: dict[int, np.ndarray] | None = None,
-) -> MapPointUpdate:  # fmt: skip
+) -> MapPointUpdate:
     """A MapPointUpdate of ``points``; ``coded_index {keyframe_id: inverse order (N,)}`` maps
     a keyframe's input feature index to its coded index (see :func:`encode_keyframe_update`)."""
     ids = np.array([p.map_point_id for p in points], np.int64)
@@ -328,9 +344,12 @@ def encode_map_point_update(
             rows.append((p.map_point_id, kf_id, idx))
     obs = np.array(rows, np.int64).reshape(-1, 3)
     return MapPointUpdate(
-        agent_name, edge_map_id, pack_array(ids, "<i8"), pack_array(P, "<f8"),
+        agent_name,
+        edge_map_id,
+        pack_array(ids, "<i8"),
+        pack_array(P, "<f8"),
         pack_array(obs, "<i8"),
-    )  # fmt: skip
+    )
 
 
 def encode_session(

@@ -62,9 +62,11 @@ def colmap_camera(cam: CameraCalibration) -> pycolmap.Camera:
     """pycolmap OPENCV camera (fx, fy, cx, cy, k1, k2, p1, p2) of a calibration."""
     k1, k2, p1, p2 = cam.distortion
     return pycolmap.Camera(
-        model="OPENCV", width=cam.width, height=cam.height,
+        model="OPENCV",
+        width=cam.width,
+        height=cam.height,
         params=[cam.fx, cam.fy, cam.cx, cam.cy, k1, k2, p1, p2],
-    )  # fmt: skip
+    )
 
 
 def hamming(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -153,9 +155,13 @@ def verify_candidate(
         return words if word_group is None else np.asarray(word_group)[words]
 
     m = match_by_words(
-        Q.descriptors[qi], grp(Q.word_ids[qi]), C.descriptors[ci], grp(C.word_ids[ci]),
-        cfg.max_hamming, cfg.ratio,
-    )  # fmt: skip
+        Q.descriptors[qi],
+        grp(Q.word_ids[qi]),
+        C.descriptors[ci],
+        grp(C.word_ids[ci]),
+        cfg.max_hamming,
+        cfg.ratio,
+    )
     n_put = m.shape[0]
     if n_put < cfg.min_initial_matches:
         return _reject(query_key, candidate_key, f"{n_put} word matches", n_put)
@@ -166,8 +172,9 @@ def verify_candidate(
         return _reject(query_key, candidate_key, "no 3D-2D pose")
     ratio = float(inl.sum()) / n_put
     if ratio < cfg.min_inlier_ratio or inl.sum() < cfg.min_initial_matches:
-        return _reject(query_key, candidate_key, f"initial inliers {inl.sum()}/{n_put}",
-                       int(inl.sum()), ratio)  # fmt: skip
+        return _reject(
+            query_key, candidate_key, f"initial inliers {inl.sum()}/{n_put}", int(inl.sum()), ratio
+        )
 
     # Guided expansion with the map points of the candidate's covisible group.
     group = [candidate_key, *atlas.best_covisible(candidate_key, cfg.covisible_expansion)]
@@ -235,6 +242,14 @@ def verify_candidate(
             )
         point_pairs = point_pairs[agree]
     return VerificationResult(
-        query_key, candidate_key, True, "ok", T_cmap_qmap, T_cbody_qbody, n_inl, ratio,
-        point_pairs, np.stack([inl_q, inl_keys], axis=1).astype(np.int64),
-    )  # fmt: skip
+        query_key,
+        candidate_key,
+        True,
+        "ok",
+        T_cmap_qmap,
+        T_cbody_qbody,
+        n_inl,
+        ratio,
+        point_pairs,
+        np.stack([inl_q, inl_keys], axis=1).astype(np.int64),
+    )

@@ -111,8 +111,12 @@ class EdgeApp:
         if rb is None:
             session = RobotSession(agent_id, self.camera, self.vocabulary, self.config.session)
             spec = WorkerSpec(agent_id, self.camera, self.imu, self.config.vio)
-            rb = _Robot(session, self.worker_factory(spec, self.config.worker), asyncio.Queue(),
-                        asyncio.Event())  # fmt: skip
+            rb = _Robot(
+                session,
+                self.worker_factory(spec, self.config.worker),
+                asyncio.Queue(),
+                asyncio.Event(),
+            )
             rb.idle.set()
             rb.task = asyncio.create_task(self._drain(rb), name=f"edge-robot-{agent_id}")
             self.robots[agent_id] = rb
@@ -203,12 +207,17 @@ class EdgeApp:
             await self._enqueue(rb, item, replaying)
         elif isinstance(m, RobotSequenceEnd):
             rb.expected_frames = m.frames
-            logger.info("robot %s: sequence end after %d frames (decoded %d)",
-                        rb.session.agent_id, m.frames, rb.session.frames)  # fmt: skip
+            logger.info(
+                "robot %s: sequence end after %d frames (decoded %d)",
+                rb.session.agent_id,
+                m.frames,
+                rb.session.frames,
+            )
             await self._enqueue(rb, None, replaying)
         else:
-            logger.warning("robot %s sent an unexpected %s; ignored", rb.session.agent_id,
-                           type(m).__name__)  # fmt: skip
+            logger.warning(
+                "robot %s sent an unexpected %s; ignored", rb.session.agent_id, type(m).__name__
+            )
 
     async def on_cloud_message(self, d: Delivery) -> None:
         """Handler of the cloud link: pose corrections for a robot's map."""

@@ -59,21 +59,27 @@ def _subset(b: MapPointBatch, keep: np.ndarray) -> MapPointBatch:
     """The points of ``b`` where ``keep`` (P,) bool is set, with their observations."""
     rows = np.repeat(keep, b.counts)
     return MapPointBatch(
-        b.point_ids[keep], b.p_world[keep], b.counts[keep], b.keyframe_ids[rows],
+        b.point_ids[keep],
+        b.p_world[keep],
+        b.counts[keep],
+        b.keyframe_ids[rows],
         b.feature_indices[rows],
-    )  # fmt: skip
+    )
 
 
 def _newest(old: MapPointBatch, new: MapPointBatch) -> MapPointBatch:
     """``old``'s points that ``new`` does not list, then ``new`` (its entries are newer)."""
     o = _subset(old, ~np.isin(old.point_ids, new.point_ids))
     return MapPointBatch(
-        *(np.concatenate([a, b]) for a, b in zip(
-            (o.point_ids, o.p_world, o.counts, o.keyframe_ids, o.feature_indices),
-            (new.point_ids, new.p_world, new.counts, new.keyframe_ids, new.feature_indices),
-            strict=True,
-        ))
-    )  # fmt: skip
+        *(
+            np.concatenate([a, b])
+            for a, b in zip(
+                (o.point_ids, o.p_world, o.counts, o.keyframe_ids, o.feature_indices),
+                (new.point_ids, new.p_world, new.counts, new.keyframe_ids, new.feature_indices),
+                strict=True,
+            )
+        )
+    )
 
 
 class SentPoints:

@@ -466,8 +466,11 @@ class RobotSession:
                 if feats is not None:
                     features = encode_standalone_keyframe(self.vocabulary, feats, self.codec)
                 else:
-                    logger.warning("robot %s: features of keyframe %d no longer kept",
-                                   self.agent_id, kf.keyframe_id)  # fmt: skip
+                    logger.warning(
+                        "robot %s: features of keyframe %d no longer kept",
+                        self.agent_id,
+                        kf.keyframe_id,
+                    )
                 t0 = None if prev is None else self._kf_time.get((upd.map_id, prev))
                 imu = self._imu_between(t0, kf.timestamp_ns)
                 self._sent_kfs.add(key)

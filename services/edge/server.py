@@ -93,21 +93,33 @@ class EdgeServer:
         sv = self.service
         self.store = JournalStore(state_dir, sv.fsync_interval_s) if state_dir else None
         self.robot_session = SessionConfig(
-            "edge", sv.agent_id, secret,
-            heartbeat_interval=sv.heartbeat_interval_s, idle_timeout=sv.idle_timeout_s,
-        )  # fmt: skip
+            "edge",
+            sv.agent_id,
+            secret,
+            heartbeat_interval=sv.heartbeat_interval_s,
+            idle_timeout=sv.idle_timeout_s,
+        )
         self.app = EdgeApp(camera, imu, vocabulary, self, self.config, self.store, worker_factory)
         tr = transport or TransportConfig(accept_roles=("robot",))
-        self.server = Server(self.robot_session, self.app.on_robot_message, transport=tr,
-                             store=self.store)  # fmt: skip
+        self.server = Server(
+            self.robot_session, self.app.on_robot_message, transport=tr, store=self.store
+        )
         self.cloud: Client | None = None
         if sv.cloud_host is not None:
             cloud_cfg = SessionConfig(
-                "edge", sv.agent_id, secret,
-                heartbeat_interval=sv.heartbeat_interval_s, idle_timeout=sv.idle_timeout_s,
-            )  # fmt: skip
-            self.cloud = Client(cloud_cfg, self.app.on_cloud_message, sv.cloud_host,
-                                sv.cloud_port, server_name="cloud")  # fmt: skip
+                "edge",
+                sv.agent_id,
+                secret,
+                heartbeat_interval=sv.heartbeat_interval_s,
+                idle_timeout=sv.idle_timeout_s,
+            )
+            self.cloud = Client(
+                cloud_cfg,
+                self.app.on_cloud_message,
+                sv.cloud_host,
+                sv.cloud_port,
+                server_name="cloud",
+            )
         self.dropped_feedback = 0
         self.dropped_uplink = 0
         self.replayed_frames = 0
@@ -145,8 +157,11 @@ class EdgeServer:
         self.replayed_frames = await self.app.replay()
         await self.app.start_workers()
         if self.replayed_frames:
-            logger.info("replayed %d journaled frames of %d robots", self.replayed_frames,
-                        len(self.app.robots))  # fmt: skip
+            logger.info(
+                "replayed %d journaled frames of %d robots",
+                self.replayed_frames,
+                len(self.app.robots),
+            )
         self.address = await self.server.start(host, port)
         return self.address
 
@@ -178,6 +193,7 @@ class EdgeServer:
             "replayed_frames": self.replayed_frames,
             "dropped_feedback": self.dropped_feedback,
             "dropped_uplink": self.dropped_uplink,
-            "cloud": None if self.cloud is None or self.cloud.peer is None
+            "cloud": None
+            if self.cloud is None or self.cloud.peer is None
             else self.cloud.counters(),
-        }  # fmt: skip
+        }

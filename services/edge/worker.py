@@ -139,12 +139,21 @@ class VioRunner:
             state = self.vio.get_state()
             updates = tuple(_offset_update(u, self.base) for u in self.vio.pop_map_updates())
         except Exception as exc:  # contained: this robot re-initialises, nobody else notices
-            logger.exception("robot %s: VIO failed at frame %d; re-initialising",
-                             self.spec.agent_id, item.frame_index)  # fmt: skip
+            logger.exception(
+                "robot %s: VIO failed at frame %d; re-initialising",
+                self.spec.agent_id,
+                item.frame_index,
+            )
             self.generation += 1
             self.vio = self._new_vio()
-            return WorkResult(item.frame_index, None, None, (), failed=f"{type(exc).__name__}: "
-                              f"{exc}", generation=self.generation)  # fmt: skip
+            return WorkResult(
+                item.frame_index,
+                None,
+                None,
+                (),
+                failed=f"{type(exc).__name__}: {exc}",
+                generation=self.generation,
+            )
         live_ids, live_p = None, None
         vmap = self.vio.current_map
         if state is not None and vmap is not None:
@@ -158,13 +167,25 @@ class VioRunner:
             live_p = np.array(pts, np.float64).reshape(-1, 3)
         base = self.base
         if base and result is not None:
-            result = FrameResult(result.timestamp_ns, result.T_world_body, result.status,
-                                 result.map_id + base, result.n_inliers, result.is_new_keyframe,
-                                 result.reason)  # fmt: skip
+            result = FrameResult(
+                result.timestamp_ns,
+                result.T_world_body,
+                result.status,
+                result.map_id + base,
+                result.n_inliers,
+                result.is_new_keyframe,
+                result.reason,
+            )
         if base and state is not None:
-            state = InertialState(state.timestamp_ns, state.map_id + base, state.T_world_body,
-                                  state.v_world, state.bias_gyro, state.bias_accel,
-                                  state.gravity_body)  # fmt: skip
+            state = InertialState(
+                state.timestamp_ns,
+                state.map_id + base,
+                state.T_world_body,
+                state.v_world,
+                state.bias_gyro,
+                state.bias_accel,
+                state.gravity_body,
+            )
         return WorkResult(
             item.frame_index,
             result,
@@ -213,8 +234,10 @@ SINGLE_THREAD_ENV = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_N
 
 def _process_main(conn: Connection, spec: WorkerSpec, log_level: int) -> None:
     """Entry point of a worker process: serve ``WorkItem``s from the pipe until EOF/None."""
-    logging.basicConfig(level=log_level, format=f"%(asctime)s vio[{spec.agent_id}] %(levelname)s "
-                        "%(name)s: %(message)s")  # fmt: skip
+    logging.basicConfig(
+        level=log_level,
+        format=f"%(asctime)s vio[{spec.agent_id}] %(levelname)s %(name)s: %(message)s",
+    )
     runner = VioRunner(spec)
     conn.send(("ready", os.getpid()))
     while True:
@@ -255,8 +278,9 @@ class ProcessWorker:
         parent, child = self._ctx.Pipe()
         for name, value in SINGLE_THREAD_ENV.items():
             os.environ.setdefault(name, value)  # inherited by the spawned child
-        spec = WorkerSpec(self.spec.agent_id, self.spec.camera, self.spec.imu,
-                          self.spec.options, self.generation)  # fmt: skip
+        spec = WorkerSpec(
+            self.spec.agent_id, self.spec.camera, self.spec.imu, self.spec.options, self.generation
+        )
         proc = self._ctx.Process(
             target=_process_main,
             args=(child, spec, logging.getLogger().getEffectiveLevel()),
@@ -290,15 +314,25 @@ class ProcessWorker:
                 out = self._conn.recv()
             except (EOFError, OSError, BrokenPipeError) as exc:
                 code = None if self._proc is None else self._proc.exitcode
-                logger.error("robot %s: VIO process died (exit %s: %r) at frame %d; respawning "
-                             "with a fresh VIO", self.spec.agent_id, code, exc,
-                             item.frame_index)  # fmt: skip
+                logger.error(
+                    "robot %s: VIO process died (exit %s: %r) at frame %d; respawning "
+                    "with a fresh VIO",
+                    self.spec.agent_id,
+                    code,
+                    exc,
+                    item.frame_index,
+                )
                 self._kill()
                 self.generation += 1
                 self.restarts += 1
-                return WorkResult(item.frame_index, None, None, (),
-                                  failed=f"VIO process died (exit {code})",
-                                  generation=self.generation)  # fmt: skip
+                return WorkResult(
+                    item.frame_index,
+                    None,
+                    None,
+                    (),
+                    failed=f"VIO process died (exit {code})",
+                    generation=self.generation,
+                )
             self.generation = out.generation
             return out
 

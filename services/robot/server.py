@@ -218,9 +218,14 @@ class RobotService:
         await self.client.start()
         logger.info(
             "robot %s: playing %s frames %d..%d to %s:%d (%s)",
-            cfg.agent_id, self.sequence.name, cfg.start_frame, self._stop_index - 1,
-            cfg.edge_host, cfg.edge_port, cfg.rate.value,
-        )  # fmt: skip
+            cfg.agent_id,
+            self.sequence.name,
+            cfg.start_frame,
+            self._stop_index - 1,
+            cfg.edge_host,
+            cfg.edge_port,
+            cfg.rate.value,
+        )
         executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix=f"robot-{cfg.agent_id}")
         try:
             await self._play(executor)
@@ -233,9 +238,13 @@ class RobotService:
         wall = time.monotonic() - t_start
         logger.info(
             "robot %s: %d frames (%d keyframes) in %.1f s, %d B sent, flushed=%s",
-            cfg.agent_id, self.app.frames, self.app.keyframes, wall,
-            counters["tx"]["bytes"], flushed,
-        )  # fmt: skip
+            cfg.agent_id,
+            self.app.frames,
+            self.app.keyframes,
+            wall,
+            counters["tx"]["bytes"],
+            flushed,
+        )
         return RobotRunResult(
             frames=self.app.frames,
             keyframes=self.app.keyframes,
@@ -276,8 +285,10 @@ class RobotService:
                     logger.warning(
                         "robot %s: backlog full (%d messages, %d B): waiting for the edge; "
                         "frames are delayed, not dropped",
-                        self.config.agent_id, c["outbox_messages"], c["outbox_bytes"],
-                    )  # fmt: skip
+                        self.config.agent_id,
+                        c["outbox_messages"],
+                        c["outbox_bytes"],
+                    )
                 blocked = True
             else:
                 blocked = False
@@ -324,8 +335,9 @@ class RobotService:
             c = self.client.counters()
             logger.warning(
                 "robot %s: the edge did not take %d queued messages before shutdown",
-                self.config.agent_id, c["outbox_messages"],
-            )  # fmt: skip
+                self.config.agent_id,
+                c["outbox_messages"],
+            )
             return False
         return True
 

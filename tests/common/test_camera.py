@@ -11,9 +11,17 @@ from common.camera import CameraModelError, PinholeRadtan
 
 # EuRoC MH/V cam0 intrinsics and distortion.
 CAM = PinholeRadtan(
-    752, 480, 458.654, 457.296, 367.215, 248.375,
-    -0.28340811, 0.07395907, 0.00019359, 1.76187114e-05,
-)  # fmt: skip
+    752,
+    480,
+    458.654,
+    457.296,
+    367.215,
+    248.375,
+    -0.28340811,
+    0.07395907,
+    0.00019359,
+    1.76187114e-05,
+)
 
 
 def _random_points(n: int, seed: int = 0) -> np.ndarray:

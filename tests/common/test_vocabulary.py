@@ -51,8 +51,15 @@ def test_save_load_identity(tmp_path, tiny):
     path = tmp_path / "v.npz"
     tiny.save(path)
     back = Vocabulary.load(path)
-    for name in ("node_desc", "parent", "idf", "word_count", "residual_ones", "bit_parents",
-                 "bit_p1"):  # fmt: skip
+    for name in (
+        "node_desc",
+        "parent",
+        "idf",
+        "word_count",
+        "residual_ones",
+        "bit_parents",
+        "bit_p1",
+    ):
         assert np.array_equal(getattr(back, name), getattr(tiny, name)), name
     assert back.meta == tiny.meta
     assert back.fingerprint() == tiny.fingerprint()

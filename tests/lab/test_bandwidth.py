@@ -33,8 +33,11 @@ def test_timing_from_samples(tmp_path) -> None:
     # Robot "a" (10 frames): frames 0-4 decoded at t=100 (on time for frame 0), the rest at
     # t=102; camera time of frame i is 100 + i/20, so frame 9 is 102 - 100.45 = 1.55 s late.
     def sample(t: float, frames: int, keyframes: int) -> dict:
-        return {"time": t, "edge": {"robots": {"a": {"frames_decoded": frames}}},
-                "cloud": {"keyframes": keyframes}}  # fmt: skip
+        return {
+            "time": t,
+            "edge": {"robots": {"a": {"frames_decoded": frames}}},
+            "cloud": {"keyframes": keyframes},
+        }
 
     samples = [sample(100.0, 5, 1), sample(102.0, 10, 2), sample(103.0, 10, 2)]
     path = tmp_path / "samples.jsonl"

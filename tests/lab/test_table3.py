@@ -32,12 +32,21 @@ def recording(tmp_path_factory, vocab):
     world = make_world(31, n_points=2000)
     cam = default_camera()
     sessions = {
-        "r0": make_session(world, cam, 0, circle_poses(30, turns=0.5), np.eye(4), seed=6,
-                           dt=0.2, track_gap=30),
-        "r1": make_session(world, cam, 1, circle_poses(12, turns=0.2, phase=0.3),
-                           yaw_T(0.7, np.array([1.0, -0.5, 0.0])), seed=7, dt=0.2, t0=10.0,
-                           track_gap=30),
-    }  # fmt: skip
+        "r0": make_session(
+            world, cam, 0, circle_poses(30, turns=0.5), np.eye(4), seed=6, dt=0.2, track_gap=30
+        ),
+        "r1": make_session(
+            world,
+            cam,
+            1,
+            circle_poses(12, turns=0.2, phase=0.3),
+            yaw_T(0.7, np.array([1.0, -0.5, 0.0])),
+            seed=7,
+            dt=0.2,
+            t0=10.0,
+            track_gap=30,
+        ),
+    }
     path = tmp_path_factory.mktemp("rec") / "uplink.rec"
     t, seq = 100.0, 0
     with RecordingWriter(path) as w:
@@ -53,10 +62,15 @@ def recording(tmp_path_factory, vocab):
 def test_replay_with_and_without_mbp(recording, vocab, tmp_path):
     results = {}
     for mbp in (False, True):
-        cfg = dataclasses.replace(service_config(mbp), optimize_every_keyframes=5,
-                                  mbp_every_keyframes=10, mbp_keep_recent=2)  # fmt: skip
-        results[mbp] = replay(read_recording(recording), default_camera(), vocab, cfg,
-                              tmp_path / str(mbp), "x")  # fmt: skip
+        cfg = dataclasses.replace(
+            service_config(mbp),
+            optimize_every_keyframes=5,
+            mbp_every_keyframes=10,
+            mbp_keep_recent=2,
+        )
+        results[mbp] = replay(
+            read_recording(recording), default_camera(), vocab, cfg, tmp_path / str(mbp), "x"
+        )
     off, on = results[False], results[True]
     assert off.keyframes_received == on.keyframes_received == 42
     assert off.keyframes == 42 and off.mbp_passes == 0 and off.optimizations > 0

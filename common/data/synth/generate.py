@@ -49,9 +49,17 @@ GENERATOR_VERSION = "recslam-synth-1"
 
 # EuRoC cam0 (V1_01): intrinsics [px] and radial-tangential distortion.
 EUROC_CAM0 = PinholeRadtan(
-    752, 480, 458.654, 457.296, 367.215, 248.375,
-    -0.28340811, 0.07395907, 0.00019359, 1.76187114e-05,
-)  # fmt: skip
+    752,
+    480,
+    458.654,
+    457.296,
+    367.215,
+    248.375,
+    -0.28340811,
+    0.07395907,
+    0.00019359,
+    1.76187114e-05,
+)
 
 
 class SynthError(RecslamError):
@@ -165,15 +173,17 @@ def _continuous(q: np.ndarray) -> np.ndarray:
     return q * sign[:, None]
 
 
-def _write_robot(out: Path, k: int, config: SynthConfig, traj: LoopTrajectory,
-                 renderer: Renderer, bar) -> tuple[RobotSummary, list[np.ndarray]]:  # fmt: skip
+def _write_robot(
+    out: Path, k: int, config: SynthConfig, traj: LoopTrajectory, renderer: Renderer, bar
+) -> tuple[RobotSummary, list[np.ndarray]]:
     """Simulate, render and write robot ``k``; returns its summary and sample frames."""
     name = f"robot{k}"
     ts, cam_idx, t0 = robot_timestamps(config, k)
     t = (ts - t0) * 1e-9
     imu_calib = imu_calibration(config)
-    imu = simulate_imu(traj, ts, t0, imu_calib, config.imu_noise,
-                       np.random.default_rng([config.seed, 202, k]))  # fmt: skip
+    imu = simulate_imu(
+        traj, ts, t0, imu_calib, config.imu_noise, np.random.default_rng([config.seed, 202, k])
+    )
     st = traj.evaluate(t)
     gt = EurocGroundTruth(
         timestamps_ns=ts,
@@ -236,13 +246,18 @@ def generate_dataset(out: Path, config: SynthConfig = SynthConfig()) -> DatasetS
     scene = vicon_room()
     atlas = build_atlas(scene, config.seed, config.textures)
     renderer = Renderer(scene, atlas, EUROC_CAM0, config.render)
-    trajectories = make_trajectories(scene, config.robots, config.seconds, config.seed,
-                                     config.trajectory)  # fmt: skip
+    trajectories = make_trajectories(
+        scene, config.robots, config.seconds, config.seed, config.trajectory
+    )
     frames_per_robot = len(robot_timestamps(config, 0)[1])
     summaries, samples = [], []
     render_start = time.perf_counter()
-    with tqdm(total=frames_per_robot * config.robots, desc="rendering", unit="frame",
-              disable=not config.progress) as bar:  # fmt: skip
+    with tqdm(
+        total=frames_per_robot * config.robots,
+        desc="rendering",
+        unit="frame",
+        disable=not config.progress,
+    ) as bar:
         for k, traj in enumerate(trajectories):
             s, frames = _write_robot(out, k, config, traj, renderer, bar)
             summaries.append(s)
@@ -279,6 +294,12 @@ def generate_dataset(out: Path, config: SynthConfig = SynthConfig()) -> DatasetS
         "trajectories": [asdict(tr) for tr in trajectories],
     }
     (out / "dataset.json").write_text(json.dumps(meta, indent=2) + "\n")
-    logger.info("dataset %s: %d robots x %g s in %.1f s (%.1f frames/s)", out, config.robots,
-                config.seconds, summary.wall_time_s, summary.render_fps)  # fmt: skip
+    logger.info(
+        "dataset %s: %d robots x %g s in %.1f s (%.1f frames/s)",
+        out,
+        config.robots,
+        config.seconds,
+        summary.wall_time_s,
+        summary.render_fps,
+    )
     return summary

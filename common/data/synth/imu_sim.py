@@ -79,6 +79,11 @@ def simulate_imu(
     white_g = rng.normal(0.0, calib.gyro_noise_density * np.sqrt(calib.rate_hz), (m, 3))
     white_a = rng.normal(0.0, calib.accel_noise_density * np.sqrt(calib.rate_hz), (m, 3))
     return ImuSamples(
-        ts, gyro_true + bias_g + white_g, accel_true + bias_a + white_a,
-        gyro_true, accel_true, bias_g, bias_a,
-    )  # fmt: skip
+        ts,
+        gyro_true + bias_g + white_g,
+        accel_true + bias_a + white_a,
+        gyro_true,
+        accel_true,
+        bias_g,
+        bias_a,
+    )

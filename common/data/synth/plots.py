@@ -15,21 +15,21 @@ def contact_sheet(samples: list[list[np.ndarray]], scale: float = 0.5) -> np.nda
     """Rows of sample frames (one row per robot) -> one uint8 image with labels."""
     rows = []
     for k, frames in enumerate(samples):
-        small = [cv2.resize(f, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
-                 for f in frames]  # fmt: skip
+        small = [
+            cv2.resize(f, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA) for f in frames
+        ]
         row = np.concatenate([np.pad(s, 2, constant_values=255) for s in small], axis=1)
-        cv2.putText(row, f"robot{k}", (8, 22), cv2.FONT_HERSHEY_SIMPLEX, 0.7, 255, 3,
-                    cv2.LINE_AA)  # fmt: skip
-        cv2.putText(row, f"robot{k}", (8, 22), cv2.FONT_HERSHEY_SIMPLEX, 0.7, 0, 1,
-                    cv2.LINE_AA)  # fmt: skip
+        cv2.putText(row, f"robot{k}", (8, 22), cv2.FONT_HERSHEY_SIMPLEX, 0.7, 255, 3, cv2.LINE_AA)
+        cv2.putText(row, f"robot{k}", (8, 22), cv2.FONT_HERSHEY_SIMPLEX, 0.7, 0, 1, cv2.LINE_AA)
         rows.append(row)
     width = max(r.shape[1] for r in rows)
     rows = [np.pad(r, ((0, 0), (0, width - r.shape[1])), constant_values=255) for r in rows]
     return np.concatenate(rows, axis=0)
 
 
-def plot_top_view(scene: Scene, trajectories: list[LoopTrajectory], seconds: float,
-                  path: Path) -> None:  # fmt: skip
+def plot_top_view(
+    scene: Scene, trajectories: list[LoopTrajectory], seconds: float, path: Path
+) -> None:
     """Top view PNG of the room, its boxes and every robot's flight (start marked)."""
     import matplotlib
 
@@ -41,10 +41,19 @@ def plot_top_view(scene: Scene, trajectories: list[LoopTrajectory], seconds: flo
     lo, hi = scene.room_lo, scene.room_hi
     ax.add_patch(Rectangle(lo[:2], hi[0] - lo[0], hi[1] - lo[1], fill=False, lw=2))
     for box in scene.boxes:
-        ax.add_patch(Rectangle(box.lo[:2], box.hi[0] - box.lo[0], box.hi[1] - box.lo[1],
-                               color="0.6", alpha=0.8))  # fmt: skip
-        ax.text((box.lo[0] + box.hi[0]) / 2, (box.lo[1] + box.hi[1]) / 2,
-                f"{box.name}\n{box.hi[2]:.2f} m", ha="center", va="center", fontsize=7)  # fmt: skip
+        ax.add_patch(
+            Rectangle(
+                box.lo[:2], box.hi[0] - box.lo[0], box.hi[1] - box.lo[1], color="0.6", alpha=0.8
+            )
+        )
+        ax.text(
+            (box.lo[0] + box.hi[0]) / 2,
+            (box.lo[1] + box.hi[1]) / 2,
+            f"{box.name}\n{box.hi[2]:.2f} m",
+            ha="center",
+            va="center",
+            fontsize=7,
+        )
     t = np.arange(0.0, seconds, 0.05)
     for k, traj in enumerate(trajectories):
         st = traj.evaluate(t)
@@ -54,8 +63,16 @@ def plot_top_view(scene: Scene, trajectories: list[LoopTrajectory], seconds: flo
         # Viewing direction every 2 s.
         fwd = st.T_world_cam()[:, :3, 2]
         idx = np.arange(0, len(t), 40)
-        ax.quiver(p[idx, 0], p[idx, 1], fwd[idx, 0], fwd[idx, 1], color=line.get_color(),
-                  scale=25, width=0.003, alpha=0.7)  # fmt: skip
+        ax.quiver(
+            p[idx, 0],
+            p[idx, 1],
+            fwd[idx, 0],
+            fwd[idx, 1],
+            color=line.get_color(),
+            scale=25,
+            width=0.003,
+            alpha=0.7,
+        )
     ax.set_xlim(lo[0] - 0.2, hi[0] + 0.2)
     ax.set_ylim(lo[1] - 0.2, hi[1] + 0.2)
     ax.set_aspect("equal")

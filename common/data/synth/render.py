@@ -21,8 +21,14 @@ from common.camera import PinholeRadtan
 from common.data.synth.scene import Scene
 from common.data.synth.textures import TextureAtlas
 
-_SHADE = {"floor": 0.82, "ceiling": 1.0, "wall": 0.95, "box_top": 1.0, "box_side": 0.9,
-          "box_bottom": 0.5}  # fmt: skip
+_SHADE = {
+    "floor": 0.82,
+    "ceiling": 1.0,
+    "wall": 0.95,
+    "box_top": 1.0,
+    "box_side": 0.9,
+    "box_bottom": 0.5,
+}
 
 
 @dataclass(frozen=True)
@@ -54,8 +60,13 @@ class RenderResult:
 class Renderer:
     """Renders ``scene`` textured by ``atlas`` through ``camera``."""
 
-    def __init__(self, scene: Scene, atlas: TextureAtlas, camera: PinholeRadtan,
-                 config: RenderConfig = RenderConfig()) -> None:  # fmt: skip
+    def __init__(
+        self,
+        scene: Scene,
+        atlas: TextureAtlas,
+        camera: PinholeRadtan,
+        config: RenderConfig = RenderConfig(),
+    ) -> None:
         self.scene, self.atlas, self.camera, self.config = scene, atlas, camera, config
         rays = camera.pixel_rays()
         h, w = rays.shape[:2]
@@ -97,8 +108,9 @@ class Renderer:
     def shape(self) -> tuple[int, int]:
         return self.camera.height, self.camera.width
 
-    def _cast(self, o: np.ndarray, d: list[np.ndarray], R_world_cam: np.ndarray
-              ) -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:  # fmt: skip
+    def _cast(
+        self, o: np.ndarray, d: list[np.ndarray], R_world_cam: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
         """Nearest hit distance (N,) and face (N,) int32 of unit rays ``d`` (3 arrays (N,),
         structure of arrays for speed) from ``o``; also returns the inverse directions."""
         lo = self.scene.room_lo
@@ -194,8 +206,9 @@ class Renderer:
         a = samples[0].reshape(-1).astype(np.float32)
         b = samples[1].reshape(-1)
         rad = (a + (b - a) * frac) * self._shade[face]
-        return RenderResult(rad.reshape(h, w), t.reshape(h, w), face.reshape(h, w),
-                            lod.reshape(h, w))  # fmt: skip
+        return RenderResult(
+            rad.reshape(h, w), t.reshape(h, w), face.reshape(h, w), lod.reshape(h, w)
+        )
 
     def exposure_gain(self, t: float, phase: float = 0.0) -> float:
         """Relative exposure at time ``t`` [s]: a slow, smooth drift around 1."""
@@ -204,8 +217,9 @@ class Renderer:
             1.0 + amp * (0.7 * np.sin(0.31 * t + phase) + 0.3 * np.sin(1.13 * t + 2 * phase))
         )
 
-    def render(self, T_world_cam: np.ndarray, t: float, rng: np.random.Generator,
-               phase: float = 0.0) -> np.ndarray:  # fmt: skip
+    def render(
+        self, T_world_cam: np.ndarray, t: float, rng: np.random.Generator, phase: float = 0.0
+    ) -> np.ndarray:
         """uint8 (H, W) image as the sensor records it at time ``t`` [s]."""
         img = self.render_radiance(T_world_cam).radiance
         if self.config.blur_sigma > 0:

@@ -102,9 +102,20 @@ def _make_face(
         u_origin = u_range[0] if sgn > 0 else u_range[1]
         u_dir, v_origin, v_dir = sgn, v_range[1], -1.0
     return Face(
-        axis, normal_sign, float(offset), ua, va, u_range, v_range,
-        float(u_origin), float(u_dir), float(v_origin), float(v_dir), kind, name,
-    )  # fmt: skip
+        axis,
+        normal_sign,
+        float(offset),
+        ua,
+        va,
+        u_range,
+        v_range,
+        float(u_origin),
+        float(u_dir),
+        float(v_origin),
+        float(v_dir),
+        kind,
+        name,
+    )
 
 
 @dataclass(frozen=True)
@@ -131,9 +142,16 @@ class Scene:
                 kind = "wall" if axis < 2 else ("floor" if side == 0 else "ceiling")
                 nsign = 1 if side == 0 else -1
                 faces.append(
-                    _make_face(axis, nsign, offset, self.room_lo, self.room_hi, kind,
-                               f"room_{'lo' if side == 0 else 'hi'}{names[axis]}")
-                )  # fmt: skip
+                    _make_face(
+                        axis,
+                        nsign,
+                        offset,
+                        self.room_lo,
+                        self.room_hi,
+                        kind,
+                        f"room_{'lo' if side == 0 else 'hi'}{names[axis]}",
+                    )
+                )
         for box in self.boxes:
             for axis in range(3):
                 for side in (0, 1):
@@ -141,9 +159,16 @@ class Scene:
                     kind = "box_side" if axis < 2 else ("box_bottom" if side == 0 else "box_top")
                     nsign = -1 if side == 0 else 1
                     faces.append(
-                        _make_face(axis, nsign, offset, box.lo, box.hi, kind,
-                                   f"{box.name}_{'lo' if side == 0 else 'hi'}{names[axis]}")
-                    )  # fmt: skip
+                        _make_face(
+                            axis,
+                            nsign,
+                            offset,
+                            box.lo,
+                            box.hi,
+                            kind,
+                            f"{box.name}_{'lo' if side == 0 else 'hi'}{names[axis]}",
+                        )
+                    )
         object.__setattr__(self, "faces", tuple(faces))
 
     @property

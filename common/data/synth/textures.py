@@ -29,10 +29,27 @@ logger = logging.getLogger(__name__)
 
 # Photos bundled with scikit-image that load offline (grayscale conversion below).
 PHOTO_NAMES = (
-    "astronaut", "coffee", "chelsea", "rocket", "camera", "page", "text", "moon", "coins",
-    "hubble_deep_field", "immunohistochemistry", "retina", "clock", "cell", "colorwheel",
-    "logo", "horse", "brick", "grass", "gravel",
-)  # fmt: skip
+    "astronaut",
+    "coffee",
+    "chelsea",
+    "rocket",
+    "camera",
+    "page",
+    "text",
+    "moon",
+    "coins",
+    "hubble_deep_field",
+    "immunohistochemistry",
+    "retina",
+    "clock",
+    "cell",
+    "colorwheel",
+    "logo",
+    "horse",
+    "brick",
+    "grass",
+    "gravel",
+)
 MATERIAL_PHOTOS = ("brick", "grass", "gravel")
 
 
@@ -122,8 +139,9 @@ def _base(face: Face, h: int, w: int, texel: float, rng: np.random.Generator) ->
         tile_m = 0.5
         n = max(int(tile_m / texel), 4)
         levels = rng.uniform(70, 190, size=(h // n + 2, w // n + 2)).astype(np.float32)
-        img = cv2.resize(levels, (levels.shape[1] * n, levels.shape[0] * n),
-                         interpolation=cv2.INTER_NEAREST)[:h, :w]  # fmt: skip
+        img = cv2.resize(
+            levels, (levels.shape[1] * n, levels.shape[0] * n), interpolation=cv2.INTER_NEAREST
+        )[:h, :w]
         grain = _tiled_photo("gravel", h, w, texel, 0.6, rng) - 128.0
         img = img + 0.35 * grain + 40.0 * noise
         grout = max(int(0.01 / texel), 1)
@@ -168,8 +186,9 @@ def _random_text(rng: np.random.Generator) -> str:
     return "".join(rng.choice(list(alphabet), size=int(rng.integers(2, 9))))
 
 
-def _decorate(img: np.ndarray, face: Face, texel: float, cfg: TextureConfig,
-              rng: np.random.Generator) -> None:  # fmt: skip
+def _decorate(
+    img: np.ndarray, face: Face, texel: float, cfg: TextureConfig, rng: np.random.Generator
+) -> None:
     """Draw shapes and text onto ``img`` (h, w) float32, in place."""
     h, w = img.shape
     area = face.size[0] * face.size[1]
@@ -181,15 +200,21 @@ def _decorate(img: np.ndarray, face: Face, texel: float, cfg: TextureConfig,
         kind = rng.integers(4)
         if kind == 0:
             axes = (max(int(size), 2), max(int(size * rng.uniform(0.3, 1.0)), 2))
-            cv2.ellipse(img, (int(cx), int(cy)), axes, rng.uniform(0, 180), 0, 360, color, -1,
-                        cv2.LINE_AA)  # fmt: skip
+            cv2.ellipse(
+                img, (int(cx), int(cy)), axes, rng.uniform(0, 180), 0, 360, color, -1, cv2.LINE_AA
+            )
         elif kind == 1:
             pts = np.array([cx, cy]) + rng.uniform(-size, size, size=(int(rng.integers(3, 7)), 2))
             cv2.fillPoly(img, [pts.astype(np.int32)], color, cv2.LINE_AA)
         elif kind == 2:
             dx, dy = size * rng.uniform(0.3, 1.0), size * rng.uniform(0.3, 1.0)
-            cv2.rectangle(img, (int(cx - dx), int(cy - dy)), (int(cx + dx), int(cy + dy)), color,
-                          -1 if rng.random() < 0.7 else max(int(0.01 / texel), 2))  # fmt: skip
+            cv2.rectangle(
+                img,
+                (int(cx - dx), int(cy - dy)),
+                (int(cx + dx), int(cy + dy)),
+                color,
+                -1 if rng.random() < 0.7 else max(int(0.01 / texel), 2),
+            )
         else:
             pts = np.array([cx, cy]) + rng.uniform(-size, size, size=(int(rng.integers(2, 5)), 2))
             thickness = max(int(rng.uniform(0.005, 0.02) / texel), 1)
@@ -205,8 +230,16 @@ def _decorate(img: np.ndarray, face: Face, texel: float, cfg: TextureConfig,
         org = (int(rng.uniform(0, w)), int(rng.uniform(0, h)))
         thick = max(int(scale * rng.uniform(1.5, 3.5)), 1)
         font = int(rng.choice([0, 2, 3, 4]))
-        cv2.putText(masks[int(rng.integers(2))], _random_text(rng), org, font, scale, 255,
-                    thick, cv2.LINE_AA)  # fmt: skip
+        cv2.putText(
+            masks[int(rng.integers(2))],
+            _random_text(rng),
+            org,
+            font,
+            scale,
+            255,
+            thick,
+            cv2.LINE_AA,
+        )
     dark = masks[0].astype(np.float32) / 255.0
     img *= 1.0 - dark
     img += 20.0 * dark
@@ -215,8 +248,9 @@ def _decorate(img: np.ndarray, face: Face, texel: float, cfg: TextureConfig,
     img += 235.0 * bright
 
 
-def _posters(img: np.ndarray, face: Face, texel: float, cfg: TextureConfig,
-             rng: np.random.Generator) -> None:  # fmt: skip
+def _posters(
+    img: np.ndarray, face: Face, texel: float, cfg: TextureConfig, rng: np.random.Generator
+) -> None:
     """Paste framed photographs onto ``img`` (h, w) float32, in place."""
     h, w = img.shape
     area = face.size[0] * face.size[1]
@@ -248,8 +282,9 @@ def face_texel(face: Face, cfg: TextureConfig) -> float:
     return cfg.texel_m
 
 
-def make_face_texture(face: Face, texel: float, cfg: TextureConfig,
-                      rng: np.random.Generator) -> np.ndarray:  # fmt: skip
+def make_face_texture(
+    face: Face, texel: float, cfg: TextureConfig, rng: np.random.Generator
+) -> np.ndarray:
     """uint8 (h, w) texture of ``face``: row ``r``, column ``c`` covers texture coordinates
     ``s in [c, c+1) * texel``, ``t in [r, r+1) * texel`` [m]."""
     w = max(int(np.ceil(face.size[0] / texel)), 2)
@@ -342,8 +377,9 @@ def build_atlas(scene: Scene, seed: int, cfg: TextureConfig = TextureConfig()) -
         x, y = pos[i]
         pw, ph = sizes[i]
         h, w = tex.shape
-        padded = cv2.copyMakeBorder(tex, gutter, ph - h - gutter, gutter, pw - w - gutter,
-                                    cv2.BORDER_REPLICATE)  # fmt: skip
+        padded = cv2.copyMakeBorder(
+            tex, gutter, ph - h - gutter, gutter, pw - w - gutter, cv2.BORDER_REPLICATE
+        )
         level0[y : y + ph, x : x + pw] = padded
         rects[i] = (x + gutter, y + gutter, w, h)
     image = np.zeros((height, w0 + w0 // 2), np.uint8)
@@ -352,8 +388,9 @@ def build_atlas(scene: Scene, seed: int, cfg: TextureConfig = TextureConfig()) -
     lvl_img: np.ndarray = level0
     ly = 0
     for _ in range(1, cfg.levels):
-        lvl_img = cv2.resize(lvl_img, (lvl_img.shape[1] // 2, lvl_img.shape[0] // 2),
-                             interpolation=cv2.INTER_AREA)  # fmt: skip
+        lvl_img = cv2.resize(
+            lvl_img, (lvl_img.shape[1] // 2, lvl_img.shape[0] // 2), interpolation=cv2.INTER_AREA
+        )
         image[ly : ly + lvl_img.shape[0], w0 : w0 + lvl_img.shape[1]] = lvl_img
         origins.append((w0, ly))
         ly += lvl_img.shape[0]

@@ -198,16 +198,22 @@ class LoopTrajectory:
         return TrajectoryState(t, p, v, a, R_world_body, omega_body)
 
 
-def _random_wave(rng: np.random.Generator, c: float, amps: list[tuple[float, float]],
-                 freqs: list[tuple[float, float]], b: float = 0.0) -> Wave:  # fmt: skip
+def _random_wave(
+    rng: np.random.Generator,
+    c: float,
+    amps: list[tuple[float, float]],
+    freqs: list[tuple[float, float]],
+    b: float = 0.0,
+) -> Wave:
     amp = tuple(float(rng.uniform(*r)) for r in amps)
     freq = tuple(float(rng.uniform(*r)) for r in freqs)
     phase = tuple(float(rng.uniform(0, 2 * np.pi)) for _ in amps)
     return Wave(float(c), float(b), amp, freq, phase)
 
 
-def _draw(scene: Scene, k: int, n: int, rng: np.random.Generator,
-          cfg: TrajectoryConfig) -> LoopTrajectory:  # fmt: skip
+def _draw(
+    scene: Scene, k: int, n: int, rng: np.random.Generator, cfg: TrajectoryConfig
+) -> LoopTrajectory:
     """Random flight for robot ``k`` of ``n`` (aggressiveness grows with ``k``)."""
     lo, hi = np.array(scene.room_lo), np.array(scene.room_hi)
     centre = (lo[:2] + hi[:2]) / 2.0
@@ -222,24 +228,42 @@ def _draw(scene: Scene, k: int, n: int, rng: np.random.Generator,
     radius_mod = _random_wave(rng, 1.0, [(0.04, 0.12)], [(0.15, 0.45)])
     angle = _random_wave(rng, rng.uniform(0, 2 * np.pi), [(0.05, 0.2)], [(0.2, 0.5)], b=omega)
     z_mid = (lo[2] + hi[2]) / 2.0
-    height = _random_wave(rng, z_mid + rng.uniform(-0.4, 0.1),
-                          [(0.15, 0.4), (0.0, 0.06 * agg)], [(0.15, 0.4), (1.5, 3.0)])  # fmt: skip
+    height = _random_wave(
+        rng,
+        z_mid + rng.uniform(-0.4, 0.1),
+        [(0.15, 0.4), (0.0, 0.06 * agg)],
+        [(0.15, 0.4), (1.5, 3.0)],
+    )
     jitter_x = _random_wave(rng, 0.0, [(0.03 * agg, 0.1 * agg)], [(1.0, 2.5 + agg)])
     jitter_y = _random_wave(rng, 0.0, [(0.03 * agg, 0.1 * agg)], [(1.0, 2.5 + agg)])
-    yaw_offset = _random_wave(rng, rng.uniform(-0.35, 0.35),
-                              [(0.15, 0.2 + 0.4 * agg), (0.0, 0.08 * agg)],
-                              [(0.3 + 0.3 * agg, 0.5 + 0.7 * agg), (1.0, 2.0)])  # fmt: skip
-    pitch = _random_wave(rng, rng.uniform(0.08, 0.25), [(0.04, 0.1), (0.0, 0.03 * agg)],
-                         [(0.2, 0.6), (1.0, 3.0)])  # fmt: skip
+    yaw_offset = _random_wave(
+        rng,
+        rng.uniform(-0.35, 0.35),
+        [(0.15, 0.2 + 0.4 * agg), (0.0, 0.08 * agg)],
+        [(0.3 + 0.3 * agg, 0.5 + 0.7 * agg), (1.0, 2.0)],
+    )
+    pitch = _random_wave(
+        rng, rng.uniform(0.08, 0.25), [(0.04, 0.1), (0.0, 0.03 * agg)], [(0.2, 0.6), (1.0, 3.0)]
+    )
     roll = _random_wave(rng, 0.0, [(0.03, 0.08), (0.0, 0.04 * agg)], [(0.2, 0.6), (1.0, 3.0)])
     return LoopTrajectory(
-        (float(centre[0]), float(centre[1])), radius, radius_mod, angle, height, jitter_x,
-        jitter_y, yaw_offset, pitch, roll, cfg.ramp_s,
-    )  # fmt: skip
+        (float(centre[0]), float(centre[1])),
+        radius,
+        radius_mod,
+        angle,
+        height,
+        jitter_x,
+        jitter_y,
+        yaw_offset,
+        pitch,
+        roll,
+        cfg.ramp_s,
+    )
 
 
-def check_trajectory(scene: Scene, traj: LoopTrajectory, seconds: float,
-                     cfg: TrajectoryConfig) -> str | None:  # fmt: skip
+def check_trajectory(
+    scene: Scene, traj: LoopTrajectory, seconds: float, cfg: TrajectoryConfig
+) -> str | None:
     """Reason why ``traj`` violates the constraints over ``[0, seconds]``, or None."""
     st = traj.evaluate(np.arange(0.0, seconds + 1e-9, 0.02))
     cam = st.T_world_cam()[:, :3, 3]

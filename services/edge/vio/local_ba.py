@@ -260,9 +260,15 @@ def _solve_schur(
     """Schur-complement LM (:mod:`services.edge.vio.ba_solver`): reprojection in numpy, the
     IMU factors and priors of ``graph`` linearised by gtsam. Same return as the gtsam path."""
     problem = SchurLM(
-        graph, values, free_keys, [X(k) for k in variables], p_world, obs,
-        camera.T_body_cam, options.cauchy_k,
-    )  # fmt: skip
+        graph,
+        values,
+        free_keys,
+        [X(k) for k in variables],
+        p_world,
+        obs,
+        camera.T_body_cam,
+        options.cauchy_k,
+    )
     try:
         res = problem.optimize(max_iterations, options.relative_error_tol)
     except RuntimeError as exc:  # gtsam failed on the IMU part: keep the old estimate

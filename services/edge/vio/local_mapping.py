@@ -52,13 +52,20 @@ def match_by_projection(
     Returns the number of features bound."""
     if kf.descriptors is None or not vmap.points:
         return 0
-    free = [(t, r) for t, r in kf.row_of.items()
-            if t not in vmap.track_point and t not in vmap.banned_tracks]  # fmt: skip
+    free = [
+        (t, r)
+        for t, r in kf.row_of.items()
+        if t not in vmap.track_point and t not in vmap.banned_tracks
+    ]
     if not free:
         return 0
     seen = {mp.id for t in kf.row_of if (mp := vmap.point_of(t)) is not None}
-    local = {mp.id for k in vmap.keyframe_list()[-options.match_keyframes - 1 :]
-             for t in k.row_of if (mp := vmap.point_of(t)) is not None}  # fmt: skip
+    local = {
+        mp.id
+        for k in vmap.keyframe_list()[-options.match_keyframes - 1 :]
+        for t in k.row_of
+        if (mp := vmap.point_of(t)) is not None
+    }
     cands = [vmap.points[p] for p in sorted(local - seen) if vmap.points[p].descriptor is not None]
     if not cands:
         return 0

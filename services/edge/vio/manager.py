@@ -265,9 +265,12 @@ class VioManager:
                 self._bias_guess = self._last_bias
             self._pending_updates.append(self._collect_update(self._map))
             logger.warning(
-                "%s: map %d lost (%s); starting map %d", self.name, self._map.map_id, reason,
+                "%s: map %d lost (%s); starting map %d",
+                self.name,
+                self._map.map_id,
+                reason,
                 self._next_map_id,
-            )  # fmt: skip
+            )
         self._map = None
         self._last_init_reason = ""
         own = self.options.max_keyframe_interval_s > 0
@@ -327,21 +330,34 @@ class VioManager:
             desc = None if ref.obs.descriptors is None else ref.obs.descriptors[i_ref[k]]
             vmap.add_point(MapPoint(tid, p_world[k], obs, desc))
         bundle_adjust(
-            vmap, [kf0.id, kf1.id], self.camera, None, self.options.local_ba,
-            self.options.mapping, gauge_ids=(kf0.id, kf1.id),
-        )  # fmt: skip
+            vmap,
+            [kf0.id, kf1.id],
+            self.camera,
+            None,
+            self.options.local_ba,
+            self.options.mapping,
+            gauge_ids=(kf0.id, kf1.id),
+        )
         self._map = vmap
         self._ref = None
         self._prev_T = kf0.T_world_body.copy()
         self._last_T = kf1.T_world_body.copy()
         logger.info(
-            "%s: map %d initialised (%s, %d points, parallax %.1f deg)", self.name,
-            vmap.map_id, tv.model, len(vmap.points), tv.median_parallax_deg,
-        )  # fmt: skip
+            "%s: map %d initialised (%s, %d points, parallax %.1f deg)",
+            self.name,
+            vmap.map_id,
+            tv.model,
+            len(vmap.points),
+            tv.median_parallax_deg,
+        )
         return self._result(
-            frame, kf1.T_world_body, st, len(vmap.points), True,
+            frame,
+            kf1.T_world_body,
+            st,
+            len(vmap.points),
+            True,
             "visual map initialised; waiting for VI initialisation",
-        )  # fmt: skip
+        )
 
     # ------------------------------------------------------------------ tracking
     def _predict(self, frame: _Frame, vmap: VioMap):
@@ -354,9 +370,12 @@ class VioManager:
             if seg is not None:
                 pim = preintegrate(self.imu_params, seg, last_kf.bias_accel, last_kf.bias_gyro)
                 T, v = predict_state(
-                    pim, last_kf.T_world_body, last_kf.v_world, last_kf.bias_accel,
+                    pim,
+                    last_kf.T_world_body,
+                    last_kf.v_world,
+                    last_kf.bias_accel,
                     last_kf.bias_gyro,
-                )  # fmt: skip
+                )
                 return T, v, ImuPrior(last_kf, pim)
         # Constant velocity; rotation from the gyro when available.
         T_pred = self._last_T.copy()
@@ -378,16 +397,30 @@ class VioManager:
         P = np.array([mp.p_world for mp in mps if mp is not None]).reshape(-1, 3)
         T_pred, v_pred, prior = self._predict(frame, vmap)
         res, reason = track_frame(
-            P, frame.xy[has], frame.sigma[has], ids[has], self.camera, self.options.tracking,
-            T_pred, prior, v_pred,
-        )  # fmt: skip
+            P,
+            frame.xy[has],
+            frame.sigma[has],
+            ids[has],
+            self.camera,
+            self.options.tracking,
+            T_pred,
+            prior,
+            v_pred,
+        )
         if res is None and prior is not None:
             # The IMU disagrees with the vision (bad inertial state): track visually alone.
             logger.debug("%s: IMU-aided tracking failed (%s); visual only", self.name, reason)
             res, reason = track_frame(
-                P, frame.xy[has], frame.sigma[has], ids[has], self.camera,
-                self.options.tracking, None, None, None,
-            )  # fmt: skip
+                P,
+                frame.xy[has],
+                frame.sigma[has],
+                ids[has],
+                self.camera,
+                self.options.tracking,
+                None,
+                None,
+                None,
+            )
         self.stats.track_s.append(time.perf_counter() - t_start)
         if res is None:
             self._start_new_map(frame, reason)
@@ -461,9 +494,14 @@ class VioManager:
             vmap.keyframes[k].imu_from_previous is not None for k in window[1:]
         )
         self.last_local_ba = bundle_adjust(
-            vmap, window, self.camera, self.imu_params if use_imu else None,
-            self.options.local_ba, mopt, gauge_ids=gauge,
-        )  # fmt: skip
+            vmap,
+            window,
+            self.camera,
+            self.imu_params if use_imu else None,
+            self.options.local_ba,
+            mopt,
+            gauge_ids=gauge,
+        )
         self.stats.local_ba_s.append(time.perf_counter() - t0)
         logger.debug("%s: KF %d, %d new points, BA %s", self.name, kf.id, n_new, self.last_local_ba)
         self._maybe_vi_init(vmap)
@@ -526,25 +564,41 @@ class VioManager:
             ids = [k.id for k in kfs]
             T_newest_before = kfs[-1].T_world_body.copy()
             stats = bundle_adjust(
-                vmap, ids, self.camera, self.imu_params, self._full_ba_options,
-                self.options.mapping, gauge_ids=(ids[0],), max_iterations=vopt.full_ba_iterations,
+                vmap,
+                ids,
+                self.camera,
+                self.imu_params,
+                self._full_ba_options,
+                self.options.mapping,
+                gauge_ids=(ids[0],),
+                max_iterations=vopt.full_ba_iterations,
                 bias_prior_sigmas=(vopt.accel_bias_prior_sigma, vopt.gyro_bias_prior_sigma),
-            )  # fmt: skip
+            )
             self._reanchor(vmap, kfs[-1], T_newest_before)
             self.stats.vi_init_s.append(time.perf_counter() - t0)
-            logger.info("%s: VI refinement #%d of map %d: %s", self.name, vmap.vi_init_runs,
-                        vmap.map_id, stats)  # fmt: skip
+            logger.info(
+                "%s: VI refinement #%d of map %d: %s",
+                self.name,
+                vmap.vi_init_runs,
+                vmap.map_id,
+                stats,
+            )
             return True
         # First run: inertial-only MAP over the last ``max_span_s`` of keyframes.
         t_last = kfs[-1].timestamp_ns
         kfs = [k for k in kfs if (t_last - k.timestamp_ns) * 1e-9 <= vopt.max_span_s]
         sub = subsample_keyframes(kfs, vopt.min_interval_s)
         res, reason = inertial_only_map(
-            sub, self.imu_params, self.options.gravity_mps2, np.zeros(3), self._bias_guess[1],
-            vopt.accel_bias_prior_sigma_first, vopt.gyro_bias_prior_sigma_first,
+            sub,
+            self.imu_params,
+            self.options.gravity_mps2,
+            np.zeros(3),
+            self._bias_guess[1],
+            vopt.accel_bias_prior_sigma_first,
+            vopt.gyro_bias_prior_sigma_first,
             vopt.visual_position_sigma_rel * self._median_depth(vmap),
             np.radians(vopt.visual_rotation_sigma_deg),
-        )  # fmt: skip
+        )
         vmap.vi_init_runs += 1
         if res is not None and res.cost_per_residual > vopt.max_cost_per_residual:
             reason = (
@@ -575,20 +629,29 @@ class VioManager:
         self._last_init_reason = ""
         ids = [k.id for k in kfs]
         stats = bundle_adjust(
-            vmap, ids, self.camera, self.imu_params, self._full_ba_options, self.options.mapping,
-            gauge_ids=(ids[0],), max_iterations=vopt.full_ba_iterations,
-            bias_prior_sigmas=(
-                vopt.accel_bias_prior_sigma_first, vopt.gyro_bias_prior_sigma_first
-            ),
-        )  # fmt: skip
+            vmap,
+            ids,
+            self.camera,
+            self.imu_params,
+            self._full_ba_options,
+            self.options.mapping,
+            gauge_ids=(ids[0],),
+            max_iterations=vopt.full_ba_iterations,
+            bias_prior_sigmas=(vopt.accel_bias_prior_sigma_first, vopt.gyro_bias_prior_sigma_first),
+        )
         self.stats.vi_init_s.append(time.perf_counter() - t0)
         last = vmap.last_keyframe()
         assert last is not None
         self._bias_guess = (last.bias_accel.copy(), last.bias_gyro.copy())
         logger.info(
             "%s: VI init #%d of map %d: scale %.4f (sigma %.1f %%), bg %s, ba %s, BA %s",
-            self.name, vmap.vi_init_runs, vmap.map_id, res.scale, 100 * res.scale_sigma_rel,
+            self.name,
+            vmap.vi_init_runs,
+            vmap.map_id,
+            res.scale,
+            100 * res.scale_sigma_rel,
             np.round(last.bias_gyro, 4),
-            np.round(last.bias_accel, 3), stats,
-        )  # fmt: skip
+            np.round(last.bias_accel, 3),
+            stats,
+        )
         return True

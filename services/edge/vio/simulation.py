@@ -340,9 +340,10 @@ def evaluate_run(manager, results: list, seq: SimSequence) -> RunMetrics:
 
     last_map = results[-1].map_id
     idx = [
-        i for i, r in enumerate(results)
+        i
+        for i, r in enumerate(results)
         if r.status == TrackingStatus.TRACKING and r.map_id == last_map
-    ]  # fmt: skip
+    ]
     nan = float("nan")
     ate_f, s_f = nan, nan
     if len(idx) >= 3:

@@ -24,9 +24,21 @@ def test_arguments_build_the_service_config(tmp_path, monkeypatch):
     secret.write_bytes(b"0123456789abcdef-robot\n")
     monkeypatch.delenv("RECSLAM_SECRET", raising=False)
     args = parse(
-        ["--dataset", str(tmp_path), "--edge", "edge.local:7000", "--agent-id", "r1",
-         "--rate", "max", "--secret-file", str(secret), "--backlog-minutes", "2"]
-    )  # fmt: skip
+        [
+            "--dataset",
+            str(tmp_path),
+            "--edge",
+            "edge.local:7000",
+            "--agent-id",
+            "r1",
+            "--rate",
+            "max",
+            "--secret-file",
+            str(secret),
+            "--backlog-minutes",
+            "2",
+        ]
+    )
     assert args.func is robot.run
     cfg = robot.build_config(args)
     assert (cfg.edge_host, cfg.edge_port, cfg.agent_id) == ("edge.local", 7000, "r1")

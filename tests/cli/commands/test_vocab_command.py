@@ -36,8 +36,21 @@ def sources(tmp_path):
 def test_train_over_folder_and_dataset(sources, tmp_path, capsys):
     folder, dataset = sources
     out = tmp_path / "voc.npz"
-    argv = ["vocab", "train", "--images", str(folder), str(dataset), "--k", "3", "--depth", "2",
-            "--context-parents", "2", "--out", str(out)]  # fmt: skip
+    argv = [
+        "vocab",
+        "train",
+        "--images",
+        str(folder),
+        str(dataset),
+        "--k",
+        "3",
+        "--depth",
+        "2",
+        "--context-parents",
+        "2",
+        "--out",
+        str(out),
+    ]
     assert run(argv) == 0
     voc = Vocabulary.load(out)
     assert (voc.k, voc.depth) == (3, 2)

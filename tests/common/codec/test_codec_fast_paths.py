@@ -81,8 +81,9 @@ def test_failed_keyframe_encode_leaves_tables_untouched(vocab, orb_kf, monkeypat
         if part == "word":
             seen["words"] += 1
             if seen["words"] == 3:  # two descriptor blocks have updated the tables
-                seen["changed"] = not np.array_equal(enc.state.descriptors.total,
-                                                     before.descriptors.total)  # fmt: skip
+                seen["changed"] = not np.array_equal(
+                    enc.state.descriptors.total, before.descriptors.total
+                )
                 raise RuntimeError("injected")
         return original(self, symbols, probs, part)
 
@@ -108,11 +109,20 @@ def test_failed_keyframe_encode_leaves_tables_untouched(vocab, orb_kf, monkeypat
 def test_roundtrip_without_bit_context_model(orb_kf):
     """A vocabulary without a bit model (P = 0): one plane group, no context products."""
     full = Vocabulary.load()
-    flat = Vocabulary(full.node_desc, full.parent, full.idf, full.word_count,
-                      full.residual_ones, full.residual_total, full.meta)  # fmt: skip
+    flat = Vocabulary(
+        full.node_desc,
+        full.parent,
+        full.idf,
+        full.word_count,
+        full.residual_ones,
+        full.residual_total,
+        full.meta,
+    )
     enc, dec = FeatureEncoder(flat), FeatureDecoder(flat)
-    for kf in (orb_kf, KeyframeFeatures(orb_kf.keypoints, orb_kf.descriptors,
-                                        np.arange(len(orb_kf)))):  # fmt: skip
+    for kf in (
+        orb_kf,
+        KeyframeFeatures(orb_kf.keypoints, orb_kf.descriptors, np.arange(len(orb_kf))),
+    ):
         assert dec.decode(enc.encode_keyframe(kf)).equals(kf)
 
 

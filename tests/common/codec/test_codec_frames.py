@@ -42,8 +42,11 @@ def pair(vocab):
 
 
 def roundtrip(enc, dec, frame):
-    payload = enc.encode_keyframe(frame) if isinstance(frame, KeyframeFeatures) else (
-        enc.encode_non_keyframe(frame))  # fmt: skip
+    payload = (
+        enc.encode_keyframe(frame)
+        if isinstance(frame, KeyframeFeatures)
+        else (enc.encode_non_keyframe(frame))
+    )
     out = dec.decode(payload)
     assert type(out) is type(frame)
     assert out.equals(frame)
@@ -171,15 +174,24 @@ def test_encoder_rejects_misuse(vocab):
 def test_out_of_order_and_foreign_vocabulary(vocab, orb_kf, tmp_path):
     enc, dec = pair(vocab)
     p0 = enc.encode_keyframe(orb_kf)
-    p1 = enc.encode_non_keyframe(NonKeyframeFeatures(np.ones(len(orb_kf), bool),
-                                                     np.c_[quantise_uv(orb_kf.uv()),
-                                                           orb_kf.keypoints[:, 2]]))  # fmt: skip
+    p1 = enc.encode_non_keyframe(
+        NonKeyframeFeatures(
+            np.ones(len(orb_kf), bool), np.c_[quantise_uv(orb_kf.uv()), orb_kf.keypoints[:, 2]]
+        )
+    )
     with pytest.raises(CodecError, match="out of order"):
         dec.decode(p1)
     dec.decode(p0)
     dec.decode(p1)
-    other = Vocabulary(vocab.node_desc[:1], np.array([-1]), np.zeros(1), np.ones(1),
-                       np.zeros(256), 0, {"k": 10, "depth": 4})  # fmt: skip
+    other = Vocabulary(
+        vocab.node_desc[:1],
+        np.array([-1]),
+        np.zeros(1),
+        np.ones(1),
+        np.zeros(256),
+        0,
+        {"k": 10, "depth": 4},
+    )
     with pytest.raises(CodecError, match="vocabulary"):
         FeatureDecoder(other).decode(p0)
 

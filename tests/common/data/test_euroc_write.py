@@ -101,9 +101,15 @@ def written(tmp_path: Path) -> dict:
         w.write_imu(_imu_calib(), imu_ts, gyro, accel)
         w.write_groundtruth(gt)
     return dict(
-        root=root, frame_ts=frame_ts, imu_ts=imu_ts, gyro=gyro, accel=accel, images=images,
-        cams=cams, gt=gt,
-    )  # fmt: skip
+        root=root,
+        frame_ts=frame_ts,
+        imu_ts=imu_ts,
+        gyro=gyro,
+        accel=accel,
+        images=images,
+        cams=cams,
+        gt=gt,
+    )
 
 
 def test_round_trip_exact(written: dict) -> None:
@@ -158,8 +164,13 @@ def test_files_have_euroc_format(written: dict) -> None:
     assert (mav0 / "body.yaml").read_text() == "%YAML:1.0\ncomment: 'synthetic robot 0'\n"
     cam_yaml = (mav0 / "cam0" / "sensor.yaml").read_text()
     assert cam_yaml.startswith("%YAML:1.0\n")
-    for line in ("sensor_type: camera", "rate_hz: 20", "resolution: [64, 48]",
-                 "camera_model: pinhole", "distortion_model: radial-tangential"):  # fmt: skip
+    for line in (
+        "sensor_type: camera",
+        "rate_hz: 20",
+        "resolution: [64, 48]",
+        "camera_model: pinhole",
+        "distortion_model: radial-tangential",
+    ):
         assert line in cam_yaml.splitlines()
     imu_yaml = (mav0 / "imu0" / "sensor.yaml").read_text()
     assert "gyroscope_random_walk: 1.0e-05" in imu_yaml and "rate_hz: 200" in imu_yaml

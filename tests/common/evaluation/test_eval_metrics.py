@@ -105,8 +105,9 @@ def test_aligning_a_transformed_copy_recovers_the_transform(tools, rng, mode):
     np.testing.assert_allclose(res.transform.t_ref_est, sim.t_ref_est, atol=1e-9)
     assert res.transform.scale == pytest.approx(sim.scale, rel=1e-12)
     assert res.scale_error == pytest.approx(sim.scale - 1.0, abs=1e-12)
-    np.testing.assert_allclose(res.transform.apply_points(est.p_world_body), ref.p_world_body,
-                               atol=1e-9)  # fmt: skip
+    np.testing.assert_allclose(
+        res.transform.apply_points(est.p_world_body), ref.p_world_body, atol=1e-9
+    )
     M = res.transform.matrix
     np.testing.assert_allclose(M[:3, :3], sim.scale * sim.R_ref_est, atol=1e-9)
 
@@ -164,10 +165,12 @@ def test_rpe_matches_evo(tools, rng, delta, unit, all_pairs):
     est = _estimate(tools, rng, ref, _sim(tools, rng), noise=0.01)
     ours = compute_rpe(ref, est, RpeConfig(delta=delta, unit=unit, all_pairs=all_pairs))
     evo_unit = metrics.Unit.frames if unit is DeltaUnit.FRAMES else metrics.Unit.meters
-    trans = _evo_rpe(tools, ref, est, metrics.PoseRelation.translation_part, delta, evo_unit,
-                     all_pairs)  # fmt: skip
-    rot = _evo_rpe(tools, ref, est, metrics.PoseRelation.rotation_angle_deg, delta, evo_unit,
-                   all_pairs)  # fmt: skip
+    trans = _evo_rpe(
+        tools, ref, est, metrics.PoseRelation.translation_part, delta, evo_unit, all_pairs
+    )
+    rot = _evo_rpe(
+        tools, ref, est, metrics.PoseRelation.rotation_angle_deg, delta, evo_unit, all_pairs
+    )
     assert ours.pairs.shape[0] == len(trans.error) > 5
     np.testing.assert_array_equal(ours.pairs[:, 1], trans.delta_ids)
     np.testing.assert_allclose(ours.trans_errors_m, trans.error, rtol=REL, atol=1e-12)
@@ -180,8 +183,16 @@ def test_rpe_with_scale_alignment_matches_evo(tools, rng):
     est = _estimate(tools, rng, ref, _sim(tools, rng, 0.7), noise=0.01)
     ours = compute_rpe(ref, est, RpeConfig(delta=3, align=AlignMode.SCALE))
     unscaled = compute_rpe(ref, est, RpeConfig(delta=3))
-    evo = _evo_rpe(tools, ref, est, metrics.PoseRelation.translation_part, 3,
-                   metrics.Unit.frames, False, scale_first=True)  # fmt: skip
+    evo = _evo_rpe(
+        tools,
+        ref,
+        est,
+        metrics.PoseRelation.translation_part,
+        3,
+        metrics.Unit.frames,
+        False,
+        scale_first=True,
+    )
     np.testing.assert_allclose(ours.trans_errors_m, evo.error, rtol=REL, atol=1e-12)
     assert unscaled.trans_stats.rmse > 2 * ours.trans_stats.rmse
 
@@ -254,8 +265,9 @@ def test_joint_ate_errors_name_the_problem(tools, rng):
     with pytest.raises(MetricsError, match="no reference for agent"):
         compute_joint_ate({"agent0": refs["agent0"]}, ests)
     shifted = ests["agent1"]
-    far = Trajectory(shifted.timestamps_ns + 3600 * 10**9, shifted.p_world_body, shifted.q_wxyz,
-                     "agent1")  # fmt: skip
+    far = Trajectory(
+        shifted.timestamps_ns + 3600 * 10**9, shifted.p_world_body, shifted.q_wxyz, "agent1"
+    )
     with pytest.raises(EvaluationError, match="agent1"):
         compute_joint_ate(refs, {"agent0": ests["agent0"], "agent1": far})
 

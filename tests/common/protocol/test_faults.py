@@ -120,10 +120,11 @@ def test_exactly_once_in_order_across_100_cuts():
         chaos_task = asyncio.create_task(chaos())
         try:
             await asyncio.wait_for(
-                asyncio.gather(produce_up(), produce_down(), up_rec.done.wait(),
-                               down_rec.done.wait()),
+                asyncio.gather(
+                    produce_up(), produce_down(), up_rec.done.wait(), down_rec.done.wait()
+                ),
                 timeout=150,
-            )  # fmt: skip
+            )
             await client.flush()
             await server.peer("robot-1").flush()
         finally:

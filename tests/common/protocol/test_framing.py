@@ -23,8 +23,14 @@ def test_header_layout_is_the_documented_one():
     assert HEADER_SIZE == 22 and len(frame) == 27
     magic, version, flags, type_id, seq, ack, length, crc = struct.unpack("!2sBBHIIII", frame[:22])
     assert (magic, version, flags, type_id, seq, ack, length) == (
-        MAGIC, PROTOCOL_VERSION, 1, 0x0102, 7, 5, 5
-    )  # fmt: skip
+        MAGIC,
+        PROTOCOL_VERSION,
+        1,
+        0x0102,
+        7,
+        5,
+        5,
+    )
     assert crc == zlib.crc32(frame[:18] + b"hello")
 
 

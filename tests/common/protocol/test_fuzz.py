@@ -81,10 +81,14 @@ frame_specs = st.lists(
     max_size=6,
 )
 mutations = st.lists(
-    st.tuples(st.sampled_from(["flip", "insert", "delete", "truncate"]), st.integers(0, 10**6),
-              st.integers(0, 255)),
-    min_size=1, max_size=4,
-)  # fmt: skip
+    st.tuples(
+        st.sampled_from(["flip", "insert", "delete", "truncate"]),
+        st.integers(0, 10**6),
+        st.integers(0, 255),
+    ),
+    min_size=1,
+    max_size=4,
+)
 
 
 def mutate(data: bytes, ops: list[tuple[str, int, int]]) -> bytes:
@@ -124,12 +128,17 @@ def test_valid_streams_decode_exactly(specs):
 
 
 msgpack_values = st.recursive(
-    st.none() | st.booleans() | st.integers(-(2**63), 2**64 - 1) | st.floats()
-    | st.text(max_size=20) | st.binary(max_size=40),
-    lambda inner: st.lists(inner, max_size=6) | st.dictionaries(st.text(max_size=5), inner,
-                                                                max_size=4),
+    st.none()
+    | st.booleans()
+    | st.integers(-(2**63), 2**64 - 1)
+    | st.floats()
+    | st.text(max_size=20)
+    | st.binary(max_size=40),
+    lambda inner: (
+        st.lists(inner, max_size=6) | st.dictionaries(st.text(max_size=5), inner, max_size=4)
+    ),
     max_leaves=20,
-)  # fmt: skip
+)
 
 
 @fuzz(2000)
@@ -147,12 +156,16 @@ def test_payload_decoder_rejects_wrong_shapes_with_remote_error(type_id, value):
 @fuzz(1500)
 @given(
     st.lists(
-        st.tuples(st.sampled_from([*TYPE_IDS, 0x0999]), st.binary(max_size=200),
-                  st.integers(0, 20), st.integers(0, 20)),
+        st.tuples(
+            st.sampled_from([*TYPE_IDS, 0x0999]),
+            st.binary(max_size=200),
+            st.integers(0, 20),
+            st.integers(0, 20),
+        ),
         max_size=5,
     ),
     st.booleans(),
-)  # fmt: skip
+)
 def test_session_survives_hostile_frames(specs, established):
     """A server session (fresh, or established with a real client) fed well-framed garbage
     only ever raises RemoteProtocolError."""

@@ -24,9 +24,15 @@ from common.protocol.messages import (
 def test_registry_ids_are_stable():
     types = registered_types()
     assert {t: c.__name__ for t, c in types.items() if t <= 0x0100} == {
-        1: "Hello", 2: "Challenge", 3: "Auth", 4: "Welcome", 5: "Ack", 6: "Heartbeat",
-        7: "Close", 0x0100: "Blob",
-    }  # fmt: skip
+        1: "Hello",
+        2: "Challenge",
+        3: "Auth",
+        4: "Welcome",
+        5: "Ack",
+        6: "Heartbeat",
+        7: "Close",
+        0x0100: "Blob",
+    }
     assert all((t <= CONTROL_MAX_TYPE_ID) == c.CONTROL for t, c in types.items())
     assert message_class(0x0100) is Blob
     with pytest.raises(RemoteProtocolError, match="unknown message type 0x7777"):

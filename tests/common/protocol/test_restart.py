@@ -43,9 +43,16 @@ def test_receiver_process_killed_and_restarted(tmp_path):
 
     async def spawn() -> asyncio.subprocess.Process:
         return await asyncio.create_subprocess_exec(
-            sys.executable, str(RECEIVER), "--port", str(port), "--log", str(log),
-            "--secret", SECRET, env=env,
-        )  # fmt: skip
+            sys.executable,
+            str(RECEIVER),
+            "--port",
+            str(port),
+            "--log",
+            str(log),
+            "--secret",
+            SECRET,
+            env=env,
+        )
 
     async def nothing(d: Delivery) -> None:
         raise AssertionError("the receiver sends nothing")

@@ -35,18 +35,49 @@ def test_tbf_link_delivers_everything_at_the_shaped_rate(tmp_path):
     env = dict(os.environ, PYTHONPATH=str(HERE.parents[2]))
     with shaped_link(RATE_KBIT) as link:
         receiver = subprocess.Popen(
-            link.exec_argv(link.ns_b, [sys.executable, str(HERE / "receiver_proc.py"),
-                           "--host", link.addr_b, "--port", "7411", "--log", str(log),
-                           "--secret", SECRET]),
+            link.exec_argv(
+                link.ns_b,
+                [
+                    sys.executable,
+                    str(HERE / "receiver_proc.py"),
+                    "--host",
+                    link.addr_b,
+                    "--port",
+                    "7411",
+                    "--log",
+                    str(log),
+                    "--secret",
+                    SECRET,
+                ],
+            ),
             env=env,
-        )  # fmt: skip
+        )
         try:
             sender = subprocess.run(
-                link.exec_argv(link.ns_a, [sys.executable, str(HERE / "sender_proc.py"),
-                               "--host", link.addr_b, "--port", "7411", "--secret", SECRET,
-                               "--count", str(COUNT), "--size", str(SIZE), "--out", str(out)]),
-                env=env, timeout=120, capture_output=True, text=True,
-            )  # fmt: skip
+                link.exec_argv(
+                    link.ns_a,
+                    [
+                        sys.executable,
+                        str(HERE / "sender_proc.py"),
+                        "--host",
+                        link.addr_b,
+                        "--port",
+                        "7411",
+                        "--secret",
+                        SECRET,
+                        "--count",
+                        str(COUNT),
+                        "--size",
+                        str(SIZE),
+                        "--out",
+                        str(out),
+                    ],
+                ),
+                env=env,
+                timeout=120,
+                capture_output=True,
+                text=True,
+            )
             assert sender.returncode == 0, sender.stderr
             deadline = time.monotonic() + 10  # the last records land just before the acks
             while len(read_channels(log)) < COUNT and time.monotonic() < deadline:

@@ -26,8 +26,9 @@ def vocab() -> Vocabulary:
 def _app(path, vocab) -> CloudApp:
     store = CloudStore(path)
     cfg = CloudServiceConfig()
-    return CloudApp(MapFusion(default_camera(), vocab.idf, cfg.domain, store.load()), store,
-                    vocab, cfg)  # fmt: skip
+    return CloudApp(
+        MapFusion(default_camera(), vocab.idf, cfg.domain, store.load()), store, vocab, cfg
+    )
 
 
 def test_new_edge_map_of_a_robot_is_a_new_agent_and_survives_restart(tmp_path, vocab):
@@ -76,8 +77,16 @@ def test_new_edge_map_of_a_robot_is_a_new_agent_and_survives_restart(tmp_path, v
 
 def test_mbp_through_the_app_marks_pruned_items_and_is_durable(tmp_path, vocab):
     world = make_world(31, n_points=2000)
-    kfs, mps = make_session(world, default_camera(), 0, circle_poses(30, turns=0.5), np.eye(4),
-                            seed=6, dt=0.2, track_gap=30)  # fmt: skip
+    kfs, mps = make_session(
+        world,
+        default_camera(),
+        0,
+        circle_poses(30, turns=0.5),
+        np.eye(4),
+        seed=6,
+        dt=0.2,
+        track_gap=30,
+    )
     app = _app(tmp_path, vocab)
     for k in kfs:
         app.fusion.add_keyframe(k, detect=False)
@@ -115,8 +124,15 @@ def test_applied_optimisation_is_durable(tmp_path, vocab):
 
     world = make_world(12, n_points=2000)
     poses = circle_poses(10, turns=0.3)
-    kfs, mps = make_session(world, default_camera(), 0, poses, np.eye(4), seed=2,
-                            drift_T=yaw_T(np.radians(0.5), np.array([0.01, 0.0, 0.0])))  # fmt: skip
+    kfs, mps = make_session(
+        world,
+        default_camera(),
+        0,
+        poses,
+        np.eye(4),
+        seed=2,
+        drift_T=yaw_T(np.radians(0.5), np.array([0.01, 0.0, 0.0])),
+    )
     app = _app(tmp_path, vocab)
     for m in mps:
         app.fusion.add_map_point(m)

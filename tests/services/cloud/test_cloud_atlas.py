@@ -142,16 +142,28 @@ def test_merge_moves_source_map_and_routes_later_keyframes():
 def test_bad_keyframe_input_names_the_field():
     with pytest.raises(AtlasError, match="descriptors"):
         KeyframeInput(
-            agent_id=0, keyframe_id=1, timestamp=0.0, T_world_body=np.eye(4),
-            keypoints=np.zeros((3, 2)), levels=np.zeros(3), descriptors=np.zeros((3, 31), np.uint8),
-            word_ids=np.zeros(3), map_point_ids=-np.ones(3),
-        )  # fmt: skip
+            agent_id=0,
+            keyframe_id=1,
+            timestamp=0.0,
+            T_world_body=np.eye(4),
+            keypoints=np.zeros((3, 2)),
+            levels=np.zeros(3),
+            descriptors=np.zeros((3, 31), np.uint8),
+            word_ids=np.zeros(3),
+            map_point_ids=-np.ones(3),
+        )
     with pytest.raises(AtlasError, match="T_world_body"):
         KeyframeInput(
-            agent_id=0, keyframe_id=1, timestamp=0.0, T_world_body=np.eye(3),
-            keypoints=np.zeros((3, 2)), levels=np.zeros(3), descriptors=np.zeros((3, 32), np.uint8),
-            word_ids=np.zeros(3), map_point_ids=-np.ones(3),
-        )  # fmt: skip
+            agent_id=0,
+            keyframe_id=1,
+            timestamp=0.0,
+            T_world_body=np.eye(3),
+            keypoints=np.zeros((3, 2)),
+            levels=np.zeros(3),
+            descriptors=np.zeros((3, 32), np.uint8),
+            word_ids=np.zeros(3),
+            map_point_ids=-np.ones(3),
+        )
 
 
 def test_remove_keyframe_clears_observations_and_covisibility(session):

@@ -41,16 +41,23 @@ def steps(vocab) -> dict[str, list[list]]:
     cam = default_camera()
     sessions = {
         "r0": make_session(world, cam, 0, circle_poses(24, turns=1.0), np.eye(4), seed=1),
-        "r1": make_session(world, cam, 1, circle_poses(12, turns=0.5, phase=2.0),
-                           yaw_T(np.radians(-60.0), np.array([-1.5, 0.5, 0.0])), seed=2,
-                           t0=50.0),
-    }  # fmt: skip
+        "r1": make_session(
+            world,
+            cam,
+            1,
+            circle_poses(12, turns=0.5, phase=2.0),
+            yaw_T(np.radians(-60.0), np.array([-1.5, 0.5, 0.0])),
+            seed=2,
+            t0=50.0,
+        ),
+    }
     return {name: encode_session(kfs, mps, name, vocab, 7) for name, (kfs, mps) in sessions.items()}
 
 
 def _config(full_ba: bool = False, mbp: bool = False, **kw) -> CloudServiceConfig:
-    domain = CloudConfig(full_ba=FullBAConfig(enabled=full_ba, max_iterations=3),
-                         mbp=MbpConfig(enabled=mbp))  # fmt: skip
+    domain = CloudConfig(
+        full_ba=FullBAConfig(enabled=full_ba, max_iterations=3), mbp=MbpConfig(enabled=mbp)
+    )
     base = CloudServiceConfig(domain=domain, debounce_s=0.5, optimize_every_keyframes=1000)
     return dataclasses.replace(base, **kw)
 
@@ -168,8 +175,9 @@ def test_a_merge_during_a_solve_reschedules_the_map(feed):
     assert core.next_deadline() == pytest.approx(now + 2.5)  # debounced from the round's end
     out = run_inline(core, core.on_timer(now + 2.5), now + 2.5)
     assert [o for o in out if isinstance(o, Outcome)] == [Outcome(0, SolveKind.POSE_GRAPH, True)]
-    sent = {c.message.agent_id for a in out if isinstance(a, SendCorrections)
-            for c in a.corrections}  # fmt: skip
+    sent = {
+        c.message.agent_id for a in out if isinstance(a, SendCorrections) for c in a.corrections
+    }
     assert sent == {"r0", "r1"} and core.dirty == frozenset()
 
 
@@ -221,8 +229,9 @@ def test_quiet_waits_while_a_pose_graph_is_scheduled(feed):
 
 @pytest.mark.parametrize("elapsed", [10.0, 31.0])
 def test_shutdown_pose_graphs_then_full_ba_within_the_budget_then_mbp(feed, elapsed):
-    f = feed(_config(full_ba=True, mbp=True, optimize_every_keyframes=3,
-                     full_ba_at_shutdown_s=30.0))  # fmt: skip
+    f = feed(
+        _config(full_ba=True, mbp=True, optimize_every_keyframes=3, full_ba_at_shutdown_s=30.0)
+    )
     core = f.core
     for i in range(6):
         f.keyframe("r0", 0.1 * i)

@@ -185,19 +185,32 @@ def _service_run(tmp_path, vocab, session, enabled: bool) -> np.ndarray:
         msgs.append(msg)
     msgs.append(encode_map_point_update(mps, "robot", coded_index=inv))
     domain = dataclasses.replace(CloudConfig(), full_ba=FullBAConfig(enabled=enabled))
-    cfg = CloudServiceConfig(domain=domain, output_every_s=0, publish_every_s=10.0,
-                             optimizer_process=False, full_ba_quiet_s=0.0)  # fmt: skip
+    cfg = CloudServiceConfig(
+        domain=domain,
+        output_every_s=0,
+        publish_every_s=10.0,
+        optimizer_process=False,
+        full_ba_quiet_s=0.0,
+    )
     out = tmp_path / ("on" if enabled else "off")
-    cloud = CloudServer(SessionConfig("cloud", "cloud", SECRET), out / "state", CAM, vocab, cfg,
-                        results_dir=out / "results", transport=FAST)  # fmt: skip
+    cloud = CloudServer(
+        SessionConfig("cloud", "cloud", SECRET),
+        out / "state",
+        CAM,
+        vocab,
+        cfg,
+        results_dir=out / "results",
+        transport=FAST,
+    )
 
     async def on_message(d: Delivery) -> None:
         pass
 
     async def main():
         _, port = await cloud.start()
-        client = Client(SessionConfig("edge", "edge-a", SECRET), on_message, "127.0.0.1", port,
-                        transport=FAST)  # fmt: skip
+        client = Client(
+            SessionConfig("edge", "edge-a", SECRET), on_message, "127.0.0.1", port, transport=FAST
+        )
         await client.start()
         try:
             for m in msgs:

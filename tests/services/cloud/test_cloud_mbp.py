@@ -101,8 +101,10 @@ def test_sparse_chain_loses_40_percent_every_removed_keyframe_covered_and_connec
     keys = atlas.keyframe_keys()
     # A chain: each keyframe shares 60-75 % of its points with a neighbour (a connected
     # dominating set of such a path keeps every interior keyframe).
-    share = [len(_points(atlas, a) & _points(atlas, b)) / len(_points(atlas, a))
-             for a, b in itertools.pairwise(keys[1:])]  # fmt: skip
+    share = [
+        len(_points(atlas, a) & _points(atlas, b)) / len(_points(atlas, a))
+        for a, b in itertools.pairwise(keys[1:])
+    ]
     assert 0.6 <= np.median(share) <= 0.75
     bb = backbone(atlas, 0, cfg, keep_recent=1)
     removed = [k for k in keys if k not in bb.kept]

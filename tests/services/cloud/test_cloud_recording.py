@@ -31,8 +31,10 @@ def test_round_trip_keeps_order_fields_and_offsets(tmp_path):
     sizes = _write(path)
     recs = list(read_recording(path))
     assert [(r.edge_id, r.stream_id, r.seq, r.t_recv) for r in recs] == [
-        ("edge-a", b"s1", 1, 1.5), ("edge-a", b"s1", 2, 2.5), ("edge-b", b"s2", 1, 3.0)
-    ]  # fmt: skip
+        ("edge-a", b"s1", 1, 1.5),
+        ("edge-a", b"s1", 2, 2.5),
+        ("edge-b", b"s2", 1, 3.0),
+    ]
     assert recs[0].message == AgentStatus("robot0", 0, "tracking", 10, 2, 0, {"tx": 5})
     assert np.frombuffer(recs[1].message.keyframe_ids, "<i8").tolist() == [3, 4]
     assert [r.offset for r in recs] == [len(MAGIC), sizes[0], sizes[1]]
@@ -88,8 +90,9 @@ def test_cloud_server_records_every_applied_message(tmp_path):
     msgs = [AgentStatus("robot0", 0, "tracking", i, 0, 0, {}) for i in (1, 2)]
 
     async def main() -> None:
-        cloud = CloudServer(session, tmp_path / "state", default_camera(), Vocabulary.load(),
-                            cfg, record=rec)  # fmt: skip
+        cloud = CloudServer(
+            session, tmp_path / "state", default_camera(), Vocabulary.load(), cfg, record=rec
+        )
         await cloud.start("127.0.0.1", 0)
         try:
             for seq, m in enumerate(msgs, 1):
@@ -100,5 +103,6 @@ def test_cloud_server_records_every_applied_message(tmp_path):
     asyncio.run(main())
     recs = list(read_recording(rec))
     assert [(r.edge_id, r.seq, r.message) for r in recs] == [
-        ("edge-a", 1, msgs[0]), ("edge-a", 2, msgs[1])
-    ]  # fmt: skip
+        ("edge-a", 1, msgs[0]),
+        ("edge-a", 2, msgs[1]),
+    ]

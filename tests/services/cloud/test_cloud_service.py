@@ -46,14 +46,21 @@ def scenario(vocab):
     poses1 = circle_poses(12, turns=0.5, phase=2.0)
     sessions = {
         "r0": (make_session(world, cam, 0, poses0, np.eye(4), seed=1), poses0, np.eye(4)),
-        "r1": (make_session(world, cam, 1, poses1, T_A1_WORLD, seed=2, t0=50.0), poses1,
-               T_A1_WORLD),
-    }  # fmt: skip
+        "r1": (
+            make_session(world, cam, 1, poses1, T_A1_WORLD, seed=2, t0=50.0),
+            poses1,
+            T_A1_WORLD,
+        ),
+    }
     out = {}
     for name, ((kfs, mps), poses, T_agent_world) in sessions.items():
         msgs = [m for group in encode_session(kfs, mps, name, vocab, 7) for m in group]
-        out[name] = {"messages": msgs, "truth": poses, "T_agent_world": T_agent_world,
-                     "n_keyframes": len(kfs)}  # fmt: skip
+        out[name] = {
+            "messages": msgs,
+            "truth": poses,
+            "T_agent_world": T_agent_world,
+            "n_keyframes": len(kfs),
+        }
     return out
 
 
@@ -63,9 +70,12 @@ class Edge:
     def __init__(self, name: str, port: int, **session_kw) -> None:
         self.corrections: list[PoseCorrection | PoseCorrectionCoded] = []
         self.client = Client(
-            SessionConfig("edge", name, SECRET, **session_kw), self._on, "127.0.0.1", port,
+            SessionConfig("edge", name, SECRET, **session_kw),
+            self._on,
+            "127.0.0.1",
+            port,
             transport=FAST,
-        )  # fmt: skip
+        )
 
     async def _on(self, d: Delivery) -> None:
         assert isinstance(d.message, PoseCorrectionCoded)  # the coded wire is the default
@@ -91,8 +101,16 @@ async def _until(predicate, timeout: float = 180.0) -> None:
 def _cloud(tmp_path, vocab, **kw) -> CloudServer:
     cfg = CloudServiceConfig(debounce_s=0.2, output_every_s=0, publish_every_s=0.2, gt_every_s=0)
     session = SessionConfig("cloud", "cloud", SECRET, **kw.pop("session", {}))
-    return CloudServer(session, tmp_path / "state", default_camera(), vocab, cfg,
-                       results_dir=tmp_path / "results", transport=FAST, **kw)  # fmt: skip
+    return CloudServer(
+        session,
+        tmp_path / "state",
+        default_camera(),
+        vocab,
+        cfg,
+        results_dir=tmp_path / "results",
+        transport=FAST,
+        **kw,
+    )
 
 
 def test_two_edges_merge_send_corrections_and_write_trajectories(tmp_path, vocab, scenario):
@@ -111,8 +129,9 @@ def test_two_edges_merge_send_corrections_and_write_trajectories(tmp_path, vocab
         _, port = await cloud.start()
         a, b = await Edge("edge-a", port).start(), await Edge("edge-b", port).start()
         try:
-            await asyncio.gather(a.send_all(scenario["r0"]["messages"]),
-                                 b.send_all(scenario["r1"]["messages"]))  # fmt: skip
+            await asyncio.gather(
+                a.send_all(scenario["r0"]["messages"]), b.send_all(scenario["r1"]["messages"])
+            )
             await asyncio.gather(a.client.flush(), b.client.flush())
             stats = await cloud.stats()
             assert stats.keyframes == 36 and stats.merges == 1 and len(stats.maps) == 1
@@ -183,8 +202,12 @@ def test_restart_resumes_acknowledged_keyframes_without_duplicates(tmp_path, voc
     async def main():
         # The first cloud never acknowledges (huge ack delay, no heartbeats): when it stops,
         # the edge still holds every message as unacknowledged and replays them all.
-        slow_acks = {"ack_delay": 1000.0, "ack_every": 100000, "heartbeat_interval": 100.0,
-                     "idle_timeout": 200.0}  # fmt: skip
+        slow_acks = {
+            "ack_delay": 1000.0,
+            "ack_every": 100000,
+            "heartbeat_interval": 100.0,
+            "idle_timeout": 200.0,
+        }
         cloud = _cloud(tmp_path, vocab, session=slow_acks)
         _, port = await cloud.start()
         edge = await Edge("edge-a", port).start()
@@ -234,8 +257,12 @@ def test_malformed_message_closes_only_that_edge(tmp_path, vocab, scenario):
             assert await asyncio.to_thread(_garbage_connection, port) == "closed"
             # A well-framed KeyframeUpdate whose pose has 3 numbers instead of 16.
             bad_msg = scenario["r0"]["messages"][0]
-            broken = type(bad_msg)(**{**{f: getattr(bad_msg, f) for f in bad_msg.__slots__},
-                                      "T_world_body": pack_array(np.zeros(3), "<f8")})  # fmt: skip
+            broken = type(bad_msg)(
+                **{
+                    **{f: getattr(bad_msg, f) for f in bad_msg.__slots__},
+                    "T_world_body": pack_array(np.zeros(3), "<f8"),
+                }
+            )
             await bad.client.send(broken)
             await good.send_all(good_msgs)
             await good.client.flush()
@@ -334,17 +361,35 @@ def test_cloud_command_survives_sigkill_then_stops_on_sigterm_and_writes_results
         "a = p.parse_args(sys.argv[1:]); sys.exit(a.func(a))\n"
     )
     port = _free_port()
-    args = ["cloud", "--listen", f"127.0.0.1:{port}", "--state-dir", str(tmp_path / "state"),
-            "--dashboard-port", "0", "--results", str(tmp_path / "res"),
-            "--groundtruth", str(tmp_path / "gt"), "--no-mbp", "--output-every", "0"]  # fmt: skip
+    args = [
+        "cloud",
+        "--listen",
+        f"127.0.0.1:{port}",
+        "--state-dir",
+        str(tmp_path / "state"),
+        "--dashboard-port",
+        "0",
+        "--results",
+        str(tmp_path / "res"),
+        "--groundtruth",
+        str(tmp_path / "gt"),
+        "--no-mbp",
+        "--output-every",
+        "0",
+    ]
     env = {**os.environ, "RECSLAM_SECRET": SECRET.decode()}
     log_path = tmp_path / "cloud.log"
     procs: list[subprocess.Popen] = []
 
     def start() -> subprocess.Popen:
         with open(log_path, "a") as log_file:
-            proc = subprocess.Popen([sys.executable, "-c", code, *args], stdout=subprocess.PIPE,
-                                    stderr=log_file, text=True, env=env)  # fmt: skip
+            proc = subprocess.Popen(
+                [sys.executable, "-c", code, *args],
+                stdout=subprocess.PIPE,
+                stderr=log_file,
+                text=True,
+                env=env,
+            )
         procs.append(proc)
         line = proc.stdout.readline()
         assert line.startswith(f"cloud listening on 127.0.0.1:{port}"), line + log_path.read_text()

@@ -125,5 +125,6 @@ def test_slightly_non_orthonormal_poses_are_repaired_and_gross_ones_rejected(voc
     gross = T.copy()
     gross[:3, :3] *= 1.1
     with pytest.raises(UplinkError, match="not orthonormal"):
-        decode_keyframe_update(dataclasses.replace(msg, T_world_body=pack_array(gross, "<f8")),
-                               0, vocab)  # fmt: skip
+        decode_keyframe_update(
+            dataclasses.replace(msg, T_world_body=pack_array(gross, "<f8")), 0, vocab
+        )

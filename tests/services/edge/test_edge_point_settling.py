@@ -47,9 +47,18 @@ def _kf(kid: int, point_ids: list[int], map_id: int = 0) -> KeyframeSnapshot:
     z = np.zeros(3)
     ids = np.array(point_ids, np.int64)
     return KeyframeSnapshot(
-        kid, map_id, 1000 * (kid + 1), np.eye(4), z, z, z, np.arange(3), ids, None,
+        kid,
+        map_id,
+        1000 * (kid + 1),
+        np.eye(4),
+        z,
+        z,
+        z,
+        np.arange(3),
+        ids,
+        None,
         robot_keyframe=True,
-    )  # fmt: skip
+    )
 
 
 def _pt(pid: int, x: float, obs: dict[int, int], map_id: int = 0) -> MapPointSnapshot:

@@ -71,16 +71,30 @@ class CloudStub:
 
     def of(self, kind: type, agent: str | None = None) -> list:
         return [
-            m for m in self.messages
+            m
+            for m in self.messages
             if isinstance(m, kind) and (agent is None or m.agent_id == agent)
-        ]  # fmt: skip
+        ]
 
 
 def _edge(camera, imu, vocab, cloud_port: int, worker: str, **kw) -> EdgeServer:
-    service = EdgeServiceConfig(agent_id="edge-1", cloud_host="127.0.0.1", cloud_port=cloud_port,
-                                heartbeat_interval_s=0.2, idle_timeout_s=2.0)  # fmt: skip
-    return EdgeServer(SECRET, camera, imu, vocab, EdgeConfig(worker=worker), service,
-                      transport=TransportConfig(accept_roles=("robot",)), **kw)  # fmt: skip
+    service = EdgeServiceConfig(
+        agent_id="edge-1",
+        cloud_host="127.0.0.1",
+        cloud_port=cloud_port,
+        heartbeat_interval_s=0.2,
+        idle_timeout_s=2.0,
+    )
+    return EdgeServer(
+        SECRET,
+        camera,
+        imu,
+        vocab,
+        EdgeConfig(worker=worker),
+        service,
+        transport=TransportConfig(accept_roles=("robot",)),
+        **kw,
+    )
 
 
 # ------------------------------------------------------------------ EuRoC excerpt, real cloud
@@ -98,20 +112,29 @@ def test_excerpt_robot_to_edge_to_real_cloud(tmp_path, vocab, euroc_micro) -> No
     async def main():
         cloud = CloudServer(
             SessionConfig("cloud", "cloud", SECRET, heartbeat_interval=0.2, idle_timeout=2.0),
-            tmp_path / "cloud", camera, vocab,
+            tmp_path / "cloud",
+            camera,
+            vocab,
             dataclasses.replace(CloudServiceConfig(), optimizer_process=False, output_every_s=0),
             transport=TransportConfig(accept_roles=("edge",)),
-        )  # fmt: skip
+        )
         _, cport = await cloud.start()
         edge = _edge(camera, imu, vocab, cport, "process")
         _, port = await edge.start()
         try:
             robot = RobotService(
-                RobotServiceConfig(dataset=euroc_micro, edge_host="127.0.0.1", edge_port=port,
-                                   agent_id="robot-1", secret=SECRET, rate=Rate.MAX,
-                                   heartbeat_interval_s=0.2, idle_timeout_s=2.0),
+                RobotServiceConfig(
+                    dataset=euroc_micro,
+                    edge_host="127.0.0.1",
+                    edge_port=port,
+                    agent_id="robot-1",
+                    secret=SECRET,
+                    rate=Rate.MAX,
+                    heartbeat_interval_s=0.2,
+                    idle_timeout_s=2.0,
+                ),
                 transport=FAST,
-            )  # fmt: skip
+            )
             result = await robot.run()
             await asyncio.wait_for(edge.flush(), 60)
             stats = edge.stats()
@@ -227,8 +250,11 @@ def test_failing_robot_vio_does_not_disturb_another(vocab, sim_frames) -> None:
     assert all(
         m.map_id in (0,) or m.map_id >= MAP_ID_STRIDE for m in cloud.of(KeyframeUpdate, "bad")
     )
-    assert not [m for m in cloud.of(KeyframeUpdate, "bad") if m.map_id == 0 and m.timestamp_ns
-                > frames[25].timestamp_ns]  # fmt: skip
+    assert not [
+        m
+        for m in cloud.of(KeyframeUpdate, "bad")
+        if m.map_id == 0 and m.timestamp_ns > frames[25].timestamp_ns
+    ]
 
 
 # ------------------------------------------------------------------ restart without loss
@@ -242,9 +268,23 @@ def _start_edge(
     port: int, cloud_port: int, state: Path, log: Path, camera: Path
 ) -> subprocess.Popen:
     env = dict(os.environ, RECSLAM_SECRET=SECRET.decode())
-    cmd = [sys.executable, "-m", "services.edge", "--listen", f"127.0.0.1:{port}",
-           "--cloud", f"127.0.0.1:{cloud_port}", "--state-dir", str(state),
-           "--camera", str(camera), "--worker", "thread", "--agent-id", "edge-1"]  # fmt: skip
+    cmd = [
+        sys.executable,
+        "-m",
+        "services.edge",
+        "--listen",
+        f"127.0.0.1:{port}",
+        "--cloud",
+        f"127.0.0.1:{cloud_port}",
+        "--state-dir",
+        str(state),
+        "--camera",
+        str(camera),
+        "--worker",
+        "thread",
+        "--agent-id",
+        "edge-1",
+    ]
     with log.open("ab") as out:
         return subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=out, stderr=subprocess.STDOUT)
 
@@ -319,8 +359,17 @@ def test_edge_command_parses_and_names_missing_inputs(
 
     parser = argparse.ArgumentParser()
     edge_cmd.register(parser.add_subparsers())
-    args = parser.parse_args(["edge", "--listen", "127.0.0.1:7001", "--cloud", "cloud:7100",
-                              "--state-dir", str(tmp_path)])  # fmt: skip
+    args = parser.parse_args(
+        [
+            "edge",
+            "--listen",
+            "127.0.0.1:7001",
+            "--cloud",
+            "cloud:7100",
+            "--state-dir",
+            str(tmp_path),
+        ]
+    )
     assert args.listen == ("127.0.0.1", 7001) and args.cloud == ("cloud", 7100)
     assert args.worker == "process" and args.func is edge_cmd.handle
     monkeypatch.setenv("RECSLAM_SECRET", SECRET.decode())
@@ -359,11 +408,18 @@ def test_synthetic_robot_initialises_and_receives_feedback(tmp_path) -> None:
         _, port = await edge.start()
         try:
             robot = RobotService(
-                RobotServiceConfig(dataset=dataset, edge_host="127.0.0.1", edge_port=port,
-                                   agent_id="synth-0", secret=SECRET, rate=Rate.REALTIME,
-                                   heartbeat_interval_s=0.2, idle_timeout_s=2.0),
+                RobotServiceConfig(
+                    dataset=dataset,
+                    edge_host="127.0.0.1",
+                    edge_port=port,
+                    agent_id="synth-0",
+                    secret=SECRET,
+                    rate=Rate.REALTIME,
+                    heartbeat_interval_s=0.2,
+                    idle_timeout_s=2.0,
+                ),
                 transport=FAST,
-            )  # fmt: skip
+            )
             result = await robot.run()
             await asyncio.wait_for(edge.flush(), 60)
             stats = edge.stats()

@@ -18,11 +18,18 @@ RAW = SessionOptions(wire=WireFormat.RAW)  # these tests pin the schema-1 uplink
 
 def _kf(kid: int, prev: int | None, robot: bool) -> KeyframeSnapshot:
     return KeyframeSnapshot(
-        keyframe_id=kid, map_id=0, timestamp_ns=1000 * (kid + 1), T_world_body=np.eye(4),
-        v_world=np.zeros(3), bias_gyro=np.zeros(3), bias_accel=np.zeros(3),
-        track_ids=np.arange(3), point_ids=np.full(3, -1), previous_keyframe_id=prev,
+        keyframe_id=kid,
+        map_id=0,
+        timestamp_ns=1000 * (kid + 1),
+        T_world_body=np.eye(4),
+        v_world=np.zeros(3),
+        bias_gyro=np.zeros(3),
+        bias_accel=np.zeros(3),
+        track_ids=np.arange(3),
+        point_ids=np.full(3, -1),
+        previous_keyframe_id=prev,
         robot_keyframe=robot,
-    )  # fmt: skip
+    )
 
 
 def test_own_keyframes_stay_on_the_edge() -> None:

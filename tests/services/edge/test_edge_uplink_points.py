@@ -26,19 +26,29 @@ Sent = tuple[list[int], list[list[float]], list[list[int]]]
 
 def _kf(map_id: int, kid: int, robot: bool) -> KeyframeSnapshot:
     return KeyframeSnapshot(
-        keyframe_id=kid, map_id=map_id, timestamp_ns=1000 * (kid + 1), T_world_body=np.eye(4),
-        v_world=np.zeros(3), bias_gyro=np.zeros(3), bias_accel=np.zeros(3),
-        track_ids=np.arange(3), point_ids=np.full(3, -1), previous_keyframe_id=None,
+        keyframe_id=kid,
+        map_id=map_id,
+        timestamp_ns=1000 * (kid + 1),
+        T_world_body=np.eye(4),
+        v_world=np.zeros(3),
+        bias_gyro=np.zeros(3),
+        bias_accel=np.zeros(3),
+        track_ids=np.arange(3),
+        point_ids=np.full(3, -1),
+        previous_keyframe_id=None,
         robot_keyframe=robot,
-    )  # fmt: skip
+    )
 
 
 def _pt(pid: int, x: float, obs: dict[int, int], map_id: int = 0) -> MapPointSnapshot:
     """Point ``pid`` at (x, 1, 2) m observed by ``obs`` {keyframe id: feature row}."""
     return MapPointSnapshot(
-        pid, map_id, np.array([x, 1.0, 2.0]),
-        np.array(list(obs), np.int64), np.array(list(obs.values()), np.int64),
-    )  # fmt: skip
+        pid,
+        map_id,
+        np.array([x, 1.0, 2.0]),
+        np.array(list(obs), np.int64),
+        np.array(list(obs.values()), np.int64),
+    )
 
 
 class _Uplink:

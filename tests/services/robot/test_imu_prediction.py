@@ -37,9 +37,15 @@ T_BODY_CAM = np.array(
     ]
 )
 EUROC_CAM = CameraCalibration(
-    752, 480, 458.654, 457.296, 367.215, 248.375,
-    (-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05), T_BODY_CAM,
-)  # fmt: skip
+    752,
+    480,
+    458.654,
+    457.296,
+    367.215,
+    248.375,
+    (-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05),
+    T_BODY_CAM,
+)
 PINHOLE_CAM = CameraCalibration(752, 480, 458.654, 457.296, 367.215, 248.375, T_body_cam=T_BODY_CAM)
 
 
@@ -148,9 +154,14 @@ def test_gyro_prediction_on_synthetic_pure_rotation(image: np.ndarray) -> None:
     assert np.median(np.linalg.norm(truth - p0, axis=1)) > 10.0  # real motion to predict
     assert np.max(np.linalg.norm(pred - truth, axis=1)) < 1.0
     p1, status, _ = cv2.calcOpticalFlowPyrLK(
-        undistorted, warped, p0.astype(np.float32), pred.astype(np.float32),
-        winSize=(9, 9), maxLevel=0, flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
-    )  # fmt: skip
+        undistorted,
+        warped,
+        p0.astype(np.float32),
+        pred.astype(np.float32),
+        winSize=(9, 9),
+        maxLevel=0,
+        flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+    )
     err = np.linalg.norm(p1.reshape(-1, 2) - truth, axis=1)[status.ravel() == 1]
     assert len(err) > 0.9 * len(p0)
     assert np.median(err) < 0.5
@@ -165,9 +176,14 @@ def test_prediction_on_distorted_images(image: np.ndarray) -> None:
     inside = np.all((pred > 20) & (pred < [732, 460]), axis=1)
     p0, pred = p0[inside], pred[inside]
     p1, status, _ = cv2.calcOpticalFlowPyrLK(
-        image, warped, p0.astype(np.float32), pred.astype(np.float32),
-        winSize=(9, 9), maxLevel=0, flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
-    )  # fmt: skip
+        image,
+        warped,
+        p0.astype(np.float32),
+        pred.astype(np.float32),
+        winSize=(9, 9),
+        maxLevel=0,
+        flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+    )
     err = np.linalg.norm(p1.reshape(-1, 2) - pred, axis=1)[status.ravel() == 1]
     assert np.median(np.linalg.norm(pred - p0, axis=1)) > 10.0
     assert np.median(err) < 0.5 and np.percentile(err, 90) < 1.0

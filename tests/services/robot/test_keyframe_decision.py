@@ -12,9 +12,12 @@ from services.robot.keyframe_decision import (
 )
 
 CFG = KeyframeDecisionConfig(
-    min_tracked=100, min_tracked_fraction=0.5, max_interval_s=1.0, min_interval_s=0.2,
+    min_tracked=100,
+    min_tracked_fraction=0.5,
+    max_interval_s=1.0,
+    min_interval_s=0.2,
     lost_tracked=20,
-)  # fmt: skip
+)
 
 
 @pytest.mark.parametrize(

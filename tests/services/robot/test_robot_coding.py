@@ -45,18 +45,26 @@ def test_snapped_orb_lies_on_the_codec_grid(seq):
     raw = OrbExtractor(OrbConfig()).extract(seq.load_image(0))
     snapped = snap_orb_features(raw, cc)
     kf = KeyframeFeatures.from_cv(
-        [type("K", (), {"pt": tuple(p), "octave": int(lv), "angle": float(a)})
-         for p, lv, a in zip(raw.keypoints, raw.levels, raw.angles, strict=True)],
-        raw.descriptors, None, cc,
-    )  # fmt: skip
+        [
+            type("K", (), {"pt": tuple(p), "octave": int(lv), "angle": float(a)})
+            for p, lv, a in zip(raw.keypoints, raw.levels, raw.angles, strict=True)
+        ],
+        raw.descriptors,
+        None,
+        cc,
+    )
     assert np.array_equal(snapped.keypoints, kf.uv(cc))  # the codec's float64 expression
     assert np.abs(snapped.keypoints - raw.keypoints).max() < 1e-3  # only float32 noise moved
     assert np.array_equal(snapped.descriptors, raw.descriptors)
     back = KeyframeFeatures.from_cv(
-        [type("K", (), {"pt": tuple(p), "octave": int(lv), "angle": float(a)})
-         for p, lv, a in zip(snapped.keypoints, snapped.levels, snapped.angles, strict=True)],
-        snapped.descriptors, None, cc,
-    )  # fmt: skip
+        [
+            type("K", (), {"pt": tuple(p), "octave": int(lv), "angle": float(a)})
+            for p, lv, a in zip(snapped.keypoints, snapped.levels, snapped.angles, strict=True)
+        ],
+        snapped.descriptors,
+        None,
+        cc,
+    )
     assert np.array_equal(back.keypoints, kf.keypoints)  # grid and angle bins are stable
     # Quarter-pixel snap of the tracker (round half even) = codec's kf_track_q (half up).
     assert np.array_equal(np.round(snapped.keypoints * 4), kf_track_q(kf.keypoints, cc))

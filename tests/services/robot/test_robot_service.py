@@ -299,11 +299,22 @@ def test_robot_process_runs_to_the_end_and_stops_on_sigterm(vocabulary, tmp_path
         _, port = await edge.start()
         env = {k: v for k, v in os.environ.items() if k != "RECSLAM_SECRET"}
         proc = await asyncio.create_subprocess_exec(
-            sys.executable, "-m", "services.robot", "--dataset", str(euroc_micro),
-            "--edge", f"127.0.0.1:{port}", "--agent-id", "robot-7",
-            "--secret-file", str(secret_file), *extra,
-            cwd=ROOT, env=env, stderr=asyncio.subprocess.PIPE,
-        )  # fmt: skip
+            sys.executable,
+            "-m",
+            "services.robot",
+            "--dataset",
+            str(euroc_micro),
+            "--edge",
+            f"127.0.0.1:{port}",
+            "--agent-id",
+            "robot-7",
+            "--secret-file",
+            str(secret_file),
+            *extra,
+            cwd=ROOT,
+            env=env,
+            stderr=asyncio.subprocess.PIPE,
+        )
         try:
             _, err = await asyncio.wait_for(proc.communicate(), 60)
             await asyncio.wait_for(edge.ended.wait(), 5)

@@ -14,9 +14,17 @@ from common.data.synth.textures import build_atlas
 from common.geometry import make_T
 
 CAM = PinholeRadtan(
-    752, 480, 458.654, 457.296, 367.215, 248.375,
-    -0.28340811, 0.07395907, 0.00019359, 1.76187114e-05,
-)  # fmt: skip
+    752,
+    480,
+    458.654,
+    457.296,
+    367.215,
+    248.375,
+    -0.28340811,
+    0.07395907,
+    0.00019359,
+    1.76187114e-05,
+)
 CLEAN = RenderConfig(noise_std=0.0, blur_sigma=0.0, vignetting=0.0, exposure_amplitude=0.0)
 # Camera axes (x right, y down, z forward) as columns, looking along world -x (at wall x = -4).
 R_LOOK_MINUS_X = np.array([[0.0, 0.0, -1.0], [1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
@@ -107,9 +115,22 @@ def test_mipmapping_removes_aliasing_on_grazing_floor(scene_atlas) -> None:
     R = cv2.Rodrigues(np.array([0.0, 0.0, np.pi]))[0] @ R  # look along +x
     T = make_T(R, [-3.0, 2.0, 0.6])
     mip = Renderer(scene, atlas, cam, CLEAN).render_radiance(T).radiance
-    nomip = Renderer(scene, atlas, cam, RenderConfig(
-        noise_std=0.0, blur_sigma=0.0, vignetting=0.0, exposure_amplitude=0.0, lod_bias=-20.0
-    )).render_radiance(T).radiance  # fmt: skip
+    nomip = (
+        Renderer(
+            scene,
+            atlas,
+            cam,
+            RenderConfig(
+                noise_std=0.0,
+                blur_sigma=0.0,
+                vignetting=0.0,
+                exposure_amplitude=0.0,
+                lod_bias=-20.0,
+            ),
+        )
+        .render_radiance(T)
+        .radiance
+    )
     big = Renderer(scene, atlas, CAM.scaled(2.0), CLEAN).render_radiance(T).radiance
     ref = cv2.resize(big, (cam.width, cam.height), interpolation=cv2.INTER_AREA)
     floor = Renderer(scene, atlas, cam, CLEAN).render_radiance(T)

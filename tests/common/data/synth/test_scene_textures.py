@@ -10,14 +10,18 @@ import pytest
 from common.data.synth.scene import Box, Scene, SceneError, vicon_room
 from common.data.synth.textures import TextureConfig, build_atlas
 
-FAST = TextureConfig(texel_m=0.02, box_texel_m=0.02, ceiling_texel_m=0.03, levels=4,
-                     atlas_width=2048)  # fmt: skip
+FAST = TextureConfig(
+    texel_m=0.02, box_texel_m=0.02, ceiling_texel_m=0.03, levels=4, atlas_width=2048
+)
 
 
 def test_clearance_of_known_points() -> None:
     scene = Scene((0.0, 0.0, 0.0), (8.0, 7.0, 3.5), (Box((3.0, 3.0, 0.0), (4.0, 4.0, 1.0)),))
-    d = scene.clearance(np.array([[1.0, 1.0, 1.5], [3.5, 3.5, 2.0], [3.5, 3.5, 0.5],
-                                  [-1.0, 1.0, 1.0], [5.0, 3.5, 0.5]]))  # fmt: skip
+    d = scene.clearance(
+        np.array(
+            [[1.0, 1.0, 1.5], [3.5, 3.5, 2.0], [3.5, 3.5, 0.5], [-1.0, 1.0, 1.0], [5.0, 3.5, 0.5]]
+        )
+    )
     np.testing.assert_allclose(d, [1.0, 1.0, -0.5, -1.0, 0.5])
     with pytest.raises(SceneError, match="leaves the room"):
         Scene((0.0, 0.0, 0.0), (1.0, 1.0, 1.0), (Box((0.5, 0.5, 0.0), (1.5, 0.8, 0.5)),))

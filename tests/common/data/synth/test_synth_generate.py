@@ -35,8 +35,19 @@ def generated(tmp_path_factory) -> tuple[Path, Path]:
     a = tmp_path_factory.mktemp("synth_a")
     b = tmp_path_factory.mktemp("synth_b")
     generate_dataset(a, SynthConfig(robots=ROBOTS, seconds=SECONDS, seed=SEED, progress=False))
-    argv = ["dataset", "synth", "--out", str(b), "--robots", str(ROBOTS), "--seconds",
-            str(SECONDS), "--seed", str(SEED), "--no-progress"]  # fmt: skip
+    argv = [
+        "dataset",
+        "synth",
+        "--out",
+        str(b),
+        "--robots",
+        str(ROBOTS),
+        "--seconds",
+        str(SECONDS),
+        "--seed",
+        str(SEED),
+        "--no-progress",
+    ]
     assert _cli(argv) == 0
     return a, b
 
@@ -87,8 +98,7 @@ def test_sequences_read_back(generated) -> None:
         st = traj.evaluate(t)
         np.testing.assert_allclose(gt.p_world_body, st.p_world_body, atol=1e-12)
         np.testing.assert_allclose(gt.v_world_body, st.v_world_body, atol=1e-12)
-        np.testing.assert_allclose(quat_wxyz_to_R(gt.q_world_body_wxyz), st.R_world_body,
-                                   atol=1e-9)  # fmt: skip
+        np.testing.assert_allclose(quat_wxyz_to_R(gt.q_world_body_wxyz), st.R_world_body, atol=1e-9)
         # Measurements = truth + the written biases + white noise (within 5 sigma).
         gyro, accel = ideal_imu(traj, t)
         sg = EUROC_IMU.gyro_noise_density * 200**0.5
@@ -146,8 +156,9 @@ def test_rerun_replaces_previous_output(tmp_path) -> None:
     cfg = SynthConfig(robots=2, seconds=0.1, seed=1, progress=False, contact_sheet=False)
     generate_dataset(tmp_path, cfg)
     (tmp_path / "notes.txt").write_text("keep me")
-    generate_dataset(tmp_path, SynthConfig(robots=1, seconds=0.1, seed=1, progress=False,
-                                           contact_sheet=False))  # fmt: skip
+    generate_dataset(
+        tmp_path, SynthConfig(robots=1, seconds=0.1, seed=1, progress=False, contact_sheet=False)
+    )
     assert not (tmp_path / "robot1").exists()  # stale robot removed
     assert (tmp_path / "notes.txt").read_text() == "keep me"  # foreign files untouched
     assert json.loads((tmp_path / "dataset.json").read_text())["robots"] == 1

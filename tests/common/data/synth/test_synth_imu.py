@@ -21,12 +21,14 @@ def traj():
 def _qmul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     w1, x1, y1, z1 = a
     w2, x2, y2, z2 = b
-    return np.array([
-        w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2,
-        w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
-        w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
-        w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2,
-    ])  # fmt: skip
+    return np.array(
+        [
+            w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2,
+            w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
+            w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
+            w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2,
+        ]
+    )
 
 
 def _deriv(traj, t: float, y: np.ndarray) -> np.ndarray:
@@ -73,10 +75,12 @@ def test_noise_and_bias_statistics(traj) -> None:
     white_g = s.gyro - s.gyro_true - s.bias_gyro
     white_a = s.accel - s.accel_true - s.bias_accel
     rate = EUROC_IMU.rate_hz
-    np.testing.assert_allclose(white_g.std(axis=0), EUROC_IMU.gyro_noise_density * rate**0.5,
-                               rtol=0.05)  # fmt: skip
-    np.testing.assert_allclose(white_a.std(axis=0), EUROC_IMU.accel_noise_density * rate**0.5,
-                               rtol=0.05)  # fmt: skip
+    np.testing.assert_allclose(
+        white_g.std(axis=0), EUROC_IMU.gyro_noise_density * rate**0.5, rtol=0.05
+    )
+    np.testing.assert_allclose(
+        white_a.std(axis=0), EUROC_IMU.accel_noise_density * rate**0.5, rtol=0.05
+    )
     steps_g = np.diff(s.bias_gyro, axis=0).std()
     steps_a = np.diff(s.bias_accel, axis=0).std()
     assert steps_g == pytest.approx(EUROC_IMU.gyro_random_walk / rate**0.5, rel=0.05)

@@ -188,9 +188,15 @@ def test_schur_lm_stops_at_max_iterations_and_reports_its_costs(scene):
         values.insert(X(i), gtsam.Pose3(vmap.keyframes[k].T_world_body))
     free = [X(obs_kf[k]) for k in window]
     problem = SchurLM(
-        gtsam.NonlinearFactorGraph(), values, free, [X(i) for i in range(len(ids))],
-        np.array(P), obs, cam.T_body_cam, 2.4477,
-    )  # fmt: skip
+        gtsam.NonlinearFactorGraph(),
+        values,
+        free,
+        [X(i) for i in range(len(ids))],
+        np.array(P),
+        obs,
+        cam.T_body_cam,
+        2.4477,
+    )
     one = problem.optimize(max_iterations=1, relative_error_tol=0.0)
     many = problem.optimize(max_iterations=20, relative_error_tol=1e-6)
     assert one.iterations == 1

@@ -62,9 +62,15 @@ def test_visual_inertial_ba_recovers_a_wrong_scale(scene):
         mp.p_world = mp.p_world * 1.3
     params = make_preintegration_params(seq.imu, 9.81, 1e-4)
     bundle_adjust(
-        vmap, ids, cam, params, LocalBAOptions(), MappingOptions(), gauge_ids=(ids[0],),
+        vmap,
+        ids,
+        cam,
+        params,
+        LocalBAOptions(),
+        MappingOptions(),
+        gauge_ids=(ids[0],),
         max_iterations=30,
-    )  # fmt: skip
+    )
     kfs = vmap.keyframe_list()
     gt = {int(t): i for i, t in enumerate(seq.gt_timestamps_ns)}
     est = np.array([kf.T_world_body[:3, 3] for kf in kfs])

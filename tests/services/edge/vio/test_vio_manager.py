@@ -66,9 +66,13 @@ def test_tracking_loss_starts_a_new_map():
         vio.feed_imu(t, g, a)
         if i >= 60:  # every track replaced: nothing links the frame to the map any more
             fr = FrameObservation(
-                fr.timestamp_ns, fr.track_ids + 1_000_000, fr.keypoints_px, fr.levels,
-                fr.is_keyframe, fr.descriptors,
-            )  # fmt: skip
+                fr.timestamp_ns,
+                fr.track_ids + 1_000_000,
+                fr.keypoints_px,
+                fr.levels,
+                fr.is_keyframe,
+                fr.descriptors,
+            )
         results.append(vio.feed_frame(fr))
     assert results[59].map_id == 0
     lost = [r for r in results if r.status == TrackingStatus.LOST]
