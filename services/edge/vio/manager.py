@@ -31,7 +31,7 @@ from services.edge.vio.local_mapping import (
     triangulate_new_points,
 )
 from services.edge.vio.mono_init import two_view_geometry
-from services.edge.vio.state import Keyframe, MapPoint, PinholeUndistorter, VioMap, project
+from services.edge.vio.state import Keyframe, MapPoint, PinholeUndistorter, VioMap
 from services.edge.vio.tracking import ImuPrior, track_frame
 from services.edge.vio.types import (
     FrameObservation,
@@ -42,7 +42,7 @@ from services.edge.vio.types import (
     VioError,
     VioOptions,
 )
-from services.edge.vio.vi_init import inertial_only_map, subsample_keyframes
+from services.edge.vio.vi_bootstrap import first_vi_init, refine_vi
 
 logger = logging.getLogger(__name__)
 
@@ -523,58 +523,23 @@ class VioManager:
         if due:
             self.run_vi_init(vmap)
 
-    def _reanchor(self, vmap: VioMap, newest: Keyframe, T_before: np.ndarray) -> None:
-        """Undo the gauge motion (yaw and translation, unobservable) a full BA gave the newest
-        keyframe, so that corrections land behind the robot and its pose stays continuous."""
-        D = T_before[:3, :3] @ newest.T_world_body[:3, :3].T
-        yaw = np.arctan2(D[1, 0] - D[0, 1], D[0, 0] + D[1, 1])
-        c, s = np.cos(yaw), np.sin(yaw)
-        R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-        t = T_before[:3, 3] - R @ newest.T_world_body[:3, 3]
-        vmap.transform(make_T(R, t), 1.0)
-        if self._last_T is not None:
-            self._last_T = make_T(R, t) @ self._last_T
-
-    def _median_depth(self, vmap: VioMap) -> float:
-        """Median depth [map units] of the points seen by the newest keyframe."""
-        kf = vmap.last_keyframe()
-        assert kf is not None
-        P = np.array([mp.p_world for t in kf.row_of if (mp := vmap.point_of(t)) is not None])
-        if len(P) == 0:
-            return 1.0
-        _, z = project(kf.T_world_body, self.camera.T_body_cam, P)
-        return float(np.median(z[z > 0])) if np.any(z > 0) else 1.0
-
     def run_vi_init(self, vmap: VioMap) -> bool:
-        """Inertial-only MAP + similarity to gravity-aligned metric frame + full VI BA."""
-        vopt = self.options.vi_init
+        """VI initialisation, or a refinement of a VI-initialised map
+        (:mod:`services.edge.vio.vi_bootstrap`), over the longest tail of keyframes connected
+        by IMU segments; False if the first one was refused (it is retried later)."""
         t0 = time.perf_counter()
         kfs = vmap.keyframe_list()
-        # Use the longest tail of keyframes connected by IMU segments.
         start = 0
         for i in range(1, len(kfs)):
             if kfs[i].imu_from_previous is None or kfs[i].previous_id != kfs[i - 1].id:
                 start = i
         kfs = kfs[start:]
-        if vmap.vi_init_runs > 0:
-            # Re-runs: the map is already metric and gravity-aligned; the joint visual-inertial
-            # BA over every keyframe is the well-posed estimator of scale (the inertial-only
-            # problem with fixed, noisy visual poses would shift it by its own bias).
-            vmap.vi_init_runs += 1
-            ids = [k.id for k in kfs]
-            T_newest_before = kfs[-1].T_world_body.copy()
-            stats = bundle_adjust(
-                vmap,
-                ids,
-                self.camera,
-                self.imu_params,
-                self._full_ba_options,
-                self.options.mapping,
-                gauge_ids=(ids[0],),
-                max_iterations=vopt.full_ba_iterations,
-                bias_prior_sigmas=(vopt.accel_bias_prior_sigma, vopt.gyro_bias_prior_sigma),
-            )
-            self._reanchor(vmap, kfs[-1], T_newest_before)
+        ba_opt = self._full_ba_options
+        vmap.vi_init_runs += 1
+        if vmap.vi_init_runs > 1:
+            stats, T_fix = refine_vi(vmap, kfs, self.camera, self.imu_params, self.options, ba_opt)
+            if self._last_T is not None:
+                self._last_T = T_fix @ self._last_T
             self.stats.vi_init_s.append(time.perf_counter() - t0)
             logger.info(
                 "%s: VI refinement #%d of map %d: %s",
@@ -584,74 +549,30 @@ class VioManager:
                 stats,
             )
             return True
-        # First run: inertial-only MAP over the last ``max_span_s`` of keyframes.
-        t_last = kfs[-1].timestamp_ns
-        kfs = [k for k in kfs if (t_last - k.timestamp_ns) * 1e-9 <= vopt.max_span_s]
-        sub = subsample_keyframes(kfs, vopt.min_interval_s)
-        res, reason = inertial_only_map(
-            sub,
-            self.imu_params,
-            self.options.gravity_mps2,
-            np.zeros(3),
-            self._bias_guess[1],
-            vopt.accel_bias_prior_sigma_first,
-            vopt.gyro_bias_prior_sigma_first,
-            vopt.visual_position_sigma_rel * self._median_depth(vmap),
-            np.radians(vopt.visual_rotation_sigma_deg),
-        )
-        vmap.vi_init_runs += 1
-        if res is not None and res.cost_per_residual > vopt.max_cost_per_residual:
-            reason = (
-                f"IMU and visual poses disagree (cost/residual {res.cost_per_residual:.2f} "
-                f"> {vopt.max_cost_per_residual})"
-            )
-            res = None
-        if res is None or not (vopt.min_scale <= res.scale <= vopt.max_scale):
-            why = reason or f"scale {res.scale if res else float('nan'):.3g} out of range"
-            self._last_init_reason = f"VI init rejected: {why}"
-            logger.warning(
-                "%s: VI initialisation of map %d failed: %s", self.name, vmap.map_id, why
-            )
-            vmap.vi_init_runs = 0  # retry at the next keyframe
-            self.stats.vi_init_s.append(time.perf_counter() - t0)
-            return False
-        vmap.transform(make_T(res.R_world_v, np.zeros(3)), res.scale)
-        # Velocities at every keyframe: interpolated from the subsampled solution.
-        t_sub = np.array([k.timestamp_ns for k in sub], dtype=np.float64)
-        for kf in kfs:
-            kf.v_world = np.array(
-                [np.interp(float(kf.timestamp_ns), t_sub, res.velocities[:, c]) for c in range(3)]
-            )
-        for kf in vmap.keyframe_list():
-            kf.bias_gyro = res.bias_gyro.copy()
-            kf.bias_accel = res.bias_accel.copy()
-        vmap.vi_initialized = True
-        self._last_init_reason = ""
-        ids = [k.id for k in kfs]
-        stats = bundle_adjust(
-            vmap,
-            ids,
-            self.camera,
-            self.imu_params,
-            self._full_ba_options,
-            self.options.mapping,
-            gauge_ids=(ids[0],),
-            max_iterations=vopt.full_ba_iterations,
-            bias_prior_sigmas=(vopt.accel_bias_prior_sigma_first, vopt.gyro_bias_prior_sigma_first),
+        out = first_vi_init(
+            vmap, kfs, self.camera, self.imu_params, self.options, ba_opt, self._bias_guess[1]
         )
         self.stats.vi_init_s.append(time.perf_counter() - t0)
+        if out.reason:
+            self._last_init_reason = f"VI init rejected: {out.reason}"
+            logger.warning(
+                "%s: VI initialisation of map %d failed: %s", self.name, vmap.map_id, out.reason
+            )
+            vmap.vi_init_runs = 0  # retry at the next keyframe
+            return False
+        self._last_init_reason = ""
         last = vmap.last_keyframe()
-        assert last is not None
+        assert last is not None and out.scale is not None and out.scale_sigma_rel is not None
         self._bias_guess = (last.bias_accel.copy(), last.bias_gyro.copy())
         logger.info(
             "%s: VI init #%d of map %d: scale %.4f (sigma %.1f %%), bg %s, ba %s, BA %s",
             self.name,
             vmap.vi_init_runs,
             vmap.map_id,
-            res.scale,
-            100 * res.scale_sigma_rel,
+            out.scale,
+            100 * out.scale_sigma_rel,
             np.round(last.bias_gyro, 4),
             np.round(last.bias_accel, 3),
-            stats,
+            out.stats,
         )
         return True
