@@ -31,7 +31,7 @@ VOCAB = Vocabulary.load()
 
 def _session() -> RobotSession:
     cam = CameraCalibration(fx=400.0, fy=400.0, cx=320.0, cy=240.0, width=640, height=480)
-    s = RobotSession("r", cam, VOCAB, SessionOptions(point_settle_keyframes=0))  # at once
+    s = RobotSession("r", cam, VOCAB, SessionOptions(point_settle_keyframes=0))
     rng = np.random.default_rng(0)
     kp = np.array([[10, 20, 0, 3], [100, 50, 0, 7], [300, 200, 1, 30]], np.int32)
     desc = rng.integers(0, 256, (3, 32), dtype=np.uint8)
