@@ -27,13 +27,14 @@ import json
 import logging
 import signal
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from common.entry import Announce, listen_address
 from common.links import WireFormat, codec_cpu
-from common.protocol.credentials import SECRET_ENV, load_secret, parse_address
+from common.protocol.credentials import SECRET_ENV, load_secret
 
 if TYPE_CHECKING:
     from common.calibration import CameraCalibration
@@ -41,9 +42,6 @@ if TYPE_CHECKING:
     from services.cloud.server import CloudServer
 
 logger = logging.getLogger(__name__)
-
-Announce = Callable[[str], None]
-"""Where the service's status lines go (the entry points print them on stdout)."""
 
 
 @dataclass(frozen=True)
@@ -86,15 +84,11 @@ class CloudRunConfig:
     record: Path | None = None
 
 
-def _address(text: str) -> tuple[str, int]:
-    return parse_address(text, default_host="0.0.0.0")
-
-
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """The cloud's options (their defaults are :class:`CloudRunConfig`'s)."""
     p.add_argument(
         "--listen",
-        type=_address,
+        type=listen_address,
         default=("0.0.0.0", 7100),
         metavar="HOST:PORT",
         help="address edges connect to (default 0.0.0.0:7100)",

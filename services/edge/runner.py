@@ -26,13 +26,13 @@ import json
 import logging
 import signal
 import time
-from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from common.entry import Announce, listen_address
 from common.links import WireFormat, codec_cpu
-from common.protocol.credentials import SECRET_ENV, load_secret, parse_address
+from common.protocol.credentials import SECRET_ENV, load_secret
 
 if TYPE_CHECKING:
     from common.calibration import CameraCalibration, ImuCalibration
@@ -40,9 +40,6 @@ if TYPE_CHECKING:
     from services.edge.server import EdgeServer
 
 logger = logging.getLogger(__name__)
-
-Announce = Callable[[str], None]
-"""Where the service's status lines go (the entry points print them on stdout)."""
 
 
 @dataclass(frozen=True)
@@ -75,22 +72,18 @@ class EdgeRunConfig:
     stats_out: Path | None = None
 
 
-def _address(text: str) -> tuple[str, int]:
-    return parse_address(text, default_host="0.0.0.0")
-
-
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """The edge's options (their defaults are :class:`EdgeRunConfig`'s)."""
     p.add_argument(
         "--listen",
-        type=_address,
+        type=listen_address,
         default=("0.0.0.0", 7000),
         metavar="HOST:PORT",
         help="address robots connect to (default 0.0.0.0:7000)",
     )
     p.add_argument(
         "--cloud",
-        type=_address,
+        type=listen_address,
         default=None,
         metavar="HOST:PORT",
         help="cloud address (default: none, the uplink is dropped)",

@@ -1,0 +1,56 @@
+"""What every ``python -m services.<tier>`` entry point shares: its ``main``, the type of the
+status-line callback the runners take, and the parsing of a listen address.
+
+A tier's ``__main__`` is its parser (the options come from the tier's runner, defined once for
+it and for ``recslam <tier>``) and one call of :func:`module_main`: logging as the ``recslam``
+command sets it up (:mod:`common.logs`), a :class:`~common.errors.RecslamError` as
+``PROG: error: ...`` with exit code 2, Ctrl-C as exit code 130.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Callable, Sequence
+
+from common.errors import RecslamError
+from common.logs import add_verbosity_argument, setup_logging
+from common.protocol.credentials import parse_address
+
+Announce = Callable[[str], None]
+"""Where a service's status lines go (the entry points print them on stdout, where
+supervisors and the demo orchestration read them)."""
+
+
+def listen_address(text: str) -> tuple[str, int]:
+    """``HOST:PORT`` or ``PORT`` (all interfaces) of a service's ``--listen``."""
+    return parse_address(text, default_host="0.0.0.0")
+
+
+def service_parser(
+    prog: str, description: str, add_arguments: Callable[[argparse.ArgumentParser], None]
+) -> argparse.ArgumentParser:
+    """The parser of a tier's ``__main__``: ``-v`` and the tier's own options."""
+    parser = argparse.ArgumentParser(prog=prog, description=description)
+    add_verbosity_argument(parser)
+    add_arguments(parser)
+    return parser
+
+
+def module_main(
+    parser: argparse.ArgumentParser,
+    run: Callable[[argparse.Namespace], int],
+    argv: Sequence[str] | None = None,
+) -> int:
+    """Parse ``argv`` (default: the process's), set up logging and ``run`` the parsed
+    arguments; returns the exit code."""
+    args = parser.parse_args(argv)
+    setup_logging(args.verbose)
+    try:
+        return run(args)
+    except RecslamError as exc:
+        print(f"{parser.prog}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
