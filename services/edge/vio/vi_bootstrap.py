@@ -98,18 +98,8 @@ def first_vi_init(
         kf.bias_gyro = res.bias_gyro.copy()
         kf.bias_accel = res.bias_accel.copy()
     vmap.vi_initialized = True
-    ids = [k.id for k in kfs]
-    stats = bundle_adjust(
-        vmap,
-        ids,
-        camera,
-        imu_params,
-        ba_options,
-        options.mapping,
-        gauge_ids=(ids[0],),
-        max_iterations=vopt.full_ba_iterations,
-        bias_prior_sigmas=(vopt.accel_bias_prior_sigma_first, vopt.gyro_bias_prior_sigma_first),
-    )
+    sigmas = (vopt.accel_bias_prior_sigma_first, vopt.gyro_bias_prior_sigma_first)
+    stats = _vi_ba(vmap, kfs, camera, imu_params, options, ba_options, sigmas)
     return ViInitOutcome("", stats, res.scale, res.scale_sigma_rel)
 
 
@@ -124,9 +114,24 @@ def refine_vi(
     """A visual-inertial BA over ``kfs`` of a VI-initialised map; returns its statistics and
     the correction ``(4, 4)`` :func:`reanchor` applied to the map afterwards."""
     vopt = options.vi_init
-    ids = [k.id for k in kfs]
     T_newest_before = kfs[-1].T_world_body.copy()
-    stats = bundle_adjust(
+    sigmas = (vopt.accel_bias_prior_sigma, vopt.gyro_bias_prior_sigma)
+    stats = _vi_ba(vmap, kfs, camera, imu_params, options, ba_options, sigmas)
+    return stats, reanchor(vmap, kfs[-1], T_newest_before)
+
+
+def _vi_ba(
+    vmap: VioMap,
+    kfs: list[Keyframe],
+    camera: PinholeUndistorter,
+    imu_params: gtsam.PreintegrationCombinedParams,
+    options: VioOptions,
+    ba_options: LocalBAOptions,
+    bias_prior_sigmas: tuple[float, float],
+) -> BAStats:
+    """The visual-inertial BA over ``kfs`` (gauge: the oldest), with these bias priors."""
+    ids = [k.id for k in kfs]
+    return bundle_adjust(
         vmap,
         ids,
         camera,
@@ -134,10 +139,9 @@ def refine_vi(
         ba_options,
         options.mapping,
         gauge_ids=(ids[0],),
-        max_iterations=vopt.full_ba_iterations,
-        bias_prior_sigmas=(vopt.accel_bias_prior_sigma, vopt.gyro_bias_prior_sigma),
+        max_iterations=options.vi_init.full_ba_iterations,
+        bias_prior_sigmas=bias_prior_sigmas,
     )
-    return stats, reanchor(vmap, kfs[-1], T_newest_before)
 
 
 def reanchor(vmap: VioMap, newest: Keyframe, T_before: np.ndarray) -> np.ndarray:
