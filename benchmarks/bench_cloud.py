@@ -170,7 +170,7 @@ def bench_detection(n: int) -> str:
 # ----------------------------------------------------------------------------- service
 def _service_scenario(vocab):
     """Two robots in one room, coded as an edge sends them (keyframe, then new map points)."""
-    from services.cloud.uplink import encode_session
+    from services.cloud.simulation import encode_session
 
     world = make_world(51)
     cam = default_camera()
@@ -330,7 +330,7 @@ def bench_service(tmp: Path) -> list[str]:
 def _fusion_scenario(vocab, n_kf: int, drift_deg: float, drift_m: float):
     """Three robots with odometry drift in one room, each in its own map frame; coded as an
     edge sends them. Returns {robot: (messages, truth T_world_body (K, 4, 4), stamps ns)}."""
-    from services.cloud.uplink import encode_session
+    from services.cloud.simulation import encode_session
 
     world = make_world(61, n_points=5000)
     cam = default_camera()

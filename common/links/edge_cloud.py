@@ -69,6 +69,54 @@ class MapPointUpdate(Message):
     observations: bytes
 
 
+def pack_keyframe_update(
+    agent_id: str,
+    map_id: int,
+    keyframe_id: int,
+    previous_keyframe_id: int,
+    timestamp_ns: int,
+    T_world_body: np.ndarray,
+    velocity_world: np.ndarray,
+    bias_gyro: np.ndarray,
+    bias_accel: np.ndarray,
+    features: bytes = b"",
+    map_point_ids: np.ndarray | None = None,
+    imu: np.ndarray | None = None,
+) -> KeyframeUpdate:
+    """The raw (schema-1) :class:`KeyframeUpdate` of these arrays, packed as its docstring
+    states (``map_point_ids`` None: none, a pose-only update; ``imu`` (M, 7) or None)."""
+    return KeyframeUpdate(
+        agent_id=agent_id,
+        map_id=map_id,
+        keyframe_id=keyframe_id,
+        previous_keyframe_id=previous_keyframe_id,
+        timestamp_ns=timestamp_ns,
+        T_world_body=pack_array(T_world_body, "<f8"),
+        velocity_world=pack_array(velocity_world, "<f8"),
+        bias_gyro=pack_array(bias_gyro, "<f8"),
+        bias_accel=pack_array(bias_accel, "<f8"),
+        features=features,
+        map_point_ids=pack_array(
+            np.zeros(0, np.int64) if map_point_ids is None else map_point_ids, "<i8"
+        ),
+        imu=pack_array(np.zeros((0, 7)) if imu is None else imu, "<f8"),
+    )
+
+
+def pack_map_point_update(
+    agent_id: str, map_id: int, ids: np.ndarray, p_world: np.ndarray, observations: np.ndarray
+) -> MapPointUpdate:
+    """The raw (schema-1) :class:`MapPointUpdate`: ``ids`` (N,), ``p_world`` (N, 3) m,
+    ``observations`` (M, 3) ``[point id, keyframe id, feature index]``."""
+    return MapPointUpdate(
+        agent_id,
+        map_id,
+        pack_array(ids, "<i8"),
+        pack_array(np.asarray(p_world, np.float64).reshape(-1, 3), "<f8"),
+        pack_array(np.asarray(observations, np.int64).reshape(-1, 3), "<i8"),
+    )
+
+
 @message(0x0403)
 class CullEvent(Message):
     """Keyframes and map points the edge removed: ``keyframe_ids``/``map_point_ids`` "<i8 (N)"."""

@@ -16,7 +16,16 @@ import cv2
 import numpy as np
 
 from common.calibration import CameraCalibration
+from common.codec.frames import FeatureEncoder
+from common.codec.types import CodecConfig, KeyframeFeatures
 from common.geometry import inverse_T, make_T, transform_points
+from common.links.edge_cloud import (
+    KeyframeUpdate,
+    MapPointUpdate,
+    pack_keyframe_update,
+    pack_map_point_update,
+)
+from common.vocabulary import Vocabulary
 from services.cloud.atlas import KeyframeInput, MapPointInput
 
 # Camera z = body x (forward), camera x = -body y, camera y = -body z.
@@ -223,3 +232,104 @@ def make_session(
             )
         )
     return out, mps
+
+
+# ------------------------------------------------------------------ as an edge sends it
+def keyframe_features(
+    keypoints: np.ndarray, levels: np.ndarray, descriptors: np.ndarray, codec: CodecConfig
+) -> tuple[KeyframeFeatures, np.ndarray]:
+    """Snap level-0 keypoints ``(N, 2)`` with ``levels (N,)`` to the codec grid and put them in
+    canonical order; returns the features and ``order (N,)`` (feature i = input order[i])."""
+    lev = np.asarray(levels, np.int64)
+    s = codec.level_scale(lev)
+    kp = np.zeros((lev.shape[0], 4), np.int32)
+    xy = np.floor(np.asarray(keypoints, np.float64) / s[:, None] + 0.5)
+    for level in np.unique(lev):
+        w, h = codec.level_size(int(level))
+        sel = lev == level
+        xy[sel, 0] = np.clip(xy[sel, 0], 0, w - 1)
+        xy[sel, 1] = np.clip(xy[sel, 1], 0, h - 1)
+    kp[:, :2] = xy
+    kp[:, 2] = lev
+    raw = KeyframeFeatures(kp, descriptors, np.full(lev.shape[0], -1, np.int32))
+    order = raw.canonical_order()
+    return KeyframeFeatures(kp[order], raw.descriptors[order], raw.links[order]), order
+
+
+def encode_keyframe_update(
+    kf: KeyframeInput,
+    agent_name: str,
+    vocabulary: Vocabulary,
+    edge_map_id: int = 0,
+    previous_keyframe_id: int = -1,
+    timestamp_ns: int | None = None,
+    codec: CodecConfig | None = None,
+) -> tuple[KeyframeUpdate, np.ndarray]:
+    """What an edge sends for ``kf``: the message and ``order (N,)``, the coded order of the
+    features (coded feature i is ``kf``'s feature ``order[i]``; map point observations must
+    use coded indices)."""
+    cfg = codec or CodecConfig()
+    feats, order = keyframe_features(kf.keypoints, kf.levels, kf.descriptors, cfg)
+    payload = FeatureEncoder(vocabulary, cfg).encode_keyframe(feats)
+    ts = round(kf.timestamp * 1e9) if timestamp_ns is None else int(timestamp_ns)
+    msg = pack_keyframe_update(
+        agent_name,
+        edge_map_id,
+        kf.keyframe_id,
+        previous_keyframe_id,
+        ts,
+        kf.T_world_body,
+        kf.velocity,
+        kf.bias_gyro,
+        kf.bias_accel,
+        payload,
+        kf.map_point_ids[order],
+    )
+    return msg, order
+
+
+def encode_map_point_update(
+    points: list[MapPointInput],
+    agent_name: str,
+    edge_map_id: int = 0,
+    coded_index: dict[int, np.ndarray] | None = None,
+) -> MapPointUpdate:
+    """A MapPointUpdate of ``points``; ``coded_index {keyframe_id: inverse order (N,)}`` maps
+    a keyframe's input feature index to its coded index (see :func:`encode_keyframe_update`)."""
+    ids = np.array([p.map_point_id for p in points], np.int64)
+    P = np.array([p.p_world for p in points], np.float64).reshape(-1, 3)
+    rows = []
+    for p in points:
+        for kf_id, idx in p.observations.tolist():
+            if coded_index is not None and kf_id in coded_index:
+                idx = int(coded_index[kf_id][idx])
+            rows.append((p.map_point_id, kf_id, idx))
+    return pack_map_point_update(agent_name, edge_map_id, ids, P, np.array(rows, np.int64))
+
+
+def encode_session(
+    keyframes: list[KeyframeInput],
+    map_points: list[MapPointInput],
+    agent_name: str,
+    vocabulary: Vocabulary,
+    edge_map_id: int = 0,
+) -> list[list[KeyframeUpdate | MapPointUpdate]]:
+    """What an edge sends for one agent's session, per keyframe in order: its
+    :class:`KeyframeUpdate`, then (if any) one :class:`MapPointUpdate` of the map points that
+    keyframe observed first (the lowest keyframe id in a point's observations); observations
+    in coded feature indices. For simulations (``services.cloud.simulation.make_session``),
+    tests and benchmarks."""
+    coded: dict[int, KeyframeUpdate] = {}
+    inv: dict[int, np.ndarray] = {}
+    for k in keyframes:  # every keyframe first: observations need the coded indices
+        coded[k.keyframe_id], order = encode_keyframe_update(k, agent_name, vocabulary, edge_map_id)
+        inv[k.keyframe_id] = np.argsort(order)
+    first = {m.map_point_id: int(m.observations[:, 0].min()) for m in map_points}
+    out: list[list[KeyframeUpdate | MapPointUpdate]] = []
+    for k in keyframes:
+        msgs: list[KeyframeUpdate | MapPointUpdate] = [coded[k.keyframe_id]]
+        new = [m for m in map_points if first[m.map_point_id] == k.keyframe_id]
+        if new:
+            msgs.append(encode_map_point_update(new, agent_name, edge_map_id, coded_index=inv))
+        out.append(msgs)
+    return out

@@ -12,9 +12,8 @@ Decoding turns the wire messages of ``common.protocol.messages`` into the atlas'
 - :class:`CullEvent` -> keyframe and map point ids.
 
 Corrections for the edges are built by ``common.links.edge_cloud.encode_pose_correction``;
-:func:`encode_keyframe_update` / :func:`encode_map_point_update` (and :func:`encode_session`, a
-simulated session's every message) build what an edge sends
-(tests, benchmarks and simulations use them as the edge's side of the link).
+what an edge sends for a simulated session is built by ``services.cloud.simulation``
+(``encode_session``) with the links' own packers.
 
 Everything that can be wrong in a peer's message raises :class:`UplinkError` naming the
 message, the agent and the field.
@@ -28,7 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from common.codec.errors import CodecError
-from common.codec.frames import FeatureDecoder, FeatureEncoder
+from common.codec.frames import FeatureDecoder
 from common.codec.imu import ImuDecoder
 from common.codec.types import CodecConfig, KeyframeFeatures
 from common.errors import RecslamError
@@ -43,7 +42,7 @@ from common.links.edge_cloud import (
     decode_points,
     decode_states,
 )
-from common.protocol.arrays import pack_array, unpack_array
+from common.protocol.arrays import unpack_array
 from common.protocol.errors import RemoteProtocolError
 from common.vocabulary import Vocabulary
 from services.cloud.atlas import AtlasError, KeyframeInput, MapPointInput
@@ -269,112 +268,3 @@ def decode_cull_event(msg: CullEvent) -> tuple[np.ndarray, np.ndarray]:
     if (kf.size and kf.min() < 0) or (mp.size and mp.min() < 0):
         raise UplinkError(f"{what}: negative ids")
     return kf, mp
-
-
-# ----------------------------------------------------------------------------- edge side
-def keyframe_features(
-    keypoints: np.ndarray, levels: np.ndarray, descriptors: np.ndarray, codec: CodecConfig
-) -> tuple[KeyframeFeatures, np.ndarray]:
-    """Snap level-0 keypoints ``(N, 2)`` with ``levels (N,)`` to the codec grid and put them in
-    canonical order; returns the features and ``order (N,)`` (feature i = input order[i])."""
-    lev = np.asarray(levels, np.int64)
-    s = codec.level_scale(lev)
-    kp = np.zeros((lev.shape[0], 4), np.int32)
-    xy = np.floor(np.asarray(keypoints, np.float64) / s[:, None] + 0.5)
-    for level in np.unique(lev):
-        w, h = codec.level_size(int(level))
-        sel = lev == level
-        xy[sel, 0] = np.clip(xy[sel, 0], 0, w - 1)
-        xy[sel, 1] = np.clip(xy[sel, 1], 0, h - 1)
-    kp[:, :2] = xy
-    kp[:, 2] = lev
-    raw = KeyframeFeatures(kp, descriptors, np.full(lev.shape[0], -1, np.int32))
-    order = raw.canonical_order()
-    return KeyframeFeatures(kp[order], raw.descriptors[order], raw.links[order]), order
-
-
-def encode_keyframe_update(
-    kf: KeyframeInput,
-    agent_name: str,
-    vocabulary: Vocabulary,
-    edge_map_id: int = 0,
-    previous_keyframe_id: int = -1,
-    timestamp_ns: int | None = None,
-    codec: CodecConfig | None = None,
-) -> tuple[KeyframeUpdate, np.ndarray]:
-    """What an edge sends for ``kf``: the message and ``order (N,)``, the coded order of the
-    features (coded feature i is ``kf``'s feature ``order[i]``; map point observations must
-    use coded indices)."""
-    cfg = codec or CodecConfig()
-    feats, order = keyframe_features(kf.keypoints, kf.levels, kf.descriptors, cfg)
-    payload = FeatureEncoder(vocabulary, cfg).encode_keyframe(feats)
-    ts = round(kf.timestamp * 1e9) if timestamp_ns is None else int(timestamp_ns)
-    msg = KeyframeUpdate(
-        agent_id=agent_name,
-        map_id=edge_map_id,
-        keyframe_id=kf.keyframe_id,
-        previous_keyframe_id=previous_keyframe_id,
-        timestamp_ns=ts,
-        T_world_body=pack_array(kf.T_world_body, "<f8"),
-        velocity_world=pack_array(kf.velocity, "<f8"),
-        bias_gyro=pack_array(kf.bias_gyro, "<f8"),
-        bias_accel=pack_array(kf.bias_accel, "<f8"),
-        features=payload,
-        map_point_ids=pack_array(kf.map_point_ids[order], "<i8"),
-        imu=b"",
-    )
-    return msg, order
-
-
-def encode_map_point_update(
-    points: list[MapPointInput],
-    agent_name: str,
-    edge_map_id: int = 0,
-    coded_index: dict[int, np.ndarray] | None = None,
-) -> MapPointUpdate:
-    """A MapPointUpdate of ``points``; ``coded_index {keyframe_id: inverse order (N,)}`` maps
-    a keyframe's input feature index to its coded index (see :func:`encode_keyframe_update`)."""
-    ids = np.array([p.map_point_id for p in points], np.int64)
-    P = np.array([p.p_world for p in points], np.float64).reshape(-1, 3)
-    rows = []
-    for p in points:
-        for kf_id, idx in p.observations.tolist():
-            if coded_index is not None and kf_id in coded_index:
-                idx = int(coded_index[kf_id][idx])
-            rows.append((p.map_point_id, kf_id, idx))
-    obs = np.array(rows, np.int64).reshape(-1, 3)
-    return MapPointUpdate(
-        agent_name,
-        edge_map_id,
-        pack_array(ids, "<i8"),
-        pack_array(P, "<f8"),
-        pack_array(obs, "<i8"),
-    )
-
-
-def encode_session(
-    keyframes: list[KeyframeInput],
-    map_points: list[MapPointInput],
-    agent_name: str,
-    vocabulary: Vocabulary,
-    edge_map_id: int = 0,
-) -> list[list[KeyframeUpdate | MapPointUpdate]]:
-    """What an edge sends for one agent's session, per keyframe in order: its
-    :class:`KeyframeUpdate`, then (if any) one :class:`MapPointUpdate` of the map points that
-    keyframe observed first (the lowest keyframe id in a point's observations); observations
-    in coded feature indices. For simulations (``services.cloud.simulation.make_session``),
-    tests and benchmarks."""
-    coded: dict[int, KeyframeUpdate] = {}
-    inv: dict[int, np.ndarray] = {}
-    for k in keyframes:  # every keyframe first: observations need the coded indices
-        coded[k.keyframe_id], order = encode_keyframe_update(k, agent_name, vocabulary, edge_map_id)
-        inv[k.keyframe_id] = np.argsort(order)
-    first = {m.map_point_id: int(m.observations[:, 0].min()) for m in map_points}
-    out: list[list[KeyframeUpdate | MapPointUpdate]] = []
-    for k in keyframes:
-        msgs: list[KeyframeUpdate | MapPointUpdate] = [coded[k.keyframe_id]]
-        new = [m for m in map_points if first[m.map_point_id] == k.keyframe_id]
-        if new:
-            msgs.append(encode_map_point_update(new, agent_name, edge_map_id, coded_index=inv))
-        out.append(msgs)
-    return out

@@ -45,14 +45,14 @@ from common.links.edge_cloud import (
     CullEvent,
     KeyframePoses,
     KeyframeStates,
-    KeyframeUpdate,
     KeyframeUpdateCoded,
-    MapPointUpdate,
     MapPointUpdateCoded,
     PointBatch,
     encode_point_ids,
     encode_points,
     encode_states,
+    pack_keyframe_update,
+    pack_map_point_update,
 )
 from common.links.robot_edge import Anchors, RobotFrame
 from common.protocol.arrays import pack_array
@@ -480,35 +480,24 @@ class RobotSession:
                 self._sent_kfs.add(key)
                 self.vio_keyframes += 1
             msgs.append(
-                KeyframeUpdate(
-                    agent_id=self.agent_id,
-                    map_id=upd.map_id,
-                    keyframe_id=kf.keyframe_id,
-                    previous_keyframe_id=-1 if prev is None else int(prev),
-                    timestamp_ns=kf.timestamp_ns,
-                    T_world_body=pack_array(orthonormalize_T(kf.T_world_body), "<f8"),
-                    velocity_world=pack_array(kf.v_world, "<f8"),
-                    bias_gyro=pack_array(kf.bias_gyro, "<f8"),
-                    bias_accel=pack_array(kf.bias_accel, "<f8"),
-                    features=features,
-                    map_point_ids=pack_array(
-                        kf.point_ids if features else np.zeros(0, np.int64), "<i8"
-                    ),
-                    imu=pack_array(imu, "<f8"),
+                pack_keyframe_update(
+                    self.agent_id,
+                    upd.map_id,
+                    kf.keyframe_id,
+                    -1 if prev is None else int(prev),
+                    kf.timestamp_ns,
+                    orthonormalize_T(kf.T_world_body),
+                    kf.v_world,
+                    kf.bias_gyro,
+                    kf.bias_accel,
+                    features,
+                    kf.point_ids if features else None,
+                    imu,
                 )
             )
         points = self._points_to_send(upd)
         if points is not None:
-            ids, p_world, rows = points
-            msgs.append(
-                MapPointUpdate(
-                    agent_id=self.agent_id,
-                    map_id=upd.map_id,
-                    ids=pack_array(ids, "<i8"),
-                    p_world=pack_array(p_world, "<f8"),
-                    observations=pack_array(rows, "<i8"),
-                )
-            )
+            msgs.append(pack_map_point_update(self.agent_id, upd.map_id, *points))
         msgs.extend(self._culls(upd))
         return msgs
 

@@ -13,11 +13,11 @@ from services.cloud.recording import RecordingWriter, read_recording
 from services.cloud.simulation import (
     circle_poses,
     default_camera,
+    encode_session,
     make_session,
     make_world,
     yaw_T,
 )
-from services.cloud.uplink import encode_session
 
 
 @pytest.fixture(scope="module")

@@ -14,8 +14,13 @@ from services.cloud.app import CloudApp
 from services.cloud.config import CloudServiceConfig
 from services.cloud.map_fusion import MapFusion
 from services.cloud.persistence import CloudStore
-from services.cloud.simulation import circle_poses, default_camera, make_session, make_world
-from services.cloud.uplink import encode_keyframe_update
+from services.cloud.simulation import (
+    circle_poses,
+    default_camera,
+    encode_keyframe_update,
+    make_session,
+    make_world,
+)
 
 
 @pytest.fixture(scope="module")

@@ -23,8 +23,14 @@ from services.cloud.core import (
     solve,
 )
 from services.cloud.server import open_app
-from services.cloud.simulation import circle_poses, default_camera, make_session, make_world, yaw_T
-from services.cloud.uplink import encode_session
+from services.cloud.simulation import (
+    circle_poses,
+    default_camera,
+    encode_session,
+    make_session,
+    make_world,
+    yaw_T,
+)
 
 
 @pytest.fixture(scope="module")

@@ -32,8 +32,14 @@ from services.cloud.full_ba import (
 )
 from services.cloud.map_fusion import MapFusion
 from services.cloud.server import CloudServer
-from services.cloud.simulation import circle_poses, default_camera, make_session, make_world
-from services.cloud.uplink import encode_keyframe_update, encode_map_point_update
+from services.cloud.simulation import (
+    circle_poses,
+    default_camera,
+    encode_keyframe_update,
+    encode_map_point_update,
+    make_session,
+    make_world,
+)
 
 N = 16
 CAM = default_camera()

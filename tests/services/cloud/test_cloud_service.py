@@ -23,8 +23,14 @@ from services.cloud.config import CloudServiceConfig
 from services.cloud.map_source import CloudMapSource
 from services.cloud.merge import yaw_of
 from services.cloud.server import CloudServer
-from services.cloud.simulation import circle_poses, default_camera, make_session, make_world, yaw_T
-from services.cloud.uplink import encode_session
+from services.cloud.simulation import (
+    circle_poses,
+    default_camera,
+    encode_session,
+    make_session,
+    make_world,
+    yaw_T,
+)
 
 SECRET = b"cloud-service-test-secret"
 FAST = TransportConfig(reconnect_initial_delay=0.01, reconnect_max_delay=0.2)

@@ -14,14 +14,19 @@ from common.protocol.arrays import pack_array
 from common.vocabulary import Vocabulary
 from services.cloud.atlas import Atlas
 from services.cloud.persistence import CloudStore
-from services.cloud.simulation import circle_poses, default_camera, make_session, make_world
+from services.cloud.simulation import (
+    circle_poses,
+    default_camera,
+    encode_keyframe_update,
+    encode_map_point_update,
+    make_session,
+    make_world,
+)
 from services.cloud.uplink import (
     UplinkError,
     decode_cull_event,
     decode_keyframe_update,
     decode_map_point_update,
-    encode_keyframe_update,
-    encode_map_point_update,
 )
 
 
