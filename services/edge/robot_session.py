@@ -103,9 +103,10 @@ class SessionOptions:
     after its first robot observer (``services.edge.point_uplink``; 0: at once, as the raw
     wire does). Off by default: 3 cut the map-point bytes by ~45 % (edge->cloud 1237 -> 1020
     / 1034 kbit/s at camera rate, default dataset) but joint ATE was 2.7 / 3.0 cm against 2.5
-    at 0 in the same code, one run each: a held point keeps the position it had before a
-    cloud correction the edge applied meanwhile (the VIO moves its points without re-sending
-    them), so it reaches the cloud off its corrected keyframes."""
+    at 0 (single runs; ``benchmarks/results/link_budget_sweep.md``). A likely cause: a held
+    point keeps the position it had before a cloud correction the edge applied meanwhile (the
+    VIO moves its points without re-sending them), so it reaches the cloud off its corrected
+    keyframes."""
 
 
 @dataclass
