@@ -46,7 +46,7 @@ from common.links.robot_edge import (
     encode_feedback,
     points_sendable,
 )
-from services.edge.vio.types import InertialState
+from services.edge.vio.types import VioState
 
 logger = logging.getLogger(__name__)
 
@@ -88,7 +88,7 @@ class FeedbackSender:
         self.codec_timer = codec_timer if codec_timer is not None else CodecTimer()
         self.sent = 0  # messages returned
         self.resets = 0  # of which replaced the robot's set (coded)
-        self._last: InertialState | None = None
+        self._last: VioState | None = None
         self._last_frame = -(10**9)
         self._map: int | None = None  # None: the next message is a reset
         self._numbers = np.zeros(0, np.int64)  # (n,) ascending: tracks the robot has a point of
@@ -107,7 +107,7 @@ class FeedbackSender:
     def on_state(
         self,
         frame_index: int,
-        state: InertialState,
+        state: VioState,
         live_numbers: np.ndarray | None,
         live_p_world: np.ndarray | None,
         tracked_numbers: np.ndarray,

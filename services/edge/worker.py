@@ -39,9 +39,9 @@ from services.edge.vio.manager import VioManager
 from services.edge.vio.types import (
     FrameObservation,
     FrameResult,
-    InertialState,
     MapUpdate,
     VioOptions,
+    VioState,
 )
 
 logger = logging.getLogger(__name__)
@@ -74,7 +74,7 @@ class WorkResult:
 
     frame_index: int
     result: FrameResult | None
-    state: InertialState | None
+    state: VioState | None
     updates: tuple[MapUpdate, ...]
     failed: str = ""  # exception text when the VIO threw (it has been re-initialised)
     generation: int = 0
@@ -177,7 +177,7 @@ class VioRunner:
                 result.reason,
             )
         if base and state is not None:
-            state = InertialState(
+            state = VioState(
                 state.timestamp_ns,
                 state.map_id + base,
                 state.T_world_body,

@@ -2,7 +2,7 @@
 
 Front object: :class:`services.edge.vio.manager.VioManager` —
 ``feed_imu(timestamps_ns, gyro, accel)``, ``feed_frame(FrameObservation) -> FrameResult``,
-``get_state() -> InertialState | None``, ``initialized``, ``map_id``,
+``get_state() -> VioState | None``, ``initialized``, ``map_id``,
 ``pop_map_updates() -> list[MapUpdate]``, ``apply_pose_corrections(map_id, {kf_id: T})``.
 
 Modules: ``types`` (options and data), ``imu`` (buffer, preintegration), ``state`` (keyframes,

@@ -36,11 +36,11 @@ from services.edge.vio.tracking import ImuPrior, track_frame
 from services.edge.vio.types import (
     FrameObservation,
     FrameResult,
-    InertialState,
     MapUpdate,
     TrackingStatus,
     VioError,
     VioOptions,
+    VioState,
 )
 from services.edge.vio.vi_bootstrap import first_vi_init, refine_vi
 
@@ -145,13 +145,13 @@ class VioManager:
         self._trim_imu()
         return result
 
-    def get_state(self) -> InertialState | None:
+    def get_state(self) -> VioState | None:
         """Latest inertial state for feedback to the robot, or None before VI initialisation."""
         if not self.initialized or self._last_T is None or self._last_v is None:
             return None
         ba, bg = self._last_bias if self._last_bias is not None else self._bias_guess
         g_world = np.array([0.0, 0.0, -self.options.gravity_mps2])
-        return InertialState(
+        return VioState(
             timestamp_ns=int(self._last_t or 0),
             map_id=self.map_id,
             T_world_body=self._last_T.copy(),

@@ -241,8 +241,10 @@ class FrameResult:
 
 
 @dataclass(frozen=True, eq=False)
-class InertialState:
-    """Feedback for the robot's IMU-aided tracker (only valid after VI initialisation).
+class VioState:
+    """The VIO's inertial state at a frame, the content of the feedback for the robot's
+    IMU-aided tracker (only valid after VI initialisation). Not the robot's
+    ``services.robot.imu_prediction.InertialState``, which holds what the robot applies.
 
     ``v_world`` (3,) m/s; ``bias_gyro`` (3,) rad/s; ``bias_accel`` (3,) m/s²;
     ``gravity_body`` (3,) m/s², gravity expressed in the body (IMU) frame at ``timestamp_ns``.

@@ -15,7 +15,7 @@ from common.links.robot_edge import (
 from common.protocol.arrays import pack_array
 from services.edge.feedback import FeedbackPolicy, FeedbackSender
 from services.edge.robot_session import FeedbackPolicy as ReExported
-from services.edge.vio.types import InertialState
+from services.edge.vio.types import VioState
 
 CAM = CameraCalibration(640, 480, 400.0, 400.0, 320.0, 240.0)  # camera = body, looking +z
 BODY = np.array([1.0, 2.0, 0.5])
@@ -27,10 +27,10 @@ def seen(ids: np.ndarray, p: np.ndarray) -> Anchors:
     return Anchors(np.asarray(ids), 400.0 * d[:, :2] / d[:, 2:] + [320.0, 240.0])
 
 
-def state(t: int, map_id: int = 0, v: float = 0.0) -> InertialState:
+def state(t: int, map_id: int = 0, v: float = 0.0) -> VioState:
     T = np.eye(4)
     T[:3, 3] = BODY
-    return InertialState(
+    return VioState(
         t, map_id, T, np.array([v, 0.0, 0.0]), np.zeros(3), np.zeros(3), np.array([0, 0, -9.81])
     )
 
