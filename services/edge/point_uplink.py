@@ -15,8 +15,10 @@ from the VIO it selects what is worth sending:
   on the default dataset a point was sent 4.8 times on average, and half of the re-sends
   came within one uplinked keyframe of the first send (82 % within four), so sending a point
   once it has settled replaces most re-sends by one later send. Held points keep their
-  newest position and observations; :meth:`SentPoints.release` sends them all (the robot's
-  sequence ended, or it continues in another map).
+  newest position and observations, move with the corrections the VIO applies meanwhile
+  (:meth:`SentPoints.move_held`, as the VIO moves its points), and :meth:`SentPoints.release`
+  sends them all (the robot's sequence ended, or it continues in another map). Keyframe
+  messages name only the points the cloud has (:meth:`SentPoints.carried`).
 """
 
 from __future__ import annotations
@@ -137,6 +139,23 @@ class SentPoints:
         if sel.any():
             corr = T_new @ inverse_T(T_old)
             self.p_world[sel] = self.p_world[sel] @ corr[:3, :3].T + corr[:3, 3]
+
+    def move_held(self, corrections: dict[int, np.ndarray]) -> None:
+        """Move the held points as the VIO moved its points with a correction: each with the
+        ``(4, 4)`` correction of its first observer (``{keyframe id: correction}``), so that a
+        held point goes up where the VIO has it, not where it was before the correction."""
+        b = self.held
+        if b is None or not len(b) or not corrections:
+            return
+        owner = np.repeat(np.arange(len(b)), b.counts)
+        first = np.full(len(b), np.iinfo(np.int64).max)
+        np.minimum.at(first, owner, b.keyframe_ids)
+        p = b.p_world.copy()
+        for i, kf in enumerate(first.tolist()):
+            T = corrections.get(kf)
+            if T is not None:
+                p[i] = T[:3, :3] @ p[i] + T[:3, 3]
+        self.held = MapPointBatch(b.point_ids, p, b.counts, b.keyframe_ids, b.feature_indices)
 
     def select(self, b: MapPointBatch, own_sorted: np.ndarray, resend_m: float) -> Selection | None:
         """What of ``b`` (distinct point ids) and of the held points to send now, recorded as

@@ -104,9 +104,10 @@ class SessionOptions:
     wire does). Off by default: 3 cut the map-point bytes by ~45 % (edge->cloud 1237 -> 1020
     / 1034 kbit/s at camera rate, default dataset) but joint ATE was 2.7 / 3.0 cm against 2.5
     at 0 (single runs; ``benchmarks/results/link_budget_sweep.md``). A likely cause: a held
-    point keeps the position it had before a cloud correction the edge applied meanwhile (the
-    VIO moves its points without re-sending them), so it reaches the cloud off its corrected
-    keyframes."""
+    point kept the position it had before a cloud correction the edge applied meanwhile (the
+    VIO moves its points without re-sending them), so it reached the cloud off its corrected
+    keyframes; held points now move with those corrections (``SentPoints.move_held``), not
+    yet measured on the whole job."""
 
 
 @dataclass
@@ -272,6 +273,10 @@ class RobotSession:
             self.frame_s.append(res.frame_s)
         self.track_s.extend(res.track_s)
         self.local_ba_s.extend(res.local_ba_s)
+        for map_id, deltas in res.point_moves:  # before this frame's (corrected) points
+            book = self._sent_points.get(map_id)
+            if book is not None:
+                book.move_held(deltas)
         for upd in res.updates:
             out.cloud.extend(self._uplink(upd))
         if res.state is not None and not replaying:

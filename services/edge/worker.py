@@ -82,6 +82,9 @@ class WorkResult:
     track_s: tuple[float, ...] = ()  # the VIO's own per-frame tracking durations [s]
     local_ba_s: tuple[float, ...] = ()  # local BA durations during this frame [s]
     corrections_applied: int = 0
+    # (map id, {keyframe id: (4, 4) correction}) applied before this frame: every map point
+    # moved with its first observer's (``VioManager.pop_point_moves``)
+    point_moves: tuple[tuple[int, dict[int, np.ndarray]], ...] = ()
     live_track_ids: np.ndarray | None = None  # (L,) int64 stream numbers with a map point
     live_p_world: np.ndarray | None = None  # (L, 3) m, their map points
 
@@ -196,6 +199,7 @@ class VioRunner:
             track_s=tuple(self.vio.stats.track_s[n_track:]),
             local_ba_s=tuple(self.vio.stats.local_ba_s[n_ba:]),
             corrections_applied=applied,
+            point_moves=tuple((m + base, d) for m, d in self.vio.pop_point_moves()),
             live_track_ids=live_ids,
             live_p_world=live_p,
         )

@@ -97,6 +97,7 @@ class VioManager:
         self._last_bias: tuple[np.ndarray, np.ndarray] | None = None
         self._bias_guess = (np.zeros(3), np.zeros(3))  # (accel, gyro) carried to new maps
         self._pending_updates: list[MapUpdate] = []
+        self._point_moves: list[tuple[int, dict[int, np.ndarray]]] = []
         self._last_init_reason = ""
         self.last_local_ba: BAStats | None = None
         self._keyframes_since_ba = 0
@@ -171,6 +172,13 @@ class VioManager:
                 out.append(upd)
         return out
 
+    def pop_point_moves(self) -> list[tuple[int, dict[int, np.ndarray]]]:
+        """The corrections applied since the last call, as ``(map id, {keyframe id: (4, 4)
+        correction})``: each map point moved with the correction of its first observer (the
+        uplink moves the points it holds back the same way)."""
+        moves, self._point_moves = self._point_moves, []
+        return moves
+
     def apply_pose_corrections(self, map_id: int, T_world_body: dict[int, np.ndarray]) -> int:
         """Apply corrected keyframe poses (e.g. from the cloud's global optimisation, same world
         frame) to the current map: each corrected keyframe takes its pose, uncorrected ones move
@@ -201,6 +209,7 @@ class VioManager:
             ref = min(mp.observations, default=None)
             if ref is not None and ref in deltas:
                 mp.p_world = deltas[ref][:3, :3] @ mp.p_world + deltas[ref][:3, 3]
+        self._point_moves.append((map_id, deltas))
         # Nothing is re-marked for the uplink: the cloud computed these poses and moved its
         # points with them; resending every point and keyframe of the map after each
         # correction was ~90 % of the edge->cloud bytes. What local BA touches next goes up

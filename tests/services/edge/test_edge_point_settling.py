@@ -139,3 +139,26 @@ def test_settle_zero_sends_at_once_and_negative_is_refused() -> None:
         assert "settle_keyframes" in str(exc)
     else:
         raise AssertionError("SentPoints(-1) accepted")
+
+
+def test_held_points_move_with_the_corrections_the_vio_applied() -> None:
+    """A correction the VIO applies while a point is held moves the point with its first
+    observer's correction (as the VIO moved it), so it goes up where the VIO has it."""
+    book = SentPoints(settle_keyframes=2)
+    own = np.zeros(0, np.int64)
+    book.add_keys(np.zeros(0, np.int64), 0)  # robot keyframes 0 and 5 went up
+    book.add_keys(np.zeros(0, np.int64), 5)
+    first = MapPointBatch.of([_pt(1, 0.1, {0: 0}), _pt(2, 0.2, {5: 0})])
+    assert book.select(first, own, 0.01) is None and book.n_held == 2
+    T = np.eye(4)
+    T[:3, 3] = [1.0, 0.0, 0.0]  # keyframe 0 moved 1 m along x; keyframe 5 not corrected
+    book.move_held({0: T})
+    book.add_keys(np.zeros(0, np.int64), 7)
+    out = book.select(MapPointBatch.of([]), own, 0.01)
+    assert out is not None
+    ids, p_world, _ = out
+    assert ids.tolist() == [1] and np.allclose(p_world[0], [1.1, 0.0, 2.0])
+    assert book.n_held == 1  # point 2 (first seen by keyframe 5) still settling
+    book.move_held({5: T})
+    (ids, p_world, _) = book.release(own, 0.01) or (None, None, None)
+    assert ids is not None and ids.tolist() == [2] and np.allclose(p_world[0], [1.2, 0.0, 2.0])

@@ -118,6 +118,11 @@ def test_pose_corrections_move_map_rigidly_and_tracking_continues():
     assert vio.apply_pose_corrections(vmap.map_id, corrected) == len(ids)
     assert np.allclose(vmap.keyframes[ids[-1]].T_world_body, corrected[ids[-1]])
     assert abs(reprojection_chi2(vmap, ids[-5:], vio.camera) - chi2) < 1e-6
+    # The uplink is told how the points moved: the correction of every keyframe, once.
+    ((moved_map, deltas),) = vio.pop_point_moves()
+    assert moved_map == vmap.map_id and set(deltas) == set(ids)
+    assert all(np.allclose(deltas[k], D, atol=1e-9) for k in ids)
+    assert vio.pop_point_moves() == []
     results = []
     for t, g, a, fr in feed[130:]:
         vio.feed_imu(t, g, a)
