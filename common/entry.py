@@ -10,7 +10,6 @@ command sets it up (:mod:`common.logs`), a :class:`~common.errors.RecslamError` 
 from __future__ import annotations
 
 import argparse
-import sys
 from collections.abc import Callable, Sequence
 
 from common.errors import RecslamError
@@ -43,14 +42,13 @@ def module_main(
     argv: Sequence[str] | None = None,
 ) -> int:
     """Parse ``argv`` (default: the process's), set up logging and ``run`` the parsed
-    arguments; returns the exit code."""
+    arguments; returns its exit code (a RecslamError or Ctrl-C exits through the parser, with
+    2 or 130)."""
     args = parser.parse_args(argv)
     setup_logging(args.verbose)
     try:
         return run(args)
     except RecslamError as exc:
-        print(f"{parser.prog}: error: {exc}", file=sys.stderr)
-        return 2
+        parser.exit(2, f"{parser.prog}: error: {exc}\n")  # argparse's own error exit
     except KeyboardInterrupt:
-        print("interrupted", file=sys.stderr)
-        return 130
+        parser.exit(130, "interrupted\n")
