@@ -1,9 +1,10 @@
 """Where the development datasets are: the shared folder beside the repository.
 
 The real EuRoC excerpt (first 95 frames of V1_01, cam0 + full IMU, no ground truth) lives at
-``../shared/datasets/euroc-micro-V1_01`` relative to the repository root; the environment
-variable :data:`EUROC_MICRO_ENV` names another folder. Tests (``tests/conftest.py``) and
-benchmarks find it only through :func:`euroc_micro_path`.
+``../shared/datasets/euroc-micro-V1_01`` relative to the repository root, or in the team
+machines' shared folder ``/work/shared`` (a clone elsewhere, e.g. CI's, still finds it); the
+environment variable :data:`EUROC_MICRO_ENV` names another folder. Tests
+(``tests/conftest.py``) and benchmarks find it only through :func:`euroc_micro_path`.
 """
 
 from __future__ import annotations
@@ -15,15 +16,21 @@ EUROC_MICRO_ENV = "RECSLAM_EUROC_MICRO"
 """Environment variable overriding the location of the EuRoC excerpt."""
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
-DEFAULT_EUROC_MICRO = REPO_ROOT.parent / "shared" / "datasets" / "euroc-micro-V1_01"
+_EXCERPT = Path("datasets") / "euroc-micro-V1_01"
+DEFAULT_EUROC_MICRO = REPO_ROOT.parent / "shared" / _EXCERPT
+SHARED_EUROC_MICRO = Path("/work/shared") / _EXCERPT
 
 
 def euroc_micro_path() -> Path:
     """The EuRoC excerpt's folder (the one holding ``mav0``): ``$RECSLAM_EUROC_MICRO`` if
-    set and not empty, else :data:`DEFAULT_EUROC_MICRO`. It may not exist: see
-    :func:`euroc_micro_present`."""
+    set and not empty, else :data:`DEFAULT_EUROC_MICRO` if it is there, else
+    :data:`SHARED_EUROC_MICRO`. It may not exist: see :func:`euroc_micro_present`."""
     override = os.environ.get(EUROC_MICRO_ENV, "").strip()
-    return Path(override).expanduser() if override else DEFAULT_EUROC_MICRO
+    if override:
+        return Path(override).expanduser()
+    if euroc_micro_present(DEFAULT_EUROC_MICRO) or not euroc_micro_present(SHARED_EUROC_MICRO):
+        return DEFAULT_EUROC_MICRO
+    return SHARED_EUROC_MICRO
 
 
 def euroc_micro_present(path: Path) -> bool:

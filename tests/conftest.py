@@ -1,7 +1,8 @@
 """Fixtures shared by the whole suite.
 
 ``euroc_micro``: the real EuRoC excerpt, found by :func:`lab.datasets.euroc_micro_path`
-(``../shared/datasets/euroc-micro-V1_01`` beside the repository, or ``$RECSLAM_EUROC_MICRO``).
+(``../shared/datasets/euroc-micro-V1_01`` beside the repository or in ``/work/shared``, or
+``$RECSLAM_EUROC_MICRO``).
 When it is absent a test that needs it is skipped locally, but fails under ``CI=true``: CI
 has the shared folder, so a missing excerpt there is a broken setup, not a reason to skip.
 """
