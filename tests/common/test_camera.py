@@ -8,20 +8,9 @@ import pytest
 
 from common.calibration import CameraCalibration
 from common.camera import CameraModelError, PinholeRadtan
+from common.data.synth.generate import EUROC_CAM0
 
-# EuRoC MH/V cam0 intrinsics and distortion.
-CAM = PinholeRadtan(
-    752,
-    480,
-    458.654,
-    457.296,
-    367.215,
-    248.375,
-    -0.28340811,
-    0.07395907,
-    0.00019359,
-    1.76187114e-05,
-)
+CAM = EUROC_CAM0  # EuRoC MH/V cam0 intrinsics and radial-tangential distortion
 
 
 def _random_points(n: int, seed: int = 0) -> np.ndarray:

@@ -7,24 +7,13 @@ import cv2
 import numpy as np
 import pytest
 
-from common.camera import PinholeRadtan
+from common.data.synth.generate import EUROC_CAM0
 from common.data.synth.render import RenderConfig, Renderer
 from common.data.synth.scene import vicon_room
 from common.data.synth.textures import build_atlas
 from common.geometry import make_T
 
-CAM = PinholeRadtan(
-    752,
-    480,
-    458.654,
-    457.296,
-    367.215,
-    248.375,
-    -0.28340811,
-    0.07395907,
-    0.00019359,
-    1.76187114e-05,
-)
+CAM = EUROC_CAM0  # EuRoC MH/V cam0 intrinsics and radial-tangential distortion
 CLEAN = RenderConfig(noise_std=0.0, blur_sigma=0.0, vignetting=0.0, exposure_amplitude=0.0)
 # Camera axes (x right, y down, z forward) as columns, looking along world -x (at wall x = -4).
 R_LOOK_MINUS_X = np.array([[0.0, 0.0, -1.0], [1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
