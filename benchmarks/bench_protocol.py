@@ -16,7 +16,6 @@ import logging
 import os
 import platform
 import random
-import shutil
 import ssl
 import statistics
 import subprocess
@@ -30,6 +29,7 @@ from common.netem import shaped_link, shaping_unavailable
 from common.protocol import HEADER_SIZE, Blob, SessionConfig
 from common.protocol.messages import encode_payload
 from common.transport import Client, Delivery, Server, TransportConfig, run
+from lab.tls import self_signed_contexts
 
 log = logging.getLogger("bench_protocol")
 RESULTS = Path(__file__).resolve().parent / "results" / "protocol.md"
@@ -51,36 +51,7 @@ class _Counter:
 
 
 def _tls_contexts(tmp: Path) -> tuple[ssl.SSLContext, ssl.SSLContext] | None:
-    if shutil.which("openssl") is None:
-        return None
-    key, cert = tmp / "key.pem", tmp / "cert.pem"
-    subprocess.run(
-        [
-            "openssl",
-            "req",
-            "-x509",
-            "-newkey",
-            "ec",
-            "-pkeyopt",
-            "ec_paramgen_curve:prime256v1",
-            "-nodes",
-            "-keyout",
-            str(key),
-            "-out",
-            str(cert),
-            "-days",
-            "1",
-            "-subj",
-            "/CN=localhost",
-            "-addext",
-            "subjectAltName=DNS:localhost",
-        ],
-        check=True,
-        capture_output=True,
-    )
-    server_ctx = ssl.create_default_context(ssl.Purpose.CLIENT_AUTH)
-    server_ctx.load_cert_chain(cert, key)
-    return server_ctx, ssl.create_default_context(cafile=str(cert))
+    return self_signed_contexts(tmp)
 
 
 async def _throughput(size: int, count: int, tls: tuple | None) -> dict:

@@ -5,8 +5,6 @@ from __future__ import annotations
 import asyncio
 import logging
 import shutil
-import ssl
-import subprocess
 
 import pytest
 
@@ -14,6 +12,7 @@ from common.protocol import Blob, OutboxFullError, SessionConfig
 from common.protocol.framing import encode_frame
 from common.protocol.messages import encode_payload
 from common.transport import Client, Delivery, Server, TransportConfig, run
+from lab.tls import self_signed_contexts
 
 SECRET = b"transport-test-secret-0123"
 FAST = TransportConfig(reconnect_initial_delay=0.01, reconnect_max_delay=0.2)
@@ -236,34 +235,9 @@ def test_send_waits_while_outbox_full_and_disconnected():
 
 @pytest.mark.skipif(shutil.which("openssl") is None, reason="openssl CLI not installed")
 def test_tls_link(tmp_path):
-    key, cert = tmp_path / "key.pem", tmp_path / "cert.pem"
-    subprocess.run(
-        [
-            "openssl",
-            "req",
-            "-x509",
-            "-newkey",
-            "ec",
-            "-pkeyopt",
-            "ec_paramgen_curve:prime256v1",
-            "-nodes",
-            "-keyout",
-            str(key),
-            "-out",
-            str(cert),
-            "-days",
-            "1",
-            "-subj",
-            "/CN=localhost",
-            "-addext",
-            "subjectAltName=DNS:localhost",
-        ],
-        check=True,
-        capture_output=True,
-    )
-    server_ctx = ssl.create_default_context(ssl.Purpose.CLIENT_AUTH)
-    server_ctx.load_cert_chain(cert, key)
-    client_ctx = ssl.create_default_context(cafile=str(cert))
+    contexts = self_signed_contexts(tmp_path)
+    assert contexts is not None  # openssl is there (skipif above)
+    server_ctx, client_ctx = contexts
 
     async def main():
         server, ssink, client, _ = await _pair(
