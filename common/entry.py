@@ -10,7 +10,10 @@ command sets it up (:mod:`common.logs`), a :class:`~common.errors.RecslamError` 
 from __future__ import annotations
 
 import argparse
-from collections.abc import Callable, Sequence
+import asyncio
+import contextlib
+import signal
+from collections.abc import Awaitable, Callable, Sequence
 
 from common.errors import RecslamError
 from common.logs import add_verbosity_argument, setup_logging
@@ -52,3 +55,19 @@ def module_main(
         parser.exit(2, f"{parser.prog}: error: {exc}\n")  # argparse's own error exit
     except KeyboardInterrupt:
         parser.exit(130, "interrupted\n")
+
+
+async def run_until_signal(
+    tick: Callable[[], Awaitable[None]] | None = None, period_s: float = 1.0
+) -> None:
+    """Return on SIGINT or SIGTERM; meanwhile await ``tick`` every ``period_s`` (a service's
+    stats file, for instance)."""
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, stop.set)
+    while not stop.is_set():
+        if tick is not None:
+            await tick()
+        with contextlib.suppress(TimeoutError):
+            await asyncio.wait_for(stop.wait(), period_s)

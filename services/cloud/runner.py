@@ -20,19 +20,16 @@ Heavy modules (the server, gtsam, viser) are imported inside ``serve`` so that p
 from __future__ import annotations
 
 import argparse
-import asyncio
-import contextlib
 import dataclasses
 import json
 import logging
-import signal
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from common.entry import Announce, listen_address
+from common.entry import Announce, listen_address, run_until_signal
 from common.links import WireFormat, codec_cpu
 from common.protocol.credentials import SECRET_ENV, load_secret
 
@@ -299,10 +296,6 @@ async def _run(
     announce: Announce,
 ) -> int:
     cloud = _server(config, secret, camera, vocab)
-    stop = asyncio.Event()
-    loop = asyncio.get_running_loop()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        loop.add_signal_handler(sig, stop.set)
     host, port = await cloud.start(*config.listen)
     # The application's codec_timer (if it has one) stays readable after stop().
     codec_owners = [await cloud.call(lambda app: app)]
@@ -315,12 +308,13 @@ async def _run(
         dashboard.start()
         announce(f"dashboard at {dashboard.url}")
     stats_out = config.stats_out
+
+    async def tick() -> None:
+        if stats_out is not None:
+            await write_stats(stats_out, cloud, codec_owners)
+
     try:
-        while not stop.is_set():
-            if stats_out is not None:
-                await write_stats(stats_out, cloud, codec_owners)
-            with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(stop.wait(), 1.0)
+        await run_until_signal(tick)
     finally:
         announce("cloud stopping")
         if dashboard is not None:

@@ -20,17 +20,14 @@ Heavy modules (the server, the VIO, gtsam) are imported inside ``serve`` so that
 from __future__ import annotations
 
 import argparse
-import asyncio
-import contextlib
 import json
 import logging
-import signal
 import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from common.entry import Announce, listen_address
+from common.entry import Announce, listen_address, run_until_signal
 from common.links import WireFormat, codec_cpu
 from common.protocol.credentials import SECRET_ENV, load_secret
 
@@ -244,19 +241,16 @@ async def _run(
     announce: Announce,
 ) -> int:
     edge = _server(config, secret, camera, imu, vocab)
-    stop = asyncio.Event()
-    loop = asyncio.get_running_loop()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        loop.add_signal_handler(sig, stop.set)
     host, port = await edge.start(*config.listen)
     announce(f"edge listening on {host}:{port}, replayed {edge.replayed_frames} frames")
     stats_out = config.stats_out
+
+    async def tick() -> None:
+        if stats_out is not None:
+            write_stats(stats_out, edge)
+
     try:
-        while not stop.is_set():
-            if stats_out is not None:
-                write_stats(stats_out, edge)
-            with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(stop.wait(), 1.0)
+        await run_until_signal(tick)
     finally:
         announce("edge stopping")
         await edge.stop()  # drains the workers: their last uplinks count in the stats
