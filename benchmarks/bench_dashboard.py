@@ -30,21 +30,8 @@ from common.geometry import make_T, so3_exp
 from common.map_view import MapDelta, StaticMapSource, StatsSnapshot
 from dashboard.demo import DemoConfig, make_demo_map
 from dashboard.viewer import Dashboard, DashboardConfig
+from lab.browser import CHROMIUM, CHROMIUM_FLAGS
 
-CHROMIUM = "/usr/bin/chromium"
-FLAGS = [
-    "--headless",
-    "--no-sandbox",
-    "--disable-gpu",
-    "--disable-quic",
-    "--no-first-run",
-    "--disable-background-networking",
-    "--disable-component-update",
-    "--disable-sync",
-    "--use-gl=angle",
-    "--use-angle=swiftshader",
-    "--enable-unsafe-swiftshader",
-]
 OUT = Path(__file__).parent / "results" / "dashboard.md"
 
 
@@ -149,7 +136,9 @@ def run(n_points: int, grow_s: float, steady_s: float, update_hz: float) -> str:
     delta, stats = make_demo_map(DemoConfig(n_points=n_points, keyframes_per_agent=300))
     rows = []
     with sync_playwright() as p:
-        browser = p.chromium.launch(executable_path=CHROMIUM, headless=True, args=FLAGS)
+        browser = p.chromium.launch(
+            executable_path=str(CHROMIUM), headless=True, args=CHROMIUM_FLAGS
+        )
         # 1. initial load of the complete map
         cfg = DashboardConfig("127.0.0.1", _free_port(), update_hz=update_hz)
         with Dashboard(StaticMapSource(delta, stats), cfg) as dash:
