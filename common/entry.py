@@ -57,15 +57,27 @@ def module_main(
         parser.exit(130, "interrupted\n")
 
 
-async def run_until_signal(
-    tick: Callable[[], Awaitable[None]] | None = None, period_s: float = 1.0
-) -> None:
-    """Return on SIGINT or SIGTERM; meanwhile await ``tick`` every ``period_s`` (a service's
-    stats file, for instance)."""
+def stop_on_signals() -> asyncio.Event:
+    """An event SIGINT and SIGTERM set, installed on the running loop.
+
+    Call it before the service announces its address (a supervisor that signals right after
+    the announcement must find the handlers in place) and after the service's modules are
+    imported: importing pycolmap installs glog's failure handler for SIGTERM, which replaces
+    an earlier one and aborts the process."""
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, stop.set)
+    return stop
+
+
+async def run_until_signal(
+    stop: asyncio.Event,
+    tick: Callable[[], Awaitable[None]] | None = None,
+    period_s: float = 1.0,
+) -> None:
+    """Return once ``stop`` (from :func:`stop_on_signals`) is set; meanwhile await ``tick``
+    every ``period_s`` (a service's stats file, for instance)."""
     while not stop.is_set():
         if tick is not None:
             await tick()

@@ -29,7 +29,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from common.entry import Announce, listen_address, run_until_signal
+from common.entry import Announce, listen_address, run_until_signal, stop_on_signals
 from common.links import WireFormat, codec_cpu
 from common.protocol.credentials import SECRET_ENV, load_secret
 
@@ -296,6 +296,9 @@ async def _run(
     announce: Announce,
 ) -> int:
     cloud = _server(config, secret, camera, vocab)
+    # After the server is built (importing pycolmap installs glog's SIGTERM handler, which
+    # would replace ours) and before the announcement a supervisor acts on.
+    stop = stop_on_signals()
     host, port = await cloud.start(*config.listen)
     # The application's codec_timer (if it has one) stays readable after stop().
     codec_owners = [await cloud.call(lambda app: app)]
@@ -314,7 +317,7 @@ async def _run(
             await write_stats(stats_out, cloud, codec_owners)
 
     try:
-        await run_until_signal(tick)
+        await run_until_signal(stop, tick)
     finally:
         announce("cloud stopping")
         if dashboard is not None:

@@ -27,7 +27,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from common.entry import Announce, listen_address, run_until_signal
+from common.entry import Announce, listen_address, run_until_signal, stop_on_signals
 from common.links import WireFormat, codec_cpu
 from common.protocol.credentials import SECRET_ENV, load_secret
 
@@ -241,6 +241,9 @@ async def _run(
     announce: Announce,
 ) -> int:
     edge = _server(config, secret, camera, imu, vocab)
+    # After the server is built (importing pycolmap installs glog's SIGTERM handler, which
+    # would replace ours) and before the announcement a supervisor acts on.
+    stop = stop_on_signals()
     host, port = await edge.start(*config.listen)
     announce(f"edge listening on {host}:{port}, replayed {edge.replayed_frames} frames")
     stats_out = config.stats_out
@@ -250,7 +253,7 @@ async def _run(
             write_stats(stats_out, edge)
 
     try:
-        await run_until_signal(tick)
+        await run_until_signal(stop, tick)
     finally:
         announce("edge stopping")
         await edge.stop()  # drains the workers: their last uplinks count in the stats
