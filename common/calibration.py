@@ -10,6 +10,22 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from common.errors import RecslamError
+
+CAMERA_MODELS: dict[str, tuple[str, ...]] = {
+    "radtan": ("k1", "k2", "p1", "p2"),
+    "equidistant": ("k1", "k2", "k3", "k4"),
+}
+"""Distortion models a :class:`CameraCalibration` may name, with their coefficients in order:
+``radtan`` is pinhole with radial-tangential distortion (OpenCV's default model, EuRoC's and
+Kalibr's ``radtan``); ``equidistant`` is pinhole with Kannala-Brandt equidistant distortion
+(OpenCV's ``fisheye`` module, Kalibr's ``equidistant``, TUM-VI, RealSense T265)."""
+
+
+class CalibrationError(RecslamError):
+    """A calibration that cannot describe a real sensor (unknown model, wrong coefficient
+    count, non-positive size or focal length)."""
+
 
 def _frozen_array(a: np.ndarray | list, shape: tuple[int, ...]) -> np.ndarray:
     arr = np.array(a, dtype=np.float64).reshape(shape)
@@ -19,9 +35,11 @@ def _frozen_array(a: np.ndarray | list, shape: tuple[int, ...]) -> np.ndarray:
 
 @dataclass(frozen=True, eq=False)
 class CameraCalibration:
-    """Pinhole camera with radial-tangential distortion (k1, k2, p1, p2).
+    """Pinhole camera with a distortion model (see :data:`CAMERA_MODELS`).
 
-    Intrinsics in pixels; ``T_body_cam`` (4, 4) maps camera-frame points to the body frame.
+    Intrinsics in pixels; ``distortion`` holds the model's coefficients in the order
+    :data:`CAMERA_MODELS` names them; ``T_body_cam`` (4, 4) maps camera-frame points to the
+    body frame. The projection maths lives in :func:`common.camera.camera_model`.
     """
 
     width: int
@@ -30,13 +48,27 @@ class CameraCalibration:
     fy: float
     cx: float
     cy: float
-    distortion: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
+    distortion: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0)
     T_body_cam: np.ndarray = field(default_factory=lambda: _frozen_array(np.eye(4), (4, 4)))
     rate_hz: float = 20.0
+    model: str = "radtan"
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "T_body_cam", _frozen_array(self.T_body_cam, (4, 4)))
         object.__setattr__(self, "distortion", tuple(float(d) for d in self.distortion))
+        names = CAMERA_MODELS.get(self.model)
+        if names is None:
+            known = ", ".join(CAMERA_MODELS)
+            raise CalibrationError(f"unknown camera model {self.model!r} (known: {known})")
+        if len(self.distortion) != len(names):
+            raise CalibrationError(
+                f"camera model {self.model!r} takes {len(names)} distortion coefficients "
+                f"({', '.join(names)}), got {len(self.distortion)}"
+            )
+        if self.width <= 0 or self.height <= 0:
+            raise CalibrationError(f"image size must be positive, got {self.width}x{self.height}")
+        if not (self.fx > 0 and self.fy > 0):
+            raise CalibrationError(f"focal lengths must be positive, got {self.fx}, {self.fy}")
 
     @property
     def K(self) -> np.ndarray:
@@ -45,7 +77,8 @@ class CameraCalibration:
 
     @property
     def dist_coeffs(self) -> np.ndarray:
-        """(4,) OpenCV distortion vector (k1, k2, p1, p2)."""
+        """(4,) OpenCV distortion vector of the model (``cv2`` for radtan, ``cv2.fisheye`` for
+        equidistant)."""
         return np.array(self.distortion, dtype=np.float64)
 
 

@@ -10,6 +10,7 @@ distorted ones (k1, k2 radial; p1, p2 tangential), exactly as ``cv2.projectPoint
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 
@@ -26,6 +27,52 @@ def _as_points(a: np.ndarray, dim: int, what: str) -> np.ndarray:
     if arr.ndim != 2 or arr.shape[1] != dim:
         raise CameraModelError(f"{what} must be (N, {dim}), got shape {arr.shape}")
     return arr
+
+
+class CameraModel(Protocol):
+    """What every consumer of a camera uses (tracker, keypoint codec, ORB, VIO, the cloud's
+    verification, the synthetic renderer): pixels <-> undistorted normalised points <-> rays.
+    Build one with :func:`camera_model`."""
+
+    @property
+    def width(self) -> int: ...
+
+    @property
+    def height(self) -> int: ...
+
+    @property
+    def fx(self) -> float: ...
+
+    @property
+    def fy(self) -> float: ...
+
+    @property
+    def cx(self) -> float: ...
+
+    @property
+    def cy(self) -> float: ...
+
+    @property
+    def K(self) -> np.ndarray: ...
+
+    def project(self, p_cam: np.ndarray) -> np.ndarray: ...
+
+    def normalized_to_pixels(self, xy: np.ndarray) -> np.ndarray: ...
+
+    def pixels_to_normalized(self, uv: np.ndarray) -> np.ndarray: ...
+
+    def unproject(self, uv: np.ndarray) -> np.ndarray: ...
+
+    def pixel_grid(self) -> np.ndarray: ...
+
+    def pixel_rays(self) -> np.ndarray: ...
+
+
+def camera_model(calib: CameraCalibration) -> CameraModel:
+    """The projection model ``calib.model`` names, with ``calib``'s parameters."""
+    if calib.model == "radtan":
+        return PinholeRadtan.from_calibration(calib)
+    raise CameraModelError(f"camera model {calib.model!r} is not implemented")
 
 
 @dataclass(frozen=True)
