@@ -16,19 +16,26 @@ IMU samples are kept in memory (numpy, read-only); images are decoded lazily.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import os
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import cv2
 import numpy as np
-import yaml
 
 from common.calibration import CameraCalibration, ImuCalibration
+from common.data.calibration_files import (
+    SensorCalibration,
+    find_calibration,
+    read_text,
+)
+from common.data.calibration_files import read_camera_yaml as read_camera_yaml
+from common.data.calibration_files import read_imu_yaml as read_imu_yaml
 from common.errors import RecslamError
 
 logger = logging.getLogger(__name__)
@@ -158,12 +165,7 @@ class EurocFrame:
 
 
 def _read_text(path: Path) -> str:
-    if not path.is_file():
-        raise EurocError(f"{path}: missing file")
-    try:
-        return path.read_bytes().decode("utf-8-sig")
-    except UnicodeDecodeError as e:
-        raise EurocError(f"{path}: not UTF-8 text ({e.reason} at byte {e.start})") from None
+    return read_text(path, EurocError)
 
 
 def _csv_rows(path: Path, ncols: tuple[int, ...]) -> tuple[list[list[str]], list[int]]:
@@ -297,137 +299,6 @@ def read_camera_csv(path: Path | str, image_dir: Path | str | None = None) -> Ca
     )
 
 
-# ---------------------------------------------------------------------------- YAML parsing
-
-
-class _YamlLoader(yaml.SafeLoader):
-    """SafeLoader that also reads OpenCV ``!!opencv-matrix`` nodes as plain mappings."""
-
-
-_YamlLoader.add_constructor(
-    "tag:yaml.org,2002:opencv-matrix",
-    lambda loader, node: loader.construct_mapping(node, deep=True),
-)
-
-
-class _Yaml:
-    """A parsed ``sensor.yaml``: values by key plus the line each key is on."""
-
-    def __init__(self, path: Path) -> None:
-        self.path = path
-        lines = _read_text(path).splitlines()
-        if lines and lines[0].startswith("%YAML"):
-            lines[0] = ""  # OpenCV's "%YAML:1.0" directive; keep line numbers stable
-        loader = _YamlLoader("\n".join(lines))
-        try:
-            node = loader.get_single_node()
-            data = loader.construct_document(node) if node is not None else None
-        except yaml.YAMLError as e:
-            mark = getattr(e, "problem_mark", None)
-            where = f"{path}:{mark.line + 1}" if mark is not None else str(path)
-            problem = getattr(e, "problem", None) or str(e)
-            raise EurocError(f"{where}: invalid YAML: {problem}") from None
-        finally:
-            loader.dispose()
-        if not isinstance(data, dict):
-            raise EurocError(f"{path}: expected a YAML mapping at top level")
-        self.data = data
-        self.lines = {k.value: k.start_mark.line + 1 for k, _ in node.value}
-
-    def where(self, key: str) -> str:
-        return f"{self.path}:{self.lines[key]}" if key in self.lines else str(self.path)
-
-    def get(self, key: str) -> object:
-        if key not in self.data:
-            raise EurocError(f"{self.path}: missing field {key!r}")
-        return self.data[key]
-
-    def number(self, key: str, positive: bool = False) -> float:
-        value = self.get(key)
-        try:
-            if isinstance(value, bool) or not isinstance(value, int | float | str):
-                raise TypeError
-            x = float(value)  # PyYAML reads "1e-3" (no dot) as a string
-        except (TypeError, ValueError):
-            raise EurocError(f"{self.where(key)}: {key} must be a number, got {value!r}") from None
-        if not math.isfinite(x) or x < 0 or (positive and x == 0):
-            sign = "positive" if positive else "non-negative"
-            raise EurocError(f"{self.where(key)}: {key} must be a finite {sign} number, got {x}")
-        return x
-
-    def numbers(self, key: str, n: int, value: object = None) -> list[float]:
-        value = self.get(key) if value is None else value
-        try:
-            if not isinstance(value, list) or len(value) != n:
-                raise TypeError
-            xs = [float(v) for v in value if not isinstance(v, bool)]
-            if len(xs) != n or not all(math.isfinite(x) for x in xs):
-                raise TypeError
-        except (TypeError, ValueError):
-            raise EurocError(
-                f"{self.where(key)}: {key} must be a list of {n} finite numbers, got {value!r}"
-            ) from None
-        return xs
-
-    def transform(self, key: str = "T_BS") -> np.ndarray:
-        value = self.get(key)
-        if not isinstance(value, dict) or value.get("rows") != 4 or value.get("cols") != 4:
-            raise EurocError(f"{self.where(key)}: {key} must be a mapping with rows: 4, cols: 4")
-        T = np.array(self.numbers(key, 16, value.get("data"))).reshape(4, 4)
-        R = T[:3, :3]
-        if not np.allclose(T[3], [0, 0, 0, 1]) or not np.allclose(R.T @ R, np.eye(3), atol=1e-4):
-            raise EurocError(f"{self.where(key)}: {key} is not a rigid transform: {T.tolist()}")
-        if np.linalg.det(R) < 0:
-            raise EurocError(f"{self.where(key)}: {key} rotation is a reflection (det < 0)")
-        return T
-
-    def expect(self, key: str, allowed: tuple[str, ...]) -> None:
-        if key in self.data and self.data[key] not in allowed:
-            raise EurocError(
-                f"{self.where(key)}: {key} is {self.data[key]!r}, supported: {', '.join(allowed)}"
-            )
-
-
-def read_camera_yaml(path: Path | str) -> CameraCalibration:
-    """``camN/sensor.yaml`` -> pinhole + radial-tangential :class:`CameraCalibration`."""
-    y = _Yaml(Path(path))
-    y.expect("sensor_type", ("camera",))
-    y.expect("camera_model", ("pinhole",))
-    y.expect("distortion_model", ("radial-tangential", "radtan"))
-    width, height = y.numbers("resolution", 2)
-    if width != int(width) or height != int(height) or width < 1 or height < 1:
-        raise EurocError(f"{y.where('resolution')}: resolution must be two positive integers")
-    fx, fy, cx, cy = y.numbers("intrinsics", 4)
-    if fx <= 0 or fy <= 0:
-        raise EurocError(f"{y.where('intrinsics')}: focal lengths must be positive")
-    k1, k2, p1, p2 = y.numbers("distortion_coefficients", 4)
-    return CameraCalibration(
-        width=int(width),
-        height=int(height),
-        fx=fx,
-        fy=fy,
-        cx=cx,
-        cy=cy,
-        distortion=(k1, k2, p1, p2),
-        T_body_cam=y.transform(),
-        rate_hz=y.number("rate_hz", positive=True),
-    )
-
-
-def read_imu_yaml(path: Path | str) -> ImuCalibration:
-    """``imu0/sensor.yaml`` -> :class:`ImuCalibration` (continuous-time noise densities)."""
-    y = _Yaml(Path(path))
-    y.expect("sensor_type", ("imu",))
-    return ImuCalibration(
-        gyro_noise_density=y.number("gyroscope_noise_density"),
-        gyro_random_walk=y.number("gyroscope_random_walk"),
-        accel_noise_density=y.number("accelerometer_noise_density"),
-        accel_random_walk=y.number("accelerometer_random_walk"),
-        rate_hz=y.number("rate_hz", positive=True),
-        T_body_imu=y.transform(),
-    )
-
-
 # ---------------------------------------------------------------------------- sequence
 
 
@@ -452,46 +323,64 @@ class EurocSequence:
     ``groundtruth`` (:class:`EurocGroundTruth` or None).
     """
 
-    def __init__(self, root: Path | str) -> None:
+    def __init__(self, root: Path | str, calibration: SensorCalibration | None = None) -> None:
         self.mav0 = find_mav0(Path(root).resolve())
         self.root = self.mav0.parent if self.mav0.name == "mav0" else self.mav0
         self.name = self.root.name
         self._streams: dict[int, CameraStream] = {}
-        self._calibs: dict[int, CameraCalibration] = {}
         for cam in (0, 1):
             folder = self.mav0 / f"cam{cam}"
             if cam == 1 and not folder.exists():
                 break
             if not folder.is_dir():
                 raise EurocError(f"{folder}: missing camera folder")
-            self._calibs[cam] = read_camera_yaml(folder / "sensor.yaml")
             self._streams[cam] = read_camera_csv(folder / "data.csv")
         imu_dir = self.mav0 / "imu0"
         if not imu_dir.is_dir():
             raise EurocError(f"{imu_dir}: missing IMU folder")
-        self.imu: ImuCalibration = read_imu_yaml(imu_dir / "sensor.yaml")
+        if calibration is None:
+            calibration = find_calibration(self.root)
+        if calibration is None:
+            raise EurocError(
+                f"{self.root}: no calibration (neither mav0/cam0/sensor.yaml nor a Kalibr "
+                "camchain.yaml + imu.yaml): give one with --calibration"
+            )
+        for cam in list(self._streams):
+            if cam >= len(calibration.cameras):
+                logger.info("%s: cam%d has no calibration: ignored", self.name, cam)
+                del self._streams[cam]
+        shift_ns = round(calibration.timeshift_cam_imu_s * 1e9)
+        if shift_ns:
+            logger.info("%s: camera timestamps shifted by %d ns (Kalibr)", self.name, shift_ns)
+            for cam, stream in self._streams.items():
+                ts = _readonly(stream.timestamps_ns + shift_ns, np.int64, (), "timestamps_ns")
+                self._streams[cam] = dataclasses.replace(stream, timestamps_ns=ts)
         self._imu = read_imu_csv(imu_dir / "data.csv")
         gt_csv = self.mav0 / GROUNDTRUTH_DIR / "data.csv"
         self.groundtruth: EurocGroundTruth | None = (
             read_groundtruth(gt_csv) if (self.mav0 / GROUNDTRUTH_DIR).exists() else None
         )
+        ts = self._streams[0].timestamps_ns
+        self.calibration_info = calibration.with_camera_rate(timeline_rate(ts))
+        self._calibs = dict(enumerate(self.calibration_info.cameras))
+        self.imu: ImuCalibration = self.calibration_info.imu
         self.cam0: CameraCalibration = self._calibs[0]
-        self.cam1: CameraCalibration | None = self._calibs.get(1)
-        self.frame_timestamps_ns: np.ndarray = self._streams[0].timestamps_ns
+        self.cam1: CameraCalibration | None = self._calibs.get(1) if 1 in self._streams else None
+        self.frame_timestamps_ns: np.ndarray = ts
         self.image_paths: tuple[Path, ...] = self._streams[0].image_paths
         self.imu_timestamps_ns: np.ndarray = self._imu.timestamps_ns
         self.gyro: np.ndarray = self._imu.gyro
         self.accel: np.ndarray = self._imu.accel
-        ts = self.frame_timestamps_ns
         if self.imu_timestamps_ns[-1] < ts[0] or self.imu_timestamps_ns[0] > ts[-1]:
             logger.warning("%s: IMU does not overlap the images in time", self.name)
         logger.info(
-            "%s: %d frames, %d IMU samples, cameras %s, ground truth %s",
+            "%s: %d frames, %d IMU samples, cameras %s, ground truth %s, %s",
             self.name,
             len(self),
             len(self._imu),
             self.cameras,
             self.groundtruth is not None,
+            self.calibration_info.describe(),
         )
 
     def __len__(self) -> int:
@@ -524,12 +413,7 @@ class EurocSequence:
             raise EurocError(
                 f"{path}: image does not decode (listed at {stream.csv_path}:{stream.csv_lines[i]})"
             )
-        calib = self._calibs[cam]
-        if image.shape != (calib.height, calib.width):
-            raise EurocError(
-                f"{path}: image is {image.shape[1]}x{image.shape[0]}, "
-                f"sensor.yaml says {calib.width}x{calib.height}"
-            )
+        check_image_size(image, self._calibs[cam], self.calibration_info, path)
         return image
 
     def imu_between(self, t0_ns: int | None, t1_ns: int) -> ImuBatch:
@@ -554,33 +438,70 @@ class EurocSequence:
         stop = len(ts) if stop is None else stop
         if not 0 <= start <= stop <= len(ts):
             raise IndexError(f"frames({start}, {stop}) outside 0..{len(ts)}")
-        ends = np.searchsorted(self.imu_timestamps_ns, ts, side="right")
-        for i in range(start, stop):
-            a = 0 if i == 0 else int(ends[i - 1])
-            b = int(ends[i])
-            yield EurocFrame(
-                index=i,
-                timestamp_ns=int(ts[i]),
-                image=self.load_image(i, cam) if load_images else None,
-                imu=ImuBatch(self.imu_timestamps_ns[a:b], self.gyro[a:b], self.accel[a:b]),
-            )
+        images = (self.load_image(i, cam) if load_images else None for i in range(start, stop))
+        return frames_with_imu(ts, self._imu, start, stop, images)
 
     def summary(self) -> dict[str, Any]:
         """Plain facts for CLI display: frames, durations [s], rates [Hz], cameras, ground truth."""
-        ts, its = self.frame_timestamps_ns, self.imu_timestamps_ns
-        frame_span = float(ts[-1] - ts[0]) * 1e-9
-        imu_span = float(its[-1] - its[0]) * 1e-9
         return {
             "name": self.name,
             "path": str(self.root),
             "frames": len(self),
-            "duration_s": frame_span,
-            "camera_rate_hz": (len(ts) - 1) / frame_span if frame_span > 0 else float("nan"),
-            "imu_samples": len(its),
-            "imu_duration_s": imu_span,
-            "imu_rate_hz": (len(its) - 1) / imu_span if imu_span > 0 else float("nan"),
+            **timeline_summary(self.frame_timestamps_ns, self.imu_timestamps_ns),
             "cameras": self.cameras,
             "resolution": [self.cam0.width, self.cam0.height],
+            "calibration": self.calibration_info.describe(),
             "has_groundtruth": self.groundtruth is not None,
             "groundtruth_samples": 0 if self.groundtruth is None else len(self.groundtruth),
         }
+
+
+def timeline_rate(ts: np.ndarray) -> float:
+    """Mean rate [Hz] of increasing int64 ns timestamps (NaN for fewer than two)."""
+    span = float(ts[-1] - ts[0]) * 1e-9 if len(ts) else 0.0
+    return (len(ts) - 1) / span if span > 0 else float("nan")
+
+
+def timeline_summary(frame_ts: np.ndarray, imu_ts: np.ndarray) -> dict[str, float]:
+    """Durations [s] and mean rates [Hz] of a sequence's frames and IMU samples."""
+    return {
+        "duration_s": float(frame_ts[-1] - frame_ts[0]) * 1e-9,
+        "camera_rate_hz": timeline_rate(frame_ts),
+        "imu_samples": len(imu_ts),
+        "imu_duration_s": float(imu_ts[-1] - imu_ts[0]) * 1e-9,
+        "imu_rate_hz": timeline_rate(imu_ts),
+    }
+
+
+def frames_with_imu(
+    timestamps_ns: np.ndarray,
+    imu: ImuBatch,
+    start: int,
+    stop: int,
+    images: Iterable[np.ndarray | None],
+) -> Iterator[EurocFrame]:
+    """Frames ``start..stop-1`` (``images`` gives theirs, in order) with their IMU batches:
+    frame ``i`` carries the samples in ``(t[i-1], t[i]]``, frame 0 every sample up to ``t[0]``.
+    One rule for every sequence source (folder or bag)."""
+    ends = np.searchsorted(imu.timestamps_ns, timestamps_ns, side="right")
+    for i, image in zip(range(start, stop), images, strict=True):
+        a = 0 if i == 0 else int(ends[i - 1])
+        b = int(ends[i])
+        yield EurocFrame(
+            index=i,
+            timestamp_ns=int(timestamps_ns[i]),
+            image=image,
+            imu=ImuBatch(imu.timestamps_ns[a:b], imu.gyro[a:b], imu.accel[a:b]),
+        )
+
+
+def check_image_size(
+    image: np.ndarray, camera: CameraCalibration, calibration: SensorCalibration, where: object
+) -> None:
+    """EurocError unless ``image`` (H, W) has the calibrated resolution (names the file)."""
+    if image.shape[:2] != (camera.height, camera.width):
+        source = calibration.sources[0].name
+        raise EurocError(
+            f"{where}: image is {image.shape[1]}x{image.shape[0]}, "
+            f"{source} says {camera.width}x{camera.height} (resolution of {calibration.sources[0]})"
+        )
