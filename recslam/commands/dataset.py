@@ -3,7 +3,9 @@
 ``recslam dataset synth --out DIR --robots 3 --seconds 60 --seed 0`` renders the embedded
 textured room for every robot and writes ``DIR/robotK/mav0`` (EuRoC layout), ``dataset.json``,
 ``contact_sheet.png`` and ``trajectories_top.png``. ``recslam dataset info PATH`` prints the
-facts of a dataset folder (several ``*/mav0`` sequences) or of a single EuRoC sequence.
+facts of a dataset folder (several ``*/mav0`` sequences), of a single EuRoC-layout sequence
+(EuRoC, TUM-VI), or of a ROS bag (``.bag`` file or ROS 2 bag folder: topics, message types,
+counts, durations and rates).
 """
 
 from __future__ import annotations
@@ -35,8 +37,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     s.add_argument("--no-progress", action="store_true", help="no progress bar")
     s.set_defaults(func=run_synth)
-    i = inner.add_parser("info", help="describe a dataset folder or one EuRoC sequence")
-    i.add_argument("path", type=Path, help="dataset folder (robotK/mav0 ...) or sequence")
+    i = inner.add_parser("info", help="describe a dataset folder, one sequence or a ROS bag")
+    i.add_argument("path", type=Path, help="dataset folder (robotK/mav0 ...), sequence, or ROS bag")
     i.add_argument("--json", action="store_true", help="print JSON instead of a table")
     i.set_defaults(func=run_info)
 
@@ -74,12 +76,16 @@ def run_synth(args: argparse.Namespace) -> int:
 def run_info(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from common.data.euroc import EurocError, EurocSequence
+    from common.data.euroc import EurocSequence
+    from common.data.rosbag import is_bag
+    from common.errors import RecslamError
 
     root: Path = args.path
     if not root.exists():
         print(f"error: {root}: no such file or folder", file=sys.stderr)
         return 2
+    if is_bag(root):
+        return _bag_info(root, args.json)
     meta_path = root / "dataset.json"
     meta = json.loads(meta_path.read_text()) if meta_path.is_file() else None
     folders = sorted(p.parent for p in root.glob("*/mav0")) or [root]
@@ -93,7 +99,7 @@ def run_info(args: argparse.Namespace) -> int:
                 steps = np.diff(gt.p_world_body, axis=0)
                 s["path_length_m"] = float(np.linalg.norm(steps, axis=1).sum())
             rows.append(s)
-    except EurocError as e:
+    except RecslamError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
     if args.json:
@@ -124,5 +130,26 @@ def run_info(args: argparse.Namespace) -> int:
             f"{s['name']:<12}{s['frames']:>8}{s['camera_rate_hz']:>8.1f}{s['imu_samples']:>8}"
             f"{s['imu_rate_hz']:>8.1f}{s['duration_s']:>8.1f}{res:>10}"
             f"{s['groundtruth_samples']:>7}{'-' if path is None else f'{path:.1f}':>8}"
+        )
+    return 0
+
+
+def _bag_info(path: Path, as_json: bool) -> int:
+    from common.data.rosbag import BagError, bag_summary
+
+    try:
+        s = bag_summary(path)
+    except BagError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    if as_json:
+        print(json.dumps(s, indent=2))
+        return 0
+    print(f"{s['path']}: {s['format']}, {s['messages']} messages, {s['duration_s']:.2f} s")
+    print(f"{'topic':<28}{'type':<34}{'messages':>9}{'secs':>8}{'Hz':>8}")
+    for t in s["topics"]:
+        print(
+            f"{t['topic']:<28}{t['type']:<34}{t['messages']:>9}{t['duration_s']:>8.2f}"
+            f"{t['rate_hz']:>8.1f}"
         )
     return 0

@@ -3,6 +3,15 @@
 Example::
 
     recslam robot --dataset datasets/V1_01_easy --edge 127.0.0.1:7000 --agent-id robot-1
+    recslam robot --bag run.bag --calibration camchain.yaml --image-topic /cam0/image_raw \
+        --imu-topic /imu0 --edge 127.0.0.1:7000 --agent-id robot-1
+
+The calibration is the folder's (``mav0/cam0/sensor.yaml`` + ``mav0/imu0/sensor.yaml``:
+EuRoC, TUM-VI; else a Kalibr ``camchain*.yaml`` + ``imu*.yaml`` in the folder) unless
+``--calibration`` names a file or folder; a bag holds none, so ``--bag`` needs it. The
+topics default to the Kalibr files' ``rostopic``. A bad calibration (missing field, unknown
+model, wrong coefficient count, non-rigid transform, resolution unlike the images) stops the
+robot before it starts, naming the file and the field.
 
 The shared secret comes from ``--secret-file`` or the environment variable
 ``RECSLAM_SECRET`` (a development default is used with a warning otherwise). For containers,

@@ -2,7 +2,8 @@
 
 ``add_arguments`` defines the options once, for ``recslam robot`` and ``python -m
 services.robot`` alike (``--dataset``, ``--edge`` and ``--agent-id`` default to the
-environment variables of :data:`ENV_DEFAULTS`, for containers); ``config_from_args`` turns
+environment variables of :data:`ENV_DEFAULTS`, for containers; ``--bag`` with
+``--calibration`` and the topics plays a ROS bag instead of a folder); ``config_from_args`` turns
 them into a :class:`~services.robot.server.RobotServiceConfig` (the shared secret loaded:
 ``--secret-file``, else ``$RECSLAM_SECRET``, else a development default with a warning);
 ``serve`` plays the sequence with SIGINT / SIGTERM handled
@@ -39,9 +40,24 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--dataset",
         type=Path,
         default=env["dataset"],
-        required=env["dataset"] is None,
-        help="EuRoC-layout sequence folder ($RECSLAM_DATASET)",
+        help="EuRoC-layout sequence folder: EuRoC, TUM-VI, synthetic ($RECSLAM_DATASET)",
     )
+    p.add_argument(
+        "--bag",
+        type=Path,
+        default=None,
+        help="ROS 1 .bag file or ROS 2 bag folder instead of --dataset (needs --calibration)",
+    )
+    p.add_argument(
+        "--calibration",
+        type=Path,
+        default=None,
+        metavar="PATH",
+        help="Kalibr camchain.yaml (imu.yaml beside it), EuRoC cam0/sensor.yaml, or a folder "
+        "holding them; overrides the dataset folder's own",
+    )
+    p.add_argument("--image-topic", default=None, help="the bag's camera topic (Image)")
+    p.add_argument("--imu-topic", default=None, help="the bag's IMU topic (Imu)")
     p.add_argument(
         "--edge",
         metavar="HOST:PORT",
@@ -87,8 +103,18 @@ def config_from_args(args: argparse.Namespace) -> RobotServiceConfig:
     host, port = parse_address(args.edge)
     if args.backlog_minutes is None or args.backlog_minutes <= 0:
         raise RobotConfigError(f"--backlog-minutes must be positive, got {args.backlog_minutes}")
+    dataset = args.dataset
+    if args.bag is not None and dataset is not None:
+        from_env = os.environ.get(ENV_DEFAULTS["dataset"])
+        if from_env is None or Path(from_env) != dataset:
+            raise RobotConfigError("give --dataset or --bag, not both")
+        dataset = None  # $RECSLAM_DATASET gives way to an explicit --bag
     return RobotServiceConfig(
-        dataset=args.dataset,
+        dataset=dataset,
+        bag=args.bag,
+        calibration=args.calibration,
+        image_topic=args.image_topic,
+        imu_topic=args.imu_topic,
         edge_host=host,
         edge_port=port,
         agent_id=args.agent_id,

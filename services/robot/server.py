@@ -1,11 +1,11 @@
 """The robot service's lifecycle: connect to the edge, play a sequence, flush, shut down.
 
-:class:`RobotService` plays an EuRoC-layout sequence (real download or synthetic robot
-folder) frame by frame: the image is read, tracked and coded in one worker thread
-(``run_in_executor``: OpenCV releases the GIL, so heartbeats and acks keep flowing on the
-event loop), the :class:`~common.protocol.messages.RobotFrame` goes to the protocol
-:class:`~common.transport.Client`, and the edge's ``InertialFeedback`` is applied by
-:class:`~services.robot.app.RobotApp`. ``rate=realtime`` paces frames at their camera
+:class:`RobotService` plays an EuRoC-layout sequence (real download, TUM-VI, synthetic robot
+folder) or a ROS bag (:mod:`common.data.sources`) frame by frame: the image is read, tracked
+and coded in one worker thread (``run_in_executor``: OpenCV releases the GIL, so heartbeats
+and acks keep flowing on the event loop), the :class:`~common.protocol.messages.RobotFrame`
+goes to the protocol :class:`~common.transport.Client`, and the edge's ``InertialFeedback``
+is applied by :class:`~services.robot.app.RobotApp`. ``rate=realtime`` paces frames at their camera
 timestamps (when the front end falls behind, frames are processed late, never skipped),
 ``rate=max`` plays as fast as the front end runs. At the end a
 ``RobotSequenceEnd`` is sent and the service waits until the edge's application has taken
@@ -45,7 +45,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from common.data.euroc import EurocFrame, EurocSequence
+from common.data.euroc import EurocFrame
+from common.data.sources import SequenceSource, open_source
 from common.errors import RecslamError
 from common.links.robot_edge import RobotFrame
 from common.protocol import SessionConfig
@@ -79,7 +80,8 @@ class RobotServiceConfig:
     """Everything the robot service needs (built once, handed down).
 
     Attributes:
-        dataset: EuRoC-layout sequence folder (``mav0`` inside or the folder itself).
+        dataset: EuRoC-layout sequence folder (``mav0`` inside or the folder itself), or None
+            with ``bag``.
         edge_host, edge_port: the edge's address.
         agent_id: this robot's id on the link (unique per edge).
         secret: shared secret (>= 16 bytes); see :func:`common.protocol.credentials.load_secret`.
@@ -93,9 +95,13 @@ class RobotServiceConfig:
         front_end: front-end options.
         vocabulary: ORB vocabulary file (the repository's default).
         record: keep what the pipeline used per frame in memory (tests).
+        bag: a ROS 1 ``.bag`` file or ROS 2 bag folder instead of ``dataset``.
+        calibration: calibration file or folder (Kalibr camchain.yaml, EuRoC sensor.yaml);
+            overrides the folder's, required with ``bag``.
+        image_topic, imu_topic: the bag's topics (default: the calibration's ``rostopic``).
     """
 
-    dataset: Path
+    dataset: Path | None
     edge_host: str
     edge_port: int
     agent_id: str
@@ -111,8 +117,23 @@ class RobotServiceConfig:
     front_end: FrontEndConfig = field(default_factory=FrontEndConfig)
     vocabulary: Path = DEFAULT_VOCABULARY_PATH
     record: bool = False
+    bag: Path | None = None
+    calibration: Path | None = None
+    image_topic: str | None = None
+    imu_topic: str | None = None
 
     def __post_init__(self) -> None:
+        if self.dataset is None and self.bag is None:
+            raise RobotConfigError("a recording is required: --dataset FOLDER or --bag PATH")
+        if self.dataset is not None and self.bag is not None:
+            raise RobotConfigError("give --dataset (a sequence folder) or --bag, not both")
+        if self.bag is not None and self.calibration is None:
+            raise RobotConfigError(
+                f"--bag {self.bag} needs --calibration FILE: a bag holds no calibration "
+                "(Kalibr camchain.yaml, EuRoC cam0/sensor.yaml, or a folder holding them)"
+            )
+        if self.bag is None and (self.image_topic or self.imu_topic):
+            raise RobotConfigError("--image-topic and --imu-topic apply to --bag only")
         if not isinstance(self.rate, Rate):
             raise RobotConfigError(f"rate must be one of {[r.value for r in Rate]}")
         if not self.edge_host:
@@ -133,11 +154,18 @@ class RobotServiceConfig:
             raise RobotConfigError("idle_timeout_s must exceed heartbeat_interval_s")
 
 
-def open_sequence(path: Path) -> EurocSequence:
-    """Open the dataset, turning a missing folder into a clear RobotConfigError."""
-    if not Path(path).exists():
-        raise RobotConfigError(f"{path}: dataset folder does not exist")
-    return EurocSequence(path)  # EurocError (a RecslamError) names the malformed file
+def open_sequence(config: RobotServiceConfig) -> SequenceSource:
+    """Open the dataset folder or bag with its calibration and check the first image against
+    it (a RecslamError names the missing or malformed file, field or topic)."""
+    if config.dataset is not None and not Path(config.dataset).exists():
+        raise RobotConfigError(f"{config.dataset}: dataset folder does not exist")
+    if config.bag is not None and not Path(config.bag).exists():
+        raise RobotConfigError(f"{config.bag}: bag does not exist")
+    if config.calibration is not None and not Path(config.calibration).exists():
+        raise RobotConfigError(f"{config.calibration}: calibration does not exist")
+    return open_source(
+        config.dataset, config.bag, config.calibration, config.image_topic, config.imu_topic
+    )
 
 
 @dataclass(frozen=True)
@@ -160,13 +188,13 @@ class RobotService:
     def __init__(self, config: RobotServiceConfig, transport: TransportConfig | None = None):
         self.config = config
         self.transport = transport
-        self.sequence = open_sequence(config.dataset)
+        self.sequence = open_sequence(config)
         stop = len(self.sequence)
         if config.max_frames is not None:
             stop = min(stop, config.start_frame + config.max_frames)
         if config.start_frame >= stop:
             raise RobotConfigError(
-                f"{config.dataset}: start frame {config.start_frame} leaves no frames "
+                f"{self.sequence.root}: start frame {config.start_frame} leaves no frames "
                 f"({len(self.sequence)} in the sequence)"
             )
         self._stop_index = stop
