@@ -21,6 +21,7 @@ Every problem raises :class:`BagError` naming the bag and the topic.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 from collections.abc import Iterator
 from pathlib import Path
@@ -67,8 +68,9 @@ def is_bag(path: Path | str) -> bool:
     return (path.is_file() and path.suffix == ".bag") or (path / "metadata.yaml").is_file()
 
 
-def open_bag(path: Path | str) -> AnyReader:
-    """An opened reader (use as a context manager's result: ``with open_bag(p) as r``)."""
+@contextlib.contextmanager
+def open_bag(path: Path | str) -> Iterator[AnyReader]:
+    """``with open_bag(p) as reader``: an opened reader, closed on exit."""
     path = Path(path)
     if not path.exists():
         raise BagError(f"{path}: no such bag")
@@ -79,7 +81,10 @@ def open_bag(path: Path | str) -> AnyReader:
         reader.open()
     except (AnyReaderError, OSError, ValueError) as e:
         raise BagError(f"{path}: unreadable bag: {e}") from None
-    return reader
+    try:
+        yield reader
+    finally:
+        reader.close()
 
 
 def stamp_ns(msg: Any, recorded_ns: int) -> int:
@@ -185,10 +190,10 @@ class BagSequence:
         assert image_topic is not None and imu_topic is not None
         self.image_topic, self.imu_topic = image_topic, imu_topic
         with open_bag(self.root) as reader:
-            self._image_conn = _connection(reader, self.root, image_topic, IMAGE_TYPES)
+            image_conn = _connection(reader, self.root, image_topic, IMAGE_TYPES)
             imu_conn = _connection(reader, self.root, imu_topic, IMU_TYPES)
             imu = self._read_imu(reader, imu_conn)
-            frame_ts = self._read_frame_stamps(reader)
+            frame_ts = self._read_frame_stamps(reader, image_conn)
         shift_ns = round(calibration.timeshift_cam_imu_s * 1e9)
         frame_ts = frame_ts + shift_ns
         frame_ts.setflags(write=False)
@@ -230,8 +235,7 @@ class BagSequence:
             raise BagError(f"{self.root}: topic {conn.topic!r}: a sample is not finite")
         return ImuBatch(ts, values[:, 0:3], values[:, 3:6])
 
-    def _read_frame_stamps(self, reader: AnyReader) -> np.ndarray:
-        conn = self._image_conn
+    def _read_frame_stamps(self, reader: AnyReader, conn: Connection) -> np.ndarray:
         stamps = [
             stamp_ns(reader.deserialize(raw, conn.msgtype), t)
             for _, t, raw in reader.messages(connections=[conn])
@@ -262,8 +266,9 @@ class BagSequence:
         """Decode images ``start..stop-1`` in order -> uint8 (H, W) grayscale (size checked
         against the calibration)."""
         stop = len(self) if stop is None else stop
-        conn = self._image_conn
         with open_bag(self.root) as reader:
+            # a connection belongs to the reader that listed it: take this reader's own
+            conn = _connection(reader, self.root, self.image_topic, IMAGE_TYPES)
             for i, (_, _, raw) in enumerate(reader.messages(connections=[conn])):
                 if i >= stop:
                     return
