@@ -155,6 +155,33 @@ def test_robot_codes_identical_frames_from_bag_and_folder(
     assert from_bag == from_folder
 
 
+def test_kalibr_calibration_names_the_topics(
+    bags: dict[str, Path], folder: EurocSequence, euroc_micro: Path, tmp_path: Path
+) -> None:
+    """Kalibr's ``rostopic`` entries are the default topics; its body frame is the IMU's."""
+    T_cam_body = np.linalg.inv(folder.cam0.T_body_cam)
+    rows = "".join(f"  - {row}\n" for row in T_cam_body.tolist())
+    (tmp_path / "camchain-imucam-run.yaml").write_text(
+        "cam0:\n  camera_model: pinhole\n  distortion_model: radtan\n"
+        f"  distortion_coeffs: {list(folder.cam0.distortion)}\n"
+        f"  intrinsics: {[folder.cam0.fx, folder.cam0.fy, folder.cam0.cx, folder.cam0.cy]}\n"
+        f"  resolution: [752, 480]\n  rostopic: {IMAGE_TOPIC}\n  T_cam_imu:\n{rows}"
+    )
+    (tmp_path / "imu-run.yaml").write_text(
+        f"accelerometer_noise_density: 2.0e-3\naccelerometer_random_walk: 3.0e-3\n"
+        f"gyroscope_noise_density: 1.6968e-04\ngyroscope_random_walk: 1.9393e-05\n"
+        f"rostopic: {IMU_TOPIC}\nupdate_rate: 200.0\n"
+    )
+    bag = open_source(bag=bags["ros2"], calibration=tmp_path)
+    assert isinstance(bag, BagSequence) and (bag.image_topic, bag.imu_topic) == (
+        IMAGE_TOPIC,
+        IMU_TOPIC,
+    )
+    assert bag.cam0.rate_hz == pytest.approx(20.0)  # measured: Kalibr states none
+    np.testing.assert_allclose(bag.cam0.T_body_cam, folder.cam0.T_body_cam, atol=1e-12)
+    assert bag.summary()["frames"] == FRAMES
+
+
 def test_bag_errors_name_the_topic(bags: dict[str, Path], euroc_micro: Path, tmp_path) -> None:
     calib = euroc_micro / "mav0" / "cam0" / "sensor.yaml"
     bag = bags["ros1"]
