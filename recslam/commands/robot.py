@@ -3,8 +3,7 @@
 Example::
 
     recslam robot --dataset datasets/V1_01_easy --edge 127.0.0.1:7000 --agent-id robot-1
-    recslam robot --bag run.bag --calibration camchain.yaml --image-topic /cam0/image_raw \
-        --imu-topic /imu0 --edge 127.0.0.1:7000 --agent-id robot-1
+    recslam robot --bag run.bag --calibration camchain.yaml --edge 127.0.0.1:7000 --agent-id r2
 
 The calibration is the folder's (``mav0/cam0/sensor.yaml`` + ``mav0/imu0/sensor.yaml``:
 EuRoC, TUM-VI; else a Kalibr ``camchain*.yaml`` + ``imu*.yaml`` in the folder) unless
