@@ -120,7 +120,7 @@ def test_kalibr_T_i_b_moves_the_body(tmp_path: Path) -> None:
 
 
 def write_tumvi_sequence(root: Path, frames: int = 3, size: int = 512) -> Path:
-    """A TUM-VI-like folder as downloaded (EuRoC layout, 512x512, equidistant)."""
+    """A TUM-VI-like folder as downloaded (EuRoC layout, 512x512 16-bit, equidistant)."""
     mav0 = root / "mav0"
     (mav0 / "cam0" / "data").mkdir(parents=True)
     (mav0 / "imu0").mkdir()
@@ -129,7 +129,8 @@ def write_tumvi_sequence(root: Path, frames: int = 3, size: int = 512) -> Path:
     lines = ["#timestamp [ns],filename"]
     for i in range(frames):
         t = t0 + i * 50_000_000
-        cv2.imwrite(str(mav0 / "cam0" / "data" / f"{t}.png"), rng.integers(0, 255, (size, size)))
+        image = rng.integers(0, 65535, (size, size), dtype=np.uint16)  # "_16": 16-bit PNGs
+        cv2.imwrite(str(mav0 / "cam0" / "data" / f"{t}.png"), image)
         lines.append(f"{t},{t}.png")
     (mav0 / "cam0" / "data.csv").write_text("\n".join(lines) + "\n")
     imu = ["#timestamp [ns],w_x,w_y,w_z,a_x,a_y,a_z"]
@@ -181,6 +182,7 @@ def test_tumvi_folder_as_downloaded(tmp_path: Path) -> None:
     assert len(seq) == 3 and seq.imu.accel_noise_density == 0.0028
     frame = next(iter(seq.frames(0, 1)))
     assert frame.image is not None and frame.image.shape == (512, 512)
+    assert frame.image.dtype == np.uint8  # the reader gives 8-bit gray
 
 
 def test_folder_calibration_is_chosen_by_what_it_holds(tmp_path: Path, euroc_micro: Path) -> None:
