@@ -484,15 +484,20 @@ def frames_with_imu(
     frame ``i`` carries the samples in ``(t[i-1], t[i]]``, frame 0 every sample up to ``t[0]``.
     One rule for every sequence source (folder or bag)."""
     ends = np.searchsorted(imu.timestamps_ns, timestamps_ns, side="right")
-    for i, image in zip(range(start, stop), images, strict=True):
-        a = 0 if i == 0 else int(ends[i - 1])
-        b = int(ends[i])
-        yield EurocFrame(
-            index=i,
-            timestamp_ns=int(timestamps_ns[i]),
-            image=image,
-            imu=ImuBatch(imu.timestamps_ns[a:b], imu.gyro[a:b], imu.accel[a:b]),
-        )
+    try:
+        for i, image in zip(range(start, stop), images, strict=True):
+            a = 0 if i == 0 else int(ends[i - 1])
+            b = int(ends[i])
+            yield EurocFrame(
+                index=i,
+                timestamp_ns=int(timestamps_ns[i]),
+                image=image,
+                imu=ImuBatch(imu.timestamps_ns[a:b], imu.gyro[a:b], imu.accel[a:b]),
+            )
+    finally:  # closing the frames closes the images' source (a bag reader) now, here
+        close = getattr(images, "close", None)
+        if close is not None:
+            close()
 
 
 def check_image_size(

@@ -322,6 +322,8 @@ class RobotService:
                 blocked = False
             if not await self._send(msg):
                 break
+        # a bag's reader lives in the worker thread (SQLite): close it there
+        await loop.run_in_executor(executor, _close_frames, frames)
 
     async def _send(self, msg: Message) -> bool:
         """Queue ``msg`` (waiting while the backlog is full); False if a second signal
@@ -373,6 +375,13 @@ class RobotService:
 def _next_frame(frames: Iterator[EurocFrame]) -> EurocFrame | None:
     """Read (and decode) the next frame; runs in the worker thread."""
     return next(frames, None)
+
+
+def _close_frames(frames: Iterator[EurocFrame]) -> None:
+    """Close the frame iterator (and the files it reads); runs in the worker thread."""
+    close = getattr(frames, "close", None)
+    if close is not None:
+        close()
 
 
 async def serve(config: RobotServiceConfig, transport: TransportConfig | None = None) -> int:

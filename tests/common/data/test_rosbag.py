@@ -3,6 +3,7 @@ excerpt yield what the folder yields, and the robot codes byte-identical frames 
 
 from __future__ import annotations
 
+import asyncio
 import json
 from pathlib import Path
 from typing import Any
@@ -18,11 +19,15 @@ from common.data.euroc import EurocSequence
 from common.data.rosbag import BagError, BagSequence, bag_summary
 from common.data.sources import SourceError, open_source
 from common.errors import RecslamError
+from common.links.robot_edge import RobotFrame, RobotSequenceEnd
+from common.protocol import SessionConfig
 from common.protocol.messages import encode_payload
+from common.transport import Delivery, Server, TransportConfig, run
 from common.vocabulary import Vocabulary
 from recslam.cli import main as recslam_main
 from services.robot.app import RobotApp
 from services.robot.config import FrontEndConfig
+from services.robot.server import Rate, RobotService, RobotServiceConfig
 
 FRAMES = 8
 IMAGE_TOPIC, IMU_TOPIC = "/cam0/image_raw", "/imu0"
@@ -223,3 +228,54 @@ def test_dataset_info_on_a_bag(bags: dict[str, Path], capsys: pytest.CaptureFixt
     assert recslam_main(["dataset", "info", "--json", str(bags["ros2"])]) == 0
     info = json.loads(capsys.readouterr().out)
     assert info["topics"] == s["topics"]
+
+
+def test_robot_service_plays_a_bag_as_it_plays_the_folder(
+    bags: dict[str, Path], euroc_micro: Path
+) -> None:
+    """The whole service (worker thread, ROS 2's SQLite reader) over a bag and over the folder:
+    the same RobotFrame bytes reach the edge."""
+    secret = b"robot-bag-test-secret"
+    fast = TransportConfig(reconnect_initial_delay=0.02, reconnect_max_delay=0.3)
+
+    async def play(**source: Any) -> list[bytes]:
+        got: list[bytes] = []
+        ended = asyncio.Event()
+
+        async def on_message(d: Delivery) -> None:
+            if isinstance(d.message, RobotFrame):
+                got.append(encode_payload(d.message))
+            elif isinstance(d.message, RobotSequenceEnd):
+                ended.set()
+
+        server = Server(SessionConfig("edge", "edge-test", secret), on_message, transport=fast)
+        _, port = await server.start()
+        try:
+            config = RobotServiceConfig(
+                edge_host="127.0.0.1",
+                edge_port=port,
+                agent_id="robot-1",
+                secret=secret,
+                rate=Rate.MAX,
+                max_frames=FRAMES - 2,
+                flush_timeout_s=30.0,
+                **source,
+            )
+            result = await RobotService(config, fast).run()
+            await asyncio.wait_for(ended.wait(), 5)
+        finally:
+            await server.close()
+        assert result.flushed and result.frames == FRAMES - 2
+        return got
+
+    from_folder = run(play(dataset=euroc_micro))
+    from_bag = run(
+        play(
+            dataset=None,
+            bag=bags["ros2"],
+            calibration=euroc_micro / "mav0" / "cam0" / "sensor.yaml",
+            image_topic=IMAGE_TOPIC,
+            imu_topic=IMU_TOPIC,
+        )
+    )
+    assert len(from_bag) == FRAMES - 2 and from_bag == from_folder
