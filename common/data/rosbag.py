@@ -9,10 +9,10 @@ same recording: frame timestamps in int64 ns, uint8 (H, W) grayscale images and
 - Times are the messages' ``header.stamp`` (sensor time), not the recording time; a message
   with a zero stamp takes its recording time. Image stamps must increase in recording order;
   IMU messages are sorted by stamp (duplicates are an error).
-- Images: ``sensor_msgs/msg/Image`` in ``mono8`` / ``8UC1``, ``bgr8``, ``rgb8``, ``bgra8``,
-  ``rgba8`` (colour to gray with OpenCV's weights, as the folder reader's PNG decoding), or
-  ``sensor_msgs/msg/CompressedImage`` (decoded to gray). IMU: ``sensor_msgs/msg/Imu``
-  (angular velocity rad/s, linear acceleration m/s², IMU frame).
+- Images: ``sensor_msgs/msg/Image`` in ``mono8`` / ``8UC1``, ``mono16`` / ``16UC1`` (high
+  byte, as OpenCV reads a 16-bit PNG), ``bgr8``, ``rgb8``, ``bgra8``, ``rgba8`` (colour to
+  gray with OpenCV's weights), or ``sensor_msgs/msg/CompressedImage`` (decoded to gray).
+  IMU: ``sensor_msgs/msg/Imu`` (angular velocity rad/s, linear acceleration m/s², IMU frame).
 - A bag holds no calibration: one is given (:mod:`common.data.calibration_files`); its
   Kalibr ``rostopic`` entries name the default topics.
 
@@ -50,12 +50,15 @@ IMU_TYPES = ("sensor_msgs/msg/Imu",)
 IMAGE_ENCODINGS: dict[str, tuple[int, int | None]] = {
     "mono8": (1, None),
     "8UC1": (1, None),
+    "mono16": (1, None),
+    "16UC1": (1, None),
     "bgr8": (3, cv2.COLOR_BGR2GRAY),
     "rgb8": (3, cv2.COLOR_RGB2GRAY),
     "bgra8": (4, cv2.COLOR_BGRA2GRAY),
     "rgba8": (4, cv2.COLOR_RGBA2GRAY),
 }
-"""``Image.encoding`` -> (channels, OpenCV conversion to gray)."""
+"""``Image.encoding`` -> (channels, OpenCV conversion to gray). 16-bit images keep their high
+byte, as OpenCV's reading of a 16-bit PNG as gray does (TUM-VI's ``_16`` recordings)."""
 
 
 class BagError(RecslamError):
@@ -121,13 +124,19 @@ def image_to_gray(msg: Any, msgtype: str, where: str) -> np.ndarray:
             f"{where}: image encoding {encoding!r} not supported ({', '.join(IMAGE_ENCODINGS)})"
         )
     channels, conversion = IMAGE_ENCODINGS[encoding]
+    depth = 2 if encoding in ("mono16", "16UC1") else 1
     h, w, step = int(msg.height), int(msg.width), int(msg.step)
     data = np.asarray(msg.data, dtype=np.uint8)
-    if h < 1 or w < 1 or step < w * channels or len(data) < h * step:
+    if h < 1 or w < 1 or step < w * channels * depth or len(data) < h * step:
         raise BagError(
             f"{where}: image of {w}x{h} {encoding} with step {step} has {len(data)} bytes"
         )
-    pixels = data[: h * step].reshape(h, step)[:, : w * channels].reshape(h, w, channels)
+    rows = data[: h * step].reshape(h, step)[:, : w * channels * depth]
+    if depth == 2:
+        dtype = ">u2" if int(msg.is_bigendian) else "<u2"
+        pixels16 = np.ascontiguousarray(rows).view(dtype).reshape(h, w)
+        return (pixels16 >> 8).astype(np.uint8)
+    pixels = rows.reshape(h, w, channels)
     if conversion is None:
         return np.ascontiguousarray(pixels[:, :, 0])
     return cv2.cvtColor(np.ascontiguousarray(pixels), conversion)

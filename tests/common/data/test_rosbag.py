@@ -6,6 +6,7 @@ from __future__ import annotations
 import asyncio
 import json
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import cv2
@@ -16,7 +17,7 @@ from rosbags.rosbag2 import Writer as Writer2
 from rosbags.typesys import Stores, get_typestore
 
 from common.data.euroc import EurocSequence
-from common.data.rosbag import BagError, BagSequence, bag_summary
+from common.data.rosbag import BagError, BagSequence, bag_summary, image_to_gray
 from common.data.sources import SourceError, open_source
 from common.errors import RecslamError
 from common.links.robot_edge import RobotFrame, RobotSequenceEnd
@@ -279,3 +280,28 @@ def test_robot_service_plays_a_bag_as_it_plays_the_folder(
         )
     )
     assert len(from_bag) == FRAMES - 2 and from_bag == from_folder
+
+
+def test_image_encodings_give_the_folder_readers_gray(tmp_path: Path) -> None:
+    rng = np.random.default_rng(3)
+    img16 = rng.integers(0, 65536, (6, 5), dtype=np.uint16)
+    cv2.imwrite(str(tmp_path / "x.png"), img16)
+    from_png = cv2.imread(str(tmp_path / "x.png"), cv2.IMREAD_GRAYSCALE)
+    gray = (img16 >> 8).astype(np.uint8)
+
+    def msg(encoding: str, pixels: np.ndarray, big: int = 0, pad: int = 0) -> SimpleNamespace:
+        rows = pixels.reshape(pixels.shape[0], -1).view(np.uint8)
+        rows = np.pad(rows, ((0, 0), (0, pad)))  # row padding: step > width * bytes
+        fields = dict(encoding=encoding, height=6, width=5, is_bigendian=big)
+        return SimpleNamespace(step=rows.shape[1], data=rows.ravel(), **fields)
+
+    image = "sensor_msgs/msg/Image"
+    np.testing.assert_array_equal(image_to_gray(msg("mono16", img16), image, "m"), from_png)
+    big = msg("16UC1", img16.astype(">u2"), big=1, pad=3)
+    np.testing.assert_array_equal(image_to_gray(big, image, "m"), from_png)
+    rgb = cv2.cvtColor(gray, cv2.COLOR_GRAY2RGB)
+    np.testing.assert_array_equal(image_to_gray(msg("rgb8", rgb, pad=1), image, "m"), gray)
+    with pytest.raises(BagError, match="m: image encoding 'yuv422' not supported"):
+        image_to_gray(msg("yuv422", gray), image, "m")
+    with pytest.raises(BagError, match="has 30 bytes"):
+        image_to_gray(msg("bgr8", gray), image, "m")
