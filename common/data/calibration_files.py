@@ -48,8 +48,9 @@ EUROC_DISTORTION_MODELS = {
 }
 """``distortion_model`` of a EuRoC-format ``sensor.yaml`` -> :data:`CAMERA_MODELS` name."""
 
-KALIBR_DISTORTION_MODELS = {"radtan": "radtan", "equidistant": "equidistant"}
-"""``distortion_model`` of a Kalibr camchain -> :data:`CAMERA_MODELS` name."""
+KALIBR_DISTORTION_MODELS = {"radtan": "radtan", "equidistant": "equidistant", "none": "radtan"}
+"""``distortion_model`` of a Kalibr camchain -> :data:`CAMERA_MODELS` name (``none``: radtan
+with zero coefficients, ``distortion_coeffs`` empty or absent)."""
 
 KALIBR_CAMCHAIN_GLOBS = ("camchain*.yaml", "kalibr_imucam_chain.yaml")
 KALIBR_IMU_GLOBS = ("imu.yaml", "imu-*.yaml", "kalibr_imu_chain.yaml")
@@ -266,8 +267,10 @@ def _camera(
     coeffs_key: str,
     T_body_cam: np.ndarray,
     rate_hz: float,
+    undistorted: bool = False,
 ) -> CameraCalibration:
-    """CameraCalibration of a pinhole section (intrinsics [fu, fv, pu, pv], resolution)."""
+    """CameraCalibration of a pinhole section (intrinsics [fu, fv, pu, pv], resolution);
+    ``undistorted``: zero coefficients, none may be stated."""
     y.choice("camera_model", {"pinhole": "pinhole"}, default="pinhole")
     resolution = y.numbers("resolution", 2)
     if not all(v == int(v) and v >= 1 for v in resolution):
@@ -277,8 +280,13 @@ def _camera(
     fx, fy, cx, cy = y.numbers("intrinsics", 4)
     if fx <= 0 or fy <= 0:
         raise y.fail("intrinsics", f"focal lengths must be positive, got {fx}, {fy}")
-    coeffs = y.numbers(coeffs_key)
     names = CAMERA_MODELS[model]
+    if undistorted:
+        if y.has(coeffs_key) and any(y.numbers(coeffs_key)):
+            raise y.fail(coeffs_key, "must be empty with distortion_model: none")
+        coeffs = [0.0] * len(names)
+    else:
+        coeffs = y.numbers(coeffs_key)
     if len(coeffs) != len(names):
         raise y.fail(
             coeffs_key,
@@ -392,6 +400,7 @@ def read_kalibr(camchain: Path | str, imu: Path | str) -> SensorCalibration:
         "distortion_coeffs",
         T_body_imu @ T_imu_cam,
         y.number("rate_hz", positive=True) if stated else 20.0,
+        undistorted=y.data.get("distortion_model") == "none",
     )
     shift = 0.0
     if y.has("timeshift_cam_imu"):

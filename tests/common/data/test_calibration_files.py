@@ -108,6 +108,15 @@ def test_kalibr_camchain_and_imu(tmp_path: Path) -> None:
     np.testing.assert_allclose(inv.cam0.T_body_cam, c.T_body_cam, atol=1e-12)
 
 
+def test_kalibr_without_distortion(tmp_path: Path) -> None:
+    text = CAMCHAIN.replace("distortion_model: radtan", "distortion_model: none")
+    zero = text.replace("[-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05]", "[]")
+    cal = load_calibration(kalibr_files(tmp_path, camchain=zero))
+    assert cal.cam0.model == "radtan" and cal.cam0.distortion == (0.0, 0.0, 0.0, 0.0)
+    with pytest.raises(CalibrationFileError, match="distortion_coeffs must be empty"):
+        load_calibration(kalibr_files(tmp_path, camchain=text))
+
+
 def test_kalibr_T_i_b_moves_the_body(tmp_path: Path) -> None:
     imu = IMU_NESTED.replace("[1.0, 0.0, 0.0, 0.0]", "[1.0, 0.0, 0.0, 0.5]", 1)
     cal = load_calibration(kalibr_files(tmp_path, imu=imu))
