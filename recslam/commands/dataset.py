@@ -131,6 +131,8 @@ def run_info(args: argparse.Namespace) -> int:
             f"{s['imu_rate_hz']:>8.1f}{s['duration_s']:>8.1f}{res:>10}"
             f"{s['groundtruth_samples']:>7}{'-' if path is None else f'{path:.1f}':>8}"
         )
+    if len(rows) == 1:
+        print(f"calibration: {rows[0]['calibration']}")
     return 0
 
 

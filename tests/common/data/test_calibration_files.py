@@ -22,6 +22,7 @@ from common.data.calibration_files import (
 from common.data.euroc import EurocSequence
 from common.data.sources import open_source
 from common.geometry import inverse_T
+from recslam.cli import main as recslam_main
 
 # Kalibr's output format (camchain-imucam-<bag>.yaml), values of EuRoC's cam0.
 T_CAM_IMU = [
@@ -194,7 +195,9 @@ def test_tumvi_folder_as_downloaded(tmp_path: Path) -> None:
     assert frame.image.dtype == np.uint8  # the reader gives 8-bit gray
 
 
-def test_folder_calibration_is_chosen_by_what_it_holds(tmp_path: Path, euroc_micro: Path) -> None:
+def test_folder_calibration_is_chosen_by_what_it_holds(
+    tmp_path: Path, euroc_micro: Path, capsys: pytest.CaptureFixture
+) -> None:
     euroc = find_calibration(euroc_micro)
     assert euroc is not None and euroc.format is CalibrationFormat.EUROC
     # A EuRoC-layout recording with Kalibr files instead of sensor.yaml.
@@ -213,6 +216,10 @@ def test_folder_calibration_is_chosen_by_what_it_holds(tmp_path: Path, euroc_mic
     plain = EurocSequence(euroc_micro)
     np.testing.assert_array_equal(seq.frame_timestamps_ns, plain.frame_timestamps_ns + 1_500_000)
     np.testing.assert_allclose(seq.cam0.T_body_cam, plain.cam0.T_body_cam, atol=1e-6)
+    assert recslam_main(["dataset", "info", str(seq_dir)]) == 0
+    assert (
+        f"calibration: kalibr calibration ({seq_dir / 'camchain.yaml'}" in capsys.readouterr().out
+    )
     # An explicit calibration overrides the folder's.
     other = open_source(dataset=euroc_micro, calibration=seq_dir / "camchain.yaml")
     assert other.calibration_info.format is CalibrationFormat.KALIBR
