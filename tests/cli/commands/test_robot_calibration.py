@@ -119,3 +119,20 @@ def test_module_entry_point_refuses_too(
     assert exit_.value.code == 2
     err = capsys.readouterr().err
     assert err.startswith("python -m services.robot: error: ") and "cam0.distortion_model" in err
+
+
+def test_bag_arguments_build_the_config(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import argparse
+
+    from recslam.commands import robot
+
+    monkeypatch.setenv("RECSLAM_DATASET", str(tmp_path / "from-env"))  # gives way to --bag
+    parser = argparse.ArgumentParser()
+    robot.register(parser.add_subparsers(dest="command", required=True))
+    argv = ["robot", "--bag", "run.bag", "--calibration", "camchain.yaml", *EDGE]
+    cfg = robot.build_config(
+        parser.parse_args([*argv, "--image-topic", "/cam0", "--imu-topic", "/imu0"])
+    )
+    assert cfg.dataset is None and cfg.bag == Path("run.bag")
+    assert cfg.calibration == Path("camchain.yaml")
+    assert (cfg.image_topic, cfg.imu_topic) == ("/cam0", "/imu0")
