@@ -17,6 +17,12 @@ may start a new map for it (``map_id``, e.g. after tracking was lost): every (ro
 map) pair has its own frame, so it is one *atlas agent*, numbered 0, 1, ... in order of
 appearance. The table of agents (robot name, edge, edge map) is persisted with the
 keyframes. Corrections go back per atlas agent, in that edge map's frame.
+
+Each robot's sensors (``AgentSensors``, sent by its edge before the robot's first keyframe)
+are persisted by robot name, and every atlas agent of that robot projects with its camera
+(``MapFusion.cameras``); a robot without one (recordings made before calibrations travelled)
+uses the fallback camera the service was given. A robot name that comes back with other
+sensors keeps its first ones (logged as an error: its edge refuses such a re-join anyway).
 """
 
 from __future__ import annotations
@@ -36,6 +42,7 @@ from common.evaluation.trajectory import Trajectory
 from common.geometry import R_to_quat_wxyz, inverse_T
 from common.links import CodecTimer, WireFormat
 from common.links.edge_cloud import (
+    AgentSensors,
     AgentStatus,
     CullEvent,
     KeyframePoses,
@@ -46,7 +53,9 @@ from common.links.edge_cloud import (
     PoseCorrection,
     PoseCorrectionCoded,
     encode_pose_correction,
+    read_agent_sensors,
 )
+from common.links.sensors import Sensors, decode_sensors, encode_sensors
 from common.map_view import GroundTruth
 from common.protocol.messages import Message
 from common.protocol.store import InboundPosition
@@ -147,8 +156,13 @@ class CloudApp:
         self.config = config
         self.positions = positions or PositionStore()
         self._agents: dict[tuple[str, int], _Agent] = {}  # (robot, edge map) -> agent
+        self.sensors: dict[str, Sensors] = {
+            name: decode_sensors(blob, f"stored sensors of {name!r}")
+            for name, blob in store.sensors().items()
+        }
         for aid, (name, edge, edge_map) in store.agents().items():
             self._agents[name, edge_map] = _Agent(aid, name, edge, edge_map)
+            self._use_camera(aid, name)
         for edge, (stream, seq) in store.positions().items():
             self.positions.set(edge, InboundPosition(stream, seq))
         self._mbp_done: dict[int, int] = {}  # map -> keyframes at its last MBP pass
@@ -171,10 +185,43 @@ class CloudApp:
             next_id = max((x.agent_id for x in self._agents.values()), default=-1) + 1
             a = self._agents[name, edge_map] = _Agent(next_id, name, edge_id, edge_map)
             log.info("new agent %d: robot %r, map %d of edge %r", next_id, name, edge_map, edge_id)
+            self._use_camera(next_id, name)
             return a, True
         changed = a.edge_id != edge_id
         a.edge_id = edge_id
         return a, changed
+
+    def _use_camera(self, agent_id: int, name: str) -> None:
+        s = self.sensors.get(name)
+        if s is not None:
+            self.fusion.cameras[agent_id] = s.camera
+
+    def _sensors(
+        self, edge_id: str, msg: AgentSensors, position: dict[str, tuple[bytes, int]]
+    ) -> Reaction:
+        """A robot's sensors: remembered (durably) and used by all its atlas agents."""
+        new = read_agent_sensors(msg)
+        name = msg.agent_id
+        old = self.sensors.get(name)
+        if old is not None:
+            if not old.same_as(new):
+                log.error(
+                    "edge %s: robot %r described other sensors (%s) than it has here (%s); "
+                    "keeping the first",
+                    edge_id,
+                    name,
+                    new.summary(),
+                    old.summary(),
+                )
+            self.store.commit(self.atlas, positions=position)
+            return Reaction()
+        self.sensors[name] = new
+        log.info("robot %r (edge %s): %s", name, edge_id, new.summary())
+        self.store.commit(self.atlas, positions=position, sensors={name: encode_sensors(new)})
+        for a in self._agents.values():
+            if a.name == name:
+                self._use_camera(a.agent_id, name)
+        return Reaction()
 
     def agents(self) -> dict[int, tuple[str, str, int]]:
         """``{atlas agent id: (robot name, edge id, edge map id)}``."""
@@ -199,6 +246,8 @@ class CloudApp:
             reaction = self._map_points(edge_id, message, position)
         elif isinstance(message, CullEvent):
             reaction = self._cull(edge_id, message, position)
+        elif isinstance(message, AgentSensors):
+            reaction = self._sensors(edge_id, message, position)
         elif isinstance(message, AgentStatus):
             a, changed = self._agent(message.agent_id, edge_id, message.map_id)
             a.status, a.frames = message.state, message.frames

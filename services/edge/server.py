@@ -4,6 +4,9 @@
 (role "robot", agent id = robot name), a :class:`common.transport.Client` to the cloud (role
 "edge"), the robots' journals (``state_dir``) and the :class:`~services.edge.app.EdgeApp`.
 
+Each robot brings its own calibration (its stream's first message, ``RobotSensors``): the
+edge has none of its own.
+
 Restart without loss (with ``state_dir``): each robot's journal is both the record of its raw
 frames and the transport's delivery store (``services/edge/journal.py``). On ``start`` the
 journals are replayed (codec state rebuilt, VIO fast-forwarded) *before* listening; the
@@ -23,7 +26,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from common.calibration import CameraCalibration, ImuCalibration
 from common.protocol import OutboxFullError, SessionConfig
 from common.protocol.messages import Message
 from common.transport import Client, Server, TransportConfig
@@ -67,7 +69,6 @@ class EdgeServer:
 
     Args:
         secret: shared secret of robots, edge and cloud (>= 16 bytes).
-        camera, imu: the robots' calibration (every robot of this edge shares it).
         vocabulary: the shared ORB vocabulary (codec word ids).
         config: application options (worker kind, VIO, feedback policy).
         service: network options.
@@ -79,8 +80,6 @@ class EdgeServer:
     def __init__(
         self,
         secret: bytes,
-        camera: CameraCalibration,
-        imu: ImuCalibration,
         vocabulary: Vocabulary,
         config: EdgeConfig | None = None,
         service: EdgeServiceConfig | None = None,
@@ -99,7 +98,7 @@ class EdgeServer:
             heartbeat_interval=sv.heartbeat_interval_s,
             idle_timeout=sv.idle_timeout_s,
         )
-        self.app = EdgeApp(camera, imu, vocabulary, self, self.config, self.store, worker_factory)
+        self.app = EdgeApp(vocabulary, self, self.config, self.store, worker_factory)
         tr = transport or TransportConfig(accept_roles=("robot",))
         self.server = Server(
             self.robot_session, self.app.on_robot_message, transport=tr, store=self.store
