@@ -19,10 +19,10 @@ appearance. The table of agents (robot name, edge, edge map) is persisted with t
 keyframes. Corrections go back per atlas agent, in that edge map's frame.
 
 Each robot's sensors (``AgentSensors``, sent by its edge before the robot's first keyframe)
-are persisted by robot name, and every atlas agent of that robot projects with its camera
-(``MapFusion.cameras``); a robot without one (recordings made before calibrations travelled)
-uses the fallback camera the service was given. A robot name that comes back with other
-sensors keeps its first ones (logged as an error: its edge refuses such a re-join anyway).
+are persisted by robot name (``services.cloud.robot_sensors``): every atlas agent of that
+robot projects with its camera (``MapFusion.cameras``) and its keyframes decode with its image
+size; a robot without one (recordings made before calibrations travelled) uses the fallback
+camera the service was given.
 """
 
 from __future__ import annotations
@@ -53,9 +53,7 @@ from common.links.edge_cloud import (
     PoseCorrection,
     PoseCorrectionCoded,
     encode_pose_correction,
-    read_agent_sensors,
 )
-from common.links.sensors import Sensors, decode_sensors, encode_sensors
 from common.map_view import GroundTruth
 from common.protocol.messages import Message
 from common.protocol.store import InboundPosition
@@ -68,6 +66,7 @@ from services.cloud.map_fusion import FusionEvents, MapFusion
 from services.cloud.map_source import AgentInfo, CloudView
 from services.cloud.mbp import MbpReport
 from services.cloud.persistence import CloudStore
+from services.cloud.robot_sensors import RobotSensorBook
 from services.cloud.uplink import (
     DecodedKeyframe,
     UplinkError,
@@ -156,10 +155,7 @@ class CloudApp:
         self.config = config
         self.positions = positions or PositionStore()
         self._agents: dict[tuple[str, int], _Agent] = {}  # (robot, edge map) -> agent
-        self.sensors: dict[str, Sensors] = {
-            name: decode_sensors(blob, f"stored sensors of {name!r}")
-            for name, blob in store.sensors().items()
-        }
+        self.sensors = RobotSensorBook(store.sensors(), fusion.camera)
         for aid, (name, edge, edge_map) in store.agents().items():
             self._agents[name, edge_map] = _Agent(aid, name, edge, edge_map)
             self._use_camera(aid, name)
@@ -192,35 +188,19 @@ class CloudApp:
         return a, changed
 
     def _use_camera(self, agent_id: int, name: str) -> None:
-        s = self.sensors.get(name)
-        if s is not None:
-            self.fusion.cameras[agent_id] = s.camera
+        cam = self.sensors.camera(name)
+        if cam is not None:
+            self.fusion.cameras[agent_id] = cam
 
     def _sensors(
         self, edge_id: str, msg: AgentSensors, position: dict[str, tuple[bytes, int]]
     ) -> Reaction:
         """A robot's sensors: remembered (durably) and used by all its atlas agents."""
-        new = read_agent_sensors(msg)
-        name = msg.agent_id
-        old = self.sensors.get(name)
-        if old is not None:
-            if not old.same_as(new):
-                log.error(
-                    "edge %s: robot %r described other sensors (%s) than it has here (%s); "
-                    "keeping the first",
-                    edge_id,
-                    name,
-                    new.summary(),
-                    old.summary(),
-                )
-            self.store.commit(self.atlas, positions=position)
-            return Reaction()
-        self.sensors[name] = new
-        log.info("robot %r (edge %s): %s", name, edge_id, new.summary())
-        self.store.commit(self.atlas, positions=position, sensors={name: encode_sensors(new)})
+        learnt = self.sensors.learn(edge_id, msg)
+        self.store.commit(self.atlas, positions=position, sensors=dict([learnt] if learnt else []))
         for a in self._agents.values():
-            if a.name == name:
-                self._use_camera(a.agent_id, name)
+            if a.name == msg.agent_id:
+                self._use_camera(a.agent_id, a.name)
         return Reaction()
 
     def agents(self) -> dict[int, tuple[str, str, int]]:
@@ -278,7 +258,7 @@ class CloudApp:
         a, _ = self._agent(msg.agent_id, edge_id, msg.map_id)
         t0 = time.perf_counter()
         try:
-            d = decode_keyframe_update(msg, a.agent_id, self.vocabulary)
+            d = decode_keyframe_update(msg, a.agent_id, self.vocabulary, self.sensors.codec(a.name))
         except UplinkError:
             self.rejected += 1
             raise
