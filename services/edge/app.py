@@ -293,7 +293,12 @@ class EdgeApp:
         for agent in self.journal.agents():
             records = self.journal.journal(agent).read()
             for rec in records:
-                await self._apply(agent, decode_payload(rec.type_id, rec.payload), replaying=True)
+                try:
+                    msg = decode_payload(rec.type_id, rec.payload)
+                    await self._apply(agent, msg, replaying=True)
+                except RejectedMessageError as exc:  # a journal from before sensors travelled
+                    logger.error("robot %s: journal not replayed: %s", agent, exc)
+                    break
                 n += rec.type_id == RobotFrame.TYPE_ID
             logger.info("robot %s: replaying %d journaled messages", agent, len(records))
         return n

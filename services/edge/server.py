@@ -8,12 +8,13 @@ Each robot brings its own calibration (its stream's first message, ``RobotSensor
 edge has none of its own.
 
 Restart without loss (with ``state_dir``): each robot's journal is both the record of its raw
-frames and the transport's delivery store (``services/edge/journal.py``). On ``start`` the
-journals are replayed (codec state rebuilt, VIO fast-forwarded) *before* listening; the
-restored positions make each robot replay exactly what was not journaled. Without
-``state_dir`` a restarted edge starts from nothing: robots reconnecting mid-stream then send
-differential frames the fresh decoders cannot read (the handler fails and the link is
-closed with a reason) until the robot restarts its stream.
+messages and the transport's delivery store (``services/edge/journal.py``). On ``start`` the
+journals are replayed (sensors first: the robot's session rebuilt from them, codec state
+rebuilt, VIO fast-forwarded) *before* listening; the restored positions make each robot
+replay exactly what was not journaled. Without ``state_dir`` a restarted edge starts from
+nothing: a robot reconnecting mid-stream then sends frames without the sensor description
+that opened its stream, which the edge refuses with that reason (the robot stops; restarted,
+its new stream opens with its sensors again).
 
 The edge's link to the cloud is not persisted: after a restart it is a new stream; the VIO
 replay re-sends keyframes (the cloud treats ``KeyframeUpdate`` as idempotent).
