@@ -346,6 +346,7 @@ class RobotService:
                 c["outbox_messages"],
             )
             return False
+        flush.result()  # re-raise a flush error (the edge refused the robot)
         return True
 
 
