@@ -136,3 +136,57 @@ def test_two_cameras_through_one_edge_and_a_rejoin_with_another_is_refused(team)
     assert "re-joined with other sensors" in refusal and "640x480" in refusal, refusal
     assert after["robots"]["euroc"]["frames_decoded"] == before["robots"]["euroc"]["frames_decoded"]
     assert after["robots"]["euroc"]["sensors"] == sensors["euroc"].summary()
+
+
+class _Sink:
+    def __init__(self) -> None:
+        self.cloud: list = []
+
+    def to_robot(self, agent_id: str, message) -> bool:
+        return True
+
+    async def to_cloud(self, message) -> None:
+        self.cloud.append(message)
+
+    def link_counters(self, agent_id: str) -> dict[str, int]:
+        return {}
+
+
+def test_the_edge_refuses_bad_descriptions_and_frames_before_one() -> None:
+    """Sans network: a damaged description, a frame before any description and a conflicting
+    re-join are each a RejectedMessageError naming the robot (the transport then closes that
+    robot's connection with the reason); a repeat of the same sensors is accepted."""
+    from common.calibration import EUROC_IMU
+    from common.links.robot_edge import RobotFrame, RobotSensors, sensors_message
+    from common.protocol import RejectedMessageError
+    from common.transport import Delivery
+    from services.cloud.simulation import default_camera
+    from services.edge.app import EdgeApp
+
+    good = Sensors(default_camera(), EUROC_IMU)
+    other = Sensors(OTHER_CAMERA.to_calibration(default_camera().T_body_cam, 20.0), EUROC_IMU)
+
+    def deliver(agent: str, msg, seq: int = 1) -> Delivery:
+        return Delivery(agent, "robot", msg, seq, b"stream")
+
+    async def main() -> None:
+        sink = _Sink()
+        app = EdgeApp(Vocabulary.load(), sink, EdgeConfig(worker="thread"))
+        try:
+            damaged = bytearray(sensors_message(good).sensors)
+            damaged[10] ^= 1
+            with pytest.raises(RejectedMessageError, match="robot a: invalid sensor description"):
+                await app.on_robot_message(deliver("a", RobotSensors(bytes(damaged))))
+            with pytest.raises(RejectedMessageError, match="before its RobotSensors"):
+                await app.on_robot_message(deliver("a", RobotFrame(0, 0, True, b"", b"")))
+            assert app.robots == {} and sink.cloud == []
+            await app.on_robot_message(deliver("a", sensors_message(good)))
+            await app.on_robot_message(deliver("a", sensors_message(good), 2))  # a restart
+            with pytest.raises(RejectedMessageError, match="re-joined with other sensors"):
+                await app.on_robot_message(deliver("a", sensors_message(other), 3))
+            assert list(app.robots) == ["a"] and app.robots["a"].sensors.same_as(good)
+            assert [type(m) for m in sink.cloud] == [AgentSensors]
+        finally:
+            await app.close()
+
+    asyncio.run(main())
