@@ -35,6 +35,7 @@ import numpy as np
 
 from common.data.euroc import find_mav0, read_camera_yaml, read_imu_yaml
 from common.links.robot_edge import RobotFrame
+from common.links.sensors import Sensors
 from common.protocol import SessionConfig
 from common.transport import Delivery, Server, TransportConfig
 from common.vocabulary import Vocabulary
@@ -56,7 +57,7 @@ def _ms(values: list[float]) -> str:
     return f"{np.median(a):.1f} / {np.percentile(a, 95):.1f}"
 
 
-async def _peers(frames_by_robot: dict, conn: Connection) -> None:
+async def _peers(frames_by_robot: dict, sensors: Sensors, conn: Connection) -> None:
     """The robot players and a stub cloud (in the peers process): sends the cloud's port,
     receives the edge's, plays every robot, and after "done" reports its CPU seconds."""
 
@@ -79,6 +80,7 @@ async def _peers(frames_by_robot: dict, conn: Connection) -> None:
                 port,
                 name,
                 SECRET,
+                sensors,
                 transport=cfg,
                 flush_timeout_s=3600.0,
                 linger=done,
@@ -94,8 +96,8 @@ async def _peers(frames_by_robot: dict, conn: Connection) -> None:
     conn.send(cpu)
 
 
-def _peers_main(frames_by_robot: dict, conn: Connection) -> None:
-    asyncio.run(_peers(frames_by_robot, conn))
+def _peers_main(frames_by_robot: dict, sensors: Sensors, conn: Connection) -> None:
+    asyncio.run(_peers(frames_by_robot, sensors, conn))
 
 
 async def run_case(frames_by_robot: dict, camera, imu, vocab, worker: str) -> dict:
@@ -105,19 +107,18 @@ async def run_case(frames_by_robot: dict, camera, imu, vocab, worker: str) -> di
     loop = asyncio.get_running_loop()
     ctx = multiprocessing.get_context("spawn")
     conn, child = ctx.Pipe()
-    peers = ctx.Process(target=_peers_main, args=(frames_by_robot, child), daemon=True)
+    sensors = Sensors(camera, imu)
+    peers = ctx.Process(target=_peers_main, args=(frames_by_robot, sensors, child), daemon=True)
     peers.start()
     cport = await loop.run_in_executor(None, conn.recv)
     edge = EdgeServer(
         SECRET,
-        camera,
-        imu,
         vocab,
         EdgeConfig(worker=worker),
         EdgeServiceConfig(agent_id="edge", cloud_host="127.0.0.1", cloud_port=cport),
     )
     _, port = await edge.start()
-    await edge.app.prepare(list(frames_by_robot))
+    await edge.app.prepare({name: sensors for name in frames_by_robot})
     t0 = time.monotonic()
     cpu0 = time.process_time()  # this process: the edge's event loop, decoding, uplink coding
     conn.send(port)

@@ -170,8 +170,6 @@ class Job:
             str(self.run_dir / "state" / "edge"),
             "--secret-file",
             str(self.secret_path),
-            "--camera",
-            str(Path(c.dataset) / self.robot_names[0]),
             "--worker",
             c.worker,
             "--wire",

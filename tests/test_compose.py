@@ -111,7 +111,6 @@ def test_ports_volumes_and_addresses_agree_with_the_flags() -> None:
         ("cloud", "--results"),
         ("edge", "--state-dir"),
         ("cloud", "--groundtruth"),
-        ("edge", "--camera"),
     ):
         command = cloud if name == "cloud" else edge
         path = _flag(command, flag)

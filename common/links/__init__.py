@@ -1,9 +1,10 @@
 """One module per link: the wire messages of a link and their encoders and decoders.
 
-- ``robot_edge``: RobotFrame, RobotSequenceEnd (robot -> edge), InertialFeedback and
-  InertialFeedbackCoded (edge -> robot; both decode into one FeedbackContent);
-- ``edge_cloud``: KeyframeUpdate, MapPointUpdate, CullEvent, AgentStatus (edge -> cloud),
-  PoseCorrection (cloud -> edge).
+- ``robot_edge``: RobotSensors, RobotFrame, RobotSequenceEnd (robot -> edge), InertialFeedback
+  and InertialFeedbackCoded (edge -> robot; both decode into one FeedbackContent);
+- ``edge_cloud``: AgentSensors, KeyframeUpdate, MapPointUpdate, CullEvent, AgentStatus (edge ->
+  cloud), PoseCorrection (cloud -> edge);
+- ``sensors``: the sensor description (calibrations) both links carry, and its codec.
 """
 
 from __future__ import annotations

@@ -22,6 +22,7 @@ from common.links.body import (
     put_scaled_signed,
     seal,
 )
+from common.links.sensors import Sensors, decode_sensors, encode_sensors
 from common.protocol.arrays import pack_array, unpack_array
 from common.protocol.messages import Message, message
 
@@ -142,6 +143,26 @@ class AgentStatus(Message):
     keyframes: int
     timestamp_ns: int
     link_counters: dict[str, int]
+
+
+@message(0x0408)
+class AgentSensors(Message):
+    """The sensors of robot ``agent_id`` as it described them at join (``sensors``:
+    :func:`common.links.sensors.encode_sensors`), sent before that robot's first keyframe
+    (and again after an edge restart; the cloud ignores a repeat). The cloud projects that
+    robot's keyframes with this camera."""
+
+    agent_id: str
+    sensors: bytes
+
+
+def agent_sensors_message(agent_id: str, sensors: Sensors) -> AgentSensors:
+    return AgentSensors(agent_id, encode_sensors(sensors))
+
+
+def read_agent_sensors(msg: AgentSensors) -> Sensors:
+    """The sensors of ``msg``; SensorsDecodeError (RemoteProtocolError) if damaged/invalid."""
+    return decode_sensors(msg.sensors, f"AgentSensors({msg.agent_id!r}).sensors")
 
 
 # ------------------------------------------------------------------------- cloud -> edge

@@ -1,6 +1,9 @@
 """The robot <-> edge link: its wire messages (type ids 0x02xx robot -> edge, 0x03xx edge ->
 robot) and their encoders and decoders, used by both ends and by every test and benchmark.
 
+A robot's stream starts with :class:`RobotSensors` (its calibrations, ``common.links.sensors``);
+the edge builds that robot's decoders and VIO from it.
+
 Edge -> robot feedback has two wire formats that decode into one :class:`FeedbackContent`
 (:func:`decode_feedback`): :class:`InertialFeedback` (0x0301, the raw float64 baseline: every
 message carries the whole landmark set) and :class:`InertialFeedbackCoded` (0x0302: float32
@@ -18,11 +21,12 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from common.calibration import CameraCalibration
-from common.camera import PinholeRadtan
+from common.camera import camera_model
 from common.codec.entropy import BitReader, BitWriter, best_scale_index, signed_cost
 from common.codec.errors import CodecError
 from common.geometry import R_to_quat_wxyz, quat_wxyz_to_R
 from common.links import WireFormat, body
+from common.links.sensors import Sensors, decode_sensors, encode_sensors
 from common.protocol.arrays import pack_array, unpack_array
 from common.protocol.errors import RemoteProtocolError
 from common.protocol.messages import Message, message
@@ -54,6 +58,27 @@ class RobotSequenceEnd(Message):
     """The robot has sent its last frame (``frames`` frames in all)."""
 
     frames: int
+
+
+@message(0x0203)
+class RobotSensors(Message):
+    """The robot's sensors, its first message on every stream (before any ``RobotFrame``):
+    ``sensors`` is :func:`common.links.sensors.encode_sensors` of its camera and IMU
+    calibrations (versioned, CRC-checked, float64). Build and read it with
+    :func:`sensors_message` and :func:`read_sensors`."""
+
+    sensors: bytes
+
+
+def sensors_message(sensors: Sensors) -> RobotSensors:
+    """The join message of a robot with these sensors."""
+    return RobotSensors(encode_sensors(sensors))
+
+
+def read_sensors(msg: RobotSensors) -> Sensors:
+    """The sensors a join message describes; SensorsDecodeError (RemoteProtocolError) if the
+    description is damaged or describes sensors that cannot exist."""
+    return decode_sensors(msg.sensors, "RobotSensors.sensors")
 
 
 # ------------------------------------------------------------------------- edge -> robot
@@ -365,7 +390,7 @@ def _anchored(pose: bytes, uv: np.ndarray, q: np.ndarray, camera: CameraCalibrat
     (M, 2) [px] from the packed pose (the decoder's reconstruction, shared by the edge)."""
     if not len(q):
         return np.zeros((0, 3))
-    xy = PinholeRadtan.from_calibration(camera).pixels_to_normalized(uv)
+    xy = camera_model(camera).pixels_to_normalized(uv)
     z = np.exp(np.asarray(q, np.float64) * _LOG_STEP)
     p_cam = np.concatenate([xy * z[:, None], z[:, None]], axis=1)
     T_wc = _state_T(pose) @ camera.T_body_cam

@@ -11,8 +11,10 @@ from common.protocol.errors import (
     AuthenticationError,
     LocalProtocolError,
     OutboxFullError,
+    PeerRejectedError,
     PeerTimeoutError,
     ProtocolError,
+    RejectedMessageError,
     RemoteProtocolError,
 )
 from common.protocol.events import (
@@ -61,8 +63,10 @@ __all__ = [
     "OutboxFullError",
     "PeerAuthenticated",
     "PeerClosed",
+    "PeerRejectedError",
     "PeerTimeoutError",
     "ProtocolError",
+    "RejectedMessageError",
     "RemoteProtocolError",
     "Session",
     "SessionConfig",

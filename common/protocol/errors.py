@@ -33,5 +33,17 @@ class AuthenticationError(RemoteProtocolError):
     """The peer failed the challenge-response authentication."""
 
 
+class RejectedMessageError(RemoteProtocolError):
+    """Raised by an application's message handler to refuse a peer's message for good (it
+    is invalid, or conflicts with what the peer said before): the transport closes that one
+    connection with ``CloseCode.REJECTED`` and this reason, and the peer stops resending.
+    Other handler errors close the connection so that the message is redelivered."""
+
+
+class PeerRejectedError(ProtocolError):
+    """The peer's application refused a message of ours (``CloseCode.REJECTED``, with its
+    reason): the link is given up; sending more cannot help."""
+
+
 class PeerTimeoutError(ProtocolError):
     """The peer stayed silent past the idle timeout or the handshake deadline."""

@@ -19,6 +19,10 @@ class CloseCode(enum.IntEnum):
     TIMEOUT = 5
     REPLACED = 6
     HANDLER_FAILED = 7
+    REJECTED = 8
+    """The receiving application refused a message the peer sent (its handler raised
+    ``RejectedMessageError``, e.g. an invalid or conflicting sensor description): resending it
+    cannot help, so the client stops reconnecting."""
 
 
 @dataclass(frozen=True)

@@ -22,7 +22,9 @@ from common.protocol import (
     MessageReceived,
     PeerAuthenticated,
     PeerClosed,
+    PeerRejectedError,
     ProtocolError,
+    RejectedMessageError,
     Session,
 )
 from common.protocol.link import Link
@@ -103,6 +105,7 @@ class Peer:
         self._inbox: asyncio.Queue[MessageReceived] = asyncio.Queue()
         self._delivery = asyncio.create_task(self._deliver_loop(), name=f"deliver-{name}")
         self.attach_lock = asyncio.Lock()
+        self.rejected: str | None = None  # the peer's reason when it refused our message
 
     @property
     def connected(self) -> bool:
@@ -127,8 +130,10 @@ class Peer:
         """Queue ``message`` (waits while the outbox is full) and return its sequence."""
         entry = self.link.encode(message)
         while not self.link.has_room(len(entry.payload)):
+            self._check_rejected()
             self._space.clear()
             await self._space.wait()
+        self._check_rejected()
         seq = self.link.enqueue(entry)
         self._kick()
         return seq
@@ -137,8 +142,19 @@ class Peer:
         """Wait until the peer's application delivered everything queued so far."""
         target = self.link.next_seq - 1
         while self.link.first_unacked <= target:
+            self._check_rejected()
             self._space.clear()
             await self._space.wait()
+
+    def reject(self, reason: str) -> None:
+        """The peer refused a message of ours (``CloseCode.REJECTED``): senders and flushers
+        waiting on this link raise PeerRejectedError from now on."""
+        self.rejected = reason
+        self._space.set()
+
+    def _check_rejected(self) -> None:
+        if self.rejected is not None:
+            raise PeerRejectedError(f"{self.agent_id} refused our message: {self.rejected}")
 
     async def wait_connected(self) -> None:
         await self._established.wait()
@@ -174,6 +190,16 @@ class Peer:
                 await self._handler(delivery)
             except asyncio.CancelledError:
                 raise
+            except RejectedMessageError as exc:  # the handler refused the message for good
+                logger.warning(
+                    "%s seq %d from %s refused: %s; closing that connection",
+                    type(ev.message).__name__,
+                    ev.seq,
+                    self.agent_id,
+                    exc,
+                )
+                self._rewind(CloseCode.REJECTED, str(exc))
+                continue
             except Exception:
                 logger.exception(
                     "handler failed on %s seq %d from %s; dropping the connection, the "
@@ -196,12 +222,16 @@ class Peer:
             else:
                 self.link.mark_delivered(ev.seq)
 
-    def _rewind(self) -> None:
+    def _rewind(
+        self,
+        code: CloseCode = CloseCode.HANDLER_FAILED,
+        reason: str = "handler failed; resume to redeliver",
+    ) -> None:
         while not self._inbox.empty():
             self._inbox.get_nowait()
         self.link.rewind_inbound()
         if self._conn is not None:
-            self._conn.close(CloseCode.HANDLER_FAILED, "handler failed; resume to redeliver")
+            self._conn.close(code, reason[:200])
 
     async def _stop(self) -> None:
         self._delivery.cancel()
@@ -233,6 +263,7 @@ class _Connection:
         self._timer: asyncio.TimerHandle | None = None
         self._timer_at: float | None = None
         self.established_once = False
+        self.peer_closed: PeerClosed | None = None  # the peer's Close, when it sent one
         info = writer.get_extra_info("peername")
         self.name = f"{info[0]}:{info[1]}" if isinstance(info, tuple) else str(info)
         if peer is not None:
@@ -342,6 +373,7 @@ class _Connection:
                     self._finish(f"{type(exc).__name__}: {exc}", level=logging.WARNING)
                     return
             elif isinstance(ev, PeerClosed):
+                self.peer_closed = ev
                 self._finish(f"peer closed (code {ev.code}): {ev.reason}")
             else:
                 if isinstance(ev, HandshakeComplete):

@@ -38,7 +38,9 @@ def _jittered(delay: float, jitter: float) -> float:
 
 
 class Client:
-    """Connecting side of one link; keeps reconnecting until :meth:`close`.
+    """Connecting side of one link; keeps reconnecting until :meth:`close`, or until the
+    server's application refuses a message of ours (``CloseCode.REJECTED``): then
+    ``peer.rejected`` holds its reason and ``send``/``flush`` raise PeerRejectedError.
 
     Args:
         config: protocol settings (role, agent id, secret, limits).
@@ -151,7 +153,17 @@ class Client:
                 await self._conn.run()
                 if self._conn.established_once:
                     delay = t.reconnect_initial_delay
+                closed = self._conn.peer_closed
                 self._conn = None
+                if closed is not None and closed.code == CloseCode.REJECTED:
+                    logger.error(
+                        "%s:%d refused our message: %s; not reconnecting",
+                        self.host,
+                        self.port,
+                        closed.reason,
+                    )
+                    self.peer.reject(closed.reason)
+                    break
             if self._closing:
                 break
             with contextlib.suppress(TimeoutError):

@@ -10,9 +10,12 @@ it had acknowledged. SIGINT / SIGTERM stop it cleanly: connections are closed, t
 (``RESULT_DIR/eval/``) are written.
 
 The shared secret comes from ``--secret-file`` or the ``RECSLAM_SECRET`` environment
-variable (at least 16 bytes). The camera calibration comes from ``--camera`` (an EuRoC
-``sensor.yaml``), else from the first ``<robot>/mav0/cam0/sensor.yaml`` of
-``--groundtruth``, else the synthetic dataset's EuRoC-like camera.
+variable (at least 16 bytes). Each robot's camera calibration arrives from its edge
+(``AgentSensors``) and is persisted with the state. ``--camera`` (an EuRoC ``sensor.yaml``)
+is only a fallback for robots whose calibration never arrives (recordings made before
+calibrations travelled); without it the fallback is the first
+``<robot>/mav0/cam0/sensor.yaml`` of ``--groundtruth``, else the synthetic dataset's
+EuRoC-like camera.
 
 The options and the run loop are the service's (``services/cloud/runner.py``, also run by
 ``python -m services.cloud``); this module only registers them.

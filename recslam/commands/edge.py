@@ -1,15 +1,17 @@
 """``recslam edge``: run the edge tier (per-robot VIO, feedback to robots, uplink to the cloud).
 
     recslam edge --listen 0.0.0.0:7000 --cloud cloud-host:7100 --state-dir state/edge \\
-        --camera datasets/euroc-micro-V1_01 --secret-file secret.txt
+        --secret-file secret.txt
 
 Robots connect with role "robot" and their robot name as agent id; the edge connects to the
 cloud with role "edge" and ``--agent-id``. With ``--state-dir`` every robot's frames are
 journaled before they are acknowledged, and a restarted edge (same directory) replays the
 journals and loses nothing; without it a restart loses every robot's state.
 
-The robots' calibration comes from ``--camera``: an EuRoC dataset folder (``mav0/cam0`` and
-``mav0/imu0`` sensor.yaml files) or a cam0 ``sensor.yaml`` (the IMU is then EuRoC's ADIS16448).
+Each robot brings its own calibration: its stream starts with its camera and IMU description
+(``RobotSensors``), from which the edge builds that robot's decoders and VIO, and which it
+forwards to the cloud. A robot re-joining under the same agent id with another calibration is
+refused with the reason.
 The shared secret comes from ``--secret-file`` or ``$RECSLAM_SECRET`` (at least 16 bytes).
 SIGINT / SIGTERM stop it cleanly (journals are fsynced).
 

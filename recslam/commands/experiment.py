@@ -59,7 +59,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="also copy table3.md, loop_detection.md and table3.png here "
         "(default %(default)s; '' = no copy)",
     )
-    t.add_argument("--camera", type=Path, default=None, help="EuRoC cam0 sensor.yaml")
+    t.add_argument(
+        "--camera",
+        type=Path,
+        default=None,
+        help="EuRoC cam0 sensor.yaml of the fallback camera, for robots the recording holds "
+        "no calibration of (recordings made before calibrations travelled)",
+    )
     t.add_argument("--vocabulary", type=Path, default=None, help="vocabulary file")
     t.set_defaults(func=run_table3)
     k = which.add_parser(

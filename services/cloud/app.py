@@ -17,6 +17,12 @@ may start a new map for it (``map_id``, e.g. after tracking was lost): every (ro
 map) pair has its own frame, so it is one *atlas agent*, numbered 0, 1, ... in order of
 appearance. The table of agents (robot name, edge, edge map) is persisted with the
 keyframes. Corrections go back per atlas agent, in that edge map's frame.
+
+Each robot's sensors (``AgentSensors``, sent by its edge before the robot's first keyframe)
+are persisted by robot name (``services.cloud.robot_sensors``): every atlas agent of that
+robot projects with its camera (``MapFusion.cameras``) and its keyframes decode with its image
+size; a robot without one (recordings made before calibrations travelled) uses the fallback
+camera the service was given.
 """
 
 from __future__ import annotations
@@ -36,6 +42,7 @@ from common.evaluation.trajectory import Trajectory
 from common.geometry import R_to_quat_wxyz, inverse_T
 from common.links import CodecTimer, WireFormat
 from common.links.edge_cloud import (
+    AgentSensors,
     AgentStatus,
     CullEvent,
     KeyframePoses,
@@ -59,6 +66,7 @@ from services.cloud.map_fusion import FusionEvents, MapFusion
 from services.cloud.map_source import AgentInfo, CloudView
 from services.cloud.mbp import MbpReport
 from services.cloud.persistence import CloudStore
+from services.cloud.robot_sensors import RobotSensorBook
 from services.cloud.uplink import (
     DecodedKeyframe,
     UplinkError,
@@ -147,8 +155,10 @@ class CloudApp:
         self.config = config
         self.positions = positions or PositionStore()
         self._agents: dict[tuple[str, int], _Agent] = {}  # (robot, edge map) -> agent
+        self.sensors = RobotSensorBook(store.sensors(), fusion.camera)
         for aid, (name, edge, edge_map) in store.agents().items():
             self._agents[name, edge_map] = _Agent(aid, name, edge, edge_map)
+            self._use_camera(aid, name)
         for edge, (stream, seq) in store.positions().items():
             self.positions.set(edge, InboundPosition(stream, seq))
         self._mbp_done: dict[int, int] = {}  # map -> keyframes at its last MBP pass
@@ -171,10 +181,27 @@ class CloudApp:
             next_id = max((x.agent_id for x in self._agents.values()), default=-1) + 1
             a = self._agents[name, edge_map] = _Agent(next_id, name, edge_id, edge_map)
             log.info("new agent %d: robot %r, map %d of edge %r", next_id, name, edge_map, edge_id)
+            self._use_camera(next_id, name)
             return a, True
         changed = a.edge_id != edge_id
         a.edge_id = edge_id
         return a, changed
+
+    def _use_camera(self, agent_id: int, name: str) -> None:
+        cam = self.sensors.camera(name)
+        if cam is not None:
+            self.fusion.cameras[agent_id] = cam
+
+    def _sensors(
+        self, edge_id: str, msg: AgentSensors, position: dict[str, tuple[bytes, int]]
+    ) -> Reaction:
+        """A robot's sensors: remembered (durably) and used by all its atlas agents."""
+        learnt = self.sensors.learn(edge_id, msg)
+        self.store.commit(self.atlas, positions=position, sensors=dict([learnt] if learnt else []))
+        for a in self._agents.values():
+            if a.name == msg.agent_id:
+                self._use_camera(a.agent_id, a.name)
+        return Reaction()
 
     def agents(self) -> dict[int, tuple[str, str, int]]:
         """``{atlas agent id: (robot name, edge id, edge map id)}``."""
@@ -199,6 +226,8 @@ class CloudApp:
             reaction = self._map_points(edge_id, message, position)
         elif isinstance(message, CullEvent):
             reaction = self._cull(edge_id, message, position)
+        elif isinstance(message, AgentSensors):
+            reaction = self._sensors(edge_id, message, position)
         elif isinstance(message, AgentStatus):
             a, changed = self._agent(message.agent_id, edge_id, message.map_id)
             a.status, a.frames = message.state, message.frames
@@ -229,7 +258,7 @@ class CloudApp:
         a, _ = self._agent(msg.agent_id, edge_id, msg.map_id)
         t0 = time.perf_counter()
         try:
-            d = decode_keyframe_update(msg, a.agent_id, self.vocabulary)
+            d = decode_keyframe_update(msg, a.agent_id, self.vocabulary, self.sensors.codec(a.name))
         except UplinkError:
             self.rejected += 1
             raise

@@ -38,7 +38,7 @@ import gtsam
 import numpy as np
 
 from common.calibration import CameraCalibration
-from common.camera import PinholeRadtan
+from common.camera import camera_model
 from common.geometry import inverse_T, transform_points
 from services.cloud.atlas import Atlas
 from services.cloud.config import FullBAConfig, GlobalOptimizationConfig
@@ -47,6 +47,7 @@ from services.cloud.global_optimization import (
     PoseGraphResult,
     apply_pose_graph,
 )
+from services.cloud.map_types import CameraOf, camera_lookup
 
 log = logging.getLogger(__name__)
 
@@ -65,12 +66,12 @@ class FullBAProblem:
     point_keys (P,) map point keys; p_world (P, 3) initial positions, metres;
     obs_kf (M,) index into keys, obs_point (M,) index into point_keys, obs_xy (M, 2)
     undistorted normalised image coordinates, obs_sigma (M,) their standard deviation
-    (normalised units); T_body_cam (4, 4) camera extrinsic;
+    (normalised units); T_body_cam (N, 4, 4) camera extrinsic of each keyframe (its robot's);
     edge_i, edge_j (E,) indices into keys, T_i_j (E, 4, 4) measured relative poses (body j in
     body i), sigmas (E, 6) (rad, rad, rad, m, m, m), robust (E,) loop / merge edges;
-    fixed: index of the keyframe held by the prior; fx: focal length, pixels (reports RMS in
-    pixels); dropped_observations: observations left out at build time (behind the camera,
-    too far off, or of points seen once).
+    fixed: index of the keyframe held by the prior; fx: focal length, pixels (the median over
+    the keyframes' cameras: reports RMS in pixels); dropped_observations: observations left
+    out at build time (behind the camera, too far off, or of points seen once).
     """
 
     keys: np.ndarray
@@ -125,7 +126,9 @@ def _project(
     obs_point: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Normalised projections ``(M, 2)`` and depths ``(M,)`` of every observation."""
-    T_cam_world = np.array([inverse_T(T @ T_body_cam) for T in T_world_body])
+    T_cam_world = np.array(
+        [inverse_T(T @ Tbc) for T, Tbc in zip(T_world_body, T_body_cam, strict=True)]
+    )
     R = T_cam_world[obs_kf, :3, :3]
     t = T_cam_world[obs_kf, :3, 3]
     p_cam = np.einsum("mij,mj->mi", R, p_world[obs_point]) + t
@@ -138,18 +141,22 @@ def _project(
 def build_full_ba(
     atlas: Atlas,
     map_id: int,
-    camera: CameraCalibration,
+    camera: CameraCalibration | CameraOf,
     config: FullBAConfig,
     graph_config: GlobalOptimizationConfig,
 ) -> FullBAProblem:
-    """Snapshot one map of the atlas as a bundle-adjustment problem (current estimates)."""
+    """Snapshot one map of the atlas as a bundle-adjustment problem (current estimates);
+    ``camera``: each agent's camera (or one for all)."""
     keys = atlas.keyframe_keys(map_id=map_id)
     if not keys:
         raise FullBAError(f"map {map_id} has no keyframes")
     index = {k: i for i, k in enumerate(keys)}
     T = np.array([atlas.T_map_body(k) for k in keys])
-    fx = float(camera.fx)
-    model = PinholeRadtan.from_calibration(camera)
+    camera_of = camera_lookup(camera)
+    cams = [camera_of(atlas.keyframe(k).agent_id) for k in keys]
+    fx_kf = np.array([float(c.fx) for c in cams])
+    fx = float(np.median(fx_kf))
+    T_body_cam = np.array([np.asarray(c.T_body_cam, np.float64) for c in cams])
     kf_idx: list[np.ndarray] = []
     mp_keys: list[np.ndarray] = []
     xy: list[np.ndarray] = []
@@ -161,9 +168,10 @@ def build_full_ba(
             continue
         kf_idx.append(np.full(rows.size, i, np.int64))
         mp_keys.append(np.asarray(v.map_point_keys[rows], np.int64))
+        model = camera_model(cams[i])
         xy.append(model.pixels_to_normalized(np.asarray(v.keypoints[rows], np.float64)))
         lv = np.asarray(v.levels[rows], np.float64)
-        sigma.append(config.pixel_sigma * config.level_scale**lv / fx)
+        sigma.append(config.pixel_sigma * config.level_scale**lv / fx_kf[i])
     obs_kf = np.concatenate(kf_idx) if kf_idx else np.zeros(0, np.int64)
     obs_mk = np.concatenate(mp_keys) if mp_keys else np.zeros(0, np.int64)
     obs_xy = np.concatenate(xy) if xy else np.zeros((0, 2))
@@ -172,9 +180,8 @@ def build_full_ba(
     point_keys, obs_point = np.unique(obs_mk, return_inverse=True)
     p_world = atlas.map_point_positions(point_keys) if point_keys.size else np.zeros((0, 3))
     # Leave out observations behind the camera or too far off to be inliers now.
-    T_body_cam = np.asarray(camera.T_body_cam, np.float64)
     proj, z = _project(T_body_cam, T, p_world, obs_kf, obs_point)
-    err_px = np.linalg.norm(proj - obs_xy, axis=1) * fx
+    err_px = np.linalg.norm(proj - obs_xy, axis=1) * fx_kf[obs_kf]
     ok = (z > config.min_depth_m) & (err_px <= config.max_initial_reprojection_px)
     # ... and points with fewer than two observations left (repeat: rows drop together).
     counts = np.bincount(obs_point[ok], minlength=point_keys.size)
@@ -295,7 +302,7 @@ def solve_full_ba(
                 noise = gtsam.noiseModel.Robust.Create(loop_kernel, noise)
         graph.add(gtsam.BetweenFactorPose3(X(i), X(j), meas, noise))
     kernel = _kernel(config.robust_kernel, config.kernel_scale)
-    body_P_cam = _pose3(problem.T_body_cam)
+    body_P_cam = [_pose3(Tbc) for Tbc in problem.T_body_cam]
     noise_of: dict[float, gtsam.noiseModel.Base] = {}
     factor = gtsam.GenericProjectionFactorCal3_S2
     for kf, pt, xy, s in zip(
@@ -311,7 +318,7 @@ def solve_full_ba(
             if kernel is not None:
                 obs_noise = gtsam.noiseModel.Robust.Create(kernel, obs_noise)
             noise_of[s] = obs_noise
-        graph.add(factor(xy, obs_noise, X(kf), L(pt), _UNIT_K, body_P_cam))
+        graph.add(factor(xy, obs_noise, X(kf), L(pt), _UNIT_K, body_P_cam[kf]))
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(config.max_iterations)
     params.setRelativeErrorTol(config.relative_error_tol)
@@ -397,23 +404,25 @@ def apply_full_ba(atlas: Atlas, result: FullBAResult) -> int:
     return n
 
 
-def reprojection_rms_px(atlas: Atlas, map_id: int, camera: CameraCalibration) -> float:
-    """RMS reprojection error, pixels (``fx`` units), of every observation of a map's points
-    in front of the camera at the atlas' current estimates (a diagnostic for tests and
-    benchmarks)."""
-    model = PinholeRadtan.from_calibration(camera)
+def reprojection_rms_px(atlas: Atlas, map_id: int, camera: CameraCalibration | CameraOf) -> float:
+    """RMS reprojection error, pixels (each keyframe's ``fx`` units), of every observation of
+    a map's points in front of the camera at the atlas' current estimates (a diagnostic for
+    tests and benchmarks); ``camera``: each agent's camera (or one for all)."""
+    camera_of = camera_lookup(camera)
     errs: list[np.ndarray] = []
     for k in atlas.keyframe_keys(map_id=map_id):
         v = atlas.keyframe(k)
         rows = np.flatnonzero(v.map_point_keys >= 0)
         if rows.size == 0:
             continue
+        cam = camera_of(v.agent_id)
         p = atlas.map_point_positions(v.map_point_keys[rows])
-        p_cam = transform_points(inverse_T(np.asarray(v.T_map_body) @ camera.T_body_cam), p)
+        p_cam = transform_points(inverse_T(np.asarray(v.T_map_body) @ cam.T_body_cam), p)
         front = p_cam[:, 2] > 1e-6
         xy = p_cam[front, :2] / p_cam[front, 2:3]
-        obs = model.pixels_to_normalized(np.asarray(v.keypoints[rows][front], np.float64))
-        errs.append(np.sum((xy - obs) ** 2, axis=1))
+        uv = np.asarray(v.keypoints[rows][front], np.float64)
+        obs = camera_model(cam).pixels_to_normalized(uv)
+        errs.append(np.sum((xy - obs) ** 2, axis=1) * float(cam.fx) ** 2)
     if not errs:
         return 0.0
-    return float(np.sqrt(np.mean(np.concatenate(errs)))) * float(camera.fx)
+    return float(np.sqrt(np.mean(np.concatenate(errs))))

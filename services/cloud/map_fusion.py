@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from common.calibration import CameraCalibration
+from common.errors import RecslamError
 from services.cloud.atlas import Atlas, KeyframeInput, MapPointInput, make_key
 from services.cloud.config import CloudConfig
 from services.cloud.full_ba import FullBAProblem, FullBAResult, apply_full_ba, build_full_ba
@@ -37,6 +38,10 @@ from services.cloud.place_recognition import KeyframeDatabase, PlaceRecognizer
 from services.cloud.verification import VerificationResult, verify_candidate
 
 log = logging.getLogger(__name__)
+
+
+class FusionError(RecslamError):
+    """Map fusion cannot go on with an input (e.g. a keyframe of an agent with no camera)."""
 
 
 def reason_kind(reason: str) -> str:
@@ -57,18 +62,23 @@ class FusionEvents:
 class MapFusion:
     """Atlas + place recognition + verification + merging for all agents.
 
-    idf (S,): the shared vocabulary's idf weights; word_group (S,) optional word -> vocabulary
-    node id for word-guided matching (see :func:`verify_candidate`)."""
+    camera: the fallback camera of agents whose robot's calibration never arrived (recordings
+    made before calibrations travelled); :attr:`cameras` holds each agent's own (the service
+    sets it from the edges' ``AgentSensors``); :meth:`camera_of` picks. idf (S,): the shared
+    vocabulary's idf weights; word_group (S,) optional word -> vocabulary node id for
+    word-guided matching (see :func:`verify_candidate`)."""
 
     def __init__(
         self,
-        camera: CameraCalibration,
+        camera: CameraCalibration | None,
         idf: np.ndarray,
         config: CloudConfig,
         atlas: Atlas | None = None,
         word_group: np.ndarray | None = None,
     ) -> None:
         self.camera = camera
+        self.cameras: dict[int, CameraCalibration] = {}  # atlas agent id -> its robot's
+        self._fallback_used: set[int] = set()
         self.config = config
         self.atlas = atlas if atlas is not None else Atlas()
         self.word_group = word_group
@@ -77,6 +87,19 @@ class MapFusion:
             self.recognizer.add(self.atlas, key)
         # Verification outcomes so far, by reason ("ok" or the rejection's first word).
         self.verification_counts: Counter[str] = Counter()
+
+    def camera_of(self, agent_id: int) -> CameraCalibration:
+        """The camera of atlas agent ``agent_id``: its robot's own, else the fallback (logged
+        once per agent); FusionError when there is neither."""
+        cam = self.cameras.get(agent_id)
+        if cam is not None:
+            return cam
+        if self.camera is None:
+            raise FusionError(f"agent {agent_id}: no calibration received and no fallback camera")
+        if agent_id not in self._fallback_used:
+            self._fallback_used.add(agent_id)
+            log.warning("agent %d: no calibration received; using the fallback camera", agent_id)
+        return self.camera
 
     def add_map_point(self, mp: MapPointInput) -> int:
         return self.atlas.add_map_point(mp)
@@ -100,7 +123,7 @@ class MapFusion:
                     self.atlas,
                     key,
                     cand.candidate_key,
-                    self.camera,
+                    self.camera_of(kf.agent_id),
                     self.config.verification,
                     self.word_group,
                 )
@@ -142,7 +165,7 @@ class MapFusion:
     def full_ba_problem(self, map_id: int) -> FullBAProblem:
         """Plain full-BA problem of a map (give it to ``solve_full_ba`` elsewhere)."""
         return build_full_ba(
-            self.atlas, map_id, self.camera, self.config.full_ba, self.config.optimization
+            self.atlas, map_id, self.camera_of, self.config.full_ba, self.config.optimization
         )
 
     def apply_optimization(self, result: PoseGraphResult | FullBAResult) -> int:
@@ -152,7 +175,7 @@ class MapFusion:
 
     def prune(self, map_id: int, keep_recent: int = 5) -> MbpReport:
         """Run MBP on a map and drop the removed keyframes from the database."""
-        report = run_mbp(self.atlas, map_id, self.camera, self.config.mbp, keep_recent)
+        report = run_mbp(self.atlas, map_id, self.camera_of, self.config.mbp, keep_recent)
         for key in report.removed_keyframes:
             self.recognizer.db.remove(key)
         return report

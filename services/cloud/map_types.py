@@ -4,11 +4,24 @@ snapshots and records of merges and loops. Keys: ``key = agent_id << 32 | local_
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from common.calibration import CameraCalibration
 from common.errors import RecslamError
+
+CameraOf = Callable[[int], CameraCalibration]
+"""Atlas agent id -> the camera of that agent's robot (each robot brings its own)."""
+
+
+def camera_lookup(camera: CameraCalibration | CameraOf) -> CameraOf:
+    """``camera`` as a :data:`CameraOf` (one calibration: every agent's)."""
+    if isinstance(camera, CameraCalibration):
+        return lambda _agent: camera
+    return camera
+
 
 _LOCAL_BITS = 32
 _LOCAL_MASK = (1 << _LOCAL_BITS) - 1

@@ -47,15 +47,16 @@ import logging
 from collections import deque
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from common.calibration import CameraCalibration
+from common.camera import camera_model
 from common.geometry import inverse_T, transform_points
 from services.cloud.atlas import Atlas
 from services.cloud.config import MbpConfig
+from services.cloud.map_types import CameraOf, camera_lookup
 
 log = logging.getLogger(__name__)
 
@@ -270,7 +271,7 @@ def _fold(
     removed: int,
     absorbers: list[int],
     kept: frozenset[int],
-    camera: CameraCalibration,
+    camera_of: CameraOf,
     cfg: MbpConfig,
 ) -> int:
     """Fold the good observations of ``removed`` as virtual observations into ``absorbers``
@@ -283,17 +284,23 @@ def _fold(
         return 0
     mkeys = R.map_point_keys[idx]
     P = atlas.map_point_positions(mkeys)
-    K, dist = camera.K, camera.dist_coeffs
-    T_body_cam = np.asarray(camera.T_body_cam)
 
-    def project(T_map_body: np.ndarray, p_map: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        p_cam = transform_points(inverse_T(T_map_body @ T_body_cam), p_map)
-        uv, _ = cv2.projectPoints(p_cam, np.zeros(3), np.zeros(3), K, dist)
-        return uv.reshape(-1, 2), p_cam[:, 2]
+    def project(
+        camera: CameraCalibration, T_map_body: np.ndarray, p_map: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Pixels (M, 2) and depths (M,) of map points (M, 3) in a keyframe of ``camera``."""
+        p_cam = transform_points(inverse_T(T_map_body @ np.asarray(camera.T_body_cam)), p_map)
+        z = p_cam[:, 2]
+        uv = np.full((len(p_cam), 2), np.nan)
+        front = z > 0
+        if front.any():
+            uv[front] = camera_model(camera).project(p_cam[front])
+        return uv, z
 
-    uv_r, z_r = project(np.asarray(R.T_map_body), P)
+    uv_r, z_r = project(camera_of(R.agent_id), np.asarray(R.T_map_body), P)
     err = np.linalg.norm(uv_r - R.keypoints[idx], axis=1)
-    good = (z_r > 0) & (err <= cfg.max_virtual_reprojection_px)
+    with np.errstate(invalid="ignore"):
+        good = (z_r > 0) & (err <= cfg.max_virtual_reprojection_px)
     idx, mkeys, P = idx[good], mkeys[good], P[good]
     n_kept = np.array(
         [sum(1 for k in atlas.map_point_observations(m) if k in kept) for m in mkeys.tolist()],
@@ -308,9 +315,11 @@ def _fold(
         sel = np.flatnonzero(want)
         if sel.size == 0:
             continue
-        uv_a, z_a = project(np.asarray(A.T_map_body), P[sel])
-        inside = (z_a > 0.1) & (uv_a[:, 0] >= 0) & (uv_a[:, 0] < camera.width)
-        inside &= (uv_a[:, 1] >= 0) & (uv_a[:, 1] < camera.height)
+        cam_a = camera_of(A.agent_id)
+        uv_a, z_a = project(cam_a, np.asarray(A.T_map_body), P[sel])
+        with np.errstate(invalid="ignore"):
+            inside = (z_a > 0.1) & (uv_a[:, 0] >= 0) & (uv_a[:, 0] < cam_a.width)
+            inside &= (uv_a[:, 1] >= 0) & (uv_a[:, 1] < cam_a.height)
         sel, src = sel[inside], idx[sel[inside]]
         total += atlas.add_virtual_observations(
             a, uv_a[inside], R.levels[src], R.descriptors[src], R.word_ids[src], mkeys[sel]
@@ -322,13 +331,14 @@ def _fold(
 def run_mbp(
     atlas: Atlas,
     map_id: int,
-    camera: CameraCalibration,
+    camera: CameraCalibration | CameraOf,
     config: MbpConfig,
     keep_recent: int = 5,
 ) -> MbpReport:
     """One MBP pass over ``map_id``: keep the backbone, move loops, fold, remove the rest and
-    cull points. The caller also removes ``report.removed_keyframes`` from its
-    place-recognition database."""
+    cull points. ``camera``: each agent's camera (or one for all). The caller also removes
+    ``report.removed_keyframes`` from its place-recognition database."""
+    camera_of = camera_lookup(camera)
     keys = atlas.keyframe_keys(map_id=map_id)
     n_kf, n_mp = len(keys), atlas.n_map_points(map_id)
     connected_before = covisibility_components(atlas, keys) == 1
@@ -340,7 +350,7 @@ def run_mbp(
     n_loops = _move_loops(atlas, anchors)
     n_virtual = 0
     for r in removed:
-        n_virtual += _fold(atlas, r, list(bb.absorbers[r]), bb.kept, camera, config)
+        n_virtual += _fold(atlas, r, list(bb.absorbers[r]), bb.kept, camera_of, config)
     for r in removed:  # drops its (already re-anchored) loop edges
         if r in anchors:
             atlas.retire_keyframe(r, anchors[r])

@@ -45,9 +45,10 @@ from services.cloud.atlas import (
 log = logging.getLogger(__name__)
 
 DB_NAME = "cloud.sqlite"
-SCHEMA_VERSION = 4
+SCHEMA_VERSION = 5
 # Older schemas this one only adds tables to (``_SCHEMA`` creates them): opened and upgraded.
-_UPGRADABLE = (3,)
+# 5 added ``robot_sensors``.
+_UPGRADABLE = (3, 4)
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS meta (name TEXT PRIMARY KEY, value INTEGER NOT NULL);
@@ -74,6 +75,7 @@ CREATE TABLE IF NOT EXISTS edge_positions (edge_id TEXT PRIMARY KEY, stream_id B
     last_seq INTEGER NOT NULL);
 CREATE TABLE IF NOT EXISTS agent_names (agent INTEGER PRIMARY KEY, name TEXT NOT NULL,
     edge_id TEXT NOT NULL, edge_map INTEGER NOT NULL, UNIQUE (name, edge_map));
+CREATE TABLE IF NOT EXISTS robot_sensors (name TEXT PRIMARY KEY, sensors BLOB NOT NULL);
 """
 
 
@@ -158,12 +160,14 @@ class CloudStore:
         edge_sequences: Mapping[str, int] | None = None,
         positions: Mapping[str, tuple[bytes, int]] | None = None,
         agents: Mapping[int, tuple[str, str, int]] | None = None,
+        sensors: Mapping[str, bytes] | None = None,
     ) -> None:
         """In one transaction: write the given keyframes and map points as the atlas holds them
         (rows of keys no longer in the atlas are deleted), the atlas bookkeeping, the last
         delivered sequence of each edge, the transport ``positions`` ``{edge: (stream id,
-        last delivered seq)}`` (replacing the stored ones) and ``agents`` ``{agent id: (robot
-        name, edge id, edge map id)}``. Returns once the data is durable."""
+        last delivered seq)}`` (replacing the stored ones), ``agents`` ``{agent id: (robot
+        name, edge id, edge map id)}`` and ``sensors`` ``{robot name: its encoded sensor
+        description}``. Returns once the data is durable."""
         db = self._db
         db.execute("BEGIN IMMEDIATE")
         try:
@@ -184,6 +188,10 @@ class CloudStore:
                 db.execute(
                     "INSERT OR REPLACE INTO agent_names VALUES (?, ?, ?, ?)",
                     (int(agent), str(name), str(edge_id), int(edge_map)),
+                )
+            for name, blob in (sensors or {}).items():
+                db.execute(
+                    "INSERT OR REPLACE INTO robot_sensors VALUES (?, ?)", (str(name), bytes(blob))
                 )
             db.execute("COMMIT")
         except BaseException:
@@ -366,6 +374,11 @@ class CloudStore:
         """Known agents: ``{agent id: (robot name, edge id, edge map id)}``."""
         rows = self._db.execute("SELECT agent, name, edge_id, edge_map FROM agent_names")
         return {int(a): (str(n), str(e), int(m)) for a, n, e, m in rows}
+
+    def sensors(self) -> dict[str, bytes]:
+        """Each robot's encoded sensor description: ``{robot name: bytes}``."""
+        rows = self._db.execute("SELECT name, sensors FROM robot_sensors")
+        return {str(n): bytes(b) for n, b in rows}
 
     def load(self) -> Atlas:
         """Rebuild the atlas stored in this directory (empty atlas for a new directory)."""

@@ -5,8 +5,9 @@ services.cloud`` alike; ``config_from_args`` turns them into a :class:`CloudRunC
 ``serve`` runs the service until SIGINT / SIGTERM:
 
 - loads the shared secret (``--secret-file``, else ``$RECSLAM_SECRET``, at least 16 bytes),
-  the robots' camera (:func:`find_camera`) and the vocabulary; a bad one is logged and the
-  exit code is 2;
+  the fallback camera (:func:`find_camera`; each robot's own calibration arrives from its
+  edge, this one serves only robots whose calibration never does, as in old recordings) and
+  the vocabulary; a bad one is logged and the exit code is 2;
 - starts the :class:`~services.cloud.server.CloudServer` (edges connect with role "edge"),
   announces ``cloud listening on HOST:PORT, state DIR`` and, with a dashboard port, the
   dashboard's address;
@@ -52,8 +53,8 @@ class CloudRunConfig:
         results: result folder for ``trajectories/`` and ``eval/`` (None: none).
         groundtruth: ground truth for the ATE report (dataset folder or file).
         secret_file: shared secret file (None: ``$RECSLAM_SECRET``).
-        camera: EuRoC cam0 ``sensor.yaml`` of the robots' camera (None: see
-            :func:`find_camera`).
+        camera: EuRoC cam0 ``sensor.yaml`` of the fallback camera, for robots whose edge
+            sent no calibration (None: see :func:`find_camera`).
         vocabulary: vocabulary file (None: the repository's default).
         mbp: map backbone profiling on/off.
         full_ba: full bundle adjustment after the pose graph on/off.
@@ -130,7 +131,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         type=Path,
         default=None,
         metavar="SENSOR_YAML",
-        help="EuRoC cam0 sensor.yaml of the robots' camera",
+        help="EuRoC cam0 sensor.yaml of the fallback camera, used only for robots whose "
+        "calibration never arrived (each robot sends its own through its edge)",
     )
     p.add_argument(
         "--vocabulary",
@@ -209,7 +211,7 @@ def config_from_args(args: argparse.Namespace) -> CloudRunConfig:
 
 
 def find_camera(camera: Path | None, groundtruth: Path | None) -> CameraCalibration:
-    """The robots' camera: ``camera`` (an EuRoC cam0 ``sensor.yaml``), else the first
+    """The fallback camera: ``camera`` (an EuRoC cam0 ``sensor.yaml``), else the first
     ``<robot>/mav0/cam0/sensor.yaml`` (or ``mav0/cam0/sensor.yaml``) under the ``groundtruth``
     folder, else the synthetic dataset's EuRoC-like camera (with a warning)."""
     from common.data.euroc import read_camera_yaml
@@ -223,7 +225,7 @@ def find_camera(camera: Path | None, groundtruth: Path | None) -> CameraCalibrat
         ):
             logger.info("camera calibration from %s", yaml)
             return read_camera_yaml(yaml)
-    logger.warning("no --camera: using the synthetic dataset's EuRoC-like camera")
+    logger.info("fallback camera: the synthetic dataset's EuRoC-like camera")
     return default_camera()
 
 

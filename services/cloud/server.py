@@ -77,12 +77,13 @@ T = TypeVar("T")
 
 def open_app(
     state_dir: str | Path,
-    camera: CameraCalibration,
+    camera: CameraCalibration | None,
     vocabulary: Vocabulary,
     config: CloudServiceConfig,
     positions: PositionStore | None = None,
 ) -> CloudApp:
-    """The cloud's :class:`CloudApp` on ``state_dir`` (resumed if it holds a previous run)."""
+    """The cloud's :class:`CloudApp` on ``state_dir`` (resumed if it holds a previous run);
+    ``camera``: the fallback for robots whose calibration never arrives."""
     store = CloudStore(Path(state_dir))
     atlas = store.load()
     wg = None
@@ -120,7 +121,8 @@ class CloudServer:
     Args:
         session: protocol settings (role "cloud", the cloud's agent id, shared secret).
         state_dir: SQLite state directory (resumed if it holds a previous run).
-        camera: the robots' camera (verification projects with it).
+        camera: the fallback camera, for robots whose edge sent no calibration (each robot's
+            own arrives as ``AgentSensors``; None: such robots' keyframes are refused).
         vocabulary: the shared vocabulary (word ids and idf).
         config: service options.
         results_dir: where trajectories/eval go (None: no output files).
@@ -134,7 +136,7 @@ class CloudServer:
         self,
         session: SessionConfig,
         state_dir: str | Path,
-        camera: CameraCalibration,
+        camera: CameraCalibration | None,
         vocabulary: Vocabulary,
         config: CloudServiceConfig | None = None,
         results_dir: str | Path | None = None,

@@ -313,16 +313,20 @@ def encode_session(
     agent_name: str,
     vocabulary: Vocabulary,
     edge_map_id: int = 0,
+    codec: CodecConfig | None = None,
 ) -> list[list[KeyframeUpdate | MapPointUpdate]]:
     """What an edge sends for one agent's session, per keyframe in order: its
     :class:`KeyframeUpdate`, then (if any) one :class:`MapPointUpdate` of the map points that
     keyframe observed first (the lowest keyframe id in a point's observations); observations
-    in coded feature indices. For simulations (``services.cloud.simulation.make_session``),
+    in coded feature indices; ``codec``: the robot's feature codec (default: a 752×480
+    image). For simulations (``services.cloud.simulation.make_session``),
     tests and benchmarks."""
     coded: dict[int, KeyframeUpdate] = {}
     inv: dict[int, np.ndarray] = {}
     for k in keyframes:  # every keyframe first: observations need the coded indices
-        coded[k.keyframe_id], order = encode_keyframe_update(k, agent_name, vocabulary, edge_map_id)
+        coded[k.keyframe_id], order = encode_keyframe_update(
+            k, agent_name, vocabulary, edge_map_id, codec=codec
+        )
         inv[k.keyframe_id] = np.argsort(order)
     first = {m.map_point_id: int(m.observations[:, 0].min()) for m in map_points}
     out: list[list[KeyframeUpdate | MapPointUpdate]] = []

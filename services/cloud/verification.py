@@ -141,7 +141,9 @@ def verify_candidate(
     config: VerificationConfig,
     word_group: np.ndarray | None = None,
 ) -> VerificationResult:
-    """Verify ``candidate_key`` for ``query_key``. ``word_group (S,)`` optionally maps each
+    """Verify ``candidate_key`` for ``query_key``; ``camera`` is the query keyframe's (its
+    robot's: the query's keypoints are located against the candidate's map points).
+    ``word_group (S,)`` optionally maps each
     word to the id of the vocabulary node whose members may match (e.g.
     ``Vocabulary.ancestor_at_level(np.arange(S), level)``); None = same word only."""
     cfg = config

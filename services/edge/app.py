@@ -1,8 +1,16 @@
 """The edge's application: reacts to delivered messages, never touches bytes or sockets.
 
-Per robot (agent id) an :class:`_Robot` holds a :class:`RobotSession` (decoders, outputs), a
-worker running its VIO (``services.edge.worker``), an input queue and a task draining it:
+Per robot (agent id) an :class:`_Robot` holds its sensors, a :class:`RobotSession` (decoders,
+outputs), a worker running its VIO (``services.edge.worker``), an input queue and a task
+draining it:
 
+- ``RobotSensors`` (first message of every robot stream): the robot's own camera and IMU
+  calibrations; the robot's decoders and VIO are built from them, and they go on to the
+  cloud (``AgentSensors``) ahead of the robot's keyframes. It is journaled like every message,
+  so a restarted edge rebuilds the robot from its journal. An invalid description, a frame
+  before any description, or a robot that re-joins under the same agent id with a different
+  calibration is refused (``RejectedMessageError``: that robot's connection is closed with the
+  reason, and it stops resending); other robots are unaffected;
 - ``RobotFrame``: decoded at once on the loop (in stream order), journaled (when a journal
   is configured) and queued; the handler returns, so the transport acknowledges, once the
   frame is in the journal. The queue is bounded (``EdgeConfig.max_queued_frames``): a full
@@ -27,10 +35,15 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from common.calibration import CameraCalibration, ImuCalibration
-from common.links.edge_cloud import PoseCorrection, PoseCorrectionCoded, decode_pose_correction
-from common.links.robot_edge import RobotFrame, RobotSequenceEnd
-from common.protocol.errors import RemoteProtocolError
+from common.links.edge_cloud import (
+    PoseCorrection,
+    PoseCorrectionCoded,
+    agent_sensors_message,
+    decode_pose_correction,
+)
+from common.links.robot_edge import RobotFrame, RobotSensors, RobotSequenceEnd, read_sensors
+from common.links.sensors import Sensors
+from common.protocol.errors import RejectedMessageError, RemoteProtocolError
 from common.protocol.messages import Message, decode_payload, encode_payload
 from common.transport import Delivery
 from common.vocabulary import Vocabulary
@@ -73,6 +86,7 @@ class Sink(Protocol):
 
 @dataclass
 class _Robot:
+    sensors: Sensors
     session: RobotSession
     worker: Worker
     queue: asyncio.Queue[tuple[WorkItem | None, bool]]
@@ -89,15 +103,13 @@ class EdgeApp:
 
     def __init__(
         self,
-        camera: CameraCalibration,
-        imu: ImuCalibration,
         vocabulary: Vocabulary,
         sink: Sink,
         config: EdgeConfig | None = None,
         journal: JournalStore | None = None,
         worker_factory: WorkerFactory = make_worker,
     ) -> None:
-        self.camera, self.imu, self.vocabulary = camera, imu, vocabulary
+        self.vocabulary = vocabulary
         self.sink = sink
         self.config = config or EdgeConfig()
         self.journal = journal
@@ -106,24 +118,50 @@ class EdgeApp:
         self.on_robot_added: Callable[[str], None] | None = None
 
     # ------------------------------------------------------------------ robots
-    def _robot(self, agent_id: str) -> _Robot:
-        rb = self.robots.get(agent_id)
-        if rb is None:
-            session = RobotSession(agent_id, self.camera, self.vocabulary, self.config.session)
-            spec = WorkerSpec(agent_id, self.camera, self.imu, self.config.vio)
-            rb = _Robot(
-                session,
-                self.worker_factory(spec, self.config.worker),
-                asyncio.Queue(),
-                asyncio.Event(),
-            )
-            rb.idle.set()
-            rb.task = asyncio.create_task(self._drain(rb), name=f"edge-robot-{agent_id}")
-            self.robots[agent_id] = rb
-            if self.journal is not None:
-                self.journal.register(agent_id)
-            logger.info("robot %s: new session (%s worker)", agent_id, self.config.worker)
+    def _new_robot(self, agent_id: str, sensors: Sensors) -> _Robot:
+        """The session and worker of a robot that joined with ``sensors``."""
+        camera = sensors.camera
+        session = RobotSession(agent_id, camera, self.vocabulary, self.config.session)
+        spec = WorkerSpec(agent_id, camera, sensors.imu, self.config.vio)
+        rb = _Robot(
+            sensors,
+            session,
+            self.worker_factory(spec, self.config.worker),
+            asyncio.Queue(),
+            asyncio.Event(),
+        )
+        rb.idle.set()
+        rb.task = asyncio.create_task(self._drain(rb), name=f"edge-robot-{agent_id}")
+        self.robots[agent_id] = rb
+        if self.journal is not None:
+            self.journal.register(agent_id)
+        logger.info(
+            "robot %s: new session (%s worker): %s",
+            agent_id,
+            self.config.worker,
+            sensors.summary(),
+        )
         return rb
+
+    async def _join(self, agent_id: str, msg: RobotSensors) -> None:
+        """A robot described its sensors: a new robot's session, or the check that a known
+        robot came back with the very same ones (RejectedMessageError otherwise)."""
+        try:
+            sensors = read_sensors(msg)
+        except RemoteProtocolError as exc:
+            why = f"robot {agent_id}: invalid sensor description: {exc}"
+            raise RejectedMessageError(why) from exc
+        rb = self.robots.get(agent_id)
+        if rb is not None:
+            if not rb.sensors.same_as(sensors):
+                raise RejectedMessageError(
+                    f"robot {agent_id} re-joined with other sensors ({sensors.summary()}) "
+                    f"than its session has ({rb.sensors.summary()}); refused, maps are never "
+                    "mixed: give a robot with a new calibration a new agent id"
+                )
+            return
+        self._new_robot(agent_id, sensors)
+        await self.sink.to_cloud(agent_sensors_message(agent_id, sensors))
 
     async def _drain(self, rb: _Robot) -> None:
         """Feed the robot's worker in order, one frame ahead: the next frame is handed over
@@ -191,17 +229,26 @@ class EdgeApp:
     # ------------------------------------------------------------------ messages
     async def on_robot_message(self, d: Delivery) -> None:
         """Handler of the robots' link (one call per message, in order per robot)."""
-        rb = self._robot(d.peer)
         if self.journal is not None:
             last = self.journal.journal(d.peer).last
             if last is not None and last.stream_id == d.stream_id and d.seq <= last.last_delivered:
                 return  # already journaled (and processed) before a restart
-        await self._apply(rb, d.message, replaying=False)
+        await self._apply(d.peer, d.message, replaying=False)
         if self.journal is not None:
             rec = JournalRecord(d.stream_id, d.seq, d.message.TYPE_ID, encode_payload(d.message))
             self.journal.journal(d.peer).append(rec)
 
-    async def _apply(self, rb: _Robot, m: Message, replaying: bool) -> None:
+    async def _apply(self, agent_id: str, m: Message, replaying: bool) -> None:
+        if isinstance(m, RobotSensors):
+            await self._join(agent_id, m)
+            return
+        rb = self.robots.get(agent_id)
+        if rb is None:
+            raise RejectedMessageError(
+                f"robot {agent_id}: {type(m).__name__} before its RobotSensors (a robot's "
+                "stream starts with its sensor description; after an edge restart without "
+                "--state-dir the robot must restart its stream)"
+            )
         if isinstance(m, RobotFrame):
             item = rb.session.decode(m)
             await self._enqueue(rb, item, replaying)
@@ -244,10 +291,14 @@ class EdgeApp:
             return 0
         n = 0
         for agent in self.journal.agents():
-            rb = self._robot(agent)
             records = self.journal.journal(agent).read()
             for rec in records:
-                await self._apply(rb, decode_payload(rec.type_id, rec.payload), replaying=True)
+                try:
+                    msg = decode_payload(rec.type_id, rec.payload)
+                    await self._apply(agent, msg, replaying=True)
+                except RejectedMessageError as exc:  # a journal from before sensors travelled
+                    logger.error("robot %s: journal not replayed: %s", agent, exc)
+                    break
                 n += rec.type_id == RobotFrame.TYPE_ID
             logger.info("robot %s: replaying %d journaled messages", agent, len(records))
         return n
@@ -280,13 +331,17 @@ class EdgeApp:
                 "frame_s": list(s.frame_s),
                 "track_s": list(s.track_s),
                 "local_ba_s": list(s.local_ba_s),
+                "sensors": rb.sensors.summary(),
             }
         return out
 
-    async def prepare(self, agent_ids: list[str]) -> None:
-        """Create the sessions of robots expected soon and start their workers now."""
-        for a in agent_ids:
-            self._robot(a)
+    async def prepare(self, robots: dict[str, Sensors]) -> None:
+        """Create the sessions of robots expected soon (agent id -> the sensors they will
+        describe; one that joins with others is refused) and start their workers now."""
+        for agent_id, sensors in robots.items():
+            if agent_id not in self.robots:
+                self._new_robot(agent_id, sensors)
+                await self.sink.to_cloud(agent_sensors_message(agent_id, sensors))
         await self.start_workers()
 
     async def start_workers(self) -> None:

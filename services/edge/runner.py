@@ -4,9 +4,9 @@
 services.edge`` alike; ``config_from_args`` turns them into an :class:`EdgeRunConfig`;
 ``serve`` runs the service until SIGINT / SIGTERM:
 
-- loads the shared secret (``--secret-file``, else ``$RECSLAM_SECRET``, at least 16 bytes),
-  the robots' calibration (:func:`read_calibration`) and the vocabulary; a bad one is logged
-  and the exit code is 2;
+- loads the shared secret (``--secret-file``, else ``$RECSLAM_SECRET``, at least 16 bytes)
+  and the vocabulary; a bad one is logged and the exit code is 2 (each robot brings its own
+  calibration when it joins: the edge takes none);
 - starts the :class:`~services.edge.server.EdgeServer` (connects to the cloud, replays the
   journals of ``--state-dir``, then listens for robots) and announces ``edge listening on
   HOST:PORT, replayed N frames``;
@@ -32,7 +32,6 @@ from common.links import WireFormat, codec_cpu
 from common.protocol.credentials import SECRET_ENV, load_secret
 
 if TYPE_CHECKING:
-    from common.calibration import CameraCalibration, ImuCalibration
     from common.vocabulary import Vocabulary
     from services.edge.server import EdgeServer
 
@@ -48,8 +47,6 @@ class EdgeRunConfig:
         cloud: the cloud's address (None: no cloud, the uplink is dropped and counted).
         state_dir: journal directory for restarts without loss (None: none).
         secret_file: shared secret file (None: ``$RECSLAM_SECRET``).
-        camera: EuRoC dataset folder or cam0 ``sensor.yaml`` (required to run; see
-            :func:`read_calibration`).
         agent_id: this edge's agent id.
         worker: where each robot's VIO runs: "process" (one per robot) or "thread".
         vocabulary: vocabulary file (None: the repository's default).
@@ -61,7 +58,6 @@ class EdgeRunConfig:
     cloud: tuple[str, int] | None = None
     state_dir: Path | None = None
     secret_file: Path | None = None
-    camera: Path | None = None
     agent_id: str = "edge"
     worker: str = "process"
     vocabulary: Path | None = None
@@ -98,13 +94,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         default=None,
         metavar="F",
         help=f"shared secret file (default: ${SECRET_ENV})",
-    )
-    p.add_argument(
-        "--camera",
-        type=Path,
-        default=None,
-        metavar="PATH",
-        help="EuRoC dataset folder or cam0 sensor.yaml (required)",
     )
     p.add_argument("--agent-id", default="edge", help="this edge's agent id (default edge)")
     p.add_argument(
@@ -144,30 +133,12 @@ def config_from_args(args: argparse.Namespace) -> EdgeRunConfig:
         cloud=args.cloud,
         state_dir=args.state_dir,
         secret_file=args.secret_file,
-        camera=args.camera,
         agent_id=args.agent_id,
         worker=args.worker,
         vocabulary=args.vocabulary,
         wire=WireFormat(args.wire),
         stats_out=args.stats_out,
     )
-
-
-def read_calibration(path: Path | None) -> tuple[CameraCalibration, ImuCalibration]:
-    """(camera, IMU) from a dataset folder (``mav0/cam0`` and ``mav0/imu0`` sensor.yaml; the
-    IMU falls back to EuRoC's ADIS16448) or from a cam0 ``sensor.yaml`` (IMU: ADIS16448)."""
-    from common.calibration import EUROC_IMU
-    from common.data.euroc import find_mav0, read_camera_yaml, read_imu_yaml
-    from common.errors import RecslamError
-
-    if path is None:
-        raise RecslamError("--camera is required (EuRoC dataset folder or cam0 sensor.yaml)")
-    if path.is_dir():
-        mav0 = find_mav0(path)
-        imu_yaml = mav0 / "imu0" / "sensor.yaml"
-        imu = read_imu_yaml(imu_yaml) if imu_yaml.exists() else EUROC_IMU
-        return read_camera_yaml(mav0 / "cam0" / "sensor.yaml"), imu
-    return read_camera_yaml(path), EUROC_IMU
 
 
 def write_stats(path: Path, edge: EdgeServer) -> None:
@@ -198,28 +169,21 @@ def write_stats(path: Path, edge: EdgeServer) -> None:
 
 def serve(config: EdgeRunConfig, announce: Announce = logger.info) -> int:
     """Run the edge until SIGINT / SIGTERM (see the module docstring); the exit code: 0, or
-    2 when the secret, the calibration or the vocabulary cannot be loaded."""
+    2 when the secret or the vocabulary cannot be loaded."""
     from common.errors import RecslamError
     from common.transport import run
     from common.vocabulary import DEFAULT_VOCABULARY_PATH, Vocabulary
 
     try:
         secret = load_secret(config.secret_file)
-        camera, imu = read_calibration(config.camera)
         vocab = Vocabulary.load(config.vocabulary or DEFAULT_VOCABULARY_PATH)
     except RecslamError as exc:
         logger.error("%s", exc)
         return 2
-    return run(_run(config, secret, camera, imu, vocab, announce))
+    return run(_run(config, secret, vocab, announce))
 
 
-def _server(
-    config: EdgeRunConfig,
-    secret: bytes,
-    camera: CameraCalibration,
-    imu: ImuCalibration,
-    vocab: Vocabulary,
-) -> EdgeServer:
+def _server(config: EdgeRunConfig, secret: bytes, vocab: Vocabulary) -> EdgeServer:
     from services.edge.app import EdgeConfig
     from services.edge.robot_session import SessionOptions
     from services.edge.server import EdgeServer, EdgeServiceConfig
@@ -229,18 +193,11 @@ def _server(
         agent_id=config.agent_id, cloud_host=cloud_host, cloud_port=cloud_port
     )
     app = EdgeConfig(worker=config.worker, session=SessionOptions(wire=config.wire))
-    return EdgeServer(secret, camera, imu, vocab, app, service, state_dir=config.state_dir)
+    return EdgeServer(secret, vocab, app, service, state_dir=config.state_dir)
 
 
-async def _run(
-    config: EdgeRunConfig,
-    secret: bytes,
-    camera: CameraCalibration,
-    imu: ImuCalibration,
-    vocab: Vocabulary,
-    announce: Announce,
-) -> int:
-    edge = _server(config, secret, camera, imu, vocab)
+async def _run(config: EdgeRunConfig, secret: bytes, vocab: Vocabulary, announce: Announce) -> int:
+    edge = _server(config, secret, vocab)
     # After the server is built (importing pycolmap installs glog's SIGTERM handler, which
     # would replace ours) and before the announcement a supervisor acts on.
     stop = stop_on_signals()

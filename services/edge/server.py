@@ -4,13 +4,17 @@
 (role "robot", agent id = robot name), a :class:`common.transport.Client` to the cloud (role
 "edge"), the robots' journals (``state_dir``) and the :class:`~services.edge.app.EdgeApp`.
 
+Each robot brings its own calibration (its stream's first message, ``RobotSensors``): the
+edge has none of its own.
+
 Restart without loss (with ``state_dir``): each robot's journal is both the record of its raw
-frames and the transport's delivery store (``services/edge/journal.py``). On ``start`` the
-journals are replayed (codec state rebuilt, VIO fast-forwarded) *before* listening; the
-restored positions make each robot replay exactly what was not journaled. Without
-``state_dir`` a restarted edge starts from nothing: robots reconnecting mid-stream then send
-differential frames the fresh decoders cannot read (the handler fails and the link is
-closed with a reason) until the robot restarts its stream.
+messages and the transport's delivery store (``services/edge/journal.py``). On ``start`` the
+journals are replayed (sensors first: the robot's session rebuilt from them, codec state
+rebuilt, VIO fast-forwarded) *before* listening; the restored positions make each robot
+replay exactly what was not journaled. Without ``state_dir`` a restarted edge starts from
+nothing: a robot reconnecting mid-stream then sends frames without the sensor description
+that opened its stream, which the edge refuses with that reason (the robot stops; restarted,
+its new stream opens with its sensors again).
 
 The edge's link to the cloud is not persisted: after a restart it is a new stream; the VIO
 replay re-sends keyframes (the cloud treats ``KeyframeUpdate`` as idempotent).
@@ -23,7 +27,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from common.calibration import CameraCalibration, ImuCalibration
 from common.protocol import OutboxFullError, SessionConfig
 from common.protocol.messages import Message
 from common.transport import Client, Server, TransportConfig
@@ -67,7 +70,6 @@ class EdgeServer:
 
     Args:
         secret: shared secret of robots, edge and cloud (>= 16 bytes).
-        camera, imu: the robots' calibration (every robot of this edge shares it).
         vocabulary: the shared ORB vocabulary (codec word ids).
         config: application options (worker kind, VIO, feedback policy).
         service: network options.
@@ -79,8 +81,6 @@ class EdgeServer:
     def __init__(
         self,
         secret: bytes,
-        camera: CameraCalibration,
-        imu: ImuCalibration,
         vocabulary: Vocabulary,
         config: EdgeConfig | None = None,
         service: EdgeServiceConfig | None = None,
@@ -99,7 +99,7 @@ class EdgeServer:
             heartbeat_interval=sv.heartbeat_interval_s,
             idle_timeout=sv.idle_timeout_s,
         )
-        self.app = EdgeApp(camera, imu, vocabulary, self, self.config, self.store, worker_factory)
+        self.app = EdgeApp(vocabulary, self, self.config, self.store, worker_factory)
         tr = transport or TransportConfig(accept_roles=("robot",))
         self.server = Server(
             self.robot_session, self.app.on_robot_message, transport=tr, store=self.store

@@ -4,7 +4,8 @@
 IMU without images, with ground truth) into the :class:`RobotFrame` messages a real robot
 would send: keyframes on ORB's integer level grid with descriptors and continuation links,
 non-keyframes as survivors (in the codec's order) plus new tracks on the 1/4 px grid, IMU
-through the IMU codec. :func:`play` sends them to an edge over the real transport.
+through the IMU codec. :func:`play` sends them to an edge over the real transport, after the
+robot's sensors (:func:`sim_sensors`).
 
 It stands in for the image-based robot where the EuRoC excerpt has too little motion for the
 VIO to initialise (and until rendered synthetic datasets exist).
@@ -28,7 +29,8 @@ from common.codec import (
     NonKeyframeFeatures,
     quantise_uv,
 )
-from common.links.robot_edge import RobotFrame, RobotSequenceEnd
+from common.links.robot_edge import RobotFrame, RobotSequenceEnd, sensors_message
+from common.links.sensors import Sensors
 from common.protocol import SessionConfig
 from common.protocol.messages import Message
 from common.transport import Client, Delivery, TransportConfig
@@ -36,6 +38,11 @@ from common.vocabulary import Vocabulary
 from services.edge.vio.simulation import SimSequence
 
 logger = logging.getLogger(__name__)
+
+
+def sim_sensors(seq: SimSequence) -> Sensors:
+    """The sensors a robot playing ``seq`` describes when it joins."""
+    return Sensors(seq.camera, seq.imu)
 
 
 def code_sequence(seq: SimSequence, vocabulary: Vocabulary) -> list[RobotFrame]:
@@ -94,14 +101,15 @@ async def play(
     port: int,
     agent_id: str,
     secret: bytes,
+    sensors: Sensors,
     rate_hz: float | None = None,
     transport: TransportConfig | None = None,
     flush_timeout_s: float = 120.0,
     linger: asyncio.Event | None = None,
 ) -> PlayResult:
-    """Send ``frames`` then :class:`RobotSequenceEnd` to the edge at ``host:port`` (as fast as
-    the link allows, or at ``rate_hz``); wait until the edge delivered everything, then (to
-    receive late feedback) until ``linger`` is set."""
+    """Send ``sensors``, ``frames`` then :class:`RobotSequenceEnd` to the edge at
+    ``host:port`` (as fast as the link allows, or at ``rate_hz``); wait until the edge
+    delivered everything, then (to receive late feedback) until ``linger`` is set."""
     feedback: list[Message] = []
 
     async def on_message(d: Delivery) -> None:
@@ -112,6 +120,7 @@ async def play(
     await client.start()
     t0 = time.monotonic()
     try:
+        await client.send(sensors_message(sensors))
         for k, fr in enumerate(frames):
             if rate_hz:
                 await asyncio.sleep(max(0.0, t0 + k / rate_hz - time.monotonic()))

@@ -8,7 +8,8 @@ them into a :class:`~services.robot.server.RobotServiceConfig` (the shared secre
 ``--secret-file``, else ``$RECSLAM_SECRET``, else a development default with a warning);
 ``serve`` plays the sequence with SIGINT / SIGTERM handled
 (:func:`services.robot.server.serve`). Exit code 0 once the edge has taken every frame, 130
-when interrupted, 1 when ``--flush-timeout`` expired; a configuration error raises
+when interrupted, 1 when ``--flush-timeout`` expired, 3 when the edge refused the robot (e.g.
+another calibration under an agent id it knows); a configuration error raises
 :class:`~common.errors.RecslamError` (the entry points exit with 2).
 
 The service modules (OpenCV, the front end) are imported inside the functions so that

@@ -1,15 +1,19 @@
 """The robot service's lifecycle: connect to the edge, play a sequence, flush, shut down.
 
 :class:`RobotService` plays an EuRoC-layout sequence (real download, TUM-VI, synthetic robot
-folder) or a ROS bag (:mod:`common.data.sources`) frame by frame: the image is read, tracked
-and coded in one worker thread (``run_in_executor``: OpenCV releases the GIL, so heartbeats
-and acks keep flowing on the event loop), the :class:`~common.protocol.messages.RobotFrame`
-goes to the protocol :class:`~common.transport.Client`, and the edge's ``InertialFeedback``
-is applied by :class:`~services.robot.app.RobotApp`. ``rate=realtime`` paces frames at their camera
+folder) or a ROS bag (:mod:`common.data.sources`) frame by frame, after announcing its sensors
+(``RobotSensors``, the stream's first message: the sequence's camera and IMU calibrations):
+the image is read, tracked and coded in one worker thread (``run_in_executor``: OpenCV
+releases the GIL, so heartbeats and acks keep flowing on the event loop), the
+:class:`~common.protocol.messages.RobotFrame` goes to the protocol
+:class:`~common.transport.Client`, and the edge's ``InertialFeedback`` is applied by
+:class:`~services.robot.app.RobotApp`. ``rate=realtime`` paces frames at their camera
 timestamps (when the front end falls behind, frames are processed late, never skipped),
 ``rate=max`` plays as fast as the front end runs. At the end a
 ``RobotSequenceEnd`` is sent and the service waits until the edge's application has taken
-every message (``Client.flush``).
+every message (``Client.flush``). An edge that refuses the robot (e.g. a different calibration
+under an agent id it already knows) closes the link with its reason: the run then stops with
+:class:`~common.protocol.errors.PeerRejectedError`.
 
 Backlog while the edge is away: the client keeps reconnecting with backoff and queues in its
 outbox, which is sized for ``backlog_s`` seconds of frames at the camera rate (default 30
@@ -48,8 +52,9 @@ from typing import Any
 from common.data.euroc import EurocFrame
 from common.data.sources import SequenceSource, open_source
 from common.errors import RecslamError
-from common.links.robot_edge import RobotFrame
-from common.protocol import SessionConfig
+from common.links.robot_edge import RobotFrame, sensors_message
+from common.links.sensors import Sensors
+from common.protocol import PeerRejectedError, SessionConfig
 from common.protocol.auth import MIN_SECRET_SIZE
 from common.protocol.messages import Message
 from common.transport import Client, TransportConfig
@@ -244,6 +249,9 @@ class RobotService:
             server_name="edge",
         )
         await self.client.start()
+        # The stream's first message: this robot's calibrations (the edge builds its decoders
+        # and VIO from them).
+        await self.client.send(sensors_message(Sensors(self.sequence.cam0, self.sequence.imu)))
         logger.info(
             "robot %s: playing %s frames %d..%d to %s:%d (%s)",
             cfg.agent_id,
@@ -369,6 +377,7 @@ class RobotService:
                 c["outbox_messages"],
             )
             return False
+        flush.result()  # re-raise a flush error (the edge refused the robot)
         return True
 
 
@@ -386,7 +395,8 @@ def _close_frames(frames: Iterator[EurocFrame]) -> None:
 
 async def serve(config: RobotServiceConfig, transport: TransportConfig | None = None) -> int:
     """Run the service with SIGINT/SIGTERM handlers; exit code 0, or 130 if interrupted, or
-    1 if the edge did not take everything before ``flush_timeout_s``."""
+    1 if the edge did not take everything before ``flush_timeout_s``, or 3 if the edge refused
+    the robot (its reason is logged)."""
     service = RobotService(config, transport)
     loop = asyncio.get_running_loop()
     installed = []
@@ -396,6 +406,9 @@ async def serve(config: RobotServiceConfig, transport: TransportConfig | None = 
             installed.append(sig)
     try:
         result = await service.run()
+    except PeerRejectedError as exc:
+        logger.error("robot %s: %s", config.agent_id, exc)
+        return 3
     finally:
         for sig in installed:
             loop.remove_signal_handler(sig)

@@ -8,7 +8,13 @@ import shutil
 
 import pytest
 
-from common.protocol import Blob, OutboxFullError, SessionConfig
+from common.protocol import (
+    Blob,
+    OutboxFullError,
+    PeerRejectedError,
+    RejectedMessageError,
+    SessionConfig,
+)
 from common.protocol.framing import encode_frame
 from common.protocol.messages import encode_payload
 from common.transport import Client, Delivery, Server, TransportConfig, run
@@ -198,6 +204,47 @@ def test_failed_handler_is_not_acked_and_message_is_redelivered():
             await server.close()
 
     run(main())
+
+
+def test_rejected_message_closes_that_link_with_the_reason_and_the_client_gives_up(caplog):
+    """A handler that raises RejectedMessageError refuses the message for good: the client
+    is told why (CloseCode.REJECTED), stops reconnecting, and its sends and flushes raise
+    PeerRejectedError; another client of the same server is served on."""
+
+    async def main():
+        server_sink = Sink()
+
+        async def handler(d: Delivery) -> None:
+            if d.peer == "robot-bad":
+                raise RejectedMessageError("your calibration differs")
+            await server_sink(d)
+
+        server = Server(scfg(), handler, transport=FAST)
+        host, port = await server.start()
+        bad = Client(scfg("robot-bad", "robot"), Sink(), host, port, transport=FAST)
+        good = Client(scfg("robot-good", "robot"), Sink(), host, port, transport=FAST)
+        await bad.start()
+        await good.start()
+        try:
+            await bad.send(Blob(0, b"x"))
+            with pytest.raises(PeerRejectedError, match="your calibration differs"):
+                await asyncio.wait_for(bad.flush(), 10)
+            with pytest.raises(PeerRejectedError):
+                await bad.send(Blob(1, b"y"))
+            await asyncio.sleep(0.3)  # a reconnecting client would be back by now
+            assert bad.connections == 1
+            for i in range(3):
+                await good.send(Blob(i, b"g"))
+            await good.flush()
+            assert [d.message.channel for d in server_sink.items] == [0, 1, 2]
+        finally:
+            await bad.close()
+            await good.close()
+            await server.close()
+
+    with caplog.at_level(logging.WARNING):
+        run(main())
+    assert "your calibration differs" in caplog.text
 
 
 def test_send_waits_while_outbox_full_and_disconnected():

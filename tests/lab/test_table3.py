@@ -113,3 +113,52 @@ def test_record_options_parse_and_reach_the_cloud_command(tmp_path):
     )
     plain = Job(JobConfig(dataset=tmp_path / "data", run_dir=tmp_path / "run2"))
     assert "--record" not in plain.cloud_argv()
+
+
+def test_replay_of_a_recording_with_each_robots_calibration(tmp_path, vocab):
+    """A recording the cloud service writes today holds each robot's ``AgentSensors`` ahead
+    of its keyframes; the replay uses them: r1, seen through a 640x480 camera of its own
+    (another size, intrinsics and mounting than the fallback camera), decodes and merges."""
+    import asyncio
+
+    from common.calibration import EUROC_IMU, CameraCalibration
+    from common.codec import CodecConfig
+    from common.geometry import make_T
+    from common.links.edge_cloud import AgentSensors, agent_sensors_message
+    from common.links.sensors import Sensors
+    from common.protocol import SessionConfig
+    from common.transport import Delivery
+    from services.cloud.config import CloudServiceConfig
+    from services.cloud.server import CloudServer
+    from services.cloud.simulation import R_BODY_CAM
+
+    mount = make_T(R_BODY_CAM, np.array([0.12, -0.03, 0.02]))
+    cam_b = CameraCalibration(640, 480, 330.0, 331.5, 318.2, 243.7, (-0.21, 0.04, 5e-4, 0.0), mount)
+    world = make_world(51)
+    r0 = make_session(world, default_camera(), 0, circle_poses(24, turns=1.0), np.eye(4), seed=1)
+    T_r1 = yaw_T(np.radians(-60.0), np.array([-1.5, 0.5, 0.0]))
+    r1 = make_session(world, cam_b, 1, circle_poses(12, turns=0.5, phase=2.0), T_r1, seed=2)
+    codec_b = CodecConfig(image_width=640, image_height=480)
+    msgs = [agent_sensors_message("r0", Sensors(default_camera(), EUROC_IMU))]
+    msgs += [m for g in encode_session(*r0, "r0", vocab, 7) for m in g]
+    msgs += [agent_sensors_message("r1", Sensors(cam_b, EUROC_IMU))]
+    msgs += [m for g in encode_session(*r1, "r1", vocab, 7, codec=codec_b) for m in g]
+    rec = tmp_path / "uplink.rec"
+    cfg = CloudServiceConfig(output_every_s=0, optimizer_process=False)
+
+    async def record() -> None:
+        session = SessionConfig("cloud", "cloud", b"0123456789abcdef0123")
+        cloud = CloudServer(session, tmp_path / "state", default_camera(), vocab, cfg, record=rec)
+        await cloud.start("127.0.0.1", 0)
+        try:
+            for seq, m in enumerate(msgs, 1):
+                await cloud._on_message(Delivery("edge", "edge", m, seq, b"stream"))
+        finally:
+            await cloud.stop(write_output=False)
+
+    asyncio.run(record())
+    recorded = list(read_recording(rec))
+    assert sum(isinstance(r.message, AgentSensors) for r in recorded) == 2
+    res = replay(recorded, default_camera(), vocab, service_config(False), tmp_path / "replay")
+    assert res.keyframes_received == 36 and res.merges >= 1 and res.maps == [0]
+    assert set(res.trajectories) == {"r0", "r1"}

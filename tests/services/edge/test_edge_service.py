@@ -17,13 +17,15 @@ import numpy as np
 import pytest
 
 from common.codec.imu import ImuDecoder
-from common.data.euroc import read_camera_yaml, read_imu_yaml
+from common.data.euroc import read_camera_yaml
 from common.links.edge_cloud import (
+    AgentSensors,
     AgentStatus,
     KeyframeUpdate,
     KeyframeUpdateCoded,
     MapPointUpdate,
     MapPointUpdateCoded,
+    read_agent_sensors,
 )
 from common.links.robot_edge import InertialFeedbackCoded, decode_feedback
 from common.protocol import SessionConfig
@@ -31,7 +33,7 @@ from common.transport import Delivery, Server, TransportConfig
 from common.vocabulary import Vocabulary
 from services.edge.app import EdgeConfig
 from services.edge.server import EdgeServer, EdgeServiceConfig
-from services.edge.sim_robot import code_sequence, play
+from services.edge.sim_robot import code_sequence, play, sim_sensors
 from services.edge.vio.simulation import SimOptions, simulate
 from services.edge.worker import MAP_ID_STRIDE, ProcessWorker, WorkerSpec, WorkItem, WorkResult
 
@@ -77,7 +79,7 @@ class CloudStub:
         ]
 
 
-def _edge(camera, imu, vocab, cloud_port: int, worker: str, **kw) -> EdgeServer:
+def _edge(vocab, cloud_port: int, worker: str, **kw) -> EdgeServer:
     service = EdgeServiceConfig(
         agent_id="edge-1",
         cloud_host="127.0.0.1",
@@ -87,8 +89,6 @@ def _edge(camera, imu, vocab, cloud_port: int, worker: str, **kw) -> EdgeServer:
     )
     return EdgeServer(
         SECRET,
-        camera,
-        imu,
         vocab,
         EdgeConfig(worker=worker),
         service,
@@ -107,7 +107,6 @@ def test_excerpt_robot_to_edge_to_real_cloud(tmp_path, vocab, euroc_micro) -> No
     from services.robot.server import Rate, RobotService, RobotServiceConfig
 
     camera = read_camera_yaml(euroc_micro / "mav0/cam0/sensor.yaml")
-    imu = read_imu_yaml(euroc_micro / "mav0/imu0/sensor.yaml")
 
     async def main():
         cloud = CloudServer(
@@ -119,7 +118,7 @@ def test_excerpt_robot_to_edge_to_real_cloud(tmp_path, vocab, euroc_micro) -> No
             transport=TransportConfig(accept_roles=("edge",)),
         )
         _, cport = await cloud.start()
-        edge = _edge(camera, imu, vocab, cport, "process")
+        edge = _edge(vocab, cport, "process")
         _, port = await edge.start()
         try:
             robot = RobotService(
@@ -193,15 +192,22 @@ def test_failing_robot_vio_does_not_disturb_another(vocab, sim_frames) -> None:
     async def main():
         cloud = CloudStub()
         cport = await cloud.start()
-        edge = _edge(
-            seq.camera, seq.imu, vocab, cport, "process", worker_factory=_faulty_for("bad")
-        )
+        edge = _edge(vocab, cport, "process", worker_factory=_faulty_for("bad"))
         _, port = await edge.start()
         done = asyncio.Event()
         try:
             plays = [
                 asyncio.create_task(
-                    play(frames, "127.0.0.1", port, name, SECRET, transport=FAST, linger=done)
+                    play(
+                        frames,
+                        "127.0.0.1",
+                        port,
+                        name,
+                        SECRET,
+                        sim_sensors(seq),
+                        transport=FAST,
+                        linger=done,
+                    )
                 )
                 for name in ("good", "bad")
             ]
@@ -264,9 +270,7 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-def _start_edge(
-    port: int, cloud_port: int, state: Path, log: Path, camera: Path
-) -> subprocess.Popen:
+def _start_edge(port: int, cloud_port: int, state: Path, log: Path) -> subprocess.Popen:
     env = dict(os.environ, RECSLAM_SECRET=SECRET.decode())
     cmd = [
         sys.executable,
@@ -278,8 +282,6 @@ def _start_edge(
         f"127.0.0.1:{cloud_port}",
         "--state-dir",
         str(state),
-        "--camera",
-        str(camera),
         "--worker",
         "thread",
         "--agent-id",
@@ -289,21 +291,32 @@ def _start_edge(
         return subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=out, stderr=subprocess.STDOUT)
 
 
-def test_edge_killed_and_restarted_loses_no_frame(tmp_path, vocab, sim_frames, euroc_micro) -> None:
+def test_edge_killed_and_restarted_loses_no_frame(tmp_path, vocab, sim_frames) -> None:
     """SIGKILL the edge process mid-stream, restart it on the same state directory: the
     journal replay plus the robot's replay give every frame exactly once, and the keyframes
-    uplinked cover every keyframe id of the final map."""
-    _, frames = sim_frames
+    uplinked cover every keyframe id of the final map. The robot's sensors (its stream's
+    first message, journaled) come back from the journal: the restarted edge builds the same
+    VIO and sends the cloud the same calibration again."""
+    seq, frames = sim_frames
     port = _free_port()
     log = tmp_path / "edge.log"
 
     async def main():
         cloud = CloudStub()
         cport = await cloud.start()
-        proc = _start_edge(port, cport, tmp_path / "state", log, euroc_micro)
+        proc = _start_edge(port, cport, tmp_path / "state", log)
         try:
             task = asyncio.create_task(
-                play(frames, "127.0.0.1", port, "robot-1", SECRET, rate_hz=20.0, transport=FAST)
+                play(
+                    frames,
+                    "127.0.0.1",
+                    port,
+                    "robot-1",
+                    SECRET,
+                    sim_sensors(seq),
+                    rate_hz=20.0,
+                    transport=FAST,
+                )
             )
             while not any(m.frames >= 40 for m in cloud.of(AgentStatus)):
                 assert proc.poll() is None, log.read_text()
@@ -312,7 +325,7 @@ def test_edge_killed_and_restarted_loses_no_frame(tmp_path, vocab, sim_frames, e
             proc.send_signal(signal.SIGKILL)
             proc.wait(10)
             killed_at = max(m.frames for m in cloud.of(AgentStatus))
-            proc = _start_edge(port, cport, tmp_path / "state", log, euroc_micro)
+            proc = _start_edge(port, cport, tmp_path / "state", log)
             result = await asyncio.wait_for(task, 120)
             while not any(m.state == "finished" for m in cloud.of(AgentStatus)[-3:]):
                 assert proc.poll() is None, log.read_text()
@@ -347,12 +360,13 @@ def test_edge_killed_and_restarted_loses_no_frame(tmp_path, vocab, sim_frames, e
         for i in range(1, len(chain)):
             assert prev_of[(map_id, chain[i])] == chain[i - 1], (map_id, chain)
     assert final.keyframes == sum(len(v) for v in by_map.values())
+    sent = cloud.of(AgentSensors, "robot-1")
+    assert len(sent) == 2  # once per edge run: the restarted edge had it from its journal
+    assert all(read_agent_sensors(m).same_as(sim_sensors(seq)) for m in sent)
 
 
 # ------------------------------------------------------------------ command line
-def test_edge_command_parses_and_names_missing_inputs(
-    tmp_path, monkeypatch, caplog, euroc_micro
-) -> None:
+def test_edge_command_parses_and_names_missing_inputs(tmp_path, monkeypatch, caplog) -> None:
     import argparse
 
     from recslam.commands import edge as edge_cmd
@@ -372,15 +386,14 @@ def test_edge_command_parses_and_names_missing_inputs(
     )
     assert args.listen == ("127.0.0.1", 7001) and args.cloud == ("cloud", 7100)
     assert args.worker == "process" and args.func is edge_cmd.handle
-    monkeypatch.setenv("RECSLAM_SECRET", SECRET.decode())
-    assert args.func(args) == 2  # no --camera
-    assert "--camera is required" in caplog.text
     monkeypatch.setenv("RECSLAM_SECRET", "short")
-    args = parser.parse_args(["edge", "--camera", str(euroc_micro)])
+    args = parser.parse_args(["edge"])
     assert args.func(args) == 2
     assert "at least 16 bytes" in caplog.text
     with pytest.raises(SystemExit):
         parser.parse_args(["edge", "--listen", "nonsense"])
+    with pytest.raises(SystemExit):  # the robots bring their calibrations
+        parser.parse_args(["edge", "--camera", "x"])
 
 
 # ------------------------------------------------------------------ rendered synthetic robot
@@ -388,7 +401,6 @@ def test_synthetic_robot_initialises_and_receives_feedback(tmp_path) -> None:
     """The image-based robot plays a rendered synthetic sequence (15 s, enough keyframes for
     the default VI initialisation) in real time into the edge: the VIO initialises, the edge
     sends InertialFeedback and the robot applies it. Slowest test here (~70 s: rendering)."""
-    from common.data.euroc import find_mav0
     from common.data.synth import SynthConfig, generate_dataset
     from services.robot.server import Rate, RobotService, RobotServiceConfig
 
@@ -397,14 +409,11 @@ def test_synthetic_robot_initialises_and_receives_feedback(tmp_path) -> None:
         SynthConfig(robots=1, seconds=15.0, seed=2, contact_sheet=False, progress=False),
     )
     dataset = next(p for p in (tmp_path / "synth").iterdir() if p.is_dir())
-    mav0 = find_mav0(dataset)
-    camera = read_camera_yaml(mav0 / "cam0/sensor.yaml")
-    imu = read_imu_yaml(mav0 / "imu0/sensor.yaml")
 
     async def main():
         cloud = CloudStub()
         cport = await cloud.start()
-        edge = _edge(camera, imu, Vocabulary.load(), cport, "thread")
+        edge = _edge(Vocabulary.load(), cport, "thread")
         _, port = await edge.start()
         try:
             robot = RobotService(

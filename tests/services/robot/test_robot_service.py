@@ -362,8 +362,8 @@ def test_unreachable_edge_keeps_frames_until_a_second_stop(vocabulary, euroc_mic
             robot_config(euroc_micro, port, max_frames=6, flush_timeout_s=None), FAST
         )
         task = asyncio.ensure_future(service.run())
-        while service.client is None or service.client.counters()["outbox_messages"] < 7:
-            await asyncio.sleep(0.05)  # 6 frames + the sequence end, queued
+        while service.client is None or service.client.counters()["outbox_messages"] < 8:
+            await asyncio.sleep(0.05)  # the sensors, 6 frames and the sequence end, queued
         service.request_stop()
         await asyncio.sleep(0.3)
         assert not task.done()  # still waiting for the edge to take the backlog
@@ -372,4 +372,4 @@ def test_unreachable_edge_keeps_frames_until_a_second_stop(vocabulary, euroc_mic
 
     result = run(main())
     assert result.interrupted and not result.flushed and result.frames == 6
-    assert result.counters["outbox_messages"] == 7
+    assert result.counters["outbox_messages"] == 8
