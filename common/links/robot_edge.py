@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from common.calibration import CameraCalibration
-from common.camera import PinholeRadtan
+from common.camera import camera_model
 from common.codec.entropy import BitReader, BitWriter, best_scale_index, signed_cost
 from common.codec.errors import CodecError
 from common.geometry import R_to_quat_wxyz, quat_wxyz_to_R
@@ -365,7 +365,7 @@ def _anchored(pose: bytes, uv: np.ndarray, q: np.ndarray, camera: CameraCalibrat
     (M, 2) [px] from the packed pose (the decoder's reconstruction, shared by the edge)."""
     if not len(q):
         return np.zeros((0, 3))
-    xy = PinholeRadtan.from_calibration(camera).pixels_to_normalized(uv)
+    xy = camera_model(camera).pixels_to_normalized(uv)
     z = np.exp(np.asarray(q, np.float64) * _LOG_STEP)
     p_cam = np.concatenate([xy * z[:, None], z[:, None]], axis=1)
     T_wc = _state_T(pose) @ camera.T_body_cam

@@ -38,7 +38,7 @@ import gtsam
 import numpy as np
 
 from common.calibration import CameraCalibration
-from common.camera import PinholeRadtan
+from common.camera import camera_model
 from common.geometry import inverse_T, transform_points
 from services.cloud.atlas import Atlas
 from services.cloud.config import FullBAConfig, GlobalOptimizationConfig
@@ -149,7 +149,7 @@ def build_full_ba(
     index = {k: i for i, k in enumerate(keys)}
     T = np.array([atlas.T_map_body(k) for k in keys])
     fx = float(camera.fx)
-    model = PinholeRadtan.from_calibration(camera)
+    model = camera_model(camera)
     kf_idx: list[np.ndarray] = []
     mp_keys: list[np.ndarray] = []
     xy: list[np.ndarray] = []
@@ -401,7 +401,7 @@ def reprojection_rms_px(atlas: Atlas, map_id: int, camera: CameraCalibration) ->
     """RMS reprojection error, pixels (``fx`` units), of every observation of a map's points
     in front of the camera at the atlas' current estimates (a diagnostic for tests and
     benchmarks)."""
-    model = PinholeRadtan.from_calibration(camera)
+    model = camera_model(camera)
     errs: list[np.ndarray] = []
     for k in atlas.keyframe_keys(map_id=map_id):
         v = atlas.keyframe(k)

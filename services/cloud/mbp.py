@@ -47,12 +47,12 @@ import logging
 from collections import deque
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from common.calibration import CameraCalibration
+from common.camera import camera_model
 from common.geometry import inverse_T, transform_points
 from services.cloud.atlas import Atlas
 from services.cloud.config import MbpConfig
@@ -283,13 +283,12 @@ def _fold(
         return 0
     mkeys = R.map_point_keys[idx]
     P = atlas.map_point_positions(mkeys)
-    K, dist = camera.K, camera.dist_coeffs
+    model = camera_model(camera)
     T_body_cam = np.asarray(camera.T_body_cam)
 
     def project(T_map_body: np.ndarray, p_map: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         p_cam = transform_points(inverse_T(T_map_body @ T_body_cam), p_map)
-        uv, _ = cv2.projectPoints(p_cam, np.zeros(3), np.zeros(3), K, dist)
-        return uv.reshape(-1, 2), p_cam[:, 2]
+        return model.project(p_cam), p_cam[:, 2]
 
     uv_r, z_r = project(np.asarray(R.T_map_body), P)
     err = np.linalg.norm(uv_r - R.keypoints[idx], axis=1)
