@@ -2,9 +2,9 @@
 
 A room of random landmarks (walls, floor, ceiling), a smooth trajectory with analytic
 derivatives, a camera through :func:`common.camera.camera_model` (default EuRoC cam0: pinhole +
-radial-tangential intrinsics and extrinsic), persistent track ids with robot-like keyframes (new tracks start only on keyframes, as ORB runs
-only there), and 200 Hz IMU with EuRoC ADIS16448 white noise and bias random walk.
-Deterministic per seed.
+radial-tangential intrinsics and extrinsic), persistent track ids with robot-like keyframes
+(new tracks start only on keyframes, as ORB runs only there), and 200 Hz IMU with EuRoC
+ADIS16448 white noise and bias random walk. Deterministic per seed.
 """
 
 from __future__ import annotations
