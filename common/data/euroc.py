@@ -389,18 +389,20 @@ class _Yaml:
 
 
 def read_camera_yaml(path: Path | str) -> CameraCalibration:
-    """``camN/sensor.yaml`` -> pinhole + radial-tangential :class:`CameraCalibration`."""
+    """``camN/sensor.yaml`` -> pinhole + radial-tangential or equidistant
+    :class:`CameraCalibration`."""
     y = _Yaml(Path(path))
     y.expect("sensor_type", ("camera",))
     y.expect("camera_model", ("pinhole",))
-    y.expect("distortion_model", ("radial-tangential", "radtan"))
+    y.expect("distortion_model", ("radial-tangential", "radtan", "equidistant"))
+    model = "equidistant" if y.data.get("distortion_model") == "equidistant" else "radtan"
     width, height = y.numbers("resolution", 2)
     if width != int(width) or height != int(height) or width < 1 or height < 1:
         raise EurocError(f"{y.where('resolution')}: resolution must be two positive integers")
     fx, fy, cx, cy = y.numbers("intrinsics", 4)
     if fx <= 0 or fy <= 0:
         raise EurocError(f"{y.where('intrinsics')}: focal lengths must be positive")
-    k1, k2, p1, p2 = y.numbers("distortion_coefficients", 4)
+    coeffs = tuple(y.numbers("distortion_coefficients", 4))
     return CameraCalibration(
         width=int(width),
         height=int(height),
@@ -408,9 +410,10 @@ def read_camera_yaml(path: Path | str) -> CameraCalibration:
         fy=fy,
         cx=cx,
         cy=cy,
-        distortion=(k1, k2, p1, p2),
+        distortion=coeffs,
         T_body_cam=y.transform(),
         rate_hz=y.number("rate_hz", positive=True),
+        model=model,
     )
 
 

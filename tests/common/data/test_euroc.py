@@ -281,7 +281,7 @@ def test_broken_input_names_file_and_line(
     elif case == "yaml_T_BS":
         _replace(p, "[0.0148655429818,", "[2.0148655429818,")
     elif case == "yaml_distortion_model":
-        _replace(p, "radial-tangential", "equidistant")
+        _replace(p, "radial-tangential", "fov")
     elif case == "yaml_syntax":
         _replace(p, "resolution: [752, 480]", "resolution: [752, 480")
     elif case == "yaml_imu_noise":

@@ -12,7 +12,8 @@ import cv2
 import numpy as np
 import pytest
 
-from common.camera import PinholeEquidistant
+from common.camera import PinholeEquidistant, camera_model
+from common.data.euroc import EurocSequence
 from common.data.synth import CAMERA_PRESETS, SynthConfig, SynthError, generate_dataset
 from common.data.synth.render import RenderConfig, Renderer
 from common.data.synth.scene import vicon_room
@@ -72,6 +73,10 @@ def test_each_robot_states_its_own_camera_and_images_have_its_size(team: Path) -
             assert img.shape == (model.height, model.width) and img.dtype == np.uint8
             assert img.std() > 10
     assert not np.allclose(mounts[0], mounts[1])  # the wide camera has its own mount
+    for k, name in enumerate(TEAM):  # and the reader gives back the very model
+        cam0 = EurocSequence(team / f"robot{k}").cam0
+        assert camera_model(cam0) == CAMERA_PRESETS[name].model
+        np.testing.assert_array_equal(cam0.T_body_cam, CAMERA_PRESETS[name].T_body_cam)
 
 
 def test_fisheye_renders_the_scene_where_its_model_projects_it() -> None:
