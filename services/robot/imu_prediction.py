@@ -3,8 +3,9 @@
 Before visual-inertial initialisation the rotation between two frames comes from the mean
 angular velocity over the IMU samples between them (the paper's uniform-motion model,
 equation 2): ``R_imu0_imu1 = Exp((ω_mean − b_g) Δt)``. It is carried into the camera frame with
-the extrinsic ``R_imu_cam`` and applied to undistorted normalised points as the infinite
-homography ``K R_cur_prev K⁻¹``; the result is re-distorted into pixels.
+the extrinsic ``R_imu_cam`` and applied to the keypoints' rays (the infinite homography
+``K R_cur_prev K⁻¹`` of a pinhole camera; rays also serve a fisheye's view beyond 90 degrees);
+the camera model (:func:`common.camera.camera_model`) projects them back into pixels.
 
 After initialisation the edge sends an :class:`InertialState` (pose, velocity, biases,
 gravity) for some past frame; it is propagated through the buffered IMU samples (on-manifold
