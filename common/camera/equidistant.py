@@ -122,7 +122,7 @@ class PinholeEquidistant:
         xy = as_points(xy, 2, "xy")
         r = np.hypot(xy[:, 0], xy[:, 1])
         theta = np.arctan(r)
-        with np.errstate(divide="ignore", invalid="ignore"):
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
             scale = np.where(r > 1e-8, self._theta_d(theta) / r, 1.0)
         scale = np.where(theta <= self.theta_max, scale, np.nan)
         return xy * scale[:, None]
@@ -133,7 +133,7 @@ class PinholeEquidistant:
         xy_d = as_points(xy_distorted, 2, "xy_distorted")
         theta_d = np.hypot(xy_d[:, 0], xy_d[:, 1])
         theta = self._solve_theta(theta_d)
-        with np.errstate(divide="ignore", invalid="ignore"):
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
             scale = np.where(theta_d > _SMALL, np.tan(theta) / theta_d, 1.0)
         scale = np.where(theta < np.pi / 2, scale, np.nan)
         return xy_d * scale[:, None]
@@ -147,7 +147,7 @@ class PinholeEquidistant:
         X, Y, Z = p_cam.T
         rho = np.hypot(X, Y)
         theta = np.arctan2(rho, Z)
-        with np.errstate(divide="ignore", invalid="ignore"):
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
             scale = np.where(rho > _SMALL * np.abs(Z), self._theta_d(theta) / rho, 1.0 / Z)
         on_axis = rho <= _SMALL * np.abs(Z)
         ok = (theta <= self.theta_max) & ~(on_axis & (Z <= 0))  # straight back: no direction
@@ -166,7 +166,7 @@ class PinholeEquidistant:
         on_axis = rho <= _SMALL * np.abs(Z)
         safe = np.where(on_axis, 1.0, rho)
         m = np.stack([X, Y], axis=1) / safe[:, None]
-        with np.errstate(divide="ignore", invalid="ignore"):
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
             dtheta = np.concatenate([m * (Z / R2)[:, None], (-rho / R2)[:, None]], axis=1)
             g = np.where(on_axis, 1.0 / Z, self._theta_d(theta) / safe)
         J = self._dtheta_d(theta)[:, None, None] * m[:, :, None] * dtheta[:, None, :]
@@ -191,7 +191,7 @@ class PinholeEquidistant:
         xy_d = from_pixels(self.fx, self.fy, self.cx, self.cy, uv)
         theta_d = np.hypot(xy_d[:, 0], xy_d[:, 1])
         theta = self._solve_theta(theta_d)
-        with np.errstate(divide="ignore", invalid="ignore"):
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
             m = np.where((theta_d > _SMALL)[:, None], xy_d / theta_d[:, None], 0.0)
         return np.concatenate([m * np.sin(theta)[:, None], np.cos(theta)[:, None]], axis=1)
 
