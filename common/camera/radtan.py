@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 from common.calibration import CameraCalibration
@@ -22,6 +23,8 @@ from common.camera.base import (
     scaled_intrinsics,
     to_pixels,
 )
+
+_EYE3 = np.eye(3)
 
 
 @dataclass(frozen=True)
@@ -87,28 +90,47 @@ class PinholeRadtan:
         d = radial + y * y * dradial + 6.0 * p1 * y + 2.0 * p2 * x
         return a, b, c, d
 
-    def undistort(self, xy_distorted: np.ndarray, iterations: int = 20) -> np.ndarray:
+    def _newton_step(
+        self, x: np.ndarray, y: np.ndarray, xd: np.ndarray, yd: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """One Newton step of ``distort(x, y) = (xd, yd)`` (distortion and its Jacobian fused:
+        the robot undistorts every tracked point several times per frame)."""
+        k1, k2, p1, p2 = self.k1, self.k2, self.p1, self.p2
+        xx, yy, xy = x * x, y * y, x * y
+        r2 = xx + yy
+        radial = 1.0 + r2 * (k1 + k2 * r2)
+        dradial = 2.0 * (k1 + 2.0 * k2 * r2)
+        ex = x * radial + 2.0 * p1 * xy + p2 * (r2 + 2.0 * xx) - xd
+        ey = y * radial + p1 * (r2 + 2.0 * yy) + 2.0 * p2 * xy - yd
+        a = radial + xx * dradial + 2.0 * p1 * y + 6.0 * p2 * x
+        b = xy * dradial + 2.0 * p1 * x + 2.0 * p2 * y  # = dyd/dx
+        d = radial + yy * dradial + 6.0 * p1 * y + 2.0 * p2 * x
+        det = a * d - b * b
+        return x - (d * ex - b * ey) / det, y - (a * ey - b * ex) / det
+
+    def undistort(self, xy_distorted: np.ndarray, iterations: int = 5) -> np.ndarray:
         """Distorted normalised points (N, 2) -> undistorted normalised points (N, 2).
 
-        OpenCV's fixed-point iteration (as ``cv2.undistortPoints``) followed by three
-        Gauss-Newton steps, so ``distort(undistort(p)) == p`` to ~1e-12 inside the image.
+        OpenCV's fixed-point iteration (``cv2.undistortPoints``, ``iterations`` steps: its
+        default) followed by two Newton steps, so ``distort(undistort(p)) == p`` to ~1e-14
+        inside the image (cv2's five steps alone leave up to 0.6 px at EuRoC cam0's corners).
         """
         xy_d = as_points(xy_distorted, 2, "xy_distorted")
+        if len(xy_d) == 0:
+            return np.zeros((0, 2))
+        start = cv2.undistortPoints(
+            np.ascontiguousarray(xy_d).reshape(-1, 1, 2),
+            _EYE3,
+            self.dist_coeffs,
+            None,
+            None,
+            None,
+            (cv2.TERM_CRITERIA_COUNT, iterations, 0.0),
+        ).reshape(-1, 2)
+        x, y = start[:, 0], start[:, 1]
         xd, yd = xy_d[:, 0], xy_d[:, 1]
-        x, y = xd.copy(), yd.copy()
-        for _ in range(iterations):
-            r2 = x * x + y * y
-            icdist = 1.0 / (1.0 + r2 * (self.k1 + self.k2 * r2))
-            dx = 2.0 * self.p1 * x * y + self.p2 * (r2 + 2.0 * x * x)
-            dy = self.p1 * (r2 + 2.0 * y * y) + 2.0 * self.p2 * x * y
-            x = (xd - dx) * icdist
-            y = (yd - dy) * icdist
-        for _ in range(3):
-            ex, ey = (self.distort(np.stack([x, y], axis=1)) - xy_d).T
-            a, b, c, d = self._distort_jacobian(x, y)
-            det = a * d - b * c
-            x = x - (d * ex - b * ey) / det
-            y = y - (-c * ex + a * ey) / det
+        for _ in range(2):  # quadratic convergence from cv2's start
+            x, y = self._newton_step(x, y, xd, yd)
         return np.stack([x, y], axis=1)
 
     # ------------------------------------------------------------------ pixels
