@@ -95,9 +95,15 @@ class PinholeEquidistant:
     def theta_max(self) -> float:
         """Largest valid angle from the optical axis [rad]: where ``theta_d`` stops increasing
         (the model folds over beyond), at most pi."""
-        theta = np.linspace(0.0, np.pi, 8193)
+        theta = np.linspace(0.0, np.pi, 257)
         bad = np.flatnonzero(self._dtheta_d(theta) <= 0.0)
-        return float(theta[bad[0] - 1]) if len(bad) else float(np.pi)
+        if not len(bad):
+            return float(np.pi)
+        lo, hi = float(theta[bad[0] - 1]), float(theta[bad[0]])  # bisect the first fold
+        for _ in range(40):
+            mid = 0.5 * (lo + hi)
+            lo, hi = (mid, hi) if self._dtheta_d(np.array(mid)) > 0.0 else (lo, mid)
+        return lo
 
     @cached_property
     def theta_d_max(self) -> float:
