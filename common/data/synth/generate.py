@@ -114,7 +114,7 @@ class SynthConfig:
         object.__setattr__(self, "cameras", tuple(self.cameras))
         if self.cameras and len(self.cameras) != self.robots:
             raise SynthError(
-                f"cameras names {len(self.cameras)} presets ({', '.join(self.cameras)}) "
+                f"cameras: {len(self.cameras)} presets ({', '.join(self.cameras)}) "
                 f"for {self.robots} robots: give one per robot"
             )
         for name in self.cameras:
