@@ -34,6 +34,13 @@ logger = logging.getLogger(__name__)
 
 _CAMERAS = ("cam0", "cam1")
 
+EUROC_DISTORTION_MODELS: dict[str, str] = {
+    "radtan": "radial-tangential",
+    "equidistant": "equidistant",
+}
+"""``sensor.yaml`` ``distortion_model`` of each calibration model (EuRoC writes
+``radial-tangential``; TUM-VI and Kalibr write ``equidistant`` for Kannala-Brandt)."""
+
 
 def format_float(x: float) -> str:
     """Shortest exact decimal of ``x`` that YAML 1.1 and C parsers both read as a float.
@@ -127,7 +134,8 @@ class EurocWriter:
         self.close()
 
     def add_camera(self, cam: str, calib: CameraCalibration, comment: str = "") -> None:
-        """Create ``mav0/<cam>/`` and its ``sensor.yaml`` (pinhole, radial-tangential)."""
+        """Create ``mav0/<cam>/`` and its ``sensor.yaml`` (pinhole; ``distortion_model`` of the
+        calibration's model, :data:`EUROC_DISTORTION_MODELS`)."""
         if cam not in _CAMERAS:
             raise EurocError(f"camera name must be one of {_CAMERAS}, got {cam!r}")
         if cam in self._calibs:
@@ -149,7 +157,7 @@ class EurocWriter:
             "camera_model: pinhole\n"
             f"intrinsics: {_yaml_list([calib.fx, calib.fy, calib.cx, calib.cy])}"
             " #fu, fv, cu, cv\n"
-            "distortion_model: radial-tangential\n"
+            f"distortion_model: {EUROC_DISTORTION_MODELS[calib.model]}\n"
             f"distortion_coefficients: {_yaml_list(calib.distortion)}\n"
         )
         (folder / "sensor.yaml").write_text(text)

@@ -2,8 +2,9 @@
 
 ``recslam dataset synth --out DIR --robots 3 --seconds 60 --seed 0`` renders the embedded
 textured room for every robot and writes ``DIR/robotK/mav0`` (EuRoC layout), ``dataset.json``,
-``contact_sheet.png`` and ``trajectories_top.png``. ``recslam dataset info PATH`` prints the
-facts of a dataset folder (several ``*/mav0`` sequences), of a single EuRoC-layout sequence
+``contact_sheet.png`` and ``trajectories_top.png``; ``--cameras euroc,wide,fisheye`` gives
+each robot its own camera preset (default all ``euroc``). ``recslam dataset info PATH`` prints
+the facts of a dataset folder (several ``*/mav0`` sequences), of a single EuRoC-layout sequence
 (EuRoC, TUM-VI), or of a ROS bag (``.bag`` file or ROS 2 bag folder: topics, message types,
 counts, durations and rates).
 """
@@ -35,6 +36,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         action="store_true",
         help="noise-free IMU and images (no biases, no read noise)",
     )
+    s.add_argument(
+        "--cameras",
+        default="",
+        help="one camera preset per robot, comma-separated, from "
+        "euroc (752x480 radtan), wide (640x480 radtan, pitched mount), fisheye (512x512 "
+        "equidistant); default all euroc",
+    )
     s.add_argument("--no-progress", action="store_true", help="no progress bar")
     s.set_defaults(func=run_synth)
     i = inner.add_parser("info", help="describe a dataset folder, one sequence or a ROS bag")
@@ -50,7 +58,11 @@ def run_synth(args: argparse.Namespace) -> int:
 
     try:
         config = SynthConfig(
-            robots=args.robots, seconds=args.seconds, seed=args.seed, progress=not args.no_progress
+            robots=args.robots,
+            seconds=args.seconds,
+            seed=args.seed,
+            progress=not args.no_progress,
+            cameras=tuple(c.strip() for c in args.cameras.split(",") if c.strip()),
         )
         if args.no_noise:
             config = replace(

@@ -12,10 +12,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 
 from common.calibration import CameraCalibration
+from common.camera import camera_model
 from common.codec.frames import FeatureEncoder
 from common.codec.types import CodecConfig, KeyframeFeatures
 from common.geometry import inverse_T, make_T, transform_points
@@ -108,8 +108,7 @@ def observe(
     p_cam = transform_points(T_cam_world, world.points)
     front = (p_cam[:, 2] > 0.3) & (np.linalg.norm(p_cam, axis=1) < max_range)
     idx = np.flatnonzero(front)
-    uv, _ = cv2.projectPoints(p_cam[idx], np.zeros(3), np.zeros(3), cam.K, cam.dist_coeffs)
-    uv = uv.reshape(-1, 2)
+    uv = camera_model(cam).project(p_cam[idx])
     # Undistorted normalised coordinates must be in a sane range for the model to hold.
     xn = p_cam[idx, :2] / p_cam[idx, 2:3]
     inside = (

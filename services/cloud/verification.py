@@ -58,14 +58,23 @@ class VerificationResult:
     matches: np.ndarray
 
 
+COLMAP_MODELS: dict[str, str] = {"radtan": "OPENCV", "equidistant": "OPENCV_FISHEYE"}
+"""pycolmap camera model of each :data:`common.calibration.CAMERA_MODELS` entry: both take
+``(fx, fy, cx, cy)`` then the four coefficients in our order (``OPENCV``: k1, k2, p1, p2 as
+``cv2``; ``OPENCV_FISHEYE``: k1..k4 as ``cv2.fisheye``), so verification keeps its pixel
+thresholds for every camera."""
+
+
 def colmap_camera(cam: CameraCalibration) -> pycolmap.Camera:
-    """pycolmap OPENCV camera (fx, fy, cx, cy, k1, k2, p1, p2) of a calibration."""
-    k1, k2, p1, p2 = cam.distortion
+    """pycolmap camera (:data:`COLMAP_MODELS`) of a calibration."""
+    model = COLMAP_MODELS.get(cam.model)
+    if model is None:
+        raise VerificationError(f"no pycolmap camera model for {cam.model!r}")
     return pycolmap.Camera(
-        model="OPENCV",
+        model=model,
         width=cam.width,
         height=cam.height,
-        params=[cam.fx, cam.fy, cam.cx, cam.cy, k1, k2, p1, p2],
+        params=[cam.fx, cam.fy, cam.cx, cam.cy, *cam.distortion],
     )
 
 

@@ -3,8 +3,9 @@
 Before visual-inertial initialisation the rotation between two frames comes from the mean
 angular velocity over the IMU samples between them (the paper's uniform-motion model,
 equation 2): ``R_imu0_imu1 = Exp((ω_mean − b_g) Δt)``. It is carried into the camera frame with
-the extrinsic ``R_imu_cam`` and applied to undistorted normalised points as the infinite
-homography ``K R_cur_prev K⁻¹``; the result is re-distorted into pixels.
+the extrinsic ``R_imu_cam`` and applied to the keypoints' rays (the infinite homography
+``K R_cur_prev K⁻¹`` of a pinhole camera; rays also serve a fisheye's view beyond 90 degrees);
+the camera model (:func:`common.camera.camera_model`) projects them back into pixels.
 
 After initialisation the edge sends an :class:`InertialState` (pose, velocity, biases,
 gravity) for some past frame; it is propagated through the buffered IMU samples (on-manifold
@@ -26,7 +27,7 @@ import cv2
 import numpy as np
 
 from common.calibration import CameraCalibration, ImuCalibration
-from common.camera import PinholeRadtan
+from common.camera import camera_model
 from common.errors import RecslamError
 from common.geometry import inverse_T, so3_exp
 
@@ -184,23 +185,23 @@ def T_imu_cam_from(camera: CameraCalibration, imu: ImuCalibration) -> np.ndarray
 
 
 def undistort_normalised(camera: CameraCalibration, pts_px: np.ndarray) -> np.ndarray:
-    """Distorted pixels (N, 2) -> undistorted normalised image coordinates (N, 2)."""
-    pts = np.asarray(pts_px, dtype=np.float64).reshape(-1, 1, 2)
+    """Distorted pixels (N, 2) -> undistorted normalised image coordinates (N, 2) (NaN for
+    pixels whose ray is not in front of the camera, possible with a fisheye)."""
+    pts = np.asarray(pts_px, dtype=np.float64).reshape(-1, 2)
     if len(pts) == 0:
         return np.zeros((0, 2))
-    return cv2.undistortPoints(pts, camera.K, camera.dist_coeffs).reshape(-1, 2)
+    return camera_model(camera).pixels_to_normalized(pts)
 
 
 def project_points(camera: CameraCalibration, p_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Camera-frame points (N, 3) -> distorted pixels (N, 2) and a mask (N,) of points in
-    front of the camera (pixels of the others are NaN)."""
+    """Camera-frame points (N, 3) -> distorted pixels (N, 2) and a mask (N,) of points the
+    camera sees (in front of a pinhole camera; within a fisheye's field of view, which may
+    reach behind); pixels of the others are NaN."""
     p_cam = np.asarray(p_cam, dtype=np.float64).reshape(-1, 3)
-    front = p_cam[:, 2] > 1e-6
-    out = np.full((len(p_cam), 2), np.nan)
-    if np.any(front):
-        xy = p_cam[front, :2] / p_cam[front, 2:3]
-        out[front] = PinholeRadtan.from_calibration(camera).normalized_to_pixels(xy)
-    return out, front
+    if len(p_cam) == 0:
+        return np.zeros((0, 2)), np.zeros(0, dtype=bool)
+    out = camera_model(camera).project(p_cam)
+    return out, np.isfinite(out).all(axis=1)
 
 
 def predict_rotation(
@@ -208,11 +209,12 @@ def predict_rotation(
 ) -> np.ndarray:
     """Infinite-homography prediction: distorted pixels (N, 2) of the previous frame -> their
     positions (N, 2) in the current one under the camera rotation ``R_cur_prev`` (vectors of
-    the previous camera frame into the current). Points turning behind the camera keep their
+    the previous camera frame into the current). Points turning out of view keep their
     previous position."""
     pts_px = np.asarray(pts_px, dtype=np.float64).reshape(-1, 2)
-    xy = undistort_normalised(camera, pts_px)
-    rays = np.concatenate([xy, np.ones((len(xy), 1))], axis=1) @ np.asarray(R_cur_prev).T
+    if len(pts_px) == 0:
+        return np.zeros((0, 2))
+    rays = camera_model(camera).unproject(pts_px) @ np.asarray(R_cur_prev).T
     out, front = project_points(camera, rays)
     out[~front] = pts_px[~front]
     return out
@@ -401,9 +403,7 @@ def warp_by_rotation(
     narrower view that stays inside the source image (no black borders)."""
     out = camera if out_camera is None else out_camera
     h, w = out.height, out.width
-    u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
-    xy = undistort_normalised(out, np.stack([u.ravel(), v.ravel()], axis=1))
-    rays = np.concatenate([xy, np.ones((len(xy), 1))], axis=1) @ np.asarray(R_cur_prev)
+    rays = camera_model(out).pixel_rays().reshape(-1, 3) @ np.asarray(R_cur_prev)
     src, front = project_points(camera, rays)
     src[~front] = -1.0
     map_x = src[:, 0].reshape(h, w).astype(np.float32)

@@ -58,12 +58,19 @@ def ransac_inliers(
     camera: CameraCalibration, pts0: np.ndarray, pts1: np.ndarray, config: LkConfig
 ) -> np.ndarray:
     """Mask (N,) of correspondences (N, 2) px consistent with one two-view model fitted by
-    RANSAC on undistorted points (``config.ransac_model``)."""
+    RANSAC on undistorted points (``config.ransac_model``). Points without undistorted
+    coordinates (a fisheye's rays at 90 degrees and more off axis) are dropped."""
     n = len(pts0)
     if n < max(config.min_ransac_points, 8):
         return np.ones(n, dtype=bool)
     x0 = undistort_normalised(camera, pts0)
     x1 = undistort_normalised(camera, pts1)
+    usable = np.isfinite(x0).all(axis=1) & np.isfinite(x1).all(axis=1)
+    if not usable.all():
+        inner = ransac_inliers(camera, np.asarray(pts0)[usable], np.asarray(pts1)[usable], config)
+        mask = np.zeros(n, dtype=bool)
+        mask[usable] = inner
+        return mask
     if np.max(np.abs(x1 - x0)) < 1e-9:
         return np.ones(n, dtype=bool)
     if config.ransac_model is RansacModel.ESSENTIAL:

@@ -3,6 +3,7 @@
 Public entry: ``generate_dataset(out, SynthConfig(robots=3, seconds=60.0, seed=0))``.
 """
 
+from common.data.synth.cameras import CAMERA_PRESETS, CameraPreset, camera_preset
 from common.data.synth.generate import (
     EUROC_CAM0,
     GENERATOR_VERSION,
@@ -14,11 +15,14 @@ from common.data.synth.generate import (
 )
 
 __all__ = [
+    "CAMERA_PRESETS",
     "EUROC_CAM0",
     "GENERATOR_VERSION",
+    "CameraPreset",
     "DatasetSummary",
     "RobotSummary",
     "SynthConfig",
     "SynthError",
+    "camera_preset",
     "generate_dataset",
 ]

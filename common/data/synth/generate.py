@@ -5,12 +5,15 @@
     out/robot0/mav0/{cam0, imu0, state_groundtruth_estimate0, body.yaml}
     out/robot1/mav0/...
     out/dataset.json           seed, robots, seconds, generator version, per-robot facts
+                               (and the camera preset of each robot when not all euroc)
     out/contact_sheet.png      sample frames of each robot
     out/trajectories_top.png   top view of the room, boxes and flights
 
 Time: IMU and ground truth at 200 Hz on a grid starting at ``start_ns``; robot ``k`` starts
 ``k * robot_start_offset_s`` later (they fly at the same time, with different loop phases);
 camera frames at 20 Hz are every 10th IMU sample. Everything is deterministic in ``seed``.
+Each robot has its own camera (``SynthConfig.cameras``, presets of
+:mod:`common.data.synth.cameras`; default all ``euroc``) stated in its ``cam0/sensor.yaml``.
 """
 
 from __future__ import annotations
@@ -26,20 +29,21 @@ import cv2
 import numpy as np
 
 from common.calibration import EUROC_IMU, CameraCalibration, ImuCalibration
-from common.camera import PinholeRadtan
 from common.data.euroc import EurocGroundTruth
 from common.data.euroc_write import EurocWriter
+from common.data.synth.cameras import (
+    CAMERA_PRESETS,
+    EUROC_CAM0,
+    CameraPreset,
+    CameraPresetError,
+    camera_preset,
+)
 from common.data.synth.imu_sim import ImuNoiseConfig, simulate_imu
 from common.data.synth.plots import contact_sheet, plot_top_view
 from common.data.synth.render import RenderConfig, Renderer
 from common.data.synth.scene import vicon_room
 from common.data.synth.textures import TextureConfig, build_atlas
-from common.data.synth.trajectory import (
-    T_IMU_CAM,
-    LoopTrajectory,
-    TrajectoryConfig,
-    make_trajectories,
-)
+from common.data.synth.trajectory import LoopTrajectory, TrajectoryConfig, make_trajectories
 from common.errors import RecslamError
 from common.geometry import R_to_quat_wxyz
 
@@ -47,19 +51,18 @@ logger = logging.getLogger(__name__)
 
 GENERATOR_VERSION = "recslam-synth-1"
 
-# EuRoC cam0 (V1_01): intrinsics [px] and radial-tangential distortion.
-EUROC_CAM0 = PinholeRadtan(
-    752,
-    480,
-    458.654,
-    457.296,
-    367.215,
-    248.375,
-    -0.28340811,
-    0.07395907,
-    0.00019359,
-    1.76187114e-05,
-)
+__all__ = [
+    "EUROC_CAM0",
+    "GENERATOR_VERSION",
+    "DatasetSummary",
+    "RobotSummary",
+    "SynthConfig",
+    "SynthError",
+    "camera_calibration",
+    "generate_dataset",
+    "imu_calibration",
+    "robot_timestamps",
+]
 
 
 class SynthError(RecslamError):
@@ -75,8 +78,9 @@ class SynthConfig:
     ``imu_rate_hz`` (200); ``start_ns``: timestamp of robot 0's first sample [ns];
     ``robot_start_offset_s``: extra start delay of each further robot [s]; ``imu_noise`` /
     ``render`` / ``textures`` / ``trajectory``: sub-configs (set ``imu_noise.enabled=False``
-    and ``render.noise_std=0`` for noise-free data); ``contact_sheet``: write the PNG previews;
-    ``progress``: tqdm bar on stderr.
+    and ``render.noise_std=0`` for noise-free data); ``cameras``: one camera preset name per
+    robot (:data:`~common.data.synth.cameras.CAMERA_PRESETS`), empty = all ``euroc``;
+    ``contact_sheet``: write the PNG previews; ``progress``: tqdm bar on stderr.
     """
 
     robots: int = 3
@@ -92,6 +96,7 @@ class SynthConfig:
     trajectory: TrajectoryConfig = field(default_factory=TrajectoryConfig)
     contact_sheet: bool = True
     progress: bool = True
+    cameras: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         if self.robots < 1:
@@ -106,6 +111,21 @@ class SynthConfig:
             )
         if (1e9 / self.imu_rate_hz) % 1 != 0:
             raise SynthError(f"imu_rate_hz {self.imu_rate_hz} must give an integer ns period")
+        object.__setattr__(self, "cameras", tuple(self.cameras))
+        if self.cameras and len(self.cameras) != self.robots:
+            raise SynthError(
+                f"cameras: {len(self.cameras)} presets ({', '.join(self.cameras)}) "
+                f"for {self.robots} robots: give one per robot"
+            )
+        for name in self.cameras:
+            try:
+                camera_preset(name)
+            except CameraPresetError as e:
+                raise SynthError(str(e)) from None
+
+    def camera(self, robot: int) -> CameraPreset:
+        """Camera preset of robot ``robot``."""
+        return camera_preset(self.cameras[robot]) if self.cameras else CAMERA_PRESETS["euroc"]
 
 
 @dataclass(frozen=True)
@@ -151,9 +171,10 @@ def imu_calibration(config: SynthConfig) -> ImuCalibration:
     )
 
 
-def camera_calibration(config: SynthConfig) -> CameraCalibration:
-    """EuRoC cam0 intrinsics, distortion and ``T_BS`` at the configured rate."""
-    return EUROC_CAM0.to_calibration(T_IMU_CAM, config.camera_rate_hz)
+def camera_calibration(config: SynthConfig, robot: int = 0) -> CameraCalibration:
+    """Robot ``robot``'s camera (intrinsics, distortion, ``T_BS``; EuRoC cam0 by default) at
+    the configured rate."""
+    return config.camera(robot).calibration(config.camera_rate_hz)
 
 
 def robot_timestamps(config: SynthConfig, robot: int) -> tuple[np.ndarray, np.ndarray, int]:
@@ -193,12 +214,13 @@ def _write_robot(
         bias_gyro=imu.bias_gyro,
         bias_accel=imu.bias_accel,
     )
-    T_world_cam = st.T_world_cam()
+    preset = config.camera(k)
+    T_world_cam = st.T_world_cam(preset.T_body_cam)
     samples: list[np.ndarray] = []
     sample_at = set(np.linspace(0, len(cam_idx) - 1, 4).round().astype(int).tolist())
     phase = float(np.random.default_rng([config.seed, 303, k]).uniform(0, 2 * np.pi))
     with EurocWriter(out / name, body_yaml_comment=f"recslam synthetic {name}") as w:
-        w.add_camera("cam0", camera_calibration(config), comment="synthetic EuRoC-like cam0")
+        w.add_camera("cam0", camera_calibration(config, k), comment=preset.comment)
         for j, i in enumerate(cam_idx):
             rng = np.random.default_rng([config.seed, 404, k, j])
             img = renderer.render(T_world_cam[i], float(t[i]), rng, phase)
@@ -245,7 +267,11 @@ def generate_dataset(out: Path, config: SynthConfig = SynthConfig()) -> DatasetS
     _clear_previous(out)
     scene = vicon_room()
     atlas = build_atlas(scene, config.seed, config.textures)
-    renderer = Renderer(scene, atlas, EUROC_CAM0, config.render)
+    renderers: dict[str, Renderer] = {}
+    for k in range(config.robots):
+        preset = config.camera(k)
+        if preset.name not in renderers:
+            renderers[preset.name] = Renderer(scene, atlas, preset.model, config.render)
     trajectories = make_trajectories(
         scene, config.robots, config.seconds, config.seed, config.trajectory
     )
@@ -259,6 +285,7 @@ def generate_dataset(out: Path, config: SynthConfig = SynthConfig()) -> DatasetS
         disable=not config.progress,
     ) as bar:
         for k, traj in enumerate(trajectories):
+            renderer = renderers[config.camera(k).name]
             s, frames = _write_robot(out, k, config, traj, renderer, bar)
             summaries.append(s)
             samples.append(frames)
@@ -284,8 +311,16 @@ def generate_dataset(out: Path, config: SynthConfig = SynthConfig()) -> DatasetS
         "seed": config.seed,
         "camera_rate_hz": config.camera_rate_hz,
         "imu_rate_hz": config.imu_rate_hz,
-        "sequences": [asdict(s) | {"path": s.name} for s in summaries],
-        "config": {k: v for k, v in asdict(config).items() if k != "progress"},
+        "sequences": [
+            asdict(s) | {"path": s.name} | ({"camera": config.cameras[k]} if config.cameras else {})
+            for k, s in enumerate(summaries)
+        ],
+        # Without --cameras, dataset.json stays byte for byte what it was before cameras.
+        "config": {
+            k: v
+            for k, v in asdict(config).items()
+            if k != "progress" and (k != "cameras" or config.cameras)
+        },
         "room": {
             "lo": list(scene.room_lo),
             "hi": list(scene.room_hi),

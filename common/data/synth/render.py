@@ -1,13 +1,14 @@
 """Fast vectorised ray-casting renderer of the synthetic scene into distorted images.
 
-Per camera, the ray of every distorted pixel is computed once (``PinholeRadtan.pixel_rays``),
-with its angular footprint. Per frame: rotate the rays into the world, intersect them with the
-room (exit distance of a box from inside) and with each box (slab test; boxes whose bounding
-sphere no ray can reach are skipped), take the nearest hit, compute the face's texture
-coordinates and a mip level from the ray footprint on the surface (distance and incidence:
-``footprint = t * pixel_angle / |cos|``), then sample the mip-mapped atlas trilinearly with two
-``cv2.remap`` calls. Optics and sensor: slight blur, vignetting, exposure drift over time,
-Gaussian read noise, 8-bit quantisation.
+Per camera, the ray of every distorted pixel is computed once through its camera model
+(``CameraModel.pixel_rays``: radial-tangential, or a fisheye's rays also beyond 90 degrees;
+pixels outside a model's field of view stay black), with its angular footprint. Per frame:
+rotate the rays into the world, intersect them with the room (exit distance of a box from
+inside) and with each box (slab test; boxes whose bounding sphere no ray can reach are
+skipped), take the nearest hit, compute the face's texture coordinates and a mip level from the
+ray footprint on the surface (distance and incidence: ``footprint = t * pixel_angle / |cos|``),
+then sample the mip-mapped atlas trilinearly with two ``cv2.remap`` calls. Optics and sensor:
+slight blur, vignetting, exposure drift over time, Gaussian read noise, 8-bit quantisation.
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from common.camera import PinholeRadtan
+from common.camera import CameraModel
 from common.data.synth.scene import Scene
 from common.data.synth.textures import TextureAtlas
 
@@ -64,12 +65,16 @@ class Renderer:
         self,
         scene: Scene,
         atlas: TextureAtlas,
-        camera: PinholeRadtan,
+        camera: CameraModel,
         config: RenderConfig = RenderConfig(),
     ) -> None:
         self.scene, self.atlas, self.camera, self.config = scene, atlas, camera, config
         rays = camera.pixel_rays()
         h, w = rays.shape[:2]
+        seen = np.isfinite(rays).all(axis=2)
+        # Pixels beyond the model's field of view: any ray for the geometry, black in the image.
+        self._unseen = None if seen.all() else ~seen
+        rays[~seen] = (0.0, 0.0, 1.0)
         # Angular size of each pixel: the larger of the angles to the right and lower neighbours.
         dx = np.linalg.norm(np.diff(rays, axis=1, append=rays[:, -2:-1] * 0 + rays[:, -1:]), axis=2)
         dx[:, -1] = dx[:, -2]
@@ -206,6 +211,8 @@ class Renderer:
         a = samples[0].reshape(-1).astype(np.float32)
         b = samples[1].reshape(-1)
         rad = (a + (b - a) * frac) * self._shade[face]
+        if self._unseen is not None:
+            rad[self._unseen.reshape(-1)] = 0.0
         return RenderResult(
             rad.reshape(h, w), t.reshape(h, w), face.reshape(h, w), lod.reshape(h, w)
         )

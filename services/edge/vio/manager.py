@@ -64,6 +64,17 @@ class _Frame:
     sigma: np.ndarray
 
 
+def _subset(obs: FrameObservation, keep: np.ndarray) -> FrameObservation:
+    """``obs`` with only the features of mask ``keep`` (N,)."""
+    return replace(
+        obs,
+        track_ids=obs.track_ids[keep],
+        keypoints_px=obs.keypoints_px[keep],
+        levels=obs.levels[keep],
+        descriptors=None if obs.descriptors is None else obs.descriptors[keep],
+    )
+
+
 class VioManager:
     """Monocular-inertial VIO of one robot (ORB-SLAM3-style, gtsam back end)."""
 
@@ -132,6 +143,10 @@ class VioManager:
                 f"feed_frame: timestamp {obs.timestamp_ns} not after previous {self._last_t}"
             )
         xy = self.camera.normalise(obs.keypoints_px)
+        seen = np.isfinite(xy).all(axis=1)
+        if not seen.all():  # a fisheye's rays at 90 degrees and more: no normalised point
+            obs = _subset(obs, seen)
+            xy = xy[seen]
         sigma = (
             self.options.pixel_sigma
             * self.options.level_scale ** obs.levels.astype(np.float64)

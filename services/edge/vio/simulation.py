@@ -1,10 +1,10 @@
 """Built-in simulator for the VIO (OpenVINS-style): tracks and IMU without images.
 
 A room of random landmarks (walls, floor, ceiling), a smooth trajectory with analytic
-derivatives, a pinhole + radial-tangential camera with EuRoC cam0 intrinsics and extrinsic,
-persistent track ids with robot-like keyframes (new tracks start only on keyframes, as ORB runs
-only there), and 200 Hz IMU with EuRoC ADIS16448 white noise and bias random walk.
-Deterministic per seed.
+derivatives, a camera through :func:`common.camera.camera_model` (default EuRoC cam0: pinhole +
+radial-tangential intrinsics and extrinsic), persistent track ids with robot-like keyframes
+(new tracks start only on keyframes, as ORB runs only there), and 200 Hz IMU with EuRoC
+ADIS16448 white noise and bias random walk. Deterministic per seed.
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from common.calibration import EUROC_IMU, CameraCalibration, ImuCalibration
-from common.camera import PinholeRadtan
+from common.camera import camera_model
 from common.geometry import inverse_T, umeyama_alignment
 from services.edge.vio.types import FrameObservation
 
@@ -195,13 +195,12 @@ def simulate(
     last_kf_tracks: set[int] = set()
     frames = []
     margin = 10.0
-    model = PinholeRadtan.from_calibration(camera)
+    model = camera_model(camera)
     for i, t in enumerate(t_cam):
         T_cw = inverse_T(T_wb[i] @ T_bc)
         p_c = lm @ T_cw[:3, :3].T + T_cw[:3, 3]
         z = p_c[:, 2]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            uv = model.normalized_to_pixels(p_c[:, :2] / z[:, None])
+        uv = model.project(p_c)
         vis = (
             (z > 0.2)
             & (uv[:, 0] > margin)

@@ -9,34 +9,33 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-import cv2
 import numpy as np
 
 from common.calibration import CameraCalibration
+from common.camera import camera_model
 from common.geometry import inverse_T
 from services.edge.vio.imu import ImuSegment
 from services.edge.vio.types import KeyframeSnapshot, MapPointBatch
 
 
 class PinholeUndistorter:
-    """Distorted pixels -> undistorted normalised coordinates, plus the camera extrinsic."""
+    """Distorted pixels -> undistorted normalised coordinates through the calibration's camera
+    model (:func:`common.camera.camera_model`, any distortion model), plus the extrinsic."""
 
     def __init__(self, camera: CameraCalibration) -> None:
         self.camera = camera
+        self.model = camera_model(camera)
         self.K = camera.K
-        self.dist = camera.dist_coeffs
         self.focal = 0.5 * (camera.fx + camera.fy)
         self.T_body_cam = np.array(camera.T_body_cam)
         self.T_cam_body = inverse_T(self.T_body_cam)
 
     def normalise(self, keypoints_px: np.ndarray) -> np.ndarray:
-        """(N, 2) distorted px -> (N, 2) undistorted normalised coordinates."""
+        """(N, 2) distorted px -> (N, 2) undistorted normalised coordinates (NaN for pixels
+        whose ray is not in front of the camera, possible with a fisheye)."""
         if len(keypoints_px) == 0:
             return np.zeros((0, 2))
-        pts = np.ascontiguousarray(keypoints_px, dtype=np.float64).reshape(-1, 1, 2)
-        crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 20, 1e-10)
-        out = cv2.undistortPoints(pts, self.K, self.dist, None, None, None, crit)
-        return out.reshape(-1, 2)
+        return self.model.pixels_to_normalized(np.asarray(keypoints_px, dtype=np.float64))
 
 
 def project(
