@@ -59,9 +59,16 @@ class VioStats:
 
 @dataclass(frozen=True, eq=False)
 class _Frame:
+    """A frame as the VIO uses it: ``obs`` the features it can use, ``xy`` (N, 2) their
+    normalised coordinates, ``sigma`` (N,) their noise; ``rows`` (N,) the row of each in the
+    robot's frame when some were left out (None: all, in order) and ``n_rows`` how many that
+    frame has."""
+
     obs: FrameObservation
     xy: np.ndarray
     sigma: np.ndarray
+    rows: np.ndarray | None = None
+    n_rows: int = 0
 
 
 def _subset(obs: FrameObservation, keep: np.ndarray) -> FrameObservation:
@@ -144,15 +151,17 @@ class VioManager:
             )
         xy = self.camera.normalise(obs.keypoints_px)
         seen = np.isfinite(xy).all(axis=1)
+        n_rows, rows = len(xy), None
         if not seen.all():  # a fisheye's rays at 90 degrees and more: no normalised point
             obs = _subset(obs, seen)
             xy = xy[seen]
+            rows = np.flatnonzero(seen)  # the robot's rows, for what leaves the VIO
         sigma = (
             self.options.pixel_sigma
             * self.options.level_scale ** obs.levels.astype(np.float64)
             / self.camera.focal
         )
-        frame = _Frame(obs, xy, sigma)
+        frame = _Frame(obs, xy, sigma, rows, n_rows)
         if self._map is None:
             result = self._initialise_mono(frame)
         else:
@@ -279,6 +288,8 @@ class VioManager:
             descriptors=frame.obs.descriptors,
             previous_id=None if previous is None else previous.id,
             imu_from_previous=seg,
+            robot_rows=frame.rows,
+            n_robot_rows=frame.n_rows,
         )
         self._next_kf_id += 1
         return kf

@@ -38,6 +38,13 @@ class PinholeUndistorter:
         return self.model.pixels_to_normalized(np.asarray(keypoints_px, dtype=np.float64))
 
 
+def _scatter(values: np.ndarray, rows: np.ndarray, n: int, fill: int) -> np.ndarray:
+    """(n,) int64 array holding ``values`` (K,) at ``rows`` (K,) and ``fill`` elsewhere."""
+    out = np.full(n, fill, np.int64)
+    out[rows] = values
+    return out
+
+
 def project(
     T_world_body: np.ndarray, T_body_cam: np.ndarray, p_world: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -55,7 +62,11 @@ class Keyframe:
     """A keyframe: state (``T_world_body`` (4, 4), ``v_world`` (3,), biases (3,)) and features.
 
     ``xy`` (N, 2) normalised undistorted; ``sigma`` (N,) noise in normalised units;
-    ``imu_from_previous`` covers ``[previous.timestamp, timestamp]``.
+    ``imu_from_previous`` covers ``[previous.timestamp, timestamp]``. ``robot_rows`` (N,): the
+    row of each feature in the robot's keyframe when the VIO left some out (a fisheye's
+    features at 90 degrees or more off axis), None when it kept all in order;
+    ``n_robot_rows`` the robot keyframe's feature count then. Rows that leave the VIO (the
+    snapshot's ``point_ids``, a point batch's ``feature_indices``) are the robot's rows.
     """
 
     id: int
@@ -73,9 +84,15 @@ class Keyframe:
     bias_gyro: np.ndarray = field(default_factory=lambda: np.zeros(3))
     bias_accel: np.ndarray = field(default_factory=lambda: np.zeros(3))
     row_of: dict[int, int] = field(default_factory=dict)
+    robot_rows: np.ndarray | None = None
+    n_robot_rows: int = 0
 
     def __post_init__(self) -> None:
         self.row_of = {int(t): i for i, t in enumerate(self.track_ids)}
+
+    def robot_row(self, row: int) -> int:
+        """The robot's row of this keyframe's feature ``row``."""
+        return row if self.robot_rows is None else int(self.robot_rows[row])
 
 
 @dataclass(eq=False)
@@ -186,6 +203,10 @@ class VioMap:
             mp = self.point_of(t)
             ids.append(mp.id if mp is not None and kf.id in mp.observations else -1)
         point_ids = np.array(ids, dtype=np.int64)
+        track_ids = kf.track_ids.copy()
+        if kf.robot_rows is not None:  # in the robot's rows: -1 where the VIO left one out
+            point_ids = _scatter(point_ids, kf.robot_rows, kf.n_robot_rows, -1)
+            track_ids = _scatter(track_ids, kf.robot_rows, kf.n_robot_rows, -1)
         return KeyframeSnapshot(
             keyframe_id=kf.id,
             map_id=self.map_id,
@@ -194,7 +215,7 @@ class VioMap:
             v_world=kf.v_world.copy(),
             bias_gyro=kf.bias_gyro.copy(),
             bias_accel=kf.bias_accel.copy(),
-            track_ids=kf.track_ids.copy(),
+            track_ids=track_ids,
             point_ids=point_ids,
             previous_keyframe_id=kf.previous_id,
             robot_keyframe=kf.descriptors is not None,
@@ -212,7 +233,13 @@ class VioMap:
             counts=counts,
             keyframe_ids=np.fromiter((k for mp in pts for k in mp.observations), np.int64, m),
             feature_indices=np.fromiter(
-                (r for mp in pts for r in mp.observations.values()), np.int64, m
+                (
+                    self.keyframes[k].robot_row(r) if k in self.keyframes else r
+                    for mp in pts
+                    for k, r in mp.observations.items()
+                ),
+                np.int64,
+                m,
             ),
         )
 

@@ -261,8 +261,8 @@ class VioState:
 
 @dataclass(frozen=True, eq=False)
 class KeyframeSnapshot:
-    """A keyframe for the uplink. ``track_ids`` (N,) are its features in robot order;
-    ``point_ids`` (N,) the map point of each feature or -1."""
+    """A keyframe for the uplink. ``track_ids`` (N,) are its features in robot order (-1 for
+    one the VIO left out); ``point_ids`` (N,) the map point of each feature or -1."""
 
     keyframe_id: int
     map_id: int
