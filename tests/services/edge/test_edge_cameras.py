@@ -13,7 +13,7 @@ import pytest
 
 from common.camera import PinholeRadtan
 from common.data.euroc import EurocSequence
-from common.data.synth import SynthConfig, generate, generate_dataset
+from common.data.synth import SynthConfig, generate_dataset
 from common.links.edge_cloud import AgentSensors, KeyframeUpdateCoded, read_agent_sensors
 from common.links.sensors import Sensors
 from common.protocol import PeerRejectedError, SessionConfig
@@ -27,8 +27,8 @@ SECRET = b"edge-cameras-test-secret-0123"
 FAST = TransportConfig(reconnect_initial_delay=0.02, reconnect_max_delay=0.3)
 SECONDS = 6.0
 OTHER_CAMERA = PinholeRadtan(640, 480, 380.0, 378.5, 315.5, 242.25, -0.22, 0.05, 2e-4, -1e-4)
-"""The second robot's camera: 640x480 with other intrinsics and distortion than EuRoC's
-752x480 cam0 (the renderer and the written sensor.yaml both use it)."""
+"""A camera of other intrinsics and distortion than EuRoC's 752x480 cam0 (the sans-network
+refusal test's second calibration)."""
 
 pytestmark = pytest.mark.timeout(400)
 
@@ -36,14 +36,12 @@ pytestmark = pytest.mark.timeout(400)
 @pytest.fixture(scope="module")
 def team(tmp_path_factory) -> dict[str, Path]:
     """Two rendered robots: "euroc" with the generator's EuRoC-like 752x480 camera and
-    "other" with :data:`OTHER_CAMERA` (the generator renders one camera per dataset, so the
-    second dataset is rendered with its module camera swapped)."""
+    "other" with its ``wide`` preset (640x480, other intrinsics and distortion, pitched
+    mount)."""
     root = tmp_path_factory.mktemp("team")
     cfg = SynthConfig(robots=1, seconds=SECONDS, seed=3, contact_sheet=False, progress=False)
     generate_dataset(root / "euroc", cfg)
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(generate, "EUROC_CAM0", OTHER_CAMERA)
-        generate_dataset(root / "other", dataclasses.replace(cfg, seed=4))
+    generate_dataset(root / "other", dataclasses.replace(cfg, seed=4, cameras=("wide",)))
     return {"euroc": root / "euroc" / "robot0", "other": root / "other" / "robot0"}
 
 
