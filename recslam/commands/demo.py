@@ -35,6 +35,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--robots", type=int, default=3, help="number of robots (default 3)")
     p.add_argument("--seconds", type=float, default=60.0, help="sequence length (default 60)")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument(
+        "--cameras",
+        default="",
+        help="one camera preset per robot for the synthetic dataset, comma-separated, from "
+        "euroc, wide, fisheye (e.g. euroc,wide,fisheye: a mixed team); default all euroc",
+    )
     p.add_argument("--out", type=Path, default=Path("out/demo"), help="report folder")
     p.add_argument("--dashboard-port", type=int, default=8080, help="dashboard port (default 8080)")
     p.add_argument("--no-dashboard", action="store_true", help="do not serve the dashboard")
@@ -68,7 +74,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-def _dataset_matches(folder: Path, robots: int, seconds: float, seed: int) -> bool:
+def _cameras(text: str) -> tuple[str, ...]:
+    return tuple(c.strip() for c in text.split(",") if c.strip())
+
+
+def _dataset_matches(
+    folder: Path, robots: int, seconds: float, seed: int, cameras: tuple[str, ...] = ()
+) -> bool:
     meta = folder / "dataset.json"
     if not meta.is_file():
         return False
@@ -77,6 +89,7 @@ def _dataset_matches(folder: Path, robots: int, seconds: float, seed: int) -> bo
         info.get("robots") == robots
         and float(info.get("seconds", -1)) == seconds
         and info.get("seed") == seed
+        and tuple(info.get("config", {}).get("cameras", ())) == cameras
     )
 
 
@@ -86,13 +99,19 @@ def build_dataset(args: argparse.Namespace) -> None:
     from common.data.synth import SynthConfig, generate_dataset
 
     start = time.perf_counter()
-    if _dataset_matches(args.data, args.robots, args.seconds, args.seed):
+    cameras = _cameras(args.cameras)
+    if _dataset_matches(args.data, args.robots, args.seconds, args.seed, cameras):
         print(f"dataset: {args.data} (already built with these settings)")
     elif not (args.data / "dataset.json").exists() and any(args.data.glob("*/mav0")):
         print(f"dataset: {args.data} (not synthetic: every */mav0 sequence is a robot)")
     else:
-        print(f"dataset: building {args.robots} robots x {args.seconds:g} s (seed {args.seed})")
-        config = SynthConfig(robots=args.robots, seconds=args.seconds, seed=args.seed)
+        which = f", cameras {','.join(cameras)}" if cameras else ""
+        print(
+            f"dataset: building {args.robots} robots x {args.seconds:g} s (seed {args.seed}{which})"
+        )
+        config = SynthConfig(
+            robots=args.robots, seconds=args.seconds, seed=args.seed, cameras=cameras
+        )
         generate_dataset(args.data, config)
     built = time.perf_counter() - start
 
