@@ -141,6 +141,24 @@ def nearest_rotation(R: np.ndarray) -> np.ndarray:
     return U @ D @ Vt
 
 
+def rigid_problem(T: np.ndarray, atol: float) -> str:
+    """Why the (4, 4) ``T`` is not a rigid transform within ``atol`` per entry ("" if it is
+    one): its shape, its last row (not ``0 0 0 1``), its rotation (not orthonormal, or a
+    reflection)."""
+    T = np.asarray(T, np.float64)
+    if T.shape != (4, 4):
+        return f"shape {T.shape}, not (4, 4)"
+    if np.abs(T[3] - [0.0, 0.0, 0.0, 1.0]).max() > atol:
+        return f"last row is {T[3].tolist()}, not [0, 0, 0, 1]"
+    R = T[:3, :3]
+    ortho = float(np.abs(R.T @ R - np.eye(3)).max())
+    if ortho > atol:
+        return f"rotation is not orthonormal (|RᵀR - I| up to {ortho:.3g})"
+    if np.linalg.det(R) < 0:
+        return "rotation is a reflection (det < 0)"
+    return ""
+
+
 def orthonormalize_T(T: np.ndarray) -> np.ndarray:
     """A copy of the (4, 4) transform ``T`` with its rotation block snapped onto SO(3)."""
     out = np.array(T, dtype=np.float64)

@@ -35,6 +35,8 @@ from common.calibration import (
     ImuCalibration,
 )
 from common.errors import RecslamError
+from common.geometry import orthonormalize_T, rigid_problem
+from common.links.sensors import RIGID_TOLERANCE as WIRE_RIGID_TOLERANCE
 
 logger = logging.getLogger(__name__)
 
@@ -244,20 +246,16 @@ def load_yaml(path: Path) -> YamlSection:
 
 
 def check_rigid(T: np.ndarray, what: str) -> np.ndarray:
-    """``T`` (4, 4) if it is a rigid transform, else CalibrationFileError naming ``what``."""
-    R = T[:3, :3]
-    ortho = float(np.abs(R.T @ R - np.eye(3)).max())
-    if not np.allclose(T[3], [0, 0, 0, 1], rtol=0, atol=RIGID_TOLERANCE):
-        raise CalibrationFileError(
-            f"{what} is not a rigid transform: last row is {T[3].tolist()}, not [0, 0, 0, 1]"
-        )
-    if ortho > RIGID_TOLERANCE:
-        raise CalibrationFileError(
-            f"{what} is not a rigid transform: its rotation is not orthonormal "
-            f"(|RᵀR - I| up to {ortho:.3g}): {T.tolist()}"
-        )
-    if np.linalg.det(R) < 0:
-        raise CalibrationFileError(f"{what} is not a rigid transform: a reflection (det < 0)")
+    """``T`` (4, 4) if it is rigid within :data:`RIGID_TOLERANCE`, else CalibrationFileError
+    naming ``what``. A file that prints few digits gives a rotation off SO(3) by more than
+    the robot->edge link accepts (``common.links.sensors``): such a rotation is snapped onto
+    SO(3); one as exact as the link wants is kept as the file states it."""
+    why = rigid_problem(T, RIGID_TOLERANCE)
+    if why:
+        raise CalibrationFileError(f"{what} is not a rigid transform: {why}: {T.tolist()}")
+    if rigid_problem(T, WIRE_RIGID_TOLERANCE):
+        T = orthonormalize_T(T)
+        T[3] = (0.0, 0.0, 0.0, 1.0)
     return T
 
 

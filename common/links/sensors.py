@@ -31,6 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from common.calibration import CalibrationError, CameraCalibration, ImuCalibration
+from common.geometry import rigid_problem
 from common.protocol.errors import RemoteProtocolError
 
 SENSORS_VERSION = 1
@@ -132,7 +133,7 @@ def decode_sensors(data: bytes, what: str = "sensors") -> Sensors:
     if not all(np.isfinite(x).all() for x in (numbers, T_body_cam, T_body_imu)):
         raise SensorsDecodeError(f"{what}: non-finite numbers")
     for name, T in (("T_body_cam", T_body_cam), ("T_body_imu", T_body_imu)):
-        why = rigid_problem(T)
+        why = rigid_problem(T, RIGID_TOLERANCE)
         if why:
             raise SensorsDecodeError(f"{what}: {name} is not a rigid transform ({why})")
     if not (cam_rate > 0 and imu_rate > 0):
@@ -156,22 +157,6 @@ def decode_sensors(data: bytes, what: str = "sensors") -> Sensors:
         raise SensorsDecodeError(f"{what}: {exc}") from None
     imu = ImuCalibration(g_nd, g_rw, a_nd, a_rw, imu_rate, T_body_imu)
     return Sensors(camera, imu)
-
-
-def rigid_problem(T: np.ndarray) -> str:
-    """Why the (4, 4) ``T`` is not a rigid transform within :data:`RIGID_TOLERANCE` ("" if it
-    is one)."""
-    T = np.asarray(T, np.float64)
-    if T.shape != (4, 4):
-        return f"shape {T.shape}"
-    if np.abs(T[3] - [0.0, 0.0, 0.0, 1.0]).max() > RIGID_TOLERANCE:
-        return "last row is not [0, 0, 0, 1]"
-    R = T[:3, :3]
-    if np.abs(R.T @ R - np.eye(3)).max() > RIGID_TOLERANCE:
-        return "rotation is not orthonormal"
-    if abs(np.linalg.det(R) - 1.0) > RIGID_TOLERANCE:
-        return "rotation is a reflection"
-    return ""
 
 
 def _f8s(values: object) -> bytes:

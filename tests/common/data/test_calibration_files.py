@@ -326,3 +326,24 @@ def test_bad_euroc_sensor_yaml_names_file_and_field(tmp_path: Path) -> None:
         with pytest.raises(CalibrationFileError) as err:
             read_camera_yaml(y)
         assert f"{y}:" in str(err.value) and field in str(err.value), str(err.value)
+
+
+def test_a_transform_printed_with_few_digits_is_one_the_edge_accepts(tmp_path: Path) -> None:
+    """A camchain that prints 5 decimals is rigid within the file tolerance (1e-4) but not
+    within the robot->edge link's (1e-6): the loader snaps its rotation onto SO(3), so the
+    robot's RobotSensors decode at the edge. One printed exactly is kept as it is."""
+    from common.links.sensors import Sensors, decode_sensors, encode_sensors
+
+    rounded = [[round(x, 5) for x in row] for row in T_CAM_IMU]
+    text = CAMCHAIN
+    for full, short in zip(T_CAM_IMU, rounded, strict=True):
+        text = text.replace(str(full), str(short))
+    assert text != CAMCHAIN
+    cal = load_calibration(kalibr_files(tmp_path, camchain=text))
+    R = cal.cam0.T_body_cam[:3, :3]
+    np.testing.assert_allclose(R.T @ R, np.eye(3), atol=1e-12)
+    np.testing.assert_allclose(cal.cam0.T_body_cam, inverse_T(np.array(rounded)), atol=1e-4)
+    sent = Sensors(cal.cam0, cal.imu)
+    assert decode_sensors(encode_sensors(sent)).same_as(sent)
+    exact = load_calibration(kalibr_files(tmp_path / "exact"))
+    np.testing.assert_allclose(exact.cam0.T_body_cam, inverse_T(np.array(T_CAM_IMU)), atol=1e-12)
