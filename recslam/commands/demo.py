@@ -39,7 +39,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--cameras",
         default="",
         help="one camera preset per robot for the synthetic dataset, comma-separated, from "
-        "euroc, wide, fisheye (e.g. euroc,wide,fisheye: a mixed team); default all euroc",
+        "euroc, wide, fisheye (e.g. euroc,wide,fisheye: a mixed team); default: an existing "
+        "dataset's cameras, all euroc for a new one",
     )
     p.add_argument("--out", type=Path, default=Path("out/demo"), help="report folder")
     p.add_argument("--dashboard-port", type=int, default=8080, help="dashboard port (default 8080)")
@@ -79,8 +80,10 @@ def _cameras(text: str) -> tuple[str, ...]:
 
 
 def _dataset_matches(
-    folder: Path, robots: int, seconds: float, seed: int, cameras: tuple[str, ...] = ()
+    folder: Path, robots: int, seconds: float, seed: int, cameras: tuple[str, ...] | None = None
 ) -> bool:
+    """Whether ``folder`` holds a synthetic dataset built with these settings (``cameras``
+    None: any cameras, as when ``--cameras`` is not given)."""
     meta = folder / "dataset.json"
     if not meta.is_file():
         return False
@@ -89,7 +92,7 @@ def _dataset_matches(
         info.get("robots") == robots
         and float(info.get("seconds", -1)) == seconds
         and info.get("seed") == seed
-        and tuple(info.get("config", {}).get("cameras", ())) == cameras
+        and (cameras is None or tuple(info.get("config", {}).get("cameras", ())) == cameras)
     )
 
 
@@ -100,7 +103,7 @@ def build_dataset(args: argparse.Namespace) -> None:
 
     start = time.perf_counter()
     cameras = _cameras(args.cameras)
-    if _dataset_matches(args.data, args.robots, args.seconds, args.seed, cameras):
+    if _dataset_matches(args.data, args.robots, args.seconds, args.seed, cameras or None):
         print(f"dataset: {args.data} (already built with these settings)")
     elif not (args.data / "dataset.json").exists() and any(args.data.glob("*/mav0")):
         print(f"dataset: {args.data} (not synthetic: every */mav0 sequence is a robot)")

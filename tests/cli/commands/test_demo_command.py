@@ -1,5 +1,6 @@
 """``recslam demo``'s dataset step: a synthetic dataset is reused only when it was built with
-the requested robots, length, seed and cameras."""
+the requested robots, length and seed, and with the requested cameras when ``--cameras`` is
+given (without it, a mixed team is reused as it is, never rebuilt as all-EuRoC)."""
 
 from __future__ import annotations
 
@@ -22,6 +23,7 @@ def _meta(folder: Path, cameras: list[str] | None) -> Path:
 def test_default_dataset_matches_default_cameras_only(tmp_path) -> None:
     folder = _meta(tmp_path / "default", None)
     assert _dataset_matches(folder, 3, 60.0, 0)
+    assert _dataset_matches(folder, 3, 60.0, 0, ())
     assert not _dataset_matches(folder, 3, 60.0, 0, ("euroc", "wide", "fisheye"))
     assert not _dataset_matches(folder, 3, 60.0, 1)
 
@@ -29,5 +31,6 @@ def test_default_dataset_matches_default_cameras_only(tmp_path) -> None:
 def test_mixed_dataset_matches_its_cameras_only(tmp_path) -> None:
     folder = _meta(tmp_path / "mixed", ["euroc", "wide", "fisheye"])
     assert _dataset_matches(folder, 3, 60.0, 0, ("euroc", "wide", "fisheye"))
-    assert not _dataset_matches(folder, 3, 60.0, 0)
+    assert _dataset_matches(folder, 3, 60.0, 0)  # no --cameras: reused as it is
+    assert not _dataset_matches(folder, 3, 60.0, 0, ())
     assert not _dataset_matches(folder, 3, 60.0, 0, ("euroc", "fisheye", "wide"))
