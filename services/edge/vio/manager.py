@@ -71,17 +71,6 @@ class _Frame:
     n_rows: int = 0
 
 
-def _subset(obs: FrameObservation, keep: np.ndarray) -> FrameObservation:
-    """``obs`` with only the features of mask ``keep`` (N,)."""
-    return replace(
-        obs,
-        track_ids=obs.track_ids[keep],
-        keypoints_px=obs.keypoints_px[keep],
-        levels=obs.levels[keep],
-        descriptors=None if obs.descriptors is None else obs.descriptors[keep],
-    )
-
-
 class VioManager:
     """Monocular-inertial VIO of one robot (ORB-SLAM3-style, gtsam back end)."""
 
@@ -153,7 +142,7 @@ class VioManager:
         seen = np.isfinite(xy).all(axis=1)
         n_rows, rows = len(xy), None
         if not seen.all():  # a fisheye's rays at 90 degrees and more: no normalised point
-            obs = _subset(obs, seen)
+            obs = obs.subset(seen)
             xy = xy[seen]
             rows = np.flatnonzero(seen)  # the robot's rows, for what leaves the VIO
         sigma = (

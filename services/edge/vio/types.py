@@ -8,6 +8,7 @@ seconds (timestamps in int64 nanoseconds), radians, pixels where a name says ``p
 
 from __future__ import annotations
 
+import dataclasses
 import enum
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -221,6 +222,16 @@ class FrameObservation:
             if len(d) != n:
                 raise VioError(f"FrameObservation.descriptors has {len(d)} rows, expected {n}")
             object.__setattr__(self, "descriptors", d)
+
+    def subset(self, keep: np.ndarray) -> FrameObservation:
+        """This frame with only the features of mask ``keep`` (N,)."""
+        return dataclasses.replace(
+            self,
+            track_ids=self.track_ids[keep],
+            keypoints_px=self.keypoints_px[keep],
+            levels=self.levels[keep],
+            descriptors=None if self.descriptors is None else self.descriptors[keep],
+        )
 
 
 # ------------------------------------------------------------------------------ outputs
