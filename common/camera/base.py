@@ -9,11 +9,11 @@ points ``xy_d``, and pixels are ``(fx * x_d + cx, fy * y_d + cy)``.
 
 from __future__ import annotations
 
-from typing import Protocol
+from typing import ClassVar, Protocol, Self
 
 import numpy as np
 
-from common.calibration import CameraCalibration
+from common.calibration import CAMERA_MODELS, CameraCalibration
 from common.errors import RecslamError
 
 
@@ -75,6 +75,99 @@ def scaled_intrinsics(
         (cx + 0.5) * factor - 0.5,
         (cy + 0.5) * factor - 0.5,
     )
+
+
+class Pinhole:
+    """The pinhole half every model shares, for frozen dataclasses with the fields ``width,
+    height, fx, fy, cx, cy`` followed by the coefficients :data:`CAMERA_MODELS` names for
+    :attr:`MODEL`; the model supplies ``distort`` / ``undistort`` on the normalised plane."""
+
+    MODEL: ClassVar[str]
+    width: int
+    height: int
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+
+    def distort(self, xy: np.ndarray) -> np.ndarray:
+        raise NotImplementedError
+
+    def undistort(self, xy_distorted: np.ndarray) -> np.ndarray:
+        raise NotImplementedError
+
+    def unproject(self, uv: np.ndarray) -> np.ndarray:
+        raise NotImplementedError
+
+    @property
+    def coefficients(self) -> tuple[float, ...]:
+        """The distortion coefficients, in :data:`CAMERA_MODELS` order."""
+        return tuple(getattr(self, name) for name in CAMERA_MODELS[self.MODEL])
+
+    def _check(self) -> None:
+        check_intrinsics(self.width, self.height, self.fx, self.fy, self.coefficients)
+
+    @classmethod
+    def from_calibration(cls, calib: CameraCalibration) -> Self:
+        if calib.model != cls.MODEL:
+            raise CameraModelError(
+                f"{cls.__name__} needs a calibration of model {cls.MODEL!r}, got {calib.model!r}"
+            )
+        return cls(  # type: ignore[call-arg]  # the dataclass fields, in order
+            calib.width, calib.height, calib.fx, calib.fy, calib.cx, calib.cy, *calib.distortion
+        )
+
+    @property
+    def K(self) -> np.ndarray:
+        """(3, 3) intrinsic matrix."""
+        return intrinsic_matrix(self.fx, self.fy, self.cx, self.cy)
+
+    @property
+    def dist_coeffs(self) -> np.ndarray:
+        """(4,) OpenCV distortion vector of the model (``cv2`` for radtan, ``cv2.fisheye``
+        for equidistant)."""
+        return np.array(self.coefficients)
+
+    def normalized_to_pixels(self, xy: np.ndarray) -> np.ndarray:
+        """Undistorted normalised points (N, 2) -> distorted pixels (N, 2)."""
+        return to_pixels(self.fx, self.fy, self.cx, self.cy, self.distort(xy))
+
+    def pixels_to_normalized(self, uv: np.ndarray) -> np.ndarray:
+        """Distorted pixels (N, 2) -> undistorted normalised points (N, 2); NaN for pixels
+        whose ray is not in front of the camera (possible with a fisheye)."""
+        return self.undistort(from_pixels(self.fx, self.fy, self.cx, self.cy, uv))
+
+    def pixel_grid(self) -> np.ndarray:
+        """All pixel centres (H * W, 2) in row-major order (``u`` fastest)."""
+        return pixel_grid(self.width, self.height)
+
+    def pixel_rays(self) -> np.ndarray:
+        """(H, W, 3) unit rays of every pixel: pixel ``(u, v)`` of a distorted image shows the
+        scene along ``pixel_rays()[v, u]`` (NaN outside the model's field of view)."""
+        return self.unproject(self.pixel_grid()).reshape(self.height, self.width, 3)
+
+    def scaled(self, factor: float) -> Self:
+        """Same optics at ``factor`` times the resolution (pixel centres stay consistent:
+        ``u' + 0.5 = factor * (u + 0.5)``). Distortion coefficients are unchanged."""
+        size = scaled_intrinsics(
+            self.width, self.height, self.fx, self.fy, self.cx, self.cy, factor
+        )
+        return type(self)(*size, *self.coefficients)  # type: ignore[call-arg]
+
+    def to_calibration(self, T_body_cam: np.ndarray, rate_hz: float) -> CameraCalibration:
+        """This camera as a :class:`CameraCalibration` with that extrinsic and rate."""
+        return CameraCalibration(
+            width=self.width,
+            height=self.height,
+            fx=self.fx,
+            fy=self.fy,
+            cx=self.cx,
+            cy=self.cy,
+            distortion=self.coefficients,
+            T_body_cam=T_body_cam,
+            rate_hz=rate_hz,
+            model=self.MODEL,
+        )
 
 
 class CameraModel(Protocol):

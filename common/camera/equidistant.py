@@ -15,18 +15,15 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import cached_property
+from typing import ClassVar
 
 import numpy as np
 
-from common.calibration import CameraCalibration
 from common.camera.base import (
     CameraModelError,
+    Pinhole,
     as_points,
-    check_intrinsics,
     from_pixels,
-    intrinsic_matrix,
-    pixel_grid,
-    scaled_intrinsics,
     to_pixels,
 )
 
@@ -35,8 +32,10 @@ _SMALL = 1e-12
 
 
 @dataclass(frozen=True)
-class PinholeEquidistant:
+class PinholeEquidistant(Pinhole):
     """Pinhole intrinsics [px] plus equidistant distortion ``(k1, k2, k3, k4)``."""
+
+    MODEL: ClassVar[str] = "equidistant"
 
     width: int
     height: int
@@ -50,35 +49,12 @@ class PinholeEquidistant:
     k4: float = 0.0
 
     def __post_init__(self) -> None:
-        check_intrinsics(
-            self.width, self.height, self.fx, self.fy, (self.k1, self.k2, self.k3, self.k4)
-        )
+        self._check()
         if not self.theta_max > 0.1:
             raise CameraModelError(
                 f"equidistant coefficients {self.dist_coeffs.tolist()} fold over at "
                 f"theta = {self.theta_max:.3g} rad: no usable field of view"
             )
-
-    @classmethod
-    def from_calibration(cls, calib: CameraCalibration) -> PinholeEquidistant:
-        if calib.model != "equidistant":
-            raise CameraModelError(
-                f"PinholeEquidistant needs an equidistant calibration, got {calib.model!r}"
-            )
-        k1, k2, k3, k4 = calib.distortion
-        return cls(
-            calib.width, calib.height, calib.fx, calib.fy, calib.cx, calib.cy, k1, k2, k3, k4
-        )
-
-    @property
-    def K(self) -> np.ndarray:
-        """(3, 3) intrinsic matrix."""
-        return intrinsic_matrix(self.fx, self.fy, self.cx, self.cy)
-
-    @property
-    def dist_coeffs(self) -> np.ndarray:
-        """(4,) ``cv2.fisheye`` distortion vector ``(k1, k2, k3, k4)``."""
-        return np.array([self.k1, self.k2, self.k3, self.k4])
 
     # ------------------------------------------------------------------ angle <-> radius
 
@@ -182,15 +158,6 @@ class PinholeEquidistant:
         J[(theta > self.theta_max) | (on_axis & (Z <= 0))] = np.nan
         return J * np.array([self.fx, self.fy])[None, :, None]
 
-    def normalized_to_pixels(self, xy: np.ndarray) -> np.ndarray:
-        """Undistorted normalised points (N, 2) -> distorted pixels (N, 2)."""
-        return to_pixels(self.fx, self.fy, self.cx, self.cy, self.distort(xy))
-
-    def pixels_to_normalized(self, uv: np.ndarray) -> np.ndarray:
-        """Distorted pixels (N, 2) -> undistorted normalised points (N, 2); NaN for pixels
-        whose ray is not in front of the camera (``theta >= pi / 2``)."""
-        return self.undistort(from_pixels(self.fx, self.fy, self.cx, self.cy, uv))
-
     def unproject(self, uv: np.ndarray) -> np.ndarray:
         """Distorted pixels (N, 2) -> unit ray directions in the camera frame (N, 3), also
         beyond 90 degrees; NaN beyond :attr:`theta_max`."""
@@ -200,34 +167,3 @@ class PinholeEquidistant:
         with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
             m = np.where((theta_d > _SMALL)[:, None], xy_d / theta_d[:, None], 0.0)
         return np.concatenate([m * np.sin(theta)[:, None], np.cos(theta)[:, None]], axis=1)
-
-    def pixel_grid(self) -> np.ndarray:
-        """All pixel centres (H * W, 2) in row-major order (``u`` fastest)."""
-        return pixel_grid(self.width, self.height)
-
-    def pixel_rays(self) -> np.ndarray:
-        """(H, W, 3) unit rays of every pixel: pixel ``(u, v)`` of a distorted image shows the
-        scene along ``pixel_rays()[v, u]`` (NaN beyond :attr:`theta_max`)."""
-        return self.unproject(self.pixel_grid()).reshape(self.height, self.width, 3)
-
-    def scaled(self, factor: float) -> PinholeEquidistant:
-        """Same optics at ``factor`` times the resolution (pixel centres stay consistent:
-        ``u' + 0.5 = factor * (u + 0.5)``). Distortion coefficients are unchanged."""
-        size = scaled_intrinsics(
-            self.width, self.height, self.fx, self.fy, self.cx, self.cy, factor
-        )
-        return PinholeEquidistant(*size, self.k1, self.k2, self.k3, self.k4)
-
-    def to_calibration(self, T_body_cam: np.ndarray, rate_hz: float) -> CameraCalibration:
-        return CameraCalibration(
-            width=self.width,
-            height=self.height,
-            fx=self.fx,
-            fy=self.fy,
-            cx=self.cx,
-            cy=self.cy,
-            distortion=(self.k1, self.k2, self.k3, self.k4),
-            T_body_cam=T_body_cam,
-            rate_hz=rate_hz,
-            model="equidistant",
-        )

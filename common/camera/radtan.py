@@ -8,28 +8,24 @@ and pixel conventions: :mod:`common.camera.base`.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import ClassVar
 
 import cv2
 import numpy as np
 
-from common.calibration import CameraCalibration
 from common.camera.base import (
-    CameraModelError,
+    Pinhole,
     as_points,
-    check_intrinsics,
-    from_pixels,
-    intrinsic_matrix,
-    pixel_grid,
-    scaled_intrinsics,
-    to_pixels,
 )
 
 _EYE3 = np.eye(3)
 
 
 @dataclass(frozen=True)
-class PinholeRadtan:
+class PinholeRadtan(Pinhole):
     """Pinhole intrinsics [px] plus radial-tangential distortion ``(k1, k2, p1, p2)``."""
+
+    MODEL: ClassVar[str] = "radtan"
 
     width: int
     height: int
@@ -43,28 +39,7 @@ class PinholeRadtan:
     p2: float = 0.0
 
     def __post_init__(self) -> None:
-        check_intrinsics(
-            self.width, self.height, self.fx, self.fy, (self.k1, self.k2, self.p1, self.p2)
-        )
-
-    @classmethod
-    def from_calibration(cls, calib: CameraCalibration) -> PinholeRadtan:
-        if calib.model != "radtan":
-            raise CameraModelError(f"PinholeRadtan needs a radtan calibration, got {calib.model!r}")
-        k1, k2, p1, p2 = calib.distortion
-        return cls(
-            calib.width, calib.height, calib.fx, calib.fy, calib.cx, calib.cy, k1, k2, p1, p2
-        )
-
-    @property
-    def K(self) -> np.ndarray:
-        """(3, 3) intrinsic matrix."""
-        return intrinsic_matrix(self.fx, self.fy, self.cx, self.cy)
-
-    @property
-    def dist_coeffs(self) -> np.ndarray:
-        """(4,) OpenCV distortion vector ``(k1, k2, p1, p2)``."""
-        return np.array([self.k1, self.k2, self.p1, self.p2])
+        self._check()
 
     # ------------------------------------------------------------------ normalised plane
 
@@ -162,47 +137,8 @@ class PinholeRadtan:
         J_d *= np.array([self.fx, self.fy])[None, :, None]
         return J_d @ J_xy
 
-    def normalized_to_pixels(self, xy: np.ndarray) -> np.ndarray:
-        """Undistorted normalised points (N, 2) -> distorted pixels (N, 2)."""
-        return to_pixels(self.fx, self.fy, self.cx, self.cy, self.distort(xy))
-
-    def pixels_to_normalized(self, uv: np.ndarray) -> np.ndarray:
-        """Distorted pixels (N, 2) -> undistorted normalised points (N, 2)."""
-        return self.undistort(from_pixels(self.fx, self.fy, self.cx, self.cy, uv))
-
     def unproject(self, uv: np.ndarray) -> np.ndarray:
         """Distorted pixels (N, 2) -> unit ray directions in the camera frame (N, 3)."""
         xy = self.pixels_to_normalized(uv)
         rays = np.concatenate([xy, np.ones((len(xy), 1))], axis=1)
         return rays / np.linalg.norm(rays, axis=1, keepdims=True)
-
-    def pixel_grid(self) -> np.ndarray:
-        """All pixel centres (H * W, 2) in row-major order (``u`` fastest)."""
-        return pixel_grid(self.width, self.height)
-
-    def pixel_rays(self) -> np.ndarray:
-        """(H, W, 3) unit rays of every pixel: pixel ``(u, v)`` of a distorted image shows the
-        scene along ``pixel_rays()[v, u]``."""
-        return self.unproject(self.pixel_grid()).reshape(self.height, self.width, 3)
-
-    def scaled(self, factor: float) -> PinholeRadtan:
-        """Same optics at ``factor`` times the resolution (pixel centres stay consistent:
-        ``u' + 0.5 = factor * (u + 0.5)``). Distortion coefficients are unchanged."""
-        size = scaled_intrinsics(
-            self.width, self.height, self.fx, self.fy, self.cx, self.cy, factor
-        )
-        return PinholeRadtan(*size, self.k1, self.k2, self.p1, self.p2)
-
-    def to_calibration(self, T_body_cam: np.ndarray, rate_hz: float) -> CameraCalibration:
-        return CameraCalibration(
-            width=self.width,
-            height=self.height,
-            fx=self.fx,
-            fy=self.fy,
-            cx=self.cx,
-            cy=self.cy,
-            distortion=(self.k1, self.k2, self.p1, self.p2),
-            T_body_cam=T_body_cam,
-            rate_hz=rate_hz,
-            model="radtan",
-        )
