@@ -29,6 +29,7 @@ import numpy as np
 from common.calibration import CameraCalibration
 from common.data.euroc import EurocSequence
 from common.geometry import so3_exp
+from common.imu import ImuBuffer
 from lab.datasets import euroc_micro_path
 from services.robot.config import (
     FrontEndConfig,
@@ -38,7 +39,6 @@ from services.robot.config import (
     TrackingMode,
 )
 from services.robot.imu_prediction import (
-    ImuBuffer,
     R_imu_cam_from,
     gyro_rotation,
     predict_rotation,
@@ -76,7 +76,7 @@ def imu_with_rate(seq: EurocSequence, t0: int, t1: int, w_imu: np.ndarray) -> Im
     a = max(0, int(np.searchsorted(ts, t0)) - 2)
     b = min(len(ts), int(np.searchsorted(ts, t1)) + 2)
     buf = ImuBuffer(horizon_s=60.0)
-    buf.extend(ts[a:b], seq.gyro[a:b] + w_imu, seq.accel[a:b])
+    buf.append(ts[a:b], seq.gyro[a:b] + w_imu, seq.accel[a:b])
     return buf
 
 

@@ -30,6 +30,7 @@ from common.calibration import CameraCalibration, ImuCalibration
 from common.camera import camera_model
 from common.errors import RecslamError
 from common.geometry import inverse_T, so3_exp
+from common.imu import ImuBuffer, ImuDataError
 
 logger = logging.getLogger(__name__)
 
@@ -76,66 +77,9 @@ class InertialState:
         object.__setattr__(self, "timestamp_ns", int(self.timestamp_ns))
 
 
-# ---------------------------------------------------------------------------- IMU samples
-
-
-class ImuBuffer:
-    """Time-ordered IMU samples kept for ``horizon_s`` seconds (gyro, accel in the IMU frame)."""
-
-    def __init__(self, horizon_s: float = 2.0) -> None:
-        self.horizon_ns = int(horizon_s * 1e9)
-        self.timestamps_ns = np.zeros(0, dtype=np.int64)
-        self.gyro = np.zeros((0, 3))
-        self.accel = np.zeros((0, 3))
-
-    def __len__(self) -> int:
-        return len(self.timestamps_ns)
-
-    def extend(self, timestamps_ns: np.ndarray, gyro: np.ndarray, accel: np.ndarray) -> None:
-        """Append samples newer than the last one held; older or repeated ones are ignored."""
-        ts = np.asarray(timestamps_ns, dtype=np.int64).reshape(-1)
-        gyro = np.asarray(gyro, dtype=np.float64).reshape(-1, 3)
-        accel = np.asarray(accel, dtype=np.float64).reshape(-1, 3)
-        if len(gyro) != len(ts) or len(accel) != len(ts):
-            raise ImuPredictionError(
-                f"IMU batch has {len(ts)} timestamps, {len(gyro)} gyro, {len(accel)} accel rows"
-            )
-        if len(ts) > 1 and np.any(np.diff(ts) <= 0):
-            raise ImuPredictionError("IMU batch timestamps are not strictly increasing")
-        if len(self.timestamps_ns):
-            keep = ts > self.timestamps_ns[-1]
-            ts, gyro, accel = ts[keep], gyro[keep], accel[keep]
-        self.timestamps_ns = np.concatenate([self.timestamps_ns, ts])
-        self.gyro = np.concatenate([self.gyro, gyro])
-        self.accel = np.concatenate([self.accel, accel])
-        if len(self.timestamps_ns):
-            start = np.searchsorted(self.timestamps_ns, self.timestamps_ns[-1] - self.horizon_ns)
-            start = max(0, int(start) - 1)
-            self.timestamps_ns = self.timestamps_ns[start:]
-            self.gyro = self.gyro[start:]
-            self.accel = self.accel[start:]
-
-    def segments(self, t0_ns: int, t1_ns: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Split ``[t0, t1]`` at the sample times; per piece its duration (M,) [s] and the mean
-        gyro (M, 3) and accel (M, 3) over it (samples linearly interpolated, held at the ends)."""
-        if t1_ns < t0_ns:
-            raise ImuPredictionError(f"IMU interval ends before it starts ({t0_ns} > {t1_ns})")
-        if len(self) == 0:
-            raise ImuPredictionError("no IMU samples buffered")
-        ts = self.timestamps_ns
-        inner = ts[(ts > t0_ns) & (ts < t1_ns)]
-        knots = np.concatenate([[t0_ns], inner, [t1_ns]]).astype(np.int64)
-        rel = (knots - ts[0]).astype(np.float64)
-        rel_ts = (ts - ts[0]).astype(np.float64)
-        g = np.stack([np.interp(rel, rel_ts, self.gyro[:, k]) for k in range(3)], axis=1)
-        a = np.stack([np.interp(rel, rel_ts, self.accel[:, k]) for k in range(3)], axis=1)
-        dt = np.diff(knots).astype(np.float64) * 1e-9
-        return dt, 0.5 * (g[1:] + g[:-1]), 0.5 * (a[1:] + a[:-1])
-
-
 def mean_angular_velocity(buffer: ImuBuffer, t0_ns: int, t1_ns: int) -> np.ndarray:
     """Time-weighted mean gyro reading (3,) [rad/s] over ``[t0, t1]`` (the paper's eq. 2)."""
-    dt, gyro, _ = buffer.segments(t0_ns, t1_ns)
+    dt, gyro, _ = buffer.held_segment(t0_ns, t1_ns).midpoints()
     total = float(dt.sum())
     if total <= 0.0:
         return gyro.mean(axis=0) if len(gyro) else np.zeros(3)
@@ -158,7 +102,7 @@ def propagate(state: InertialState, buffer: ImuBuffer, t1_ns: int) -> InertialSt
     samples, exact rotation per piece). Biases and gravity are kept."""
     if t1_ns == state.timestamp_ns:
         return state
-    dt, gyro, accel = buffer.segments(state.timestamp_ns, t1_ns)
+    dt, gyro, accel = buffer.held_segment(state.timestamp_ns, t1_ns).midpoints()
     R = state.R_world_imu.copy()
     p = state.p_world_imu.copy()
     v = state.v_world_imu.copy()
@@ -234,7 +178,7 @@ class StaticGyroBias:
 
     def add_standstill(self, buffer: ImuBuffer, t0_ns: int, t1_ns: int) -> None:
         """Count ``[t0, t1]`` as standstill: its mean gyro reading is bias."""
-        dt, gyro, _ = buffer.segments(t0_ns, t1_ns)
+        dt, gyro, _ = buffer.held_segment(t0_ns, t1_ns).midpoints()
         self._sum += (dt[:, None] * gyro).sum(axis=0)
         self._seconds += float(dt.sum())
         self.n_frames += 1
@@ -287,8 +231,11 @@ class MotionPredictor:
         return self._base is not None
 
     def add_imu(self, timestamps_ns: np.ndarray, gyro: np.ndarray, accel: np.ndarray) -> None:
-        """Buffer IMU samples (IMU frame)."""
-        self.buffer.extend(timestamps_ns, gyro, accel)
+        """Buffer IMU samples (IMU frame); ImuPredictionError on malformed samples."""
+        try:
+            self.buffer.append(timestamps_ns, gyro, accel)
+        except ImuDataError as exc:
+            raise ImuPredictionError(str(exc)) from exc
 
     def set_inertial_state(
         self,

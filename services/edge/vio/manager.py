@@ -17,8 +17,8 @@ import numpy as np
 
 from common.calibration import CameraCalibration, ImuCalibration
 from common.geometry import inverse_T, make_T, orthonormalize_T
+from common.imu import ImuBuffer, ImuDataError
 from services.edge.vio.imu import (
-    ImuBuffer,
     integrate_gyro,
     make_preintegration_params,
     predict_state,
@@ -128,7 +128,10 @@ class VioManager:
 
     def feed_imu(self, timestamps_ns: np.ndarray, gyro: np.ndarray, accel: np.ndarray) -> None:
         """Append IMU samples: (K,) int64 ns, (K, 3) rad/s, (K, 3) m/s² in the IMU frame."""
-        self._imu.append(timestamps_ns, gyro, accel)
+        try:
+            self._imu.append(timestamps_ns, gyro, accel)
+        except ImuDataError as exc:
+            raise VioError(f"feed_imu: {exc}") from exc
 
     def feed_frame(self, obs: FrameObservation) -> FrameResult:
         """Process one frame (feed its IMU samples first) and return its estimate."""

@@ -269,7 +269,7 @@ def ground_truth_map(seq: SimSequence, max_keyframes: int, bias_from_options: Si
     """A :class:`VioMap` built from the sequence's robot keyframes at their true states
     (poses, velocities, initial biases), points triangulated from the noisy tracks.
     For tests of the back end in isolation."""
-    from services.edge.vio.imu import ImuBuffer
+    from common.imu import ImuBuffer
     from services.edge.vio.local_mapping import associate_keyframe, triangulate_new_points
     from services.edge.vio.state import Keyframe, PinholeUndistorter, VioMap
     from services.edge.vio.types import MappingOptions

@@ -14,7 +14,7 @@ import numpy as np
 from common.calibration import CameraCalibration
 from common.camera import camera_model
 from common.geometry import inverse_T
-from services.edge.vio.imu import ImuSegment
+from common.imu import ImuSegment
 from services.edge.vio.types import KeyframeSnapshot, MapPointBatch
 
 

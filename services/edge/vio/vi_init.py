@@ -19,7 +19,8 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from common.geometry import so3_exp, so3_log
-from services.edge.vio.imu import concat_segments, make_bias, preintegrate
+from common.imu import concat_segments
+from services.edge.vio.imu import make_bias, preintegrate
 from services.edge.vio.state import Keyframe
 
 logger = logging.getLogger(__name__)
