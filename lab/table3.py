@@ -30,7 +30,7 @@ import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -52,9 +52,9 @@ from lab.loop_scoring import (
 )
 from services.cloud.app import CloudApp, Reaction
 from services.cloud.config import CloudConfig, CloudServiceConfig, MbpConfig
-from services.cloud.core import CloudCore, SolveRequest, SolveResult, run_inline, solve
+from services.cloud.core import Action, CloudCore, SolveRequest, SolveResult, solve
 from services.cloud.mbp import REASONS, backbone
-from services.cloud.recording import Record, read_recording
+from services.cloud.recording import Record, Step, has_schedule, read_schedule
 from services.cloud.server import open_app
 
 log = logging.getLogger(__name__)
@@ -100,6 +100,7 @@ class ReplayResult:
     backbone: dict[str, int] = field(default_factory=dict)
     detections: list[Detection] = field(default_factory=list)
     queries: list[QueryEvent] = field(default_factory=list)
+    schedule: str = "modelled"
 
 
 class _Observations:
@@ -144,7 +145,7 @@ class _Observations:
 
 
 def replay(
-    records: Iterable[Record],
+    records: Iterable[Record | Step],
     camera: CameraCalibration,
     vocab: Vocabulary,
     config: CloudServiceConfig,
@@ -152,11 +153,27 @@ def replay(
     label: str = "",
     full_ba: bool = False,
     solve_fn: Callable[[SolveRequest], SolveResult] = solve,
+    latency_scale: float = 0.0,
+    schedule: str = "modelled",
 ) -> ReplayResult:
     """Feed ``records`` to a fresh CloudApp on ``state_dir`` (must be empty) through the
     service's core (module docstring); without ``full_ba`` the full bundle adjustment is
     switched off (else it runs when ``config.domain.full_ba.enabled``). ``solve_fn`` solves
-    each of the core's requests (default: :func:`services.cloud.core.solve`)."""
+    each of the core's requests (default: :func:`services.cloud.core.solve`).
+
+    ``schedule``: ``recorded`` drives the core through the steps the service recorded
+    (``records`` from :func:`services.cloud.recording.read_schedule` of a version-2
+    recording; each message at the ``now`` the service gave it): the service's own run, solve
+    for solve, as long as this configuration schedules as the service's did (else
+    ReplayDivergedError names the first step that does not fit). ``modelled``: the core's own
+    timer on the records' receive times (steps are ignored), each solve taking
+    ``latency_scale`` times its wall time here (0: no time, its result applies before the
+    next record; 1: records received meanwhile are handled first, as the service handles
+    messages while its optimizer process solves)."""
+    if latency_scale < 0 or not math.isfinite(latency_scale):
+        raise RecslamError(f"latency_scale must be finite and >= 0, got {latency_scale}")
+    if schedule not in ("recorded", "modelled"):
+        raise RecslamError(f"schedule must be recorded or modelled, got {schedule!r}")
     t0 = time.perf_counter()
     if not full_ba:
         config = without_full_ba(config)
@@ -165,14 +182,28 @@ def replay(
         app.close()
         raise RecslamError(f"{state_dir}: not an empty state directory")
     core = CloudCore(app)
+    clock = _SolveClock(core, solve_fn, latency_scale)
+    steps = _RecordedSteps(core, solve_fn)
+    recorded = schedule == "recorded"
     obs = _Observations(app)
     messages = failed = 0
     now = -math.inf
     try:
         for rec in records:
-            now = rec.t_recv
-            while (deadline := core.next_deadline()) is not None and deadline <= now:
-                run_inline(core, core.on_timer(now), now, solve_fn)
+            if isinstance(rec, Step):
+                if recorded:
+                    steps.step(rec)
+                continue
+            if recorded:
+                if rec.t_core is None:
+                    raise RecslamError(
+                        f"record at offset {rec.offset}: no schedule recorded (a version-1 "
+                        "recording); replay it with schedule='modelled'"
+                    )
+                now = rec.t_core
+            else:
+                now = max(now, rec.t_recv)
+                clock.advance(now)
             messages += 1
             keyframe = isinstance(rec.message, KeyframeUpdate | KeyframeUpdateCoded)
             held = np.array(app.atlas.keyframe_keys(), np.int64) if keyframe else None
@@ -190,8 +221,13 @@ def replay(
                 continue
             if held is not None:
                 obs.add(reaction, held)
-        run_inline(core, core.flush(now), now, solve_fn)
-        run_inline(core, core.shutdown(now), now, solve_fn)
+        if recorded and steps.shut_down:
+            steps.finish()
+        else:  # the service's run ended without its shutdown round (or is modelled)
+            clock.t = max(clock.t, now, steps.t)
+            now = clock.finish()
+            now = clock.run(core.flush, now)
+            now = clock.run(core.shutdown, now)
         log.info("%s: %d full BA passes", label, core.full_bas)
         trajs, maps = app.trajectories()
         kept, _ = app.trajectories(retired=False)
@@ -217,9 +253,165 @@ def replay(
             detections=obs.detections,
             queries=obs.queries,
             backbone=backbone_breakdown(app),
+            schedule=schedule,
         )
     finally:
         app.close()
+
+
+class _SolveClock:
+    """The core's timer and its solves on the replay's clock (records' receive times): a
+    round due at a deadline starts at the deadline; a solve requested at ``t`` is solved here
+    at once and its result handed back at ``t + latency_scale * (its wall time)``, after the
+    records received before then (one round at a time, as in the service)."""
+
+    def __init__(
+        self,
+        core: CloudCore,
+        solve_fn: Callable[[SolveRequest], SolveResult],
+        latency_scale: float,
+    ) -> None:
+        self.core = core
+        self.solve_fn = solve_fn
+        self.scale = latency_scale
+        self.t = -math.inf  # the clock: the time of the newest event
+        self._out: tuple[SolveRequest, SolveResult | None, float] | None = None
+
+    def _take(self, actions: Iterable[Action], t: float) -> None:
+        """The actions of a round step at ``t``: a solve goes out (anything else, the
+        corrections and outcomes, has no effect on a replay)."""
+        for a in actions:
+            if not isinstance(a, SolveRequest):
+                continue
+            t0 = time.perf_counter()
+            result: SolveResult | None
+            try:
+                result = self.solve_fn(a)
+            except Exception:  # as the service: log it, the round goes on without it
+                log.exception("%s of map %d failed", a.kind.value, a.map_id)
+                result = None
+            self._out = (a, result, t + self.scale * (time.perf_counter() - t0))
+
+    def _next(self, until: float) -> bool:
+        """Run the next event due by ``until``; False when none is."""
+        if self._out is not None:
+            request, result, ready = self._out
+            if ready > until:
+                return False
+            self._out = None
+            self.t = max(self.t, ready)
+            if result is None:
+                self._take(self.core.failed(request, self.t), self.t)
+            else:
+                self._take(self.core.solved(request, result, self.t), self.t)
+            return True
+        deadline = self.core.next_deadline()
+        if deadline is None or deadline > until:
+            return False
+        self.t = max(self.t, deadline)
+        self._take(self.core.on_timer(self.t), self.t)
+        return True
+
+    def advance(self, until: float) -> None:
+        """Every event due by ``until``; the clock then reads ``until``."""
+        while self._next(until):
+            pass
+        self.t = max(self.t, until)
+
+    def finish(self) -> float:
+        """The round in progress to its end (later solves' results wait for none); returns
+        the clock."""
+        while self.core.busy:
+            if self._out is None:
+                raise RecslamError("the cloud core is busy without a solve out")
+            self._next(math.inf)
+        return self.t
+
+    def run(self, start: Callable[[float], list[Action]], now: float) -> float:
+        """A round started on request (``start(now)``, e.g. ``core.flush``) to its end."""
+        self.t = max(self.t, now)
+        self._take(start(self.t), self.t)
+        return self.finish()
+
+
+class ReplayDivergedError(RecslamError):
+    """The recorded schedule does not fit this replay (its configuration schedules otherwise)."""
+
+
+class _RecordedSteps:
+    """The service's recorded core calls, made again in order: each solve the core asks for
+    is solved here at once and handed back where the service handed its result back."""
+
+    def __init__(self, core: CloudCore, solve_fn: Callable[[SolveRequest], SolveResult]) -> None:
+        self.core = core
+        self.solve_fn = solve_fn
+        self.t = -math.inf
+        self.shut_down = False
+        self._out: tuple[SolveRequest, SolveResult | None] | None = None
+
+    def _take(self, actions: Iterable[Action]) -> None:
+        for a in actions:
+            if isinstance(a, SolveRequest):
+                try:
+                    self._out = (a, self.solve_fn(a))
+                except Exception:  # as the service: log it, the round goes on without it
+                    log.exception("%s of map %d failed", a.kind.value, a.map_id)
+                    self._out = (a, None)
+
+    def _diverged(self, step: Step, why: str) -> ReplayDivergedError:
+        return ReplayDivergedError(
+            f"recorded step {step.name} {list(step.args)} at offset {step.offset}: {why}; "
+            "this configuration schedules otherwise than the recorded service (replay with "
+            "schedule='modelled')"
+        )
+
+    def step(self, step: Step) -> None:
+        core, now, args = self.core, step.now, step.args
+        self.t = max(self.t, now)
+        if step.name in ("request", "solved", "failed"):
+            out = self._out
+            if out is None or (out[0].kind.value, out[0].map_id) != tuple(args):
+                got = None if out is None else (out[0].kind.value, out[0].map_id)
+                raise self._diverged(step, f"the core has {got} out")
+            if step.name == "request":
+                return
+            self._out = None
+            request, result = out
+            if result is None or step.name == "failed":
+                if result is not None:
+                    log.warning("%s of map %d failed live, not here", *args)
+                self._take(core.failed(request, now))
+            else:
+                self._take(core.solved(request, result, now))
+            return
+        if self._out is not None:
+            raise self._diverged(step, "a solve is still out")
+        if step.name == "timer":
+            if core.next_deadline() is None:
+                raise self._diverged(step, "no round is due")
+            self._take(core.on_timer(now))
+        elif step.name == "optimize":
+            self._take(core.optimize(cast(int, args[0]), now))
+        elif step.name == "full_ba":
+            m, max_s, send = args
+            self._take(core.full_ba(cast(int, m), now, cast(float | None, max_s), bool(send)))
+        elif step.name == "flush":
+            self._take(core.flush(now))
+        elif step.name == "shutdown":
+            self.shut_down = True
+            self._take(core.shutdown(now))
+        elif step.name == "cancel":
+            core.cancel(now)
+
+    def finish(self) -> None:
+        """A round the recording ends in (a service killed mid-solve) solved to its end."""
+        while self._out is not None:
+            request, result = self._out
+            self._out = None
+            if result is None:
+                self._take(self.core.failed(request, self.t))
+            else:
+                self._take(self.core.solved(request, result, self.t))
 
 
 def backbone_breakdown(app: CloudApp) -> dict[str, int]:
@@ -296,10 +488,12 @@ def run_table3(
     work_dir: Path | None = None,
     progress: Callable[[str], None] | None = None,
     midrun_every: int = 100,
+    latency_scale: float = 0.0,
 ) -> Table3:
     """Replay ``recording`` without MBP, with MBP as the service runs it (at shutdown) and
     with MBP also every ``midrun_every`` keyframes while running (0: not), each with the
-    server's full-BA schedule, and evaluate them against ``dataset``."""
+    server's full-BA schedule and solves taking ``latency_scale`` times their wall time
+    (:func:`replay`), and evaluate them against ``dataset``."""
     say = progress or (lambda _msg: None)
     results: dict[Any, ReplayResult] = {}
     runs: list[tuple[bool | str, str, int | None]] = [
@@ -311,7 +505,11 @@ def run_table3(
     with tempfile.TemporaryDirectory(dir=work_dir) as tmp:
         for key, label, every in runs:
             say(f"replaying {recording} {label}")
-            records = read_recording(recording, allow_truncated_tail=True)
+            # The service's recorded schedule where this configuration schedules as the
+            # service did (MBP only at shutdown, or not at all); pruning while running
+            # reshapes the map and with it the schedule: modelled.
+            mode = "recorded" if every is None and has_schedule(recording) else "modelled"
+            records = read_schedule(recording, allow_truncated_tail=True)
             results[key] = replay(
                 records,
                 camera,
@@ -320,6 +518,8 @@ def run_table3(
                 Path(tmp) / str(key),
                 label,
                 full_ba=True,
+                latency_scale=latency_scale,
+                schedule=mode,
             )
             r = results[key]
             say(

@@ -41,6 +41,7 @@ def table3_markdown(t: Table3) -> str:
     ate_ok = j_off is not None and j_on is not None and j_on <= j_off
     k_on = t.ate_kept_on.stats.rmse if t.ate_kept_on is not None else None
     head = " | ".join(f"ATE {n} m" for n in names)
+    runs = [r for r in (off, on, t.midrun) if r is not None]
     lines = [
         "# Table 3: map backbone profiling (MBP) on the synthetic 3-robot dataset",
         "",
@@ -50,7 +51,11 @@ def table3_markdown(t: Table3) -> str:
         "configuration: MBP off; MBP on as the service runs it (one pass at shutdown, after "
         "the last full BA); and MBP on also every 100 new keyframes while running. "
         "Optimisation, full BA and MBP are scheduled by the service's own core "
-        "(`services/cloud/core.py`), driven synchronously (`lab/table3.py`). Keyframes / map "
+        "(`services/cloud/core.py`), driven synchronously (`lab/table3.py`), per row "
+        f"({', '.join(f'{r.label}: {r.schedule}' for r in runs)}): `recorded` makes the "
+        "service's recorded core calls again (its timer rounds and solves where the service "
+        "had them), `modelled` runs the core's timer on the records' receive times, solves "
+        "taking their own time here. Keyframes / map "
         "points: the cloud atlas at the end. ATE: RMSE of the cloud's keyframe trajectories "
         "(`T_map_body`) against ground truth after SE(3) alignment (the cloud report's), per "
         "robot aligned alone and joint (all robots, one transform: meaningful when all are in one"

@@ -67,6 +67,15 @@ def register(sub: argparse._SubParsersAction) -> None:
         "no calibration of (recordings made before calibrations travelled)",
     )
     t.add_argument("--vocabulary", type=Path, default=None, help="vocabulary file")
+    t.add_argument(
+        "--solve-latency",
+        type=float,
+        default=1.0,
+        metavar="SCALE",
+        help="a solve takes SCALE times its wall time here on the replay's clock, so records "
+        "received meanwhile are handled before its result applies, as in the service "
+        "(default %(default)s; 0: solves take no time)",
+    )
     t.set_defaults(func=run_table3)
     k = which.add_parser(
         "links",
@@ -148,6 +157,7 @@ def run_table3(args: argparse.Namespace) -> int:
         vocab,
         work_dir=args.out,
         progress=lambda m: print(m, flush=True),
+        latency_scale=args.solve_latency,
     )
     results = args.results if str(args.results) not in ("", ".") else None
     files = write_table3(result, args.out, results)

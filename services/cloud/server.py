@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import logging
 import math
 import multiprocessing
@@ -235,9 +236,15 @@ class CloudServer:
         self._tasks = []
         if self._app is not None and self._core is not None:
             loop = asyncio.get_running_loop()
+            core = self._core
             async with self._round_lock:  # a round cut short by the cancel: reschedule it
-                await self._on_worker(self._core.cancel, loop.time())
-            await self._round(self._core.shutdown)
+
+                def cancel(now: float) -> list[Action]:
+                    core.cancel(now)
+                    return []
+
+                await self._on_worker(self._step, "cancel", cancel, (), loop.time())
+            await self._round("shutdown", core.shutdown)
             self._final_stats = await self.stats()
             if write_output and self.output is not None:
                 await self.write_output(evaluate=True)
@@ -294,10 +301,26 @@ class CloudServer:
     ) -> float | None:
         """Apply one message (worker thread), record it when recording; the core's next
         deadline after it."""
-        core.handle(d.peer, d.message, d.stream_id, d.seq, clock())
+        now = clock()
+        core.handle(d.peer, d.message, d.stream_id, d.seq, now)
         if self._recorder is not None:
-            self._recorder.write(d.peer, d.stream_id, d.seq, d.message, t_recv)
+            self._recorder.write(d.peer, d.stream_id, d.seq, d.message, t_recv, now)
         return core.next_deadline()
+
+    def _step(
+        self, name: str, call: Callable[[float], list[Action]], args: tuple[object, ...], now: float
+    ) -> list[Action]:
+        """``call(now)`` on the core (worker thread), recorded as the step ``name`` (with
+        ``args``) when recording, and the solve it asks for as a ``request`` step."""
+        recorder = self._recorder
+        if recorder is not None:
+            recorder.write_step(name, now, args)
+        actions = call(now)
+        if recorder is not None:
+            for a in actions:
+                if isinstance(a, SolveRequest):
+                    recorder.write_step("request", now, (a.kind.value, a.map_id))
+        return actions
 
     # ------------------------------------------------------------------ optimisation
     async def _optimize_loop(self) -> None:
@@ -316,18 +339,24 @@ class CloudServer:
                 with contextlib.suppress(TimeoutError):
                     await asyncio.wait_for(self._wake.wait(), left)
                 continue
-            await self._round(core.on_timer)
+            await self._round("timer", core.on_timer)
 
-    async def _round(self, start: Callable[..., list[Action]], *args: Any) -> list[Outcome]:
-        """Start a round of the core (``start(*args, now)`` on the worker) and run it to its
-        end: solves in the optimizer, corrections to the edges. One round at a time. Returns
-        the outcomes of its solves."""
+    async def _round(
+        self, name: str, start: Callable[..., list[Action]], *args: Any
+    ) -> list[Outcome]:
+        """Start a round of the core (``start(*args, now)`` on the worker, recorded as the step
+        ``name``) and run it to its end: solves in the optimizer, corrections to the edges. One
+        round at a time. Returns the outcomes of its solves."""
         core = self._core
         assert core is not None
         loop = asyncio.get_running_loop()
         outcomes: list[Outcome] = []
+
+        def begin(now: float) -> list[Action]:
+            return start(*args, now)
+
         async with self._round_lock:
-            pending = deque(await self._on_worker(start, *args, loop.time()))
+            pending = deque(await self._on_worker(self._step, name, begin, args, loop.time()))
             while pending:
                 action = pending.popleft()
                 if isinstance(action, Outcome):
@@ -341,9 +370,21 @@ class CloudServer:
                         raise
                     except Exception:
                         log.exception("%s of map %d failed", action.kind.value, action.map_id)
-                        more = await self._on_worker(core.failed, action, loop.time())
+                        more = await self._on_worker(
+                            self._step,
+                            "failed",
+                            functools.partial(core.failed, action),
+                            (action.kind.value, action.map_id),
+                            loop.time(),
+                        )
                     else:
-                        more = await self._on_worker(core.solved, action, result, loop.time())
+                        more = await self._on_worker(
+                            self._step,
+                            "solved",
+                            functools.partial(core.solved, action, result),
+                            (action.kind.value, action.map_id),
+                            loop.time(),
+                        )
                     pending.extend(more)
         return outcomes
 
@@ -379,7 +420,7 @@ class CloudServer:
         full BA if due. Returns False if the map was merged meanwhile (it is rescheduled)."""
         core = self._core
         assert core is not None
-        outcomes = await self._round(core.optimize, map_id)
+        outcomes = await self._round("optimize", core.optimize, map_id)
         return _applied(outcomes, map_id, SolveKind.POSE_GRAPH)
 
     async def full_ba_map(
@@ -391,16 +432,17 @@ class CloudServer:
         core = self._core
         assert core is not None
 
-        def start(now: float) -> list[Action]:
+        def start(map_id: int, max_seconds: float | None, send: bool, now: float) -> list[Action]:
             return core.full_ba(map_id, now, max_seconds, send)
 
-        return _applied(await self._round(start), map_id, SolveKind.FULL_BA)
+        outcomes = await self._round("full_ba", start, map_id, max_seconds, send)
+        return _applied(outcomes, map_id, SolveKind.FULL_BA)
 
     async def flush_optimizations(self) -> None:
         """Optimise every map that is scheduled, now (tests, benchmarks)."""
         core = self._core
         assert core is not None
-        await self._round(core.flush)
+        await self._round("flush", core.flush)
 
     async def optimize_all(self) -> None:
         """Optimise every map now (tests, benchmarks)."""

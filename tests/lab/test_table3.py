@@ -3,13 +3,23 @@
 from __future__ import annotations
 
 import dataclasses
+import time
 
 import numpy as np
 import pytest
 
+from common.errors import RecslamError
 from common.vocabulary import Vocabulary
-from lab.table3 import replay, service_config
-from services.cloud.recording import RecordingWriter, read_recording
+from lab.table3 import ReplayDivergedError, replay, service_config
+from services.cloud.core import SolveRequest, SolveResult, solve
+from services.cloud.recording import (
+    RecordingWriter,
+    Step,
+    has_schedule,
+    read_recording,
+    read_schedule,
+)
+from services.cloud.server import open_app
 from services.cloud.simulation import (
     circle_poses,
     default_camera,
@@ -118,7 +128,9 @@ def test_record_options_parse_and_reach_the_cloud_command(tmp_path):
 def test_replay_of_a_recording_with_each_robots_calibration(tmp_path, vocab):
     """A recording the cloud service writes today holds each robot's ``AgentSensors`` ahead
     of its keyframes; the replay uses them: r1, seen through a 640x480 camera of its own
-    (another size, intrinsics and mounting than the fallback camera), decodes and merges."""
+    (another size, intrinsics and mounting than the fallback camera), decodes and merges.
+    It holds the service's schedule too: replayed through it, the core ends where the service
+    ended (same solves, same poses)."""
     import asyncio
 
     from common.calibration import EUROC_IMU, CameraCalibration
@@ -128,7 +140,6 @@ def test_replay_of_a_recording_with_each_robots_calibration(tmp_path, vocab):
     from common.links.sensors import Sensors
     from common.protocol import SessionConfig
     from common.transport import Delivery
-    from services.cloud.config import CloudServiceConfig
     from services.cloud.server import CloudServer
     from services.cloud.simulation import R_BODY_CAM
 
@@ -144,7 +155,10 @@ def test_replay_of_a_recording_with_each_robots_calibration(tmp_path, vocab):
     msgs += [agent_sensors_message("r1", Sensors(cam_b, EUROC_IMU))]
     msgs += [m for g in encode_session(*r1, "r1", vocab, 7, codec=codec_b) for m in g]
     rec = tmp_path / "uplink.rec"
-    cfg = CloudServiceConfig(output_every_s=0, optimizer_process=False)
+    cfg = dataclasses.replace(
+        service_config(False), output_every_s=0, optimizer_process=False, debounce_s=0.05
+    )
+    stats = []
 
     async def record() -> None:
         session = SessionConfig("cloud", "cloud", b"0123456789abcdef0123")
@@ -153,12 +167,96 @@ def test_replay_of_a_recording_with_each_robots_calibration(tmp_path, vocab):
         try:
             for seq, m in enumerate(msgs, 1):
                 await cloud._on_message(Delivery("edge", "edge", m, seq, b"stream"))
+                if seq % 7 == 0:
+                    await asyncio.sleep(0.3)  # the timer's rounds run between messages
         finally:
             await cloud.stop(write_output=False)
+            stats.append(await cloud.stats())
 
     asyncio.run(record())
+    assert has_schedule(rec)
     recorded = list(read_recording(rec))
     assert sum(isinstance(r.message, AgentSensors) for r in recorded) == 2
+    assert all(r.t_core is not None for r in recorded)
     res = replay(recorded, default_camera(), vocab, service_config(False), tmp_path / "replay")
     assert res.keyframes_received == 36 and res.merges >= 1 and res.maps == [0]
     assert set(res.trajectories) == {"r0", "r1"}
+
+    steps = [e for e in read_schedule(rec) if isinstance(e, Step)]
+    names = [s.name for s in steps]
+    assert names.count("timer") >= 2 and names[-1] in ("solved", "shutdown")
+    assert names.count("request") == names.count("solved") + names.count("failed")
+    same = replay(
+        read_schedule(rec),
+        default_camera(),
+        vocab,
+        cfg,
+        tmp_path / "r2",
+        "x",
+        True,
+        schedule="recorded",
+    )
+    (live,) = stats
+    assert (same.optimizations, same.merges, same.loops) == (
+        live.optimizations,
+        live.merges,
+        live.loops,
+    )
+    service = open_app(tmp_path / "state", default_camera(), vocab, cfg)
+    try:
+        live_trajs, _ = service.trajectories()
+    finally:
+        service.close()
+    for name, traj in live_trajs.items():
+        np.testing.assert_allclose(
+            same.trajectories[name].T_world_body, traj.T_world_body, atol=1e-9
+        )
+
+    # A configuration that schedules otherwise does not fit the recorded steps.
+    other = dataclasses.replace(cfg, optimize_every_keyframes=1000, debounce_s=1e6)
+    with pytest.raises(ReplayDivergedError, match="schedules otherwise"):
+        replay(
+            read_schedule(rec), default_camera(), vocab, other, tmp_path / "r3", schedule="recorded"
+        )
+
+
+def test_solves_that_take_time_let_records_arrive_before_their_result(recording, vocab, tmp_path):
+    """With solve latency the replay handles the records received while a solve is out
+    before its result applies, as the service does: one round spans many records, so fewer
+    pose graphs run than when solves take no time; nothing is lost either way."""
+    cfg = dataclasses.replace(service_config(False), optimize_every_keyframes=2, debounce_s=0.1)
+
+    def slow_solve(request: SolveRequest) -> SolveResult:
+        t0 = time.perf_counter()
+        result = solve(request)
+        while time.perf_counter() - t0 < 0.02:  # at least 20 ms here
+            pass
+        return result
+
+    runs = {}
+    for scale in (0.0, 300.0):  # 300 x >= 20 ms: a solve spans >= 6 s, 30 records
+        runs[scale] = replay(
+            read_recording(recording),
+            default_camera(),
+            vocab,
+            cfg,
+            tmp_path / str(scale),
+            "x",
+            solve_fn=slow_solve,
+            latency_scale=scale,
+        )
+    instant, slow = runs[0.0], runs[300.0]
+    assert instant.keyframes_received == slow.keyframes_received == 42
+    assert instant.failed == slow.failed == 0
+    assert instant.maps == slow.maps == [0]
+    assert 0 < slow.optimizations < instant.optimizations / 2
+    with pytest.raises(RecslamError, match="latency_scale"):
+        replay(
+            read_recording(recording),
+            default_camera(),
+            vocab,
+            cfg,
+            tmp_path / "n",
+            "x",
+            latency_scale=-1.0,
+        )

@@ -2,12 +2,25 @@
 
 from __future__ import annotations
 
+import struct
+
+import msgpack
 import numpy as np
 import pytest
 
 from common.links.edge_cloud import AgentStatus, CullEvent
 from common.protocol.arrays import pack_array
-from services.cloud.recording import MAGIC, RecordingError, RecordingWriter, read_recording
+from common.protocol.messages import encode_payload
+from services.cloud.recording import (
+    MAGIC,
+    MAGIC_V1,
+    RecordingError,
+    RecordingWriter,
+    Step,
+    has_schedule,
+    read_recording,
+    read_schedule,
+)
 
 
 def _write(path) -> list[int]:
@@ -106,3 +119,42 @@ def test_cloud_server_records_every_applied_message(tmp_path):
         ("edge-a", 1, msgs[0]),
         ("edge-a", 2, msgs[1]),
     ]
+
+
+def test_steps_travel_in_order_and_version_1_recordings_still_read(tmp_path):
+    path = tmp_path / "v2.rec"
+    with RecordingWriter(path) as w:
+        w.write("edge", b"s", 1, CullEvent("robot0", 0, b"", b""), 10.0, 1.25)
+        w.write_step("timer", 1.5)
+        w.write_step("request", 1.5, ("pose graph", 0))
+        w.write("edge", b"s", 2, CullEvent("robot0", 0, b"", b""), 10.5, 1.75)
+        w.write_step("solved", 2.0, ("pose graph", 0))
+        with pytest.raises(ValueError, match="unknown recording step 'nap'"):
+            w.write_step("nap", 2.0)
+    assert has_schedule(path)
+    entries = list(read_schedule(path))
+    assert [type(e).__name__ for e in entries] == ["Record", "Step", "Step", "Record", "Step"]
+    assert entries[2] == Step("request", 1.5, ("pose graph", 0), entries[2].offset)
+    assert [r.t_core for r in read_recording(path)] == [1.25, 1.75]  # messages only
+
+    # A recording made before steps were recorded (version 1): read, no t_core, no steps;
+    # a writer appending to it keeps its version.
+    old = tmp_path / "v1.rec"
+    body = msgpack.packb(
+        ["edge", b"s", 1, CullEvent.TYPE_ID, encode_payload(CullEvent("r", 0, b"", b"")), 3.0],
+        use_bin_type=True,
+    )
+    old.write_bytes(MAGIC_V1 + struct.pack(">I", len(body)) + body)
+    assert not has_schedule(old)
+    with RecordingWriter(old) as w:
+        w.write("edge", b"s", 2, CullEvent("r", 0, b"", b""), 4.0, 9.0)
+        w.write_step("timer", 9.5)
+    got = list(read_schedule(old))
+    assert [(r.seq, r.t_recv, r.t_core) for r in got] == [(1, 3.0, None), (2, 4.0, None)]
+
+    # A damaged step names its offset.
+    bad = tmp_path / "bad.rec"
+    step = msgpack.packb([0, "timer", "soon", []], use_bin_type=True)
+    bad.write_bytes(MAGIC + struct.pack(">I", len(step)) + step)
+    with pytest.raises(RecordingError, match=f"offset {len(MAGIC)}: malformed step"):
+        list(read_schedule(bad))
