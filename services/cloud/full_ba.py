@@ -45,7 +45,9 @@ from services.cloud.config import FullBAConfig, GlobalOptimizationConfig
 from services.cloud.global_optimization import (
     GlobalOptimizationError,
     PoseGraphResult,
+    add_attitude_factors,
     apply_pose_graph,
+    up_in_body,
 )
 from services.cloud.map_types import CameraOf, camera_lookup
 
@@ -91,6 +93,9 @@ class FullBAProblem:
     fixed: int
     fx: float = 1.0
     dropped_observations: int = 0
+    up_body: np.ndarray | None = None
+    """(N, 3) the up direction in each body frame at build time (held roll and pitch, see
+    :func:`services.cloud.global_optimization.add_attitude_factors`)."""
 
     @property
     def n_observations(self) -> int:
@@ -232,6 +237,7 @@ def build_full_ba(
         fixed=index[own[0]] if own else 0,
         fx=fx,
         dropped_observations=int(n_all - ok.sum()),
+        up_body=up_in_body(T),
     )
 
 
@@ -286,6 +292,8 @@ def solve_full_ba(
             gtsam.noiseModel.Isotropic.Sigma(6, graph_config.prior_sigma),
         )
     )
+    poses = [X(i) for i in range(n)]
+    add_attitude_factors(graph, poses, problem.up_body, graph_config.attitude_sigma_rad)
     loop_kernel = _kernel(graph_config.loop_robust_kernel, graph_config.loop_kernel_scale)
     rejected: list[int] = []
     for e in range(problem.edge_i.shape[0]):

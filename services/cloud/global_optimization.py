@@ -65,6 +65,33 @@ class PoseGraphProblem:
     sigmas: np.ndarray
     robust: np.ndarray
     fixed: int
+    up_body: np.ndarray | None = None
+    """(N, 3) the map's up direction (z) in each keyframe's body frame when the graph was
+    built: the roll and pitch :func:`add_attitude_factors` holds (None: not held)."""
+
+
+def up_in_body(T_world_body: np.ndarray) -> np.ndarray:
+    """(N, 3) unit vectors: the world's z axis in each body frame of ``T_world_body`` (N, 4,
+    4), i.e. the third row of each rotation."""
+    return np.array(T_world_body, np.float64).reshape(-1, 4, 4)[:, 2, :3].copy()
+
+
+def add_attitude_factors(
+    graph: gtsam.NonlinearFactorGraph,
+    keys: list[int],
+    up_body: np.ndarray | None,
+    sigma_rad: float,
+) -> int:
+    """Hold each keyframe's roll and pitch: an attitude factor per pose ``keys[i]`` that the
+    world's z axis stays ``up_body[i]`` in its body frame (2-DoF, ``sigma_rad``; yaw and
+    position stay free). Returns the factors added (none when off or without ``up_body``)."""
+    if up_body is None or sigma_rad <= 0:
+        return 0
+    noise = gtsam.noiseModel.Isotropic.Sigma(2, sigma_rad)
+    z = gtsam.Unit3(np.array([0.0, 0.0, 1.0]))
+    for key, up in zip(keys, np.asarray(up_body, np.float64), strict=True):
+        graph.add(gtsam.AttitudeFactorPose3(key, z, noise, gtsam.Unit3(up)))
+    return len(keys)
 
 
 @dataclass(frozen=True, eq=False)
@@ -142,6 +169,7 @@ def build_pose_graph(
         sigmas=np.array(sig).reshape(E, 6),
         robust=np.array(rob, bool),
         fixed=fixed,
+        up_body=up_in_body(T),
     )
 
 
@@ -166,6 +194,7 @@ def optimize_pose_graph(
     graph.add(
         gtsam.PriorFactorPose3(problem.fixed, _pose3(problem.T_world_body[problem.fixed]), prior)
     )
+    add_attitude_factors(graph, list(range(n)), problem.up_body, config.attitude_sigma_rad)
     kernels: dict[str, Callable[[float], gtsam.noiseModel.mEstimator.Base]] = {
         "cauchy": gtsam.noiseModel.mEstimator.Cauchy.Create,
         "huber": gtsam.noiseModel.mEstimator.Huber.Create,

@@ -5,14 +5,16 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from common.geometry import inverse_T
+from common.geometry import inverse_T, so3_exp
 from services.cloud.atlas import Atlas, make_key
 from services.cloud.config import GlobalOptimizationConfig
 from services.cloud.global_optimization import (
     GlobalOptimizationError,
+    PoseGraphProblem,
     apply_pose_graph,
     build_pose_graph,
     optimize_pose_graph,
+    up_in_body,
 )
 from services.cloud.simulation import circle_poses, default_camera, make_session, make_world, yaw_T
 
@@ -87,3 +89,45 @@ def test_robust_kernel_limits_a_wrong_loop(drifted):
 def test_bad_problem_is_rejected():
     with pytest.raises(GlobalOptimizationError, match="no keyframes"):
         build_pose_graph(Atlas(), 0, GlobalOptimizationConfig())
+
+
+def _tilt_deg(T: np.ndarray) -> np.ndarray:
+    """(N,) angle between each body's up direction now and the world's z, degrees."""
+    return np.degrees(np.arccos(np.clip(T[:, 2, 2], -1.0, 1.0)))
+
+
+def test_attitude_factors_keep_roll_and_pitch_while_the_loop_corrects_yaw() -> None:
+    """A square of 12 gravity-aligned keyframes whose odometry drifted in yaw, closed by a
+    loop that also carries 1° of spurious roll (as a visual PnP can): with the attitude
+    factors the poses keep the roll and pitch they came with (the VIO's, observed through
+    the IMU) and still take the loop's yaw; without them the map tilts."""
+    n = 12
+    a = 2 * np.pi * np.arange(n) / n
+    true = np.array([yaw_T(t, np.array([np.cos(t), np.sin(t), 0.0])) for t in a])
+    drift = np.array([yaw_T(0.004 * i, np.zeros(3)) @ true[i] for i in range(n)])
+    ei = [*range(n - 1), 0]
+    ej = [*range(1, n), n - 1]
+    meas = [inverse_T(drift[i]) @ drift[j] for i, j in zip(ei[:-1], ej[:-1], strict=True)]
+    roll = np.eye(4)
+    roll[:3, :3] = so3_exp([np.radians(1.0), 0.0, 0.0])
+    meas.append(inverse_T(true[0]) @ true[n - 1] @ roll)
+    sig = [[0.01] * 3 + [0.02] * 3] * (n - 1) + [[0.02] * 3 + [0.05] * 3]  # the defaults
+    problem = PoseGraphProblem(
+        keys=np.arange(n, dtype=np.int64),
+        T_world_body=drift,
+        edge_i=np.array(ei),
+        edge_j=np.array(ej),
+        T_i_j=np.array(meas),
+        sigmas=np.array(sig, float),
+        robust=np.array([False] * (n - 1) + [True]),
+        fixed=0,
+        up_body=up_in_body(drift),
+    )
+    held = optimize_pose_graph(problem, GlobalOptimizationConfig())
+    free = optimize_pose_graph(problem, GlobalOptimizationConfig(attitude_sigma_rad=0.0))
+    assert _tilt_deg(held.T_world_body).max() < 0.05
+    assert _tilt_deg(free.T_world_body).max() > 0.3
+    # The loop's yaw is taken either way: the last keyframe turns back towards the truth.
+    yaw = lambda T: np.arctan2(T[1, 0], T[0, 0])  # noqa: E731
+    before = abs(yaw(drift[-1]) - yaw(true[-1]))
+    assert abs(yaw(held.T_world_body[-1]) - yaw(true[-1])) < 0.5 * before
