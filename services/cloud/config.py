@@ -135,9 +135,10 @@ class GlobalOptimizationConfig:
     attitude_sigma_rad: each keyframe's roll and pitch (the direction of gravity in its body
         frame, which the edge's visual-inertial odometry observes through the IMU and the
         atlas holds from the edge's latest pose) held with this sigma (default 0.002 rad,
-        0.11°; 0: off), in the pose graph and the full BA, as VINS-Mono's and COVINS' 4-DoF
-        pose graphs do. Without it, loop corrections tilted the edges' gravity-aligned maps
-        by 0.3° (median, up to 1°) and the VIO's IMU terms then fought the tilted map.
+        0.11°; 0: off), as VINS-Mono's and COVINS' 4-DoF pose graphs do. Without it, loop
+        corrections tilted the edges' gravity-aligned maps by 0.3° (median, up to 1°) and the
+        VIO's IMU terms then fought the tilted map. (The full BA has its own setting,
+        ``FullBAConfig.attitude_sigma_rad``, off by default.)
     """
 
     odometry_sigma_rot_rad: float = 0.01
@@ -179,6 +180,12 @@ class FullBAConfig:
     relative_error_tol: stop when the error decreases by less than this fraction (1e-4).
     max_seconds: stop after the iteration that crosses this wall time, graph construction
         included (default 60 s).
+    attitude_sigma_rad: hold each keyframe's roll and pitch with this sigma as the pose graph
+        does (``GlobalOptimizationConfig.attitude_sigma_rad``); default 0: off. Replayed on a
+        recorded run (modelled schedule), joint ATE 1.72 cm without attitude factors, 1.58 cm
+        with them in the pose graph only, 1.94 cm in the pose graph and the full BA at 0.002
+        rad: the images fix a keyframe's tilt relative to the map better than the VIO's
+        gravity (its tilt errors: median 0.04-0.08 deg, p95 0.22-0.39 deg).
     """
 
     enabled: bool = True
@@ -193,6 +200,7 @@ class FullBAConfig:
     max_iterations: int = 15
     relative_error_tol: float = 1e-4
     max_seconds: float = 60.0
+    attitude_sigma_rad: float = 0.0
 
 
 @dataclass(frozen=True)

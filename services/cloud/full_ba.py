@@ -293,7 +293,7 @@ def solve_full_ba(
         )
     )
     poses = [X(i) for i in range(n)]
-    add_attitude_factors(graph, poses, problem.up_body, graph_config.attitude_sigma_rad)
+    add_attitude_factors(graph, poses, problem.up_body, config.attitude_sigma_rad)
     loop_kernel = _kernel(graph_config.loop_robust_kernel, graph_config.loop_kernel_scale)
     rejected: list[int] = []
     for e in range(problem.edge_i.shape[0]):
