@@ -1,6 +1,8 @@
 """``recslam demo`` — the main job behind the README's first command.
 
-Builds the embedded synthetic multi-robot dataset (if missing or made with other settings;
+Builds the embedded synthetic multi-robot dataset (if missing, or if ``--robots``,
+``--seconds``, ``--seed`` or ``--cameras`` ask for other settings than an existing one was
+made with: without them an existing dataset is used as it is;
 a ``--data`` folder of downloaded sequences, e.g. EuRoC ``MH_01_easy/mav0``..., is used as
 is, one robot per sequence),
 starts the cloud, the edge and one robot process per sequence on loopback (free ports, a
@@ -32,9 +34,25 @@ def register(sub: argparse._SubParsersAction) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("--data", type=Path, default=Path("data/synth"), help="dataset folder")
-    p.add_argument("--robots", type=int, default=3, help="number of robots (default 3)")
-    p.add_argument("--seconds", type=float, default=60.0, help="sequence length (default 60)")
-    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument(
+        "--robots",
+        type=int,
+        default=None,
+        help="number of robots of the synthetic dataset (default: an existing dataset's, 3 "
+        "for a new one)",
+    )
+    p.add_argument(
+        "--seconds",
+        type=float,
+        default=None,
+        help="sequence length (default: an existing dataset's, 60 for a new one)",
+    )
+    p.add_argument(
+        "--seed",
+        type=int,
+        default=None,
+        help="random seed (default: an existing dataset's, 0 for a new one)",
+    )
     p.add_argument(
         "--cameras",
         default="",
@@ -79,19 +97,28 @@ def _cameras(text: str) -> tuple[str, ...]:
     return tuple(c.strip() for c in text.split(",") if c.strip())
 
 
+NEW_DATASET = {"robots": 3, "seconds": 60.0, "seed": 0}
+"""The settings of a synthetic dataset ``recslam demo`` builds where none exists."""
+
+
 def _dataset_matches(
-    folder: Path, robots: int, seconds: float, seed: int, cameras: tuple[str, ...] | None = None
+    folder: Path,
+    robots: int | None,
+    seconds: float | None,
+    seed: int | None,
+    cameras: tuple[str, ...] | None = None,
 ) -> bool:
-    """Whether ``folder`` holds a synthetic dataset built with these settings (``cameras``
-    None: any cameras, as when ``--cameras`` is not given)."""
+    """Whether ``folder`` holds a synthetic dataset built with these settings; a setting that
+    is None (not given on the command line) matches any value, so an existing dataset is
+    reused as it is unless the command asks for something else."""
     meta = folder / "dataset.json"
     if not meta.is_file():
         return False
     info = json.loads(meta.read_text())
     return (
-        info.get("robots") == robots
-        and float(info.get("seconds", -1)) == seconds
-        and info.get("seed") == seed
+        (robots is None or info.get("robots") == robots)
+        and (seconds is None or float(info.get("seconds", -1)) == seconds)
+        and (seed is None or info.get("seed") == seed)
         and (cameras is None or tuple(info.get("config", {}).get("cameras", ())) == cameras)
     )
 
@@ -108,12 +135,25 @@ def build_dataset(args: argparse.Namespace) -> None:
     elif not (args.data / "dataset.json").exists() and any(args.data.glob("*/mav0")):
         print(f"dataset: {args.data} (not synthetic: every */mav0 sequence is a robot)")
     else:
+        given = {"robots": args.robots, "seconds": args.seconds, "seed": args.seed}
+        want = {k: NEW_DATASET[k] if v is None else v for k, v in given.items()}
         which = f", cameras {','.join(cameras)}" if cameras else ""
+        meta = args.data / "dataset.json"
+        if meta.is_file():  # asked for other settings than the dataset there was built with
+            old = json.loads(meta.read_text())
+            print(
+                f"dataset: {args.data} holds {old.get('robots')} robots x "
+                f"{old.get('seconds')} s (seed {old.get('seed')}); replacing it as asked"
+            )
         print(
-            f"dataset: building {args.robots} robots x {args.seconds:g} s (seed {args.seed}{which})"
+            f"dataset: building {want['robots']} robots x {want['seconds']:g} s "
+            f"(seed {want['seed']}{which})"
         )
         config = SynthConfig(
-            robots=args.robots, seconds=args.seconds, seed=args.seed, cameras=cameras
+            robots=int(want["robots"]),
+            seconds=float(want["seconds"]),
+            seed=int(want["seed"]),
+            cameras=cameras,
         )
         generate_dataset(args.data, config)
     built = time.perf_counter() - start

@@ -35,9 +35,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from common.evaluation.alignment import umeyama
-from common.evaluation.association import match_timestamps
-from common.evaluation.errors import EvaluationError
 from common.evaluation.trajectory import Trajectory
 from common.geometry import R_to_quat_wxyz, inverse_T
 from common.links import CodecTimer, WireFormat
@@ -62,6 +59,7 @@ from services.cloud.atlas import Atlas, AtlasSnapshot, KeyframeInput, make_key
 from services.cloud.config import CloudServiceConfig
 from services.cloud.full_ba import FullBAProblem, FullBAResult
 from services.cloud.global_optimization import PoseGraphProblem, PoseGraphResult
+from services.cloud.ground_truth import references_in_maps
 from services.cloud.map_fusion import FusionEvents, MapFusion
 from services.cloud.map_source import AgentInfo, CloudView
 from services.cloud.mbp import MbpReport
@@ -520,56 +518,12 @@ class CloudApp:
         max_points: int = 3000,
         max_dt_ns: int = 20_000_000,
     ) -> tuple[GroundTruth, ...]:
-        """Each robot's reference trajectory in its map's frame, for the dashboard.
-
-        All robots of one map are aligned to it with one rigid transform (Umeyama on the
-        keyframe positions associated by time within ``max_dt_ns``, 20 ms, by the evaluation's
-        ``match_timestamps``); maps with fewer than 3 such pairs are left out."""
-        by_name: dict[str, list[_Agent]] = {}
+        """Each robot's reference trajectory in its map's frame, for the dashboard
+        (:func:`services.cloud.ground_truth.references_in_maps`)."""
+        agents: dict[str, list[int]] = {}
         for a in self._agents.values():
-            if a.name in references and a.agent_id in self.atlas.agents():
-                by_name.setdefault(a.name, []).append(a)
-        pairs: dict[int, list[tuple[np.ndarray, np.ndarray]]] = {}
-        owner: dict[str, int] = {}
-        for name, agents in by_name.items():
-            ref = references[name]
-            main = max(agents, key=lambda a: len(self.atlas.keyframe_keys(agent_id=a.agent_id)))
-            main_id = main.agent_id
-            owner[name] = main_id
-            kfs = sorted(
-                map(self.atlas.keyframe, self.atlas.keyframe_keys(agent_id=main_id)),
-                key=lambda kf: kf.timestamp,
-            )
-            t_est_ns = np.array([round(kf.timestamp * 1e9) for kf in kfs], np.int64)
-            i_est, i_ref = match_timestamps(t_est_ns, ref.timestamps_ns, max_dt_ns)
-            p_est = np.array([kfs[i].T_map_body[:3, 3] for i in i_est]).reshape(-1, 3)
-            pairs.setdefault(self.atlas.map_of_agent(main_id), []).append(
-                (ref.p_world_body[i_ref], p_est)
-            )
-        align = {}
-        for m, lst in pairs.items():
-            p_ref = np.concatenate([a for a, _ in lst])
-            p_est = np.concatenate([b for _, b in lst])
-            if p_ref.shape[0] >= 3:
-                try:
-                    align[m] = umeyama(p_ref, p_est)
-                except EvaluationError:
-                    continue
-        out = []
-        for name, main_id in sorted(owner.items()):
-            tf = align.get(self.atlas.map_of_agent(main_id))
-            if tf is None:
-                continue
-            ref = references[name]
-            step = max(1, len(ref.timestamps_ns) // max_points)
-            out.append(
-                GroundTruth(
-                    main_id,
-                    ref.timestamps_ns[::step] * 1e-9,
-                    tf.apply_points(ref.p_world_body[::step]),
-                )
-            )
-        return tuple(out)
+            agents.setdefault(a.name, []).append(a.agent_id)
+        return references_in_maps(self.atlas, agents, references, max_points, max_dt_ns)
 
     def view(
         self,

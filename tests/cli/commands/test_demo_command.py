@@ -1,6 +1,6 @@
-"""``recslam demo``'s dataset step: a synthetic dataset is reused only when it was built with
-the requested robots, length and seed, and with the requested cameras when ``--cameras`` is
-given (without it, a mixed team is reused as it is, never rebuilt as all-EuRoC)."""
+"""``recslam demo``'s dataset step: a synthetic dataset is reused unless the command asks for
+other robots, length, seed or cameras than it was built with (a setting not given matches
+any: a seed-17 dataset is never rebuilt as the default one, a mixed team never as all-EuRoC)."""
 
 from __future__ import annotations
 
@@ -34,3 +34,12 @@ def test_mixed_dataset_matches_its_cameras_only(tmp_path) -> None:
     assert _dataset_matches(folder, 3, 60.0, 0)  # no --cameras: reused as it is
     assert not _dataset_matches(folder, 3, 60.0, 0, ())
     assert not _dataset_matches(folder, 3, 60.0, 0, ("euroc", "fisheye", "wide"))
+
+
+def test_settings_not_given_match_any(tmp_path) -> None:
+    folder = _meta(tmp_path / "default", None)
+    assert _dataset_matches(folder, None, None, None)
+    assert _dataset_matches(folder, None, 60.0, None)
+    assert not _dataset_matches(folder, None, 40.0, None)
+    assert not _dataset_matches(folder, None, None, 17)
+    assert not _dataset_matches(tmp_path / "missing", None, None, None)
