@@ -402,11 +402,19 @@ def run_one(
     dataset: Path, report_dir: Path, wire: WireFormat, config: LinksConfig, label: str
 ) -> dict[str, Any]:
     """One whole run (``recslam demo --no-dashboard --wire WIRE``) into ``report_dir``."""
+    return run_job(dataset, report_dir, wire, config.rate, config.timeout_s, label)
+
+
+def run_job(
+    dataset: Path, report_dir: Path, wire: WireFormat, rate: str, timeout_s: float, label: str
+) -> dict[str, Any]:
+    """One whole run of ``dataset`` (as ``recslam demo --no-dashboard --wire WIRE`` runs it)
+    into ``report_dir`` (replaced); its ``report.json``; progress every 30 s in the log."""
     from recslam.orchestration import JobConfig, progress_line, run_and_report
 
     if report_dir.exists():
         shutil.rmtree(report_dir)
-    job = JobConfig(dataset=dataset, run_dir=report_dir / "run", rate=config.rate, wire=wire)
+    job = JobConfig(dataset=dataset, run_dir=report_dir / "run", rate=rate, wire=wire)
     last = [0.0]
 
     def progress(sample: dict[str, Any], elapsed: float) -> None:
@@ -415,7 +423,7 @@ def run_one(
             log.info("%s %s", label, progress_line(sample, elapsed))
 
     return run_and_report(
-        job, report_dir, config.timeout_s, progress, lambda line: log.info("%s %s", label, line)
+        job, report_dir, timeout_s, progress, lambda line: log.info("%s %s", label, line)
     )
 
 

@@ -1,0 +1,241 @@
+"""How the whole job varies over the generator's seeds: ``recslam experiment seeds``.
+
+For each seed, the project's synthetic dataset of that seed (built once under ``data_root``,
+reused after) runs through the whole job as ``recslam demo --no-dashboard`` runs it (cloud,
+edge and robots as processes, :func:`lab.links.run_job`), and the run's report gives joint and
+per-robot ATE, the maps at the end, merges, loops, lost frames and failed services.
+:func:`write_seeds` turns the runs into ``seeds.md`` (one row per seed, the median and worst
+against issue 17's targets) and ``seeds.png``. With ``from_runs`` the runs already under
+``out`` are read instead (a sweep resumed, or runs made by hand, each ``out/<name>/report.json``
+next to the ``dataset.json`` it names).
+"""
+
+from __future__ import annotations
+
+import datetime
+import json
+import logging
+import math
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from common.errors import RecslamError
+from common.links import WireFormat
+from lab.links import git_commit, run_job
+
+log = logging.getLogger(__name__)
+
+
+class SeedsError(RecslamError):
+    """Bad sweep arguments, or no runs to report."""
+
+
+@dataclass(frozen=True)
+class SeedTargets:
+    """Issue 17's targets over the seeds: median and worst joint ATE, every robot, one map."""
+
+    median_joint_m: float = 0.015
+    worst_joint_m: float = 0.02
+    robot_m: float = 0.05
+
+
+@dataclass(frozen=True)
+class SeedsConfig:
+    """One sweep: ``seeds``, each a dataset of ``robots`` x ``seconds`` under ``data_root``
+    (``seed-<s>``), each run into ``out/seed-<s>``; tables also copied to ``results``."""
+
+    seeds: tuple[int, ...]
+    out: Path
+    data_root: Path = Path("data/seeds")
+    robots: int = 3
+    seconds: float = 60.0
+    results: Path | None = None
+    rate: str = "realtime"
+    timeout_s: float = 2400.0
+    from_runs: bool = False
+    command: str = ""
+    targets: SeedTargets = SeedTargets()
+
+
+def parse_seeds(text: str) -> tuple[int, ...]:
+    """``"0-9"``, ``"0,3,7"`` or a mix (``"0-2,5"``) as sorted distinct seeds."""
+    seeds: set[int] = set()
+    for part in (p.strip() for p in text.split(",")):
+        if not part:
+            continue
+        try:
+            if "-" in part[1:]:
+                a, b = part.split("-", 1) if not part.startswith("-") else ("", part)
+                lo, hi = int(a), int(b)
+                if hi < lo:
+                    raise ValueError(part)
+                seeds.update(range(lo, hi + 1))
+            else:
+                seeds.add(int(part))
+        except ValueError:
+            raise SeedsError(f"--seeds {text!r}: {part!r} is not a seed or a range a-b") from None
+    if not seeds or min(seeds) < 0:
+        raise SeedsError(f"--seeds {text!r}: give seeds >= 0, e.g. 0-9")
+    return tuple(sorted(seeds))
+
+
+def ensure_dataset(folder: Path, robots: int, seconds: float, seed: int) -> bool:
+    """The synthetic dataset of ``seed`` in ``folder``: built if missing (True), reused if it
+    was built with these settings (False); SeedsError if it holds something else."""
+    meta = folder / "dataset.json"
+    if meta.is_file():
+        info = json.loads(meta.read_text())
+        have = (info.get("robots"), float(info.get("seconds", -1)), info.get("seed"))
+        if have != (robots, float(seconds), seed):
+            raise SeedsError(
+                f"{folder} holds robots {have[0]} x {have[1]} s, seed {have[2]}, not "
+                f"{robots} x {seconds:g} s, seed {seed}: remove it or choose another --data-root"
+            )
+        return False
+    from common.data.synth import SynthConfig, generate_dataset
+
+    generate_dataset(folder, SynthConfig(robots=robots, seconds=seconds, seed=seed))
+    return True
+
+
+def read_report(folder: Path) -> dict[str, Any]:
+    """The numbers of one run folder (``report.json`` of ``recslam demo``)."""
+    path = folder / "report.json"
+    try:
+        rep = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise SeedsError(f"{path}: not a run report ({exc})") from None
+    robots = rep.get("robots", {})
+    per_robot = {n: r.get("ate_rmse_m") for n, r in sorted(robots.items())}
+    m = rep.get("map", {})
+    joint = rep.get("ate", {}).get("joint_rmse_m")
+    return {
+        "folder": str(folder),
+        "joint_m": joint if rep.get("ate", {}).get("joint_frame") else None,
+        "per_robot_m": per_robot,
+        "worst_robot_m": max((v for v in per_robot.values() if v is not None), default=None),
+        "maps": len(m.get("maps", [])),
+        "merges": m.get("merges"),
+        "loops": m.get("loops"),
+        "frames_lost": sum(int(r.get("frames_lost", 0)) for r in robots.values()),
+        "failed": list(rep.get("failed", [])),
+        "camera_s": rep.get("camera_s"),
+    }
+
+
+def _median(values: Sequence[float]) -> float:
+    v = sorted(values)
+    n = len(v)
+    return v[n // 2] if n % 2 else 0.5 * (v[n // 2 - 1] + v[n // 2])
+
+
+def summarize(runs: dict[str, dict[str, Any]], targets: SeedTargets) -> dict[str, Any]:
+    """Median / worst joint ATE, worst robot, runs with one map, and the verdicts. A run
+    whose robots did not end in one map has no joint ATE and fails the one-map target."""
+    joints = [r["joint_m"] for r in runs.values() if r["joint_m"] is not None]
+    robots = [r["worst_robot_m"] for r in runs.values() if r["worst_robot_m"] is not None]
+    one_map = sum(1 for r in runs.values() if r["maps"] == 1)
+    median = _median(joints) if joints else None
+    worst = max(joints) if len(joints) == len(runs) and joints else None
+    worst_robot = max(robots) if robots else None
+    failures = sum(1 for r in runs.values() if r["failed"] or r["frames_lost"])
+    return {
+        "runs": len(runs),
+        "median_joint_m": median,
+        "worst_joint_m": worst,
+        "worst_robot_m": worst_robot,
+        "one_map": one_map,
+        "failures": failures,
+        "met": {
+            "median": median is not None and median <= targets.median_joint_m,
+            "worst": worst is not None and worst <= targets.worst_joint_m,
+            "robots": worst_robot is not None and worst_robot <= targets.robot_m,
+            "one_map": one_map == len(runs),
+        },
+    }
+
+
+def find_runs(out: Path) -> dict[str, Path]:
+    """``{name: folder}`` of the finished runs directly under ``out``."""
+    return {p.parent.name: p.parent for p in sorted(Path(out).glob("*/report.json"))}
+
+
+def run_seeds(config: SeedsConfig) -> tuple[dict[str, Any], list[Path]]:
+    """Build the datasets and run every seed (or, with ``from_runs``, read the runs under
+    ``out``); write the tables. Returns the data and the files written."""
+    errors: list[str] = []
+    if config.from_runs:
+        folders = find_runs(config.out)
+        if not folders:
+            raise SeedsError(f"--from-runs: no run report under {config.out}/*/report.json")
+    else:
+        if not config.seeds:
+            raise SeedsError("no seeds to run")
+        folders = {}
+        t_all = time.perf_counter()
+        for i, seed in enumerate(config.seeds, 1):
+            label = f"[{i}/{len(config.seeds)} seed {seed}]"
+            dataset = config.data_root / f"seed-{seed}"
+            t = time.perf_counter()
+            if ensure_dataset(dataset, config.robots, config.seconds, seed):
+                log.info("%s dataset built in %.0f s: %s", label, time.perf_counter() - t, dataset)
+            report_dir = config.out / f"seed-{seed}"
+            log.info("%s running the whole job (a 60 s run takes ~4 min here)", label)
+            try:
+                report = run_job(
+                    dataset, report_dir, WireFormat.CODED, config.rate, config.timeout_s, label
+                )
+            except RecslamError as exc:
+                log.error("%s failed: %s", label, exc)
+                errors.append(f"seed {seed}: {exc}")
+                continue
+            folders[f"seed-{seed}"] = report_dir
+            log.info(
+                "%s done in %.0f s: joint ATE %s m",
+                label,
+                time.perf_counter() - t,
+                report["ate"]["joint_rmse_m"],
+            )
+        log.info("%d runs done in %.0f s", len(config.seeds), time.perf_counter() - t_all)
+    runs = {name: read_report(f) for name, f in folders.items()}
+    for name, f in folders.items():
+        runs[name]["dataset"] = _dataset_of(f)
+    data = {
+        "command": config.command,
+        "commit": git_commit(),
+        "date": datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M UTC"),
+        "targets": config.targets.__dict__,
+        "errors": errors,
+        "runs": runs,
+        "summary": summarize(runs, config.targets) if runs else None,
+    }
+    from lab.seeds_report import write_seeds
+
+    return data, write_seeds(data, config.out, config.results)
+
+
+def _dataset_of(report_dir: Path) -> dict[str, Any] | None:
+    """The settings (``dataset.json``) of the synthetic dataset a run played, found through
+    the command line its first robot's log starts with; None if not synthetic."""
+    for log_file in sorted((report_dir / "run" / "logs").glob("robot*.log")):
+        try:
+            first = log_file.read_text().splitlines()[0]
+        except (OSError, IndexError):
+            continue
+        words = first.split()
+        if "--dataset" in words:
+            seq = Path(words[words.index("--dataset") + 1])
+            for folder in (seq.parent, seq):
+                meta = folder / "dataset.json"
+                if meta.is_file():
+                    info = json.loads(meta.read_text())
+                    return {k: info.get(k) for k in ("robots", "seconds", "seed")}
+        break
+    return None
+
+
+def fmt_cm(v: float | None) -> str:
+    return "–" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{100 * v:.1f}"

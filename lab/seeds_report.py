@@ -1,0 +1,120 @@
+"""Reporting of ``recslam experiment seeds``: ``seeds.md``, ``seeds.json`` and ``seeds.png`` from
+:func:`lab.seeds.run_seeds`'s data."""
+
+from __future__ import annotations
+
+import json
+import logging
+import shutil
+from pathlib import Path
+from typing import Any
+
+from lab.seeds import fmt_cm
+
+log = logging.getLogger(__name__)
+
+
+def _mark(ok: bool) -> str:
+    return "met" if ok else "**missed**"
+
+
+def seeds_markdown(data: dict[str, Any]) -> str:
+    """The sweep as markdown: provenance, verdict, one row per run."""
+    runs: dict[str, dict[str, Any]] = data["runs"]
+    s = data["summary"]
+    t = data["targets"]
+    lines = [
+        "# Joint ATE over the generator's seeds",
+        "",
+        f"Command: `{data['command']}`; commit {data['commit']}; {data['date']}. Each row is "
+        "one run of the whole job as `recslam demo --no-dashboard` runs it (cloud, edge and "
+        "robots as separate processes on loopback, coded wire), on the synthetic dataset of "
+        "that seed. ATE: RMSE of the cloud's keyframe trajectories after SE(3) alignment, joint "
+        "(all robots, one transform; only when they ended in one map) and per robot (each "
+        "aligned alone), in cm.",
+        "",
+    ]
+    if s is not None:
+        lines += [
+            f"Over {s['runs']} runs: median joint ATE **{fmt_cm(s['median_joint_m'])} cm** "
+            f"(target ≤ {fmt_cm(t['median_joint_m'])}: {_mark(s['met']['median'])}), worst "
+            f"**{fmt_cm(s['worst_joint_m'])} cm** (≤ {fmt_cm(t['worst_joint_m'])}: "
+            f"{_mark(s['met']['worst'])}), worst robot {fmt_cm(s['worst_robot_m'])} cm "
+            f"(≤ {fmt_cm(t['robot_m'])}: {_mark(s['met']['robots'])}), one map in "
+            f"{s['one_map']} of {s['runs']} ({_mark(s['met']['one_map'])}); runs with lost "
+            f"frames or a failed service: {s['failures']}.",
+            "",
+        ]
+    names = sorted({n for r in runs.values() for n in r["per_robot_m"]})
+    head = " | ".join(f"{n} cm" for n in names)
+    lines += [
+        f"| run | dataset | joint ATE cm | {head} | maps | merges | loops | frames lost | failed |",
+        "|---|---|---|" + "---|" * len(names) + "---|---|---|---|---|",
+    ]
+    for name, r in sorted(runs.items(), key=lambda kv: _order(kv[0])):
+        d = r.get("dataset") or {}
+        ds = (
+            f"{d.get('robots')} x {d.get('seconds'):g} s, seed {d.get('seed')}"
+            if d.get("seconds") is not None
+            else "–"
+        )
+        cells = " | ".join(fmt_cm(r["per_robot_m"].get(n)) for n in names)
+        lines.append(
+            f"| {name} | {ds} | {fmt_cm(r['joint_m'])} | {cells} | {r['maps']} | {r['merges']} "
+            f"| {r['loops']} | {r['frames_lost']} | {', '.join(r['failed']) or '–'} |"
+        )
+    if data["errors"]:
+        lines += ["", "Runs that did not finish:", ""] + [f"- {e}" for e in data["errors"]]
+    lines += ["", "![seeds.png](seeds.png)", ""]
+    return "\n".join(lines)
+
+
+def _order(name: str) -> tuple[int, str]:
+    tail = name.rsplit("-", 1)[-1]
+    return (int(tail), name) if tail.isdigit() else (1 << 30, name)
+
+
+def seeds_plot(data: dict[str, Any], path: Path) -> None:
+    """Joint ATE per run (bars) with each robot's (dots) and the targets (lines)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    runs = sorted(data["runs"].items(), key=lambda kv: _order(kv[0]))
+    t = data["targets"]
+    fig, ax = plt.subplots(figsize=(max(5.0, 0.8 * len(runs) + 2), 3.6))
+    xs = range(len(runs))
+    joint = [100 * (r["joint_m"] or 0.0) for _, r in runs]
+    ax.bar(xs, joint, color="#4c78a8", label="joint")
+    for x, (_, r) in zip(xs, runs, strict=True):
+        vals = [100 * v for v in r["per_robot_m"].values() if v is not None]
+        ax.plot([x] * len(vals), vals, "o", color="#f58518", ms=4, label=None)
+    ax.plot([], [], "o", color="#f58518", ms=4, label="each robot")
+    ax.axhline(100 * t["median_joint_m"], color="#54a24b", ls="--", lw=1, label="median target")
+    ax.axhline(100 * t["worst_joint_m"], color="#e45756", ls="--", lw=1, label="worst target")
+    ax.set_xticks(list(xs), [n for n, _ in runs], rotation=30, ha="right")
+    ax.set_ylabel("ATE cm")
+    ax.set_title("Joint and per-robot ATE per run")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def write_seeds(data: dict[str, Any], out: Path, results: Path | None) -> list[Path]:
+    """``seeds.md``, ``seeds.json``, ``seeds.png`` into ``out`` (the first two and the plot
+    also copied to ``results``)."""
+    out.mkdir(parents=True, exist_ok=True)
+    md, js, png = out / "seeds.md", out / "seeds.json", out / "seeds.png"
+    md.write_text(seeds_markdown(data))
+    js.write_text(json.dumps(data, indent=2, default=str))
+    seeds_plot(data, png)
+    files = [md, js, png]
+    if results is not None:
+        results.mkdir(parents=True, exist_ok=True)
+        for f in (md, png):
+            shutil.copy2(f, results / f.name)
+            files.append(results / f.name)
+    log.info("wrote %s", ", ".join(str(f) for f in files))
+    return files

@@ -1,0 +1,108 @@
+"""``recslam experiment seeds``: seeds parsed, datasets built once, runs reported against the
+targets (a run whose robots stayed in two maps has no joint ATE and fails the one-map goal)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import pytest
+
+from lab.seeds import (
+    SeedsConfig,
+    SeedsError,
+    ensure_dataset,
+    parse_seeds,
+    read_report,
+    run_seeds,
+)
+from recslam.commands import experiment
+
+
+def test_parse_seeds() -> None:
+    assert parse_seeds("0-9") == tuple(range(10))
+    assert parse_seeds("7, 3,0") == (0, 3, 7)
+    assert parse_seeds("4-5,1,5") == (1, 4, 5)
+    for bad in ("", "a", "5-2", "-1", "1-b"):
+        with pytest.raises(SeedsError, match="--seeds"):
+            parse_seeds(bad)
+
+
+def test_dataset_built_once_and_never_replaced(tmp_path: Path) -> None:
+    folder = tmp_path / "seed-4"
+    assert ensure_dataset(folder, 1, 0.5, 4) is True
+    info = json.loads((folder / "dataset.json").read_text())
+    assert (info["robots"], info["seconds"], info["seed"]) == (1, 0.5, 4)
+    assert ensure_dataset(folder, 1, 0.5, 4) is False  # reused
+    with pytest.raises(SeedsError, match=r"seed 4, not 1 x 0\.5 s, seed 5"):
+        ensure_dataset(folder, 1, 0.5, 5)
+
+
+def _run(root: Path, name: str, seed: int, joint: float | None, maps: list[int], lost: int = 0):
+    """A finished run folder as ``recslam demo`` leaves it, on a dataset of ``seed``."""
+    data = root / "data" / f"seed-{seed}"
+    (data / "robot0").mkdir(parents=True)
+    (data / "dataset.json").write_text(json.dumps({"robots": 2, "seconds": 60.0, "seed": seed}))
+    run = root / "out" / name
+    (run / "run" / "logs").mkdir(parents=True)
+    (run / "run" / "logs" / "robot0.log").write_text(
+        f"$ python -m recslam robot --dataset {data / 'robot0'} --edge 127.0.0.1:1\nlog line\n"
+    )
+    report = {
+        "failed": [],
+        "camera_s": 60.0,
+        "robots": {
+            "robot0": {"ate_rmse_m": 0.011, "frames_lost": lost},
+            "robot1": {"ate_rmse_m": 0.017 if joint else 0.061, "frames_lost": 0},
+        },
+        "ate": {"joint_rmse_m": joint, "joint_frame": joint is not None},
+        "map": {"maps": maps, "merges": 1, "loops": 9},
+    }
+    (run / "report.json").write_text(json.dumps(report))
+    return run
+
+
+def test_report_of_finished_runs_against_the_targets(tmp_path: Path) -> None:
+    _run(tmp_path, "seed-0", 0, 0.012, [0])
+    _run(tmp_path, "seed-1", 1, 0.014, [0], lost=3)
+    _run(tmp_path, "seed-2", 2, None, [0, 1])  # never merged: no joint ATE
+    out = tmp_path / "out"
+    cfg = SeedsConfig(seeds=(), out=out, results=tmp_path / "results", from_runs=True)
+    data, files = run_seeds(cfg)
+    s = data["summary"]
+    assert s["runs"] == 3 and s["one_map"] == 2 and s["failures"] == 1
+    assert s["median_joint_m"] == pytest.approx(0.013)
+    assert s["worst_joint_m"] is None  # a run without a joint ATE has no worst to claim
+    assert s["worst_robot_m"] == pytest.approx(0.061)
+    assert s["met"] == {"median": True, "worst": False, "robots": False, "one_map": False}
+    assert data["runs"]["seed-1"]["dataset"] == {"robots": 2, "seconds": 60.0, "seed": 1}
+    md = (out / "seeds.md").read_text()
+    assert "median joint ATE **1.3 cm**" in md and "one map in 2 of 3 (**missed**)" in md
+    assert "| seed-2 | 2 x 60 s, seed 2 | – | 1.1 | 6.1 | 2 | 1 | 9 | 0 | – |" in md
+    assert (out / "seeds.png").stat().st_size > 1000
+    assert (tmp_path / "results" / "seeds.md").read_text() == md
+    assert set(files) >= {out / "seeds.md", out / "seeds.json", out / "seeds.png"}
+
+
+def test_no_runs_and_broken_reports_are_errors(tmp_path: Path) -> None:
+    with pytest.raises(SeedsError, match="no run report"):
+        run_seeds(SeedsConfig(seeds=(), out=tmp_path, from_runs=True))
+    (tmp_path / "bad").mkdir()
+    (tmp_path / "bad" / "report.json").write_text("{not json")
+    with pytest.raises(SeedsError, match="not a run report"):
+        read_report(tmp_path / "bad")
+
+
+def test_seeds_subcommand_parses_into_a_config(tmp_path: Path) -> None:
+    parser = argparse.ArgumentParser()
+    experiment.register(parser.add_subparsers())
+    argv = ["experiment", "seeds", "--seeds", "0-2,5", "--seconds", "40", "--out", str(tmp_path)]
+    args = parser.parse_args(argv)
+    cfg = experiment.seeds_config(args, argv)
+    assert cfg.seeds == (0, 1, 2, 5) and cfg.seconds == 40.0 and cfg.out == tmp_path
+    assert cfg.results == Path("benchmarks/results") and not cfg.from_runs
+    assert cfg.command == "recslam experiment seeds --seeds 0-2,5 --seconds 40 --out " + str(
+        tmp_path
+    )
+    assert args.func is experiment.run_seeds
