@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import logging
+import re
 import shutil
 from pathlib import Path
 from typing import Any
@@ -70,8 +71,9 @@ def seeds_markdown(data: dict[str, Any]) -> str:
 
 
 def _order(name: str) -> tuple[int, str]:
-    tail = name.rsplit("-", 1)[-1]
-    return (int(tail), name) if tail.isdigit() else (1 << 30, name)
+    """Runs by the first number in their name (``seed-10`` after ``seed-9``), then name."""
+    digits = re.search(r"\d+", name)
+    return (int(digits.group()), name) if digits else (1 << 30, name)
 
 
 def seeds_plot(data: dict[str, Any], path: Path) -> None:
