@@ -40,7 +40,12 @@ class TransportConfig:
     """Socket-level settings (protocol limits live in ``SessionConfig``).
 
     Attributes:
-        max_peers: concurrent connections a server accepts; more are refused with a reason.
+        max_peers: authenticated peers a server serves at once; one more is refused with a
+            reason once it has authenticated (a known peer reconnecting always gets in).
+        max_pending: connections a server holds that have not authenticated yet; a newcomer
+            beyond this drops the oldest of them, so sockets that connect and stall (or
+            never finish the handshake) cannot keep peers out: they are counted apart from
+            the peers and only ever push each other out.
         accept_roles: roles a server serves (None = any authenticated role).
         read_chunk_bytes: bytes per socket read.
         write_chunk_bytes: bytes of frames handed to the socket before awaiting drain.
@@ -51,6 +56,7 @@ class TransportConfig:
     """
 
     max_peers: int = 64
+    max_pending: int = 32
     accept_roles: tuple[str, ...] | None = None
     read_chunk_bytes: int = 256 * 1024
     write_chunk_bytes: int = 1024 * 1024

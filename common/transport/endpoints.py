@@ -18,10 +18,8 @@ from common.protocol import (
     PeerAuthenticated,
     Session,
     SessionConfig,
-    encode_frame,
 )
 from common.protocol.link import Link
-from common.protocol.messages import Close, encode_payload
 from common.protocol.store import DeliveryStore
 from common.transport.connection import (
     Handler,
@@ -196,6 +194,8 @@ class Server:
         self._handler, self._ssl, self._store = handler, ssl, store
         self.peers: dict[str, Peer] = {}
         self._connections: set[_Connection] = set()
+        self._pending: dict[_Connection, None] = {}  # not authenticated yet, oldest first
+        self._authed: dict[_Connection, str] = {}  # authenticated: the peer's agent id
         self._tasks: set[asyncio.Task[Any]] = set()
         self._server: asyncio.base_events.Server | None = None
         self.address: tuple[str, int] | None = None
@@ -274,32 +274,45 @@ class Server:
         assert task is not None
         self._tasks.add(task)
         task.add_done_callback(self._tasks.discard)
-        if len(self._connections) >= self.transport.max_peers:
-            logger.warning("refusing connection: %d peers connected", len(self._connections))
-            reason = f"server full ({self.transport.max_peers} peers)"
-            with contextlib.suppress(OSError, RuntimeError):
-                close = Close(int(CloseCode.REFUSED), reason)
-                writer.write(encode_frame(Close.TYPE_ID, encode_payload(close)))
-                writer.close()
-                await writer.wait_closed()
-            return
+        if len(self._pending) >= self.transport.max_pending:
+            oldest = next(iter(self._pending))
+            del self._pending[oldest]
+            logger.warning(
+                "%d connections not authenticated yet: dropping the oldest (%s)",
+                self.transport.max_pending,
+                oldest.name,
+            )
+            oldest.abort("dropped before authenticating: newer connections arrived")
         loop = asyncio.get_running_loop()
         session = Session(self.config, client=False, now=loop.time())
         conn = _Connection(
             reader, writer, session, self.transport, on_authenticated=self._authenticated
         )
         self._connections.add(conn)
+        self._pending[conn] = None
         try:
             await conn.run()
         finally:
             self._connections.discard(conn)
+            self._pending.pop(conn, None)
+            self._authed.pop(conn, None)
 
     async def _authenticated(self, conn: _Connection, ev: PeerAuthenticated) -> Peer | None:
+        self._pending.pop(conn, None)
         roles = self.transport.accept_roles
         if roles is not None and ev.role not in roles:
             conn.session.refuse(CloseCode.REFUSED, f"role {ev.role!r} not served here")
             conn.kick()
             return None
+        served = set(self._authed.values())
+        if ev.agent_id not in served and len(served) >= self.transport.max_peers:
+            logger.warning("refusing %s: %d peers connected", ev.agent_id, len(served))
+            conn.session.refuse(
+                CloseCode.REFUSED, f"server full ({self.transport.max_peers} peers)"
+            )
+            conn.kick()
+            return None
+        self._authed[conn] = ev.agent_id
         peer = self.peers.get(ev.agent_id)
         if peer is None:
             inbound = self._store.load(ev.agent_id) if self._store else None

@@ -335,3 +335,48 @@ def test_peers_join_leave_and_are_forgotten():
         return sorted((d.peer, d.message.channel) for d in sink.items)
 
     assert run(main()) == [("r0", 0), ("r0", 10), ("r1", 1), ("r2", 2), ("r3", 30)]
+
+
+def test_stalled_sockets_cannot_lock_peers_out():
+    """Sockets that connect, send a byte and stall (more than the peer cap, re-opened as fast
+    as the server drops them) are counted apart from the peers: a robot still joins, and a
+    peer cap of 2 still refuses the third peer with a reason."""
+
+    async def main():
+        transport = TransportConfig(max_peers=2, max_pending=4)
+        server = Server(scfg(), Sink(), transport=transport)
+        host, port = await server.start()
+        stalled: list[asyncio.StreamWriter] = []
+        stop = asyncio.Event()
+
+        async def attacker() -> None:
+            while not stop.is_set():
+                _, w = await asyncio.open_connection(host, port)
+                w.write(b"\x00")
+                stalled.append(w)
+                await asyncio.sleep(0.005)
+
+        flood = asyncio.create_task(attacker())
+        await asyncio.sleep(0.3)  # dozens of stalled sockets, far above both caps
+        clients = [
+            Client(scfg(f"r{i}", "robot"), Sink(), host, port, transport=FAST) for i in range(3)
+        ]
+        try:
+            for c in clients[:2]:
+                await c.start()
+                await c.wait_connected(5)  # timed out before: "server full (64 peers)"
+            await clients[2].start()
+            await asyncio.sleep(0.5)
+            assert not clients[2].peer.connected and "r2" not in server.peers
+            assert len(stalled) > 2 * (transport.max_peers + transport.max_pending)
+            assert len(server._pending) <= transport.max_pending
+        finally:
+            stop.set()
+            await flood
+            for w in stalled:
+                w.close()
+            for c in clients:
+                await c.close()
+            await server.close()
+
+    run(main())
