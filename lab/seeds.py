@@ -203,6 +203,7 @@ def run_seeds(config: SeedsConfig) -> tuple[dict[str, Any], list[Path]]:
     runs = {name: read_report(f) for name, f in folders.items()}
     for name, f in folders.items():
         runs[name]["dataset"] = _dataset_of(f)
+        runs[name].update(scale_check(f))
     data = {
         "command": config.command,
         "commit": git_commit(),
@@ -217,24 +218,53 @@ def run_seeds(config: SeedsConfig) -> tuple[dict[str, Any], list[Path]]:
     return data, write_seeds(data, config.out, config.results)
 
 
-def _dataset_of(report_dir: Path) -> dict[str, Any] | None:
-    """The settings (``dataset.json``) of the synthetic dataset a run played, found through
-    the command line its first robot's log starts with; None if not synthetic."""
+def scale_check(report_dir: Path) -> dict[str, float | None]:
+    """Joint ATE after a Sim(3) alignment and its scale, of the trajectories the cloud wrote
+    (``run/results/trajectories/*.tum``) against the dataset's ground truth: how much of the
+    run's SE(3) joint ATE is one error of the whole map's scale. None where not computable."""
+    from common.evaluation.alignment import AlignMode
+    from common.evaluation.metrics import AteConfig, compute_joint_ate
+    from common.evaluation.results import load_groundtruth
+    from common.evaluation.tum import read_tum
+
+    none: dict[str, float | None] = {"sim3_joint_m": None, "scale": None}
+    tum = sorted((report_dir / "run" / "results" / "trajectories").glob("*.tum"))
+    data = _dataset_folder(report_dir)
+    if not tum or data is None:
+        return none
+    try:
+        est = {p.stem: read_tum(p) for p in tum}
+        refs, _ = load_groundtruth(sorted(est), data)
+        res = compute_joint_ate({n: refs[n] for n in est}, est, AteConfig(align=AlignMode.SIM3))
+    except RecslamError as exc:
+        log.info("%s: no Sim(3) check (%s)", report_dir, exc)
+        return none
+    return {"sim3_joint_m": res.stats.rmse, "scale": res.transform.scale}
+
+
+def _dataset_folder(report_dir: Path) -> Path | None:
+    """The dataset folder a run played, from the command line its first robot's log starts
+    with (``--dataset FOLDER/robotK``)."""
     for log_file in sorted((report_dir / "run" / "logs").glob("robot*.log")):
         try:
-            first = log_file.read_text().splitlines()[0]
+            words = log_file.read_text().splitlines()[0].split()
         except (OSError, IndexError):
             continue
-        words = first.split()
         if "--dataset" in words:
-            seq = Path(words[words.index("--dataset") + 1])
-            for folder in (seq.parent, seq):
-                meta = folder / "dataset.json"
-                if meta.is_file():
-                    info = json.loads(meta.read_text())
-                    return {k: info.get(k) for k in ("robots", "seconds", "seed")}
+            return Path(words[words.index("--dataset") + 1]).parent
         break
     return None
+
+
+def _dataset_of(report_dir: Path) -> dict[str, Any] | None:
+    """The settings (``dataset.json``) of the synthetic dataset a run played; None if not
+    synthetic (or not found)."""
+    folder = _dataset_folder(report_dir)
+    meta = None if folder is None else folder / "dataset.json"
+    if meta is None or not meta.is_file():
+        return None
+    info = json.loads(meta.read_text())
+    return {k: info.get(k) for k in ("robots", "seconds", "seed")}
 
 
 def fmt_cm(v: float | None) -> str:

@@ -32,7 +32,8 @@ def seeds_markdown(data: dict[str, Any]) -> str:
         "robots as separate processes on loopback, coded wire), on the synthetic dataset of "
         "that seed. ATE: RMSE of the cloud's keyframe trajectories after SE(3) alignment, joint "
         "(all robots, one transform; only when they ended in one map) and per robot (each "
-        "aligned alone), in cm.",
+        "aligned alone), in cm; also the joint ATE after a Sim(3) alignment and its scale: "
+        "how much of a run's error is one error of the whole map's scale.",
         "",
     ]
     if s is not None:
@@ -49,8 +50,9 @@ def seeds_markdown(data: dict[str, Any]) -> str:
     names = sorted({n for r in runs.values() for n in r["per_robot_m"]})
     head = " | ".join(f"{n} cm" for n in names)
     lines += [
-        f"| run | dataset | joint ATE cm | {head} | maps | merges | loops | frames lost | failed |",
-        "|---|---|---|" + "---|" * len(names) + "---|---|---|---|---|",
+        f"| run | dataset | joint ATE cm | {head} | joint ATE Sim(3) cm | scale | maps "
+        "| merges | loops | frames lost | failed |",
+        "|---|---|---|" + "---|" * len(names) + "---|---|---|---|---|---|---|",
     ]
     for name, r in sorted(runs.items(), key=lambda kv: _order(kv[0])):
         d = r.get("dataset") or {}
@@ -60,9 +62,12 @@ def seeds_markdown(data: dict[str, Any]) -> str:
             else "–"
         )
         cells = " | ".join(fmt_cm(r["per_robot_m"].get(n)) for n in names)
+        scale = r.get("scale")
         lines.append(
-            f"| {name} | {ds} | {fmt_cm(r['joint_m'])} | {cells} | {r['maps']} | {r['merges']} "
-            f"| {r['loops']} | {r['frames_lost']} | {', '.join(r['failed']) or '–'} |"
+            f"| {name} | {ds} | {fmt_cm(r['joint_m'])} | {cells} "
+            f"| {fmt_cm(r.get('sim3_joint_m'))} | {'–' if scale is None else f'{scale:.4f}'} "
+            f"| {r['maps']} | {r['merges']} | {r['loops']} | {r['frames_lost']} "
+            f"| {', '.join(r['failed']) or '–'} |"
         )
     if data["errors"]:
         lines += ["", "Runs that did not finish:", ""] + [f"- {e}" for e in data["errors"]]

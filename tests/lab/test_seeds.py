@@ -79,7 +79,7 @@ def test_report_of_finished_runs_against_the_targets(tmp_path: Path) -> None:
     assert data["runs"]["seed-1"]["dataset"] == {"robots": 2, "seconds": 60.0, "seed": 1}
     md = (out / "seeds.md").read_text()
     assert "median joint ATE **1.3 cm**" in md and "one map in 2 of 3 (**missed**)" in md
-    assert "| seed-2 | 2 x 60 s, seed 2 | – | 1.1 | 6.1 | 2 | 1 | 9 | 0 | – |" in md
+    assert "| seed-2 | 2 x 60 s, seed 2 | – | 1.1 | 6.1 | – | – | 2 | 1 | 9 | 0 | – |" in md
     assert (out / "seeds.png").stat().st_size > 1000
     assert (tmp_path / "results" / "seeds.md").read_text() == md
     assert set(files) >= {out / "seeds.md", out / "seeds.json", out / "seeds.png"}
