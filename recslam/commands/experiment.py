@@ -96,22 +96,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     k.add_argument(
         "--wire", default="raw,coded", help="comma-separated formats (default %(default)s)"
     )
-    k.add_argument("--out", type=Path, default=Path("out/links"), help="output folder")
-    k.add_argument(
-        "--results",
-        type=Path,
-        default=Path("benchmarks/results"),
-        help="also copy links.md and links.png here (default %(default)s; '' = no copy)",
-    )
-    k.add_argument(
-        "--rate", choices=("realtime", "max"), default="realtime", help="robots' playback rate"
-    )
-    k.add_argument("--timeout", type=float, default=1800.0, help="per-run timeout (s)")
-    k.add_argument(
-        "--from-runs",
-        action="store_true",
-        help="do not run: build the tables from the finished runs already under --out",
-    )
+    _whole_run_options(k, "links", 1800.0, "build the tables from")
     k.set_defaults(func=run_links)
     sd = which.add_parser(
         "seeds",
@@ -128,23 +113,32 @@ def register(sub: argparse._SubParsersAction) -> None:
     sd.add_argument(
         "--data-root", type=Path, default=Path("data/seeds"), help="where the datasets live"
     )
-    sd.add_argument("--out", type=Path, default=Path("out/seeds"), help="output folder")
-    sd.add_argument(
+    _whole_run_options(sd, "seeds", 2400.0, "report")
+    sd.set_defaults(func=run_seeds)
+
+
+def _whole_run_options(
+    p: argparse.ArgumentParser, name: str, timeout_s: float, from_runs: str
+) -> None:
+    """The options of an experiment made of whole runs: ``--out`` (default ``out/NAME``),
+    ``--results`` (where NAME.md and NAME.png are copied), ``--rate``, ``--timeout`` and
+    ``--from-runs`` (``from_runs``: what it does with the finished runs under ``--out``)."""
+    p.add_argument("--out", type=Path, default=Path(f"out/{name}"), help="output folder")
+    p.add_argument(
         "--results",
         type=Path,
         default=Path("benchmarks/results"),
-        help="also copy seeds.md and seeds.png here (default %(default)s; '' = no copy)",
+        help=f"also copy {name}.md and {name}.png here (default %(default)s; '' = no copy)",
     )
-    sd.add_argument(
+    p.add_argument(
         "--rate", choices=("realtime", "max"), default="realtime", help="robots' playback rate"
     )
-    sd.add_argument("--timeout", type=float, default=2400.0, help="per-run timeout (s)")
-    sd.add_argument(
+    p.add_argument("--timeout", type=float, default=timeout_s, help="per-run timeout (s)")
+    p.add_argument(
         "--from-runs",
         action="store_true",
-        help="do not run: report the finished runs already under --out (OUT/*/report.json)",
+        help=f"do not run: {from_runs} the finished runs already under --out",
     )
-    sd.set_defaults(func=run_seeds)
 
 
 def bandwidth_config(args: argparse.Namespace) -> BandwidthConfig:
@@ -247,10 +241,7 @@ def run_seeds(args: argparse.Namespace) -> int:
     from lab.seeds import run_seeds as seeds
 
     logging.getLogger("lab").setLevel(logging.INFO)  # progress: one line per run step
-    data, files = seeds(seeds_config(args))
-    print((args.out / "seeds.md").read_text())
-    print("wrote " + ", ".join(str(f) for f in files))
-    return 1 if data["errors"] else 0
+    return _printed(args.out / "seeds.md", *seeds(seeds_config(args)))
 
 
 def run_links(args: argparse.Namespace) -> int:
@@ -258,7 +249,11 @@ def run_links(args: argparse.Namespace) -> int:
     from lab.links import run_links as links
 
     logging.getLogger("lab").setLevel(logging.INFO)  # progress: one line per run step
-    data, files = links(links_config(args))
-    print((args.out / "links.md").read_text())
+    return _printed(args.out / "links.md", *links(links_config(args)))
+
+
+def _printed(table: Path, data: dict, files: list[Path]) -> int:
+    """Print an experiment's table and the files it wrote; exit 1 if a run failed."""
+    print(table.read_text())
     print("wrote " + ", ".join(str(f) for f in files))
     return 1 if data["errors"] else 0
