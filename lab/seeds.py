@@ -85,18 +85,17 @@ def parse_seeds(text: str) -> tuple[int, ...]:
 def ensure_dataset(folder: Path, robots: int, seconds: float, seed: int) -> bool:
     """The synthetic dataset of ``seed`` in ``folder``: built if missing (True), reused if it
     was built with these settings (False); SeedsError if it holds something else."""
-    meta = folder / "dataset.json"
-    if meta.is_file():
-        info = json.loads(meta.read_text())
-        have = (info.get("robots"), float(info.get("seconds", -1)), info.get("seed"))
-        if have != (robots, float(seconds), seed):
+    from common.data.synth import SynthConfig, dataset_settings, generate_dataset
+
+    have = dataset_settings(folder)
+    if have is not None:
+        if (have["robots"], have["seconds"], have["seed"]) != (robots, float(seconds), seed):
             raise SeedsError(
-                f"{folder} holds robots {have[0]} x {have[1]} s, seed {have[2]}, not "
-                f"{robots} x {seconds:g} s, seed {seed}: remove it or choose another --data-root"
+                f"{folder} holds robots {have['robots']} x {have['seconds']} s, seed "
+                f"{have['seed']}, not {robots} x {seconds:g} s, seed {seed}: remove it or "
+                "choose another --data-root"
             )
         return False
-    from common.data.synth import SynthConfig, generate_dataset
-
     generate_dataset(folder, SynthConfig(robots=robots, seconds=seconds, seed=seed))
     return True
 
@@ -202,8 +201,9 @@ def run_seeds(config: SeedsConfig) -> tuple[dict[str, Any], list[Path]]:
         log.info("%d runs done in %.0f s", len(config.seeds), time.perf_counter() - t_all)
     runs = {name: read_report(f) for name, f in folders.items()}
     for name, f in folders.items():
-        runs[name]["dataset"] = _dataset_of(f)
-        runs[name].update(scale_check(f))
+        played = _dataset_folder(f)
+        runs[name]["dataset"] = _dataset_of(played)
+        runs[name].update(scale_check(f, played))
     data = {
         "command": config.command,
         "commit": git_commit(),
@@ -218,10 +218,11 @@ def run_seeds(config: SeedsConfig) -> tuple[dict[str, Any], list[Path]]:
     return data, write_seeds(data, config.out, config.results)
 
 
-def scale_check(report_dir: Path) -> dict[str, float | None]:
+def scale_check(report_dir: Path, data: Path | None) -> dict[str, float | None]:
     """Joint ATE after a Sim(3) alignment and its scale, of the trajectories the cloud wrote
-    (``run/results/trajectories/*.tum``) against the dataset's ground truth: how much of the
-    run's SE(3) joint ATE is one error of the whole map's scale. None where not computable."""
+    (``run/results/trajectories/*.tum``) against the ground truth of the dataset ``data`` it
+    played: how much of the run's SE(3) joint ATE is one error of the whole map's scale. None
+    where not computable."""
     from common.evaluation.alignment import AlignMode
     from common.evaluation.metrics import AteConfig, compute_joint_ate
     from common.evaluation.results import load_groundtruth
@@ -229,7 +230,6 @@ def scale_check(report_dir: Path) -> dict[str, float | None]:
 
     none: dict[str, float | None] = {"sim3_joint_m": None, "scale": None}
     tum = sorted((report_dir / "run" / "results" / "trajectories").glob("*.tum"))
-    data = _dataset_folder(report_dir)
     if not tum or data is None:
         return none
     try:
@@ -256,15 +256,13 @@ def _dataset_folder(report_dir: Path) -> Path | None:
     return None
 
 
-def _dataset_of(report_dir: Path) -> dict[str, Any] | None:
-    """The settings (``dataset.json``) of the synthetic dataset a run played; None if not
-    synthetic (or not found)."""
-    folder = _dataset_folder(report_dir)
-    meta = None if folder is None else folder / "dataset.json"
-    if meta is None or not meta.is_file():
-        return None
-    info = json.loads(meta.read_text())
-    return {k: info.get(k) for k in ("robots", "seconds", "seed")}
+def _dataset_of(folder: Path | None) -> dict[str, Any] | None:
+    """Robots, seconds and seed of the synthetic dataset in ``folder``; None if not synthetic
+    (or not found)."""
+    from common.data.synth import dataset_settings
+
+    have = None if folder is None else dataset_settings(folder)
+    return None if have is None else {k: have[k] for k in ("robots", "seconds", "seed")}
 
 
 def fmt_cm(v: float | None) -> str:

@@ -259,6 +259,27 @@ def replay(
         app.close()
 
 
+def _solve_logged(
+    solve_fn: Callable[[SolveRequest], SolveResult], request: SolveRequest
+) -> SolveResult | None:
+    """``solve_fn(request)``, or None if it raised (logged, as the service does: the round
+    goes on without it)."""
+    try:
+        return solve_fn(request)
+    except Exception:
+        log.exception("%s of map %d failed", request.kind.value, request.map_id)
+        return None
+
+
+def _hand_back(
+    core: CloudCore, request: SolveRequest, result: SolveResult | None, now: float
+) -> list[Action]:
+    """The solve's result to the core (``failed`` when there is none); its next actions."""
+    if result is None:
+        return core.failed(request, now)
+    return core.solved(request, result, now)
+
+
 class _SolveClock:
     """The core's timer and its solves on the replay's clock (records' receive times): a
     round due at a deadline starts at the deadline; a solve requested at ``t`` is solved here
@@ -284,12 +305,7 @@ class _SolveClock:
             if not isinstance(a, SolveRequest):
                 continue
             t0 = time.perf_counter()
-            result: SolveResult | None
-            try:
-                result = self.solve_fn(a)
-            except Exception:  # as the service: log it, the round goes on without it
-                log.exception("%s of map %d failed", a.kind.value, a.map_id)
-                result = None
+            result = _solve_logged(self.solve_fn, a)
             self._out = (a, result, t + self.scale * (time.perf_counter() - t0))
 
     def _next(self, until: float) -> bool:
@@ -300,10 +316,7 @@ class _SolveClock:
                 return False
             self._out = None
             self.t = max(self.t, ready)
-            if result is None:
-                self._take(self.core.failed(request, self.t), self.t)
-            else:
-                self._take(self.core.solved(request, result, self.t), self.t)
+            self._take(_hand_back(self.core, request, result, self.t), self.t)
             return True
         deadline = self.core.next_deadline()
         if deadline is None or deadline > until:
@@ -352,11 +365,7 @@ class _RecordedSteps:
     def _take(self, actions: Iterable[Action]) -> None:
         for a in actions:
             if isinstance(a, SolveRequest):
-                try:
-                    self._out = (a, self.solve_fn(a))
-                except Exception:  # as the service: log it, the round goes on without it
-                    log.exception("%s of map %d failed", a.kind.value, a.map_id)
-                    self._out = (a, None)
+                self._out = (a, _solve_logged(self.solve_fn, a))
 
     def _diverged(self, step: Step, why: str) -> ReplayDivergedError:
         return ReplayDivergedError(
@@ -377,12 +386,10 @@ class _RecordedSteps:
                 return
             self._out = None
             request, result = out
-            if result is None or step.name == "failed":
-                if result is not None:
-                    log.warning("%s of map %d failed live, not here", *args)
-                self._take(core.failed(request, now))
-            else:
-                self._take(core.solved(request, result, now))
+            if step.name == "failed" and result is not None:
+                log.warning("%s of map %d failed live, not here", *args)
+                result = None
+            self._take(_hand_back(core, request, result, now))
             return
         if self._out is not None:
             raise self._diverged(step, "a solve is still out")
@@ -408,10 +415,7 @@ class _RecordedSteps:
         while self._out is not None:
             request, result = self._out
             self._out = None
-            if result is None:
-                self._take(self.core.failed(request, self.t))
-            else:
-                self._take(self.core.solved(request, result, self.t))
+            self._take(_hand_back(self.core, request, result, self.t))
 
 
 def backbone_breakdown(app: CloudApp) -> dict[str, int]:

@@ -19,7 +19,6 @@ Exit code 0 when every service exited cleanly, 1 otherwise.
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from pathlib import Path
 
@@ -111,22 +110,19 @@ def _dataset_matches(
     """Whether ``folder`` holds a synthetic dataset built with these settings; a setting that
     is None (not given on the command line) matches any value, so an existing dataset is
     reused as it is unless the command asks for something else."""
-    meta = folder / "dataset.json"
-    if not meta.is_file():
+    from common.data.synth import dataset_settings
+
+    have = dataset_settings(folder)
+    if have is None:
         return False
-    info = json.loads(meta.read_text())
-    return (
-        (robots is None or info.get("robots") == robots)
-        and (seconds is None or float(info.get("seconds", -1)) == seconds)
-        and (seed is None or info.get("seed") == seed)
-        and (cameras is None or tuple(info.get("config", {}).get("cameras", ())) == cameras)
-    )
+    want = {"robots": robots, "seconds": seconds, "seed": seed, "cameras": cameras}
+    return all(v is None or have[k] == v for k, v in want.items())
 
 
 def build_dataset(args: argparse.Namespace) -> None:
     """Build (if needed) and summarise the synthetic dataset."""
     from common.data.euroc import EurocSequence
-    from common.data.synth import SynthConfig, generate_dataset
+    from common.data.synth import SynthConfig, dataset_settings, generate_dataset
 
     start = time.perf_counter()
     cameras = _cameras(args.cameras)
@@ -138,12 +134,11 @@ def build_dataset(args: argparse.Namespace) -> None:
         given = {"robots": args.robots, "seconds": args.seconds, "seed": args.seed}
         want = {k: NEW_DATASET[k] if v is None else v for k, v in given.items()}
         which = f", cameras {','.join(cameras)}" if cameras else ""
-        meta = args.data / "dataset.json"
-        if meta.is_file():  # asked for other settings than the dataset there was built with
-            old = json.loads(meta.read_text())
+        old = dataset_settings(args.data)
+        if old is not None:  # asked for other settings than the dataset there was built with
             print(
-                f"dataset: {args.data} holds {old.get('robots')} robots x "
-                f"{old.get('seconds')} s (seed {old.get('seed')}); replacing it as asked"
+                f"dataset: {args.data} holds {old['robots']} robots x {old['seconds']:g} s "
+                f"(seed {old['seed']}); replacing it as asked"
             )
         print(
             f"dataset: building {want['robots']} robots x {want['seconds']:g} s "

@@ -11,6 +11,7 @@ from common.data.synth.generate import (
     RobotSummary,
     SynthConfig,
     SynthError,
+    dataset_settings,
     generate_dataset,
 )
 
@@ -24,5 +25,6 @@ __all__ = [
     "SynthConfig",
     "SynthError",
     "camera_preset",
+    "dataset_settings",
     "generate_dataset",
 ]

@@ -24,6 +24,7 @@ import shutil
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -253,6 +254,22 @@ def _clear_previous(out: Path) -> None:
         if folder.name[5:].isdigit() and body.is_file() and "recslam synthetic" in body.read_text():
             logger.info("removing previous %s", folder)
             shutil.rmtree(folder)
+
+
+def dataset_settings(folder: Path) -> dict[str, Any] | None:
+    """The settings a synthetic dataset in ``folder`` was built with, from its
+    ``dataset.json``: ``robots``, ``seconds`` (float), ``seed`` and ``cameras`` (a tuple, empty
+    for all-EuRoC); None when ``folder`` holds none."""
+    meta = Path(folder) / "dataset.json"
+    if not meta.is_file():
+        return None
+    info = json.loads(meta.read_text())
+    return {
+        "robots": info.get("robots"),
+        "seconds": float(info.get("seconds", -1)),
+        "seed": info.get("seed"),
+        "cameras": tuple(info.get("config", {}).get("cameras", ())),
+    }
 
 
 def generate_dataset(out: Path, config: SynthConfig = SynthConfig()) -> DatasetSummary:
