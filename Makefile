@@ -8,7 +8,7 @@ SEED   ?= 0
 ROBOTS ?= 3
 SECONDS ?= 60
 
-.PHONY: setup demo test lint typecheck bench clean
+.PHONY: setup demo test lint typecheck bench clean compose-test
 
 $(STAMP): pyproject.toml requirements.lock
 	@$(PYTHON) -c 'import sys; assert sys.version_info[:2] == (3, 11), "recslam needs Python 3.11, found " + sys.version' 
@@ -38,6 +38,17 @@ lint: $(STAMP)
 ## mypy over the packages listed in pyproject.toml ([tool.mypy] files).
 typecheck: $(STAMP)
 	$(BIN)/python -m mypy
+
+## docker compose's shared secret: a fresh random one, mode 600, never overwritten (git-ignored).
+docker/secret.env:
+	@umask 077 && $(PYTHON) -c "import secrets; print('RECSLAM_SECRET=' + secrets.token_hex(24))" > $@
+	@echo "wrote $@: a new random RECSLAM_SECRET for every service of the stack"
+
+## The real Docker test (not part of `make test`; needs root and a few GB of disk): starts a
+## Docker daemon if none runs, builds the image in a fresh clone, runs `docker compose up` on a
+## short synthetic dataset and checks the cloud's outputs (scripts/compose-test.sh).
+compose-test:
+	bash scripts/compose-test.sh
 
 bench: $(STAMP)
 	@for b in benchmarks/bench_*.py; do echo "== $$b"; $(BIN)/python $$b || exit 1; done

@@ -41,6 +41,12 @@ def _flag(command: list[str], flag: str) -> str:
     return command[command.index(flag) + 1]
 
 
+def _seconds(text: str) -> float:
+    m = re.fullmatch(r"(\d+)(s|m)", str(text))
+    assert m, text
+    return float(m.group(1)) * (60 if m.group(2) == "m" else 1)
+
+
 def _mount_targets(service: dict) -> list[str]:
     return [v.split(":")[1] for v in service.get("volumes", [])]
 
@@ -120,11 +126,19 @@ def test_ports_volumes_and_addresses_agree_with_the_flags() -> None:
             assert "/datasets" in _mount_targets(service), name
             assert "NET_ADMIN" in service["cap_add"], name
             assert service["depends_on"]["edge"]["condition"] == "service_healthy"
-            assert service["restart"] == "on-failure"
+            # restarts on a crash, a few times only: never a loop on a set-up error
+            assert re.fullmatch(r"on-failure:[1-5]", service["restart"]), name
+            assert _seconds(service["stop_grace_period"]) > 10, name  # the bounded flush
             env = service["environment"]  # ground truth is found by the agent's folder name
             assert env["AGENT_ID"] == env["SEQUENCE"].rsplit("/", 1)[1], name
     for name in ("cloud", "edge"):
-        assert s[name]["restart"] == "unless-stopped"
+        assert re.fullmatch(r"on-failure:[1-9]", s[name]["restart"]), name
+    # The cloud's shutdown (last optimisation, full BA, MBP, outputs) outlasts Docker's 10 s.
+    assert _seconds(s["cloud"]["stop_grace_period"]) >= 60
+    # Folders the services write are handed to the container user by the entrypoint.
+    for name, target in (("cloud", "/results"), ("edge", "/results"), ("dataset", "/datasets")):
+        assert target in _mount_targets(s[name]), name
+        assert s[name]["environment"]["RECSLAM_WRITABLE"] == target, name
     for volume in ("cloud-state", "edge-state"):
         assert volume in compose["volumes"]
 
@@ -132,8 +146,70 @@ def test_ports_volumes_and_addresses_agree_with_the_flags() -> None:
 def test_dockerfile_and_entrypoint() -> None:
     docker = (ROOT / "Dockerfile").read_text()
     assert docker.startswith("#") and "FROM python:3.11-slim\n" in docker
-    assert "pip install --no-cache-dir -c requirements.lock ." in docker
+    assert "pip install --no-cache-dir" in docker and "-c requirements.lock ." in docker
     assert "iproute2" in docker and "useradd" in docker
+    assert (
+        "install -y --no-install-recommends iproute2 " in docker
+    )  # no libgl1: nothing links it (cv2 headless, pycolmap, gtsam)
+    for arg in ("PIP_INDEX", "PIP_EXTRA_INDEX", "PIP_TRUSTED"):
+        assert f"ARG {arg}" in docker
+        assert arg in _load(COMPOSE)["x-recslam"]["build"]["args"]
+    assert "COPY docker/ca-certificates/" in docker
     entry = ENTRYPOINT.read_text()
     assert "tc qdisc replace dev" in entry and "${NETEM}" in entry
     assert "setpriv --reuid=recslam" in entry  # services never run as root
+
+
+def test_ignore_files_keep_secrets_and_data_out() -> None:
+    gitignore = (ROOT / ".gitignore").read_text().split()
+    assert {"docker/secret.env", "/datasets/", "/out/"} <= set(gitignore)
+    dockerignore = (ROOT / ".dockerignore").read_text().split()
+    assert {".git", ".venv", "datasets", "data", "out", "docker/secret.env"} <= set(dockerignore)
+    # "data" in .dockerignore is the top-level folder only: the package common/data is copied.
+    assert "common/data" not in dockerignore and "**/data" not in dockerignore
+
+
+def test_host_network_override(parser) -> None:
+    """docker-compose.hostnet.yml: the same services on 127.0.0.1, ports from the environment."""
+    over = _load(ROOT / "docker-compose.hostnet.yml")["services"]
+    assert set(over) == set(_load(COMPOSE)["services"])
+    assert all(s["network_mode"] == "host" for s in over.values())
+    cloud = [_substitute(c) for c in over["cloud"]["command"]]
+    edge = [_substitute(c) for c in over["edge"]["command"]]
+    for command in (cloud, edge):
+        assert callable(parser.parse_args(command[1:]).func)
+    assert _flag(edge, "--cloud") == _flag(cloud, "--listen") == "127.0.0.1:7100"
+    robot_env = over["robot1"]["environment"]
+    assert _substitute(robot_env["EDGE"]) == _flag(edge, "--listen")
+    assert robot_env["RECSLAM_HOST_NETWORK"] == "1"  # the entrypoint then refuses NETEM
+
+
+def _entrypoint(tmp_path: Path, tc_output: str, **env: str):
+    """Run docker/entrypoint.sh (not as root: no setpriv) with a fake tc that fails with
+    ``tc_output``; the command is ``true``."""
+    import os
+    import subprocess
+
+    fake = tmp_path / "bin"
+    fake.mkdir(parents=True)
+    (fake / "tc").write_text(f"#!/bin/sh\necho '{tc_output}' >&2\nexit 2\n")
+    (fake / "tc").chmod(0o755)
+    environ = {"PATH": f"{fake}:{os.environ['PATH']}", **env}
+    return subprocess.run(
+        ["sh", str(ENTRYPOINT), "true"], env=environ, capture_output=True, text=True, check=False
+    )
+
+
+def test_entrypoint_names_a_kernel_without_netem(tmp_path) -> None:
+    out = _entrypoint(tmp_path, "Error: Specified qdisc kind is unknown.", NETEM="rate 100kbit")
+    assert out.returncode == 78  # EX_CONFIG: restart on-failure:N gives up
+    assert "has no netem qdisc" in out.stderr and "NET_ADMIN" not in out.stderr
+    out = _entrypoint(
+        tmp_path / "b", "RTNETLINK answers: Operation not permitted", NETEM="rate 1mbit"
+    )
+    assert out.returncode == 78 and "cap_add: [NET_ADMIN]" in out.stderr
+
+
+def test_entrypoint_refuses_netem_on_the_host_network(tmp_path) -> None:
+    out = _entrypoint(tmp_path, "unused", NETEM="rate 100kbit", RECSLAM_HOST_NETWORK="1")
+    assert out.returncode == 78 and "host's network" in out.stderr

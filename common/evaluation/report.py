@@ -3,6 +3,12 @@
 :func:`evaluate_run` is what ``recslam eval`` calls: read ``RESULT_DIR/trajectories`` (see
 :mod:`common.evaluation.results`), load ground truth, compute joint and per-agent ATE and
 per-agent RPE, write the report files into the output folder.
+
+A joint ATE is meaningful only when every agent is in one map frame. When the result folder's
+``cloud_maps.json`` (written by the cloud, :data:`~common.evaluation.results.MAPS_FILE`) says
+the maps did not merge, ``ate.md`` has no "joint" row but a line saying so, and ``ate.json``
+has ``"joint_frame": false`` with the cloud's note (the joint numbers stay in ``joint`` for
+whoever wants to look at them).
 """
 
 from __future__ import annotations
@@ -25,7 +31,12 @@ from common.evaluation.metrics import (
     compute_joint_ate,
     compute_rpe,
 )
-from common.evaluation.results import EVAL_DIR, load_groundtruth, read_result_trajectories
+from common.evaluation.results import (
+    EVAL_DIR,
+    MAPS_FILE,
+    load_groundtruth,
+    read_result_trajectories,
+)
 
 log = logging.getLogger(__name__)
 
@@ -54,6 +65,49 @@ class EvalReport:
     groundtruth_files: dict[str, Path]
     out_dir: Path
     files: list[Path]
+    maps: MapFrames | None = None
+
+    @property
+    def joint_frame(self) -> bool:
+        """True unless the cloud said the agents' maps did not merge."""
+        return self.maps is None or self.maps.joint_frame
+
+
+@dataclass(frozen=True)
+class MapFrames:
+    """What the cloud's ``cloud_maps.json`` says: which map each agent is in."""
+
+    joint_frame: bool
+    maps_of_agents: dict[str, int]
+    note: str
+
+    def sentence(self) -> str:
+        """One line for the report: the maps did (not) merge, and which agent is in which."""
+        if self.joint_frame:
+            return "All agents are in one map frame."
+        groups: dict[int, list[str]] = {}
+        for agent, m in sorted(self.maps_of_agents.items()):
+            groups.setdefault(m, []).append(agent)
+        where = "; ".join(f"map {m}: {', '.join(a)}" for m, a in sorted(groups.items()))
+        return (
+            f"**Maps did not merge** ({len(groups)} maps: {where}): no joint ATE, the agents' "
+            "trajectories are in different map frames."
+        )
+
+
+def read_map_frames(result_dir: Path | str) -> MapFrames | None:
+    """``RESULT_DIR/cloud_maps.json`` as :class:`MapFrames`; None when the folder has none
+    (not a cloud's result folder) or it cannot be read (logged)."""
+    path = Path(result_dir) / MAPS_FILE
+    if not path.is_file():
+        return None
+    try:
+        info = json.loads(path.read_text())
+        robots = {str(a): int(m) for a, m in dict(info.get("robots", {})).items()}
+        return MapFrames(bool(info["joint_frame"]), robots, str(info.get("note", "")))
+    except (OSError, ValueError, KeyError, TypeError, AttributeError) as exc:
+        log.warning("%s: cannot read which map each agent is in (%s)", path, exc)
+        return None
 
 
 def _ate_block(res: AteResult) -> dict[str, object]:
@@ -82,8 +136,10 @@ def report_dict(
     rpe: dict[str, RpeResult | None] | None = None,
     config: EvalConfig | None = None,
     sources: dict[str, str] | None = None,
+    maps: MapFrames | None = None,
 ) -> dict[str, object]:
-    """JSON-ready summary (schema in the module docstring of ``recslam.commands.evaluate``)."""
+    """JSON-ready summary (schema in the module docstring of ``recslam.commands.evaluate``;
+    ``joint_frame`` and ``maps_note`` from ``maps``)."""
     cfg = config or EvalConfig()
     rpe = rpe or {}
     agents = {}
@@ -112,6 +168,8 @@ def report_dict(
             "transform": joint.transform.as_dict(),
             "scale_error": joint.scale_error,
         },
+        "joint_frame": maps is None or maps.joint_frame,
+        "maps_note": maps.note if maps is not None else "",
         "agents": agents,
     }
 
@@ -120,8 +178,14 @@ def _f(x: float) -> str:
     return f"{x:.4f}"
 
 
-def markdown_table(joint: JointAteResult, rpe: dict[str, RpeResult | None] | None = None) -> str:
-    """ATE table (one row per agent aligned alone, then the joint row) in markdown."""
+def markdown_table(
+    joint: JointAteResult,
+    rpe: dict[str, RpeResult | None] | None = None,
+    maps: MapFrames | None = None,
+) -> str:
+    """ATE table (one row per agent aligned alone, then the joint row) in markdown; when
+    ``maps`` says the maps did not merge, no joint row and no "under joint" column values,
+    but a line saying so."""
     rpe = rpe or {}
     mode = joint.mode.value
     lines = [
@@ -131,17 +195,22 @@ def markdown_table(joint: JointAteResult, rpe: dict[str, RpeResult | None] | Non
         "| RMSE under joint | rot RMSE [deg] | RPE trans RMSE [m] | RPE rot RMSE [deg] |",
         "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
+    merged = maps is None or maps.joint_frame
     for agent, ind in joint.individual.items():
         s = ind.stats
         r = rpe.get(agent)
+        under = _f(joint.under_joint[agent].stats.rmse) if merged else "-"
         rpe_t = _f(r.trans_stats.rmse) if r else "-"
         rpe_r = _f(r.rot_stats.rmse) if r else "-"
         lines.append(
             f"| {agent} | {ind.n_est}/{ind.n_ref}/{s.count} | {_f(s.rmse)} | {_f(s.mean)} "
             f"| {_f(s.median)} | {_f(s.max)} | {_f(s.std)} | {ind.scale_error:+.4f} "
-            f"| {_f(joint.under_joint[agent].stats.rmse)} | {_f(ind.rot_stats.rmse)} "
+            f"| {under} | {_f(ind.rot_stats.rmse)} "
             f"| {rpe_t} | {rpe_r} |"
         )
+    if not merged:
+        assert maps is not None
+        return "\n".join([*lines, "", maps.sentence()]) + "\n"
     s = joint.stats
     n_est = sum(r.n_est for r in joint.under_joint.values())
     n_ref = sum(r.n_ref for r in joint.under_joint.values())
@@ -161,8 +230,10 @@ def evaluate_run(
 ) -> EvalReport:
     """Evaluate ``RESULT_DIR`` and write ``ate.json``, ``ate.md`` and PNGs into ``out_dir``.
 
-    ``out_dir`` defaults to ``RESULT_DIR/eval``. Raises EvaluationError (ResultFolderError,
-    AssociationError, ...) with a message naming the offending file or agent.
+    ``out_dir`` defaults to ``RESULT_DIR/eval``. ``RESULT_DIR/cloud_maps.json``, when there,
+    decides whether a joint ATE is reported (module docstring). Raises EvaluationError
+    (ResultFolderError, AssociationError, ...) with a message naming the offending file or
+    agent.
     """
     cfg = config or EvalConfig()
     root = Path(result_dir)
@@ -183,9 +254,13 @@ def evaluate_run(
                 rpe[agent] = None
     out.mkdir(parents=True, exist_ok=True)
     sources = {a: str(p) for a, p in gt_files.items()}
+    maps = read_map_frames(root)
     files = [out / "ate.json", out / "ate.md"]
-    files[0].write_text(json.dumps(report_dict(joint, rpe, cfg, sources), indent=2) + "\n")
-    files[1].write_text(f"# Trajectory evaluation of `{root}`\n\n" + markdown_table(joint, rpe))
+    summary = report_dict(joint, rpe, cfg, sources, maps)
+    files[0].write_text(json.dumps(summary, indent=2) + "\n")
+    files[1].write_text(
+        f"# Trajectory evaluation of `{root}`\n\n" + markdown_table(joint, rpe, maps)
+    )
     if cfg.plots:
         from common.evaluation.plots import plot_ate_over_time, plot_trajectories
 
@@ -194,7 +269,9 @@ def evaluate_run(
             plot_trajectories(
                 joint.under_joint,
                 out / "trajectories_joint.png",
-                f"joint {mode} alignment: ATE RMSE {joint.stats.rmse:.4f} m",
+                f"joint {mode} alignment: ATE RMSE {joint.stats.rmse:.4f} m"
+                if maps is None or maps.joint_frame
+                else f"maps did not merge: one {mode} alignment over different map frames",
             )
         )
         files.append(
@@ -209,7 +286,7 @@ def evaluate_run(
                 f"ATE over time ({mode})",
             )
         )
-    return EvalReport(joint, rpe, gt_files, out, files)
+    return EvalReport(joint, rpe, gt_files, out, files, maps)
 
 
 def _rpe_align(cfg: EvalConfig) -> AlignMode:

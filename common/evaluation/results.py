@@ -37,6 +37,8 @@ log = logging.getLogger(__name__)
 TRAJECTORY_DIR = "trajectories"
 GROUNDTRUTH_DIR = "groundtruth"
 EVAL_DIR = "eval"
+MAPS_FILE = "cloud_maps.json"
+"""Which map each agent is in (written by the cloud; read by the report)."""
 _EUROC_GT = Path("mav0") / "state_groundtruth_estimate0" / "data.csv"
 
 

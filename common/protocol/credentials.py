@@ -3,7 +3,8 @@
 ``load_secret``: ``--secret-file`` contents (trailing newline stripped), else the
 ``RECSLAM_SECRET`` environment variable, else ``dev_default`` when the caller allows one (the
 robot, with a logged warning), else an error. Secrets shorter than
-:data:`common.protocol.auth.MIN_SECRET_SIZE` bytes are refused.
+:data:`common.protocol.auth.MIN_SECRET_SIZE` bytes are refused, and so is
+:data:`PLACEHOLDER_SECRET`, the example value of ``docker/secret.env.example``.
 """
 
 from __future__ import annotations
@@ -19,6 +20,8 @@ from common.protocol.auth import MIN_SECRET_SIZE
 logger = logging.getLogger(__name__)
 
 SECRET_ENV = "RECSLAM_SECRET"
+PLACEHOLDER_SECRET = b"change-me-to-a-long-random-string"
+"""The example value in ``docker/secret.env.example``: never a real secret."""
 
 
 class CredentialsError(RecslamError, ValueError):
@@ -67,5 +70,11 @@ def load_secret(
     if len(secret) < MIN_SECRET_SIZE:
         raise CredentialsError(
             f"{source}: secret is {len(secret)} bytes, need at least {MIN_SECRET_SIZE} bytes"
+        )
+    if secret == PLACEHOLDER_SECRET:
+        raise CredentialsError(
+            f"{source}: this is the placeholder secret of docker/secret.env.example; make a "
+            "real one with 'make docker/secret.env' (or: python3 -c \"import secrets; "
+            "print('RECSLAM_SECRET=' + secrets.token_hex(24))\" > docker/secret.env)"
         )
     return secret

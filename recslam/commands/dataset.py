@@ -55,8 +55,10 @@ def run_synth(args: argparse.Namespace) -> int:
     from dataclasses import replace
 
     from common.data.synth import SynthConfig, SynthError, generate_dataset
+    from common.folders import FolderError, writable_folder
 
     try:
+        writable_folder(args.out, "--out")
         config = SynthConfig(
             robots=args.robots,
             seconds=args.seconds,
@@ -71,7 +73,7 @@ def run_synth(args: argparse.Namespace) -> int:
                 render=replace(config.render, noise_std=0.0),
             )
         summary = generate_dataset(args.out, config)
-    except SynthError as e:
+    except (SynthError, FolderError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
     print(f"dataset: {summary.out} ({summary.version}, seed {summary.seed})")

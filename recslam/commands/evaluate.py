@@ -108,6 +108,6 @@ def run(args: argparse.Namespace) -> int:
         plots=not args.no_plots,
     )
     report = evaluate_run(args.result_dir, args.groundtruth, args.out, config)
-    print(markdown_table(report.joint, report.rpe), end="")
+    print(markdown_table(report.joint, report.rpe, report.maps), end="")
     print(f"wrote {', '.join(str(f) for f in report.files)}")
     return 0

@@ -21,12 +21,12 @@ from pathlib import Path
 
 from common.evaluation.errors import EvaluationError
 from common.evaluation.report import evaluate_run
-from common.evaluation.results import write_result_trajectories
+from common.evaluation.results import MAPS_FILE, write_result_trajectories
 from common.evaluation.trajectory import Trajectory
 
 log = logging.getLogger(__name__)
 
-MAPS_FILE = "cloud_maps.json"
+__all__ = ["MAPS_FILE", "OutputWriter"]
 
 
 class OutputWriter:
@@ -73,7 +73,12 @@ class OutputWriter:
                 log.warning("ATE report not written: %s", exc)
             else:
                 files.extend(report.files)
-                log.info(
-                    "joint ATE RMSE %.4f m over %s", report.joint.stats.rmse, sorted(trajectories)
-                )
+                if report.joint_frame:
+                    log.info(
+                        "joint ATE RMSE %.4f m over %s",
+                        report.joint.stats.rmse,
+                        sorted(trajectories),
+                    )
+                else:
+                    log.warning("ATE report: maps did not merge, no joint ATE")
         return files

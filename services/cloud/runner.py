@@ -247,13 +247,20 @@ async def write_stats(path: Path, cloud: CloudServer, codec_owners: Sequence[obj
 
 def serve(config: CloudRunConfig, announce: Announce = logger.info) -> int:
     """Run the cloud until SIGINT / SIGTERM (see the module docstring); the exit code: 0, or
-    2 when the secret, the camera or the vocabulary cannot be loaded."""
+    2 when the secret, the camera or the vocabulary cannot be loaded or a folder it writes
+    (``--state-dir``, ``--results``, ``--stats-out``'s) is not writable."""
     from common.errors import RecslamError
+    from common.folders import writable_folder
     from common.transport import run
     from common.vocabulary import DEFAULT_VOCABULARY_PATH, Vocabulary
 
     try:
         secret = load_secret(config.secret_file)
+        writable_folder(config.state_dir, "--state-dir")
+        if config.results is not None:
+            writable_folder(config.results, "--results")
+        if config.stats_out is not None:
+            writable_folder(config.stats_out.parent, "--stats-out folder")
         camera = find_camera(config.camera, config.groundtruth)
         vocab = Vocabulary.load(config.vocabulary or DEFAULT_VOCABULARY_PATH)
     except RecslamError as exc:

@@ -169,13 +169,19 @@ def write_stats(path: Path, edge: EdgeServer) -> None:
 
 def serve(config: EdgeRunConfig, announce: Announce = logger.info) -> int:
     """Run the edge until SIGINT / SIGTERM (see the module docstring); the exit code: 0, or
-    2 when the secret or the vocabulary cannot be loaded."""
+    2 when the secret or the vocabulary cannot be loaded or a folder it writes
+    (``--state-dir``, ``--stats-out``'s) is not writable."""
     from common.errors import RecslamError
+    from common.folders import writable_folder
     from common.transport import run
     from common.vocabulary import DEFAULT_VOCABULARY_PATH, Vocabulary
 
     try:
         secret = load_secret(config.secret_file)
+        if config.state_dir is not None:
+            writable_folder(config.state_dir, "--state-dir")
+        if config.stats_out is not None:
+            writable_folder(config.stats_out.parent, "--stats-out folder")
         vocab = Vocabulary.load(config.vocabulary or DEFAULT_VOCABULARY_PATH)
     except RecslamError as exc:
         logger.error("%s", exc)

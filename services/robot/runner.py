@@ -93,6 +93,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         default=None,
         help="seconds to wait at the end for the edge to take the rest (default: wait)",
     )
+    p.add_argument(
+        "--stop-flush-timeout",
+        type=float,
+        default=10.0,
+        metavar="S",
+        help="after SIGINT/SIGTERM, seconds to flush the backlog to the edge before giving up "
+        "(default 10; a second signal gives up at once)",
+    )
 
 
 def config_from_args(args: argparse.Namespace) -> RobotServiceConfig:
@@ -125,6 +133,7 @@ def config_from_args(args: argparse.Namespace) -> RobotServiceConfig:
         max_frames=args.max_frames,
         backlog_s=60.0 * args.backlog_minutes,
         flush_timeout_s=args.flush_timeout,
+        stop_flush_timeout_s=args.stop_flush_timeout,
     )
 
 

@@ -30,8 +30,9 @@ Shared secret (:func:`common.protocol.credentials.load_secret`): ``--secret-file
 a development default with a logged warning. At least 16 bytes.
 
 Signals: SIGINT/SIGTERM stop the playback after the current frame; the sequence end is still
-sent and flushed (bounded by ``flush_timeout_s`` if set); a second signal gives up waiting for
-the edge (a blocked send or the flush) and exits.
+sent and flushed, for at most ``stop_flush_timeout_s`` after the signal (logged: how many
+messages and bytes are still queued, and how long the robot waits); then, or at a second
+signal, the robot gives up waiting for the edge (a blocked send or the flush) and exits.
 """
 
 from __future__ import annotations
@@ -96,6 +97,8 @@ class RobotServiceConfig:
         backlog_s: outage the outbox absorbs at the camera rate before back-pressure (1800 s).
         max_backlog_bytes: byte bound of the outbox (256 MiB).
         flush_timeout_s: longest wait for the edge to take the rest at the end (None = wait).
+        stop_flush_timeout_s: longest wait, after a first SIGINT/SIGTERM, for the edge to take
+            the backlog (10 s; within compose's stop_grace_period).
         heartbeat_interval_s, idle_timeout_s: protocol liveness (2 s, 10 s).
         front_end: front-end options.
         vocabulary: ORB vocabulary file (the repository's default).
@@ -117,6 +120,7 @@ class RobotServiceConfig:
     backlog_s: float = 1800.0
     max_backlog_bytes: int = 256 * 1024 * 1024
     flush_timeout_s: float | None = None
+    stop_flush_timeout_s: float = 10.0
     heartbeat_interval_s: float = 2.0
     idle_timeout_s: float = 10.0
     front_end: FrontEndConfig = field(default_factory=FrontEndConfig)
@@ -155,6 +159,10 @@ class RobotServiceConfig:
             raise RobotConfigError("backlog_s and max_backlog_bytes must be positive")
         if self.flush_timeout_s is not None and self.flush_timeout_s <= 0:
             raise RobotConfigError("flush_timeout_s must be positive (or None to wait)")
+        if not self.stop_flush_timeout_s > 0:
+            raise RobotConfigError(
+                f"stop_flush_timeout_s must be positive, got {self.stop_flush_timeout_s}"
+            )
         if self.idle_timeout_s <= self.heartbeat_interval_s:
             raise RobotConfigError("idle_timeout_s must exceed heartbeat_interval_s")
 
@@ -214,6 +222,7 @@ class RobotService:
         self._stop = asyncio.Event()
         self._abort = asyncio.Event()
         self._signals = 0
+        self._give_up: asyncio.TimerHandle | None = None
 
     def session_config(self) -> SessionConfig:
         cfg = self.config
@@ -231,11 +240,43 @@ class RobotService:
         )
 
     def request_stop(self) -> None:
-        """Stop after the current frame (first call); cancel the final flush (second)."""
+        """Stop after the current frame and flush for at most ``stop_flush_timeout_s`` (first
+        call, on the running loop); cancel the final flush (second)."""
         self._signals += 1
         if self._stop.is_set():
+            logger.warning("robot %s: second stop request: not waiting for the edge", self.name)
             self._abort.set()
+            return
         self._stop.set()
+        timeout = self.config.stop_flush_timeout_s
+        c = self.client.counters() if self.client is not None else {}
+        logger.warning(
+            "robot %s: stop requested: %d messages (%d B) queued for the edge; flushing them "
+            "for at most %.3g s (a second signal gives up at once)",
+            self.name,
+            c.get("outbox_messages", 0),
+            c.get("outbox_bytes", 0),
+            timeout,
+        )
+        with contextlib.suppress(RuntimeError):  # no running loop: nothing to bound
+            self._give_up = asyncio.get_running_loop().call_later(timeout, self._stop_waiting)
+
+    @property
+    def name(self) -> str:
+        return self.config.agent_id
+
+    def _stop_waiting(self) -> None:
+        """``stop_flush_timeout_s`` after the first stop request: give up on the edge."""
+        c = self.client.counters() if self.client is not None else {}
+        logger.warning(
+            "robot %s: the edge did not take the backlog within %.3g s of the stop request: "
+            "giving up with %d messages (%d B) unsent",
+            self.name,
+            self.config.stop_flush_timeout_s,
+            c.get("outbox_messages", 0),
+            c.get("outbox_bytes", 0),
+        )
+        self._abort.set()
 
     async def run(self) -> RobotRunResult:
         cfg = self.config
@@ -268,6 +309,8 @@ class RobotService:
             flushed = await self._send(self.app.end_message()) and await self._flush()
             self.app.apply_pending()
         finally:
+            if self._give_up is not None:
+                self._give_up.cancel()
             executor.shutdown(wait=True)
             counters = self.client.counters()
             await self.client.close()

@@ -149,3 +149,25 @@ def test_cli_no_time_overlap_is_a_clear_error(run_setup):
     shifted = Trajectory(late.timestamps_ns + 10**12, late.p_world_body, late.q_wxyz)
     write_tum(result / "trajectories" / "A.tum", shifted)
     _fails(["eval", str(result), "-g", str(dataset)], "found 0 matching timestamps")
+
+
+@pytest.mark.parametrize("merged", [True, False], ids=["one-map", "not-merged"])
+def test_cloud_report_has_a_joint_row_only_for_one_map(run_setup, merged, capsys):
+    """The cloud's writer (trajectories, cloud_maps.json, report) and ``recslam eval`` on its
+    folder: a joint ATE row only when every robot is in one map."""
+    from services.cloud.output import OutputWriter
+
+    result, dataset, _, ests = run_setup
+    maps = {"A": 0, "B": 0, "C": 0} if merged else {"A": 0, "B": 3, "C": 3}
+    OutputWriter(result, dataset).write(ests, maps)
+    md = (result / "eval/ate.md").read_text()
+    report = json.loads((result / "eval/ate.json").read_text())
+    assert report["joint_frame"] is merged
+    assert ("| **joint** |" in md) is merged
+    assert ("Maps did not merge" in md) is not merged
+    if not merged:
+        assert "2 maps: map 0: A; map 3: B, C" in md
+        assert md.count("\n| ") == 4  # header row, A, B, C: no joint row
+    args = _parse(["eval", str(result), "--groundtruth", str(dataset), "--no-plots"])
+    assert args.func(args) == 0
+    assert ("| **joint** |" in capsys.readouterr().out) is merged

@@ -5,10 +5,12 @@ from __future__ import annotations
 
 import asyncio
 import dataclasses
+import logging
 import os
 import signal
 import socket
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -373,3 +375,32 @@ def test_unreachable_edge_keeps_frames_until_a_second_stop(vocabulary, euroc_mic
     result = run(main())
     assert result.interrupted and not result.flushed and result.frames == 6
     assert result.counters["outbox_messages"] == 8
+
+
+def test_first_stop_flushes_for_a_bounded_time_and_says_so(vocabulary, euroc_micro, caplog):
+    """No edge: one stop request alone ends the run after ``stop_flush_timeout_s``, with the
+    backlog and the bound logged."""
+    with socket.socket() as sock:  # a port nobody listens on
+        sock.bind(("127.0.0.1", 0))
+        port = sock.getsockname()[1]
+
+    async def main():
+        cfg = robot_config(
+            euroc_micro, port, max_frames=6, flush_timeout_s=None, stop_flush_timeout_s=0.5
+        )
+        service = RobotService(cfg, FAST)
+        task = asyncio.ensure_future(service.run())
+        while service.client is None or service.client.counters()["outbox_messages"] < 8:
+            await asyncio.sleep(0.05)
+        t0 = time.monotonic()
+        service.request_stop()
+        result = await asyncio.wait_for(task, 10)
+        return result, time.monotonic() - t0
+
+    with caplog.at_level(logging.WARNING, logger="services.robot.server"):
+        result, waited = run(main())
+    assert result.interrupted and not result.flushed and result.frames == 6
+    assert 0.4 < waited < 5.0
+    text = caplog.text
+    assert "stop requested: 8 messages" in text and "for at most 0.5 s" in text
+    assert "giving up with 8 messages" in text

@@ -1,0 +1,192 @@
+#!/usr/bin/env bash
+# `make compose-test`: recslam's docker compose set-up, run for real from a fresh clone.
+#
+#  1. starts a Docker daemon if none answers, exactly as
+#     `dockerd --iptables=false --ip-masq=false --bridge=none` (no firewall change; the
+#     containers then use host networking: docker-compose.hostnet.yml);
+#  2. makes the base image python:3.11-slim from Debian's packages (scripts/make-base-image.sh)
+#     when it is not there and Docker Hub cannot be reached;
+#  3. clones the committed HEAD into a temporary folder (a fresh clone: no datasets, no
+#     ./out, no docker/secret.env) and follows the README there: `make docker/secret.env`,
+#     `docker compose build`, `docker compose --profile synth run --rm dataset` (a short set:
+#     $ROBOTS robots x $SECONDS_PER_ROBOT s), `docker compose up -d`;
+#  4. waits for the robots to exit, for the edge to drain, stops the stack (the cloud last,
+#     timed) and checks the cloud's outputs (scripts/compose_check.py: trajectories, the ATE
+#     report, every frame decoded exactly once at the edge, exit codes, no traceback);
+#  5. checks three loud failures on the built image: the placeholder secret, a non-empty
+#     folder the container user cannot write, NETEM on a kernel without netem;
+#  6. removes the stack (containers, volumes) and stops every daemon it started.
+#
+# Needs root (it may start dockerd), debootstrap when the base image must be made, docker
+# compose (plugin) or docker-compose, and a few GB of disk. Environment: ROBOTS (3),
+# SECONDS_PER_ROBOT (12), KEEP=1 keeps the clone, CA_DIR (default
+# /usr/local/share/ca-certificates: its *.crt go into the clone's docker/ca-certificates/, for
+# builds behind a TLS-intercepting proxy). Exit code 0 when every check passed.
+set -euo pipefail
+
+ROBOTS="${ROBOTS:-3}"
+SECONDS_PER_ROBOT="${SECONDS_PER_ROBOT:-12}"
+CA_DIR="${CA_DIR:-/usr/local/share/ca-certificates}"
+t0=$(date +%s)
+repo="$(git -C "$(dirname "$0")/.." rev-parse --show-toplevel)"
+work="$(mktemp -d /tmp/recslam-compose-test.XXXXXX)"
+started_dockerd=""
+compose=()
+files=(-f docker-compose.yml -f docker-compose.hostnet.yml)
+export COMPOSE_PROJECT_NAME=recslam-compose-test
+
+say() { printf '[compose-test %4ss] %s\n' "$(($(date +%s) - t0))" "$*"; }
+die() {
+    say "FAIL: $*"
+    exit 1
+}
+
+cleanup() {
+    local rc=$?
+    set +e
+    if [ ${#compose[@]} -gt 0 ] && [ -d "$work/recslam" ]; then
+        (cd "$work/recslam" && "${compose[@]}" "${files[@]}" --profile synth down -v \
+            --remove-orphans >>"$work/down.log" 2>&1)
+    fi
+    if [ -n "$started_dockerd" ]; then
+        say "stopping the Docker daemon this test started (pid $started_dockerd)"
+        kill -TERM "$started_dockerd" 2>/dev/null
+        for _ in $(seq 60); do kill -0 "$started_dockerd" 2>/dev/null || break; sleep 0.5; done
+        kill -0 "$started_dockerd" 2>/dev/null && say "dockerd $started_dockerd still running after 30 s"
+    fi
+    if [ "${KEEP:-0}" = "1" ] || [ $rc -ne 0 ]; then
+        say "kept $work (logs: $work/*.log)"
+    else
+        rm -rf "$work"
+    fi
+    say "done in $(($(date +%s) - t0)) s, exit code $rc"
+    exit $rc
+}
+trap cleanup EXIT
+
+free_port() { python3 -c 'import socket; s = socket.socket(); s.bind(("127.0.0.1", 0)); print(s.getsockname()[1])'; }
+
+# 1. A Docker daemon.
+if docker info >/dev/null 2>&1; then
+    say "using the running Docker daemon"
+else
+    [ "$(id -u)" = 0 ] || die "no Docker daemon answers and this is not root: cannot start one"
+    command -v dockerd >/dev/null || die "dockerd not found (Debian: apt-get install docker.io)"
+    say "starting dockerd --iptables=false --ip-masq=false --bridge=none (log $work/dockerd.log)"
+    setsid dockerd --iptables=false --ip-masq=false --bridge=none >"$work/dockerd.log" 2>&1 &
+    started_dockerd=$!
+    for _ in $(seq 60); do docker info >/dev/null 2>&1 && break; sleep 0.5; done
+    docker info >/dev/null 2>&1 || die "dockerd did not answer within 30 s: $(tail -3 "$work/dockerd.log")"
+fi
+if docker compose version >/dev/null 2>&1; then
+    compose=(docker compose)
+elif command -v docker-compose >/dev/null; then
+    compose=(docker-compose)
+else
+    die "neither 'docker compose' nor docker-compose found (Debian: apt-get install docker-compose)"
+fi
+say "compose: ${compose[*]} ($("${compose[@]}" version --short 2>/dev/null || echo '?')), engine $(docker version -f '{{.Server.Version}}')"
+
+# 2. The base image.
+if docker image inspect python:3.11-slim >/dev/null 2>&1; then
+    say "base image python:3.11-slim present"
+elif timeout 60 docker pull python:3.11-slim >"$work/pull.log" 2>&1; then
+    say "pulled python:3.11-slim"
+else
+    say "Docker Hub unreachable ($(tail -1 "$work/pull.log")): making python:3.11-slim from Debian packages"
+    "$repo/scripts/make-base-image.sh" python:3.11-slim
+fi
+
+# 3. A fresh clone, the README's commands.
+git clone -q "$repo" "$work/recslam"
+cd "$work/recslam"
+say "fresh clone of $(git rev-parse --short HEAD) in $work/recslam"
+if ls "$CA_DIR"/*.crt >/dev/null 2>&1; then
+    cp "$CA_DIR"/*.crt docker/ca-certificates/
+    say "CA certificates for the build: $(cd "$CA_DIR" && echo *.crt)"
+fi
+make -s docker/secret.env PYTHON=python3
+CLOUD_PORT=$(free_port) EDGE_PORT=$(free_port) DASHBOARD_PORT=$(free_port)
+export CLOUD_PORT EDGE_PORT DASHBOARD_PORT
+say "ports: cloud $CLOUD_PORT, edge $EDGE_PORT, dashboard $DASHBOARD_PORT (host network)"
+
+tb=$(date +%s)
+"${compose[@]}" "${files[@]}" build >"$work/build.log" 2>&1 || die "build failed: $(tail -5 "$work/build.log")"
+size=$(docker image inspect -f '{{.Size}}' recslam:latest)
+say "built recslam:latest in $(($(date +%s) - tb)) s: $((size / 1000000)) MB"
+
+td=$(date +%s)
+"${compose[@]}" "${files[@]}" --profile synth run --rm dataset recslam -v dataset synth \
+    --out /datasets/synth --robots "$ROBOTS" --seconds "$SECONDS_PER_ROBOT" --seed 0 \
+    --no-progress >"$work/dataset.log" 2>&1 || die "dataset failed: $(tail -5 "$work/dataset.log")"
+say "dataset ($ROBOTS robots x $SECONDS_PER_ROBOT s) in $(($(date +%s) - td)) s: $(grep -c frames "$work/dataset.log") sequences"
+robots=()
+for ((i = 0; i < ROBOTS; i++)); do robots+=("robot$i"); done
+[ "$ROBOTS" = 3 ] || die "the compose file has three robots; ROBOTS=$ROBOTS needs another override"
+
+tu=$(date +%s)
+"${compose[@]}" "${files[@]}" up -d >"$work/up.log" 2>&1 || die "up failed: $(tail -5 "$work/up.log")"
+say "stack up in $(($(date +%s) - tu)) s; waiting for the robots"
+ids=()
+for svc in robot1 robot2 robot3; do ids+=("$("${compose[@]}" "${files[@]}" ps -q "$svc")"); done
+codes=$(timeout $((SECONDS_PER_ROBOT * 20 + 300)) docker wait "${ids[@]}" | tr '\n' ' ') ||
+    die "robots not done after $((SECONDS_PER_ROBOT * 20 + 300)) s"
+say "robots done $(($(date +%s) - tu)) s after up: exit codes $codes"
+for _ in $(seq 240); do python3 scripts/compose_check.py drained out/compose && break; sleep 0.5; done
+python3 scripts/compose_check.py drained out/compose || say "edge not drained after 120 s; stopping anyway"
+sleep 3 # let the edge's last uplink reach the cloud
+say "edge drained; stopping the stack"
+"${compose[@]}" "${files[@]}" stop edge >>"$work/stop.log" 2>&1
+ts=$(date +%s.%N)
+"${compose[@]}" "${files[@]}" stop cloud >>"$work/stop.log" 2>&1
+shutdown=$(python3 -c "print(f'{$(date +%s.%N) - $ts:.1f}')")
+say "cloud stopped in $shutdown s after SIGTERM (stop_grace_period 120 s)"
+"${compose[@]}" "${files[@]}" logs --no-color >"$work/compose.log" 2>&1
+for svc in cloud edge robot1 robot2 robot3; do
+    id=$("${compose[@]}" "${files[@]}" ps -q "$svc")
+    state=$(docker inspect -f '{{.State.ExitCode}} restarts={{.RestartCount}}' "$id")
+    say "  $svc: exit $state; last line: $(docker logs "$id" 2>&1 | tail -1 | cut -c1-150)"
+done
+
+# 4. The outputs.
+failed=0
+say "checking the cloud's outputs (out/compose)"
+python3 scripts/compose_check.py outputs out/compose datasets/synth "${robots[@]}" || failed=1
+for c in $codes; do [ "$c" = 0 ] || { say "FAIL: a robot exited with $c"; failed=1; }; done
+for svc in cloud edge; do
+    c=$(docker inspect -f '{{.State.ExitCode}}' "$("${compose[@]}" "${files[@]}" ps -q "$svc")")
+    [ "$c" = 0 ] || { say "FAIL: $svc exited with $c"; failed=1; }
+done
+if grep -q Traceback "$work/compose.log"; then
+    say "FAIL: a traceback in the services' logs:"
+    grep -m1 -A12 Traceback "$work/compose.log"
+    failed=1
+fi
+
+# 5. Loud failures, on the built image.
+expect() { # expect CODE TEXT -- docker run args: the container exits CODE, its output has TEXT
+    local want=$1 text=$2 got=0
+    shift 3
+    out=$(docker run --rm "$@" 2>&1) || got=$?
+    if [ "$got" = "$want" ] && grep -qF -- "$text" <<<"$out"; then
+        say "  ok   exit $got: $(grep -F -- "$text" <<<"$out" | head -1 | cut -c1-170)"
+    else
+        say "  FAIL exit $got (want $want, '$text'): $(tail -2 <<<"$out")"
+        failed=1
+    fi
+}
+say "loud failures"
+expect 2 "placeholder secret" -- --network none -e RECSLAM_SECRET=change-me-to-a-long-random-string \
+    recslam:latest recslam cloud --state-dir /state/cloud --dashboard-port 0
+mkdir -p "$work/busy" && touch "$work/busy/file" && chmod 755 "$work/busy"
+expect 78 "not writable by the container user" -- --network none -e RECSLAM_WRITABLE=/results \
+    -v "$work/busy:/results" recslam:latest true
+if grep -qw sch_netem /proc/modules || [ -e "/sys/module/sch_netem" ]; then
+    say "  (this kernel has netem: the no-netem message is not checked)"
+else
+    expect 78 "has no netem qdisc" -- --network none --cap-add NET_ADMIN -e NETEM="rate 100kbit" \
+        -e NETEM_DEV=lo recslam:latest true
+fi
+
+[ $failed = 0 ] || die "some checks failed (logs in $work)"
+say "PASS: $ROBOTS robots x $SECONDS_PER_ROBOT s through docker compose; image $((size / 1000000)) MB; cloud shutdown $shutdown s"
