@@ -44,7 +44,8 @@ die() {
 cleanup() {
     local rc=$?
     set +e
-    if [ ${#compose[@]} -gt 0 ] && [ -d "$work/recslam" ]; then
+    if [ ${#compose[@]} -gt 0 ] && [ -d "$work/recslam" ] && [ -n "$(docker ps -aq \
+        --filter "label=com.docker.compose.project=$COMPOSE_PROJECT_NAME" 2>/dev/null)" ]; then
         (cd "$work/recslam" && "${compose[@]}" "${files[@]}" --profile synth down -v \
             --remove-orphans >>"$work/down.log" 2>&1)
     fi
@@ -109,6 +110,14 @@ make -s docker/secret.env PYTHON=python3
 CLOUD_PORT=$(free_port) EDGE_PORT=$(free_port) DASHBOARD_PORT=$(free_port)
 export CLOUD_PORT EDGE_PORT DASHBOARD_PORT
 say "ports: cloud $CLOUD_PORT, edge $EDGE_PORT, dashboard $DASHBOARD_PORT (host network)"
+if [ "${compose[0]}" = docker-compose ]; then
+    # docker-compose 1.x refuses published ports on the host network (Compose v2 ignores
+    # them): run its resolved configuration without them.
+    "${compose[@]}" "${files[@]}" --profile synth config >"$work/compose.resolved.yml"
+    chmod 600 "$work/compose.resolved.yml" # it holds the secret
+    say "docker-compose 1.x: $(python3 scripts/compose_check.py strip-ports "$work/compose.resolved.yml")"
+    files=(-f "$work/compose.resolved.yml")
+fi
 
 tb=$(date +%s)
 "${compose[@]}" "${files[@]}" build >"$work/build.log" 2>&1 || die "build failed: $(tail -5 "$work/build.log")"

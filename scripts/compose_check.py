@@ -15,6 +15,12 @@ result folder ``RESULTS`` (``./out/compose``) after the stack stopped:
 
 It prints one line per check and a summary; exit code 0 when every check passed. Standard
 library only: it runs with the host's python3, outside the image.
+
+``python3 scripts/compose_check.py strip-ports CONFIG`` rewrites a resolved compose file
+(``docker-compose config``) without the published ports of services on the host network:
+docker-compose 1.x (Debian bookworm's) refuses ports with ``network_mode: host``, which
+Compose v2 and the engine accept (and ignore). Needs PyYAML (python3-yaml, a dependency of
+Debian's docker-compose).
 """
 
 from __future__ import annotations
@@ -89,7 +95,25 @@ def check_outputs(results: Path, dataset: Path, robots: list[str]) -> list[tuple
     return out
 
 
+def strip_host_ports(config: Path) -> list[str]:
+    """Remove ``ports`` of host-network services from the compose file ``config`` (in place);
+    returns the services changed."""
+    import yaml  # the host's python3-yaml (Debian's docker-compose needs it)
+
+    data = yaml.safe_load(config.read_text())
+    changed = []
+    for name, service in data.get("services", {}).items():
+        if service.get("network_mode") == "host" and service.pop("ports", None) is not None:
+            changed.append(name)
+    config.write_text(yaml.safe_dump(data, sort_keys=False))
+    return changed
+
+
 def main(argv: list[str]) -> int:
+    if len(argv) == 2 and argv[0] == "strip-ports":
+        changed = strip_host_ports(Path(argv[1]))
+        sys.stdout.write(f"published ports dropped (host network): {', '.join(changed)}\n")
+        return 0
     if len(argv) == 2 and argv[0] == "drained":
         return 0 if drained(Path(argv[1])) else 1
     if len(argv) >= 4 and argv[0] == "outputs":
