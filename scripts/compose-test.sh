@@ -13,8 +13,9 @@
 #  4. waits for the robots to exit, for the edge to drain, stops the stack (the cloud last,
 #     timed) and checks the cloud's outputs (scripts/compose_check.py: trajectories, the ATE
 #     report, every frame decoded exactly once at the edge, exit codes, no traceback);
-#  5. checks three loud failures on the built image: the placeholder secret, a non-empty
-#     folder the container user cannot write, NETEM on a kernel without netem;
+#  5. checks loud failures on the built image: the placeholder secret, a non-empty folder the
+#     container user cannot write, NETEM on a kernel without netem (and the restart policy
+#     giving up on it), a robot whose edge is gone stopped with SIGTERM (bounded flush);
 #  6. removes the stack (containers, volumes) and stops every daemon it started.
 #
 # Needs root (it may start dockerd), debootstrap when the base image must be made, docker
@@ -211,6 +212,26 @@ else
         say "  FAIL restart: $policy with NETEM on this kernel: $restarts"
         failed=1
     fi
+fi
+
+# A robot whose edge is gone: the first SIGTERM flushes for a bounded time, logged.
+port=$(free_port)
+id=$(docker run -d --network host -e RECSLAM_SECRET="$(cut -d= -f2 docker/secret.env)" \
+    -e SEQUENCE=synth/robot0 -e AGENT_ID=robot0 -e EDGE="127.0.0.1:$port" \
+    -v "$PWD/datasets:/datasets:ro" recslam:latest recslam -v robot --stop-flush-timeout 3)
+sleep 8
+tstop=$(date +%s.%N)
+docker stop -t 20 "$id" >/dev/null
+took=$(python3 -c "print(f'{$(date +%s.%N) - $tstop:.1f}')")
+code=$(docker inspect -f '{{.State.ExitCode}}' "$id")
+robot_log=$(docker logs "$id" 2>&1)
+docker rm "$id" >/dev/null
+if [ "$code" = 130 ] && grep -q "stop requested" <<<"$robot_log" && grep -q "giving up with" <<<"$robot_log"; then
+    say "  ok   robot without an edge stopped in $took s, exit $code: $(grep -o 'stop requested.*' <<<"$robot_log" | cut -c1-110)"
+    say "       $(grep -o 'the edge did not take the backlog.*' <<<"$robot_log" | head -1 | cut -c1-140)"
+else
+    say "  FAIL robot without an edge: exit $code after $took s: $(tail -3 <<<"$robot_log")"
+    failed=1
 fi
 
 [ $failed = 0 ] || die "some checks failed (logs in $work)"
