@@ -108,12 +108,15 @@ def test_wrong_secret_is_refused_and_server_keeps_serving(caplog):
         await bad.start()
         try:
             await good.send(Blob(1, b"before"))
-            await asyncio.sleep(0.3)  # the impostor tries (and retries) meanwhile
+            await asyncio.sleep(0.3)  # the impostor tries meanwhile
             await good.send(Blob(2, b"after"))
             await good.flush()
             assert [d.message.channel for d in ssink.items] == [1, 2]
             assert "mallory" not in server.peers
-            assert not bad.peer.connected and bad.connections >= 2
+            # a wrong credential cannot get better by retrying: the client gives up, loudly
+            assert not bad.peer.connected and bad.connections == 1
+            with pytest.raises(PeerRejectedError, match="authentication failed"):
+                await bad.send(Blob(3, b"never"))
         finally:
             await bad.close()
             await good.close()
@@ -189,7 +192,10 @@ def test_max_peers_and_accept_roles():
     run(main())
 
 
-def test_failed_handler_is_not_acked_and_message_is_redelivered():
+def test_failed_handler_is_retried_on_the_same_connection():
+    """A local fault in the handler (not the sender's): the same delivery is tried again
+    after a delay, in order, without dropping the connection or replaying the outbox."""
+
     async def main():
         server, ssink, client, _ = await _pair()
         ssink.fail_once_at = 3
@@ -198,7 +204,9 @@ def test_failed_handler_is_not_acked_and_message_is_redelivered():
                 await client.send(Blob(i, b"m"))
             await client.flush()
             assert [d.message.channel for d in ssink.items] == list(range(6))
-            assert client.connections >= 2  # the failure dropped the connection once
+            assert client.connections == 1
+            assert server.peers["robot-1"].handler_failures == 1
+            assert client.counters()["retransmitted_messages"] == 0
         finally:
             await client.close()
             await server.close()
@@ -206,16 +214,18 @@ def test_failed_handler_is_not_acked_and_message_is_redelivered():
     run(main())
 
 
-def test_rejected_message_closes_that_link_with_the_reason_and_the_client_gives_up(caplog):
-    """A handler that raises RejectedMessageError refuses the message for good: the client
-    is told why (CloseCode.REJECTED), stops reconnecting, and its sends and flushes raise
+def test_rejected_message_is_refused_once_with_the_reason_and_the_client_gives_up(caplog):
+    """A handler that raises RejectedMessageError refuses the message for good: it reaches
+    the handler once, the client is told why (``Reject``) and its sends and flushes raise
     PeerRejectedError; another client of the same server is served on."""
 
     async def main():
         server_sink = Sink()
+        bad_calls = []
 
         async def handler(d: Delivery) -> None:
             if d.peer == "robot-bad":
+                bad_calls.append(d.seq)
                 raise RejectedMessageError("your calibration differs")
             await server_sink(d)
 
@@ -231,8 +241,9 @@ def test_rejected_message_closes_that_link_with_the_reason_and_the_client_gives_
                 await asyncio.wait_for(bad.flush(), 10)
             with pytest.raises(PeerRejectedError):
                 await bad.send(Blob(1, b"y"))
-            await asyncio.sleep(0.3)  # a reconnecting client would be back by now
-            assert bad.connections == 1
+            await asyncio.sleep(0.3)  # a redelivery would have happened by now
+            assert bad.connections == 1 and bad_calls == [1]
+            assert bad.peer.rejections == [(1, "your calibration differs")]
             for i in range(3):
                 await good.send(Blob(i, b"g"))
             await good.flush()
