@@ -119,6 +119,7 @@ class EdgeServer:
                 sv.cloud_host,
                 sv.cloud_port,
                 server_name="cloud",
+                stop_on_reject=False,  # a refused keyframe is logged; the other robots go on
             )
         self.dropped_feedback = 0
         self.dropped_uplink = 0
