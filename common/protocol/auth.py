@@ -138,3 +138,8 @@ class Keyring:
         if key is None and self.operator is not None:
             key = role_key(self.operator, role)
         return None if key is None else agent_credential(key, agent_id)
+
+
+def as_keyring(material: bytes | Keyring) -> Keyring:
+    """A keyring from an operator secret, or the keyring itself."""
+    return material if isinstance(material, Keyring) else Keyring.from_secret(material)

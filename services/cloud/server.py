@@ -44,6 +44,7 @@ from collections.abc import Callable, Iterable
 from concurrent.futures import BrokenExecutor, Executor, ProcessPoolExecutor, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
+from ssl import SSLContext
 from typing import Any, TypeVar
 
 from common.calibration import CameraCalibration
@@ -132,6 +133,7 @@ class CloudServer:
         groundtruth: ground-truth source for the ATE report (see common.evaluation.results).
         transport: socket settings.
         record: append every applied uplink message to this recording file (default: none).
+        ssl: TLS context of the listening side (None: plain TCP; frames are sealed anyway).
     """
 
     def __init__(
@@ -145,6 +147,7 @@ class CloudServer:
         groundtruth: str | Path | None = None,
         transport: TransportConfig | None = None,
         record: str | Path | None = None,
+        ssl: SSLContext | None = None,
     ) -> None:
         self.session = session
         self.config = config or CloudServiceConfig()
@@ -163,7 +166,9 @@ class CloudServer:
         self._optimizer = self._new_optimizer()
         self._app: CloudApp | None = None
         self._core: CloudCore | None = None
-        self._server = Server(session, self._on_message, transport=transport, store=self.positions)
+        self._server = Server(
+            session, self._on_message, transport=transport, ssl=ssl, store=self.positions
+        )
         self._wake = asyncio.Event()  # the core's deadline moved
         self._armed: float | None = math.nan  # the deadline the timer sleeps on (nan: none yet)
         self._round_lock = asyncio.Lock()  # one round of the core at a time
