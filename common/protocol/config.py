@@ -48,7 +48,7 @@ class SessionConfig:
     max_frame_size: int = DEFAULT_MAX_FRAME_SIZE
     heartbeat_interval: float = 2.0
     idle_timeout: float = 10.0
-    handshake_timeout: float = 10.0
+    handshake_timeout: float = 5.0
     retransmit_timeout: float = 5.0
     max_retransmit_timeout: float = 60.0
     ack_delay: float = 0.005

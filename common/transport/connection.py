@@ -44,10 +44,13 @@ class TransportConfig:
     Attributes:
         max_peers: authenticated peers a server serves at once; one more is refused with a
             reason once it has authenticated (a known peer reconnecting always gets in).
-        max_pending: connections a server holds that have not authenticated yet; a newcomer
-            beyond this drops the oldest of them, so sockets that connect and stall (or
-            never finish the handshake) cannot keep peers out: they are counted apart from
-            the peers and only ever push each other out.
+        max_pending: connections a server holds that have not authenticated yet (each for
+            at most the handshake timeout); a newcomer beyond this drops the oldest pending
+            connection of the source address that holds the most, so sockets that connect
+            and stall cannot keep peers out: they are counted apart from the peers and only
+            ever push each other out.
+        max_pending_per_source: likewise per source address: a newcomer beyond this drops
+            the oldest pending connection from the same address.
         accept_roles: roles a server serves (None = any authenticated role).
         read_chunk_bytes: bytes per socket read.
         write_chunk_bytes: bytes of frames handed to the socket before awaiting drain.
@@ -64,7 +67,8 @@ class TransportConfig:
     """
 
     max_peers: int = 64
-    max_pending: int = 32
+    max_pending: int = 256
+    max_pending_per_source: int = 32
     accept_roles: tuple[str, ...] | None = None
     read_chunk_bytes: int = 256 * 1024
     write_chunk_bytes: int = 1024 * 1024
@@ -360,6 +364,7 @@ class _Connection:
         self.failure: ProtocolError | None = None  # what the peer did wrong, if anything
         info = writer.get_extra_info("peername")
         self.name = f"{info[0]}:{info[1]}" if isinstance(info, tuple) else str(info)
+        self.source = str(info[0]) if isinstance(info, tuple) else self.name
         if peer is not None:
             peer._attach(self)
 

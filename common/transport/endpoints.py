@@ -313,20 +313,12 @@ class Server:
         assert task is not None
         self._tasks.add(task)
         task.add_done_callback(self._tasks.discard)
-        if len(self._pending) >= self.transport.max_pending:
-            oldest = next(iter(self._pending))
-            del self._pending[oldest]
-            logger.warning(
-                "%d connections not authenticated yet: dropping the oldest (%s)",
-                self.transport.max_pending,
-                oldest.name,
-            )
-            oldest.abort("dropped before authenticating: newer connections arrived")
         loop = asyncio.get_running_loop()
         session = Session(self.config, client=False, now=loop.time())
         conn = _Connection(
             reader, writer, session, self.transport, on_authenticated=self._authenticated
         )
+        self._make_room_for(conn.source)
         self._connections.add(conn)
         self._pending[conn] = None
         try:
@@ -335,6 +327,27 @@ class Server:
             self._connections.discard(conn)
             self._pending.pop(conn, None)
             self._authed.pop(conn, None)
+
+    def _make_room_for(self, source: str) -> None:
+        """Drop the oldest unauthenticated connection of ``source`` if it holds its share,
+        else of the busiest source if all pending places are taken."""
+        t = self.transport
+        by_source: dict[str, list[_Connection]] = {}
+        for pending in self._pending:
+            by_source.setdefault(pending.source, []).append(pending)
+        mine = by_source.get(source, [])
+        if len(mine) >= t.max_pending_per_source:
+            victim, why = mine[0], f"{t.max_pending_per_source} from {source}"
+        elif len(self._pending) >= t.max_pending:
+            busiest = max(by_source.values(), key=len)
+            victim, why = busiest[0], f"{t.max_pending} in all"
+        else:
+            return
+        del self._pending[victim]
+        logger.warning(
+            "connections not authenticated yet: %s; dropping the oldest (%s)", why, victim.name
+        )
+        victim.abort("dropped before authenticating: newer connections arrived")
 
     async def _authenticated(self, conn: _Connection, ev: PeerAuthenticated) -> Peer | None:
         self._pending.pop(conn, None)

@@ -391,3 +391,53 @@ def test_stalled_sockets_cannot_lock_peers_out():
             await server.close()
 
     run(main())
+
+
+def test_a_robot_joins_and_streams_while_200_stalled_connections_are_held():
+    """Issue 18's lock-out, at scale: 200 connections from 10 other addresses send a byte and
+    stall, all of them held; a new robot joins and streams 100 messages at 50 Hz on one
+    connection. One address that floods is held to its share and pushes only itself out."""
+
+    async def main():
+        transport = TransportConfig()  # the defaults a service runs with
+        server = Server(scfg(), Sink(), transport=transport)
+        host, port = await server.start()
+        stalled: list[asyncio.StreamWriter] = []
+        for i in range(200):
+            _, w = await asyncio.open_connection(
+                host, port, local_addr=(f"127.0.0.{2 + i % 10}", 0)
+            )
+            w.write(b"\x00")
+            stalled.append(w)
+        await asyncio.sleep(0.2)
+        assert len(server._pending) == 200
+        sink = Sink()
+        robot = Client(scfg("robot-new", "robot"), sink, host, port, transport=FAST)
+        server_sink = server._handler
+        await robot.start()
+        try:
+            await robot.wait_connected(5)
+            for i in range(100):
+                await robot.send(Blob(i, b"f" * 200))
+                await asyncio.sleep(0.02)
+            await robot.flush()
+            assert [d.message.channel for d in server_sink.items] == list(range(100))
+            assert robot.connections == 1
+            assert robot.counters()["retransmitted_messages"] == 0
+            assert len(server._pending) == 200  # every stalled connection is still held
+            # one address floods: it keeps at most its share, the others keep theirs
+            for _ in range(100):
+                _, w = await asyncio.open_connection(host, port, local_addr=("127.0.0.99", 0))
+                w.write(b"\x00")
+                stalled.append(w)
+            await asyncio.sleep(0.2)
+            sources = [c.source for c in server._pending]
+            assert sources.count("127.0.0.99") == transport.max_pending_per_source
+            assert len(sources) == 200 + transport.max_pending_per_source
+        finally:
+            for w in stalled:
+                w.close()
+            await robot.close()
+            await server.close()
+
+    run(main())
