@@ -334,14 +334,19 @@ async def _run(
     host, port = await cloud.start(*config.listen)
     # The application's codec_timer (if it has one) stays readable after stop().
     codec_owners = [await cloud.call(lambda app: app)]
-    announce(f"cloud listening on {host}:{port}, state {config.state_dir}")
     dashboard = None
     if config.dashboard_port:
-        from dashboard.viewer import Dashboard, DashboardConfig
+        from dashboard.viewer import Dashboard, DashboardConfig, new_access_token
 
-        dashboard = Dashboard(cloud.map_source, DashboardConfig(port=config.dashboard_port))
+        dash_cfg = DashboardConfig(
+            host=config.dashboard_host or config.listen[0],
+            port=config.dashboard_port,
+            access_token=None if config.dashboard_open else new_access_token(),
+        )
+        dashboard = Dashboard(cloud.map_source, dash_cfg)
         dashboard.start()
         announce(f"dashboard at {dashboard.url}")
+    announce(f"cloud listening on {host}:{port}, state {config.state_dir}")
     stats_out = config.stats_out
 
     async def tick() -> None:
