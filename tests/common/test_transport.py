@@ -441,3 +441,46 @@ def test_a_robot_joins_and_streams_while_200_stalled_connections_are_held():
             await server.close()
 
     run(main())
+
+
+def test_a_full_disk_holds_the_sender_back_without_a_reconnect_storm(caplog):
+    """Issue 18: a receiver whose storage fails (here: four attempts raise ENOSPC) retries the
+    same message with backoff on the same connection. The sender is held back by the window:
+    no reconnect, re-sent bytes within one window, every message delivered once, in order."""
+    import errno
+
+    window = 16
+
+    async def main():
+        attempts = {"n": 0}
+        got: list[int] = []
+
+        async def handler(d: Delivery) -> None:
+            if d.message.channel == 10 and attempts["n"] < 4:
+                attempts["n"] += 1
+                raise OSError(errno.ENOSPC, "database or disk is full")
+            got.append(d.message.channel)
+
+        transport = TransportConfig(handler_retry_initial=0.1)
+        server = Server(scfg(window_messages=window), handler, transport=transport)
+        host, port = await server.start()
+        client = Client(
+            scfg("robot-1", "robot", retransmit_timeout=0.2), Sink(), host, port, transport=FAST
+        )
+        await client.start()
+        try:
+            for i in range(200):
+                await client.send(Blob(i, b"d" * 1000))
+            await client.flush()
+            assert got == list(range(200))
+            assert attempts["n"] == 4 and server.peers["robot-1"].handler_failures == 4
+            c = client.counters()
+            assert client.connections == 1
+            assert c["retransmitted_bytes"] <= window * 1100
+        finally:
+            await client.close()
+            await server.close()
+
+    with caplog.at_level(logging.WARNING):
+        run(main())
+    assert "database or disk is full" in caplog.text
