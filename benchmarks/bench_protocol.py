@@ -271,7 +271,9 @@ def main() -> int:
         "",
         f"Machine: {platform.machine()}, {os.cpu_count()} CPUs, Python "
         f"{platform.python_version()}, uvloop; both ends in one process and one event loop "
-        f"(`benchmarks/bench_protocol.py{' --quick' if q else ''}`).",
+        f"(`benchmarks/bench_protocol.py{' --quick' if q else ''}`); load average "
+        f"{os.getloadavg()[0]:.1f} at the start (other jobs share the machine: absolute rates "
+        "move with it, the interleaved A/B does not).",
         "",
         "## Loopback throughput (client -> server, acknowledged by the server's handler)",
         "",
@@ -325,7 +327,8 @@ def main() -> int:
         f"({100 * (HEADER_SIZE + envelope_small) / 100:.0f} % of its payload) and a 100 kB "
         f"message {HEADER_SIZE + envelope_big} B "
         f"({100 * (HEADER_SIZE + envelope_big) / 100_000:.3f} %). The measured column also "
-        "counts larger msgpack ints for channel numbers >= 128. Acks are cumulative: the "
+        "counts larger msgpack ints for channel numbers >= 128; a sealed frame adds its "
+        "16 B authentication tag. Acks are cumulative: the "
         "reverse direction costs the 'ack bytes' column above (one 23 B Ack frame per up to "
         "64 deliveries or 5 ms, or none when piggybacked on traffic).",
         "",
