@@ -1,4 +1,6 @@
-"""Wire-protocol benchmarks: loopback throughput (100 B and 100 kB messages, plain and TLS),
+"""Wire-protocol benchmarks: loopback throughput (100 B and 100 kB messages; frames sealed or
+not, the A/B of the per-frame AEAD, interleaved and repeated; with TLS), the cost of sealing
+and opening one frame,
 header overhead per message, time to resume after a cut, and goodput through tbf-shaped
 links between network namespaces (root only).
 
@@ -36,8 +38,8 @@ RESULTS = Path(__file__).resolve().parent / "results" / "protocol.md"
 SECRET = b"benchmark-secret-0123456789"
 
 
-def _config(agent: str, role: str) -> SessionConfig:
-    return SessionConfig(role=role, agent_id=agent, secret=SECRET)
+def _config(agent: str, role: str, sealed: bool = True) -> SessionConfig:
+    return SessionConfig(role=role, agent_id=agent, secret=SECRET, seal_frames=sealed)
 
 
 class _Counter:
@@ -54,12 +56,12 @@ def _tls_contexts(tmp: Path) -> tuple[ssl.SSLContext, ssl.SSLContext] | None:
     return self_signed_contexts(tmp)
 
 
-async def _throughput(size: int, count: int, tls: tuple | None) -> dict:
+async def _throughput(size: int, count: int, tls: tuple | None, sealed: bool = True) -> dict:
     sink = _Counter()
-    server = Server(_config("edge", "edge"), sink, ssl=tls[0] if tls else None)
+    server = Server(_config("edge", "edge", sealed), sink, ssl=tls[0] if tls else None)
     host, port = await server.start()
     client = Client(
-        _config("robot", "robot"),
+        _config("robot", "robot", sealed),
         _Counter(),
         host,
         port,
@@ -85,6 +87,7 @@ async def _throughput(size: int, count: int, tls: tuple | None) -> dict:
         "size": size,
         "count": count,
         "tls": tls is not None,
+        "sealed": sealed,
         "msgs_per_s": count / seconds,
         "payload_MB_s": count * size / seconds / 1e6,
         "wire_MB_s": wire_tx / seconds / 1e6,
@@ -187,6 +190,35 @@ def _shaped(rate_kbit: int, count: int, size: int) -> dict:
     }
 
 
+REPEATS = 3
+
+
+def _median_row(rs: list[dict]) -> dict:
+    rates = sorted(r["msgs_per_s"] for r in rs)
+    mid = sorted(rs, key=lambda r: r["msgs_per_s"])[len(rs) // 2]
+    return {**mid, "lo": rates[0], "hi": rates[-1]}
+
+
+def _frame_cost(n: int) -> dict:
+    """µs per seal and per open of one frame (the AEAD alone, no I/O)."""
+    from common.protocol.sealing import session_keys
+
+    by_size = {}
+    for size in (100, 1_000, 100_000):
+        count = n if size < 100_000 else max(n // 20, 50)
+        tx, _ = session_keys(b"k" * 32, b"hello", b"challenge")
+        rx, _ = session_keys(b"k" * 32, b"hello", b"challenge")
+        header, payload = b"h" * 18, random.Random(size).randbytes(size)
+        t0 = time.perf_counter()
+        sealed = [tx.seal(header, payload) for _ in range(count)]
+        t1 = time.perf_counter()
+        for s in sealed:
+            rx.open(header, s, "Blob")
+        t2 = time.perf_counter()
+        by_size[size] = (1e6 * (t1 - t0) / count, 1e6 * (t2 - t1) / count)
+    return {"n": n, "by_size": by_size}
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--quick", action="store_true", help="fewer messages (smoke run)")
@@ -208,9 +240,22 @@ def main() -> int:
     small_n, big_n = (5_000, 100) if q else (50_000, 1_000)
     with tempfile.TemporaryDirectory() as tmp:
         tls = _tls_contexts(Path(tmp))
-    rows = [run(_throughput(100, small_n, None)), run(_throughput(100_000, big_n, None))]
+    # A/B of the per-frame AEAD: sealed and unsealed runs interleaved, REPEATS of each
+    cases: list[tuple[int, int, tuple | None, bool]] = [
+        (size, n, None, sealed)
+        for size, n in ((100, small_n), (100_000, big_n))
+        for sealed in (False, True)
+    ]
     if tls is not None:
-        rows += [run(_throughput(100, small_n, tls)), run(_throughput(100_000, big_n, tls))]
+        cases += [(100, small_n, tls, True), (100_000, big_n, tls, True)]
+    repeats = 1 if q else REPEATS
+    runs: dict[tuple, list[dict]] = {}
+    for _ in range(repeats):
+        for size, n, t, sealed in cases:
+            r = run(_throughput(size, n, t, sealed))
+            runs.setdefault((size, t is not None, sealed), []).append(r)
+    rows = [_median_row(rs) for rs in runs.values()]
+    frame_cost = _frame_cost(2_000 if q else 20_000)
     resume_default = run(_resume(10 if q else 40, 0.05))
     resume_zero = run(_resume(10 if q else 40, 0.0))
     reason = shaping_unavailable()
@@ -226,20 +271,51 @@ def main() -> int:
         "",
         f"Machine: {platform.machine()}, {os.cpu_count()} CPUs, Python "
         f"{platform.python_version()}, uvloop; both ends in one process and one event loop "
-        f"(`benchmarks/bench_protocol.py{' --quick' if q else ''}`).",
+        f"(`benchmarks/bench_protocol.py{' --quick' if q else ''}`); load average "
+        f"{os.getloadavg()[0]:.1f} at the start (other jobs share the machine: absolute rates "
+        "move with it, the interleaved A/B does not).",
         "",
         "## Loopback throughput (client -> server, acknowledged by the server's handler)",
         "",
-        "| payload | messages | TLS | messages/s | payload MB/s | wire MB/s "
+        f"Median of {repeats} runs per row (range in brackets), sealed and unsealed runs "
+        "interleaved on the same machine state. *Sealed*: every frame after the handshake is "
+        "encrypted and authenticated (ChaCha20-Poly1305, `common/protocol/sealing.py`, on by "
+        "default); unsealed is the protocol without it (`seal_frames=False`, kept only for "
+        "this comparison).",
+        "",
+        "| payload | messages | sealed | TLS | messages/s | payload MB/s | wire MB/s "
         "| tx overhead B/msg | ack bytes B/msg |",
-        "|---:|---:|:-:|---:|---:|---:|---:|---:|",
+        "|---:|---:|:-:|:-:|---:|---:|---:|---:|---:|",
     ]
     for r in rows:
         lines.append(
-            f"| {r['size']} B | {r['count']} | {'yes' if r['tls'] else 'no'} "
-            f"| {r['msgs_per_s']:,.0f} | {r['payload_MB_s']:.2f} | {r['wire_MB_s']:.2f} "
+            f"| {r['size']} B | {r['count']} | {'yes' if r['sealed'] else 'no'} "
+            f"| {'yes' if r['tls'] else 'no'} "
+            f"| {r['msgs_per_s']:,.0f} [{r['lo']:,.0f}–{r['hi']:,.0f}] "
+            f"| {r['payload_MB_s']:.2f} | {r['wire_MB_s']:.2f} "
             f"| {r['tx_overhead_per_msg']:.1f} | {r['rx_acks_per_msg']:.2f} |"
         )
+    by = {(r["size"], r["tls"], r["sealed"]): r for r in rows}
+    ratios = [
+        f"{size} B: sealed {by[size, False, True]['msgs_per_s']:,.0f} msg/s = "
+        f"{100 * by[size, False, True]['msgs_per_s'] / by[size, False, False]['msgs_per_s']:.0f} % "
+        "of unsealed"
+        for size in (100, 100_000)
+    ]
+    lines += [
+        "",
+        "Cost of sealing, target >= 50 % of the unsealed throughput: " + "; ".join(ratios) + ".",
+        "",
+        "## Sealing one frame",
+        "",
+        "CPU per frame of `FrameSealer.seal` (sender) and `FrameSealer.open` (receiver), "
+        f"{frame_cost['n']} frames each, in this process:",
+        "",
+        "| payload | seal µs/frame | open µs/frame | seal MB/s |",
+        "|---:|---:|---:|---:|",
+    ]
+    for size, (seal_us, open_us) in frame_cost["by_size"].items():
+        lines.append(f"| {size} B | {seal_us:.2f} | {open_us:.2f} | {size / seal_us:.0f} |")
     lines += [
         "",
         "## Header overhead per message",
@@ -251,7 +327,8 @@ def main() -> int:
         f"({100 * (HEADER_SIZE + envelope_small) / 100:.0f} % of its payload) and a 100 kB "
         f"message {HEADER_SIZE + envelope_big} B "
         f"({100 * (HEADER_SIZE + envelope_big) / 100_000:.3f} %). The measured column also "
-        "counts larger msgpack ints for channel numbers >= 128. Acks are cumulative: the "
+        "counts larger msgpack ints for channel numbers >= 128; a sealed frame adds its "
+        "16 B authentication tag. Acks are cumulative: the "
         "reverse direction costs the 'ack bytes' column above (one 23 B Ack frame per up to "
         "64 deliveries or 5 ms, or none when piggybacked on traffic).",
         "",
@@ -259,7 +336,7 @@ def main() -> int:
         "",
         "Connection aborted (RST) by the proxy, then one 100 B message sent; time until the "
         "server's handler has it (detect, reconnect with jittered backoff, TCP connect, "
-        "4-frame HMAC handshake, replay).",
+        "4-frame HMAC handshake, session keys, replay).",
         "",
         "| reconnect_initial_delay | rounds | median ms | p95 ms | max ms |",
         "|---:|---:|---:|---:|---:|",

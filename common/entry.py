@@ -14,10 +14,12 @@ import asyncio
 import contextlib
 import signal
 from collections.abc import Awaitable, Callable, Sequence
+from pathlib import Path
 
 from common.errors import RecslamError
 from common.logs import add_verbosity_argument, setup_logging
-from common.protocol.credentials import parse_address
+from common.protocol.credentials import SECRET_ENV, parse_address
+from common.transport.tls import TlsFiles
 
 Announce = Callable[[str], None]
 """Where a service's status lines go (the entry points print them on stdout, where
@@ -27,6 +29,40 @@ supervisors and the demo orchestration read them)."""
 def listen_address(text: str) -> tuple[str, int]:
     """``HOST:PORT`` or ``PORT`` (all interfaces) of a service's ``--listen``."""
     return parse_address(text, default_host="0.0.0.0")
+
+
+def add_security_arguments(p: argparse.ArgumentParser) -> None:
+    """``--key-file``, ``--secret-file`` and ``--tls-cert/--tls-key/--tls-ca``: the same on
+    every service (see ``common.protocol.credentials`` and ``common.transport.tls``)."""
+    p.add_argument(
+        "--key-file",
+        type=Path,
+        default=None,
+        metavar="F",
+        help="this component's key file from `recslam keys new` (its own credential and what "
+        "it may verify); default: the operator secret of --secret-file",
+    )
+    p.add_argument(
+        "--secret-file",
+        type=Path,
+        default=None,
+        metavar="F",
+        help=f"operator secret file, derives every credential (default: ${SECRET_ENV})",
+    )
+    p.add_argument("--tls-cert", type=Path, default=None, metavar="PEM", help="TLS certificate")
+    p.add_argument("--tls-key", type=Path, default=None, metavar="PEM", help="TLS private key")
+    p.add_argument(
+        "--tls-ca",
+        type=Path,
+        default=None,
+        metavar="PEM",
+        help="CA bundle: connect with TLS and verify the server; listening: require client "
+        "certificates (frames are sealed either way; TLS is optional)",
+    )
+
+
+def tls_from_args(args: argparse.Namespace) -> TlsFiles:
+    return TlsFiles(args.tls_cert, args.tls_key, args.tls_ca)
 
 
 def service_parser(

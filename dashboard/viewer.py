@@ -1,5 +1,9 @@
 """The dashboard: a viser server plus one polling thread that reads a :class:`MapSource`.
 
+viser listens on a free loopback port; the address users open is the :class:`~dashboard.gate.
+Gate`'s, which checks the access token and the websocket's Origin before passing a
+connection through (viser itself has no access control).
+
 viser runs its own event loop in its own thread; our poll thread calls the source at
 ``update_hz`` (map deltas) and ``stats_hz`` (panels) and pushes changes through viser's
 thread-safe API. Neither touches the services' asyncio loops. Poses are "latest value
@@ -10,6 +14,8 @@ points are sent once, in per-agent chunks (see :mod:`dashboard.map_state`).
 from __future__ import annotations
 
 import logging
+import secrets
+import socket
 import threading
 import time
 from dataclasses import dataclass, field
@@ -18,6 +24,7 @@ import viser
 
 from common.errors import RecslamError
 from common.map_view import MapSource
+from dashboard.gate import Gate
 from dashboard.map_state import live_ate_rmse
 from dashboard.panels import Panels
 from dashboard.scene import MapScene, SceneConfig
@@ -33,13 +40,16 @@ class DashboardError(RecslamError):
 class DashboardConfig:
     """Where and how fast the dashboard serves.
 
-    host / port: HTTP and websocket address (port 0 is not supported by viser: pick a free
-    one); update_hz: map polls per second; stats_hz: panel refreshes per second;
+    host / port: HTTP and websocket address (a fixed port: pick a free one);
+    access_token: required of every browser (part of :attr:`Dashboard.url`); None serves
+    anyone who can reach the address (see :func:`new_access_token`);
+    update_hz: map polls per second; stats_hz: panel refreshes per second;
     bandwidth_window_s: history shown in the bandwidth plots; scene: look of the 3D scene.
     """
 
-    host: str = "0.0.0.0"
+    host: str = "127.0.0.1"
     port: int = 8080
+    access_token: str | None = field(default=None, repr=False)
     update_hz: float = 10.0
     stats_hz: float = 1.0
     bandwidth_window_s: float = 60.0
@@ -54,6 +64,11 @@ class DashboardConfig:
             )
 
 
+def new_access_token() -> str:
+    """A fresh random dashboard access token (URL-safe)."""
+    return secrets.token_urlsafe(18)
+
+
 class Dashboard:
     """Serve the map of ``source`` at ``http://host:port``; :meth:`start` / :meth:`stop`, or
     use it as a context manager. Thread-safe counters: :attr:`version`, :attr:`ticks`."""
@@ -62,6 +77,7 @@ class Dashboard:
         self._source = source
         self._cfg = config or DashboardConfig()
         self._server: viser.ViserServer | None = None
+        self._gate: Gate | None = None
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
         self._lock = threading.Lock()  # serialises scene changes (poll thread vs GUI callbacks)
@@ -73,7 +89,8 @@ class Dashboard:
     @property
     def url(self) -> str:
         host = "localhost" if self._cfg.host in ("0.0.0.0", "::") else self._cfg.host
-        return f"http://{host}:{self._cfg.port}"
+        token = self._cfg.access_token
+        return f"http://{host}:{self._cfg.port}/" + (f"?token={token}" if token else "")
 
     @property
     def server(self) -> viser.ViserServer:
@@ -86,13 +103,16 @@ class Dashboard:
         polling to the caller (:meth:`poll_once`), e.g. to step a test deterministically."""
         if self._server is not None:
             raise DashboardError("dashboard already started")
-        server = viser.ViserServer(host=self._cfg.host, port=self._cfg.port, verbose=False)
-        if server.get_port() != self._cfg.port:
+        inner = _free_loopback_port()
+        server = viser.ViserServer(host="127.0.0.1", port=inner, verbose=False)
+        gate = Gate(self._cfg.host, self._cfg.port, server.get_port(), self._cfg.access_token)
+        try:
+            gate.start()
+        except OSError as exc:
             server.stop()
-            raise DashboardError(
-                f"port {self._cfg.port} is taken (viser chose {server.get_port()})"
-            )
-        self._server = server
+            where = f"{self._cfg.host}:{self._cfg.port}"
+            raise DashboardError(f"cannot listen on {where}: {exc}") from None
+        self._server, self._gate = server, gate
         server.gui.configure_theme(control_width="large", dark_mode=False, show_logo=False)
         server.initial_camera.position = (2.0, -10.0, 8.0)
         server.initial_camera.look_at = (2.0, 0.0, 0.0)
@@ -183,6 +203,9 @@ class Dashboard:
         if self._thread is not None:
             self._thread.join(timeout=5.0)
             self._thread = None
+        if self._gate is not None:
+            self._gate.stop()
+            self._gate = None
         if self._server is not None:
             self._server.stop()
             self._server = None
@@ -192,3 +215,9 @@ class Dashboard:
 
     def __exit__(self, *exc: object) -> None:
         self.stop()
+
+
+def _free_loopback_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])

@@ -25,6 +25,7 @@ COMMAND_MODULES = (
     "dashboard",
     "evaluate",
     "vocab",
+    "keys",
     "experiment",
 )
 

@@ -8,7 +8,7 @@ which is where progress and bandwidth come from.
 
 Run folder layout::
 
-    RUN_DIR/secret            shared secret (0600)
+    RUN_DIR/keys/             operator secret and one key file per process (0600)
     RUN_DIR/logs/*.log        one log per process (stdout + stderr)
     RUN_DIR/stats/*.json      edge and cloud counters (last sample), stats/samples.jsonl history
     RUN_DIR/state/{edge,cloud} the services' state directories
@@ -20,7 +20,7 @@ from __future__ import annotations
 import json
 import logging
 import os
-import secrets
+import re
 import signal
 import socket
 import subprocess
@@ -34,6 +34,7 @@ from typing import Any
 
 from common.errors import RecslamError
 from common.links import WireFormat
+from common.protocol.credentials import issue_keys
 
 log = logging.getLogger(__name__)
 
@@ -118,9 +119,10 @@ class Job:
         if not names:
             raise OrchestrationError(f"{config.dataset}: no */mav0 sequence folders")
         self.robot_names = names
-        self.secret_path = self.run_dir / "secret"
-        self.secret_path.write_text(secrets.token_hex(24))
-        self.secret_path.chmod(0o600)
+        # One identity per process: the operator secret stays here, each process gets its
+        # own key file (the robots only their own credential).
+        self.keys_dir = self.run_dir / "keys"
+        issue_keys(self.keys_dir, ["edge"], names)
         self.cloud_port = free_port()
         self.edge_port = free_port()
         self.services: dict[str, Service] = {}
@@ -146,8 +148,8 @@ class Job:
             str(self.run_dir / "results"),
             "--groundtruth",
             str(c.dataset),
-            "--secret-file",
-            str(self.secret_path),
+            "--key-file",
+            str(self.keys_dir / "cloud.keys"),
             "--output-every",
             "0",
             "--stats-out",
@@ -168,8 +170,8 @@ class Job:
             f"127.0.0.1:{self.cloud_port}",
             "--state-dir",
             str(self.run_dir / "state" / "edge"),
-            "--secret-file",
-            str(self.secret_path),
+            "--key-file",
+            str(self.keys_dir / "edge-edge.keys"),
             "--worker",
             c.worker,
             "--wire",
@@ -191,8 +193,8 @@ class Job:
             name,
             "--rate",
             c.rate,
-            "--secret-file",
-            str(self.secret_path),
+            "--key-file",
+            str(self.keys_dir / f"robot-{name}.keys"),
         )
         if c.max_frames is not None:
             argv += ["--max-frames", str(c.max_frames)]
@@ -237,6 +239,11 @@ class Job:
         self.robot_started_at = time.time()
         for name in self.robot_names:
             self.launch(name, self.robot_argv(name))
+
+    def dashboard_url(self) -> str | None:
+        """The URL (with its access token) the cloud announced for its dashboard."""
+        found = re.search(r"dashboard at (\S+)", self.services["cloud"].log_text())
+        return found.group(1) if found else None
 
     def start_edge(self) -> None:
         """Start (or restart, on the same state directory) the edge and wait until it listens."""
@@ -423,7 +430,7 @@ def run_and_report(
         say(f"starting cloud, edge and {len(job.robot_names)} robots (run folder {job.run_dir})")
         job.start()
         if config.dashboard_port:
-            say(f"dashboard: http://127.0.0.1:{config.dashboard_port}")
+            say(f"dashboard: {job.dashboard_url()}")
         robots_t0 = time.perf_counter()
         codes = job.wait_robots(timeout_s, tick)
         stream_s = time.perf_counter() - robots_t0

@@ -6,6 +6,7 @@ No sockets, clocks or asyncio in here; ``common.transport`` drives it over TCP.
 import logging
 
 from common.protocol.accounting import TrafficCounters
+from common.protocol.auth import Identity, Keyring
 from common.protocol.config import SessionConfig
 from common.protocol.errors import (
     AuthenticationError,
@@ -24,6 +25,7 @@ from common.protocol.events import (
     MessageReceived,
     PeerAuthenticated,
     PeerClosed,
+    PeerRejected,
 )
 from common.protocol.framing import HEADER_SIZE, PROTOCOL_VERSION, FrameDecoder, encode_frame
 from common.protocol.link import Link, LinkLimits
@@ -52,7 +54,9 @@ __all__ = [
     "FileOutboxStore",
     "FrameDecoder",
     "HandshakeComplete",
+    "Identity",
     "InboundPosition",
+    "Keyring",
     "Link",
     "LinkLimits",
     "LocalProtocolError",
@@ -63,6 +67,7 @@ __all__ = [
     "OutboxFullError",
     "PeerAuthenticated",
     "PeerClosed",
+    "PeerRejected",
     "PeerRejectedError",
     "PeerTimeoutError",
     "ProtocolError",

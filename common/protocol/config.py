@@ -19,7 +19,13 @@ class SessionConfig:
     Attributes:
         role: this endpoint's role ("robot", "edge", "cloud", ...), sent to the peer.
         agent_id: this endpoint's id; a server keys links by the client's agent id.
-        secret: shared secret, at least 16 bytes (never sent).
+        secret: the operator secret, at least 16 bytes (never sent): shorthand for
+            ``keys=Keyring.from_secret(secret)``, which derives every credential.
+        keys: the key material of this endpoint (:class:`~common.protocol.auth.Keyring`);
+            give ``secret`` or ``keys``. A client's keys must hold its own credential.
+        seal_frames: authenticated encryption of every frame after the handshake (see
+            ``sealing.py``). Off only to measure its cost: without it a man in the middle
+            can change, inject or replay frames.
         max_frame_size: largest frame accepted or sent, header included (bytes).
         heartbeat_interval: send a Heartbeat after this many idle seconds.
         idle_timeout: peer silent this long (s) = dead; must exceed heartbeat_interval.
@@ -36,11 +42,13 @@ class SessionConfig:
 
     role: str
     agent_id: str
-    secret: bytes = field(repr=False)
+    secret: bytes | None = field(default=None, repr=False)
+    keys: auth.Keyring | None = field(default=None, repr=False)
+    seal_frames: bool = True
     max_frame_size: int = DEFAULT_MAX_FRAME_SIZE
     heartbeat_interval: float = 2.0
     idle_timeout: float = 10.0
-    handshake_timeout: float = 10.0
+    handshake_timeout: float = 5.0
     retransmit_timeout: float = 5.0
     max_retransmit_timeout: float = 60.0
     ack_delay: float = 0.005
@@ -51,7 +59,10 @@ class SessionConfig:
     max_outbox_bytes: int = 256 * 1024 * 1024
 
     def __post_init__(self) -> None:
-        auth.check_secret(self.secret)
+        if (self.secret is None) == (self.keys is None):
+            raise LocalProtocolError("give exactly one of secret= and keys=")
+        if self.keys is None:
+            object.__setattr__(self, "keys", auth.Keyring.from_secret(self.secret or b""))
         for name in ("role", "agent_id"):
             value = getattr(self, name)
             if not isinstance(value, str) or not 0 < len(value) <= MAX_NAME_LENGTH:
@@ -60,6 +71,20 @@ class SessionConfig:
             raise LocalProtocolError("idle_timeout must exceed heartbeat_interval")
         if min(self.window_messages, self.window_bytes, self.ack_every) < 1:
             raise LocalProtocolError("windows and ack_every must be positive")
+
+    @property
+    def keyring(self) -> auth.Keyring:
+        assert self.keys is not None  # set by __post_init__
+        return self.keys
+
+    def own_credential(self) -> bytes:
+        """This endpoint's credential as a client (LocalProtocolError if its keys lack it)."""
+        credential = self.keyring.credential(self.role, self.agent_id)
+        if credential is None:
+            raise LocalProtocolError(
+                f"the keys hold no credential for {self.role} {self.agent_id!r}"
+            )
+        return credential
 
     def link_limits(self) -> LinkLimits:
         return LinkLimits(self.max_outbox_messages, self.max_outbox_bytes, self.max_frame_size)

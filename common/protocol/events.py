@@ -65,4 +65,19 @@ class PeerClosed:
     reason: str
 
 
-Event = PeerAuthenticated | HandshakeComplete | MessageReceived | Acknowledged | PeerClosed
+@dataclass(frozen=True)
+class PeerRejected:
+    """The peer's application refused our message ``seq`` for good (it will not be resent)."""
+
+    seq: int
+    reason: str
+
+
+Event = (
+    PeerAuthenticated
+    | HandshakeComplete
+    | MessageReceived
+    | Acknowledged
+    | PeerClosed
+    | PeerRejected
+)

@@ -5,13 +5,16 @@ Wire layout of one frame (network byte order, ``HEADER_SIZE`` = 22 bytes)::
     offset size field
     0      2    magic        b"RS"
     2      1    version      PROTOCOL_VERSION
-    3      1    flags        bit 0 = retransmission; other bits must be 0
+    3      1    flags        bit 0 = retransmission, bit 1 = sealed; other bits must be 0
     4      2    type_id      message type (see ``messages.py``)
     6      4    seq          sequence number of an application message, 0 for control frames
     10     4    ack          cumulative ack: highest sequence the sender's application delivered
     14     4    length       payload length in bytes
     18     4    crc32        CRC-32 of bytes 0..17 followed by the payload
-    22     ...  payload      msgpack (see ``messages.py``)
+    22     ...  payload      msgpack (see ``messages.py``); sealed: ciphertext + 16-byte tag
+
+After the handshake every frame is sealed (``sealing.py``): its payload is encrypted and
+authenticated together with bytes 0..17 of the header, which stay readable.
 
 The decoder validates a header as soon as its 22 bytes have arrived, so a frame whose
 declared length exceeds ``max_frame_size`` is refused before any of its payload is buffered.
@@ -23,14 +26,17 @@ from __future__ import annotations
 
 import struct
 import zlib
+from collections.abc import Callable
 from dataclasses import dataclass
 
 from common.protocol.errors import LocalProtocolError, RemoteProtocolError
 
 MAGIC = b"RS"
-PROTOCOL_VERSION = 1
+PROTOCOL_VERSION = 2
+"""2: frames sealed after the handshake, per-identity credentials, ``Reject``."""
 FLAG_RETRANSMIT = 0x01
-KNOWN_FLAGS = FLAG_RETRANSMIT
+FLAG_SEALED = 0x02
+KNOWN_FLAGS = FLAG_RETRANSMIT | FLAG_SEALED
 MAX_SEQ = 0xFFFF_FFFF
 _PREFIX = struct.Struct("!2sBBHIII")  # everything but the CRC
 _CRC = struct.Struct("!I")
@@ -52,6 +58,12 @@ class Frame:
     def size(self) -> int:
         return HEADER_SIZE + len(self.payload)
 
+    def header(self) -> bytes:
+        """Header bytes 0..17 as sent (the associated data of a sealed frame)."""
+        return _PREFIX.pack(
+            MAGIC, PROTOCOL_VERSION, self.flags, self.type_id, self.seq, self.ack, len(self.payload)
+        )
+
 
 def encode_frame(
     type_id: int,
@@ -61,8 +73,13 @@ def encode_frame(
     ack: int = 0,
     flags: int = 0,
     max_frame_size: int = DEFAULT_MAX_FRAME_SIZE,
+    seal: Callable[[bytes, bytes], bytes] | None = None,
+    seal_overhead: int = 0,
 ) -> bytes:
     """Return header + payload for one frame.
+
+    ``seal(header, payload) -> sealed`` (see ``sealing.py``) encrypts the payload; the
+    frame then carries ``FLAG_SEALED`` and ``len(payload) + seal_overhead`` payload bytes.
 
     Raises :class:`LocalProtocolError` if a field is out of range or the frame would exceed
     ``max_frame_size`` bytes (header included).
@@ -73,11 +90,18 @@ def encode_frame(
         raise LocalProtocolError(f"seq {seq} or ack {ack} out of range 0..{MAX_SEQ}")
     if flags & ~KNOWN_FLAGS:
         raise LocalProtocolError(f"unknown flag bits 0x{flags:02x}")
-    if HEADER_SIZE + len(payload) > max_frame_size:
+    length = len(payload) + (seal_overhead if seal is not None else 0)
+    if HEADER_SIZE + length > max_frame_size:
         raise LocalProtocolError(
-            f"frame of {HEADER_SIZE + len(payload)} bytes exceeds max_frame_size {max_frame_size}"
+            f"frame of {HEADER_SIZE + length} bytes exceeds max_frame_size {max_frame_size}"
         )
-    prefix = _PREFIX.pack(MAGIC, PROTOCOL_VERSION, flags, type_id, seq, ack, len(payload))
+    if seal is not None:
+        flags |= FLAG_SEALED
+    prefix = _PREFIX.pack(MAGIC, PROTOCOL_VERSION, flags, type_id, seq, ack, length)
+    if seal is not None:
+        payload = seal(prefix, payload)
+        if len(payload) != length:
+            raise LocalProtocolError(f"seal() added {len(payload) - length + seal_overhead} B")
     crc = zlib.crc32(payload, zlib.crc32(prefix))
     return prefix + _CRC.pack(crc) + payload
 

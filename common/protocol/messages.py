@@ -320,6 +320,16 @@ class Close(Message):
     reason: str
 
 
+@message(0x0008)
+class Reject(Message):
+    """Receiver -> sender: the receiving application refused message ``seq`` for good (its
+    handler raised ``RejectedMessageError``). The message counts as delivered and is never
+    redelivered; the sender learns why, and its application decides to skip or to stop."""
+
+    seq: int
+    reason: str
+
+
 # -------------------------------------------------------------------- application messages
 @message(0x0100)
 class Blob(Message):

@@ -8,10 +8,15 @@ come from :meth:`Session.data_to_send`, and time enters only as the ``now`` argu
 Handshake (client left, server right; every legal transition is in ``_TRANSITIONS``)::
 
     HELLO_SENT     --Hello-->       AWAIT_HELLO -> CHALLENGE_SENT
-    AUTH_SENT      <--Challenge--   (server proved the secret)
+    AUTH_SENT      <--Challenge--   (server proved the client's credential)
                    --Auth-->        AUTHENTICATED: event PeerAuthenticated; the caller
                                     picks the peer's Link and calls attach() (or refuse())
-    ESTABLISHED    <--Welcome--     ESTABLISHED
+    ESTABLISHED    <==Welcome==     ESTABLISHED
+
+The credential is the one of the identity the client's Hello claims (``auth.py``); every
+frame after Auth (``==``) is sealed with keys derived from it and the transcript
+(``sealing.py``): a frame changed, injected, replayed or reordered on the way closes the
+connection before anything in it is used.
 
 Reliability: application messages sit in the link's outbox until the peer's *application*
 delivered them (the receiver acks after ``mark_delivered``, never on arrival); acks are
@@ -31,7 +36,7 @@ import logging
 from collections import deque
 from collections.abc import Callable
 
-from common.protocol import auth
+from common.protocol import auth, sealing
 from common.protocol.accounting import TrafficCounters
 from common.protocol.config import MAX_NAME_LENGTH, SessionConfig
 from common.protocol.errors import (
@@ -49,9 +54,11 @@ from common.protocol.events import (
     MessageReceived,
     PeerAuthenticated,
     PeerClosed,
+    PeerRejected,
 )
 from common.protocol.framing import (
     FLAG_RETRANSMIT,
+    FLAG_SEALED,
     PROTOCOL_VERSION,
     Frame,
     FrameDecoder,
@@ -67,6 +74,7 @@ from common.protocol.messages import (
     Heartbeat,
     Hello,
     Message,
+    Reject,
     Welcome,
     decode_payload,
     encode_payload,
@@ -125,6 +133,10 @@ class Session:
         self._out: list[bytes] = []
         self._nonce = nonce_factory()
         self._hello_payload = b""
+        self._challenge_payload = b""
+        self._key = config.own_credential() if client else b""  # the client's credential
+        self._tx: sealing.FrameSealer | None = None  # sealing of what we send, once keyed
+        self._rx: sealing.FrameSealer | None = None  # opening of what we receive
         self._hello: Hello | None = None
         self._handshake_deadline: float | None = now + config.handshake_timeout
         self._last_rx = now
@@ -242,6 +254,13 @@ class Session:
         elif self._ack_deadline is None:
             self._ack_deadline = now + self.config.ack_delay
 
+    def reject(self, seq: int, reason: str, now: float) -> None:
+        """The application refused message ``seq`` for good: it counts as delivered (it is
+        acknowledged and never redelivered) and the peer is told why with a ``Reject``."""
+        self.mark_delivered(seq, now)
+        if self.state is State.ESTABLISHED:
+            self._emit(Reject(seq, reason[:500]))
+
     def data_to_send(self, now: float, limit: int = 1 << 20) -> list[bytes]:
         """Frames to write, in order: queued control frames, then outbox entries in window.
 
@@ -304,6 +323,8 @@ class Session:
         cls = message_class(frame.type_id)
         self._last_rx = now
         self.counters.record("rx", cls.__name__, frame.size)
+        if frame.flags & FLAG_SEALED or self._rx is not None:
+            frame = self._open(cls, frame)
         if not cls.CONTROL:
             self._on_application(cls, frame)
         else:
@@ -320,6 +341,19 @@ class Session:
             method(self, decode_payload(frame.type_id, frame.payload), frame)
         if self.state is State.ESTABLISHED:
             self._on_ack(frame.ack, now)
+
+    def _open(self, cls: type[Message], frame: Frame) -> Frame:
+        if self._rx is None:
+            raise RemoteProtocolError(f"sealed {cls.__name__} before the handshake agreed keys")
+        if not frame.flags & FLAG_SEALED:
+            if cls is Close and self.state is State.AUTH_SENT:
+                return frame  # the server refused our Auth: it could not seal this Close
+            raise RemoteProtocolError(
+                f"unsealed {cls.__name__} after the handshake (injected, or frame sealing is "
+                "off at the peer)"
+            )
+        payload = self._rx.open(frame.header(), frame.payload, cls.__name__)
+        return dataclasses.replace(frame, flags=frame.flags & ~FLAG_SEALED, payload=payload)
 
     def _on_application(self, cls: type[Message], frame: Frame) -> None:
         if self.state is not State.ESTABLISHED:
@@ -375,6 +409,10 @@ class Session:
             raise RemoteProtocolError(f"Hello nonce must be {auth.NONCE_SIZE} bytes")
         self._hello, self._hello_payload = msg, frame.payload
         self.peer_role, self.peer_agent_id = msg.role, msg.agent_id
+        key = self.config.keyring.credential(msg.role, msg.agent_id)
+        if key is None:
+            raise AuthenticationError(f"no credential for {msg.role} {msg.agent_id!r} here")
+        self._key = key
         unsigned = Challenge(
             PROTOCOL_VERSION,
             SCHEMA_VERSION,
@@ -383,8 +421,10 @@ class Session:
             self._nonce,
             b"",
         )
-        mac = auth.server_mac(self.config.secret, frame.payload, encode_payload(unsigned))
-        self._emit(dataclasses.replace(unsigned, mac=mac))
+        mac = auth.server_mac(key, frame.payload, encode_payload(unsigned))
+        challenge = dataclasses.replace(unsigned, mac=mac)
+        self._challenge_payload = encode_payload(challenge)
+        self._emit_payload(Challenge, self._challenge_payload)
         self.state = State.CHALLENGE_SENT
 
     def _on_challenge(self, msg: Challenge, frame: Frame) -> None:
@@ -392,33 +432,27 @@ class Session:
         _check_name("role", msg.role)
         _check_name("agent_id", msg.agent_id)
         unsigned = encode_payload(dataclasses.replace(msg, mac=b""))
-        expected = auth.server_mac(self.config.secret, self._hello_payload, unsigned)
+        expected = auth.server_mac(self._key, self._hello_payload, unsigned)
         if not auth.macs_equal(expected, msg.mac):
-            raise AuthenticationError("server failed authentication (wrong shared secret?)")
+            raise AuthenticationError(
+                f"server failed authentication: it does not hold the credential of "
+                f"{self.config.role} {self.config.agent_id!r} (wrong key or secret?)"
+            )
         self.peer_role, self.peer_agent_id = msg.role, msg.agent_id
-        mac = auth.client_mac(self.config.secret, self._hello_payload, frame.payload)
-        self._emit(Auth(mac))
+        self._challenge_payload = frame.payload
+        self._emit(Auth(auth.client_mac(self._key, self._hello_payload, frame.payload)))
+        self._start_sealing()
         self.state = State.AUTH_SENT
 
     def _on_auth(self, msg: Auth, frame: Frame) -> None:
         assert self._hello is not None
-        unsigned = Challenge(
-            PROTOCOL_VERSION,
-            SCHEMA_VERSION,
-            self.config.role,
-            self.config.agent_id,
-            self._nonce,
-            b"",
-        )
-        server_mac = auth.server_mac(
-            self.config.secret, self._hello_payload, encode_payload(unsigned)
-        )
-        challenge_payload = encode_payload(dataclasses.replace(unsigned, mac=server_mac))
-        expected = auth.client_mac(self.config.secret, self._hello_payload, challenge_payload)
+        expected = auth.client_mac(self._key, self._hello_payload, self._challenge_payload)
         if not auth.macs_equal(expected, msg.mac):
             raise AuthenticationError(
-                f"client {self._hello.agent_id!r} failed authentication (wrong shared secret?)"
+                f"client {self._hello.role} {self._hello.agent_id!r} failed authentication "
+                "(wrong credential or secret?)"
             )
+        self._start_sealing()
         self.state = State.AUTHENTICATED
         self._events.append(PeerAuthenticated(self._hello.role, self._hello.agent_id))
 
@@ -436,6 +470,12 @@ class Session:
         self.state = State.CLOSED
         self.close_reason = f"peer closed (code {msg.code}): {msg.reason}"
         self._events.append(PeerClosed(msg.code, msg.reason))
+
+    def _on_reject(self, msg: Reject, frame: Frame) -> None:
+        assert self.link is not None
+        if not 0 < msg.seq < self.link.next_seq:
+            raise RemoteProtocolError(f"Reject of seq {msg.seq}, never sent")
+        self._events.append(PeerRejected(msg.seq, msg.reason))
 
     def _on_noop(self, msg: Message, frame: Frame) -> None:
         """Ack and Heartbeat: the header ack and the receive time are all they carry."""
@@ -481,6 +521,13 @@ class Session:
         else:
             link.switch_inbound_stream(peer_out_stream, peer_first_unacked)
         self._ack_sent = link.last_delivered
+
+    def _start_sealing(self) -> None:
+        """From the next frame on, both directions are sealed (if configured)."""
+        if not self.config.seal_frames:
+            return
+        c2s, s2c = sealing.session_keys(self._key, self._hello_payload, self._challenge_payload)
+        self._tx, self._rx = (c2s, s2c) if self.client else (s2c, c2s)
 
     def _establish(self) -> None:
         assert self.link is not None
@@ -546,6 +593,8 @@ class Session:
             ack=ack,
             flags=flags,
             max_frame_size=self.config.max_frame_size,
+            seal=self._tx.seal if self._tx is not None else None,
+            seal_overhead=sealing.TAG_SIZE,
         )
 
     def _count_tx(self, type_name: str, nbytes: int, flags: int) -> None:
@@ -594,4 +643,6 @@ _TRANSITIONS: dict[tuple[bool, State, type[Message]], Callable[..., None]] = {
     (False, State.ESTABLISHED, Ack): Session._on_noop,
     (True, State.ESTABLISHED, Heartbeat): Session._on_noop,
     (False, State.ESTABLISHED, Heartbeat): Session._on_noop,
+    (True, State.ESTABLISHED, Reject): Session._on_reject,
+    (False, State.ESTABLISHED, Reject): Session._on_reject,
 }

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import logging
 import ssl as ssl_module
 from collections.abc import Awaitable, Callable, Coroutine
@@ -22,6 +23,7 @@ from common.protocol import (
     MessageReceived,
     PeerAuthenticated,
     PeerClosed,
+    PeerRejected,
     PeerRejectedError,
     ProtocolError,
     RejectedMessageError,
@@ -42,10 +44,13 @@ class TransportConfig:
     Attributes:
         max_peers: authenticated peers a server serves at once; one more is refused with a
             reason once it has authenticated (a known peer reconnecting always gets in).
-        max_pending: connections a server holds that have not authenticated yet; a newcomer
-            beyond this drops the oldest of them, so sockets that connect and stall (or
-            never finish the handshake) cannot keep peers out: they are counted apart from
-            the peers and only ever push each other out.
+        max_pending: connections a server holds that have not authenticated yet (each for
+            at most the handshake timeout); a newcomer beyond this drops the oldest pending
+            connection of the source address that holds the most, so sockets that connect
+            and stall cannot keep peers out: they are counted apart from the peers and only
+            ever push each other out.
+        max_pending_per_source: likewise per source address: a newcomer beyond this drops
+            the oldest pending connection from the same address.
         accept_roles: roles a server serves (None = any authenticated role).
         read_chunk_bytes: bytes per socket read.
         write_chunk_bytes: bytes of frames handed to the socket before awaiting drain.
@@ -53,10 +58,17 @@ class TransportConfig:
         reconnect_max_delay: cap of the reconnect delay (s).
         reconnect_jitter: each delay is multiplied by uniform(1 - j, 1 + j).
         connect_timeout: TCP (+TLS) connect timeout (s).
+        unreachable_warning_interval: a client that cannot connect warns at the first
+            failure and then at most this often (s), with the attempt count.
+        handler_retry_initial: a handler that raised (other than ``RejectedMessageError``,
+            e.g. a full disk) is retried on the same connection after this delay (s),
+            doubled per failure; the sender is held back by the receive window meanwhile.
+        handler_retry_max: cap of that delay (s).
     """
 
     max_peers: int = 64
-    max_pending: int = 32
+    max_pending: int = 256
+    max_pending_per_source: int = 32
     accept_roles: tuple[str, ...] | None = None
     read_chunk_bytes: int = 256 * 1024
     write_chunk_bytes: int = 1024 * 1024
@@ -64,6 +76,9 @@ class TransportConfig:
     reconnect_max_delay: float = 5.0
     reconnect_jitter: float = 0.5
     connect_timeout: float = 10.0
+    unreachable_warning_interval: float = 30.0
+    handler_retry_initial: float = 0.5
+    handler_retry_max: float = 30.0
 
 
 @dataclass(frozen=True)
@@ -95,10 +110,30 @@ def run(main: Coroutine[Any, Any, T], *, use_uvloop: bool = True) -> T:
 
 
 class Peer:
-    """The link to one remote agent plus its runtime: senders, delivery task, connection."""
+    """The link to one remote agent plus its runtime: senders, delivery task, connection.
+
+    Handler failures are split by blame. ``RejectedMessageError`` (the sender's fault: an
+    undecodable payload, a calibration that does not fit, a message about an agent the
+    sender does not serve): that message counts as delivered, the sender gets a ``Reject``
+    with the reason and never resends it. Any other exception (a local fault: disk full,
+    read-only state, a bug): the same delivery is retried with a doubling delay on the same
+    connection, while the receive window holds the sender back: no reconnect, no replay.
+
+    Args:
+        stop_on_reject: when the peer rejects one of *our* messages, later ``send`` and
+            ``flush`` calls raise PeerRejectedError (a robot: its stream cannot go on
+            without that message); False logs the reason and carries on (an edge's uplink).
+    """
 
     def __init__(
-        self, name: str, link: Link, handler: Handler, store: DeliveryStore | None
+        self,
+        name: str,
+        link: Link,
+        handler: Handler,
+        store: DeliveryStore | None,
+        transport: TransportConfig | None = None,
+        *,
+        stop_on_reject: bool = True,
     ) -> None:
         self.agent_id = name
         self.role = ""
@@ -112,6 +147,10 @@ class Peer:
         self._delivery = asyncio.create_task(self._deliver_loop(), name=f"deliver-{name}")
         self.attach_lock = asyncio.Lock()
         self.rejected: str | None = None  # the peer's reason when it refused our message
+        self.rejections: list[tuple[int, str]] = []  # (seq, reason) the peer refused, latest 100
+        self.stop_on_reject = stop_on_reject
+        self._transport = transport or TransportConfig()
+        self.handler_failures = 0
 
     @property
     def connected(self) -> bool:
@@ -151,6 +190,7 @@ class Peer:
             self._check_rejected()
             self._space.clear()
             await self._space.wait()
+        self._check_rejected()  # a message was refused (and so counts as acknowledged)
 
     def reject(self, reason: str) -> None:
         """The peer refused a message of ours (``CloseCode.REJECTED``): senders and flushers
@@ -187,62 +227,113 @@ class Peer:
             self.agent_id, self.role = ev.agent_id, ev.role
             self._established.set()
             self._space.set()
+        elif isinstance(ev, PeerRejected):
+            logger.error("%s refused our message seq %d: %s", self.agent_id, ev.seq, ev.reason)
+            self.rejections = [*self.rejections[-99:], (ev.seq, ev.reason)]
+            if self.stop_on_reject:
+                self.reject(ev.reason)
 
     async def _deliver_loop(self) -> None:
         while True:
             ev = await self._inbox.get()
             delivery = Delivery(self.agent_id, self.role, ev.message, ev.seq, ev.stream_id)
+            refused: str | None = None
             try:
-                await self._handler(delivery)
-            except asyncio.CancelledError:
-                raise
-            except RejectedMessageError as exc:  # the handler refused the message for good
+                await self._retrying(ev, functools.partial(self._handler, delivery), "handler")
+            except RejectedMessageError as exc:  # the sender's fault: refuse it, once
+                refused = str(exc)
                 logger.warning(
-                    "%s seq %d from %s refused: %s; closing that connection",
+                    "%s seq %d from %s refused: %s (the sender is told; not redelivered)",
                     type(ev.message).__name__,
                     ev.seq,
                     self.agent_id,
-                    exc,
+                    refused,
                 )
-                self._rewind(CloseCode.REJECTED, str(exc))
-                continue
-            except Exception:
-                logger.exception(
-                    "handler failed on %s seq %d from %s; dropping the connection, the "
-                    "message will be redelivered",
-                    type(ev.message).__name__,
-                    ev.seq,
-                    self.agent_id,
-                )
-                self._rewind()
+            except _StaleDeliveryError:
                 continue
             if ev.stream_id != self.link.in_stream_id:
                 continue  # the peer restarted on a new stream meanwhile: nothing to ack
-            if self._store is not None:
-                self._store.save(self.agent_id, InboundPosition(ev.stream_id, ev.seq))
+            store = self._store
+            if store is not None:
+                position = InboundPosition(ev.stream_id, ev.seq)
+                try:
+                    await self._retrying(
+                        ev, _awaitable(store.save, self.agent_id, position), "save"
+                    )
+                except _StaleDeliveryError:
+                    continue
             conn = self._conn
+            now = asyncio.get_running_loop().time()
             if conn is not None and conn.session.established:
-                conn.session.mark_delivered(ev.seq, asyncio.get_running_loop().time())
+                if refused is None:
+                    conn.session.mark_delivered(ev.seq, now)
+                else:
+                    conn.session.reject(ev.seq, refused, now)
                 conn.kick()
                 conn.arm_timer()
             else:
                 self.link.mark_delivered(ev.seq)
 
-    def _rewind(
-        self,
-        code: CloseCode = CloseCode.HANDLER_FAILED,
-        reason: str = "handler failed; resume to redeliver",
+    async def _retrying(
+        self, ev: MessageReceived, action: Callable[[], Awaitable[None]], what: str
     ) -> None:
-        while not self._inbox.empty():
-            self._inbox.get_nowait()
-        self.link.rewind_inbound()
-        if self._conn is not None:
-            self._conn.close(code, reason[:200])
+        """Run ``action`` until it succeeds; RejectedMessageError propagates (the sender's
+        fault), anything else is a local fault retried with a doubling, capped delay."""
+        delay = self._transport.handler_retry_initial
+        failures = 0
+        while True:
+            try:
+                await action()
+                return
+            except (asyncio.CancelledError, RejectedMessageError):
+                raise
+            except Exception as exc:
+                failures += 1
+                self.handler_failures += 1
+                name = type(ev.message).__name__
+                if failures == 1:
+                    logger.exception(
+                        "%s failed on %s seq %d from %s; retrying in %.1fs (held back, "
+                        "nothing is lost)",
+                        what,
+                        name,
+                        ev.seq,
+                        self.agent_id,
+                        delay,
+                    )
+                else:
+                    logger.error(
+                        "%s still failing on %s seq %d from %s after %d attempts: %s: %s; "
+                        "retrying in %.1fs",
+                        what,
+                        name,
+                        ev.seq,
+                        self.agent_id,
+                        failures,
+                        type(exc).__name__,
+                        exc,
+                        delay,
+                    )
+            await asyncio.sleep(delay)
+            delay = min(2 * delay, self._transport.handler_retry_max)
+            if ev.stream_id != self.link.in_stream_id:
+                raise _StaleDeliveryError
 
     async def _stop(self) -> None:
         self._delivery.cancel()
         with contextlib.suppress(asyncio.CancelledError):
             await self._delivery
+
+
+class _StaleDeliveryError(Exception):
+    """The peer moved to a new stream while a delivery was being retried: drop it."""
+
+
+def _awaitable(fn: Callable[..., None], *args: Any) -> Callable[[], Awaitable[None]]:
+    async def call() -> None:
+        fn(*args)
+
+    return call
 
 
 class _Connection:
@@ -270,8 +361,10 @@ class _Connection:
         self._timer_at: float | None = None
         self.established_once = False
         self.peer_closed: PeerClosed | None = None  # the peer's Close, when it sent one
+        self.failure: ProtocolError | None = None  # what the peer did wrong, if anything
         info = writer.get_extra_info("peername")
         self.name = f"{info[0]}:{info[1]}" if isinstance(info, tuple) else str(info)
+        self.source = str(info[0]) if isinstance(info, tuple) else self.name
         if peer is not None:
             peer._attach(self)
 
@@ -356,6 +449,7 @@ class _Connection:
                 try:
                     self.session.receive_data(data, self._loop.time())
                 except ProtocolError as exc:
+                    self.failure = exc
                     self._finish(f"{type(exc).__name__}: {exc}", level=logging.WARNING)
                     return
                 await self._process_events()

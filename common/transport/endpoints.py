@@ -12,6 +12,7 @@ import ssl as ssl_module
 from typing import Any
 
 from common.protocol import (
+    AuthenticationError,
     CloseCode,
     LocalProtocolError,
     Message,
@@ -37,8 +38,10 @@ def _jittered(delay: float, jitter: float) -> float:
 
 class Client:
     """Connecting side of one link; keeps reconnecting until :meth:`close`, or until the
-    server's application refuses a message of ours (``CloseCode.REJECTED``): then
-    ``peer.rejected`` holds its reason and ``send``/``flush`` raise PeerRejectedError.
+    handshake fails authentication (a wrong key or secret cannot get better by retrying):
+    then ``peer.rejected`` holds the reason and ``send``/``flush`` raise PeerRejectedError,
+    as they do after the server's application refused a message of ours (``Reject``) when
+    ``stop_on_reject`` (default; False logs the refusal and carries on).
 
     Args:
         config: protocol settings (role, agent id, secret, limits).
@@ -49,6 +52,7 @@ class Client:
         store: durable inbound position (None = in memory only).
         server_name: key of this link in ``store``.
         link: an existing link to resume (e.g. restored outbox); default a fresh one.
+        stop_on_reject: see above.
     """
 
     def __init__(
@@ -64,8 +68,10 @@ class Client:
         store: DeliveryStore | None = None,
         server_name: str = "server",
         link: Link | None = None,
+        stop_on_reject: bool = True,
     ) -> None:
         self.config = config
+        self._stop_on_reject = stop_on_reject
         self.transport = transport or TransportConfig()
         self.host, self.port = host, port
         self._ssl, self._server_hostname = ssl, server_hostname
@@ -86,7 +92,14 @@ class Client:
         if link is None:
             inbound = self._store.load(self._server_name) if self._store else None
             link = self.config.new_link(inbound=inbound, peer=self._server_name)
-        self.peer = Peer(self._server_name, link, self._handler, self._store)
+        self.peer = Peer(
+            self._server_name,
+            link,
+            self._handler,
+            self._store,
+            self.transport,
+            stop_on_reject=self._stop_on_reject,
+        )
         self._task = asyncio.create_task(self._run(), name=f"client-{self.config.agent_id}")
 
     async def wait_connected(self, timeout: float | None = None) -> None:
@@ -130,6 +143,9 @@ class Client:
         t = self.transport
         delay = t.reconnect_initial_delay
         loop = asyncio.get_running_loop()
+        failed_since: float | None = None  # first failed attempt since the last success
+        failures = 0
+        warned_at = 0.0
         while not self._closing:
             try:
                 reader, writer = await asyncio.wait_for(
@@ -143,24 +159,47 @@ class Client:
                     t.connect_timeout,
                 )
             except (OSError, TimeoutError, ssl_module.SSLError) as exc:
-                logger.info("connect to %s:%d failed: %r", self.host, self.port, exc)
+                now = loop.time()
+                failures += 1
+                failed_since = now if failed_since is None else failed_since
+                if failures == 1 or now - warned_at >= t.unreachable_warning_interval:
+                    warned_at = now
+                    logger.warning(
+                        "%s %s cannot reach %s:%d (%d attempts in %.0f s, retrying): %s",
+                        self.config.role,
+                        self.config.agent_id,
+                        self.host,
+                        self.port,
+                        failures,
+                        now - failed_since,
+                        exc,
+                    )
             else:
+                if failures:
+                    logger.info("reached %s:%d after %d attempts", self.host, self.port, failures)
+                failures, failed_since = 0, None
                 self.connections += 1
                 session = Session(self.config, client=True, now=loop.time(), link=self.peer.link)
                 self._conn = _Connection(reader, writer, session, t, peer=self.peer)
                 await self._conn.run()
                 if self._conn.established_once:
                     delay = t.reconnect_initial_delay
-                closed = self._conn.peer_closed
+                closed, failure = self._conn.peer_closed, self._conn.failure
                 self._conn = None
-                if closed is not None and closed.code == CloseCode.REJECTED:
+                refusal = None
+                if isinstance(failure, AuthenticationError):
+                    refusal = str(failure)
+                elif closed is not None and closed.code == CloseCode.AUTH_FAILED:
+                    refusal = f"{self.host}:{self.port} refused our credential: {closed.reason}"
+                if refusal is not None:
                     logger.error(
-                        "%s:%d refused our message: %s; not reconnecting",
-                        self.host,
-                        self.port,
-                        closed.reason,
+                        "%s %s: authentication failed, not reconnecting (check --key-file / "
+                        "the secret): %s",
+                        self.config.role,
+                        self.config.agent_id,
+                        refusal,
                     )
-                    self.peer.reject(closed.reason)
+                    self.peer.reject(f"authentication failed: {refusal}")
                     break
             if self._closing:
                 break
@@ -274,20 +313,12 @@ class Server:
         assert task is not None
         self._tasks.add(task)
         task.add_done_callback(self._tasks.discard)
-        if len(self._pending) >= self.transport.max_pending:
-            oldest = next(iter(self._pending))
-            del self._pending[oldest]
-            logger.warning(
-                "%d connections not authenticated yet: dropping the oldest (%s)",
-                self.transport.max_pending,
-                oldest.name,
-            )
-            oldest.abort("dropped before authenticating: newer connections arrived")
         loop = asyncio.get_running_loop()
         session = Session(self.config, client=False, now=loop.time())
         conn = _Connection(
             reader, writer, session, self.transport, on_authenticated=self._authenticated
         )
+        self._make_room_for(conn.source)
         self._connections.add(conn)
         self._pending[conn] = None
         try:
@@ -296,6 +327,27 @@ class Server:
             self._connections.discard(conn)
             self._pending.pop(conn, None)
             self._authed.pop(conn, None)
+
+    def _make_room_for(self, source: str) -> None:
+        """Drop the oldest unauthenticated connection of ``source`` if it holds its share,
+        else of the busiest source if all pending places are taken."""
+        t = self.transport
+        by_source: dict[str, list[_Connection]] = {}
+        for pending in self._pending:
+            by_source.setdefault(pending.source, []).append(pending)
+        mine = by_source.get(source, [])
+        if len(mine) >= t.max_pending_per_source:
+            victim, why = mine[0], f"{t.max_pending_per_source} from {source}"
+        elif len(self._pending) >= t.max_pending:
+            busiest = max(by_source.values(), key=len)
+            victim, why = busiest[0], f"{t.max_pending} in all"
+        else:
+            return
+        del self._pending[victim]
+        logger.warning(
+            "connections not authenticated yet: %s; dropping the oldest (%s)", why, victim.name
+        )
+        victim.abort("dropped before authenticating: newer connections arrived")
 
     async def _authenticated(self, conn: _Connection, ev: PeerAuthenticated) -> Peer | None:
         self._pending.pop(conn, None)
@@ -317,7 +369,10 @@ class Server:
         if peer is None:
             inbound = self._store.load(ev.agent_id) if self._store else None
             link = self.config.new_link(inbound=inbound, peer=ev.agent_id)
-            peer = self.peers[ev.agent_id] = Peer(ev.agent_id, link, self._handler, self._store)
+            peer = Peer(
+                ev.agent_id, link, self._handler, self._store, self.transport, stop_on_reject=False
+            )
+            self.peers[ev.agent_id] = peer
         async with peer.attach_lock:
             old = peer._conn
             if old is not None and old is not conn:

@@ -24,7 +24,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     src.add_argument("--replay", metavar="FILE", help="map recording (.npz) to show")
     src.add_argument("--demo", action="store_true", help="synthetic three-robot room")
     p.add_argument("--port", type=int, default=8080, help="HTTP port (default 8080)")
-    p.add_argument("--host", default="0.0.0.0", help="bind address (default 0.0.0.0)")
+    p.add_argument("--host", default="127.0.0.1", help="bind address (default 127.0.0.1)")
+    p.add_argument(
+        "--open", action="store_true", help="no access token (anyone who reaches it may view)"
+    )
     p.add_argument("--points", type=int, default=30_000, help="--demo: map points (30000)")
     p.add_argument(
         "--reveal",
@@ -46,7 +49,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def handler(args: argparse.Namespace) -> int:
     from common.map_view import MapViewError, StaticMapSource, load_recording, save_recording
     from dashboard.demo import DemoConfig, make_demo_map
-    from dashboard.viewer import Dashboard, DashboardConfig, DashboardError
+    from dashboard.viewer import Dashboard, DashboardConfig, DashboardError, new_access_token
 
     try:
         if args.demo:
@@ -64,13 +67,14 @@ def handler(args: argparse.Namespace) -> int:
                 return 2
             delta, stats = load_recording(args.replay)
         source = StaticMapSource(delta, stats, reveal_seconds=args.reveal)
-        dash = Dashboard(source, DashboardConfig(host=args.host, port=args.port)).start()
+        token = None if args.open else new_access_token()
+        dash = Dashboard(source, DashboardConfig(args.host, args.port, token)).start()
     except (MapViewError, DashboardError) as exc:
         print(f"error: {exc}")
         return 2
     print(
         f"dashboard at {dash.url} (from another machine: ssh -L {args.port}:localhost:"
-        f"{args.port} HOST, then open http://localhost:{args.port}); Ctrl-C stops"
+        f"{args.port} HOST, then open this URL with localhost); Ctrl-C stops"
     )
     try:
         t_end = time.monotonic() + args.seconds if args.seconds > 0 else float("inf")

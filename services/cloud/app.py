@@ -174,6 +174,8 @@ class CloudApp:
 
     # ------------------------------------------------------------------ agents
     def _agent(self, name: str, edge_id: str, edge_map: int) -> tuple[_Agent, bool]:
+        """The agent of robot ``name``'s map ``edge_map`` and whether it is new; UplinkError
+        if another edge serves it (an edge may only update or cull its own agents)."""
         a = self._agents.get((name, edge_map))
         if a is None:
             next_id = max((x.agent_id for x in self._agents.values()), default=-1) + 1
@@ -181,9 +183,12 @@ class CloudApp:
             log.info("new agent %d: robot %r, map %d of edge %r", next_id, name, edge_map, edge_id)
             self._use_camera(next_id, name)
             return a, True
-        changed = a.edge_id != edge_id
-        a.edge_id = edge_id
-        return a, changed
+        if a.edge_id != edge_id:  # only the edge that serves an agent may change it
+            raise UplinkError(
+                f"edge {edge_id!r} does not serve robot {name!r} (its map {edge_map} is "
+                f"edge {a.edge_id!r}'s)"
+            )
+        return a, False
 
     def _use_camera(self, agent_id: int, name: str) -> None:
         cam = self.sensors.camera(name)

@@ -195,7 +195,7 @@ class CloudStore:
                 )
             db.execute("COMMIT")
         except BaseException:
-            db.execute("ROLLBACK")
+            self._rollback()
             raise
 
     def commit_poses(
@@ -230,8 +230,14 @@ class CloudStore:
             self._write_state(atlas.state())
             db.execute("COMMIT")
         except BaseException:
-            db.execute("ROLLBACK")
+            self._rollback()
             raise
+
+    def _rollback(self) -> None:
+        """Undo the open transaction, if SQLite has not already (it rolls back by itself on
+        e.g. a full disk, and a second ROLLBACK would hide the real error)."""
+        if self._db.in_transaction:
+            self._db.execute("ROLLBACK")
 
     def save_all(
         self,

@@ -4,7 +4,8 @@
 services.cloud`` alike; ``config_from_args`` turns them into a :class:`CloudRunConfig`;
 ``serve`` runs the service until SIGINT / SIGTERM:
 
-- loads the shared secret (``--secret-file``, else ``$RECSLAM_SECRET``, at least 16 bytes),
+- loads its keys (``--key-file``, else the operator secret of ``--secret-file`` or
+  ``$RECSLAM_SECRET``) and the TLS files if any,
   the fallback camera (:func:`find_camera`; each robot's own calibration arrives from its
   edge, this one serves only robots whose calibration never does, as in old recordings) and
   the vocabulary; a bad one is logged and the exit code is 2;
@@ -26,13 +27,22 @@ import json
 import logging
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from common.entry import Announce, listen_address, run_until_signal, stop_on_signals
+from common.entry import (
+    Announce,
+    add_security_arguments,
+    listen_address,
+    run_until_signal,
+    stop_on_signals,
+    tls_from_args,
+)
 from common.links import WireFormat, codec_cpu
-from common.protocol.credentials import SECRET_ENV, load_secret
+from common.protocol.auth import Keyring
+from common.protocol.credentials import load_keys
+from common.transport.tls import TlsFiles
 
 if TYPE_CHECKING:
     from common.calibration import CameraCalibration
@@ -52,7 +62,11 @@ class CloudRunConfig:
         dashboard_port: viser dashboard port, 0 = no dashboard.
         results: result folder for ``trajectories/`` and ``eval/`` (None: none).
         groundtruth: ground truth for the ATE report (dataset folder or file).
-        secret_file: shared secret file (None: ``$RECSLAM_SECRET``).
+        secret_file: operator secret file (None: ``$RECSLAM_SECRET``), without key_file.
+        key_file: the cloud's key file (the edges' role key).
+        tls: TLS files (none: plain TCP, frames still sealed).
+        dashboard_host: the dashboard's address (None: the host of ``listen``).
+        dashboard_open: serve the dashboard without its access token.
         camera: EuRoC cam0 ``sensor.yaml`` of the fallback camera, for robots whose edge
             sent no calibration (None: see :func:`find_camera`).
         vocabulary: vocabulary file (None: the repository's default).
@@ -71,6 +85,10 @@ class CloudRunConfig:
     results: Path | None = None
     groundtruth: Path | None = None
     secret_file: Path | None = None
+    key_file: Path | None = None
+    tls: TlsFiles = field(default_factory=TlsFiles)
+    dashboard_host: str | None = None
+    dashboard_open: bool = False
     camera: Path | None = None
     vocabulary: Path | None = None
     mbp: bool = True
@@ -119,12 +137,18 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         metavar="DATASET",
         help="ground truth for the ATE report (dataset folder or file)",
     )
+    add_security_arguments(p)
     p.add_argument(
-        "--secret-file",
-        type=Path,
+        "--dashboard-host",
         default=None,
-        metavar="F",
-        help=f"shared secret file (default: ${SECRET_ENV})",
+        metavar="HOST",
+        help="address the dashboard listens on (default: the host of --listen)",
+    )
+    p.add_argument(
+        "--dashboard-open",
+        action="store_true",
+        help="serve the dashboard to anyone who reaches it, without the access token that "
+        "is otherwise part of its announced URL",
     )
     p.add_argument(
         "--camera",
@@ -198,6 +222,10 @@ def config_from_args(args: argparse.Namespace) -> CloudRunConfig:
         results=args.results,
         groundtruth=args.groundtruth,
         secret_file=args.secret_file,
+        key_file=args.key_file,
+        tls=tls_from_args(args),
+        dashboard_host=args.dashboard_host,
+        dashboard_open=args.dashboard_open,
         camera=args.camera,
         vocabulary=args.vocabulary,
         mbp=args.mbp,
@@ -247,15 +275,16 @@ async def write_stats(path: Path, cloud: CloudServer, codec_owners: Sequence[obj
 
 def serve(config: CloudRunConfig, announce: Announce = logger.info) -> int:
     """Run the cloud until SIGINT / SIGTERM (see the module docstring); the exit code: 0, or
-    2 when the secret, the camera or the vocabulary cannot be loaded or a folder it writes
-    (``--state-dir``, ``--results``, ``--stats-out``'s) is not writable."""
+    2 when the keys, the TLS files, the camera or the vocabulary cannot be loaded or a folder
+    it writes (``--state-dir``, ``--results``, ``--stats-out``'s) is not writable."""
     from common.errors import RecslamError
     from common.folders import writable_folder
     from common.transport import run
     from common.vocabulary import DEFAULT_VOCABULARY_PATH, Vocabulary
 
     try:
-        secret = load_secret(config.secret_file)
+        secret = load_keys(config.key_file, config.secret_file)
+        config.tls.server_context()  # a bad certificate fails here, with its name
         writable_folder(config.state_dir, "--state-dir")
         if config.results is not None:
             writable_folder(config.results, "--results")
@@ -270,7 +299,7 @@ def serve(config: CloudRunConfig, announce: Announce = logger.info) -> int:
 
 
 def _server(
-    config: CloudRunConfig, secret: bytes, camera: CameraCalibration, vocab: Vocabulary
+    config: CloudRunConfig, secret: Keyring, camera: CameraCalibration, vocab: Vocabulary
 ) -> CloudServer:
     from common.protocol import SessionConfig
     from common.transport import TransportConfig
@@ -285,7 +314,7 @@ def _server(
         domain=domain, output_every_s=config.output_every_s, wire=config.wire
     )
     return CloudServer(
-        SessionConfig("cloud", config.agent_id, secret),
+        SessionConfig("cloud", config.agent_id, keys=secret),
         config.state_dir,
         camera,
         vocab,
@@ -294,12 +323,13 @@ def _server(
         groundtruth=config.groundtruth,
         transport=TransportConfig(accept_roles=("edge",)),
         record=config.record,
+        ssl=config.tls.server_context(),
     )
 
 
 async def _run(
     config: CloudRunConfig,
-    secret: bytes,
+    secret: Keyring,
     camera: CameraCalibration,
     vocab: Vocabulary,
     announce: Announce,
@@ -311,14 +341,19 @@ async def _run(
     host, port = await cloud.start(*config.listen)
     # The application's codec_timer (if it has one) stays readable after stop().
     codec_owners = [await cloud.call(lambda app: app)]
-    announce(f"cloud listening on {host}:{port}, state {config.state_dir}")
     dashboard = None
     if config.dashboard_port:
-        from dashboard.viewer import Dashboard, DashboardConfig
+        from dashboard.viewer import Dashboard, DashboardConfig, new_access_token
 
-        dashboard = Dashboard(cloud.map_source, DashboardConfig(port=config.dashboard_port))
+        dash_cfg = DashboardConfig(
+            host=config.dashboard_host or config.listen[0],
+            port=config.dashboard_port,
+            access_token=None if config.dashboard_open else new_access_token(),
+        )
+        dashboard = Dashboard(cloud.map_source, dash_cfg)
         dashboard.start()
         announce(f"dashboard at {dashboard.url}")
+    announce(f"cloud listening on {host}:{port}, state {config.state_dir}")
     stats_out = config.stats_out
 
     async def tick() -> None:

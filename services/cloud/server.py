@@ -9,10 +9,12 @@ described there, once) and owns the lifecycle:
 - every message goes to the core (and its :class:`~services.cloud.app.CloudApp`) on a single
   *worker* thread (decode, place recognition, verification, merging, SQLite commit); every
   call of the core and the app runs there. The transport acknowledges after the handler
-  returns, i.e. after the commit: acknowledged = durable. A malformed message (any
-  ``RecslamError`` but a storage failure) makes the handler raise, which closes that edge's
-  connection only; a message that fails ``max_failures`` times in a row is logged and
-  skipped so that one bad message cannot wedge an edge's stream forever;
+  returns, i.e. after the commit: acknowledged = durable. A malformed or inconsistent
+  message (any ``RecslamError`` but a storage failure; e.g. about a robot another edge
+  serves) is refused once: recorded as delivered without effect, and the edge is told why
+  (``RejectedMessageError``: a ``Reject``), so one bad message can neither wedge an edge's
+  stream nor come back. A storage failure (disk full, read-only state) is not the
+  message's fault: the transport retries it with backoff, holding the edge back;
 - the core's one timer (:meth:`CloudCore.next_deadline`) is a task on the event loop, with
   loop time as ``now``; the solves it asks for run in a separate *optimizer* process (gtsam
   holds the GIL for most of a solve, so a thread would starve the event loop: measured in
@@ -42,6 +44,7 @@ from collections.abc import Callable, Iterable
 from concurrent.futures import BrokenExecutor, Executor, ProcessPoolExecutor, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
+from ssl import SSLContext
 from typing import Any, TypeVar
 
 from common.calibration import CameraCalibration
@@ -50,7 +53,7 @@ from common.evaluation.errors import EvaluationError
 from common.evaluation.results import load_groundtruth
 from common.evaluation.trajectory import Trajectory
 from common.protocol import OutboxFullError, SessionConfig
-from common.protocol.errors import LocalProtocolError
+from common.protocol.errors import LocalProtocolError, RejectedMessageError
 from common.transport import Delivery, Server, TransportConfig
 from common.vocabulary import Vocabulary
 from services.cloud.app import CloudApp, Correction, PositionStore
@@ -129,8 +132,8 @@ class CloudServer:
         results_dir: where trajectories/eval go (None: no output files).
         groundtruth: ground-truth source for the ATE report (see common.evaluation.results).
         transport: socket settings.
-        max_failures: a message whose handler failed this many times is skipped.
         record: append every applied uplink message to this recording file (default: none).
+        ssl: TLS context of the listening side (None: plain TCP; frames are sealed anyway).
     """
 
     def __init__(
@@ -143,8 +146,8 @@ class CloudServer:
         results_dir: str | Path | None = None,
         groundtruth: str | Path | None = None,
         transport: TransportConfig | None = None,
-        max_failures: int = 3,
         record: str | Path | None = None,
+        ssl: SSLContext | None = None,
     ) -> None:
         self.session = session
         self.config = config or CloudServiceConfig()
@@ -163,9 +166,9 @@ class CloudServer:
         self._optimizer = self._new_optimizer()
         self._app: CloudApp | None = None
         self._core: CloudCore | None = None
-        self._server = Server(session, self._on_message, transport=transport, store=self.positions)
-        self._max_failures = max_failures
-        self._failures: dict[tuple[str, bytes, int], int] = {}
+        self._server = Server(
+            session, self._on_message, transport=transport, ssl=ssl, store=self.positions
+        )
         self._wake = asyncio.Event()  # the core's deadline moved
         self._armed: float | None = math.nan  # the deadline the timer sleeps on (nan: none yet)
         self._round_lock = asyncio.Lock()  # one round of the core at a time
@@ -268,31 +271,14 @@ class CloudServer:
         app, core = self._app, self._core
         if app is None or core is None:
             raise LocalProtocolError("cloud is not running")
-        key = (d.peer, d.stream_id, d.seq)
         clock = asyncio.get_running_loop().time  # read on the worker, when the message is applied
         try:
             deadline = await self._on_worker(self._handle, core, d, clock, time.time())
         except PersistenceError:
-            raise  # not the message's fault: no ack, it is redelivered
+            raise  # not the message's fault: the transport retries it (with backoff)
         except RecslamError as exc:  # malformed or inconsistent input (UplinkError, AtlasError)
-            n = self._failures.get(key, 0) + 1
-            self._failures[key] = n
-            if n >= self._max_failures:
-                log.error(
-                    "edge %s: skipping message %d after %d failures: %s", d.peer, d.seq, n, exc
-                )
-                self._failures.pop(key, None)
-                await self._on_worker(app.skip, d.peer, d.stream_id, d.seq)
-                return
-            log.warning(
-                "edge %s: malformed %s (seq %d): %s; closing its connection",
-                d.peer,
-                type(d.message).__name__,
-                d.seq,
-                exc,
-            )
-            raise
-        self._failures.pop(key, None)
+            await self._on_worker(app.skip, d.peer, d.stream_id, d.seq)
+            raise RejectedMessageError(f"{type(d.message).__name__}: {exc}") from exc
         if deadline != self._armed:  # the schedule changed: the timer re-arms
             self._wake.set()
 

@@ -9,9 +9,10 @@ draining it:
   cloud (``AgentSensors``) ahead of the robot's keyframes. It is journaled like every message,
   so a restarted edge rebuilds the robot from its journal. An invalid description, a frame
   before any description, or a robot that re-joins under the same agent id with a different
-  calibration is refused (``RejectedMessageError``: that robot's connection is closed with the
-  reason, and it stops resending); other robots are unaffected;
-- ``RobotFrame``: decoded at once on the loop (in stream order), journaled (when a journal
+  calibration is refused (``RejectedMessageError``: the robot is told why with a ``Reject``
+  and stops; the message is never redelivered); other robots are unaffected;
+- ``RobotFrame``: decoded at once on the loop (in stream order; a frame that does not decode
+  is refused likewise and leaves the decoders untouched), journaled (when a journal
   is configured) and queued; the handler returns, so the transport acknowledges, once the
   frame is in the journal. The queue is bounded (``EdgeConfig.max_queued_frames``): a full
   queue makes the handler wait, which back-pressures the robot through the protocol window;
@@ -35,6 +36,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from common.codec.errors import CodecError
 from common.links.edge_cloud import (
     PoseCorrection,
     PoseCorrectionCoded,
@@ -250,7 +252,12 @@ class EdgeApp:
                 "--state-dir the robot must restart its stream)"
             )
         if isinstance(m, RobotFrame):
-            item = rb.session.decode(m)
+            try:
+                item = rb.session.decode(m)
+            except CodecError as exc:  # the robot's fault: refused once, decoders untouched
+                raise RejectedMessageError(
+                    f"robot {agent_id}: frame {m.frame_index} does not decode: {exc}"
+                ) from exc
             await self._enqueue(rb, item, replaying)
         elif isinstance(m, RobotSequenceEnd):
             rb.expected_frames = m.frames

@@ -197,12 +197,27 @@ class RobotSession:
 
     # ------------------------------------------------------------------ decoding
     def decode(self, msg: RobotFrame) -> WorkItem:
-        """Decode one frame (in stream order) into the VIO's input; raises CodecError."""
-        if msg.frame_index == 0 and self.frames > 0:
+        """Decode one frame (in stream order) into the VIO's input; raises CodecError.
+
+        All or nothing: a frame that fails leaves every decoder as it was, so the next frame
+        still decodes (each decoder commits only a whole payload; the IMU decoder, which runs
+        first, is put back when the features then fail)."""
+        restart = msg.frame_index == 0 and self.frames > 0
+        if restart:  # a fresh stream: decode with fresh decoders, adopted if it decodes
+            features, imu_decoder = FeatureDecoder(self.vocabulary, self.codec), ImuDecoder()
+        else:
+            features, imu_decoder = self.features, self.imu
+        imu_state = imu_decoder.state.copy()
+        imu = imu_decoder.decode(msg.imu)
+        try:
+            feats = features.decode(msg.features)
+        except BaseException:
+            imu_decoder.state = imu_state
+            raise
+        if restart:
             logger.warning("robot %s restarted its stream: fresh decoders", self.agent_id)
             self._reset_stream()
-        feats = self.features.decode(msg.features)
-        imu = self.imu.decode(msg.imu)
+            self.features, self.imu = features, imu_decoder
         self.numbers, self.next_number = next_stream_numbers(self.numbers, self.next_number, feats)
         if isinstance(feats, KeyframeFeatures):
             kp = feats.keypoints

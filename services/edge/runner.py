@@ -4,9 +4,10 @@
 services.edge`` alike; ``config_from_args`` turns them into an :class:`EdgeRunConfig`;
 ``serve`` runs the service until SIGINT / SIGTERM:
 
-- loads the shared secret (``--secret-file``, else ``$RECSLAM_SECRET``, at least 16 bytes)
-  and the vocabulary; a bad one is logged and the exit code is 2 (each robot brings its own
-  calibration when it joins: the edge takes none);
+- loads its keys (``--key-file``, else the operator secret of ``--secret-file`` or
+  ``$RECSLAM_SECRET``), the TLS files if any, and the vocabulary; a bad one is logged and
+  the exit code is 2 (each robot brings its own calibration when it joins: the edge takes
+  none);
 - starts the :class:`~services.edge.server.EdgeServer` (connects to the cloud, replays the
   journals of ``--state-dir``, then listens for robots) and announces ``edge listening on
   HOST:PORT, replayed N frames``;
@@ -23,13 +24,22 @@ import argparse
 import json
 import logging
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from common.entry import Announce, listen_address, run_until_signal, stop_on_signals
+from common.entry import (
+    Announce,
+    add_security_arguments,
+    listen_address,
+    run_until_signal,
+    stop_on_signals,
+    tls_from_args,
+)
 from common.links import WireFormat, codec_cpu
-from common.protocol.credentials import SECRET_ENV, load_secret
+from common.protocol.auth import Keyring
+from common.protocol.credentials import load_keys
+from common.transport.tls import TlsFiles
 
 if TYPE_CHECKING:
     from common.vocabulary import Vocabulary
@@ -46,7 +56,9 @@ class EdgeRunConfig:
         listen: address robots connect to.
         cloud: the cloud's address (None: no cloud, the uplink is dropped and counted).
         state_dir: journal directory for restarts without loss (None: none).
-        secret_file: shared secret file (None: ``$RECSLAM_SECRET``).
+        secret_file: operator secret file (None: ``$RECSLAM_SECRET``), without key_file.
+        key_file: this edge's key file (its credential and the robots' role key).
+        tls: TLS files (none: plain TCP, frames still sealed).
         agent_id: this edge's agent id.
         worker: where each robot's VIO runs: "process" (one per robot) or "thread".
         vocabulary: vocabulary file (None: the repository's default).
@@ -58,6 +70,8 @@ class EdgeRunConfig:
     cloud: tuple[str, int] | None = None
     state_dir: Path | None = None
     secret_file: Path | None = None
+    key_file: Path | None = None
+    tls: TlsFiles = field(default_factory=TlsFiles)
     agent_id: str = "edge"
     worker: str = "process"
     vocabulary: Path | None = None
@@ -88,13 +102,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         metavar="DIR",
         help="journal directory for restarts without loss (default: none)",
     )
-    p.add_argument(
-        "--secret-file",
-        type=Path,
-        default=None,
-        metavar="F",
-        help=f"shared secret file (default: ${SECRET_ENV})",
-    )
+    add_security_arguments(p)
     p.add_argument("--agent-id", default="edge", help="this edge's agent id (default edge)")
     p.add_argument(
         "--worker",
@@ -133,6 +141,8 @@ def config_from_args(args: argparse.Namespace) -> EdgeRunConfig:
         cloud=args.cloud,
         state_dir=args.state_dir,
         secret_file=args.secret_file,
+        key_file=args.key_file,
+        tls=tls_from_args(args),
         agent_id=args.agent_id,
         worker=args.worker,
         vocabulary=args.vocabulary,
@@ -169,7 +179,7 @@ def write_stats(path: Path, edge: EdgeServer) -> None:
 
 def serve(config: EdgeRunConfig, announce: Announce = logger.info) -> int:
     """Run the edge until SIGINT / SIGTERM (see the module docstring); the exit code: 0, or
-    2 when the secret or the vocabulary cannot be loaded or a folder it writes
+    2 when the keys, the TLS files or the vocabulary cannot be loaded or a folder it writes
     (``--state-dir``, ``--stats-out``'s) is not writable."""
     from common.errors import RecslamError
     from common.folders import writable_folder
@@ -177,7 +187,10 @@ def serve(config: EdgeRunConfig, announce: Announce = logger.info) -> int:
     from common.vocabulary import DEFAULT_VOCABULARY_PATH, Vocabulary
 
     try:
-        secret = load_secret(config.secret_file)
+        identity = ("edge", config.agent_id) if config.cloud is not None else None
+        secret = load_keys(config.key_file, config.secret_file, identity=identity)
+        config.tls.server_context()  # a bad certificate fails here, with its name
+        config.tls.client_context()
         if config.state_dir is not None:
             writable_folder(config.state_dir, "--state-dir")
         if config.stats_out is not None:
@@ -189,7 +202,7 @@ def serve(config: EdgeRunConfig, announce: Announce = logger.info) -> int:
     return run(_run(config, secret, vocab, announce))
 
 
-def _server(config: EdgeRunConfig, secret: bytes, vocab: Vocabulary) -> EdgeServer:
+def _server(config: EdgeRunConfig, secret: Keyring, vocab: Vocabulary) -> EdgeServer:
     from services.edge.app import EdgeConfig
     from services.edge.robot_session import SessionOptions
     from services.edge.server import EdgeServer, EdgeServiceConfig
@@ -199,10 +212,12 @@ def _server(config: EdgeRunConfig, secret: bytes, vocab: Vocabulary) -> EdgeServ
         agent_id=config.agent_id, cloud_host=cloud_host, cloud_port=cloud_port
     )
     app = EdgeConfig(worker=config.worker, session=SessionOptions(wire=config.wire))
-    return EdgeServer(secret, vocab, app, service, state_dir=config.state_dir)
+    return EdgeServer(secret, vocab, app, service, state_dir=config.state_dir, tls=config.tls)
 
 
-async def _run(config: EdgeRunConfig, secret: bytes, vocab: Vocabulary, announce: Announce) -> int:
+async def _run(
+    config: EdgeRunConfig, secret: Keyring, vocab: Vocabulary, announce: Announce
+) -> int:
     edge = _server(config, secret, vocab)
     # After the server is built (importing pycolmap installs glog's SIGTERM handler, which
     # would replace ours) and before the announcement a supervisor acts on.

@@ -28,8 +28,10 @@ from pathlib import Path
 from typing import Any
 
 from common.protocol import OutboxFullError, SessionConfig
+from common.protocol.auth import Keyring, as_keyring
 from common.protocol.messages import Message
 from common.transport import Client, Server, TransportConfig
+from common.transport.tls import TlsFiles
 from common.vocabulary import Vocabulary
 from services.edge.app import EdgeApp, EdgeConfig
 from services.edge.journal import JournalStore
@@ -69,47 +71,56 @@ class EdgeServer:
     """The edge service. ``await start(host, port)`` ... ``await stop()``.
 
     Args:
-        secret: shared secret of robots, edge and cloud (>= 16 bytes).
+        secret: the edge's keys (a Keyring: its credential and the robots' role key), or
+            the operator secret (>= 16 bytes), which derives every credential.
         vocabulary: the shared ORB vocabulary (codec word ids).
         config: application options (worker kind, VIO, feedback policy).
         service: network options.
         state_dir: journal directory (None: restarts lose state; see module docstring).
         transport: socket settings of the robot server.
         worker_factory: builds each robot's VIO worker (tests inject faulty ones).
+        tls: TLS towards the robots (a certificate) and the cloud (a CA); default none.
     """
 
     def __init__(
         self,
-        secret: bytes,
+        secret: bytes | Keyring,
         vocabulary: Vocabulary,
         config: EdgeConfig | None = None,
         service: EdgeServiceConfig | None = None,
         state_dir: str | Path | None = None,
         transport: TransportConfig | None = None,
         worker_factory: WorkerFactory = make_worker,
+        tls: TlsFiles | None = None,
     ) -> None:
         self.service = service or EdgeServiceConfig()
+        tls = tls or TlsFiles()
+        keys = as_keyring(secret)
         self.config = config or EdgeConfig()
         sv = self.service
         self.store = JournalStore(state_dir, sv.fsync_interval_s) if state_dir else None
         self.robot_session = SessionConfig(
             "edge",
             sv.agent_id,
-            secret,
+            keys=keys,
             heartbeat_interval=sv.heartbeat_interval_s,
             idle_timeout=sv.idle_timeout_s,
         )
         self.app = EdgeApp(vocabulary, self, self.config, self.store, worker_factory)
         tr = transport or TransportConfig(accept_roles=("robot",))
         self.server = Server(
-            self.robot_session, self.app.on_robot_message, transport=tr, store=self.store
+            self.robot_session,
+            self.app.on_robot_message,
+            transport=tr,
+            ssl=tls.server_context(),
+            store=self.store,
         )
         self.cloud: Client | None = None
         if sv.cloud_host is not None:
             cloud_cfg = SessionConfig(
                 "edge",
                 sv.agent_id,
-                secret,
+                keys=keys,
                 heartbeat_interval=sv.heartbeat_interval_s,
                 idle_timeout=sv.idle_timeout_s,
             )
@@ -119,6 +130,9 @@ class EdgeServer:
                 sv.cloud_host,
                 sv.cloud_port,
                 server_name="cloud",
+                ssl=tls.client_context(),
+                server_hostname=sv.cloud_host,
+                stop_on_reject=False,  # a refused keyframe is logged; the other robots go on
             )
         self.dropped_feedback = 0
         self.dropped_uplink = 0

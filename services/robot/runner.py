@@ -4,8 +4,9 @@
 services.robot`` alike (``--dataset``, ``--edge`` and ``--agent-id`` default to the
 environment variables of :data:`ENV_DEFAULTS`, for containers; ``--bag`` with
 ``--calibration`` and the topics plays a ROS bag instead of a folder); ``config_from_args`` turns
-them into a :class:`~services.robot.server.RobotServiceConfig` (the shared secret loaded:
-``--secret-file``, else ``$RECSLAM_SECRET``, else a development default with a warning);
+them into a :class:`~services.robot.server.RobotServiceConfig` (its keys loaded: its
+``--key-file``, else the operator secret of ``--secret-file``, else ``$RECSLAM_SECRET``,
+else a development default with a warning);
 ``serve`` plays the sequence with SIGINT / SIGTERM handled
 (:func:`services.robot.server.serve`). Exit code 0 once the edge has taken every frame, 130
 when interrupted, 1 when ``--flush-timeout`` expired, 3 when the edge refused the robot (e.g.
@@ -22,6 +23,8 @@ import argparse
 import os
 from pathlib import Path
 from typing import TYPE_CHECKING
+
+from common.entry import add_security_arguments
 
 if TYPE_CHECKING:
     from services.robot.server import RobotServiceConfig
@@ -78,7 +81,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         default="realtime",
         help="realtime: camera rate (default); max: as fast as the front end runs",
     )
-    p.add_argument("--secret-file", type=Path, default=None, help="file holding the shared secret")
+    add_security_arguments(p)
     p.add_argument("--start", type=int, default=0, help="first frame to play (default 0)")
     p.add_argument("--max-frames", type=int, default=None, help="play at most this many frames")
     p.add_argument(
@@ -106,7 +109,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def config_from_args(args: argparse.Namespace) -> RobotServiceConfig:
     """RobotServiceConfig from parsed arguments (RobotConfigError on bad values,
     CredentialsError on a bad address or secret)."""
-    from common.protocol.credentials import load_secret, parse_address
+    from common.entry import tls_from_args
+    from common.protocol.credentials import load_keys, parse_address
     from services.robot.server import DEV_SECRET, Rate, RobotConfigError, RobotServiceConfig
 
     host, port = parse_address(args.edge)
@@ -127,7 +131,13 @@ def config_from_args(args: argparse.Namespace) -> RobotServiceConfig:
         edge_host=host,
         edge_port=port,
         agent_id=args.agent_id,
-        secret=load_secret(args.secret_file, dev_default=DEV_SECRET),
+        secret=load_keys(
+            args.key_file,
+            args.secret_file,
+            dev_default=DEV_SECRET,
+            identity=("robot", args.agent_id),
+        ),
+        tls=tls_from_args(args),
         rate=Rate(args.rate),
         start_frame=args.start,
         max_frames=args.max_frames,

@@ -56,9 +56,10 @@ from common.errors import RecslamError
 from common.links.robot_edge import RobotFrame, sensors_message
 from common.links.sensors import Sensors
 from common.protocol import PeerRejectedError, SessionConfig
-from common.protocol.auth import MIN_SECRET_SIZE
+from common.protocol.auth import MIN_SECRET_SIZE, Keyring, as_keyring
 from common.protocol.messages import Message
 from common.transport import Client, TransportConfig
+from common.transport.tls import TlsFiles
 from common.vocabulary import DEFAULT_VOCABULARY_PATH, Vocabulary
 from services.robot.app import RobotApp
 from services.robot.config import FrontEndConfig
@@ -90,7 +91,9 @@ class RobotServiceConfig:
             with ``bag``.
         edge_host, edge_port: the edge's address.
         agent_id: this robot's id on the link (unique per edge).
-        secret: shared secret (>= 16 bytes); see :func:`common.protocol.credentials.load_secret`.
+        secret: the robot's keys (a Keyring from its ``--key-file``: its credential only), or
+            the operator secret (>= 16 bytes); see :func:`common.protocol.credentials.load_keys`.
+        tls: TLS towards the edge (a CA bundle; a certificate if the edge asks for one).
         rate: playback pace (realtime default).
         start_frame: first frame played (0).
         max_frames: frames played at most (None = to the end).
@@ -113,7 +116,7 @@ class RobotServiceConfig:
     edge_host: str
     edge_port: int
     agent_id: str
-    secret: bytes = field(repr=False)
+    secret: bytes | Keyring = field(repr=False)
     rate: Rate = Rate.REALTIME
     start_frame: int = 0
     max_frames: int | None = None
@@ -130,6 +133,7 @@ class RobotServiceConfig:
     calibration: Path | None = None
     image_topic: str | None = None
     imu_topic: str | None = None
+    tls: TlsFiles = field(default_factory=TlsFiles)
 
     def __post_init__(self) -> None:
         if self.dataset is None and self.bag is None:
@@ -151,7 +155,10 @@ class RobotServiceConfig:
             raise RobotConfigError(f"edge port {self.edge_port} outside 1..65535")
         if not self.agent_id or len(self.agent_id) > 64:
             raise RobotConfigError("agent id must be 1..64 characters")
-        if not isinstance(self.secret, bytes) or len(self.secret) < MIN_SECRET_SIZE:
+        if isinstance(self.secret, Keyring):
+            if self.secret.credential("robot", self.agent_id) is None:
+                raise RobotConfigError(f"the keys hold no credential for robot {self.agent_id!r}")
+        elif not isinstance(self.secret, bytes) or len(self.secret) < MIN_SECRET_SIZE:
             raise RobotConfigError(f"shared secret must be at least {MIN_SECRET_SIZE} bytes")
         if self.start_frame < 0 or (self.max_frames is not None and self.max_frames < 0):
             raise RobotConfigError("start_frame and max_frames must be >= 0")
@@ -232,7 +239,7 @@ class RobotService:
         return SessionConfig(
             role="robot",
             agent_id=cfg.agent_id,
-            secret=cfg.secret,
+            keys=as_keyring(cfg.secret),
             heartbeat_interval=cfg.heartbeat_interval_s,
             idle_timeout=cfg.idle_timeout_s,
             max_outbox_messages=math.ceil(cfg.backlog_s * rate) + 16,
@@ -288,6 +295,8 @@ class RobotService:
             cfg.edge_port,
             transport=self.transport,
             server_name="edge",
+            ssl=cfg.tls.client_context(),
+            server_hostname=cfg.edge_host,
         )
         await self.client.start()
         # The stream's first message: this robot's calibrations (the edge builds its decoders

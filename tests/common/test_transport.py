@@ -108,12 +108,15 @@ def test_wrong_secret_is_refused_and_server_keeps_serving(caplog):
         await bad.start()
         try:
             await good.send(Blob(1, b"before"))
-            await asyncio.sleep(0.3)  # the impostor tries (and retries) meanwhile
+            await asyncio.sleep(0.3)  # the impostor tries meanwhile
             await good.send(Blob(2, b"after"))
             await good.flush()
             assert [d.message.channel for d in ssink.items] == [1, 2]
             assert "mallory" not in server.peers
-            assert not bad.peer.connected and bad.connections >= 2
+            # a wrong credential cannot get better by retrying: the client gives up, loudly
+            assert not bad.peer.connected and bad.connections == 1
+            with pytest.raises(PeerRejectedError, match="authentication failed"):
+                await bad.send(Blob(3, b"never"))
         finally:
             await bad.close()
             await good.close()
@@ -189,7 +192,10 @@ def test_max_peers_and_accept_roles():
     run(main())
 
 
-def test_failed_handler_is_not_acked_and_message_is_redelivered():
+def test_failed_handler_is_retried_on_the_same_connection():
+    """A local fault in the handler (not the sender's): the same delivery is tried again
+    after a delay, in order, without dropping the connection or replaying the outbox."""
+
     async def main():
         server, ssink, client, _ = await _pair()
         ssink.fail_once_at = 3
@@ -198,7 +204,9 @@ def test_failed_handler_is_not_acked_and_message_is_redelivered():
                 await client.send(Blob(i, b"m"))
             await client.flush()
             assert [d.message.channel for d in ssink.items] == list(range(6))
-            assert client.connections >= 2  # the failure dropped the connection once
+            assert client.connections == 1
+            assert server.peers["robot-1"].handler_failures == 1
+            assert client.counters()["retransmitted_messages"] == 0
         finally:
             await client.close()
             await server.close()
@@ -206,16 +214,18 @@ def test_failed_handler_is_not_acked_and_message_is_redelivered():
     run(main())
 
 
-def test_rejected_message_closes_that_link_with_the_reason_and_the_client_gives_up(caplog):
-    """A handler that raises RejectedMessageError refuses the message for good: the client
-    is told why (CloseCode.REJECTED), stops reconnecting, and its sends and flushes raise
+def test_rejected_message_is_refused_once_with_the_reason_and_the_client_gives_up(caplog):
+    """A handler that raises RejectedMessageError refuses the message for good: it reaches
+    the handler once, the client is told why (``Reject``) and its sends and flushes raise
     PeerRejectedError; another client of the same server is served on."""
 
     async def main():
         server_sink = Sink()
+        bad_calls = []
 
         async def handler(d: Delivery) -> None:
             if d.peer == "robot-bad":
+                bad_calls.append(d.seq)
                 raise RejectedMessageError("your calibration differs")
             await server_sink(d)
 
@@ -231,8 +241,9 @@ def test_rejected_message_closes_that_link_with_the_reason_and_the_client_gives_
                 await asyncio.wait_for(bad.flush(), 10)
             with pytest.raises(PeerRejectedError):
                 await bad.send(Blob(1, b"y"))
-            await asyncio.sleep(0.3)  # a reconnecting client would be back by now
-            assert bad.connections == 1
+            await asyncio.sleep(0.3)  # a redelivery would have happened by now
+            assert bad.connections == 1 and bad_calls == [1]
+            assert bad.peer.rejections == [(1, "your calibration differs")]
             for i in range(3):
                 await good.send(Blob(i, b"g"))
             await good.flush()
@@ -380,3 +391,96 @@ def test_stalled_sockets_cannot_lock_peers_out():
             await server.close()
 
     run(main())
+
+
+def test_a_robot_joins_and_streams_while_200_stalled_connections_are_held():
+    """Issue 18's lock-out, at scale: 200 connections from 10 other addresses send a byte and
+    stall, all of them held; a new robot joins and streams 100 messages at 50 Hz on one
+    connection. One address that floods is held to its share and pushes only itself out."""
+
+    async def main():
+        transport = TransportConfig()  # the defaults a service runs with
+        server = Server(scfg(), Sink(), transport=transport)
+        host, port = await server.start()
+        stalled: list[asyncio.StreamWriter] = []
+        for i in range(200):
+            _, w = await asyncio.open_connection(
+                host, port, local_addr=(f"127.0.0.{2 + i % 10}", 0)
+            )
+            w.write(b"\x00")
+            stalled.append(w)
+        await asyncio.sleep(0.2)
+        assert len(server._pending) == 200
+        sink = Sink()
+        robot = Client(scfg("robot-new", "robot"), sink, host, port, transport=FAST)
+        server_sink = server._handler
+        await robot.start()
+        try:
+            await robot.wait_connected(5)
+            for i in range(100):
+                await robot.send(Blob(i, b"f" * 200))
+                await asyncio.sleep(0.02)
+            await robot.flush()
+            assert [d.message.channel for d in server_sink.items] == list(range(100))
+            assert robot.connections == 1
+            assert robot.counters()["retransmitted_messages"] == 0
+            assert len(server._pending) == 200  # every stalled connection is still held
+            # one address floods: it keeps at most its share, the others keep theirs
+            for _ in range(100):
+                _, w = await asyncio.open_connection(host, port, local_addr=("127.0.0.99", 0))
+                w.write(b"\x00")
+                stalled.append(w)
+            await asyncio.sleep(0.2)
+            sources = [c.source for c in server._pending]
+            assert sources.count("127.0.0.99") == transport.max_pending_per_source
+            assert len(sources) == 200 + transport.max_pending_per_source
+        finally:
+            for w in stalled:
+                w.close()
+            await robot.close()
+            await server.close()
+
+    run(main())
+
+
+def test_a_full_disk_holds_the_sender_back_without_a_reconnect_storm(caplog):
+    """Issue 18: a receiver whose storage fails (here: four attempts raise ENOSPC) retries the
+    same message with backoff on the same connection. The sender is held back by the window:
+    no reconnect, re-sent bytes within one window, every message delivered once, in order."""
+    import errno
+
+    window = 16
+
+    async def main():
+        attempts = {"n": 0}
+        got: list[int] = []
+
+        async def handler(d: Delivery) -> None:
+            if d.message.channel == 10 and attempts["n"] < 4:
+                attempts["n"] += 1
+                raise OSError(errno.ENOSPC, "database or disk is full")
+            got.append(d.message.channel)
+
+        transport = TransportConfig(handler_retry_initial=0.1)
+        server = Server(scfg(window_messages=window), handler, transport=transport)
+        host, port = await server.start()
+        client = Client(
+            scfg("robot-1", "robot", retransmit_timeout=0.2), Sink(), host, port, transport=FAST
+        )
+        await client.start()
+        try:
+            for i in range(200):
+                await client.send(Blob(i, b"d" * 1000))
+            await client.flush()
+            assert got == list(range(200))
+            assert attempts["n"] == 4 and server.peers["robot-1"].handler_failures == 4
+            c = client.counters()
+            assert client.connections == 1
+            assert c["retransmitted_bytes"] <= window * 1100
+        finally:
+            await client.close()
+            await server.close()
+
+    with caplog.at_level(logging.WARNING):
+        run(main())
+    assert "database or disk is full" in caplog.text

@@ -28,7 +28,7 @@ from common.map_view import (
 )
 from dashboard.demo import DemoConfig, make_demo_map
 from dashboard.scene import AGENT_COLORS
-from dashboard.viewer import Dashboard, DashboardConfig
+from dashboard.viewer import Dashboard, DashboardConfig, new_access_token
 from lab.browser import CHROMIUM, CHROMIUM_FLAGS
 
 REPO = Path(__file__).resolve().parents[2]
@@ -101,7 +101,10 @@ def _settled_shot(page, want_points: bool, timeout_s: float = 30.0) -> bytes:
 
 def test_dashboard_draws_points_and_panels_in_chromium(browser, tmp_path):
     delta, stats = make_demo_map(DemoConfig(n_points=30_000))
-    demo = Dashboard(StaticMapSource(delta, stats), DashboardConfig("127.0.0.1", _free_port()))
+    token = new_access_token()  # the demo view goes through the token and cookie, as users do
+    demo = Dashboard(
+        StaticMapSource(delta, stats), DashboardConfig("127.0.0.1", _free_port(), token)
+    )
     empty = Dashboard(_empty_source(), DashboardConfig("127.0.0.1", _free_port()))
     with demo, empty:
         page = _open(browser, demo.url)

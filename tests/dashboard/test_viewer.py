@@ -120,3 +120,59 @@ def test_cli_serves_replay_for_a_while(tmp_path):
     )
     assert args.func(args) == 0
     assert isinstance(StaticMapSource.from_file(path).snapshot(-1), MapDelta)
+
+
+def _request(port: int, target: str, headers: dict[str, str]) -> tuple[int, dict[str, str]]:
+    """One raw HTTP request to the dashboard: (status, response headers)."""
+    lines = [f"GET {target} HTTP/1.1", f"Host: 127.0.0.1:{port}"]
+    lines += [f"{k}: {v}" for k, v in headers.items()]
+    with socket.create_connection(("127.0.0.1", port), timeout=10) as s:
+        s.sendall(("\r\n".join(lines) + "\r\n\r\n").encode())
+        data = b""
+        while b"\r\n\r\n" not in data:
+            chunk = s.recv(4096)
+            if not chunk:
+                break
+            data += chunk
+    head = data.split(b"\r\n\r\n")[0].decode("latin-1").split("\r\n")
+    fields = dict(line.split(": ", 1) for line in head[1:] if ": " in line)
+    return int(head[0].split()[1]), {k.lower(): v for k, v in fields.items()}
+
+
+def test_dashboard_needs_its_token_and_a_same_origin_websocket():
+    """Issue 18: without the token nothing is served (not even the page); the token URL sets
+    an HttpOnly cookie; a websocket from another origin is refused even with the cookie."""
+    from dashboard.viewer import new_access_token
+
+    delta, stats = make_demo_map(DemoConfig(n_points=200, keyframes_per_agent=5))
+    token = new_access_token()
+    port = _free_port()
+    dash = Dashboard(StaticMapSource(delta, stats), DashboardConfig("127.0.0.1", port, token))
+    dash.start(poll=False)
+    try:
+        assert dash.url == f"http://127.0.0.1:{port}/?token={token}"
+        assert _request(port, "/", {})[0] == 401
+        assert _request(port, "/?token=wrong", {})[0] == 401
+        status, fields = _request(port, f"/?token={token}", {})
+        assert status == 302 and fields["location"] == "/"
+        cookie = fields["set-cookie"].split(";")[0]
+        assert "HttpOnly" in fields["set-cookie"] and "SameSite=Strict" in fields["set-cookie"]
+        assert _request(port, "/", {"Cookie": cookie})[0] == 200
+        upgrade = {
+            "Cookie": cookie,
+            "Upgrade": "websocket",
+            "Connection": "Upgrade",
+            "Sec-WebSocket-Key": "dGhlIHNhbXBsZSBub25jZQ==",
+            "Sec-WebSocket-Version": "13",
+        }
+        assert _request(port, "/", {**upgrade, "Origin": "http://evil.example"})[0] == 403
+        assert _request(port, "/", upgrade)[0] == 403  # no Origin at all
+        ok = {**upgrade, "Origin": f"http://127.0.0.1:{port}"}
+        assert _request(port, "/", ok)[0] == 101
+        assert _request(port, "/", {k: v for k, v in ok.items() if k != "Cookie"})[0] == 401
+    finally:
+        dash.stop()
+
+
+def test_dashboard_listens_on_loopback_by_default():
+    assert DashboardConfig().host == "127.0.0.1"

@@ -67,7 +67,7 @@ def test_robot_options_build_one_config_both_ways(tmp_path, monkeypatch) -> None
     cli, main = _both("robot", argv)
     config = robot_config(cli)
     assert config == robot_config(main)
-    assert config.max_frames == 9 and config.secret == SECRET.encode()
+    assert config.max_frames == 9 and config.secret.operator == SECRET.encode()
 
 
 def test_service_entry_points_do_not_load_the_cli_or_lab() -> None:

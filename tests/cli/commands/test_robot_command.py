@@ -43,7 +43,7 @@ def test_arguments_build_the_service_config(tmp_path, monkeypatch):
     cfg = robot.build_config(args)
     assert (cfg.edge_host, cfg.edge_port, cfg.agent_id) == ("edge.local", 7000, "r1")
     assert cfg.rate is Rate.MAX and cfg.backlog_s == 120.0
-    assert cfg.secret == b"0123456789abcdef-robot"  # trailing newline stripped
+    assert cfg.secret.operator == b"0123456789abcdef-robot"  # trailing newline stripped
     assert "0123456789abcdef" not in repr(cfg)
 
 
@@ -115,7 +115,7 @@ def test_environment_supplies_missing_arguments(monkeypatch, tmp_path):
         7001,
         "robot-9",
     )
-    assert cfg.secret == b"s" * 16
+    assert cfg.secret.operator == b"s" * 16
     monkeypatch.delenv("RECSLAM_EDGE")
     with pytest.raises(SystemExit):
         parse([])  # --edge is required again

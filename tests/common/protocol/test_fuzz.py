@@ -11,7 +11,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from common.protocol import Blob, RemoteProtocolError, Session, SessionConfig
-from common.protocol.framing import HEADER_SIZE, FrameDecoder, encode_frame
+from common.protocol.framing import HEADER_SIZE, PROTOCOL_VERSION, FrameDecoder, encode_frame
 from common.protocol.messages import (
     Close,
     Hello,
@@ -199,6 +199,8 @@ def test_message_round_trip(channel, data, name, reason):
     for msg in (
         Blob(channel, data),
         Close(channel, reason),
-        Hello(1, 1, name, name, data, data, channel, data, channel, channel, channel),
+        Hello(
+            PROTOCOL_VERSION, 1, name, name, data, data, channel, data, channel, channel, channel
+        ),
     ):
         assert decode_payload(msg.TYPE_ID, encode_payload(msg)) == msg

@@ -8,6 +8,7 @@ import msgpack
 import pytest
 
 from common.protocol import Blob, LocalProtocolError, RemoteProtocolError
+from common.protocol.framing import PROTOCOL_VERSION
 from common.protocol.messages import (
     CONTROL_MAX_TYPE_ID,
     Close,
@@ -31,6 +32,7 @@ def test_registry_ids_are_stable():
         5: "Ack",
         6: "Heartbeat",
         7: "Close",
+        8: "Reject",
         0x0100: "Blob",
     }
     assert all((t <= CONTROL_MAX_TYPE_ID) == c.CONTROL for t, c in types.items())
@@ -74,7 +76,9 @@ def test_wrong_field_types_blame_the_right_side():
 
 
 def test_control_messages_round_trip():
-    hello = Hello(1, 1, "robot", "r-1", b"n" * 32, b"s" * 16, 5, b"", 0, 1024, 1 << 20)
+    hello = Hello(
+        PROTOCOL_VERSION, 1, "robot", "r-1", b"n" * 32, b"s" * 16, 5, b"", 0, 1024, 1 << 20
+    )
     for msg in (hello, Close(2, "bye")):
         assert decode_payload(msg.TYPE_ID, encode_payload(msg)) == msg
 

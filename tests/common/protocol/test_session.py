@@ -22,8 +22,9 @@ from common.protocol import (
     Session,
     SessionConfig,
 )
-from common.protocol.framing import FLAG_RETRANSMIT, FrameDecoder, encode_frame
+from common.protocol.framing import FLAG_RETRANSMIT, PROTOCOL_VERSION, FrameDecoder, encode_frame
 from common.protocol.messages import SCHEMA_VERSION, Auth, Hello, encode_payload
+from common.protocol.sealing import TAG_SIZE
 
 SECRET = b"0123456789abcdef-secret"
 
@@ -128,7 +129,19 @@ def test_wrong_secret_refused_by_client_and_server():
     s = Session(cfg("e", "edge"), client=False, now=0.0)
     link = cfg("r", "robot").new_link()
     v = SCHEMA_VERSION
-    hello = Hello(1, v, "robot", "mallory", b"n" * 32, link.out_stream_id, 1, b"", 0, 8, 1 << 20)
+    hello = Hello(
+        PROTOCOL_VERSION,
+        v,
+        "robot",
+        "mallory",
+        b"n" * 32,
+        link.out_stream_id,
+        1,
+        b"",
+        0,
+        8,
+        1 << 20,
+    )
     s.receive_data(encode_frame(1, encode_payload(hello)), 0.0)
     assert s.data_to_send(0.0)  # the Challenge
     with pytest.raises(AuthenticationError, match="mallory"):
@@ -180,9 +193,9 @@ def test_server_to_client_direction_and_counters_match_wire_bytes():
     assert c["tx"]["bytes"] == s["rx"]["bytes"] and s["tx"]["bytes"] == c["rx"]["bytes"]
     assert s["tx"]["by_type"]["Blob"]["messages"] == 5
     assert s["tx"]["by_type"]["Blob"]["bytes"] == sum(
-        22 + len(encode_payload(Blob(2, b"z" * (100 * i)))) for i in range(5)
+        22 + TAG_SIZE + len(encode_payload(Blob(2, b"z" * (100 * i)))) for i in range(5)
     )
-    assert s["tx"]["by_type"]["Blob"]["bytes"] == 22 * 5 + 1000 + 3 * 4 + 2 * 5  # bin8/bin16
+    assert s["tx"]["by_type"]["Blob"]["bytes"] == (22 + 16) * 5 + 1000 + 3 * 4 + 2 * 5
     assert moved > 0
 
 
@@ -263,7 +276,10 @@ def test_retransmit_on_timeout_and_duplicate_dropped():
 
 
 def test_window_is_honoured_and_enforced():
-    p = Pair(cfg("r", "robot"), cfg("e", "edge", window_messages=4))
+    # unsealed frames: the hostile client below holds the keys (an authenticated peer)
+    p = Pair(
+        cfg("r", "robot", seal_frames=False), cfg("e", "edge", window_messages=4, seal_frames=False)
+    )
     p.pump()
     p.auto_deliver = False
     for i in range(10):
@@ -289,7 +305,8 @@ def test_window_is_honoured_and_enforced():
     ],
 )
 def test_hostile_frames_after_handshake(frame, match):
-    p = Pair(cfg("r", "robot"), cfg("e", "edge"))
+    """An authenticated peer that breaks the rules (sealing off: it would seal these)."""
+    p = Pair(cfg("r", "robot", seal_frames=False), cfg("e", "edge", seal_frames=False))
     p.pump()
     with pytest.raises(RemoteProtocolError, match=match):
         p.s.receive_data(frame, 0.0)

@@ -81,3 +81,26 @@ def test_corrupt_state_file_is_reported(tmp_path):
     (tmp_path / "cloud.sqlite").write_bytes(b"this is not a database" * 100)
     with pytest.raises(PersistenceError, match=r"cloud\.sqlite"):
         CloudStore(tmp_path)
+
+
+def test_a_full_database_reports_itself_not_a_failed_rollback(tmp_path):
+    """Issue 18: SQLite rolls a transaction back by itself when the disk is full; the error
+    the cloud logs (and retries on) is that one, not 'cannot rollback'. What was committed
+    before stays, and a commit after space is freed succeeds."""
+    import sqlite3
+
+    world = make_world(43, n_points=800)
+    keyframes, points = make_session(world, default_camera(), 0, circle_poses(8), np.eye(4), seed=3)
+    atlas = Atlas()
+    with CloudStore(tmp_path) as store:
+        store.commit(atlas, [atlas.add_keyframe(keyframes[0])], [], {"e": 1})
+        pages = store._db.execute("PRAGMA page_count").fetchone()[0]
+        store._db.execute(f"PRAGMA max_page_count = {pages}")  # the disk is full from here on
+        keys = [atlas.add_keyframe(k) for k in keyframes[1:]]
+        pkeys = [atlas.add_map_point(p) for p in points]
+        with pytest.raises(sqlite3.OperationalError, match="full"):
+            store.commit(atlas, keys, pkeys, {"e": 2})
+        assert not store._db.in_transaction and store.last_sequences() == {"e": 1}
+        store._db.execute(f"PRAGMA max_page_count = {100 * pages}")  # space again
+        store.commit(atlas, keys, pkeys, {"e": 2})
+        assert store.last_sequences() == {"e": 2}

@@ -81,6 +81,7 @@ class Edge:
             "127.0.0.1",
             port,
             transport=FAST,
+            stop_on_reject=False,  # as the edge's uplink: a refused message is skipped
         )
 
     async def _on(self, d: Delivery) -> None:
@@ -251,11 +252,11 @@ def test_restart_resumes_acknowledged_keyframes_without_duplicates(tmp_path, voc
     run(main())
 
 
-def test_malformed_message_closes_only_that_edge(tmp_path, vocab, scenario):
+def test_malformed_message_is_refused_once_and_disturbs_no_edge(tmp_path, vocab, scenario):
     good_msgs = scenario["r1"]["messages"]
 
     async def main():
-        cloud = _cloud(tmp_path, vocab, max_failures=2)
+        cloud = _cloud(tmp_path, vocab)
         _, port = await cloud.start()
         good, bad = await Edge("edge-good", port).start(), await Edge("edge-bad", port).start()
         try:
@@ -272,11 +273,12 @@ def test_malformed_message_closes_only_that_edge(tmp_path, vocab, scenario):
             await bad.client.send(broken)
             await good.send_all(good_msgs)
             await good.client.flush()
-            await bad.client.flush()  # skipped after max_failures: the stream moves on
+            await bad.client.flush()  # refused once, with the reason: the stream moves on
             stats = await cloud.stats()
-            assert stats.rejected == 2
-            assert bad.client.connections >= 2  # its connection was closed and resumed
-            assert good.client.connections == 1  # the good edge was never disturbed
+            assert stats.rejected == 1  # handled once, never redelivered
+            assert [seq for seq, _ in bad.client.peer.rejections] == [1]
+            assert "T_world_body" in bad.client.peer.rejections[0][1]
+            assert bad.client.connections == 1 and good.client.connections == 1
             assert stats.keyframes == scenario["r1"]["n_keyframes"]
         finally:
             await good.client.close()
@@ -435,3 +437,38 @@ def test_cloud_command_survives_sigkill_then_stops_on_sigterm_and_writes_results
     report = json.loads((tmp_path / "res" / "eval" / "ate.json").read_text())
     assert report["joint"]["stats_m"]["rmse"] < 0.05
     assert (tmp_path / "res" / "eval" / "ate.md").is_file()
+
+
+def test_an_edge_cannot_cull_or_update_a_robot_another_edge_serves(tmp_path, vocab, scenario):
+    """The attack of issue 18: an edge (with a valid edge credential) sends a CullEvent and a
+    keyframe for a robot another edge serves. Both are refused once, with the reason; the
+    robot's keyframes stay, and its corrections still go to its own edge."""
+    from common.links.edge_cloud import CullEvent
+
+    msgs = scenario["r0"]["messages"]
+    first = msgs[0]
+
+    async def main():
+        cloud = _cloud(tmp_path, vocab)
+        _, port = await cloud.start()
+        owner, intruder = await Edge("edge-a", port).start(), await Edge("edge-b", port).start()
+        try:
+            await owner.send_all(msgs)
+            await owner.client.flush()
+            before = (await cloud.stats()).keyframes
+            ids = pack_array(np.arange(before, dtype=np.int64), "<i8")
+            await intruder.client.send(CullEvent(first.agent_id, first.map_id, ids, b""))
+            await intruder.client.send(first)
+            await intruder.client.flush()
+            stats = await cloud.stats()
+            assert stats.keyframes == before == scenario["r0"]["n_keyframes"]
+            reasons = [r for _, r in intruder.client.peer.rejections]
+            assert len(reasons) == 2 and all("does not serve" in r for r in reasons)
+            agents = await cloud.call(lambda app: app.agents())
+            assert {edge for _, edge, _ in agents.values()} == {"edge-a"}
+        finally:
+            await owner.client.close()
+            await intruder.client.close()
+            await cloud.stop(write_output=False)
+
+    run(main())

@@ -224,3 +224,25 @@ def test_coded_feedback_keeps_its_points_when_the_vio_runs_far_behind() -> None:
     assert fbs[0].reset and fbs[0].landmarks, "the first feedback carries no points"
     with_points = sum(bool(m.landmarks) for m in fbs)
     assert with_points >= len(fbs) // 2, (with_points, len(fbs))
+
+
+def test_a_frame_that_fails_to_decode_leaves_the_decoders_as_they_were() -> None:
+    """All or nothing: frame 1 with a corrupted feature part (its IMU part decodes first) is
+    refused, and the intact frame 1 then decodes, as do the frames after it."""
+    from common.codec.errors import CodecError
+
+    vocab = Vocabulary.load()
+    seq = simulate(SimOptions(duration_s=1.0, seed=5))
+    frames = code_sequence(seq, vocab)
+    session = RobotSession("r", seq.camera, vocab, RAW)
+    session.decode(frames[0])
+    bad = bytearray(frames[1].features)
+    bad[len(bad) // 2] ^= 0xFF
+    with pytest.raises(CodecError):
+        session.decode(dataclasses.replace(frames[1], features=bytes(bad)))
+    with pytest.raises(CodecError):  # a frame-0 copy that fails does not reset the stream
+        session.decode(dataclasses.replace(frames[0], imu=frames[0].imu[:-1]))
+    for msg in frames[1:6]:
+        item = session.decode(msg)
+        assert item.obs.timestamp_ns == msg.timestamp_ns
+    assert session.frames == 6
