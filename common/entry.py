@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import contextlib
+import os
 import signal
 from collections.abc import Awaitable, Callable, Sequence
 from pathlib import Path
@@ -33,11 +34,18 @@ def listen_address(text: str) -> tuple[str, int]:
 
 def add_security_arguments(p: argparse.ArgumentParser) -> None:
     """``--key-file``, ``--secret-file`` and ``--tls-cert/--tls-key/--tls-ca``: the same on
-    every service (see ``common.protocol.credentials`` and ``common.transport.tls``)."""
+    every service (see ``common.protocol.credentials`` and ``common.transport.tls``). The
+    files default to ``$RECSLAM_KEY_FILE``, ``$RECSLAM_TLS_CERT``, ``$RECSLAM_TLS_KEY`` and
+    ``$RECSLAM_TLS_CA`` (compose sets them: ``docker-compose.secure.yml``)."""
+
+    def env(name: str) -> Path | None:
+        value = os.environ.get(name)
+        return Path(value) if value else None
+
     p.add_argument(
         "--key-file",
         type=Path,
-        default=None,
+        default=env("RECSLAM_KEY_FILE"),
         metavar="F",
         help="this component's key file from `recslam keys new` (its own credential and what "
         "it may verify); default: the operator secret of --secret-file",
@@ -49,15 +57,23 @@ def add_security_arguments(p: argparse.ArgumentParser) -> None:
         metavar="F",
         help=f"operator secret file, derives every credential (default: ${SECRET_ENV})",
     )
-    p.add_argument("--tls-cert", type=Path, default=None, metavar="PEM", help="TLS certificate")
-    p.add_argument("--tls-key", type=Path, default=None, metavar="PEM", help="TLS private key")
+    p.add_argument(
+        "--tls-cert",
+        type=Path,
+        default=env("RECSLAM_TLS_CERT"),
+        metavar="PEM",
+        help="TLS certificate: listen with TLS (with --tls-key)",
+    )
+    p.add_argument(
+        "--tls-key", type=Path, default=env("RECSLAM_TLS_KEY"), metavar="PEM", help="its key"
+    )
     p.add_argument(
         "--tls-ca",
         type=Path,
-        default=None,
+        default=env("RECSLAM_TLS_CA"),
         metavar="PEM",
-        help="CA bundle: connect with TLS and verify the server; listening: require client "
-        "certificates (frames are sealed either way; TLS is optional)",
+        help="CA bundle: connect with TLS and verify the server (frames are sealed either way; "
+        "TLS is optional)",
     )
 
 

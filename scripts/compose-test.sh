@@ -20,7 +20,8 @@
 #
 # Needs root (it may start dockerd), debootstrap when the base image must be made, docker
 # compose (plugin) or docker-compose, and a few GB of disk. Environment: ROBOTS (3),
-# SECONDS_PER_ROBOT (12), KEEP=1 keeps the clone, CA_DIR (default
+# SECONDS_PER_ROBOT (12), SECURE=1 adds docker-compose.secure.yml (a key file per service and
+# TLS on both links, made by scripts/make-keys-and-tls.sh), KEEP=1 keeps the clone, CA_DIR (default
 # /usr/local/share/ca-certificates: its *.crt go into the clone's docker/ca-certificates/, for
 # builds behind a TLS-intercepting proxy). Exit code 0 when every check passed.
 set -euo pipefail
@@ -34,6 +35,7 @@ work="$(mktemp -d /tmp/recslam-compose-test.XXXXXX)"
 started_dockerd=""
 compose=()
 files=(-f docker-compose.yml -f docker-compose.hostnet.yml)
+if [ "${SECURE:-0}" = 1 ]; then files+=(-f docker-compose.secure.yml); fi
 export COMPOSE_PROJECT_NAME=recslam-compose-test
 
 say() { printf '[compose-test %4ss] %s\n' "$(($(date +%s) - t0))" "$*"; }
@@ -124,6 +126,10 @@ tb=$(date +%s)
 "${compose[@]}" "${files[@]}" build >"$work/build.log" 2>&1 || die "build failed: $(tail -5 "$work/build.log")"
 size=$(docker image inspect -f '{{.Size}}' recslam:latest)
 say "built recslam:latest in $(($(date +%s) - tb)) s: $((size / 1000000)) MB"
+if [ "${SECURE:-0}" = 1 ]; then
+    scripts/make-keys-and-tls.sh >"$work/keys.log" 2>&1 || die "keys: $(tail -5 "$work/keys.log")"
+    say "key files and TLS certificate: $(ls keys | tr '\n' ' ')"
+fi
 
 td=$(date +%s)
 "${compose[@]}" "${files[@]}" --profile synth run --rm dataset recslam -v dataset synth \

@@ -3,8 +3,10 @@
 Every frame is sealed by the protocol itself (``common.protocol.sealing``), so TLS is not
 needed for integrity or secrecy between peers that hold their keys; it is there for sites
 whose policy asks for TLS, or to pin servers by certificate. A server with a certificate
-listens with TLS (and, given a CA, requires client certificates signed by it); a client with
-a CA connects with TLS and verifies the server against it (host name included).
+listens with TLS; a client with a CA connects with TLS and verifies the server against it
+(host name included). Clients prove who they are with their credential, not a certificate,
+so one service may hold a certificate for its listening side and a CA for its own links (an
+edge: robots connect to it, it connects to the cloud).
 """
 
 from __future__ import annotations
@@ -25,10 +27,8 @@ class TlsFiles:
     """PEM files of one service.
 
     Attributes:
-        cert, key: this service's certificate chain and private key (servers: needed to
-            listen with TLS; clients: presented when the server asks for one).
-        ca: the CA bundle that peers' certificates are checked against (clients: connect
-            with TLS; servers: require client certificates).
+        cert, key: this service's certificate chain and private key: it listens with TLS.
+        ca: the CA bundle servers' certificates are checked against: it connects with TLS.
     """
 
     cert: Path | None = None
@@ -54,9 +54,6 @@ class TlsFiles:
         ctx = ssl.create_default_context(ssl.Purpose.CLIENT_AUTH)
         ctx.minimum_version = ssl.TLSVersion.TLSv1_2
         self._load_chain(ctx)
-        if self.ca is not None:
-            self._load_ca(ctx)
-            ctx.verify_mode = ssl.CERT_REQUIRED
         return ctx
 
     def client_context(self) -> ssl.SSLContext | None:
@@ -66,8 +63,6 @@ class TlsFiles:
         ctx = ssl.create_default_context(ssl.Purpose.SERVER_AUTH)
         ctx.minimum_version = ssl.TLSVersion.TLSv1_2
         self._load_ca(ctx)
-        if self.cert is not None:
-            self._load_chain(ctx)
         return ctx
 
     def _load_chain(self, ctx: ssl.SSLContext) -> None:
@@ -81,3 +76,54 @@ class TlsFiles:
             ctx.load_verify_locations(cafile=str(self.ca))
         except (OSError, ssl.SSLError) as exc:
             raise TlsError(f"--tls-ca {self.ca}: {exc}") from None
+
+
+def make_self_signed(directory: Path, names: list[str], days: int = 365) -> tuple[Path, Path]:
+    """Write ``cert.pem`` (self-signed, its own CA) and ``key.pem`` (mode 0600) for ``names``
+    (DNS names or IP addresses) into ``directory``; for test sites and compose. Returns
+    (cert, key)."""
+    import datetime
+    import ipaddress
+    import os
+
+    from cryptography import x509
+    from cryptography.hazmat.primitives import hashes, serialization
+    from cryptography.hazmat.primitives.asymmetric import ec
+    from cryptography.x509.oid import NameOID
+
+    if not names:
+        raise TlsError("a certificate needs at least one name")
+    alt: list[x509.GeneralName] = []
+    for name in names:
+        try:
+            alt.append(x509.IPAddress(ipaddress.ip_address(name)))
+        except ValueError:
+            alt.append(x509.DNSName(name))
+    key = ec.generate_private_key(ec.SECP256R1())
+    subject = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, names[0])])
+    now = datetime.datetime.now(datetime.UTC)
+    cert = (
+        x509.CertificateBuilder()
+        .subject_name(subject)
+        .issuer_name(subject)
+        .public_key(key.public_key())
+        .serial_number(x509.random_serial_number())
+        .not_valid_before(now - datetime.timedelta(minutes=5))
+        .not_valid_after(now + datetime.timedelta(days=days))
+        .add_extension(x509.SubjectAlternativeName(alt), critical=False)
+        .add_extension(x509.BasicConstraints(ca=True, path_length=None), critical=True)
+        .sign(key, hashes.SHA256())
+    )
+    directory.mkdir(parents=True, exist_ok=True)
+    cert_path, key_path = directory / "cert.pem", directory / "key.pem"
+    cert_path.write_bytes(cert.public_bytes(serialization.Encoding.PEM))
+    fd = os.open(key_path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    with os.fdopen(fd, "wb") as f:
+        f.write(
+            key.private_bytes(
+                serialization.Encoding.PEM,
+                serialization.PrivateFormat.PKCS8,
+                serialization.NoEncryption(),
+            )
+        )
+    return cert_path, key_path

@@ -2,6 +2,7 @@
 
     recslam keys new --dir keys --edge edge --robot robot0 --robot robot1 --robot robot2
     recslam keys list --dir keys
+    recslam keys tls --dir tls --name cloud --name edge --name 127.0.0.1
 
 ``new`` makes the operator secret ``DIR/operator.key`` if it is missing (keep it with the
 operator; it derives every credential) and writes ``cloud.keys``, ``edge-<id>.keys`` and
@@ -9,6 +10,10 @@ operator; it derives every credential) and writes ``cloud.keys``, ``edge-<id>.ke
 existing names come out the same. Give each component only its own file (``--key-file``):
 a robot's file lets its holder be that robot and nothing else; an edge's lets it be that edge
 and verify robots; the cloud's lets it verify edges.
+
+``tls`` writes a self-signed certificate (its own CA) and key for the given host names, for
+test sites and compose: servers take ``--tls-cert cert.pem --tls-key key.pem``, clients
+``--tls-ca cert.pem``. Frames are sealed with the key files whether or not TLS is on.
 """
 
 from __future__ import annotations
@@ -34,6 +39,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     show = sub.add_parser("list", help="who each key file in DIR is, with key fingerprints")
     show.add_argument("--dir", type=Path, required=True, help="key directory")
     show.set_defaults(func=_list)
+    tls = sub.add_parser("tls", help="a self-signed TLS certificate for test sites and compose")
+    tls.add_argument("--dir", type=Path, required=True, help="where cert.pem and key.pem go")
+    tls.add_argument(
+        "--name", action="append", required=True, metavar="HOST", help="a host name or IP (repeat)"
+    )
+    tls.set_defaults(func=_tls)
 
 
 def _new(args: argparse.Namespace) -> int:
@@ -52,4 +63,12 @@ def _list(args: argparse.Namespace) -> int:
         raise CredentialsError(f"{args.dir}: no *.keys files (make them with `recslam keys new`)")
     for path in files:
         print(describe_keys(path))
+    return 0
+
+
+def _tls(args: argparse.Namespace) -> int:
+    from common.transport.tls import make_self_signed
+
+    cert, key = make_self_signed(args.dir, args.name)
+    print(f"{cert} and {key} for {', '.join(args.name)}")
     return 0
