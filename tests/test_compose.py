@@ -213,3 +213,44 @@ def test_entrypoint_names_a_kernel_without_netem(tmp_path) -> None:
 def test_entrypoint_refuses_netem_on_the_host_network(tmp_path) -> None:
     out = _entrypoint(tmp_path, "unused", NETEM="rate 100kbit", RECSLAM_HOST_NETWORK="1")
     assert out.returncode == 78 and "host's network" in out.stderr
+
+
+def test_secure_override_gives_each_service_only_its_own_key_file(tmp_path) -> None:
+    """docker-compose.secure.yml: every service reads its own key file (issued under the names
+    scripts/make-keys-and-tls.sh gives them), none gets the operator secret, both links use
+    TLS with one certificate whose names cover the compose and host-network addresses."""
+    from common.protocol.credentials import issue_keys, read_key_file
+    from common.transport.tls import make_self_signed
+
+    over = _load(ROOT / "docker-compose.secure.yml")["services"]
+    assert set(over) == {"cloud", "edge", "robot1", "robot2", "robot3"}
+    keys = tmp_path / "keys"
+    issued = {p.name for p in issue_keys(keys, ["edge"], ["robot0", "robot1", "robot2"])}
+    base = _load(COMPOSE)["services"]
+    seen = set()
+    for name, service in over.items():
+        env = service["environment"]
+        assert env["RECSLAM_SECRET"] == ""  # the operator secret reaches no container
+        key_file = env["RECSLAM_KEY_FILE"].removeprefix("/keys/")
+        assert key_file in issued and key_file not in seen
+        seen.add(key_file)
+        keyring = read_key_file(keys / key_file)
+        if name.startswith("robot"):
+            agent = base[name]["environment"]["AGENT_ID"]
+            assert keyring.own is not None and keyring.own.agent_id == agent
+            assert keyring.role_keys == () and keyring.operator is None
+        assert env["RECSLAM_TLS_CA"] == "/tls/cert.pem"
+        assert {"/keys", "/tls"} <= set(_mount_targets(service))
+        # the override's volumes replace the base file's: every base mount is still there
+        assert set(_mount_targets(base[name])) <= set(_mount_targets(service))
+    for name in ("cloud", "edge"):
+        assert over[name]["environment"]["RECSLAM_TLS_CERT"] == "/tls/cert.pem"
+    script = (ROOT / "scripts" / "make-keys-and-tls.sh").read_text()
+    for host in ("cloud", "edge", "localhost", "127.0.0.1"):
+        assert f"--name {host}" in script
+    cert, key = make_self_signed(tmp_path / "tls", ["cloud", "edge", "localhost", "127.0.0.1"])
+    from common.transport.tls import TlsFiles
+
+    assert TlsFiles(cert, key, cert).server_context() is not None
+    gitignore = (ROOT / ".gitignore").read_text().split()
+    assert {"/keys/", "/tls/"} <= set(gitignore)

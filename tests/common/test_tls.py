@@ -11,17 +11,15 @@ from common.entry import add_security_arguments, tls_from_args
 from common.protocol import Blob, SessionConfig
 from common.protocol.credentials import CredentialsError, issue_keys, load_keys
 from common.transport import Client, Delivery, Server, TransportConfig, run
-from common.transport.tls import TlsError, TlsFiles
-from lab.tls import self_signed_contexts
+from common.transport.tls import TlsError, TlsFiles, make_self_signed
 
 FAST = TransportConfig(reconnect_initial_delay=0.01, reconnect_max_delay=0.05)
 
 
 @pytest.fixture
 def pem(tmp_path):
-    if self_signed_contexts(tmp_path) is None:
-        pytest.skip("openssl not installed")
-    return tmp_path / "cert.pem", tmp_path / "key.pem"
+    """``recslam keys tls``'s certificate for localhost and 127.0.0.1."""
+    return make_self_signed(tmp_path, ["localhost", "127.0.0.1"])
 
 
 def test_key_files_and_tls_files_carry_a_robot_to_its_edge(tmp_path, pem):
@@ -46,10 +44,10 @@ def test_key_files_and_tls_files_carry_a_robot_to_its_edge(tmp_path, pem):
         client = Client(
             SessionConfig("robot", "robot0", keys=robot_keys),
             on_message,
-            "localhost",
+            "127.0.0.1",  # the certificate's IP address name is checked too
             port,
             ssl=TlsFiles(ca=cert).client_context(),
-            server_hostname="localhost",
+            server_hostname="127.0.0.1",
             transport=FAST,
         )
         plain = Client(
