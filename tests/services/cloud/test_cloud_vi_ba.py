@@ -1,0 +1,167 @@
+"""Visual-inertial global BA at the cloud: IMU terms from the forwarded IMU, metric scale, and
+the switch."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from common.calibration import EUROC_IMU
+from common.codec.imu import ImuEncoder
+from common.codec.types import ImuChunk
+from common.links.edge_cloud import (
+    KeyframeStates,
+    KeyframeUpdateCoded,
+    encode_point_ids,
+    encode_states,
+)
+from common.protocol.arrays import pack_array
+from common.vocabulary import Vocabulary
+from services.cloud.atlas import KeyframeInput, make_key
+from services.cloud.config import FullBAConfig, GlobalOptimizationConfig
+from services.cloud.full_ba import build_full_ba, solve_full_ba
+from services.cloud.inertial import ImuStore, build_imu_terms
+from services.cloud.simulation import (
+    default_camera,
+    encode_keyframe_update,
+    map_scale,
+    vi_circle_atlas,
+    wavy_circle,
+)
+from services.cloud.uplink import UplinkError, decode_keyframe_update
+
+ON = dataclasses.replace(FullBAConfig(), imu_factors=True)
+OFF = FullBAConfig()
+GRAPH = GlobalOptimizationConfig()
+
+
+def _imu_of(_agent: int):
+    return EUROC_IMU
+
+
+def test_vi_ba_recovers_the_metric_scale_the_relative_pose_terms_keep_wrong():
+    scales = {}
+    for name, cfg in (("on", ON), ("off", OFF)):
+        atlas, store, truth = vi_circle_atlas(60, scale=1.05)
+        problem = build_full_ba(atlas, 0, default_camera(), cfg, GRAPH, store, _imu_of)
+        res = solve_full_ba(problem, cfg, GRAPH)
+        assert map_scale(problem.T_world_body, truth.T_world_body) == pytest.approx(1.05, abs=2e-3)
+        scales[name] = map_scale(res.T_world_body, truth.T_world_body)
+        if name == "on":
+            v_err = np.abs(res.velocity - truth.velocity[res.inertial_index]).max()
+            assert v_err < 0.03  # m/s; true speed 1.0 m/s horizontally, 0.6 m/s vertically
+            assert res.inertial_index.size == 60
+    assert abs(scales["on"] - 1.0) < 0.01
+    assert abs(scales["off"] - 1.0) > 0.03
+
+
+def test_imu_terms_pair_consecutive_keyframes_over_their_timestamps():
+    atlas, store, _ = vi_circle_atlas(30, n_landmarks=300, pose_noise=0.0)
+    keys = atlas.keyframe_keys()
+    terms = build_imu_terms(atlas, 0, keys, store, _imu_of, ON)
+    assert terms.n_pairs == 29
+    assert terms.pair_i.tolist() == list(range(29))
+    assert terms.pair_j.tolist() == list(range(1, 30))
+    assert np.diff(terms.offsets).tolist() == [50] * 29  # 0.25 s at 200 Hz
+    assert all(terms.interval_s(k) == pytest.approx(0.25) for k in range(29))
+    assert terms.first.tolist() == [0]
+    # A keyframe gone (MBP, the edge's culling): its neighbours' interval spans it.
+    atlas.remove_keyframe(make_key(0, 10))
+    keys = atlas.keyframe_keys()
+    terms = build_imu_terms(atlas, 0, keys, store, _imu_of, ON)
+    assert terms.n_pairs == 28
+    k = terms.pair_i.tolist().index(keys.index(make_key(0, 9)))
+    assert terms.interval_s(k) == pytest.approx(0.5)
+    assert np.diff(terms.offsets)[k] == 100
+
+
+def test_imu_gaps_and_long_intervals_get_no_factor_and_break_the_chain():
+    atlas, full, _ = vi_circle_atlas(30, n_landmarks=300, pose_noise=0.0)
+    buf = full.buffer(0)
+    assert buf is not None
+    t, g, a = buf.timestamps_ns, buf.gyro, buf.accel
+    hole = (t > 2_600_000_000) & (t < 2_700_000_000)  # 0.1 s missing inside (2.5, 2.75)
+    store = ImuStore()
+    store.add(0, t[~hole], g[~hole], a[~hole])
+    keys = atlas.keyframe_keys()
+    terms = build_imu_terms(atlas, 0, keys, store, _imu_of, ON)
+    assert terms.n_pairs == 28
+    assert 10 not in terms.pair_i.tolist()  # the interval 2.5 -> 2.75 s
+    assert terms.first.tolist() == [0, 11]
+    short = dataclasses.replace(ON, imu_max_interval_s=0.2)
+    assert build_imu_terms(atlas, 0, keys, store, _imu_of, short).n_pairs == 0
+
+
+def test_switch_off_reproduces_the_relative_pose_full_ba():
+    atlas, store, _ = vi_circle_atlas(40, n_landmarks=400)
+    cam = default_camera()
+    old = build_full_ba(atlas, 0, cam, OFF, GRAPH)  # the call as before IMU factors existed
+    new = build_full_ba(atlas, 0, cam, OFF, GRAPH, store, _imu_of)
+    assert new.imu is None
+    assert np.array_equal(old.T_i_j, new.T_i_j) and np.array_equal(old.edge_i, new.edge_i)
+    a, b = solve_full_ba(old, OFF, GRAPH), solve_full_ba(new, OFF, GRAPH)
+    assert np.array_equal(a.T_world_body, b.T_world_body)
+    assert np.array_equal(a.p_world, b.p_world)
+    assert a.velocity.size == 0
+    # On, the odometry terms between keyframes with IMU are replaced.
+    on = build_full_ba(atlas, 0, cam, ON, GRAPH, store, _imu_of)
+    assert on.imu is not None and on.imu.n_pairs == 39
+    assert on.edge_i.size == old.edge_i.size - 39
+
+
+@pytest.fixture(scope="module")
+def vocab() -> Vocabulary:
+    return Vocabulary.load()
+
+
+def test_uplink_decodes_the_forwarded_imu_raw_and_coded(vocab):
+    atlas, _, _ = vi_circle_atlas(2, n_landmarks=300, pose_noise=0.0)
+    kf = atlas.keyframe(make_key(0, 1))
+    inp = KeyframeInput(
+        agent_id=0,
+        keyframe_id=1,
+        timestamp=kf.timestamp,
+        T_world_body=np.array(kf.T_map_body),
+        keypoints=np.array(kf.keypoints),
+        levels=np.array(kf.levels),
+        descriptors=np.array(kf.descriptors),
+        word_ids=np.array(kf.word_ids),
+        map_point_ids=np.full(kf.keypoints.shape[0], -1, np.int64),
+    )
+    t_ns = np.arange(5_000_000, 250_000_001, 5_000_000, dtype=np.int64)
+    _, _, gyro, accel = wavy_circle(t_ns * 1e-9, 2.0, 0.5, 1.5, 0.3, 2.0)
+    msg, _ = encode_keyframe_update(inp, "r0", vocab, previous_keyframe_id=0)
+    rows = np.concatenate([t_ns[:, None] * 1e-9, gyro, accel], axis=1)
+    d = decode_keyframe_update(dataclasses.replace(msg, imu=pack_array(rows, "<f8")), 0, vocab)
+    assert d.imu is not None
+    assert np.array_equal(d.imu.timestamps_ns, t_ns)
+    assert np.array_equal(d.imu.accel, accel)
+    with pytest.raises(UplinkError):
+        decode_keyframe_update(dataclasses.replace(msg, imu=b"\0" * 13), 0, vocab)
+    coded = KeyframeUpdateCoded(
+        agent_id="r0",
+        map_id=0,
+        keyframe_id=1,
+        previous_keyframe_id=0,
+        timestamp_ns=msg.timestamp_ns,
+        state=encode_states_of(inp),
+        features=msg.features,
+        map_point_ids=encode_point_ids(np.full(inp.keypoints.shape[0], -1, np.int64)),
+        imu=ImuEncoder().encode(ImuChunk(t_ns, gyro, accel)),
+    )
+    dc = decode_keyframe_update(coded, 0, vocab)
+    assert dc.imu is not None and dc.imu.equals(ImuChunk(t_ns, gyro, accel))
+
+
+def encode_states_of(kf: KeyframeInput) -> bytes:
+    return encode_states(
+        KeyframeStates(
+            np.array([kf.keyframe_id], np.int64),
+            np.array([kf.T_world_body]),
+            np.array([kf.velocity]),
+            np.array([kf.bias_gyro]),
+            np.array([kf.bias_accel]),
+        )
+    )
