@@ -186,8 +186,9 @@ def build_imu_terms(
 def preintegrated(
     terms: ImuTerms, k: int, config: FullBAConfig
 ) -> gtsam.PreintegratedCombinedMeasurements:
-    """Pair ``k``'s IMU preintegrated around keyframe ``pair_i[k]``'s forwarded bias."""
-    gn, gw, an, aw = terms.noise[k].tolist()
+    """Pair ``k``'s IMU preintegrated around keyframe ``pair_i[k]``'s forwarded bias (noise
+    densities times ``config.imu_noise_scale``)."""
+    gn, gw, an, aw = (config.imu_noise_scale * terms.noise[k]).tolist()
     params = make_preintegration_params(
         ImuCalibration(gn, gw, an, aw), config.gravity_mps2, config.imu_integration_sigma
     )
