@@ -4,6 +4,7 @@ the switch."""
 from __future__ import annotations
 
 import dataclasses
+import pickle
 
 import numpy as np
 import pytest
@@ -20,12 +21,22 @@ from common.links.edge_cloud import (
 from common.protocol.arrays import pack_array
 from common.vocabulary import Vocabulary
 from services.cloud.atlas import KeyframeInput, make_key
-from services.cloud.config import FullBAConfig, GlobalOptimizationConfig
-from services.cloud.full_ba import build_full_ba, solve_full_ba
+from services.cloud.config import (
+    CloudServiceConfig,
+    FullBAConfig,
+    GlobalOptimizationConfig,
+    MbpConfig,
+)
+from services.cloud.core import CloudCore, SendCorrections, SolveRequest, solve
+from services.cloud.full_ba import FullBAProblem, build_full_ba, solve_full_ba
 from services.cloud.inertial import ImuStore, build_imu_terms
+from services.cloud.server import open_app
 from services.cloud.simulation import (
     default_camera,
     encode_keyframe_update,
+    encode_session,
+    make_session,
+    make_world,
     map_scale,
     vi_circle_atlas,
     wavy_circle,
@@ -165,3 +176,45 @@ def encode_states_of(kf: KeyframeInput) -> bytes:
             np.array([kf.bias_accel]),
         )
     )
+
+
+def test_the_service_core_runs_a_vi_full_ba_from_forwarded_imu(tmp_path, vocab):
+    """Keyframe messages carrying their IMU (as the edge sends them) through the app and the
+    core: the full BA request holds one IMU factor per keyframe interval, survives pickling
+    (the optimiser process), and its result goes back to the edge as corrections."""
+    cam = default_camera()
+    n, dt = 16, 0.25
+    t_kf = dt * np.arange(n)
+    poses, _, _, _ = wavy_circle(t_kf, 2.0, 0.5, 1.5, 0.3, 2.0)
+    kfs, mps = make_session(make_world(3, n_points=800), cam, 0, poses, np.eye(4), seed=4, dt=dt)
+    t_imu = np.arange(0, round(t_kf[-1] * 1e9) + 1, 5_000_000, dtype=np.int64)
+    _, _, gyro, accel = wavy_circle(t_imu * 1e-9, 2.0, 0.5, 1.5, 0.3, 2.0)
+    rows = np.concatenate([t_imu[:, None] * 1e-9, gyro, accel], axis=1)
+    base = CloudServiceConfig()
+    full = dataclasses.replace(base.domain.full_ba, imu_factors=True, max_iterations=3)
+    domain = dataclasses.replace(base.domain, full_ba=full, mbp=MbpConfig(enabled=False))
+    cfg = dataclasses.replace(base, domain=domain, optimize_every_keyframes=1000)
+    app = open_app(tmp_path / "state", cam, vocab, cfg)
+    try:
+        core = CloudCore(app)
+        seq = 0
+        prev_ns = None
+        for kf, msgs in zip(kfs, encode_session(kfs, mps, "r0", vocab), strict=True):
+            t_ns = round(kf.timestamp * 1e9)
+            keep = (t_imu <= t_ns) if prev_ns is None else (t_imu > prev_ns) & (t_imu <= t_ns)
+            prev_ns = t_ns
+            msgs[0] = dataclasses.replace(msgs[0], imu=pack_array(rows[keep], "<f8"))
+            for m in msgs:
+                seq += 1
+                core.handle("edge", m, b"s", seq, float(seq))
+        [req] = [a for a in core.full_ba(0, 100.0) if isinstance(a, SolveRequest)]
+        assert isinstance(req.problem, FullBAProblem) and req.problem.imu is not None
+        assert req.problem.imu.n_pairs == n - 1
+        result = solve(pickle.loads(pickle.dumps(req)))  # as in the optimiser process
+        assert result.inertial_index.size == n
+        actions = core.solved(req, result, 101.0)
+        assert core.full_bas == 1
+        sends = [a for a in actions if isinstance(a, SendCorrections)]
+        assert len(sends) == 1 and sends[0].corrections[0].edge_id == "edge"
+    finally:
+        app.close()
