@@ -33,8 +33,8 @@ import gtsam
 import numpy as np
 
 from common.calibration import ImuCalibration
-from common.imu import ImuBuffer, ImuDataError
-from common.preintegration import make_bias, make_preintegration_params
+from common.imu import ImuBuffer, ImuDataError, ImuSegment
+from common.preintegration import make_bias, make_preintegration_params, preintegrate
 from services.cloud.atlas import Atlas
 from services.cloud.config import FullBAConfig
 
@@ -79,8 +79,9 @@ class ImuTerms:
     """Plain IMU terms of a map (indices into the problem's keyframes).
 
     pair_i, pair_j (K,): consecutive keyframes of one agent; offsets (K + 1,): pair k's
-    pieces are rows ``offsets[k]:offsets[k + 1]`` of dt (S,) s, gyro (S, 3) rad/s and accel
-    (S, 3) m/s² (piecewise-constant, each the mean of both ends of a piece); noise (K, 4) the
+    samples (an :class:`common.imu.ImuSegment`, ends interpolated at the keyframes'
+    timestamps) are rows ``offsets[k]:offsets[k + 1]`` of timestamps_ns (S,), gyro (S, 3)
+    rad/s and accel (S, 3) m/s²; noise (K, 4) the
     robot's gyro noise density, gyro random walk, accel noise density, accel random walk;
     bias_gyro, bias_accel (N, 3) the forwarded biases of every keyframe; first (A,) the first
     keyframe of each agent's chain (where the bias prior sits)."""
@@ -88,7 +89,7 @@ class ImuTerms:
     pair_i: np.ndarray
     pair_j: np.ndarray
     offsets: np.ndarray
-    dt: np.ndarray
+    timestamps_ns: np.ndarray
     gyro: np.ndarray
     accel: np.ndarray
     noise: np.ndarray
@@ -100,8 +101,12 @@ class ImuTerms:
     def n_pairs(self) -> int:
         return int(self.pair_i.shape[0])
 
+    def segment(self, k: int) -> ImuSegment:
+        s = slice(int(self.offsets[k]), int(self.offsets[k + 1]))
+        return ImuSegment(self.timestamps_ns[s], self.gyro[s], self.accel[s])
+
     def interval_s(self, k: int) -> float:
-        return float(self.dt[self.offsets[k] : self.offsets[k + 1]].sum())
+        return self.segment(k).duration_s
 
 
 def _ns(timestamp_s: float) -> int:
@@ -124,7 +129,7 @@ def build_imu_terms(
     pi: list[int] = []
     pj: list[int] = []
     offsets = [0]
-    dts: list[np.ndarray] = []
+    stamps: list[np.ndarray] = []
     gyros: list[np.ndarray] = []
     accels: list[np.ndarray] = []
     noise: list[tuple[float, float, float, float]] = []
@@ -146,18 +151,17 @@ def build_imu_terms(
             if seg is None:
                 skipped += 1
                 continue
-            dt, gyro, accel = seg.midpoints()
-            if dt.size == 0 or float(dt.max()) > config.imu_max_gap_s:
+            if float(np.diff(seg.timestamps_ns).max()) * 1e-9 > config.imu_max_gap_s:
                 skipped += 1
                 continue
             if len(pi) == n_before or pj[-1] != index[a]:
                 first.append(index[a])
             pi.append(index[a])
             pj.append(index[b])
-            dts.append(dt)
-            gyros.append(gyro)
-            accels.append(accel)
-            offsets.append(offsets[-1] + dt.size)
+            stamps.append(seg.timestamps_ns)
+            gyros.append(seg.gyro)
+            accels.append(seg.accel)
+            offsets.append(offsets[-1] + seg.timestamps_ns.size)
             noise.append(
                 (
                     calib.gyro_noise_density,
@@ -173,7 +177,7 @@ def build_imu_terms(
         pair_i=np.array(pi, np.int64),
         pair_j=np.array(pj, np.int64),
         offsets=np.array(offsets, np.int64),
-        dt=np.concatenate(dts) if dts else np.zeros(0),
+        timestamps_ns=np.concatenate(stamps) if stamps else np.zeros(0, np.int64),
         gyro=np.concatenate(gyros) if gyros else np.zeros((0, 3)),
         accel=np.concatenate(accels) if accels else np.zeros((0, 3)),
         noise=np.array(noise, np.float64).reshape(-1, 4),
@@ -193,14 +197,7 @@ def preintegrated(
         ImuCalibration(gn, gw, an, aw), config.gravity_mps2, config.imu_integration_sigma
     )
     i = int(terms.pair_i[k])
-    pim = gtsam.PreintegratedCombinedMeasurements(
-        params, make_bias(terms.bias_accel[i], terms.bias_gyro[i])
-    )
-    s = slice(int(terms.offsets[k]), int(terms.offsets[k + 1]))
-    for h, w, f in zip(terms.dt[s], terms.gyro[s], terms.accel[s], strict=True):
-        if h > 0:
-            pim.integrateMeasurement(f, w, float(h))
-    return pim
+    return preintegrate(params, terms.segment(k), terms.bias_accel[i], terms.bias_gyro[i])
 
 
 def initial_velocities(

@@ -75,7 +75,7 @@ def test_imu_terms_pair_consecutive_keyframes_over_their_timestamps():
     assert terms.n_pairs == 29
     assert terms.pair_i.tolist() == list(range(29))
     assert terms.pair_j.tolist() == list(range(1, 30))
-    assert np.diff(terms.offsets).tolist() == [50] * 29  # 0.25 s at 200 Hz
+    assert np.diff(terms.offsets).tolist() == [51] * 29  # 0.25 s at 200 Hz, both ends
     assert all(terms.interval_s(k) == pytest.approx(0.25) for k in range(29))
     assert terms.first.tolist() == [0]
     # A keyframe gone (MBP, the edge's culling): its neighbours' interval spans it.
@@ -85,7 +85,7 @@ def test_imu_terms_pair_consecutive_keyframes_over_their_timestamps():
     assert terms.n_pairs == 28
     k = terms.pair_i.tolist().index(keys.index(make_key(0, 9)))
     assert terms.interval_s(k) == pytest.approx(0.5)
-    assert np.diff(terms.offsets)[k] == 100
+    assert np.diff(terms.offsets)[k] == 101
 
 
 def test_imu_gaps_and_long_intervals_get_no_factor_and_break_the_chain():
