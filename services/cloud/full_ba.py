@@ -5,12 +5,12 @@ relative-pose constraints only. When there is time the service follows it with t
 which optimises keyframe poses *and* map points on Eq. 20's terms:
 
 - ``e_prio``: a tight prior on the map's first keyframe (the same one the pose graph fixes),
-- ``e_imu``: with ``FullBAConfig.imu_factors``, a preintegrated ``CombinedImuFactor`` over
-  pose, velocity and bias states between consecutive keyframes of each agent whose IMU the
-  edge forwarded (:mod:`services.cloud.inertial`); otherwise, and for intervals without IMU,
-  its stand-in: a ``BetweenFactor<Pose3>`` whose measurement is the current relative pose
-  (what the edge's visual-inertial odometry and the pose graph left) with fixed sigmas
-  (:class:`~services.cloud.config.FullBAConfig`),
+- ``e_imu``: with ``FullBAConfig.imu_factors`` (the default), a preintegrated
+  ``CombinedImuFactor`` over pose, velocity and bias states between consecutive keyframes of
+  each agent whose IMU the edge forwarded (:mod:`services.cloud.inertial`); otherwise, and
+  for intervals without IMU, its stand-in: a ``BetweenFactor<Pose3>`` whose measurement is
+  the current relative pose (what the edge's visual-inertial odometry and the pose graph
+  left) with fixed sigmas (:class:`~services.cloud.config.FullBAConfig`),
 - loop and merge constraints as the pose graph has them (Cauchy kernel); a loop whose
   whitened error at the initial estimate exceeds ``loop_outlier_whitened`` is left out (the
   pose graph, solved just before, rejects outliers with the same test),

@@ -43,8 +43,8 @@ from services.cloud.simulation import (
 )
 from services.cloud.uplink import UplinkError, decode_keyframe_update
 
-ON = dataclasses.replace(FullBAConfig(), imu_factors=True)
-OFF = FullBAConfig()
+ON = FullBAConfig()  # IMU factors on by default
+OFF = dataclasses.replace(FullBAConfig(), imu_factors=False)
 GRAPH = GlobalOptimizationConfig()
 
 
@@ -108,6 +108,7 @@ def test_imu_gaps_and_long_intervals_get_no_factor_and_break_the_chain():
 def test_switch_off_reproduces_the_relative_pose_full_ba():
     atlas, store, _ = vi_circle_atlas(40, n_landmarks=400)
     cam = default_camera()
+    assert ON.imu_factors
     old = build_full_ba(atlas, 0, cam, OFF, GRAPH)  # the call as before IMU factors existed
     new = build_full_ba(atlas, 0, cam, OFF, GRAPH, store, _imu_of)
     assert new.imu is None
