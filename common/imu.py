@@ -153,10 +153,15 @@ class ImuBuffer:
 
     def _slice(self, t0_ns: int, t1_ns: int) -> ImuSegment:
         ts = self._t
-        inner = ts[(ts > t0_ns) & (ts < t1_ns)]
+        # Only the samples bracketing [t0, t1] take part (O(log K + window), so a buffer that
+        # keeps a whole run, as the cloud's, slices as fast as a short one).
+        lo = max(int(np.searchsorted(ts, t0_ns, side="right")) - 1, 0)
+        hi = min(int(np.searchsorted(ts, t1_ns, side="left")) + 1, len(ts))
+        window = ts[lo:hi]
+        inner = window[(window > t0_ns) & (window < t1_ns)]
         knots = np.concatenate([[t0_ns], inner, [t1_ns]]).astype(np.int64)
         at = (knots - ts[0]).astype(np.float64)
-        held = (ts - ts[0]).astype(np.float64)
-        gyro = np.stack([np.interp(at, held, self._gyro[:, k]) for k in range(3)], axis=1)
-        accel = np.stack([np.interp(at, held, self._accel[:, k]) for k in range(3)], axis=1)
+        held = (window - ts[0]).astype(np.float64)
+        gyro = np.stack([np.interp(at, held, self._gyro[lo:hi, k]) for k in range(3)], axis=1)
+        accel = np.stack([np.interp(at, held, self._accel[lo:hi, k]) for k in range(3)], axis=1)
         return ImuSegment(knots, gyro, accel)

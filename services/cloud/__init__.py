@@ -3,7 +3,8 @@
 Domain blocks (sans-I/O): ``atlas`` / ``map_types`` (maps, keyframes, map points,
 covisibility, spanning tree), ``place_recognition`` (BoW database, loop candidates),
 ``verification`` (geometric check), ``merge`` (map merging, loops), ``global_optimization``
-(pose graph, gtsam), ``mbp`` (map backbone profiling), ``persistence`` (SQLite state),
+(pose graph, gtsam), ``full_ba`` / ``inertial`` (bundle adjustment, visual-inertial with
+the forwarded IMU), ``mbp`` (map backbone profiling), ``persistence`` (SQLite state),
 ``map_fusion`` (front object over them), ``simulation`` (synthetic world for tests).
 
 Service: ``uplink`` (edge messages <-> domain inputs), ``app`` (reacts to messages on one

@@ -194,6 +194,9 @@ class CloudApp:
         cam = self.sensors.camera(name)
         if cam is not None:
             self.fusion.cameras[agent_id] = cam
+        sensors = self.sensors.sensors.get(name)
+        if sensors is not None:
+            self.fusion.imus[agent_id] = sensors.imu
 
     def _sensors(
         self, edge_id: str, msg: AgentSensors, position: dict[str, tuple[bytes, int]]
@@ -266,6 +269,8 @@ class CloudApp:
             self.rejected += 1
             raise
         self.codec_timer.add(f"decode.{type(msg).__name__}", time.perf_counter() - t0)
+        if d.imu is not None:
+            self.fusion.imu.add(a.agent_id, d.imu.timestamps_ns, d.imu.gyro, d.imu.accel)
         key = make_key(a.agent_id, d.keyframe_id)
         kf = d.keyframe
         if kf is None:  # pose-only update of a keyframe the cloud has

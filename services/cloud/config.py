@@ -186,6 +186,23 @@ class FullBAConfig:
         with them in the pose graph only, 1.94 cm in the pose graph and the full BA at 0.002
         rad: the images fix a keyframe's tilt relative to the map better than the VIO's
         gravity (its tilt errors: median 0.04-0.08 deg, p95 0.22-0.39 deg).
+    imu_factors: visual-inertial global BA (``services/cloud/inertial.py``): between
+        consecutive keyframes of one agent with forwarded IMU, a preintegrated
+        ``CombinedImuFactor`` over pose, velocity and bias states replaces the relative-pose
+        term (default True: on the recordings of seeds 0, 1, 2 replayed with the live
+        schedule, joint ATE 1.60 / 2.03 / 1.35 cm without, 0.98 / 1.48 / 1.06 cm with, scale
+        error +0.57 / -0.85 / +0.14 % -> -0.06 / -0.01 / +0.16 %; see
+        benchmarks/results/cloud_vi_ba.md).
+    gravity_mps2: gravity along the map's -z (default 9.81, the edge VIO's).
+    imu_integration_sigma: preintegration integration noise (default 1e-4, the edge's).
+    imu_noise_scale: the robot's IMU noise densities and random walks are multiplied by this
+        in the IMU factors (default 3). Chosen on the seed-0 recording, final map, one VI full
+        BA: joint ATE 1.66 / 0.96 / 1.01 / 2.63 cm with 1 / 3 / 10 / 0.5 (1.60 cm without IMU
+        factors); the nominal densities over-trust the preintegration against the images.
+    imu_max_interval_s: keyframe intervals longer than this get no IMU factor (default 3 s) ...
+    imu_max_gap_s: ... nor do intervals with two IMU samples further apart (default 0.05 s).
+    bias_prior_accel / bias_prior_gyro: sigmas of the prior on the first bias of each agent's
+        chain, at the edge's estimate (defaults 0.1 m/s², 0.01 rad/s).
     """
 
     enabled: bool = True
@@ -201,6 +218,14 @@ class FullBAConfig:
     relative_error_tol: float = 1e-4
     max_seconds: float = 60.0
     attitude_sigma_rad: float = 0.0
+    imu_factors: bool = True
+    gravity_mps2: float = 9.81
+    imu_integration_sigma: float = 1e-4
+    imu_noise_scale: float = 3.0
+    imu_max_interval_s: float = 3.0
+    imu_max_gap_s: float = 0.05
+    bias_prior_accel: float = 0.1
+    bias_prior_gyro: float = 0.01
 
 
 @dataclass(frozen=True)

@@ -5,9 +5,10 @@ relative-pose constraints only. When there is time the service follows it with t
 which optimises keyframe poses *and* map points on Eq. 20's terms:
 
 - ``e_prio``: a tight prior on the map's first keyframe (the same one the pose graph fixes),
-- ``e_imu``: the atlas keeps each keyframe's velocity and biases but not the IMU samples
-  between keyframes, so a CombinedImuFactor cannot be formed in the cloud; its stand-in is a
-  ``BetweenFactor<Pose3>`` between consecutive keyframes of each agent whose measurement is
+- ``e_imu``: with ``FullBAConfig.imu_factors`` (the default), a preintegrated
+  ``CombinedImuFactor`` over pose, velocity and bias states between consecutive keyframes of
+  each agent whose IMU the edge forwarded (:mod:`services.cloud.inertial`); otherwise, and
+  for intervals without IMU, its stand-in: a ``BetweenFactor<Pose3>`` whose measurement is
   the current relative pose (what the edge's visual-inertial odometry and the pose graph
   left) with fixed sigmas (:class:`~services.cloud.config.FullBAConfig`),
 - loop and merge constraints as the pose graph has them (Cauchy kernel); a loop whose
@@ -32,7 +33,7 @@ from __future__ import annotations
 import itertools
 import logging
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import gtsam
 import numpy as np
@@ -48,6 +49,14 @@ from services.cloud.global_optimization import (
     add_attitude_factors,
     apply_pose_graph,
     up_in_body,
+)
+from services.cloud.inertial import (
+    ImuOf,
+    ImuStore,
+    ImuTerms,
+    add_imu_factors,
+    build_imu_terms,
+    inertial_states,
 )
 from services.cloud.map_types import CameraOf, camera_lookup
 
@@ -96,6 +105,8 @@ class FullBAProblem:
     up_body: np.ndarray | None = None
     """(N, 3) the up direction in each body frame at build time (held roll and pitch, see
     :func:`services.cloud.global_optimization.add_attitude_factors`)."""
+    imu: ImuTerms | None = None
+    """IMU terms between consecutive keyframes (None: IMU factors off)."""
 
     @property
     def n_observations(self) -> int:
@@ -121,6 +132,13 @@ class FullBAResult:
     iterations: int
     rejected_edges: np.ndarray
     seconds: float
+    inertial_index: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    """(M,) indices into ``keys`` of the keyframes with inertial states (IMU factors on) ..."""
+    velocity: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    """... their optimised velocities (M, 3) m/s, map frame ..."""
+    bias_gyro: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    bias_accel: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    """... and biases (M, 3) rad/s and m/s²."""
 
 
 def _project(
@@ -149,9 +167,12 @@ def build_full_ba(
     camera: CameraCalibration | CameraOf,
     config: FullBAConfig,
     graph_config: GlobalOptimizationConfig,
+    imu: ImuStore | None = None,
+    imu_of: ImuOf | None = None,
 ) -> FullBAProblem:
     """Snapshot one map of the atlas as a bundle-adjustment problem (current estimates);
-    ``camera``: each agent's camera (or one for all)."""
+    ``camera``: each agent's camera (or one for all); with ``config.imu_factors``, ``imu``
+    the forwarded IMU and ``imu_of`` each agent's IMU calibration."""
     keys = atlas.keyframe_keys(map_id=map_id)
     if not keys:
         raise FullBAError(f"map {map_id} has no keyframes")
@@ -194,7 +215,15 @@ def build_full_ba(
     used = np.flatnonzero(np.bincount(obs_point[ok], minlength=point_keys.size) >= 2)
     remap = np.full(point_keys.size, -1, np.int64)
     remap[used] = np.arange(used.size)
-    # Relative-pose constraints (stand-in of the IMU terms) and loops.
+    terms = None
+    if config.imu_factors and imu is not None and imu_of is not None:
+        terms = build_imu_terms(atlas, map_id, keys, imu, imu_of, config)
+    with_imu = (
+        set()
+        if terms is None
+        else set(zip(terms.pair_i.tolist(), terms.pair_j.tolist(), strict=True))
+    )
+    # Relative-pose constraints (stand-in of the IMU terms where there are none) and loops.
     ei: list[int] = []
     ej: list[int] = []
     meas: list[np.ndarray] = []
@@ -204,6 +233,8 @@ def build_full_ba(
     for agent in atlas.agents_in_map(map_id):
         for a, b in itertools.pairwise(atlas.keyframe_keys(map_id=map_id, agent_id=agent)):
             i, j = index[a], index[b]
+            if (i, j) in with_imu or (j, i) in with_imu:
+                continue
             ei.append(i)
             ej.append(j)
             meas.append(inverse_T(T[i]) @ T[j])
@@ -238,6 +269,7 @@ def build_full_ba(
         fx=fx,
         dropped_observations=int(n_all - ok.sum()),
         up_body=up_in_body(T),
+        imu=terms,
     )
 
 
@@ -309,6 +341,9 @@ def solve_full_ba(
             if loop_kernel is not None:
                 noise = gtsam.noiseModel.Robust.Create(loop_kernel, noise)
         graph.add(gtsam.BetweenFactorPose3(X(i), X(j), meas, noise))
+    n_imu = 0
+    if problem.imu is not None and problem.imu.n_pairs:
+        n_imu = add_imu_factors(graph, values, problem.imu, problem.T_world_body, config)
     kernel = _kernel(config.robust_kernel, config.kernel_scale)
     body_P_cam = [_pose3(Tbc) for Tbc in problem.T_body_cam]
     noise_of: dict[float, gtsam.noiseModel.Base] = {}
@@ -354,6 +389,10 @@ def solve_full_ba(
     result = optimizer.values()
     T_out = np.array([result.atPose3(X(i)).matrix() for i in range(n)])
     p_out = np.array([result.atPoint3(L(j)) for j in range(n_pts)]).reshape(n_pts, 3)
+    inertial: dict[str, np.ndarray] = {}
+    if n_imu and problem.imu is not None:
+        idx, vel, bg, ba = inertial_states(result, problem.imu)
+        inertial = {"inertial_index": idx, "velocity": vel, "bias_gyro": bg, "bias_accel": ba}
     seconds = time.perf_counter() - t0
     out = FullBAResult(
         keys=problem.keys.copy(),
@@ -367,13 +406,16 @@ def solve_full_ba(
         iterations=iterations,
         rejected_edges=np.array(rejected, np.int64),
         seconds=seconds,
+        **inertial,
     )
     log.info(
-        "full BA: %d keyframes, %d points, %d observations, %d iterations in %.2f s: "
+        "full BA: %d keyframes, %d points, %d observations, %d IMU factors, %d iterations in "
+        "%.2f s: "
         "error %.4g -> %.4g, reprojection RMS %.2f -> %.2f px",
         n,
         n_pts,
         problem.n_observations,
+        n_imu,
         iterations,
         seconds,
         out.initial_error,

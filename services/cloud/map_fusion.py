@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from common.calibration import CameraCalibration
+from common.calibration import EUROC_IMU, CameraCalibration, ImuCalibration
 from common.errors import RecslamError
 from services.cloud.atlas import Atlas, KeyframeInput, MapPointInput, make_key
 from services.cloud.config import CloudConfig
@@ -32,6 +32,7 @@ from services.cloud.global_optimization import (
     apply_pose_graph,
     build_pose_graph,
 )
+from services.cloud.inertial import ImuStore
 from services.cloud.mbp import MbpReport, run_mbp
 from services.cloud.merge import MatchOutcome, apply_match
 from services.cloud.place_recognition import KeyframeDatabase, PlaceRecognizer
@@ -78,6 +79,8 @@ class MapFusion:
     ) -> None:
         self.camera = camera
         self.cameras: dict[int, CameraCalibration] = {}  # atlas agent id -> its robot's
+        self.imus: dict[int, ImuCalibration] = {}  # atlas agent id -> its robot's IMU
+        self.imu = ImuStore()  # the IMU the edges forwarded (for the VI full BA)
         self._fallback_used: set[int] = set()
         self.config = config
         self.atlas = atlas if atlas is not None else Atlas()
@@ -100,6 +103,11 @@ class MapFusion:
             self._fallback_used.add(agent_id)
             log.warning("agent %d: no calibration received; using the fallback camera", agent_id)
         return self.camera
+
+    def imu_of(self, agent_id: int) -> ImuCalibration:
+        """The IMU calibration of atlas agent ``agent_id``: its robot's own, else EuRoC's
+        ADIS16448 (the synthetic generator's too)."""
+        return self.imus.get(agent_id, EUROC_IMU)
 
     def add_map_point(self, mp: MapPointInput) -> int:
         return self.atlas.add_map_point(mp)
@@ -165,7 +173,13 @@ class MapFusion:
     def full_ba_problem(self, map_id: int) -> FullBAProblem:
         """Plain full-BA problem of a map (give it to ``solve_full_ba`` elsewhere)."""
         return build_full_ba(
-            self.atlas, map_id, self.camera_of, self.config.full_ba, self.config.optimization
+            self.atlas,
+            map_id,
+            self.camera_of,
+            self.config.full_ba,
+            self.config.optimization,
+            self.imu,
+            self.imu_of,
         )
 
     def apply_optimization(self, result: PoseGraphResult | FullBAResult) -> int:

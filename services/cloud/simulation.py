@@ -14,11 +14,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from common.calibration import CameraCalibration
+from common.calibration import EUROC_IMU, CameraCalibration, ImuCalibration
 from common.camera import camera_model
 from common.codec.frames import FeatureEncoder
 from common.codec.types import CodecConfig, KeyframeFeatures
-from common.geometry import inverse_T, make_T, transform_points
+from common.geometry import inverse_T, make_T, so3_exp, transform_points
 from common.links.edge_cloud import (
     KeyframeUpdate,
     MapPointUpdate,
@@ -26,7 +26,8 @@ from common.links.edge_cloud import (
     pack_map_point_update,
 )
 from common.vocabulary import Vocabulary
-from services.cloud.atlas import KeyframeInput, MapPointInput
+from services.cloud.atlas import Atlas, KeyframeInput, MapPointInput
+from services.cloud.inertial import ImuStore
 
 # Camera z = body x (forward), camera x = -body y, camera y = -body z.
 R_BODY_CAM = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
@@ -336,3 +337,103 @@ def encode_session(
             msgs.append(encode_map_point_update(new, agent_name, edge_map_id, coded_index=inv))
         out.append(msgs)
     return out
+
+
+# ------------------------------------------------------------------ visual-inertial maps
+@dataclass(frozen=True, eq=False)
+class ViCircle:
+    """Ground truth of :func:`vi_circle_atlas`: keyframe poses ``T_world_body (N, 4, 4)``,
+    velocities ``velocity (N, 3)`` m/s, and the IMU calibration the samples are meant with."""
+
+    T_world_body: np.ndarray
+    velocity: np.ndarray
+    imu: ImuCalibration
+
+
+def wavy_circle(
+    t_s: np.ndarray, radius: float, omega: float, height: float, amp: float, nu: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """A circle of ``radius`` at ``omega`` rad/s (yaw = position angle, body x outwards, z
+    up) whose height oscillates as ``height + amp · sin(nu · t)``, at times ``t_s (K,)``:
+    ``(T_world_body (K, 4, 4), velocity (K, 3), gyro (K, 3), accel (K, 3))``, the last two
+    the exact IMU (gravity 9.81 along -z)."""
+    a = omega * t_s
+    z = height + amp * np.sin(nu * t_s)
+    T = np.stack(
+        [
+            yaw_T(ai, np.array([radius * np.cos(ai), radius * np.sin(ai), zi]))
+            for ai, zi in zip(a, z, strict=True)
+        ]
+    )
+    vel = np.stack(
+        [-radius * omega * np.sin(a), radius * omega * np.cos(a), amp * nu * np.cos(nu * t_s)],
+        axis=1,
+    )
+    gyro = np.tile([0.0, 0.0, omega], (t_s.size, 1))
+    accel = np.stack(
+        [
+            np.full(t_s.size, -radius * omega**2),
+            np.zeros(t_s.size),
+            9.81 - amp * nu**2 * np.sin(nu * t_s),
+        ],
+        axis=1,
+    )
+    return T, vel, gyro, accel
+
+
+def vi_circle_atlas(
+    n_keyframes: int,
+    n_landmarks: int = 600,
+    scale: float = 1.0,
+    seed: int = 0,
+    dt: float = 0.25,
+    radius: float = 2.0,
+    omega: float = 0.5,
+    pose_noise: float = 0.01,
+    amp: float = 0.3,
+    nu: float = 2.0,
+) -> tuple[Atlas, ImuStore, ViCircle]:
+    """A single-agent visual-inertial map (agent 0) on :func:`wavy_circle` (height 1.5 m)
+    with its exact 200 Hz IMU (keyframes every ``dt`` s; the height's oscillation makes the
+    scale observable apart from an accelerometer bias), started off the truth as a map whose
+    scale drifted: keyframe positions and points scaled by ``scale`` about the first
+    keyframe, then the poses (not the first) perturbed by ``pose_noise`` m / rad per axis.
+    Returns the atlas, the IMU store holding the samples, and the truth."""
+    cam = default_camera()
+    world = make_world(seed, n_points=n_landmarks)
+    t_kf = dt * np.arange(n_keyframes)
+    poses, vel, _, _ = wavy_circle(t_kf, radius, omega, 1.5, amp, nu)
+    kfs, mps = make_session(world, cam, 0, poses, np.eye(4), seed=seed + 1, dt=dt)
+    atlas = Atlas()
+    for kf in kfs:
+        atlas.add_keyframe(kf)
+    for m in mps:
+        atlas.add_map_point(m)
+    store = ImuStore()
+    t_imu = np.arange(0, round((n_keyframes - 1) * dt * 1e9) + 5_000_000, 5_000_000)
+    _, _, gyro, accel = wavy_circle(t_imu * 1e-9, radius, omega, 1.5, amp, nu)
+    store.add(0, t_imu, gyro, accel)
+    rng = np.random.default_rng(seed + 2)
+    keys = atlas.keyframe_keys()
+    p0 = poses[0, :3, 3]
+    new = {}
+    for i, k in enumerate(keys):
+        T = atlas.T_map_body(k).copy()
+        T[:3, 3] = p0 + scale * (T[:3, 3] - p0)
+        if i:
+            D = make_T(so3_exp(rng.normal(0.0, pose_noise, 3)), rng.normal(0.0, pose_noise, 3))
+            T = T @ D
+        new[k] = T
+    pk = np.array(atlas.map_point_keys(), np.int64)
+    P = p0 + scale * (atlas.map_point_positions(pk) - p0)
+    atlas.set_keyframe_poses(new)
+    atlas.set_map_point_positions(dict(zip(pk.tolist(), P, strict=True)))
+    return atlas, store, ViCircle(poses, vel, EUROC_IMU)
+
+
+def map_scale(T_est: np.ndarray, T_true: np.ndarray) -> float:
+    """Least-squares scale of estimated keyframe positions (N, 4, 4) relative to the truth's,
+    both about their first keyframe (1.0: metric)."""
+    d_est = T_est[:, :3, 3] - T_est[0, :3, 3]
+    d_true = T_true[:, :3, 3] - T_true[0, :3, 3]
+    return float(np.sum(d_est * d_true) / np.sum(d_true * d_true))

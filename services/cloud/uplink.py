@@ -26,10 +26,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from common.codec.errors import CodecError
+from common.codec.errors import CodecError, CodecUsageError
 from common.codec.frames import FeatureDecoder
 from common.codec.imu import ImuDecoder
-from common.codec.types import CodecConfig, KeyframeFeatures
+from common.codec.types import CodecConfig, ImuChunk, KeyframeFeatures
 from common.errors import RecslamError
 from common.links.edge_cloud import (
     CullEvent,
@@ -73,6 +73,8 @@ class DecodedKeyframe:
     bias_accel: np.ndarray
     map_point_ids: np.ndarray
     keyframe: KeyframeInput | None
+    imu: ImuChunk | None = None
+    """The IMU samples since the robot's previous uplinked keyframe (None: none sent)."""
 
 
 def _one(data: bytes, shape: tuple[int, ...], what: str) -> np.ndarray:
@@ -145,8 +147,7 @@ def decode_keyframe_update(
         try:
             st = decode_states(msg.state, f"{what}: state")
             mp_ids = decode_point_ids(msg.map_point_ids, f"{what}: map_point_ids")
-            if msg.imu:
-                ImuDecoder().decode(msg.imu)
+            imu = ImuDecoder().decode(msg.imu) if msg.imu else None
         except (RemoteProtocolError, CodecError) as exc:
             raise UplinkError(str(exc)) from exc
         if len(st) != 1 or int(st.keyframe_ids[0]) != msg.keyframe_id:
@@ -162,6 +163,7 @@ def decode_keyframe_update(
         bg = _vec(msg.bias_gyro, f"{what}: bias_gyro")
         ba = _vec(msg.bias_accel, f"{what}: bias_accel")
         mp_ids = _ids(msg.map_point_ids, f"{what}: map_point_ids")
+        imu = _raw_imu(msg.imu, f"{what}: imu")
     kf = None
     if msg.features:
         cfg = codec or CodecConfig()
@@ -195,8 +197,24 @@ def decode_keyframe_update(
         except AtlasError as exc:
             raise UplinkError(f"{what}: {exc}") from exc
     return DecodedKeyframe(
-        msg.agent_id, msg.map_id, msg.keyframe_id, msg.timestamp_ns, T, vel, bg, ba, mp_ids, kf
+        msg.agent_id, msg.map_id, msg.keyframe_id, msg.timestamp_ns, T, vel, bg, ba, mp_ids, kf, imu
     )
+
+
+def _raw_imu(data: bytes, what: str) -> ImuChunk | None:
+    """The schema-1 IMU rows "<f8 (M, 7)" [t_s, gyro xyz, accel xyz] (None: empty)."""
+    if not data:
+        return None
+    try:
+        rows = unpack_array(data, "<f8", (7,), what)
+    except RemoteProtocolError as exc:
+        raise UplinkError(str(exc)) from exc
+    if not np.all(np.isfinite(rows)):
+        raise UplinkError(f"{what}: non-finite IMU values")
+    try:
+        return ImuChunk(np.round(rows[:, 0] * 1e9).astype(np.int64), rows[:, 1:4], rows[:, 4:7])
+    except CodecUsageError as exc:
+        raise UplinkError(f"{what}: {exc}") from exc
 
 
 def decode_keyframe_poses(msg: KeyframePoses) -> list[DecodedKeyframe]:

@@ -26,8 +26,8 @@ import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import B, L, V, X
 
+from common.preintegration import make_bias, preintegrate
 from services.edge.vio.ba_solver import Observations, SchurLM, observation_chi2
-from services.edge.vio.imu import make_bias, preintegrate
 from services.edge.vio.state import MapPoint, PinholeUndistorter, VioMap, project
 from services.edge.vio.types import LocalBAOptions, MappingOptions
 

@@ -18,7 +18,7 @@ import numpy as np
 from common.calibration import CameraCalibration, ImuCalibration
 from common.geometry import inverse_T, make_T, orthonormalize_T
 from common.imu import ImuBuffer, ImuDataError
-from services.edge.vio.imu import (
+from common.preintegration import (
     integrate_gyro,
     make_preintegration_params,
     predict_state,

@@ -20,7 +20,7 @@ import numpy as np
 from gtsam.symbol_shorthand import B, V, X
 
 from common.geometry import inverse_T, so3_exp
-from services.edge.vio.imu import make_bias
+from common.preintegration import make_bias
 from services.edge.vio.state import Keyframe, PinholeUndistorter, project
 from services.edge.vio.types import TrackingOptions
 

@@ -20,7 +20,7 @@ from scipy.optimize import least_squares
 
 from common.geometry import so3_exp, so3_log
 from common.imu import concat_segments
-from services.edge.vio.imu import make_bias, preintegrate
+from common.preintegration import make_bias, preintegrate
 from services.edge.vio.state import Keyframe
 
 logger = logging.getLogger(__name__)

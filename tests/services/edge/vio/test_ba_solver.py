@@ -9,10 +9,10 @@ import pytest
 from gtsam.symbol_shorthand import L, X
 
 from common.geometry import so3_exp
+from common.preintegration import make_preintegration_params
 from services.edge.vio import ba_solver
 from services.edge.vio.ba_solver import Observations, SchurLM, reprojection_terms
 from services.edge.vio.ba_sparse import sparse_spd_solve
-from services.edge.vio.imu import make_preintegration_params
 from services.edge.vio.local_ba import bundle_adjust, reprojection_chi2
 from services.edge.vio.simulation import SimOptions, ground_truth_map, simulate
 from services.edge.vio.types import LocalBAOptions, MappingOptions, VioError

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from common.geometry import so3_exp
-from services.edge.vio.imu import make_preintegration_params
+from common.preintegration import make_preintegration_params
 from services.edge.vio.local_ba import bundle_adjust, reprojection_chi2
 from services.edge.vio.simulation import SimOptions, ground_truth_map, simulate
 from services.edge.vio.types import LocalBAOptions, MappingOptions

@@ -5,7 +5,7 @@ from dataclasses import replace
 import numpy as np
 
 from common.geometry import make_T, so3_exp
-from services.edge.vio.imu import make_preintegration_params
+from common.preintegration import make_preintegration_params
 from services.edge.vio.simulation import SimOptions, ground_truth_map, simulate
 from services.edge.vio.vi_init import inertial_only_map, subsample_keyframes
 

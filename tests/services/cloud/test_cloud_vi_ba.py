@@ -1,0 +1,221 @@
+"""Visual-inertial global BA at the cloud: IMU terms from the forwarded IMU, metric scale, and
+the switch."""
+
+from __future__ import annotations
+
+import dataclasses
+import pickle
+
+import numpy as np
+import pytest
+
+from common.calibration import EUROC_IMU
+from common.codec.imu import ImuEncoder
+from common.codec.types import ImuChunk
+from common.links.edge_cloud import (
+    KeyframeStates,
+    KeyframeUpdateCoded,
+    encode_point_ids,
+    encode_states,
+)
+from common.protocol.arrays import pack_array
+from common.vocabulary import Vocabulary
+from services.cloud.atlas import KeyframeInput, make_key
+from services.cloud.config import (
+    CloudServiceConfig,
+    FullBAConfig,
+    GlobalOptimizationConfig,
+    MbpConfig,
+)
+from services.cloud.core import CloudCore, SendCorrections, SolveRequest, solve
+from services.cloud.full_ba import FullBAProblem, build_full_ba, solve_full_ba
+from services.cloud.inertial import ImuStore, build_imu_terms
+from services.cloud.server import open_app
+from services.cloud.simulation import (
+    default_camera,
+    encode_keyframe_update,
+    encode_session,
+    make_session,
+    make_world,
+    map_scale,
+    vi_circle_atlas,
+    wavy_circle,
+)
+from services.cloud.uplink import UplinkError, decode_keyframe_update
+
+ON = FullBAConfig()  # IMU factors on by default
+OFF = dataclasses.replace(FullBAConfig(), imu_factors=False)
+GRAPH = GlobalOptimizationConfig()
+
+
+def _imu_of(_agent: int):
+    return EUROC_IMU
+
+
+def test_vi_ba_recovers_the_metric_scale_the_relative_pose_terms_keep_wrong():
+    scales = {}
+    for name, cfg in (("on", ON), ("off", OFF)):
+        atlas, store, truth = vi_circle_atlas(60, scale=1.05)
+        problem = build_full_ba(atlas, 0, default_camera(), cfg, GRAPH, store, _imu_of)
+        res = solve_full_ba(problem, cfg, GRAPH)
+        assert map_scale(problem.T_world_body, truth.T_world_body) == pytest.approx(1.05, abs=2e-3)
+        scales[name] = map_scale(res.T_world_body, truth.T_world_body)
+        if name == "on":
+            v_err = np.abs(res.velocity - truth.velocity[res.inertial_index]).max()
+            assert v_err < 0.03  # m/s; true speed 1.0 m/s horizontally, 0.6 m/s vertically
+            assert res.inertial_index.size == 60
+    assert abs(scales["on"] - 1.0) < 0.01
+    assert abs(scales["off"] - 1.0) > 0.03
+
+
+def test_imu_terms_pair_consecutive_keyframes_over_their_timestamps():
+    atlas, store, _ = vi_circle_atlas(30, n_landmarks=300, pose_noise=0.0)
+    keys = atlas.keyframe_keys()
+    terms = build_imu_terms(atlas, 0, keys, store, _imu_of, ON)
+    assert terms.n_pairs == 29
+    assert terms.pair_i.tolist() == list(range(29))
+    assert terms.pair_j.tolist() == list(range(1, 30))
+    assert np.diff(terms.offsets).tolist() == [51] * 29  # 0.25 s at 200 Hz, both ends
+    assert all(terms.interval_s(k) == pytest.approx(0.25) for k in range(29))
+    assert terms.first.tolist() == [0]
+    # A keyframe gone (MBP, the edge's culling): its neighbours' interval spans it.
+    atlas.remove_keyframe(make_key(0, 10))
+    keys = atlas.keyframe_keys()
+    terms = build_imu_terms(atlas, 0, keys, store, _imu_of, ON)
+    assert terms.n_pairs == 28
+    k = terms.pair_i.tolist().index(keys.index(make_key(0, 9)))
+    assert terms.interval_s(k) == pytest.approx(0.5)
+    assert np.diff(terms.offsets)[k] == 101
+
+
+def test_imu_gaps_and_long_intervals_get_no_factor_and_break_the_chain():
+    atlas, full, _ = vi_circle_atlas(30, n_landmarks=300, pose_noise=0.0)
+    buf = full.buffer(0)
+    assert buf is not None
+    t, g, a = buf.timestamps_ns, buf.gyro, buf.accel
+    hole = (t > 2_600_000_000) & (t < 2_700_000_000)  # 0.1 s missing inside (2.5, 2.75)
+    store = ImuStore()
+    store.add(0, t[~hole], g[~hole], a[~hole])
+    keys = atlas.keyframe_keys()
+    terms = build_imu_terms(atlas, 0, keys, store, _imu_of, ON)
+    assert terms.n_pairs == 28
+    assert 10 not in terms.pair_i.tolist()  # the interval 2.5 -> 2.75 s
+    assert terms.first.tolist() == [0, 11]
+    short = dataclasses.replace(ON, imu_max_interval_s=0.2)
+    assert build_imu_terms(atlas, 0, keys, store, _imu_of, short).n_pairs == 0
+
+
+def test_switch_off_reproduces_the_relative_pose_full_ba():
+    atlas, store, _ = vi_circle_atlas(40, n_landmarks=400)
+    cam = default_camera()
+    assert ON.imu_factors
+    old = build_full_ba(atlas, 0, cam, OFF, GRAPH)  # the call as before IMU factors existed
+    new = build_full_ba(atlas, 0, cam, OFF, GRAPH, store, _imu_of)
+    assert new.imu is None
+    assert np.array_equal(old.T_i_j, new.T_i_j) and np.array_equal(old.edge_i, new.edge_i)
+    a, b = solve_full_ba(old, OFF, GRAPH), solve_full_ba(new, OFF, GRAPH)
+    assert np.array_equal(a.T_world_body, b.T_world_body)
+    assert np.array_equal(a.p_world, b.p_world)
+    assert a.velocity.size == 0
+    # On, the odometry terms between keyframes with IMU are replaced.
+    on = build_full_ba(atlas, 0, cam, ON, GRAPH, store, _imu_of)
+    assert on.imu is not None and on.imu.n_pairs == 39
+    assert on.edge_i.size == old.edge_i.size - 39
+
+
+@pytest.fixture(scope="module")
+def vocab() -> Vocabulary:
+    return Vocabulary.load()
+
+
+def test_uplink_decodes_the_forwarded_imu_raw_and_coded(vocab):
+    atlas, _, _ = vi_circle_atlas(2, n_landmarks=300, pose_noise=0.0)
+    kf = atlas.keyframe(make_key(0, 1))
+    inp = KeyframeInput(
+        agent_id=0,
+        keyframe_id=1,
+        timestamp=kf.timestamp,
+        T_world_body=np.array(kf.T_map_body),
+        keypoints=np.array(kf.keypoints),
+        levels=np.array(kf.levels),
+        descriptors=np.array(kf.descriptors),
+        word_ids=np.array(kf.word_ids),
+        map_point_ids=np.full(kf.keypoints.shape[0], -1, np.int64),
+    )
+    t_ns = np.arange(5_000_000, 250_000_001, 5_000_000, dtype=np.int64)
+    _, _, gyro, accel = wavy_circle(t_ns * 1e-9, 2.0, 0.5, 1.5, 0.3, 2.0)
+    msg, _ = encode_keyframe_update(inp, "r0", vocab, previous_keyframe_id=0)
+    rows = np.concatenate([t_ns[:, None] * 1e-9, gyro, accel], axis=1)
+    d = decode_keyframe_update(dataclasses.replace(msg, imu=pack_array(rows, "<f8")), 0, vocab)
+    assert d.imu is not None
+    assert np.array_equal(d.imu.timestamps_ns, t_ns)
+    assert np.array_equal(d.imu.accel, accel)
+    with pytest.raises(UplinkError):
+        decode_keyframe_update(dataclasses.replace(msg, imu=b"\0" * 13), 0, vocab)
+    coded = KeyframeUpdateCoded(
+        agent_id="r0",
+        map_id=0,
+        keyframe_id=1,
+        previous_keyframe_id=0,
+        timestamp_ns=msg.timestamp_ns,
+        state=encode_states_of(inp),
+        features=msg.features,
+        map_point_ids=encode_point_ids(np.full(inp.keypoints.shape[0], -1, np.int64)),
+        imu=ImuEncoder().encode(ImuChunk(t_ns, gyro, accel)),
+    )
+    dc = decode_keyframe_update(coded, 0, vocab)
+    assert dc.imu is not None and dc.imu.equals(ImuChunk(t_ns, gyro, accel))
+
+
+def encode_states_of(kf: KeyframeInput) -> bytes:
+    return encode_states(
+        KeyframeStates(
+            np.array([kf.keyframe_id], np.int64),
+            np.array([kf.T_world_body]),
+            np.array([kf.velocity]),
+            np.array([kf.bias_gyro]),
+            np.array([kf.bias_accel]),
+        )
+    )
+
+
+def test_the_service_core_runs_a_vi_full_ba_from_forwarded_imu(tmp_path, vocab):
+    """Keyframe messages carrying their IMU (as the edge sends them) through the app and the
+    core: the full BA request holds one IMU factor per keyframe interval, survives pickling
+    (the optimiser process), and its result goes back to the edge as corrections."""
+    cam = default_camera()
+    n, dt = 16, 0.25
+    t_kf = dt * np.arange(n)
+    poses, _, _, _ = wavy_circle(t_kf, 2.0, 0.5, 1.5, 0.3, 2.0)
+    kfs, mps = make_session(make_world(3, n_points=800), cam, 0, poses, np.eye(4), seed=4, dt=dt)
+    t_imu = np.arange(0, round(t_kf[-1] * 1e9) + 1, 5_000_000, dtype=np.int64)
+    _, _, gyro, accel = wavy_circle(t_imu * 1e-9, 2.0, 0.5, 1.5, 0.3, 2.0)
+    rows = np.concatenate([t_imu[:, None] * 1e-9, gyro, accel], axis=1)
+    base = CloudServiceConfig()
+    full = dataclasses.replace(base.domain.full_ba, imu_factors=True, max_iterations=3)
+    domain = dataclasses.replace(base.domain, full_ba=full, mbp=MbpConfig(enabled=False))
+    cfg = dataclasses.replace(base, domain=domain, optimize_every_keyframes=1000)
+    app = open_app(tmp_path / "state", cam, vocab, cfg)
+    try:
+        core = CloudCore(app)
+        seq = 0
+        prev_ns = None
+        for kf, msgs in zip(kfs, encode_session(kfs, mps, "r0", vocab), strict=True):
+            t_ns = round(kf.timestamp * 1e9)
+            keep = (t_imu <= t_ns) if prev_ns is None else (t_imu > prev_ns) & (t_imu <= t_ns)
+            prev_ns = t_ns
+            msgs[0] = dataclasses.replace(msgs[0], imu=pack_array(rows[keep], "<f8"))
+            for m in msgs:
+                seq += 1
+                core.handle("edge", m, b"s", seq, float(seq))
+        [req] = [a for a in core.full_ba(0, 100.0) if isinstance(a, SolveRequest)]
+        assert isinstance(req.problem, FullBAProblem) and req.problem.imu is not None
+        assert req.problem.imu.n_pairs == n - 1
+        result = solve(pickle.loads(pickle.dumps(req)))  # as in the optimiser process
+        assert result.inertial_index.size == n
+        actions = core.solved(req, result, 101.0)
+        assert core.full_bas == 1
+        sends = [a for a in actions if isinstance(a, SendCorrections)]
+        assert len(sends) == 1 and sends[0].corrections[0].edge_id == "edge"
+    finally:
+        app.close()
