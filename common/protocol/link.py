@@ -15,7 +15,7 @@ from collections import OrderedDict, deque
 from dataclasses import dataclass
 
 from common.protocol.accounting import TrafficCounters
-from common.protocol.errors import LocalProtocolError, OutboxFullError
+from common.protocol.errors import LocalProtocolError, OutboxFullError, RemoteProtocolError
 from common.protocol.framing import HEADER_SIZE, MAX_SEQ
 from common.protocol.link_state import InboundPosition, OutboundState, OutboxEntry
 from common.protocol.messages import Message, encode_payload
@@ -182,6 +182,40 @@ class Link:
         self.in_stream_id = stream_id
         self.last_delivered = first_seq - 1
         self.rewind_inbound()
+
+    def resume(
+        self,
+        peer_out_stream: bytes,
+        peer_first_unacked: int,
+        peer_in_stream: bytes,
+        peer_last_delivered: int,
+    ) -> None:
+        """Apply the peer's resume position from the handshake (RemoteProtocolError if it is
+        impossible): drop what its application delivered from our outbox, and follow its
+        outgoing stream (a new one, or the same one from ``peer_first_unacked``)."""
+        if peer_first_unacked < 1 or peer_last_delivered < 0:
+            raise RemoteProtocolError("invalid resume position in handshake")
+        if peer_in_stream == self.out_stream_id:
+            if peer_last_delivered >= self.next_seq:
+                raise RemoteProtocolError(
+                    f"peer claims delivery of {peer_last_delivered}, never sent past "
+                    f"{self.next_seq - 1}"
+                )
+            self.acknowledge(peer_last_delivered)
+        if peer_out_stream != self.in_stream_id:
+            self.switch_inbound_stream(peer_out_stream, peer_first_unacked)
+        elif peer_first_unacked > self.last_accepted + 1:
+            if self.pending_messages:
+                raise RemoteProtocolError("peer skipped messages we have not delivered")
+            logger.warning(
+                "peer %s no longer holds messages %d..%d that we never recorded as "
+                "delivered (our saved position is stale); continuing from %d",
+                self.peer,
+                self.last_delivered + 1,
+                peer_first_unacked - 1,
+                peer_first_unacked,
+            )
+            self.last_delivered = self.last_accepted = peer_first_unacked - 1
 
     def inbound_position(self) -> InboundPosition:
         """Current delivered position (what a receiver persists)."""

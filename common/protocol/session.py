@@ -491,35 +491,12 @@ class Session:
     ) -> None:
         link = self.link
         assert link is not None
-        if min(peer_window) < 1 or peer_first_unacked < 1 or peer_last_delivered < 0:
-            raise RemoteProtocolError("invalid resume position or window in handshake")
-        # Our outgoing stream: drop what the peer's application already delivered.
-        if peer_in_stream == link.out_stream_id:
-            if peer_last_delivered >= link.next_seq:
-                raise RemoteProtocolError(
-                    f"peer claims delivery of {peer_last_delivered}, never sent past "
-                    f"{link.next_seq - 1}"
-                )
-            link.acknowledge(peer_last_delivered)
+        if min(peer_window) < 1:
+            raise RemoteProtocolError("invalid window in handshake")
+        link.resume(peer_out_stream, peer_first_unacked, peer_in_stream, peer_last_delivered)
         self._next_tx = link.first_unacked
         self._inflight_bytes = 0
         self._peer_window = peer_window
-        # The peer's outgoing stream.
-        if peer_out_stream == link.in_stream_id:
-            if peer_first_unacked > link.last_accepted + 1:
-                if link.pending_messages:
-                    raise RemoteProtocolError("peer skipped messages we have not delivered")
-                logger.warning(
-                    "peer %s no longer holds messages %d..%d that we never recorded as "
-                    "delivered (our saved position is stale); continuing from %d",
-                    self.peer_agent_id,
-                    link.last_delivered + 1,
-                    peer_first_unacked - 1,
-                    peer_first_unacked,
-                )
-                link.last_delivered = link.last_accepted = peer_first_unacked - 1
-        else:
-            link.switch_inbound_stream(peer_out_stream, peer_first_unacked)
         self._ack_sent = link.last_delivered
 
     def _start_sealing(self) -> None:
