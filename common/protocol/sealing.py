@@ -18,8 +18,10 @@ instructions, where ChaCha20 is several times faster; on x86 both run at GB/s.
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import struct
+from collections.abc import Callable
 
 from cryptography.exceptions import InvalidTag
 from cryptography.hazmat.primitives import hashes
@@ -27,6 +29,7 @@ from cryptography.hazmat.primitives.ciphers.aead import ChaCha20Poly1305
 from cryptography.hazmat.primitives.kdf.hkdf import HKDF
 
 from common.protocol.errors import LocalProtocolError, RemoteProtocolError
+from common.protocol.framing import FLAG_SEALED, Frame
 
 TAG_SIZE = 16
 KEY_SIZE = 32
@@ -96,3 +99,37 @@ def session_keys(
     iv_cs = okm[2 * KEY_SIZE : 2 * KEY_SIZE + IV_SIZE]
     iv_sc = okm[2 * KEY_SIZE + IV_SIZE :]
     return FrameSealer(k_cs, iv_cs), FrameSealer(k_sc, iv_sc)
+
+
+class ConnectionKeys:
+    """The sealing state of one connection: nothing until :meth:`start`, then every frame
+    sent is sealed (:attr:`seal`) and every frame received must open (:meth:`open`)."""
+
+    def __init__(self) -> None:
+        self.tx: FrameSealer | None = None
+        self.rx: FrameSealer | None = None
+
+    def start(self, credential: bytes, hello: bytes, challenge: bytes, client: bool) -> None:
+        c2s, s2c = session_keys(credential, hello, challenge)
+        self.tx, self.rx = (c2s, s2c) if client else (s2c, c2s)
+
+    @property
+    def seal(self) -> Callable[[bytes, bytes], bytes] | None:
+        return self.tx.seal if self.tx is not None else None
+
+    def open(self, frame: Frame, name: str, unsealed_ok: bool = False) -> Frame:
+        """The frame with its payload opened; RemoteProtocolError for a sealed frame before
+        the keys, an unsealed one after them (unless ``unsealed_ok``), or one that fails."""
+        if self.rx is None:
+            if frame.flags & FLAG_SEALED:
+                raise RemoteProtocolError(f"sealed {name} before the handshake agreed keys")
+            return frame
+        if not frame.flags & FLAG_SEALED:
+            if unsealed_ok:
+                return frame
+            raise RemoteProtocolError(
+                f"unsealed {name} after the handshake (injected, or frame sealing is off at "
+                "the peer)"
+            )
+        payload = self.rx.open(frame.header(), frame.payload, name)
+        return dataclasses.replace(frame, flags=frame.flags & ~FLAG_SEALED, payload=payload)

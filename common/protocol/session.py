@@ -58,7 +58,6 @@ from common.protocol.events import (
 )
 from common.protocol.framing import (
     FLAG_RETRANSMIT,
-    FLAG_SEALED,
     PROTOCOL_VERSION,
     Frame,
     FrameDecoder,
@@ -135,8 +134,7 @@ class Session:
         self._hello_payload = b""
         self._challenge_payload = b""
         self._key = config.own_credential() if client else b""  # the client's credential
-        self._tx: sealing.FrameSealer | None = None  # sealing of what we send, once keyed
-        self._rx: sealing.FrameSealer | None = None  # opening of what we receive
+        self._keys = sealing.ConnectionKeys()  # frame sealing, once the handshake agreed
         self._hello: Hello | None = None
         self._handshake_deadline: float | None = now + config.handshake_timeout
         self._last_rx = now
@@ -323,8 +321,9 @@ class Session:
         cls = message_class(frame.type_id)
         self._last_rx = now
         self.counters.record("rx", cls.__name__, frame.size)
-        if frame.flags & FLAG_SEALED or self._rx is not None:
-            frame = self._open(cls, frame)
+        # the one unsealed frame allowed after Auth: the server refused it, so had no keys
+        refused = cls is Close and self.state is State.AUTH_SENT
+        frame = self._keys.open(frame, cls.__name__, unsealed_ok=refused)
         if not cls.CONTROL:
             self._on_application(cls, frame)
         else:
@@ -341,19 +340,6 @@ class Session:
             method(self, decode_payload(frame.type_id, frame.payload), frame)
         if self.state is State.ESTABLISHED:
             self._on_ack(frame.ack, now)
-
-    def _open(self, cls: type[Message], frame: Frame) -> Frame:
-        if self._rx is None:
-            raise RemoteProtocolError(f"sealed {cls.__name__} before the handshake agreed keys")
-        if not frame.flags & FLAG_SEALED:
-            if cls is Close and self.state is State.AUTH_SENT:
-                return frame  # the server refused our Auth: it could not seal this Close
-            raise RemoteProtocolError(
-                f"unsealed {cls.__name__} after the handshake (injected, or frame sealing is "
-                "off at the peer)"
-            )
-        payload = self._rx.open(frame.header(), frame.payload, cls.__name__)
-        return dataclasses.replace(frame, flags=frame.flags & ~FLAG_SEALED, payload=payload)
 
     def _on_application(self, cls: type[Message], frame: Frame) -> None:
         if self.state is not State.ESTABLISHED:
@@ -501,10 +487,9 @@ class Session:
 
     def _start_sealing(self) -> None:
         """From the next frame on, both directions are sealed (if configured)."""
-        if not self.config.seal_frames:
-            return
-        c2s, s2c = sealing.session_keys(self._key, self._hello_payload, self._challenge_payload)
-        self._tx, self._rx = (c2s, s2c) if self.client else (s2c, c2s)
+        if self.config.seal_frames:
+            keys = (self._key, self._hello_payload, self._challenge_payload)
+            self._keys.start(*keys, client=self.client)
 
     def _establish(self) -> None:
         assert self.link is not None
@@ -570,7 +555,7 @@ class Session:
             ack=ack,
             flags=flags,
             max_frame_size=self.config.max_frame_size,
-            seal=self._tx.seal if self._tx is not None else None,
+            seal=self._keys.seal,
             seal_overhead=sealing.TAG_SIZE,
         )
 
