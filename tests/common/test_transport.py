@@ -177,7 +177,10 @@ def test_max_peers_and_accept_roles():
             await one.start()
             await one.wait_connected(5)
             await two.start()
-            await asyncio.sleep(0.3)
+            for _ in range(100):  # until r2 has tried (and been refused) at least once
+                if two.connections >= 1 and two.peer._conn is None:
+                    break
+                await asyncio.sleep(0.05)
             assert not two.peer.connected and two.connections >= 1
             await one.close()
             await two.wait_connected(5)  # room again: r2 joins
