@@ -18,7 +18,6 @@ import logging
 import os
 import platform
 import random
-import ssl
 import statistics
 import subprocess
 import sys
@@ -50,10 +49,6 @@ class _Counter:
     async def __call__(self, d: Delivery) -> None:
         self.n += 1
         self.event.set()
-
-
-def _tls_contexts(tmp: Path) -> tuple[ssl.SSLContext, ssl.SSLContext] | None:
-    return self_signed_contexts(tmp)
 
 
 async def _throughput(size: int, count: int, tls: tuple | None, sealed: bool = True) -> dict:
@@ -239,15 +234,14 @@ def main() -> int:
     q = args.quick
     small_n, big_n = (5_000, 100) if q else (50_000, 1_000)
     with tempfile.TemporaryDirectory() as tmp:
-        tls = _tls_contexts(Path(tmp))
+        tls = self_signed_contexts(Path(tmp))
     # A/B of the per-frame AEAD: sealed and unsealed runs interleaved, REPEATS of each
     cases: list[tuple[int, int, tuple | None, bool]] = [
         (size, n, None, sealed)
         for size, n in ((100, small_n), (100_000, big_n))
         for sealed in (False, True)
     ]
-    if tls is not None:
-        cases += [(100, small_n, tls, True), (100_000, big_n, tls, True)]
+    cases += [(100, small_n, tls, True), (100_000, big_n, tls, True)]
     repeats = 1 if q else REPEATS
     runs: dict[tuple, list[dict]] = {}
     for _ in range(repeats):

@@ -35,14 +35,14 @@ class AuthenticationError(RemoteProtocolError):
 
 class RejectedMessageError(RemoteProtocolError):
     """Raised by an application's message handler to refuse a peer's message for good (it
-    is invalid, or conflicts with what the peer said before): the transport closes that one
-    connection with ``CloseCode.REJECTED`` and this reason, and the peer stops resending.
-    Other handler errors close the connection so that the message is redelivered."""
+    is invalid, or conflicts with what the peer said before): the message counts as delivered
+    and the transport sends the peer a ``Reject`` with this reason, so it is never resent.
+    Other handler errors are retried on the same connection, with backoff."""
 
 
 class PeerRejectedError(ProtocolError):
-    """The peer's application refused a message of ours (``CloseCode.REJECTED``, with its
-    reason): the link is given up; sending more cannot help."""
+    """The link was given up: the peer's application refused a message of ours (``Reject``,
+    on a link that stops on a refusal) or the peer refused our credential."""
 
 
 class PeerTimeoutError(ProtocolError):

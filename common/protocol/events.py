@@ -20,9 +20,8 @@ class CloseCode(enum.IntEnum):
     REPLACED = 6
     HANDLER_FAILED = 7
     REJECTED = 8
-    """The receiving application refused a message the peer sent (its handler raised
-    ``RejectedMessageError``, e.g. an invalid or conflicting sensor description): resending it
-    cannot help, so the client stops reconnecting."""
+    """Codes 7 and 8 are no longer sent (protocol 1 closed the connection on a handler
+    failure or refusal): a failing handler is retried in place, a refusal is a ``Reject``."""
 
 
 @dataclass(frozen=True)

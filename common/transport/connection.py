@@ -193,8 +193,8 @@ class Peer:
         self._check_rejected()  # a message was refused (and so counts as acknowledged)
 
     def reject(self, reason: str) -> None:
-        """The peer refused a message of ours (``CloseCode.REJECTED``): senders and flushers
-        waiting on this link raise PeerRejectedError from now on."""
+        """Give the link up with ``reason`` (the peer refused a message of ours or our
+        credential): senders and flushers waiting on it raise PeerRejectedError from now on."""
         self.rejected = reason
         self._space.set()
 

@@ -93,7 +93,7 @@ class RobotServiceConfig:
         agent_id: this robot's id on the link (unique per edge).
         secret: the robot's keys (a Keyring from its ``--key-file``: its credential only), or
             the operator secret (>= 16 bytes); see :func:`common.protocol.credentials.load_keys`.
-        tls: TLS towards the edge (a CA bundle; a certificate if the edge asks for one).
+        tls: TLS towards the edge (its CA bundle; none: plain TCP, frames sealed anyway).
         rate: playback pace (realtime default).
         start_frame: first frame played (0).
         max_frames: frames played at most (None = to the end).
