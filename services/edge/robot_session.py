@@ -182,9 +182,12 @@ class RobotSession:
         # (map id, keyframe id) -> (T_world_body, v, bg, ba) the cloud has (coded wire)
         self._sent_state: dict[tuple[int, int], _State] = {}
 
-    def _reset_stream(self) -> None:
-        self.features = FeatureDecoder(self.vocabulary, self.codec)
-        self.imu = ImuDecoder()
+    def _new_decoders(self) -> tuple[FeatureDecoder, ImuDecoder]:
+        return FeatureDecoder(self.vocabulary, self.codec), ImuDecoder()
+
+    def _reset_stream(self, decoders: tuple[FeatureDecoder, ImuDecoder] | None = None) -> None:
+        """A fresh stream: fresh (or the given) decoders, numbering and feedback."""
+        self.features, self.imu = decoders or self._new_decoders()
         self.numbers = np.zeros(0, np.int64)
         self.next_number = 0
         self.frames = 0
@@ -204,7 +207,7 @@ class RobotSession:
         first, is put back when the features then fail)."""
         restart = msg.frame_index == 0 and self.frames > 0
         if restart:  # a fresh stream: decode with fresh decoders, adopted if it decodes
-            features, imu_decoder = FeatureDecoder(self.vocabulary, self.codec), ImuDecoder()
+            features, imu_decoder = self._new_decoders()
         else:
             features, imu_decoder = self.features, self.imu
         imu_state = imu_decoder.state.copy()
@@ -216,8 +219,7 @@ class RobotSession:
             raise
         if restart:
             logger.warning("robot %s restarted its stream: fresh decoders", self.agent_id)
-            self._reset_stream()
-            self.features, self.imu = features, imu_decoder
+            self._reset_stream((features, imu_decoder))
         self.numbers, self.next_number = next_stream_numbers(self.numbers, self.next_number, feats)
         if isinstance(feats, KeyframeFeatures):
             kp = feats.keypoints
