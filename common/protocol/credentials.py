@@ -164,11 +164,15 @@ def write_key_file(path: Path, keyring: Keyring, comment: str) -> None:
         data["role_keys"] = {role: key.hex() for role, key in keyring.role_keys}
     if keyring.operator is not None:
         data["operator"] = keyring.operator.hex()
-    tmp = path.with_suffix(".tmp")
+    write_private(path, json.dumps(data, indent=1) + "\n")
+
+
+def write_private(path: Path, text: str | bytes) -> None:
+    """Write a secret file: mode 0600 from its creation, replaced atomically."""
+    tmp = path.with_suffix(path.suffix + ".tmp")
     fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
-    with os.fdopen(fd, "w") as f:
-        json.dump(data, f, indent=1)
-        f.write("\n")
+    with os.fdopen(fd, "wb") as f:
+        f.write(text.encode() if isinstance(text, str) else text)
     tmp.replace(path)
 
 
@@ -177,9 +181,7 @@ def operator_secret(directory: Path) -> bytes:
     path = directory / OPERATOR_FILE
     if not path.exists():
         directory.mkdir(parents=True, exist_ok=True)
-        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
-        with os.fdopen(fd, "w") as f:
-            f.write(secrets.token_hex(32) + "\n")
+        write_private(path, secrets.token_hex(32) + "\n")
         logger.info("new operator secret %s", path)
     return load_secret(path)
 
