@@ -243,7 +243,11 @@ def _process_main(conn: Connection, spec: WorkerSpec, log_level: int) -> None:
         format=f"%(asctime)s vio[{spec.agent_id}] %(levelname)s %(name)s: %(message)s",
     )
     runner = VioRunner(spec)
-    conn.send(("ready", os.getpid()))
+    try:
+        conn.send(("ready", os.getpid()))
+    except (BrokenPipeError, ConnectionResetError):  # the edge died while we started
+        logger.info("edge process gone before the VIO worker was ready; it exits")
+        return
     while True:
         try:
             item = conn.recv()
