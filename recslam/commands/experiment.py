@@ -113,6 +113,22 @@ def register(sub: argparse._SubParsersAction) -> None:
     sd.add_argument(
         "--data-root", type=Path, default=Path("data/seeds"), help="where the datasets live"
     )
+    sd.add_argument(
+        "--flight",
+        default="ring",
+        help="generator's trajectory family[+modifiers] (as 'recslam dataset synth --flight'; "
+        "default ring)",
+    )
+    sd.add_argument(
+        "--world", default="vicon", help="generator's world: vicon (default), room-random, hall"
+    )
+    sd.add_argument("--exposure-steps", action="store_true", help="generator: exposure steps")
+    sd.add_argument("--motion-blur-ms", type=float, default=0.0, help="generator: motion blur [ms]")
+    sd.add_argument(
+        "--name",
+        default="",
+        help="base name of the tables (default seeds, or seeds_hard with any generator option)",
+    )
     _whole_run_options(sd, "seeds", 2400.0, "report")
     sd.set_defaults(func=run_seeds)
 
@@ -219,9 +235,15 @@ def seeds_config(args: argparse.Namespace, argv: list[str] | None = None):
     import shlex
     import sys
 
-    from lab.seeds import SeedsConfig, parse_seeds
+    from lab.seeds import GeneratorOptions, SeedsConfig, parse_seeds
 
     words = sys.argv[1:] if argv is None else argv
+    generator = GeneratorOptions(
+        flight=args.flight,
+        world=args.world,
+        exposure_steps=args.exposure_steps,
+        motion_blur_ms=args.motion_blur_ms,
+    )
     return SeedsConfig(
         seeds=() if args.from_runs else parse_seeds(args.seeds),
         out=args.out,
@@ -233,6 +255,8 @@ def seeds_config(args: argparse.Namespace, argv: list[str] | None = None):
         timeout_s=args.timeout,
         from_runs=args.from_runs,
         command="recslam " + shlex.join(words),
+        generator=generator,
+        name=args.name,
     )
 
 
@@ -241,7 +265,8 @@ def run_seeds(args: argparse.Namespace) -> int:
     from lab.seeds import run_seeds as seeds
 
     logging.getLogger("lab").setLevel(logging.INFO)  # progress: one line per run step
-    return _printed(args.out / "seeds.md", *seeds(seeds_config(args)))
+    config = seeds_config(args)
+    return _printed(args.out / f"{config.table_name}.md", *seeds(config))
 
 
 def run_links(args: argparse.Namespace) -> int:
