@@ -17,7 +17,8 @@ vertical sweeps, and two modifiers (hover-then-go start, aggressive segments).
   ``tau'(t) = (1 + erf((t - t_go) / T)) / 2`` (speed at ``t = 0`` below 1e-7 of cruise).
 - ``+aggressive``: Gaussian bursts of the time warp ``tau'(t) += g_i exp(-((t - c_i)/s_i)^2)``
   every few seconds, each gain sized so that the burst reaches ``aggressive_speed`` or
-  ``aggressive_rate`` (about 2 m/s, 2.5 rad/s); the path is unchanged, only flown faster.
+  ``aggressive_rate`` (about 2 m/s, 2.5 rad/s) unless ``aggressive_accel`` (6 m/s^2) binds
+  first; the path is unchanged, only flown faster.
 
 Every flight is a path of sinusoids in a warped time ``tau(t)`` (:class:`Warp`, closed form
 with an erf), so position, velocity, acceleration, attitude and body rates are analytic and
@@ -98,7 +99,8 @@ class FlightConfig:
     ``mean_speed``: mean speed [m/s] of robot 0 and of robot n-1 (others between);
     ``limits``: clearance, top speed and rate every flight must keep (redrawn if not);
     ``aggressive_speed`` [m/s] / ``aggressive_rate`` [rad/s]: what the bursts aim at and the
-    limits of aggressive flights; ``burst_every_s`` / ``burst_width_s``: spacing and width of
+    limits of aggressive flights; ``aggressive_accel`` [m/s^2]: their acceleration limit (a
+    burst at a sharp turn is smaller); ``burst_every_s`` / ``burst_width_s``: spacing and width of
     the bursts [s]; ``hover_s``: range of the still start [s]; ``hover_ramp_s``: its ramp
     time constant [s]; ``attempts``: redraws before giving up.
     """
@@ -109,6 +111,7 @@ class FlightConfig:
     )
     aggressive_speed: float = 2.0
     aggressive_rate: float = 2.5
+    aggressive_accel: float = 6.0
     burst_every_s: tuple[float, float] = (5.0, 8.0)
     burst_width_s: tuple[float, float] = (0.5, 0.8)
     hover_s: tuple[float, float] = (3.0, 5.0)
@@ -273,10 +276,10 @@ def _lawnmower(lo, hi, agg, direction, rng) -> PathFlight:
         c[1] - 0.15 * half[1],
         0.0,
         (rng.uniform(0.35, 0.45) * half[1],),
-        (w / 4.6,),
+        (w / 3.3,),
         (rng.uniform(0, 2 * np.pi),),
     )
-    yaw = _rw(rng, np.pi / 2 + rng.uniform(-0.3, 0.3), [(0.05, 0.15)], [(0.1, 0.3)])
+    yaw = _rw(rng, np.pi / 2 + rng.uniform(-0.12, 0.12), [(0.04, 0.1)], [(0.1, 0.3)])
     pitch, roll = _attitude_waves(rng, agg, (0.35, 0.55))
     return PathFlight(
         "lawnmower", x, y, _height(rng, lo, hi), "fixed", (c[0], c[1]), yaw, pitch, roll, Warp()
@@ -293,8 +296,8 @@ def _orbit(look: str, family: str) -> Drawer:
         y = Wave(c[1], 0.0, (ry, jy), (w, 1.7), (ph, 0.5))
         if family == "vertical":
             span = hi[2] - lo[2]
-            z = _triangle((lo[2] + hi[2]) / 2.0, rng.uniform(0.24, 0.27) * span, 4.0 * w, ph)
-            x, y = _scaled(x, 0.5), _scaled(y, 0.5)
+            z = _triangle((lo[2] + hi[2]) / 2.0, rng.uniform(0.24, 0.27) * span, 3.0 * w, ph)
+            x, y = _scaled(x, 0.8), _scaled(y, 0.8)
         else:
             z = _height(rng, lo, hi)
         pitch_c = (0.12, 0.3) if look == "centre" else (0.08, 0.25)
@@ -340,27 +343,44 @@ def _rescale(f: PathFlight, rate: float) -> PathFlight:
 def _bursts(
     f: PathFlight, seconds: float, rng: np.random.Generator, cfg: FlightConfig
 ) -> PathFlight:
-    """``f`` with aggressive bursts: each burst's gain brings the speed or the rate at its
-    centre to 92 % of the aggressive limits (the rest is margin for the burst's shoulders)."""
+    """``f`` with aggressive bursts: each burst's gain brings the top speed, rate (to 95 %) or
+    acceleration (to 60 %, the burst's own change of pace adds to it) of the stretch of path it
+    flies to the aggressive limits; bursts that would add less than 5 % are left out."""
     unit = replace(f, warp=Warp(ramp_s=0.0))
     start = f.warp.go_s + 2.0 * f.warp.ramp_s + 1.0
     warp = f.warp
     c = start + rng.uniform(0.5, 2.0)
     while c < seconds - 0.5:
-        tau, w1, _ = warp(np.array([c]))
-        st = unit.evaluate(tau)
-        v = float(np.linalg.norm(st.v_world_body)) * w1[0]
-        r = float(np.linalg.norm(st.omega_body)) * w1[0]
-        factor = min(0.92 * cfg.aggressive_speed / v, 0.92 * cfg.aggressive_rate / r)
+        width = float(rng.uniform(*cfg.burst_width_s))
+        # Unit-rate speed, rate and acceleration over the path the burst will fly (about
+        # +-1.5 widths, at up to twice the speed): the burst is sized by their maxima.
+        tau_c, w1, _ = warp(np.array([c]))
+        span = np.linspace(tau_c[0] - 1.5 * width * w1[0], tau_c[0] + 3.0 * width * w1[0], 40)
+        st = unit.evaluate(span)
+        v = float(np.linalg.norm(st.v_world_body, axis=1).max()) * w1[0]
+        r = float(np.linalg.norm(st.omega_body, axis=1).max()) * w1[0]
+        acc = float(np.linalg.norm(st.a_world_body, axis=1).max()) * w1[0] ** 2
+        factor = min(
+            0.95 * cfg.aggressive_speed / v,
+            0.95 * cfg.aggressive_rate / r,
+            np.sqrt(0.6 * cfg.aggressive_accel / max(acc, 1e-9)),
+        )
         if factor > 1.05:
             warp = replace(
                 warp,
                 burst_t=(*warp.burst_t, float(c)),
-                burst_width=(*warp.burst_width, float(rng.uniform(*cfg.burst_width_s))),
+                burst_width=(*warp.burst_width, width),
                 burst_gain=(*warp.burst_gain, float((factor - 1.0) * w1[0])),
             )
         c += rng.uniform(*cfg.burst_every_s)
     return replace(f, warp=warp)
+
+
+def _check_accel(f: PathFlight, seconds: float, limit: float) -> str | None:
+    """Why ``f``'s acceleration exceeds ``limit`` [m/s^2] over ``[0, seconds]``, or None."""
+    st = f.evaluate(np.arange(0.0, seconds + 1e-9, 0.01))
+    top = float(np.linalg.norm(st.a_world_body, axis=1).max())
+    return None if top <= limit else f"acceleration {top:.2f} m/s^2 > {limit}"
 
 
 def draw_flight(
@@ -412,6 +432,8 @@ def make_flights(
         for _ in range(cfg.attempts):
             f = draw_flight(region, spec, k, robots, seconds, rng, cfg)
             why = check_trajectory(scene, f, seconds, limits)
+            if why is None and spec.aggressive:
+                why = _check_accel(f, seconds, cfg.aggressive_accel)
             if why is None:
                 out.append(f)
                 break

@@ -70,7 +70,7 @@ def _room_random(seed: int) -> Scene:
         size = rng.uniform(0.5, 1.2, 2)
         centre = rng.uniform(-0.8, 0.8, 2)
         b_lo = np.array([*(centre - size / 2), 0.0])
-        b_hi = np.array([*(centre + size / 2), rng.uniform(0.3, 0.8)])
+        b_hi = np.array([*(centre + size / 2), rng.uniform(0.3, 0.6)])
         if free(b_lo, b_hi):
             boxes.append(Box(tuple(b_lo), tuple(b_hi), f"low_{i}"))
     return Scene(tuple(lo), tuple(hi), tuple(boxes))
@@ -85,7 +85,7 @@ def _hall() -> Scene:
         Box((-4.0, 6.2, 0.0), (2.0, 8.0, 2.6), "container"),
         Box((2.5, -8.0, 0.0), (4.5, -6.8, 1.2), "pallets"),
         Box((-9.0, -2.0, 0.0), (-7.5, 0.5, 1.5), "workbench"),
-        Box((-0.8, -0.6, 0.0), (0.8, 0.6, 0.9), "crate"),
+        Box((-0.8, -0.6, 0.0), (0.8, 0.6, 0.5), "crate"),
         Box((-6.3, -4.8, 0.0), (-5.7, -4.2, 8.0), "pillar_a"),
         Box((5.7, -4.8, 0.0), (6.3, -4.2, 8.0), "pillar_b"),
         Box((-6.3, 4.2, 0.0), (-5.7, 4.8, 8.0), "pillar_c"),
