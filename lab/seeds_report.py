@@ -33,7 +33,7 @@ def generator_text(g: dict[str, Any] | None) -> str:
     return ", ".join(words)
 
 
-def seeds_markdown(data: dict[str, Any], name: str = "seeds") -> str:
+def seeds_markdown(data: dict[str, Any], table: str = "seeds") -> str:
     """The sweep as markdown: provenance, verdict, one row per run."""
     runs: dict[str, dict[str, Any]] = data["runs"]
     s = data["summary"]
@@ -99,7 +99,7 @@ def seeds_markdown(data: dict[str, Any], name: str = "seeds") -> str:
         )
     if data["errors"]:
         lines += ["", "Runs that did not finish:", ""] + [f"- {e}" for e in data["errors"]]
-    lines += ["", f"![{name}.png]({name}.png)", ""]
+    lines += ["", f"![{table}.png]({table}.png)", ""]
     return "\n".join(lines)
 
 

@@ -18,8 +18,9 @@ then holds).
 
 Placement: all files of one dataset share one shift (so recordings made in one frame keep
 their overlap): the centre of their positions' bounding box goes to the centre of the world's
-flight region; a flight that does not fit (extent, or clearance from walls and boxes) is
-refused with the reason.
+flight region (per axis; to the room's centre along an axis where they are larger than the
+region); a flight that does not fit (extent, or clearance from walls and boxes) is refused
+with the reason.
 """
 
 from __future__ import annotations
@@ -182,15 +183,19 @@ def recorded_flights(
     lo = np.min([p.min(axis=0) for p in inside], axis=0)
     hi = np.max([p.max(axis=0) for p in inside], axis=0)
     r_lo, r_hi = np.array(region[0], float), np.array(region[1], float)
-    offset = (r_lo + r_hi) / 2.0 - (lo + hi) / 2.0
-    room = np.array(scene.room_hi) - np.array(scene.room_lo)
+    room_lo, room_hi = np.array(scene.room_lo, float), np.array(scene.room_hi, float)
     need = hi - lo + 2.0 * limits.min_clearance_m
-    if np.any(need > room):
+    if np.any(need > room_hi - room_lo):
+        span = np.round(hi - lo, 2).tolist()
         raise TrajectoryError(
-            f"--trajectory {', '.join(files)}: the flights span {np.round(hi - lo, 2).tolist()} m; "
-            f"with {limits.min_clearance_m} m clearance they do not fit the {world} world "
-            f"({np.round(room, 2).tolist()} m): try --world hall"
+            f"--trajectory {', '.join(files)}: the flights span {span} m; with "
+            f"{limits.min_clearance_m} m clearance they do not fit the {world} world "
+            f"({np.round(room_hi - room_lo, 2).tolist()} m): try --world hall"
         )
+    # Per axis: the flight region's centre where the flights fit it, else the room's.
+    fits = need + 0.25 <= r_hi - r_lo  # 0.25 m: the camera sits off the body, splines overshoot
+    target = np.where(fits, (r_lo + r_hi) / 2.0, (room_lo + room_hi) / 2.0)
+    offset = target - (lo + hi) / 2.0
     flights = [RecordedFlight.fit(rec, offset) for rec in recs]
     for f in flights:
         why = check_trajectory(scene, f, seconds, limits)
