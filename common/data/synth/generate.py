@@ -39,7 +39,7 @@ from common.data.synth.cameras import (
     CameraPresetError,
     camera_preset,
 )
-from common.data.synth.flights import make_flights, parse_flight
+from common.data.synth.flights import FlightConfig, make_flights, parse_flight
 from common.data.synth.imu_sim import ImuNoiseConfig, simulate_imu
 from common.data.synth.plots import contact_sheet, plot_top_view
 from common.data.synth.recorded import RecordedFlight, recorded_flights
@@ -59,9 +59,10 @@ logger = logging.getLogger(__name__)
 
 GENERATOR_VERSION = "recslam-synth-1"
 
-HARDER_KEYS = ("flight", "world", "trajectory_files", "effects")
-"""SynthConfig fields that dataset.json's ``config`` leaves out while they are at their
-defaults, so the default dataset's ``dataset.json`` stays byte for byte what it was."""
+HARDER_KEYS = ("flight", "world", "trajectory_files", "effects", "flights")
+"""SynthConfig fields that dataset.json's ``config`` holds only when an issue-17 option is
+used (:meth:`SynthConfig.harder`), so the default dataset's ``dataset.json`` stays byte for
+byte what it was."""
 
 __all__ = [
     "EUROC_CAM0",
@@ -95,10 +96,11 @@ class SynthConfig:
     ``contact_sheet``: write the PNG previews; ``progress``: tqdm bar on stderr.
     Harder worlds (issue 17): ``flight``: trajectory family and modifiers
     (:func:`~common.data.synth.flights.parse_flight`, default ``ring``); ``world``: scene
-    (:data:`~common.data.synth.worlds.WORLDS`, default ``vicon``; other worlds bring their
-    own texture resolution, ``textures`` applies to ``vicon``); ``trajectory_files``: one
+    (:data:`~common.data.synth.worlds.WORLDS`, default ``vicon``; a world brings its own
+    texture resolution, used unless ``textures`` is not the default); ``trajectory_files``: one
     recorded ground truth per robot to fly instead of a family
-    (:mod:`~common.data.synth.recorded`); ``effects``: exposure steps and motion blur.
+    (:mod:`~common.data.synth.recorded`); ``effects``: exposure steps and motion blur;
+    ``flights``: limits and style of the families (``trajectory`` is the ring's).
     """
 
     robots: int = 3
@@ -119,6 +121,7 @@ class SynthConfig:
     world: str = "vicon"
     trajectory_files: tuple[str, ...] = ()
     effects: EffectsConfig = field(default_factory=EffectsConfig)
+    flights: FlightConfig = field(default_factory=FlightConfig)
 
     def __post_init__(self) -> None:
         if self.robots < 1:
@@ -371,7 +374,8 @@ def generate_dataset(out: Path, config: SynthConfig = SynthConfig()) -> DatasetS
     _clear_previous(out)
     world = make_world(config.world, config.seed)
     scene = world.scene
-    textures = config.textures if config.world == "vicon" else world.textures
+    # A world's own texture resolution unless the config asks for other textures.
+    textures = world.textures if config.textures == TextureConfig() else config.textures
     atlas = build_atlas(scene, config.seed, textures)
     renderers: dict[str, Renderer] = {}
     for k in range(config.robots):
@@ -396,6 +400,7 @@ def generate_dataset(out: Path, config: SynthConfig = SynthConfig()) -> DatasetS
                     config.seconds,
                     config.seed,
                     config.trajectory,
+                    config.flights,
                 )
             ]
     except TrajectoryError as e:
@@ -451,7 +456,7 @@ def generate_dataset(out: Path, config: SynthConfig = SynthConfig()) -> DatasetS
             for k, v in asdict(config).items()
             if k != "progress"
             and (k != "cameras" or config.cameras)
-            and (k not in HARDER_KEYS or getattr(config, k) != getattr(DEFAULT_CONFIG, k))
+            and (k not in HARDER_KEYS or config.harder() != DEFAULT_HARDER)
         },
         "room": {
             "lo": list(scene.room_lo),
@@ -464,6 +469,7 @@ def generate_dataset(out: Path, config: SynthConfig = SynthConfig()) -> DatasetS
         meta["harder"] = config.harder()
         meta["room"]["name"] = world.name
         meta["room"]["flight_region"] = [list(world.region[0]), list(world.region[1])]
+        meta["room"]["textures"] = asdict(textures)
     (out / "dataset.json").write_text(json.dumps(meta, indent=2) + "\n")
     logger.info(
         "dataset %s: %d robots x %g s in %.1f s (%.1f frames/s)",
