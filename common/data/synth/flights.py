@@ -229,7 +229,10 @@ class PathFlight:
         return TrajectoryState(t, p, v, a, R, omega)
 
 
-def _rw(rng: np.random.Generator, c: float, amps: list, freqs: list) -> Wave:
+Ranges = list[tuple[float, float]]
+
+
+def _rw(rng: np.random.Generator, c: float, amps: Ranges, freqs: Ranges) -> Wave:
     """Random sinusoids around ``c``: amplitudes and frequencies drawn from ranges."""
     amp = tuple(float(rng.uniform(*r)) for r in amps)
     freq = tuple(float(rng.uniform(*r)) for r in freqs)
@@ -253,7 +256,11 @@ def _height(rng: np.random.Generator, lo: np.ndarray, hi: np.ndarray) -> Wave:
     return _rw(rng, mid + rng.uniform(-0.3, 0.1), [(0.1, 0.3)], [(0.15, 0.35)])
 
 
-def _figure8(lo, hi, agg, direction, rng) -> PathFlight:
+def _figure8(
+    lo: np.ndarray, hi: np.ndarray, agg: float, direction: float, rng: np.random.Generator
+) -> PathFlight:
+    """Figure-eight through the middle of ``lo`` .. ``hi``, looking sideways (a drawer: robot
+    aggressiveness ``agg`` 0.4-1 scales the wiggles, ``direction`` +-1 the sense of travel)."""
     c, half = (lo + hi) / 2.0, (hi - lo) / 2.0
     ax, ay = rng.uniform(0.5, 0.62) * half[0], rng.uniform(0.45, 0.6) * half[1]
     ph = rng.uniform(0, 2 * np.pi)
@@ -268,7 +275,10 @@ def _figure8(lo, hi, agg, direction, rng) -> PathFlight:
     )
 
 
-def _lawnmower(lo, hi, agg, direction, rng) -> PathFlight:
+def _lawnmower(
+    lo: np.ndarray, hi: np.ndarray, agg: float, direction: float, rng: np.random.Generator
+) -> PathFlight:
+    """Rows along x, swept across y, yaw nearly fixed towards +y, pitched down."""
     c, half = (lo + hi) / 2.0, (hi - lo) / 2.0
     w = direction * 0.3
     x = _triangle(c[0], rng.uniform(0.55, 0.68) * half[0], w, rng.uniform(0, 2 * np.pi))
@@ -287,7 +297,11 @@ def _lawnmower(lo, hi, agg, direction, rng) -> PathFlight:
 
 
 def _orbit(look: str, family: str) -> Drawer:
-    def draw(lo, hi, agg, direction, rng) -> PathFlight:
+    """Drawer of an ellipse orbit looking ``look`` (``vertical``: slower, with z sweeps)."""
+
+    def draw(
+        lo: np.ndarray, hi: np.ndarray, agg: float, direction: float, rng: np.random.Generator
+    ) -> PathFlight:
         c, half = (lo + hi) / 2.0, (hi - lo) / 2.0
         rx, ry = rng.uniform(0.45, 0.62) * half[0], rng.uniform(0.42, 0.6) * half[1]
         ph, w = rng.uniform(0, 2 * np.pi), direction * 0.3
