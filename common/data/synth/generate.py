@@ -248,9 +248,6 @@ def robot_timestamps(config: SynthConfig, robot: int) -> tuple[np.ndarray, np.nd
     return ts, np.arange(0, n, step), t0
 
 
-_continuous = continuous_quaternions
-
-
 def _write_robot(
     out: Path, k: int, config: SynthConfig, traj: Motion, renderer: Renderer, bar
 ) -> tuple[RobotSummary, list[np.ndarray], dict[str, Any]]:
@@ -266,7 +263,7 @@ def _write_robot(
     gt = EurocGroundTruth(
         timestamps_ns=ts,
         p_world_body=st.p_world_body,
-        q_world_body_wxyz=_continuous(R_to_quat_wxyz(st.R_world_body)),
+        q_world_body_wxyz=continuous_quaternions(R_to_quat_wxyz(st.R_world_body)),
         v_world_body=st.v_world_body,
         bias_gyro=imu.bias_gyro,
         bias_accel=imu.bias_accel,

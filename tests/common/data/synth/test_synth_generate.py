@@ -141,10 +141,10 @@ def test_info_command(generated, capsys) -> None:
 
 
 def test_groundtruth_quaternions_are_continuous(generated) -> None:
-    from common.data.synth.generate import _continuous
+    from common.data.synth.trajectory import continuous_quaternions
 
     q = np.array([[1.0, 0, 0, 0], [0.0, 0, 0, 1], [-0.1, 0, 0, 0.995], [-1.0, 0, 0, 0]])
-    out = _continuous(q)
+    out = continuous_quaternions(q)
     assert np.all(np.einsum("ij,ij->i", out[1:], out[:-1]) >= 0)
     np.testing.assert_array_equal(np.abs(out), np.abs(q))
     gt = EurocSequence(generated[0] / "robot1").groundtruth
