@@ -169,4 +169,9 @@ def test_seeds_subcommand_passes_generator_options(tmp_path: Path) -> None:
         True,
         6.0,
     )
-    assert cfg.table_name == "seeds_hard"
+    assert cfg.table_name == "seeds_hard" and cfg.out == tmp_path
+    argv = ["experiment", "seeds", "--world", "hall"]
+    cfg = experiment.seeds_config(parser.parse_args(argv), argv)
+    assert cfg.out == Path("out/seeds_hard") and cfg.table_name == "seeds_hard"
+    argv = ["experiment", "seeds"]
+    assert experiment.seeds_config(parser.parse_args(argv), argv).out == Path("out/seeds")
