@@ -91,10 +91,13 @@ class Detection:
 
 @dataclass(frozen=True, eq=False)
 class QueryEvent:
-    """A new keyframe queried against ``held_keys (K,)`` int64 (the cloud's keyframes then)."""
+    """A new keyframe queried against ``held_keys (K,)`` int64 (the cloud's keyframes then);
+    ``connected_keys (C,)`` int64: the held keyframes it already shared map points with then
+    (covisible: the edge tracked their points again, so that revisit is already joined)."""
 
     query_key: int
     held_keys: np.ndarray
+    connected_keys: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
 
 
 class GroundTruthPoses:
@@ -221,6 +224,8 @@ class LoopScores:
     queries: int = 0
     queries_with_partner: int = 0
     found: int = 0
+    queries_with_unconnected_partner: int = 0
+    found_unconnected: int = 0
     rejected_reasons: Counter[str] = field(default_factory=Counter)
 
     @property
@@ -239,6 +244,12 @@ class LoopScores:
     @property
     def recall(self) -> float | None:
         return self.found / self.queries_with_partner if self.queries_with_partner else None
+
+    @property
+    def recall_unconnected(self) -> float | None:
+        """Recall over the queries with a revisit partner they shared no map point with."""
+        n = self.queries_with_unconnected_partner
+        return self.found_unconnected / n if n else None
 
     @property
     def rejected_true(self) -> int:
@@ -272,8 +283,12 @@ def score_loops(
     for q in queries:
         scores.queries += 1
         held = [info[int(k)] for k in q.held_keys.tolist() if int(k) in info]
-        if revisit_partners(info[q.query_key], held, gt, crit):
+        partners = revisit_partners(info[q.query_key], held, gt, crit)
+        if partners:
             scores.queries_with_partner += 1
-            if q.query_key in true_found:
-                scores.found += 1
+            found = q.query_key in true_found
+            scores.found += found
+            if set(partners) - set(q.connected_keys.tolist()):
+                scores.queries_with_unconnected_partner += 1
+                scores.found_unconnected += found
     return scores

@@ -28,9 +28,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from common.errors import RecslamError
 from common.links import WireFormat
 from lab.links import git_commit, run_job
+from lab.loop_scoring import LoopCriterion
 
 log = logging.getLogger(__name__)
 
@@ -238,6 +241,7 @@ def summarize(runs: dict[str, dict[str, Any]], targets: SeedTargets) -> dict[str
     worst = max(joints) if len(joints) == len(runs) and joints else None
     worst_robot = max(robots) if robots else None
     failures = sum(1 for r in runs.values() if r["failed"] or r["frames_lost"])
+    checked = [r for r in runs.values() if r.get("constraints") is not None]
     return {
         "runs": len(runs),
         "median_joint_m": median,
@@ -245,6 +249,8 @@ def summarize(runs: dict[str, dict[str, Any]], targets: SeedTargets) -> dict[str
         "worst_robot_m": worst_robot,
         "one_map": one_map,
         "failures": failures,
+        "constraints": sum(r["constraints"] for r in checked) if checked else None,
+        "wrong_constraints": sum(r["wrong_constraints"] for r in checked) if checked else None,
         "met": {
             "median": median is not None and median <= targets.median_joint_m,
             "worst": worst is not None and worst <= targets.worst_joint_m,
@@ -302,6 +308,7 @@ def run_seeds(config: SeedsConfig) -> tuple[dict[str, Any], list[Path]]:
         played = _dataset_folder(f)
         runs[name]["dataset"] = _dataset_of(played)
         runs[name].update(scale_check(f, played))
+        runs[name].update(constraint_check(f, played))
     data = {
         "command": config.command,
         "commit": git_commit(),
@@ -338,6 +345,57 @@ def scale_check(report_dir: Path, data: Path | None) -> dict[str, float | None]:
         log.info("%s: no Sim(3) check (%s)", report_dir, exc)
         return none
     return {"sim3_joint_m": res.stats.rmse, "scale": res.transform.scale}
+
+
+def constraint_check(
+    report_dir: Path, data: Path | None, criterion: LoopCriterion | None = None
+) -> dict[str, float | int | None]:
+    """Every loop and merge constraint the cloud ended with (its state under ``run/state``)
+    against the ground truth of the dataset ``data``: a constraint ``T_a_b`` (body b in body
+    a) is *wrong* when it is farther than ``criterion``'s thresholds (0.3 m, 10 deg) from
+    ``inv(T_world_a) T_world_b`` of the truth (a false merge or loop). Keys:
+    ``constraints``, ``wrong_constraints``, ``max_constraint_err_m`` / ``_deg``; None where
+    not computable (no state, no ground truth)."""
+    criterion = criterion or LoopCriterion()
+    from common.evaluation.metrics import rotation_angles_deg
+    from common.evaluation.results import load_groundtruth
+    from common.geometry import inverse_T
+    from lab.loop_scoring import GroundTruthPoses
+    from services.cloud.persistence import CloudStore
+
+    none: dict[str, float | int | None] = dict.fromkeys(
+        ("constraints", "wrong_constraints", "max_constraint_err_m", "max_constraint_err_deg")
+    )
+    state = report_dir / "run" / "state" / "cloud"
+    if data is None or not (state / "cloud.sqlite").is_file():
+        return none
+    try:
+        with CloudStore(state) as store:
+            atlas, names = store.load(), {a: n for a, (n, _e, _m) in store.agents().items()}
+        refs, _ = load_groundtruth(sorted(set(names.values())), data)
+    except RecslamError as exc:
+        log.info("%s: no constraint check (%s)", report_dir, exc)
+        return none
+    # Identity extrinsic: body poses only (constraints are between keyframe bodies).
+    gt = GroundTruthPoses(refs, np.eye(4), criterion.max_gt_gap_s)
+    errs_m, errs_deg = [], []
+    for edge in atlas.loops():
+        ka, kb = atlas.keyframe(edge.key_a), atlas.keyframe(edge.key_b)
+        Ta = gt.T_world_body(names[ka.agent_id], ka.timestamp)
+        Tb = gt.T_world_body(names[kb.agent_id], kb.timestamp)
+        if Ta is None or Tb is None:
+            continue
+        T_gt = inverse_T(Ta) @ Tb
+        errs_m.append(float(np.linalg.norm(edge.T_a_b[:3, 3] - T_gt[:3, 3])))
+        errs_deg.append(float(rotation_angles_deg(T_gt[:3, :3].T @ edge.T_a_b[:3, :3])[0]))
+    m, d = np.array(errs_m), np.array(errs_deg)
+    wrong = (m > criterion.max_trans_err_m) | (d > criterion.max_rot_err_deg)
+    return {
+        "constraints": len(m),
+        "wrong_constraints": int(wrong.sum()),
+        "max_constraint_err_m": float(m.max()) if len(m) else None,
+        "max_constraint_err_deg": float(d.max()) if len(d) else None,
+    }
 
 
 def _dataset_folder(report_dir: Path) -> Path | None:

@@ -70,15 +70,17 @@ def seeds_markdown(data: dict[str, Any], table: str = "seeds") -> str:
             f"{_mark(s['met']['worst'])}), worst robot {fmt_cm(s['worst_robot_m'])} cm "
             f"(≤ {fmt_cm(t['robot_m'])}: {_mark(s['met']['robots'])}), one map in "
             f"{s['one_map']} of {s['runs']} ({_mark(s['met']['one_map'])}); runs with lost "
-            f"frames or a failed service: {s['failures']}.",
+            f"frames or a failed service: {s['failures']}; loop / merge constraints "
+            f"contradicting the ground truth (> 0.3 m or 10°, a false merge or loop): "
+            f"{s.get('wrong_constraints', '–')} of {s.get('constraints', '–')}.",
             "",
         ]
     names = sorted({n for r in runs.values() for n in r["per_robot_m"]})
     head = " | ".join(f"{n} cm" for n in names)
     lines += [
         f"| run | dataset | joint ATE cm | {head} | joint ATE Sim(3) cm | scale | maps "
-        "| merges | loops | frames lost | failed |",
-        "|---|---|---|" + "---|" * len(names) + "---|---|---|---|---|---|---|",
+        "| merges | loops | frames lost | wrong constraints | failed |",
+        "|---|---|---|" + "---|" * len(names) + "---|---|---|---|---|---|---|---|",
     ]
     for name, r in sorted(runs.items(), key=lambda kv: _order(kv[0])):
         d = r.get("dataset") or {}
@@ -95,12 +97,24 @@ def seeds_markdown(data: dict[str, Any], table: str = "seeds") -> str:
             f"| {name} | {ds} | {fmt_cm(r['joint_m'])} | {cells} "
             f"| {fmt_cm(r.get('sim3_joint_m'))} | {'–' if scale is None else f'{scale:.4f}'} "
             f"| {r['maps']} | {r['merges']} | {r['loops']} | {r['frames_lost']} "
-            f"| {', '.join(r['failed']) or '–'} |"
+            f"| {_wrong(r)} | {', '.join(r['failed']) or '–'} |"
         )
     if data["errors"]:
         lines += ["", "Runs that did not finish:", ""] + [f"- {e}" for e in data["errors"]]
     lines += ["", f"![{table}.png]({table}.png)", ""]
     return "\n".join(lines)
+
+
+def _wrong(r: dict[str, Any]) -> str:
+    """``wrong / all (max error)`` of a run's loop and merge constraints, or –."""
+    if r.get("constraints") is None:
+        return "–"
+    worst = (
+        ""
+        if r.get("max_constraint_err_m") is None
+        else f" (max {100 * r['max_constraint_err_m']:.1f} cm, {r['max_constraint_err_deg']:.1f}°)"
+    )
+    return f"{r['wrong_constraints']} / {r['constraints']}{worst}"
 
 
 def _order(name: str) -> tuple[int, str]:

@@ -180,18 +180,25 @@ def loop_markdown(t: Table3) -> str:
         "**Recall** = new keyframes with a revisit partner for which a TP loop / merge was "
         "found / new keyframes with a revisit partner. The cloud accepts at most one match per "
         "keyframe and a loop is only needed now and then, so a low recall is expected; it "
-        "measures how often a revisit is closed, not whether the maps merge.",
+        "measures how often a revisit is closed, not whether the maps merge. **Recall, "
+        "unconnected**: the same over the new keyframes with a revisit partner they shared no "
+        "map point with when queried (a covisible partner is joined already: the edge tracked "
+        "its points again, and place recognition leaves covisible keyframes out, as ORB-SLAM "
+        "does).",
         "- **Rejected**: candidates place recognition proposed and geometric verification "
         "refused (by reason, numbers left out); 'at a true place' = of those, the ones whose "
         "two keyframes' ground-truth cameras are within the revisit thresholds (verification "
         "keeps no pose for a rejected candidate, so the place is judged, not a transform).",
         "",
         "| accepted | TP | FP | precision | queries | with revisit partner | found | recall "
+        "| with unconnected partner | found | recall, unconnected "
         "| rejected | rejected at a true place |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
         f"| {len(s.accepted)} | {s.true_positives} | {s.false_positives} | "
         f"{_f(s.precision, '.3f')} | {s.queries} | {s.queries_with_partner} | {s.found} | "
-        f"{_f(s.recall, '.3f')} | {len(s.rejected)} | {s.rejected_true} |",
+        f"{_f(s.recall, '.3f')} | {s.queries_with_unconnected_partner} | "
+        f"{s.found_unconnected} | {_f(s.recall_unconnected, '.3f')} | {len(s.rejected)} | "
+        f"{s.rejected_true} |",
         "",
         "Rejections by reason: "
         + (", ".join(f"{k} {v}" for k, v in s.rejected_reasons.most_common()) or "none"),
@@ -255,6 +262,9 @@ def table3_json(t: Table3) -> dict[str, Any]:
             "with_partner": s.queries_with_partner,
             "found": s.found,
             "recall": s.recall,
+            "with_unconnected_partner": s.queries_with_unconnected_partner,
+            "found_unconnected": s.found_unconnected,
+            "recall_unconnected": s.recall_unconnected,
             "rejected": len(s.rejected),
             "rejected_true": s.rejected_true,
         },

@@ -69,6 +69,8 @@ class JobConfig:
             (``recslam cloud --record``; default: no recording).
         mbp: run the cloud with map backbone profiling (``recslam cloud --mbp``, one pass at
             shutdown; default on, like the cloud).
+        mbp_every: ... and every this many new keyframes while running (``--mbp-every``;
+            default 0: not).
         wire: how the edge encodes what it sends to the robots and the cloud (``recslam edge
             --wire``; default coded; robots and cloud accept both).
     """
@@ -84,6 +86,7 @@ class JobConfig:
     start_timeout_s: float = 120.0
     record_uplink: Path | None = None
     mbp: bool = True
+    mbp_every: int = 0
     wire: WireFormat = WireFormat.CODED
 
 
@@ -155,6 +158,8 @@ class Job:
             "--stats-out",
             str(self.run_dir / "stats" / "cloud.json"),
             "--mbp" if c.mbp else "--no-mbp",
+            "--mbp-every",
+            str(c.mbp_every),
             "--wire",
             c.wire.value,
             *record,

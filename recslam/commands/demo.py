@@ -75,6 +75,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         "benchmarks/results/table3.md)",
     )
     p.add_argument(
+        "--mbp-every",
+        type=int,
+        default=0,
+        metavar="N",
+        help="also prune every N new keyframes while running (recslam cloud --mbp-every)",
+    )
+    p.add_argument(
         "--record-uplink",
         type=Path,
         default=None,
@@ -194,6 +201,7 @@ def run(args: argparse.Namespace) -> int:
         rate=args.rate,
         record_uplink=record,
         mbp=args.mbp,
+        mbp_every=args.mbp_every,
         wire=WireFormat(args.wire),
     )
     last_print = [0.0]

@@ -458,10 +458,14 @@ class CloudApp:
         n = self.atlas.n_keyframes(map_id)
         return n - self._mbp_done.get(map_id, 0) >= every
 
-    def prune(self, map_id: int) -> MbpReport:
-        """MBP on ``map_id`` (then the whole atlas is saved)."""
+    def prune(self, map_id: int, final: bool = False) -> MbpReport:
+        """MBP on ``map_id`` (then the whole atlas is saved). While running (not ``final``)
+        each agent's ``mbp_settle_keyframes`` newest keyframes are kept, the final pass (at
+        shutdown) keeps ``mbp_keep_recent``."""
         before = set(self.atlas.map_point_keys(map_id))
-        report = self.fusion.prune(map_id, self.config.mbp_keep_recent)
+        cfg = self.config
+        keep = cfg.mbp_keep_recent if final else max(cfg.mbp_keep_recent, cfg.mbp_settle_keyframes)
+        report = self.fusion.prune(map_id, keep)
         self._changes += 1
         self._pruned_points |= before - set(self.atlas.map_point_keys(map_id))
         self._pruned_keyframes.update(report.removed_keyframes)

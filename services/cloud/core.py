@@ -422,7 +422,7 @@ class CloudCore:
             return None
         for m in self.app.atlas.maps():  # _PruneAll
             try:
-                self.app.prune(m)
+                self.app.prune(m, final=True)
                 self.mbp_passes += 1
             except Exception:  # as the service always did: log, go on with the next map
                 log.exception("MBP of map %d at shutdown failed", m)

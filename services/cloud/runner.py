@@ -71,6 +71,8 @@ class CloudRunConfig:
             sent no calibration (None: see :func:`find_camera`).
         vocabulary: vocabulary file (None: the repository's default).
         mbp: map backbone profiling on/off.
+        mbp_every: MBP also every this many new keyframes of a map while running (0: only
+            at shutdown).
         full_ba: full bundle adjustment after the pose graph on/off.
         agent_id: this service's agent id.
         wire: encoding of the pose corrections to the edges.
@@ -92,6 +94,7 @@ class CloudRunConfig:
     camera: Path | None = None
     vocabulary: Path | None = None
     mbp: bool = True
+    mbp_every: int = 0
     full_ba: bool = True
     agent_id: str = "cloud"
     wire: WireFormat = WireFormat.CODED
@@ -174,6 +177,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "benchmarks/results/table3.md)",
     )
     p.add_argument(
+        "--mbp-every",
+        type=int,
+        default=0,
+        metavar="N",
+        help="with --mbp, also prune a map every N new keyframes while running, keeping each "
+        "robot's 30 newest (default 0: only at shutdown; see benchmarks/results/mbp_midrun.md)",
+    )
+    p.add_argument(
         "--full-ba",
         action=argparse.BooleanOptionalAction,
         default=True,
@@ -229,6 +240,7 @@ def config_from_args(args: argparse.Namespace) -> CloudRunConfig:
         camera=args.camera,
         vocabulary=args.vocabulary,
         mbp=args.mbp,
+        mbp_every=args.mbp_every,
         full_ba=args.full_ba,
         agent_id=args.agent_id,
         wire=WireFormat(args.wire),
@@ -311,7 +323,10 @@ def _server(
         full_ba=dataclasses.replace(FullBAConfig(), enabled=config.full_ba),
     )
     service = CloudServiceConfig(
-        domain=domain, output_every_s=config.output_every_s, wire=config.wire
+        domain=domain,
+        output_every_s=config.output_every_s,
+        wire=config.wire,
+        mbp_every_keyframes=config.mbp_every,
     )
     return CloudServer(
         SessionConfig("cloud", config.agent_id, keys=secret),

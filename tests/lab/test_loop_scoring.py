@@ -66,3 +66,22 @@ def test_revisit_partner_needs_time_gap_or_other_robot():
     # ... but robot b's keyframe at the same place (b at 3 s) is one.
     s = score_loops([], [QueryEvent(3, np.array([0, 1, 2, 103]))], info, gt, crit)
     assert s.queries_with_partner == 1 and s.found == 0 and s.recall == 0.0
+
+
+def test_recall_unconnected_leaves_out_revisits_already_joined_by_shared_points():
+    gt, info, poses, _ = _gt()
+    T_true = inverse_T(poses[5]) @ poses[25]
+    dets = [Detection(25, 5, T_true, True, "loop", "ok", 120)]
+    held = np.arange(30, dtype=np.int64)
+    # 25 was closed by a loop; 26 and 27 have partners, but 26 shares points with all of
+    # its partners (near 6 s) already, 27 with none.
+    partners_26 = [int(k) for k in held if 4 <= k <= 8]
+    queries = [
+        QueryEvent(25, held[held < 25]),
+        QueryEvent(26, held[held < 26], np.array(partners_26, np.int64)),
+        QueryEvent(27, held[held < 27]),
+    ]
+    s = score_loops(dets, queries, info, gt, LoopCriterion())
+    assert (s.queries_with_partner, s.found) == (3, 1)
+    assert (s.queries_with_unconnected_partner, s.found_unconnected) == (2, 1)
+    assert s.recall_unconnected == 0.5

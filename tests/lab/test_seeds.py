@@ -175,3 +175,49 @@ def test_seeds_subcommand_passes_generator_options(tmp_path: Path) -> None:
     assert cfg.out == Path("out/seeds_hard") and cfg.table_name == "seeds_hard"
     argv = ["experiment", "seeds"]
     assert experiment.seeds_config(parser.parse_args(argv), argv).out == Path("out/seeds")
+
+
+def test_loop_constraints_checked_against_the_ground_truth(tmp_path: Path) -> None:
+    """A constraint that agrees with the truth passes; one 0.5 m off is counted as wrong."""
+    import numpy as np
+
+    from common.evaluation.results import load_groundtruth
+    from common.geometry import inverse_T
+    from lab.seeds import constraint_check
+    from services.cloud.atlas import Atlas, KeyframeInput, make_key
+    from services.cloud.persistence import CloudStore
+
+    data = tmp_path / "data"
+    ensure_dataset(data, 1, 1.0, 3)
+    ref = load_groundtruth(["robot0"], data)[0]["robot0"]
+    atlas = Atlas()
+    stamps = []
+    for kf_id, j in ((1, 10), (2, len(ref) - 10)):
+        t = int(ref.timestamps_ns[j]) * 1e-9
+        stamps.append(ref.T_world_body[j])
+        atlas.add_keyframe(
+            KeyframeInput(
+                agent_id=0,
+                keyframe_id=kf_id,
+                timestamp=t,
+                T_world_body=ref.T_world_body[j],
+                keypoints=np.zeros((0, 2)),
+                levels=np.zeros(0),
+                descriptors=np.zeros((0, 32), np.uint8),
+                word_ids=np.zeros(0),
+                map_point_ids=np.zeros(0),
+            )
+        )
+    T_true = inverse_T(stamps[0]) @ stamps[1]
+    T_off = T_true.copy()
+    T_off[:3, 3] += [0.5, 0.0, 0.0]
+    atlas.add_loop(make_key(0, 1), make_key(0, 2), T_true)
+    atlas.add_loop(make_key(0, 1), make_key(0, 2), T_off)
+    run = tmp_path / "run1"
+    with CloudStore(run / "run" / "state" / "cloud") as store:
+        store.save_all(atlas, agents={0: ("robot0", "edge0", 0)})
+    got = constraint_check(run, data)
+    assert got["constraints"] == 2
+    assert got["wrong_constraints"] == 1
+    assert got["max_constraint_err_m"] == pytest.approx(0.5, abs=1e-6)
+    assert constraint_check(tmp_path / "nothing", data)["constraints"] is None

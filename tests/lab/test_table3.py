@@ -77,6 +77,7 @@ def test_replay_with_and_without_mbp(recording, vocab, tmp_path):
             optimize_every_keyframes=5,
             mbp_every_keyframes=10,
             mbp_keep_recent=2,
+            mbp_settle_keyframes=2,
         )
         results[mbp] = replay(
             read_recording(recording), default_camera(), vocab, cfg, tmp_path / str(mbp), "x"

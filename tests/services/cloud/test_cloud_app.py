@@ -3,6 +3,8 @@ with the effects and handed back to the transport after a restart."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -11,6 +13,7 @@ from common.links.edge_cloud import AgentStatus, CullEvent, decode_pose_correcti
 from common.protocol.arrays import pack_array
 from common.vocabulary import Vocabulary
 from services.cloud.app import CloudApp
+from services.cloud.atlas import make_key
 from services.cloud.config import CloudServiceConfig
 from services.cloud.map_fusion import MapFusion
 from services.cloud.persistence import CloudStore
@@ -28,9 +31,9 @@ def vocab() -> Vocabulary:
     return Vocabulary.load()
 
 
-def _app(path, vocab) -> CloudApp:
+def _app(path, vocab, cfg: CloudServiceConfig | None = None) -> CloudApp:
     store = CloudStore(path)
-    cfg = CloudServiceConfig()
+    cfg = cfg or CloudServiceConfig()
     return CloudApp(
         MapFusion(default_camera(), vocab.idf, cfg.domain, store.load()), store, vocab, cfg
     )
@@ -98,7 +101,7 @@ def test_mbp_through_the_app_marks_pruned_items_and_is_durable(tmp_path, vocab):
     for m in mps:
         app.fusion.add_map_point(m)
     app.store.save_all(app.atlas)
-    report = app.prune(0)
+    report = app.prune(0, final=True)
     assert report.keyframes_after < report.keyframes_before and report.connected_after
     view = app.view()
     assert len(view.pruned_keyframes) == report.keyframes_before - report.keyframes_after
@@ -120,6 +123,36 @@ def test_mbp_through_the_app_marks_pruned_items_and_is_durable(tmp_path, vocab):
         )
     finally:
         restarted.close()
+
+
+def test_mbp_while_running_keeps_the_unsettled_newest_keyframes(tmp_path, vocab):
+    """A pass while running never removes an agent's ``mbp_settle_keyframes`` newest
+    keyframes (still in the edge's reach); the final pass at shutdown may."""
+    world = make_world(31, n_points=2000)
+    kfs, mps = make_session(
+        world,
+        default_camera(),
+        0,
+        circle_poses(30, turns=0.5),
+        np.eye(4),
+        seed=6,
+        dt=0.2,
+        track_gap=30,
+    )
+    newest = {make_key(0, k.keyframe_id) for k in kfs[-12:]}
+    removed = {}
+    for final in (False, True):
+        cfg = dataclasses.replace(CloudServiceConfig(), mbp_settle_keyframes=12)
+        app = _app(tmp_path / str(final), vocab, cfg)
+        for k in kfs:
+            app.fusion.add_keyframe(k, detect=False)
+        for m in mps:
+            app.fusion.add_map_point(m)
+        report = app.prune(0, final=final)
+        removed[final] = set(report.removed_keyframes)
+        app.close()
+    assert removed[False] and not removed[False] & newest
+    assert removed[True] & newest  # at shutdown only mbp_keep_recent (5) are protected
 
 
 def test_applied_optimisation_is_durable(tmp_path, vocab):

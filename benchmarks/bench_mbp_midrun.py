@@ -1,0 +1,179 @@
+"""MBP during operation (issue 17, item 2): keyframes kept and joint ATE, same recordings.
+
+Run: ``.venv/bin/python benchmarks/bench_mbp_midrun.py --ab RECORDING:DATASET [...] [--every 40]
+[--settle 0,30]``; writes ``benchmarks/results/mbp_midrun.md`` and ``mbp_midrun.png``.
+
+Each recording (``recslam demo --record-uplink``) is replayed through the cloud service's own
+core (:func:`lab.table3.replay`, modelled schedule, solves taking no time: the result does not
+depend on the load of the machine) with the service's defaults (VI full BA every 100
+keyframes and at shutdown) and:
+
+- **no MBP**;
+- **MBP at shutdown** (the service's default);
+- **MBP every N keyframes** while running, once per ``--settle`` value S: a pass while running
+  keeps each agent's S newest keyframes (``CloudServiceConfig.mbp_settle_keyframes``; 0 is
+  the behaviour before it: only ``mbp_keep_recent`` = 5), the final pass at shutdown keeps 5.
+
+Keyframes: the atlas at the end over the keyframes received. ATE: joint RMSE (SE(3)) of every
+keyframe received (a pruned one through the kept keyframe it is anchored to), as the cloud's
+report computes it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import logging
+import platform
+import subprocess
+import tempfile
+import time
+from pathlib import Path
+
+from common.evaluation.results import load_groundtruth
+from common.vocabulary import DEFAULT_VOCABULARY_PATH, Vocabulary
+from lab.table3 import ReplayResult, joint_ate, replay, service_config
+from services.cloud.config import CloudServiceConfig
+from services.cloud.recording import read_schedule
+from services.cloud.runner import find_camera
+
+log = logging.getLogger("bench_mbp_midrun")
+RESULTS = Path(__file__).resolve().parent / "results"
+
+
+def variants(every: int, settles: list[int]) -> list[tuple[str, CloudServiceConfig]]:
+    """(label, configuration) of every row of one recording."""
+    rows = [
+        ("no MBP", service_config(False)),
+        ("MBP at shutdown", service_config(True)),
+    ]
+    for s in settles:
+        cfg = dataclasses.replace(service_config(True, every), mbp_settle_keyframes=s)
+        rows.append((f"MBP every {every}, settle {s}", cfg))
+    return rows
+
+
+def run_one(rec: Path, data: Path, label: str, cfg: CloudServiceConfig, vocab: Vocabulary) -> dict:
+    camera = find_camera(None, data)
+    with tempfile.TemporaryDirectory() as tmp:
+        r: ReplayResult = replay(
+            read_schedule(rec, allow_truncated_tail=True),
+            camera,
+            vocab,
+            cfg,
+            Path(tmp) / "state",
+            label,
+            full_ba=True,
+            schedule="modelled",
+            latency_scale=0.0,
+        )
+    refs, _ = load_groundtruth(sorted(r.trajectories), data)
+    ate = joint_ate(refs, r.trajectories)
+    return {
+        "label": label,
+        "keyframes": r.keyframes,
+        "received": r.keyframes_received,
+        "map_points": r.map_points,
+        "maps": len(r.maps),
+        "loops": r.loops,
+        "passes": r.mbp_passes,
+        "joint_m": None if ate is None else ate.stats.rmse,
+        "per_robot_m": {}
+        if ate is None
+        else {n: a.stats.rmse for n, a in sorted(ate.under_joint.items())},
+        "seconds": r.seconds,
+    }
+
+
+def plot(results: dict[str, list[dict]], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6.4, 4.0))
+    markers = "osD^v<>"
+    for i, (rec, rows) in enumerate(results.items()):
+        xs = [100 * r["keyframes"] / max(r["received"], 1) for r in rows]
+        ys = [100 * (r["joint_m"] or float("nan")) for r in rows]
+        ax.plot(xs, ys, ls=":", color="0.6", lw=0.8)
+        for x, y, r in zip(xs, ys, rows, strict=True):
+            ax.plot(x, y, markers[i % len(markers)], color=f"C{rows.index(r)}", ms=6)
+        ax.plot([], [], markers[i % len(markers)], color="0.3", label=rec)
+    for j, r in enumerate(next(iter(results.values()))):
+        ax.plot([], [], "s", color=f"C{j}", label=r["label"])
+    ax.axvline(60, color="#e45756", ls="--", lw=1)
+    ax.set_xlabel("keyframes kept at the end, % of received")
+    ax.set_ylabel("joint ATE cm")
+    ax.set_title("MBP during operation vs none / at shutdown")
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument(
+        "--ab", action="append", required=True, metavar="RECORDING:DATASET", help="repeatable"
+    )
+    ap.add_argument("--every", type=int, default=40, help="MBP every N new keyframes")
+    ap.add_argument("--settle", default="0,30", help="settle values, comma-separated")
+    ap.add_argument("--out", type=Path, default=RESULTS, help="folder of the md and png")
+    args = ap.parse_args()
+    logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(name)s: %(message)s")
+    log.setLevel(logging.INFO)
+    vocab = Vocabulary.load(DEFAULT_VOCABULARY_PATH)
+    settles = [int(s) for s in args.settle.split(",") if s]
+    results: dict[str, list[dict]] = {}
+    t0 = time.perf_counter()
+    for spec in args.ab:
+        rec_s, data_s = spec.split(":", 1)
+        rec, data = Path(rec_s), Path(data_s)
+        rows = results.setdefault(rec.name, [])
+        for label, cfg in variants(args.every, settles):
+            log.info("%s: %s ...", rec.name, label)
+            rows.append(run_one(rec, data, label, cfg, vocab))
+            log.info("  %s", rows[-1])
+    commit = subprocess.run(
+        ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, check=False
+    ).stdout.strip()
+    lines = [
+        "# MBP during operation: keyframes kept and joint ATE on the same recordings",
+        "",
+        f"Command: `benchmarks/bench_mbp_midrun.py {' '.join('--ab ' + a for a in args.ab)} "
+        f"--every {args.every} --settle {args.settle}`; commit {commit}; "
+        f"{time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}; {platform.machine()}, "
+        f"{time.perf_counter() - t0:.0f} s in all. Replays through the service's core, "
+        "modelled schedule with solves taking no time (deterministic; see the script's "
+        "docstring). Keyframes: kept at the end / received.",
+        "",
+        "| recording | run | keyframes | kept % | map points | maps | loops | MBP passes "
+        "| joint ATE cm | change vs no MBP | per robot cm |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for rec, rows in results.items():
+        base = rows[0]["joint_m"]
+        for r in rows:
+            j = r["joint_m"]
+            change = (
+                ""
+                if j is None or base is None or r is rows[0]
+                else f"{100 * (j / base - 1):+.0f} %"
+            )
+            per = ", ".join(f"{100 * v:.2f}" for v in r["per_robot_m"].values())
+            lines.append(
+                f"| `{rec}` | {r['label']} | {r['keyframes']} / {r['received']} "
+                f"| {100 * r['keyframes'] / max(r['received'], 1):.0f} | {r['map_points']} "
+                f"| {r['maps']} | {r['loops']} | {r['passes']} "
+                f"| {'–' if j is None else f'{100 * j:.2f}'} | {change} | {per} |"
+            )
+    lines += ["", "![mbp_midrun.png](mbp_midrun.png)", ""]
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "mbp_midrun.md").write_text("\n".join(lines))
+    plot(results, args.out / "mbp_midrun.png")
+    log.info("wrote %s", args.out / "mbp_midrun.md")
+
+
+if __name__ == "__main__":
+    main()
