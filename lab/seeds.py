@@ -8,6 +8,12 @@ per-robot ATE, the maps at the end, merges, loops, lost frames and failed servic
 against issue 17's targets) and ``seeds.png``. With ``from_runs`` the runs already under
 ``out`` are read instead (a sweep resumed, or runs made by hand, each ``out/<name>/report.json``
 next to the ``dataset.json`` it names).
+
+Harder worlds (issue 17, :class:`GeneratorOptions`): ``--flight``, ``--world``,
+``--exposure-steps`` and ``--motion-blur-ms`` are passed to the generator; the datasets and
+runs of such a sweep are named ``<tag>-seed-<s>`` (``tag``, e.g. ``figure8+aggressive_vicon``)
+and its tables are ``seeds_hard.md`` / ``.json`` / ``.png`` (``SeedsConfig.name``), whose header
+states the generator settings of its runs, so they never mix with the default sweep's.
 """
 
 from __future__ import annotations
@@ -46,9 +52,66 @@ class SeedTargets:
 
 
 @dataclass(frozen=True)
+class GeneratorOptions:
+    """What the sweep's datasets are built with beyond robots, seconds and seed (the options
+    of ``recslam dataset synth`` of the same names); the defaults are the default dataset."""
+
+    flight: str = "ring"
+    world: str = "vicon"
+    exposure_steps: bool = False
+    motion_blur_ms: float = 0.0
+
+    def __post_init__(self) -> None:
+        from common.data.synth.flights import parse_flight
+        from common.data.synth.trajectory import TrajectoryError
+        from common.data.synth.worlds import WORLDS
+
+        try:
+            object.__setattr__(self, "flight", parse_flight(self.flight).name)
+        except TrajectoryError as exc:
+            raise SeedsError(str(exc)) from None
+        if self.world not in WORLDS:
+            raise SeedsError(f"--world {self.world!r}: unknown (known: {', '.join(WORLDS)})")
+        if self.motion_blur_ms < 0:
+            raise SeedsError(f"--motion-blur-ms {self.motion_blur_ms:g}: must be >= 0")
+
+    @property
+    def is_default(self) -> bool:
+        return self == GeneratorOptions()
+
+    @property
+    def tag(self) -> str:
+        """``""`` for the defaults, else e.g. ``figure8+aggressive_hall_exposure_blur8ms``."""
+        if self.is_default:
+            return ""
+        parts = [self.flight, self.world]
+        if self.exposure_steps:
+            parts.append("exposure")
+        if self.motion_blur_ms:
+            parts.append(f"blur{self.motion_blur_ms:g}ms")
+        return "_".join(parts)
+
+    def folder(self, seed: int) -> str:
+        """Name of the dataset and run folders of ``seed``."""
+        return f"{self.tag}-seed-{seed}" if self.tag else f"seed-{seed}"
+
+    def settings(self) -> dict[str, Any]:
+        """As :func:`common.data.synth.dataset_settings` states them."""
+        return {
+            "flight": self.flight,
+            "world": self.world,
+            "trajectory_files": (),
+            "exposure_steps": self.exposure_steps,
+            "motion_blur_ms": float(self.motion_blur_ms),
+        }
+
+
+@dataclass(frozen=True)
 class SeedsConfig:
     """One sweep: ``seeds``, each a dataset of ``robots`` x ``seconds`` under ``data_root``
-    (``seed-<s>``), each run into ``out/seed-<s>``; tables also copied to ``results``."""
+    (``seed-<s>``, or ``<tag>-seed-<s>`` with harder ``generator`` options), each run into
+    ``out/`` under the same name; tables ``name``.md/.json/.png (default ``seeds``, or
+    ``seeds_hard`` with harder options) also copied to ``results``."""
 
     seeds: tuple[int, ...]
     out: Path
@@ -61,6 +124,13 @@ class SeedsConfig:
     from_runs: bool = False
     command: str = ""
     targets: SeedTargets = SeedTargets()
+    generator: GeneratorOptions = GeneratorOptions()
+    name: str = ""
+
+    @property
+    def table_name(self) -> str:
+        """Base name of the tables: ``name``, else ``seeds`` / ``seeds_hard``."""
+        return self.name or ("seeds" if self.generator.is_default else "seeds_hard")
 
 
 def parse_seeds(text: str) -> tuple[int, ...]:
@@ -85,10 +155,17 @@ def parse_seeds(text: str) -> tuple[int, ...]:
     return tuple(sorted(seeds))
 
 
-def ensure_dataset(folder: Path, robots: int, seconds: float, seed: int) -> bool:
+def ensure_dataset(
+    folder: Path,
+    robots: int,
+    seconds: float,
+    seed: int,
+    generator: GeneratorOptions = GeneratorOptions(),
+) -> bool:
     """The synthetic dataset of ``seed`` in ``folder``: built if missing (True), reused if it
     was built with these settings (False); SeedsError if it holds something else."""
-    from common.data.synth import SynthConfig, dataset_settings, generate_dataset
+    from common.data.synth import SynthConfig, SynthError, dataset_settings, generate_dataset
+    from common.data.synth.render import EffectsConfig
 
     have = dataset_settings(folder)
     if have is not None:
@@ -98,8 +175,28 @@ def ensure_dataset(folder: Path, robots: int, seconds: float, seed: int) -> bool
                 f"{have['seed']}, not {robots} x {seconds:g} s, seed {seed}: remove it or "
                 "choose another --data-root"
             )
+        want = generator.settings()
+        if any(have[k] != v for k, v in want.items()):
+            got = {k: have[k] for k in want}
+            raise SeedsError(
+                f"{folder} was built with {got}, not {want}: remove it or choose another "
+                "--data-root"
+            )
         return False
-    generate_dataset(folder, SynthConfig(robots=robots, seconds=seconds, seed=seed))
+    config = SynthConfig(
+        robots=robots,
+        seconds=seconds,
+        seed=seed,
+        flight=generator.flight,
+        world=generator.world,
+        effects=EffectsConfig(
+            exposure_steps=generator.exposure_steps, motion_blur_ms=generator.motion_blur_ms
+        ),
+    )
+    try:
+        generate_dataset(folder, config)
+    except SynthError as exc:
+        raise SeedsError(f"{folder}: {exc}") from None
     return True
 
 
@@ -183,11 +280,12 @@ def run_seeds(config: SeedsConfig) -> tuple[dict[str, Any], list[Path]]:
         t_all = time.perf_counter()
         for i, seed in enumerate(config.seeds, 1):
             label = f"[{i}/{len(config.seeds)} seed {seed}]"
-            dataset = config.data_root / f"seed-{seed}"
+            run_name = config.generator.folder(seed)
+            dataset = config.data_root / run_name
             t = time.perf_counter()
-            if ensure_dataset(dataset, config.robots, config.seconds, seed):
+            if ensure_dataset(dataset, config.robots, config.seconds, seed, config.generator):
                 log.info("%s dataset built in %.0f s: %s", label, time.perf_counter() - t, dataset)
-            report_dir = config.out / f"seed-{seed}"
+            report_dir = config.out / run_name
             log.info("%s running the whole job (a 60 s run takes ~4 min here)", label)
             try:
                 report = run_job(
@@ -197,7 +295,7 @@ def run_seeds(config: SeedsConfig) -> tuple[dict[str, Any], list[Path]]:
                 log.error("%s failed: %s", label, exc)
                 errors.append(f"seed {seed}: {exc}")
                 continue
-            folders[f"seed-{seed}"] = report_dir
+            folders[run_name] = report_dir
             log.info(
                 "%s done in %.0f s: joint ATE %s m",
                 label,
@@ -222,7 +320,7 @@ def run_seeds(config: SeedsConfig) -> tuple[dict[str, Any], list[Path]]:
     }
     from lab.seeds_report import write_seeds
 
-    return data, write_seeds(data, config.out, config.results)
+    return data, write_seeds(data, config.out, config.results, config.table_name)
 
 
 def scale_check(report_dir: Path, data: Path | None) -> dict[str, float | None]:
@@ -315,12 +413,21 @@ def _dataset_folder(report_dir: Path) -> Path | None:
 
 
 def _dataset_of(folder: Path | None) -> dict[str, Any] | None:
-    """Robots, seconds and seed of the synthetic dataset in ``folder``; None if not synthetic
-    (or not found)."""
+    """Robots, seconds and seed of the synthetic dataset in ``folder``, and its issue-17
+    generator settings where they are not the defaults; None if not synthetic (or not
+    found)."""
     from common.data.synth import dataset_settings
 
     have = None if folder is None else dataset_settings(folder)
-    return None if have is None else {k: have[k] for k in ("robots", "seconds", "seed")}
+    if have is None:
+        return None
+    out = {k: have[k] for k in ("robots", "seconds", "seed")}
+    defaults = GeneratorOptions().settings()
+    if any(have.get(k, v) != v for k, v in defaults.items()):
+        out["generator"] = {k: have[k] for k in defaults} | {
+            "trajectory_files": list(have["trajectory_files"])
+        }
+    return out
 
 
 def fmt_cm(v: float | None) -> str:

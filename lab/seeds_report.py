@@ -19,13 +19,32 @@ def _mark(ok: bool) -> str:
     return "met" if ok else "**missed**"
 
 
-def seeds_markdown(data: dict[str, Any]) -> str:
+def generator_text(g: dict[str, Any] | None) -> str:
+    """A run's generator settings in words (``"default flights and room"`` when None)."""
+    if not g:
+        return "default flights and room"
+    words = [f"flight {g['flight']}", f"world {g['world']}"]
+    if g.get("trajectory_files"):
+        words[0] = "recorded flights " + ", ".join(g["trajectory_files"])
+    if g.get("exposure_steps"):
+        words.append("exposure steps")
+    if g.get("motion_blur_ms"):
+        words.append(f"motion blur {g['motion_blur_ms']:g} ms")
+    return ", ".join(words)
+
+
+def seeds_markdown(data: dict[str, Any], table: str = "seeds") -> str:
     """The sweep as markdown: provenance, verdict, one row per run."""
     runs: dict[str, dict[str, Any]] = data["runs"]
     s = data["summary"]
     t = data["targets"]
+    gens = sorted(
+        {generator_text((r.get("dataset") or {}).get("generator")) for r in runs.values()}
+    )
+    harder = gens != ["default flights and room"]
+    title = "# Joint ATE over the generator's seeds"
     lines = [
-        "# Joint ATE over the generator's seeds",
+        f"{title}: harder worlds ({'; '.join(gens)})" if harder else title,
         "",
         f"Command: `{data['command']}`; commit {data['commit']}; {data['date']}. Each row is "
         "one run of the whole job as `recslam demo --no-dashboard` runs it (cloud, edge and "
@@ -36,6 +55,13 @@ def seeds_markdown(data: dict[str, Any]) -> str:
         "how much of a run's error is one error of the whole map's scale.",
         "",
     ]
+    if harder:
+        lines += [
+            "Generator settings of these runs (`recslam dataset synth` options, issue 17 item "
+            f"5): {'; '.join(gens)}. The targets are those of the default flights; on harder "
+            "flights they are stated, not expected.",
+            "",
+        ]
     if s is not None:
         lines += [
             f"Over {s['runs']} runs: median joint ATE **{fmt_cm(s['median_joint_m'])} cm** "
@@ -63,6 +89,8 @@ def seeds_markdown(data: dict[str, Any]) -> str:
             if d.get("seconds") is not None
             else "–"
         )
+        if d.get("generator"):
+            ds += f", {generator_text(d['generator'])}"
         cells = " | ".join(fmt_cm(r["per_robot_m"].get(n)) for n in names)
         scale = r.get("scale")
         lines.append(
@@ -73,7 +101,7 @@ def seeds_markdown(data: dict[str, Any]) -> str:
         )
     if data["errors"]:
         lines += ["", "Runs that did not finish:", ""] + [f"- {e}" for e in data["errors"]]
-    lines += ["", "![seeds.png](seeds.png)", ""]
+    lines += ["", f"![{table}.png]({table}.png)", ""]
     return "\n".join(lines)
 
 
@@ -123,12 +151,14 @@ def seeds_plot(data: dict[str, Any], path: Path) -> None:
     plt.close(fig)
 
 
-def write_seeds(data: dict[str, Any], out: Path, results: Path | None) -> list[Path]:
-    """``seeds.md``, ``seeds.json``, ``seeds.png`` into ``out`` (the first two and the plot
-    also copied to ``results``)."""
+def write_seeds(
+    data: dict[str, Any], out: Path, results: Path | None, name: str = "seeds"
+) -> list[Path]:
+    """``NAME.md``, ``NAME.json``, ``NAME.png`` into ``out`` (the markdown and the plot also
+    copied to ``results``)."""
     out.mkdir(parents=True, exist_ok=True)
-    md, js, png = out / "seeds.md", out / "seeds.json", out / "seeds.png"
-    md.write_text(seeds_markdown(data))
+    md, js, png = out / f"{name}.md", out / f"{name}.json", out / f"{name}.png"
+    md.write_text(seeds_markdown(data, name))
     js.write_text(json.dumps(data, indent=2, default=str))
     seeds_plot(data, png)
     files = [md, js, png]

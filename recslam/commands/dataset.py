@@ -3,7 +3,11 @@
 ``recslam dataset synth --out DIR --robots 3 --seconds 60 --seed 0`` renders the embedded
 textured room for every robot and writes ``DIR/robotK/mav0`` (EuRoC layout), ``dataset.json``,
 ``contact_sheet.png`` and ``trajectories_top.png``; ``--cameras euroc,wide,fisheye`` gives
-each robot its own camera preset (default all ``euroc``). ``recslam dataset info PATH`` prints
+each robot its own camera preset (default all ``euroc``). Harder worlds (issue 17):
+``--flight figure8+aggressive`` (families ring, figure8, lawnmower, inward, vertical; modifiers
++hover, +aggressive), ``--world hall`` (vicon, room-random, hall), ``--trajectory FILE[,FILE]``
+(fly recorded TUM / EuRoC ground truths, one per robot), ``--exposure-steps`` and
+``--motion-blur-ms MS``; ``dataset.json`` records them. ``recslam dataset info PATH`` prints
 the facts of a dataset folder (several ``*/mav0`` sequences), of a single EuRoC-layout sequence
 (EuRoC, TUM-VI), or of a ROS bag (``.bag`` file or ROS 2 bag folder: topics, message types,
 counts, durations and rates).
@@ -28,7 +32,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     inner.required = True
     s = inner.add_parser("synth", help="generate the synthetic multi-robot EuRoC-layout dataset")
     s.add_argument("--out", type=Path, required=True, help="output folder")
-    s.add_argument("--robots", type=int, default=3, help="number of robots (default 3)")
+    s.add_argument(
+        "--robots",
+        type=int,
+        default=None,
+        help="number of robots (default 3, or one per --trajectory file)",
+    )
     s.add_argument("--seconds", type=float, default=60.0, help="length per robot (default 60)")
     s.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     s.add_argument(
@@ -43,6 +52,42 @@ def register(sub: argparse._SubParsersAction) -> None:
         "euroc (752x480 radtan), wide (640x480 radtan, pitched mount), fisheye (512x512 "
         "equidistant); default all euroc",
     )
+    s.add_argument(
+        "--flight",
+        default="ring",
+        metavar="FAMILY[+MODIFIER...]",
+        help="trajectory family: ring (default: loops looking outward), figure8, lawnmower, "
+        "inward (looking at the room's centre), vertical (up-and-down sweeps); modifiers "
+        "+hover (a few seconds nearly still first, as in EuRoC), +aggressive (bursts up to "
+        "~2 m/s and ~2.5 rad/s); e.g. figure8+aggressive",
+    )
+    s.add_argument(
+        "--world",
+        default="vicon",
+        help="scene: vicon (default, the 8 x 7 m room), room-random (that room with "
+        "furniture drawn per seed), hall (a 20 x 16 x 8 m machine hall)",
+    )
+    s.add_argument(
+        "--trajectory",
+        default="",
+        metavar="FILE[,FILE...]",
+        help="fly recorded ground truths instead of a family, one file per robot: TUM "
+        "(t x y z qx qy qz qw) or EuRoC state_groundtruth_estimate0/data.csv; smoothed by "
+        "quintic smoothing splines, recentred in the world",
+    )
+    s.add_argument(
+        "--exposure-steps",
+        action="store_true",
+        help="auto-exposure steps: the gain jumps every 1.5-4 s by x0.5-2 (within 0.4-2)",
+    )
+    s.add_argument(
+        "--motion-blur-ms",
+        type=float,
+        default=0.0,
+        metavar="MS",
+        help="exposure time [ms] for motion blur: the mean of sub-renders over the exposure "
+        "(one per 2 ms, 2 to 9); default 0 (none)",
+    )
     s.add_argument("--no-progress", action="store_true", help="no progress bar")
     s.set_defaults(func=run_synth)
     i = inner.add_parser("info", help="describe a dataset folder, one sequence or a ROS bag")
@@ -55,16 +100,29 @@ def run_synth(args: argparse.Namespace) -> int:
     from dataclasses import replace
 
     from common.data.synth import SynthConfig, SynthError, generate_dataset
+    from common.data.synth.render import EffectsConfig
     from common.folders import FolderError, writable_folder
 
+    files = tuple(f.strip() for f in args.trajectory.split(",") if f.strip())
     try:
         writable_folder(args.out, "--out")
+        robots = args.robots if args.robots is not None else (len(files) or 3)
+        if files and len(files) != robots:
+            raise SynthError(
+                f"--trajectory gives {len(files)} files for --robots {robots}: one per robot"
+            )
         config = SynthConfig(
-            robots=args.robots,
+            robots=robots,
             seconds=args.seconds,
             seed=args.seed,
             progress=not args.no_progress,
             cameras=tuple(c.strip() for c in args.cameras.split(",") if c.strip()),
+            flight=args.flight,
+            world=args.world,
+            trajectory_files=files,
+            effects=EffectsConfig(
+                exposure_steps=args.exposure_steps, motion_blur_ms=args.motion_blur_ms
+            ),
         )
         if args.no_noise:
             config = replace(
@@ -77,6 +135,7 @@ def run_synth(args: argparse.Namespace) -> int:
         print(f"error: {e}", file=sys.stderr)
         return 2
     print(f"dataset: {summary.out} ({summary.version}, seed {summary.seed})")
+    print(f"  {describe_harder(config.harder())}")
     for s in summary.sequences:
         print(
             f"  {s.name}: {s.frames} frames, {s.imu_samples} IMU samples, "
@@ -121,7 +180,8 @@ def run_info(args: argparse.Namespace) -> int:
             json.dumps(
                 {
                     "dataset": meta
-                    and {k: meta.get(k) for k in ("generator", "robots", "seconds", "seed")},
+                    and {k: meta.get(k) for k in ("generator", "robots", "seconds", "seed")}
+                    | {"harder": harder_of(meta)},
                     "sequences": rows,
                 },
                 indent=2,
@@ -133,6 +193,7 @@ def run_info(args: argparse.Namespace) -> int:
             f"{root}: {meta.get('generator')} robots={meta.get('robots')} "
             f"seconds={meta.get('seconds')} seed={meta.get('seed')}"
         )
+        print(f"  {describe_harder(harder_of(meta))}")
     print(
         f"{'sequence':<12}{'frames':>8}{'cam Hz':>8}{'imu':>8}{'imu Hz':>8}{'secs':>8}"
         f"{'res':>10}{'gt':>7}{'path m':>8}"
@@ -148,6 +209,23 @@ def run_info(args: argparse.Namespace) -> int:
     if len(rows) == 1:
         print(f"calibration: {rows[0]['calibration']}")
     return 0
+
+
+def harder_of(meta: dict) -> dict:
+    """The issue-17 options of a ``dataset.json`` (their defaults where it states none)."""
+    from common.data.synth.generate import DEFAULT_HARDER
+
+    return DEFAULT_HARDER | meta.get("harder", {})
+
+
+def describe_harder(h: dict) -> str:
+    """One line: flight (or the recorded files), world, exposure steps, motion blur."""
+    flight = f"flight {h['flight']}"
+    if h["trajectory_files"]:
+        flight = "recorded flights " + ", ".join(h["trajectory_files"])
+    steps = "exposure steps" if h["exposure_steps"] else "no exposure steps"
+    blur = f"motion blur {h['motion_blur_ms']:g} ms" if h["motion_blur_ms"] else "no motion blur"
+    return f"{flight}, world {h['world']}, {steps}, {blur}"
 
 
 def _bag_info(path: Path, as_json: bool) -> int:

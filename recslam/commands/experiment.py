@@ -104,8 +104,11 @@ def register(sub: argparse._SubParsersAction) -> None:
         "the generator's seeds (median and worst against the targets)",
         description="Builds the synthetic dataset of each seed under DATA_ROOT/seed-<s> (once), "
         "runs the whole job (as 'recslam demo --no-dashboard') into OUT/seed-<s>/ and writes "
-        "OUT/seeds.md, seeds.json and seeds.png (see lab/seeds.py). A 60 s run takes ~4 min "
-        "on 2 cores, a dataset ~2 min to build.",
+        "OUT/seeds.md, seeds.json and seeds.png (see lab/seeds.py). With generator options "
+        "(--flight, --world, --exposure-steps, --motion-blur-ms) the datasets and runs are "
+        "named <tag>-seed-<s>, OUT defaults to out/seeds_hard and the tables are "
+        "seeds_hard.*, headed by the generator settings. A 60 s run takes ~4 min on 2 cores, "
+        "a dataset ~2 min to build.",
     )
     sd.add_argument("--seeds", default="0-9", help="seeds, e.g. 0-9 or 0,3,7 (default 0-9)")
     sd.add_argument("--robots", type=int, default=3, help="robots per dataset (default 3)")
@@ -113,8 +116,25 @@ def register(sub: argparse._SubParsersAction) -> None:
     sd.add_argument(
         "--data-root", type=Path, default=Path("data/seeds"), help="where the datasets live"
     )
+    sd.add_argument(
+        "--flight",
+        default="ring",
+        help="generator's trajectory family[+modifiers] (as 'recslam dataset synth --flight'; "
+        "default ring)",
+    )
+    sd.add_argument(
+        "--world", default="vicon", help="generator's world: vicon (default), room-random, hall"
+    )
+    sd.add_argument("--exposure-steps", action="store_true", help="generator: exposure steps")
+    sd.add_argument("--motion-blur-ms", type=float, default=0.0, help="generator: motion blur [ms]")
+    sd.add_argument(
+        "--name",
+        default="",
+        help="base name of the tables (default seeds, or seeds_hard with any generator option)",
+    )
     _whole_run_options(sd, "seeds", 2400.0, "report")
-    sd.set_defaults(func=run_seeds)
+    # --out defaults to out/seeds, or out/seeds_hard with a generator option (seeds_config).
+    sd.set_defaults(func=run_seeds, out=None)
 
 
 def _whole_run_options(
@@ -219,12 +239,19 @@ def seeds_config(args: argparse.Namespace, argv: list[str] | None = None):
     import shlex
     import sys
 
-    from lab.seeds import SeedsConfig, parse_seeds
+    from lab.seeds import GeneratorOptions, SeedsConfig, parse_seeds
 
     words = sys.argv[1:] if argv is None else argv
+    generator = GeneratorOptions(
+        flight=args.flight,
+        world=args.world,
+        exposure_steps=args.exposure_steps,
+        motion_blur_ms=args.motion_blur_ms,
+    )
+    table = args.name or ("seeds" if generator.is_default else "seeds_hard")
     return SeedsConfig(
         seeds=() if args.from_runs else parse_seeds(args.seeds),
-        out=args.out,
+        out=args.out if args.out is not None else Path("out") / table,
         data_root=args.data_root,
         robots=args.robots,
         seconds=args.seconds,
@@ -233,6 +260,8 @@ def seeds_config(args: argparse.Namespace, argv: list[str] | None = None):
         timeout_s=args.timeout,
         from_runs=args.from_runs,
         command="recslam " + shlex.join(words),
+        generator=generator,
+        name=args.name,
     )
 
 
@@ -241,7 +270,8 @@ def run_seeds(args: argparse.Namespace) -> int:
     from lab.seeds import run_seeds as seeds
 
     logging.getLogger("lab").setLevel(logging.INFO)  # progress: one line per run step
-    return _printed(args.out / "seeds.md", *seeds(seeds_config(args)))
+    config = seeds_config(args)
+    return _printed(config.out / f"{config.table_name}.md", *seeds(config))
 
 
 def run_links(args: argparse.Namespace) -> int:

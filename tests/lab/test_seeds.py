@@ -108,6 +108,75 @@ def test_seeds_subcommand_parses_into_a_config(tmp_path: Path) -> None:
     assert args.func is experiment.run_seeds
 
 
+def test_generator_options_name_folders_and_tables() -> None:
+    from lab.seeds import GeneratorOptions
+
+    assert GeneratorOptions().tag == "" and GeneratorOptions().folder(3) == "seed-3"
+    g = GeneratorOptions("Figure8+aggressive", "hall", True, 8.0)
+    assert g.flight == "figure8+aggressive"
+    assert g.folder(3) == "figure8+aggressive_hall_exposure_blur8ms-seed-3"
+    assert SeedsConfig(seeds=(0,), out=Path("o")).table_name == "seeds"
+    assert SeedsConfig(seeds=(0,), out=Path("o"), generator=g).table_name == "seeds_hard"
+    with pytest.raises(SeedsError, match="spiral"):
+        GeneratorOptions(flight="spiral")
+    with pytest.raises(SeedsError, match="moon"):
+        GeneratorOptions(world="moon")
+
+
+def test_dataset_built_with_generator_options_and_not_mixed_up(tmp_path: Path) -> None:
+    from lab.seeds import GeneratorOptions
+
+    g = GeneratorOptions(flight="lawnmower", world="room-random")
+    folder = tmp_path / g.folder(2)
+    assert ensure_dataset(folder, 1, 0.2, 2, g) is True
+    info = json.loads((folder / "dataset.json").read_text())
+    assert info["harder"]["flight"] == "lawnmower" and info["harder"]["world"] == "room-random"
+    assert ensure_dataset(folder, 1, 0.2, 2, g) is False
+    with pytest.raises(SeedsError, match="'flight': 'lawnmower'"):
+        ensure_dataset(folder, 1, 0.2, 2)  # a default sweep never reuses a harder dataset
+
+
+def test_hard_sweep_report_names_its_generator_settings(tmp_path: Path) -> None:
+    run = _run(tmp_path, "figure8_vicon-seed-0", 0, 0.03, [0])
+    data = tmp_path / "data" / "seed-0"
+    harder = {"flight": "figure8", "world": "vicon", "trajectory_files": []}
+    harder |= {"exposure_steps": True, "motion_blur_ms": 0.0}
+    meta = {"robots": 2, "seconds": 30.0, "seed": 0, "harder": harder}
+    (data / "dataset.json").write_text(json.dumps(meta))
+    out = run.parent
+    cfg = SeedsConfig(seeds=(), out=out, from_runs=True, name="seeds_hard")
+    _, files = run_seeds(cfg)
+    md = (out / "seeds_hard.md").read_text()
+    assert md.startswith(
+        "# Joint ATE over the generator's seeds: harder worlds "
+        "(flight figure8, world vicon, exposure steps)"
+    )
+    assert "| 2 x 30 s, seed 0, flight figure8, world vicon, exposure steps | 3.0 |" in md
+    assert "![seeds_hard.png](seeds_hard.png)" in md
+    assert out / "seeds_hard.png" in files and not (out / "seeds.md").exists()
+
+
+def test_seeds_subcommand_passes_generator_options(tmp_path: Path) -> None:
+    parser = argparse.ArgumentParser()
+    experiment.register(parser.add_subparsers())
+    argv = ["experiment", "seeds", "--seeds", "0", "--flight", "figure8+hover", "--world"]
+    argv += ["hall", "--exposure-steps", "--motion-blur-ms", "6", "--out", str(tmp_path)]
+    cfg = experiment.seeds_config(parser.parse_args(argv), argv)
+    g = cfg.generator
+    assert (g.flight, g.world, g.exposure_steps, g.motion_blur_ms) == (
+        "figure8+hover",
+        "hall",
+        True,
+        6.0,
+    )
+    assert cfg.table_name == "seeds_hard" and cfg.out == tmp_path
+    argv = ["experiment", "seeds", "--world", "hall"]
+    cfg = experiment.seeds_config(parser.parse_args(argv), argv)
+    assert cfg.out == Path("out/seeds_hard") and cfg.table_name == "seeds_hard"
+    argv = ["experiment", "seeds"]
+    assert experiment.seeds_config(parser.parse_args(argv), argv).out == Path("out/seeds")
+
+
 def test_loop_constraints_checked_against_the_ground_truth(tmp_path: Path) -> None:
     """A constraint that agrees with the truth passes; one 0.5 m off is counted as wrong."""
     import numpy as np

@@ -22,7 +22,7 @@ import json
 import logging
 import shutil
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, is_dataclass
 from pathlib import Path
 from typing import Any
 
@@ -39,18 +39,30 @@ from common.data.synth.cameras import (
     CameraPresetError,
     camera_preset,
 )
+from common.data.synth.flights import FlightConfig, make_flights, parse_flight
 from common.data.synth.imu_sim import ImuNoiseConfig, simulate_imu
 from common.data.synth.plots import contact_sheet, plot_top_view
-from common.data.synth.render import RenderConfig, Renderer
-from common.data.synth.scene import vicon_room
+from common.data.synth.recorded import RecordedFlight, recorded_flights
+from common.data.synth.render import EffectsConfig, RenderConfig, Renderer
 from common.data.synth.textures import TextureConfig, build_atlas
-from common.data.synth.trajectory import LoopTrajectory, TrajectoryConfig, make_trajectories
+from common.data.synth.trajectory import (
+    Motion,
+    TrajectoryConfig,
+    TrajectoryError,
+    continuous_quaternions,
+)
+from common.data.synth.worlds import WORLDS, make_world
 from common.errors import RecslamError
 from common.geometry import R_to_quat_wxyz
 
 logger = logging.getLogger(__name__)
 
 GENERATOR_VERSION = "recslam-synth-1"
+
+HARDER_KEYS = ("flight", "world", "trajectory_files", "effects", "flights")
+"""SynthConfig fields that dataset.json's ``config`` holds only when an issue-17 option is
+used (:meth:`SynthConfig.harder`), so the default dataset's ``dataset.json`` stays byte for
+byte what it was."""
 
 __all__ = [
     "EUROC_CAM0",
@@ -82,6 +94,13 @@ class SynthConfig:
     and ``render.noise_std=0`` for noise-free data); ``cameras``: one camera preset name per
     robot (:data:`~common.data.synth.cameras.CAMERA_PRESETS`), empty = all ``euroc``;
     ``contact_sheet``: write the PNG previews; ``progress``: tqdm bar on stderr.
+    Harder worlds (issue 17): ``flight``: trajectory family and modifiers
+    (:func:`~common.data.synth.flights.parse_flight`, default ``ring``); ``world``: scene
+    (:data:`~common.data.synth.worlds.WORLDS`, default ``vicon``; a world brings its own
+    texture resolution, used unless ``textures`` is not the default); ``trajectory_files``: one
+    recorded ground truth per robot to fly instead of a family
+    (:mod:`~common.data.synth.recorded`); ``effects``: exposure steps and motion blur;
+    ``flights``: limits and style of the families (``trajectory`` is the ring's).
     """
 
     robots: int = 3
@@ -98,6 +117,11 @@ class SynthConfig:
     contact_sheet: bool = True
     progress: bool = True
     cameras: tuple[str, ...] = ()
+    flight: str = "ring"
+    world: str = "vicon"
+    trajectory_files: tuple[str, ...] = ()
+    effects: EffectsConfig = field(default_factory=EffectsConfig)
+    flights: FlightConfig = field(default_factory=FlightConfig)
 
     def __post_init__(self) -> None:
         if self.robots < 1:
@@ -123,6 +147,38 @@ class SynthConfig:
                 camera_preset(name)
             except CameraPresetError as e:
                 raise SynthError(str(e)) from None
+        try:
+            object.__setattr__(self, "flight", parse_flight(self.flight).name)
+        except TrajectoryError as e:
+            raise SynthError(str(e)) from None
+        if self.world not in WORLDS:
+            raise SynthError(f"world {self.world!r}: unknown (known: {', '.join(WORLDS)})")
+        object.__setattr__(self, "trajectory_files", tuple(str(f) for f in self.trajectory_files))
+        if self.trajectory_files:
+            if len(self.trajectory_files) != self.robots:
+                raise SynthError(
+                    f"{len(self.trajectory_files)} trajectory files for {self.robots} robots: "
+                    "give one per robot"
+                )
+            if self.flight != "ring":
+                raise SynthError(f"flight {self.flight!r} and trajectory files exclude each other")
+        frame_ms = 1e3 / self.camera_rate_hz
+        if not 0 <= self.effects.motion_blur_ms < frame_ms:
+            raise SynthError(
+                f"motion blur {self.effects.motion_blur_ms} ms: must be >= 0 and shorter than "
+                f"a frame ({frame_ms:g} ms)"
+            )
+
+    def harder(self) -> dict[str, Any]:
+        """The issue-17 options: flight, world, trajectory files, exposure steps, motion blur
+        [ms] (what ``dataset.json`` records when any differs from the default)."""
+        return {
+            "flight": self.flight,
+            "world": self.world,
+            "trajectory_files": list(self.trajectory_files),
+            "exposure_steps": self.effects.exposure_steps,
+            "motion_blur_ms": float(self.effects.motion_blur_ms),
+        }
 
     def camera(self, robot: int) -> CameraPreset:
         """Camera preset of robot ``robot``."""
@@ -161,6 +217,10 @@ class DatasetSummary:
         return asdict(self)
 
 
+DEFAULT_CONFIG = SynthConfig()
+DEFAULT_HARDER = DEFAULT_CONFIG.harder()
+
+
 def imu_calibration(config: SynthConfig) -> ImuCalibration:
     """EuRoC's ADIS16448 densities at the configured rate (IMU = body frame)."""
     return ImuCalibration(
@@ -188,16 +248,9 @@ def robot_timestamps(config: SynthConfig, robot: int) -> tuple[np.ndarray, np.nd
     return ts, np.arange(0, n, step), t0
 
 
-def _continuous(q: np.ndarray) -> np.ndarray:
-    """Quaternions (K, 4) with signs flipped so that neighbours never jump to ``-q``."""
-    flips = np.concatenate([[False], np.einsum("ij,ij->i", q[1:], q[:-1]) < 0])
-    sign = np.where(np.cumsum(flips) % 2 == 1, -1.0, 1.0)
-    return q * sign[:, None]
-
-
 def _write_robot(
-    out: Path, k: int, config: SynthConfig, traj: LoopTrajectory, renderer: Renderer, bar
-) -> tuple[RobotSummary, list[np.ndarray]]:
+    out: Path, k: int, config: SynthConfig, traj: Motion, renderer: Renderer, bar
+) -> tuple[RobotSummary, list[np.ndarray], dict[str, Any]]:
     """Simulate, render and write robot ``k``; returns its summary and sample frames."""
     name = f"robot{k}"
     ts, cam_idx, t0 = robot_timestamps(config, k)
@@ -210,13 +263,23 @@ def _write_robot(
     gt = EurocGroundTruth(
         timestamps_ns=ts,
         p_world_body=st.p_world_body,
-        q_world_body_wxyz=_continuous(R_to_quat_wxyz(st.R_world_body)),
+        q_world_body_wxyz=continuous_quaternions(R_to_quat_wxyz(st.R_world_body)),
         v_world_body=st.v_world_body,
         bias_gyro=imu.bias_gyro,
         bias_accel=imu.bias_accel,
     )
     preset = config.camera(k)
     T_world_cam = st.T_world_cam(preset.T_body_cam)
+    offsets = config.effects.subframe_offsets_s()
+    sub: np.ndarray | None = None
+    if len(offsets):
+        t_sub = np.clip(t[cam_idx][:, None] + offsets[None], 0.0, t[-1])
+        sub = traj.evaluate(t_sub.reshape(-1)).T_world_cam(preset.T_body_cam)
+        sub = sub.reshape(len(cam_idx), len(offsets), 4, 4)
+    steps_t, steps_gain = config.effects.exposure_schedule(
+        config.seconds, np.random.default_rng([config.seed, 505, k])
+    )
+    gains = steps_gain[np.searchsorted(steps_t, t[cam_idx], side="right") - 1]
     samples: list[np.ndarray] = []
     sample_at = set(np.linspace(0, len(cam_idx) - 1, 4).round().astype(int).tolist())
     phase = float(np.random.default_rng([config.seed, 303, k]).uniform(0, 2 * np.pi))
@@ -224,7 +287,11 @@ def _write_robot(
         w.add_camera("cam0", camera_calibration(config, k), comment=preset.comment)
         for j, i in enumerate(cam_idx):
             rng = np.random.default_rng([config.seed, 404, k, j])
-            img = renderer.render(T_world_cam[i], float(t[i]), rng, phase)
+            if sub is None and not config.effects.exposure_steps:
+                img = renderer.render(T_world_cam[i], float(t[i]), rng, phase)
+            else:
+                poses = None if sub is None else sub[j]
+                img = renderer.render(T_world_cam[i], float(t[i]), rng, phase, gains[j], poses)
             w.add_image("cam0", int(ts[i]), img)
             if j in sample_at:
                 samples.append(img)
@@ -242,7 +309,20 @@ def _write_robot(
         max_speed_mps=float(np.linalg.norm(st.v_world_body, axis=1).max()),
         max_rate_radps=float(np.linalg.norm(st.omega_body, axis=1).max()),
     )
-    return summary, samples
+    extra: dict[str, Any] = {}
+    if config.effects.exposure_steps:
+        extra["exposure_steps"] = {"t_s": steps_t.tolist(), "gain": steps_gain.tolist()}
+    return summary, samples, extra
+
+
+def _describe(flight: Motion) -> dict[str, Any]:
+    """What ``dataset.json`` records of a flight: a recorded one's description, else the
+    fields of the flight's dataclass."""
+    if isinstance(flight, RecordedFlight):
+        return flight.describe()
+    if not is_dataclass(flight) or isinstance(flight, type):
+        raise SynthError(f"flight {flight!r} has no description")
+    return asdict(flight)
 
 
 def _clear_previous(out: Path) -> None:
@@ -258,18 +338,25 @@ def _clear_previous(out: Path) -> None:
 
 def dataset_settings(folder: Path) -> dict[str, Any] | None:
     """The settings a synthetic dataset in ``folder`` was built with, from its
-    ``dataset.json``: ``robots``, ``seconds`` (float), ``seed`` and ``cameras`` (a tuple, empty
-    for all-EuRoC); None when ``folder`` holds none."""
+    ``dataset.json``: ``robots``, ``seconds`` (float), ``seed``, ``cameras`` (a tuple, empty
+    for all-EuRoC) and the issue-17 options of :meth:`SynthConfig.harder` (``flight``,
+    ``world``, ``trajectory_files`` as a tuple, ``exposure_steps``, ``motion_blur_ms``; their
+    defaults when the file does not state them); None when ``folder`` holds none."""
     meta = Path(folder) / "dataset.json"
     if not meta.is_file():
         return None
     info = json.loads(meta.read_text())
-    return {
-        "robots": info.get("robots"),
-        "seconds": float(info.get("seconds", -1)),
-        "seed": info.get("seed"),
-        "cameras": tuple(info.get("config", {}).get("cameras", ())),
-    }
+    harder = DEFAULT_HARDER | info.get("harder", {})
+    return (
+        {
+            "robots": info.get("robots"),
+            "seconds": float(info.get("seconds", -1)),
+            "seed": info.get("seed"),
+            "cameras": tuple(info.get("config", {}).get("cameras", ())),
+        }
+        | harder
+        | {"trajectory_files": tuple(harder["trajectory_files"])}
+    )
 
 
 def generate_dataset(out: Path, config: SynthConfig = SynthConfig()) -> DatasetSummary:
@@ -282,18 +369,41 @@ def generate_dataset(out: Path, config: SynthConfig = SynthConfig()) -> DatasetS
         raise SynthError(f"{out}: exists and is not a folder")
     out.mkdir(parents=True, exist_ok=True)
     _clear_previous(out)
-    scene = vicon_room()
-    atlas = build_atlas(scene, config.seed, config.textures)
+    world = make_world(config.world, config.seed)
+    scene = world.scene
+    # A world's own texture resolution unless the config asks for other textures.
+    textures = world.textures if config.textures == TextureConfig() else config.textures
+    atlas = build_atlas(scene, config.seed, textures)
     renderers: dict[str, Renderer] = {}
     for k in range(config.robots):
         preset = config.camera(k)
         if preset.name not in renderers:
             renderers[preset.name] = Renderer(scene, atlas, preset.model, config.render)
-    trajectories = make_trajectories(
-        scene, config.robots, config.seconds, config.seed, config.trajectory
-    )
+    trajectories: list[Motion]
+    try:
+        if config.trajectory_files:
+            files = config.trajectory_files
+            trajectories = [
+                *recorded_flights(scene, world.region, files, config.seconds, world.name)
+            ]
+        else:
+            spec = parse_flight(config.flight)
+            trajectories = [
+                *make_flights(
+                    scene,
+                    world.region,
+                    spec,
+                    config.robots,
+                    config.seconds,
+                    config.seed,
+                    config.trajectory,
+                    config.flights,
+                )
+            ]
+    except TrajectoryError as e:
+        raise SynthError(str(e)) from None
     frames_per_robot = len(robot_timestamps(config, 0)[1])
-    summaries, samples = [], []
+    summaries, samples, extras = [], [], []
     render_start = time.perf_counter()
     with tqdm(
         total=frames_per_robot * config.robots,
@@ -303,9 +413,10 @@ def generate_dataset(out: Path, config: SynthConfig = SynthConfig()) -> DatasetS
     ) as bar:
         for k, traj in enumerate(trajectories):
             renderer = renderers[config.camera(k).name]
-            s, frames = _write_robot(out, k, config, traj, renderer, bar)
+            s, frames, extra = _write_robot(out, k, config, traj, renderer, bar)
             summaries.append(s)
             samples.append(frames)
+            extras.append(extra)
     render_time = time.perf_counter() - render_start
     if config.contact_sheet:
         cv2.imwrite(str(out / "contact_sheet.png"), contact_sheet(samples))
@@ -321,7 +432,7 @@ def generate_dataset(out: Path, config: SynthConfig = SynthConfig()) -> DatasetS
         wall_time_s=time.perf_counter() - start,
         render_fps=total_frames / max(render_time, 1e-9),
     )
-    meta = {
+    meta: dict[str, Any] = {
         "generator": GENERATOR_VERSION,
         "robots": config.robots,
         "seconds": float(config.seconds),
@@ -329,22 +440,33 @@ def generate_dataset(out: Path, config: SynthConfig = SynthConfig()) -> DatasetS
         "camera_rate_hz": config.camera_rate_hz,
         "imu_rate_hz": config.imu_rate_hz,
         "sequences": [
-            asdict(s) | {"path": s.name} | ({"camera": config.cameras[k]} if config.cameras else {})
+            asdict(s)
+            | {"path": s.name}
+            | ({"camera": config.cameras[k]} if config.cameras else {})
+            | extras[k]
             for k, s in enumerate(summaries)
         ],
-        # Without --cameras, dataset.json stays byte for byte what it was before cameras.
+        # Without --cameras (or the harder worlds' options), dataset.json stays byte for byte
+        # what it was before them.
         "config": {
             k: v
             for k, v in asdict(config).items()
-            if k != "progress" and (k != "cameras" or config.cameras)
+            if k != "progress"
+            and (k != "cameras" or config.cameras)
+            and (k not in HARDER_KEYS or config.harder() != DEFAULT_HARDER)
         },
         "room": {
             "lo": list(scene.room_lo),
             "hi": list(scene.room_hi),
             "boxes": [asdict(b) for b in scene.boxes],
         },
-        "trajectories": [asdict(tr) for tr in trajectories],
+        "trajectories": [_describe(tr) for tr in trajectories],
     }
+    if config.harder() != DEFAULT_HARDER:
+        meta["harder"] = config.harder()
+        meta["room"]["name"] = world.name
+        meta["room"]["flight_region"] = [list(world.region[0]), list(world.region[1])]
+        meta["room"]["textures"] = asdict(textures)
     (out / "dataset.json").write_text(json.dumps(meta, indent=2) + "\n")
     logger.info(
         "dataset %s: %d robots x %g s in %.1f s (%.1f frames/s)",

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from common.calibration import ImuCalibration
-from common.data.synth.trajectory import LoopTrajectory
+from common.data.synth.trajectory import Motion
 
 GRAVITY_WORLD = np.array([0.0, 0.0, -9.81])
 
@@ -44,7 +44,7 @@ class ImuSamples:
     bias_accel: np.ndarray
 
 
-def ideal_imu(traj: LoopTrajectory, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def ideal_imu(traj: Motion, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Noise-free (gyro (K, 3) rad/s, accel (K, 3) m/s²) in the IMU (= body) frame."""
     st = traj.evaluate(t)
     f_world = st.a_world_body - GRAVITY_WORLD
@@ -53,7 +53,7 @@ def ideal_imu(traj: LoopTrajectory, t: np.ndarray) -> tuple[np.ndarray, np.ndarr
 
 
 def simulate_imu(
-    traj: LoopTrajectory,
+    traj: Motion,
     timestamps_ns: np.ndarray,
     t0_ns: int,
     calib: ImuCalibration,

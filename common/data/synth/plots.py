@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 
 import cv2
 import numpy as np
 
 from common.data.synth.scene import Scene
-from common.data.synth.trajectory import LoopTrajectory
+from common.data.synth.trajectory import Motion
 
 
 def contact_sheet(samples: list[list[np.ndarray]], scale: float = 0.5) -> np.ndarray:
@@ -27,9 +28,7 @@ def contact_sheet(samples: list[list[np.ndarray]], scale: float = 0.5) -> np.nda
     return np.concatenate(rows, axis=0)
 
 
-def plot_top_view(
-    scene: Scene, trajectories: list[LoopTrajectory], seconds: float, path: Path
-) -> None:
+def plot_top_view(scene: Scene, trajectories: Sequence[Motion], seconds: float, path: Path) -> None:
     """Top view PNG of the room, its boxes and every robot's flight (start marked)."""
     import matplotlib
 

@@ -8,7 +8,8 @@ inside) and with each box (slab test; boxes whose bounding sphere no ray can rea
 skipped), take the nearest hit, compute the face's texture coordinates and a mip level from the
 ray footprint on the surface (distance and incidence: ``footprint = t * pixel_angle / |cos|``),
 then sample the mip-mapped atlas trilinearly with two ``cv2.remap`` calls. Optics and sensor:
-slight blur, vignetting, exposure drift over time, Gaussian read noise, 8-bit quantisation.
+slight blur, vignetting, exposure drift over time, Gaussian read noise, 8-bit quantisation;
+optionally (:class:`EffectsConfig`) auto-exposure steps and motion blur.
 """
 
 from __future__ import annotations
@@ -45,6 +46,59 @@ class RenderConfig:
     exposure_amplitude: float = 0.12
     lod_bias: float = 0.0
     min_cos: float = 0.06
+
+
+@dataclass(frozen=True)
+class EffectsConfig:
+    """Sensor effects beyond :class:`RenderConfig`, off by default.
+
+    Exposure steps (``exposure_steps``), as an auto-exposure makes them: the exposure gain
+    jumps at times spaced ``step_every_s`` apart (uniform) by a factor drawn log-uniformly in
+    ``step_factor``, kept within ``gain_range``; constant between jumps.
+    Motion blur (``motion_blur_ms`` > 0): the exposure lasts that long, centred on the frame's
+    timestamp (so the ground truth at the timestamp is the mid-exposure pose); the image is the
+    mean radiance of ``S = clip(round(motion_blur_ms / blur_step_ms) + 1, 2, max_subframes)``
+    renders at poses evenly spaced over the exposure, before optics blur, vignetting, gain and
+    noise (a box filter of the motion during the exposure, sampled S times).
+    """
+
+    exposure_steps: bool = False
+    step_every_s: tuple[float, float] = (1.5, 4.0)
+    step_factor: tuple[float, float] = (0.5, 2.0)
+    gain_range: tuple[float, float] = (0.4, 2.0)
+    motion_blur_ms: float = 0.0
+    blur_step_ms: float = 2.0
+    max_subframes: int = 9
+
+    @property
+    def is_default(self) -> bool:
+        return self == EffectsConfig()
+
+    def subframe_offsets_s(self) -> np.ndarray:
+        """(S,) times [s] of the sub-renders relative to the frame's timestamp (empty: none)."""
+        if self.motion_blur_ms <= 0:
+            return np.zeros(0)
+        n = int(np.clip(round(self.motion_blur_ms / self.blur_step_ms) + 1, 2, self.max_subframes))
+        half = self.motion_blur_ms * 1e-3 / 2.0
+        return np.linspace(-half, half, n)
+
+    def exposure_schedule(
+        self, seconds: float, rng: np.random.Generator
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """(step times (J,) [s] with 0 first, gains (J,)): the gain at ``t`` is
+        ``gains[searchsorted(times, t, "right") - 1]``; one step of gain 1 when off."""
+        times, gains = [0.0], [1.0]
+        if self.exposure_steps:
+            lo, hi = np.log(self.step_factor[0]), np.log(self.step_factor[1])
+            t = float(rng.uniform(*self.step_every_s))
+            while t < seconds:
+                g = gains[-1] * float(np.exp(rng.uniform(lo, hi)))
+                if not self.gain_range[0] <= g <= self.gain_range[1]:
+                    g = gains[-1] / float(np.exp(rng.uniform(lo, hi)))  # step the other way
+                gains.append(float(np.clip(g, *self.gain_range)))
+                times.append(t)
+                t += float(rng.uniform(*self.step_every_s))
+        return np.array(times), np.array(gains)
 
 
 @dataclass(frozen=True, eq=False)
@@ -225,13 +279,29 @@ class Renderer:
         )
 
     def render(
-        self, T_world_cam: np.ndarray, t: float, rng: np.random.Generator, phase: float = 0.0
+        self,
+        T_world_cam: np.ndarray,
+        t: float,
+        rng: np.random.Generator,
+        phase: float = 0.0,
+        gain: float = 1.0,
+        exposure_poses: np.ndarray | None = None,
     ) -> np.ndarray:
-        """uint8 (H, W) image as the sensor records it at time ``t`` [s]."""
-        img = self.render_radiance(T_world_cam).radiance
+        """uint8 (H, W) image as the sensor records it at time ``t`` [s].
+
+        ``gain``: extra exposure factor (an auto-exposure step); ``exposure_poses``
+        (S, 4, 4): camera poses over the exposure time, whose radiances are averaged (motion
+        blur; ``T_world_cam`` is then unused), or None for an instantaneous exposure."""
+        if exposure_poses is None:
+            img = self.render_radiance(T_world_cam).radiance
+        else:
+            img = self.render_radiance(exposure_poses[0]).radiance
+            for T in exposure_poses[1:]:
+                img = img + self.render_radiance(T).radiance
+            img = img / np.float32(len(exposure_poses))
         if self.config.blur_sigma > 0:
             img = cv2.GaussianBlur(img, (0, 0), self.config.blur_sigma)
-        img = img * (self._vignette * self.exposure_gain(t, phase))
+        img = img * (self._vignette * (self.exposure_gain(t, phase) * gain))
         if self.config.noise_std > 0:
             img += rng.standard_normal(img.shape, dtype=np.float32) * self.config.noise_std
         return np.clip(np.rint(img), 0, 255).astype(np.uint8)

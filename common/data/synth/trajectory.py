@@ -16,6 +16,7 @@ z forward) is rigidly attached to ``L`` and the IMU to the camera by EuRoC's cam
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 from scipy.special import erf
@@ -108,6 +109,18 @@ class TrajectoryState:
         return T
 
 
+class Motion(Protocol):
+    """A flight: anything whose body state can be evaluated at times ``t`` (K,) [s] (ring
+    flights here, the families of :mod:`common.data.synth.flights`, recorded flights of
+    :mod:`common.data.synth.recorded`)."""
+
+    def evaluate(self, t: np.ndarray) -> TrajectoryState: ...
+
+
+Region = tuple[tuple[float, float, float], tuple[float, float, float]]
+"""(lo, hi) corners [m] of the box a world's flights are drawn in."""
+
+
 def _rot_zyx(yaw: np.ndarray, pitch: np.ndarray, roll: np.ndarray) -> np.ndarray:
     """(K,) angles -> (K, 3, 3) ``Rz(yaw) Ry(pitch) Rx(roll)``."""
     cy, sy = np.cos(yaw), np.sin(yaw)
@@ -181,21 +194,38 @@ class LoopTrajectory:
         pt, pt1, _ = self.pitch(tau)
         rl, rl1, _ = self.roll(tau)
         yaw, yaw_d = th + yo, (th1 + yo1) * w1
-        pit_d, rol_d = pt1 * w1, rl1 * w1
-        R_world_L = _rot_zyx(yaw, pt, rl)
-        omega_L = np.stack(
-            [
-                rol_d - yaw_d * np.sin(pt),
-                pit_d * np.cos(rl) + yaw_d * np.cos(pt) * np.sin(rl),
-                -pit_d * np.sin(rl) + yaw_d * np.cos(pt) * np.cos(rl),
-            ],
-            axis=1,
+        R_world_body, omega_body = look_attitude(
+            yaw, yaw_d, pt, pt1 * w1, rl, rl1 * w1, np.asarray(self.T_imu_cam)
         )
-        R_imu_cam = np.asarray(self.T_imu_cam)[:3, :3]
-        R_L_imu = R_L_CAM @ R_imu_cam.T
-        R_world_body = R_world_L @ R_L_imu
-        omega_body = omega_L @ R_L_imu  # R_L_imu^T omega_L, row-wise
         return TrajectoryState(t, p, v, a, R_world_body, omega_body)
+
+
+def look_attitude(
+    yaw: np.ndarray,
+    yaw_d: np.ndarray,
+    pitch: np.ndarray,
+    pitch_d: np.ndarray,
+    roll: np.ndarray,
+    roll_d: np.ndarray,
+    T_imu_cam: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Body attitude ``R_world_body`` (K, 3, 3) and body rates ``omega_body`` (K, 3) [rad/s]
+    of a look frame with ZYX angles (K,) [rad] and their time derivatives (K,) [rad/s]
+    (ZYX Euler kinematics), the camera mounted on the body by ``T_imu_cam`` (4, 4)."""
+    R_world_L = _rot_zyx(yaw, pitch, roll)
+    omega_L = np.stack(
+        [
+            roll_d - yaw_d * np.sin(pitch),
+            pitch_d * np.cos(roll) + yaw_d * np.cos(pitch) * np.sin(roll),
+            -pitch_d * np.sin(roll) + yaw_d * np.cos(pitch) * np.cos(roll),
+        ],
+        axis=1,
+    )
+    R_imu_cam = T_imu_cam[:3, :3]
+    R_L_imu = R_L_CAM @ R_imu_cam.T
+    R_world_body = R_world_L @ R_L_imu
+    omega_body = omega_L @ R_L_imu  # R_L_imu^T omega_L, row-wise
+    return R_world_body, omega_body
 
 
 def _random_wave(
@@ -212,10 +242,10 @@ def _random_wave(
 
 
 def _draw(
-    scene: Scene, k: int, n: int, rng: np.random.Generator, cfg: TrajectoryConfig
+    region: Region, k: int, n: int, rng: np.random.Generator, cfg: TrajectoryConfig
 ) -> LoopTrajectory:
-    """Random flight for robot ``k`` of ``n`` (aggressiveness grows with ``k``)."""
-    lo, hi = np.array(scene.room_lo), np.array(scene.room_hi)
+    """Random flight for robot ``k`` of ``n`` in ``region`` (aggressiveness grows with ``k``)."""
+    lo, hi = np.array(region[0]), np.array(region[1])
     centre = (lo[:2] + hi[:2]) / 2.0
     half = (hi[:2] - lo[:2]) / 2.0
     frac = k / max(n - 1, 1)
@@ -262,7 +292,7 @@ def _draw(
 
 
 def check_trajectory(
-    scene: Scene, traj: LoopTrajectory, seconds: float, cfg: TrajectoryConfig
+    scene: Scene, traj: Motion, seconds: float, cfg: TrajectoryConfig
 ) -> str | None:
     """Reason why ``traj`` violates the constraints over ``[0, seconds]``, or None."""
     st = traj.evaluate(np.arange(0.0, seconds + 1e-9, 0.02))
@@ -280,15 +310,22 @@ def check_trajectory(
 
 
 def make_trajectories(
-    scene: Scene, robots: int, seconds: float, seed: int, cfg: TrajectoryConfig = TrajectoryConfig()
+    scene: Scene,
+    robots: int,
+    seconds: float,
+    seed: int,
+    cfg: TrajectoryConfig = TrajectoryConfig(),
+    region: Region | None = None,
 ) -> list[LoopTrajectory]:
-    """One valid flight per robot, deterministic in ``seed``."""
+    """One valid ring flight per robot, deterministic in ``seed``, drawn in ``region``
+    (default the whole room)."""
+    area = (scene.room_lo, scene.room_hi) if region is None else region
     out = []
     for k in range(robots):
         rng = np.random.default_rng([seed, 101, k])
         reason = ""
         for _ in range(cfg.attempts):
-            traj = _draw(scene, k, robots, rng, cfg)
+            traj = _draw(area, k, robots, rng, cfg)
             why = check_trajectory(scene, traj, seconds, cfg)
             if why is None:
                 out.append(traj)
@@ -297,3 +334,10 @@ def make_trajectories(
         else:
             raise TrajectoryError(f"robot {k}: no valid flight in {cfg.attempts} draws ({reason})")
     return out
+
+
+def continuous_quaternions(q: np.ndarray) -> np.ndarray:
+    """Quaternions (K, 4) with signs flipped so that neighbours never jump to ``-q``."""
+    flips = np.concatenate([[False], np.einsum("ij,ij->i", q[1:], q[:-1]) < 0])
+    sign = np.where(np.cumsum(flips) % 2 == 1, -1.0, 1.0)
+    return q * sign[:, None]

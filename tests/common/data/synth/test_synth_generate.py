@@ -136,14 +136,15 @@ def test_info_command(generated, capsys) -> None:
     assert _cli(["dataset", "info", str(out)]) == 0
     text = capsys.readouterr().out
     assert "robot0" in text and "robot1" in text and "752x480" in text
+    assert "flight ring, world vicon, no exposure steps, no motion blur" in text
     assert _cli(["dataset", "info", str(out / "missing")]) == 2
 
 
 def test_groundtruth_quaternions_are_continuous(generated) -> None:
-    from common.data.synth.generate import _continuous
+    from common.data.synth.trajectory import continuous_quaternions
 
     q = np.array([[1.0, 0, 0, 0], [0.0, 0, 0, 1], [-0.1, 0, 0, 0.995], [-1.0, 0, 0, 0]])
-    out = _continuous(q)
+    out = continuous_quaternions(q)
     assert np.all(np.einsum("ij,ij->i", out[1:], out[:-1]) >= 0)
     np.testing.assert_array_equal(np.abs(out), np.abs(q))
     gt = EurocSequence(generated[0] / "robot1").groundtruth
@@ -173,3 +174,50 @@ def test_bad_settings_are_refused(tmp_path, capsys) -> None:
         SynthConfig(camera_rate_hz=30.0)
     assert _cli(["dataset", "synth", "--out", str(tmp_path), "--robots", "0"]) == 2
     assert "robots" in capsys.readouterr().err
+
+
+def test_cli_harder_options_are_recorded_and_shown(tmp_path, capsys) -> None:
+    out = tmp_path / "hard"
+    argv = ["dataset", "synth", "--out", str(out), "--robots", "1", "--seconds", "0.3"]
+    argv += ["--flight", "figure8+aggressive", "--world", "hall", "--exposure-steps"]
+    argv += ["--motion-blur-ms", "4", "--no-progress"]
+    assert _cli(argv) == 0
+    assert "flight figure8+aggressive, world hall, exposure steps, motion blur 4 ms" in (
+        capsys.readouterr().out
+    )
+    meta = json.loads((out / "dataset.json").read_text())
+    assert meta["harder"]["flight"] == "figure8+aggressive" and meta["harder"]["world"] == "hall"
+    assert meta["trajectories"][0]["family"] == "figure8"
+    assert meta["room"]["hi"] == [10.0, 8.0, 8.0]
+    assert _cli(["dataset", "info", str(out)]) == 0
+    assert "flight figure8+aggressive, world hall" in capsys.readouterr().out
+    assert _cli(["dataset", "info", str(out), "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["dataset"]["harder"]["motion_blur_ms"] == 4.0
+    for bad, why in (
+        (["--flight", "spiral"], "spiral"),
+        (["--world", "moon"], "moon"),
+        (["--motion-blur-ms", "60"], "motion blur 60"),
+    ):
+        assert _cli(["dataset", "synth", "--out", str(tmp_path / "x"), *bad]) == 2
+        assert why in capsys.readouterr().err
+
+
+def test_cli_flies_a_recorded_trajectory(tmp_path, hand_made_tum, capsys) -> None:
+    out = tmp_path / "rec"
+    argv = ["dataset", "synth", "--out", str(out), "--seconds", "0.3", "--no-progress"]
+    assert _cli([*argv, "--trajectory", str(hand_made_tum)]) == 0
+    meta = json.loads((out / "dataset.json").read_text())
+    assert meta["robots"] == 1 and meta["harder"]["trajectory_files"] == [str(hand_made_tum)]
+    assert meta["trajectories"][0]["family"] == "recorded"
+    assert "quintic smoothing spline" in meta["trajectories"][0]["smoothing"]
+    gt = EurocSequence(out / "robot0").groundtruth
+    assert gt is not None and np.abs(gt.p_world_body[:, :2]).max() < 2.0
+    capsys.readouterr()
+    assert _cli(["dataset", "info", str(out)]) == 0
+    assert f"recorded flights {hand_made_tum}" in capsys.readouterr().out
+    two = ["--trajectory", f"{hand_made_tum},{hand_made_tum}", "--robots", "1"]
+    assert _cli([*argv, *two]) == 2
+    assert "2 files for --robots 1" in capsys.readouterr().err
+    assert _cli([*argv, "--trajectory", str(tmp_path / "none.tum")]) == 2
+    assert "none.tum: no such file" in capsys.readouterr().err

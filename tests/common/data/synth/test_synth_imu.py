@@ -1,4 +1,5 @@
-"""IMU simulation: noise-free measurements integrate back to the flight; noise statistics."""
+"""IMU simulation: noise-free measurements integrate back to every kind of flight (ring,
+families with modifiers, a recorded flight); noise statistics."""
 
 from __future__ import annotations
 
@@ -6,58 +7,57 @@ import numpy as np
 import pytest
 
 from common.calibration import EUROC_IMU
-from common.data.synth.imu_sim import GRAVITY_WORLD, ImuNoiseConfig, ideal_imu, simulate_imu
+from common.data.synth.flights import make_flights, parse_flight
+from common.data.synth.imu_sim import ImuNoiseConfig, ideal_imu, simulate_imu
+from common.data.synth.recorded import recorded_flights
 from common.data.synth.scene import vicon_room
 from common.data.synth.trajectory import make_trajectories
-from common.geometry import R_to_quat_wxyz, quat_wxyz_to_R
+
+SCENE = vicon_room()
+REGION = (SCENE.room_lo, SCENE.room_hi)
 
 
 @pytest.fixture(scope="module")
 def traj():
     # The most aggressive of three robots.
-    return make_trajectories(vicon_room(), 3, 20.0, seed=3)[2]
+    return make_trajectories(SCENE, 3, 20.0, seed=3)[2]
 
 
-def _qmul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    w1, x1, y1, z1 = a
-    w2, x2, y2, z2 = b
-    return np.array(
-        [
-            w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2,
-            w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
-            w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
-            w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2,
-        ]
-    )
+def _family(name: str, robot: int):
+    return make_flights(SCENE, REGION, parse_flight(name), 3, 20.0, seed=3)[robot]
 
 
-def _deriv(traj, t: float, y: np.ndarray) -> np.ndarray:
-    gyro, accel = ideal_imu(traj, np.array([t]))
-    q, v = y[:4], y[4:7]
-    R = quat_wxyz_to_R(q / np.linalg.norm(q))
-    dq = 0.5 * _qmul(q, np.concatenate([[0.0], gyro[0]]))
-    dv = R @ accel[0] + GRAVITY_WORLD
-    return np.concatenate([dq, dv, v])
-
-
-def test_noise_free_imu_integrates_back_to_the_trajectory(traj) -> None:
-    t0, t1, h = 2.0, 7.0, 0.002
-    s0 = traj.evaluate(np.array([t0]))
-    y = np.concatenate([R_to_quat_wxyz(s0.R_world_body[0]), s0.v_world_body[0], s0.p_world_body[0]])
-    t = t0
-    for _ in range(round((t1 - t0) / h)):
-        k1 = _deriv(traj, t, y)
-        k2 = _deriv(traj, t + h / 2, y + h / 2 * k1)
-        k3 = _deriv(traj, t + h / 2, y + h / 2 * k2)
-        k4 = _deriv(traj, t + h, y + h * k3)
-        y = y + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
-        t += h
-    s1 = traj.evaluate(np.array([t1]))
+@pytest.mark.parametrize(
+    ("name", "robot", "t0"),
+    [
+        ("ring", 2, 2.0),
+        ("figure8+aggressive", 1, 4.0),
+        ("lawnmower+hover", 2, 5.0),
+        ("vertical", 0, 2.0),
+        ("inward+aggressive", 2, 6.0),
+    ],
+)
+def test_noise_free_imu_integrates_back_to_the_trajectory(
+    name: str, robot: int, t0: float, traj, integrate_imu
+) -> None:
+    flight = traj if name == "ring" else _family(name, robot)
+    t1 = t0 + 5.0
+    p, v, R = integrate_imu(flight, t0, t1, 0.002 if name == "ring" else 0.005)
+    s0, s1 = flight.evaluate(np.array([t0])), flight.evaluate(np.array([t1]))
     travelled = np.linalg.norm(s1.p_world_body[0] - s0.p_world_body[0])
     assert travelled > 1.0  # the test is not trivial
-    assert np.linalg.norm(y[7:] - s1.p_world_body[0]) < 0.01
-    assert np.linalg.norm(y[4:7] - s1.v_world_body[0]) < 0.005
-    R = quat_wxyz_to_R(y[:4] / np.linalg.norm(y[:4]))
+    assert np.linalg.norm(p - s1.p_world_body[0]) < 0.01
+    assert np.linalg.norm(v - s1.v_world_body[0]) < 0.005
+    assert np.linalg.norm(R.T @ s1.R_world_body[0] - np.eye(3)) < 1e-4
+
+
+def test_imu_of_a_recorded_flight_integrates_back(hand_made_tum, integrate_imu) -> None:
+    (flight,) = recorded_flights(SCENE, REGION, (str(hand_made_tum),), 8.0, "vicon")
+    p, v, R = integrate_imu(flight, 1.0, 6.0, 0.005)
+    s0, s1 = flight.evaluate(np.array([1.0])), flight.evaluate(np.array([6.0]))
+    assert np.linalg.norm(s1.p_world_body[0] - s0.p_world_body[0]) > 1.0
+    assert np.linalg.norm(p - s1.p_world_body[0]) < 0.01
+    assert np.linalg.norm(v - s1.v_world_body[0]) < 0.005
     assert np.linalg.norm(R.T @ s1.R_world_body[0] - np.eye(3)) < 1e-4
 
 
