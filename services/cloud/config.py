@@ -288,8 +288,9 @@ class CloudServiceConfig:
         keyframes (default 30): they are still in the edge's reach (it keeps re-sending their
         poses and their young points keep moving), and pruning them folds and freezes
         unsettled geometry. The replays of three recordings with MBP every 40 keyframes
-        (benchmarks/results/mbp_midrun.md): protecting 5 raised the joint ATE 0.95 -> 2.99 cm
-        on one of them, 30 gave 1.04 cm.
+        (benchmarks/results/mbp_midrun.md): protecting 5 raised the joint ATE 0.95 -> 2.99,
+        1.47 -> 10.3 and 1.02 -> 4.99 cm; protecting 30 gave 1.04, 1.51 and 2.12 cm (the
+        last one still worse, why is open), hence ``mbp_every_keyframes`` stays 0.
     word_group_level: verification matches words within their vocabulary ancestor at this
         tree level (None = same word only; default 3 of a k=10, L=4 vocabulary, so that a
         few flipped descriptor bits that change the leaf do not lose the match).
