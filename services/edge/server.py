@@ -243,7 +243,8 @@ class EdgeServer:
                 )
             return
         timeout = self.service.stop_flush_timeout_s
-        logger.warning(
+        logger.log(
+            logging.INFO if c["connected"] else logging.WARNING,  # the cloud away: say it loud
             "edge stopping: %d messages (%d B) queued for the cloud at %s:%d; flushing them for "
             "at most %.3g s",
             queued,
