@@ -71,10 +71,11 @@ def test_robot_gives_up_on_a_closed_port_with_one_line(euroc_micro) -> None:
     assert took < BOUND_S
 
 
-class _WrongKeyEdge:
-    """A real protocol server (an edge's identity, another operator secret) on a thread."""
+class _WrongKeyServer:
+    """A real protocol server (``role``'s identity, another operator secret) on a thread."""
 
-    def __init__(self) -> None:
+    def __init__(self, role: str = "edge") -> None:
+        self.role = role
         self.loop = asyncio.new_event_loop()
         self.thread = threading.Thread(target=self.loop.run_forever, daemon=True)
         self.thread.start()
@@ -83,7 +84,7 @@ class _WrongKeyEdge:
     def start(self) -> int:
         async def go() -> int:
             keys = Keyring.from_secret(b"another-operator-secret-entirely")
-            self.server = Server(SessionConfig("edge", "edge", keys=keys), self._handle)
+            self.server = Server(SessionConfig(self.role, self.role, keys=keys), self._handle)
             _, port = await self.server.start("127.0.0.1", 0)
             return port
 
@@ -101,7 +102,7 @@ class _WrongKeyEdge:
 
 
 def test_robot_with_a_wrong_key_exits_with_the_authentication_reason(euroc_micro) -> None:
-    edge = _WrongKeyEdge()
+    edge = _WrongKeyServer("edge")
     try:
         port = edge.start()
         proc = robot(euroc_micro, port)  # no --give-up-after: a refused key stops at once
@@ -166,6 +167,24 @@ def test_edge_stopped_with_a_backlog_for_a_down_cloud_flushes_for_a_bound(
     n_queued = int(queued[0].split("edge stopping: ")[1].split()[0])
     n_left = int(left[0].split("giving up with ")[1].split()[0])
     assert n_queued >= 1 and n_left == n_queued  # nothing could go: the cloud is down
+
+
+def test_edge_whose_key_the_cloud_refuses_exits_with_the_reason(tmp_path) -> None:
+    cloud = _WrongKeyServer("cloud")
+    try:
+        edge = _edge(tmp_path, cloud.start())  # no --give-up-after: a refused key stops at once
+        try:
+            code = edge.wait(BOUND_S)
+        finally:
+            edge.kill()
+            edge.communicate()
+    finally:
+        cloud.close()
+    log = (tmp_path / "edge.log").read_text()
+    assert code == 3, log[-3000:]
+    lines = errors(log)
+    assert len(lines) == 1, log[-3000:]
+    assert "edge edge: authentication failed, not reconnecting" in lines[0]
 
 
 @pytest.mark.parametrize("value", ["-1", "soon"])
