@@ -13,6 +13,7 @@ from lab.bandwidth import (
     BandwidthConfig,
     budget_name,
     parse_budgets,
+    peak_rate,
     resolve_shaper,
     run_bandwidth,
     timing,
@@ -127,3 +128,27 @@ def test_a_star_places_robots_in_their_namespaces_and_the_edge_in_the_hub(tmp_pa
     plain = Job(JobConfig(dataset=tmp_path / "data", run_dir=tmp_path / "plain"))
     robot = plain.robot_argv("robot1")
     assert robot[robot.index("--edge") + 1] == f"127.0.0.1:{plain.edge_port}"
+
+
+def test_peak_rate_is_the_busiest_window_of_any_link_on_the_edges_clock(tmp_path) -> None:
+    # robot a: 10 kB/s for 30 s, then 50 kB/s for 30 s; robot b: 1 kB/s; the sampler's own
+    # clock ("time") runs late and bunched, the edge's ("edge.time") is what counts.
+    samples = []
+    a = b = 0
+    for t in range(61):
+        samples.append(
+            {
+                "time": 1000.0 + (t // 5) * 5,
+                "edge": {
+                    "time": 100.0 + t,
+                    "links": {"a": {"rx": {"bytes": a}}, "b": {"rx": {"bytes": b}}},
+                },
+            }
+        )
+        a += 10_000 if t < 30 else 50_000
+        b += 1_000
+    path = tmp_path / "samples.jsonl"
+    path.write_text("".join(json.dumps(s) + "\n" for s in samples))
+    assert peak_rate(path, 30.0) == pytest.approx(8 * 50_000 / 1000)  # 400 kbit/s
+    assert peak_rate(path, 60.0) == pytest.approx(8 * (30 * 10_000 + 30 * 50_000) / 60 / 1000)
+    assert peak_rate(path, 61.0) is None
