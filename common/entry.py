@@ -77,6 +77,31 @@ def add_security_arguments(p: argparse.ArgumentParser) -> None:
     )
 
 
+def add_give_up_argument(p: argparse.ArgumentParser, upstream: str) -> None:
+    """``--give-up-after S`` (default ``$RECSLAM_GIVE_UP_AFTER``, else 0 = never): how long a
+    service keeps trying to get a session with its ``upstream`` peer before it exits."""
+    default = os.environ.get("RECSLAM_GIVE_UP_AFTER") or "0"
+    p.add_argument(
+        "--give-up-after",
+        type=_seconds,
+        default=default,  # a string: argparse converts it (and reports a bad one) as typed
+        metavar="S",
+        help=f"exit (code 4, one line saying why) after S seconds without a session with the "
+        f"{upstream}: unreachable, timing out or closing before the handshake (default "
+        "$RECSLAM_GIVE_UP_AFTER, else 0 = keep trying); a refused key exits at once (code 3)",
+    )
+
+
+def _seconds(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number of seconds") from None
+    if not value >= 0:
+        raise argparse.ArgumentTypeError(f"{text!r}: seconds must be >= 0 (0 = never)")
+    return value
+
+
 def tls_from_args(args: argparse.Namespace) -> TlsFiles:
     return TlsFiles(args.tls_cert, args.tls_key, args.tls_ca)
 

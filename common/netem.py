@@ -54,11 +54,11 @@ def shaping_unavailable() -> str | None:
             return f"iproute2 tool {tool!r} not installed"
     probe = f"rsprobe{os.getpid()}"
     try:
-        _run(["ip", "netns", "add", probe])
+        run_checked(["ip", "netns", "add", probe])
     except ShapingError as exc:
         return f"cannot create a network namespace: {exc}"
     try:
-        _run(
+        run_checked(
             [
                 "ip",
                 "netns",
@@ -86,7 +86,8 @@ def shaping_unavailable() -> str | None:
     return None
 
 
-def _run(argv: Sequence[str]) -> None:
+def run_checked(argv: Sequence[str]) -> None:
+    """Run an `ip` / `tc` command; ShapingError with its stderr when it fails."""
     proc = subprocess.run(list(argv), capture_output=True, text=True, check=False)
     if proc.returncode != 0:
         raise ShapingError(f"{' '.join(argv)}: {proc.stderr.strip() or proc.returncode}")
@@ -125,10 +126,10 @@ def shaped_link(
     created: list[str] = []
     try:
         for ns in (ns_a, ns_b):
-            _run(["ip", "netns", "add", ns])
+            run_checked(["ip", "netns", "add", ns])
             created.append(ns)
-            _run(["ip", "-n", ns, "link", "set", "lo", "up"])
-        _run(
+            run_checked(["ip", "-n", ns, "link", "set", "lo", "up"])
+        run_checked(
             [
                 "ip",
                 "link",
@@ -146,11 +147,15 @@ def shaped_link(
             ]
         )
         for ns, dev, addr in ((ns_a, veth_a, addr_a), (ns_b, veth_b, addr_b)):
-            _run(["ip", "-n", ns, "addr", "add", f"{addr}/30", "dev", dev])
-            _run(["ip", "-n", ns, "link", "set", dev, "up"])
-        _run(["ip", "netns", "exec", ns_a, "tc", "qdisc", "add", "dev", veth_a, "root", *tbf])
+            run_checked(["ip", "-n", ns, "addr", "add", f"{addr}/30", "dev", dev])
+            run_checked(["ip", "-n", ns, "link", "set", dev, "up"])
+        run_checked(
+            ["ip", "netns", "exec", ns_a, "tc", "qdisc", "add", "dev", veth_a, "root", *tbf]
+        )
         if both_directions:
-            _run(["ip", "netns", "exec", ns_b, "tc", "qdisc", "add", "dev", veth_b, "root", *tbf])
+            run_checked(
+                ["ip", "netns", "exec", ns_b, "tc", "qdisc", "add", "dev", veth_b, "root", *tbf]
+            )
         logger.info(
             "shaped link %s(%s) <-> %s(%s) at %d kbit/s", ns_a, addr_a, ns_b, addr_b, rate_kbit
         )

@@ -3,11 +3,18 @@
     recslam experiment bandwidth --data data/synth --budgets unlimited,500,200,100,50
 
 For each budget (kbit/s per robot link, each direction) the cloud, the edge and the robots run
-as separate processes (``recslam.orchestration``); every robot connects to the edge through
-its own throttling TCP proxy (``common.faultproxy.FaultProxy`` with ``rate_bytes_per_s``, in a
-thread of this process): an application-level token bucket on the byte stream. Kernel ``tbf``
-shaping in network namespaces (``common.netem``) is not used by this experiment: the services
-would have to run inside the namespaces; see docs/deployment.md for tc-netem with Docker.
+as separate processes (``recslam.orchestration``), shaped by one of two shapers (``--shaper``):
+
+- ``tbf``: kernel shaping of real TCP. Every robot runs in a network namespace of its own,
+  linked to a hub namespace (where the edge and the cloud run) by a veth pair with a ``tbf``
+  qdisc on each end (``lab.netns``; the services are started with ``ip netns exec``). Needs
+  root and iproute2; nothing is changed in the host's own namespace, and the namespaces are
+  deleted afterwards, also after a failure. ``unlimited`` runs in the same namespaces, unshaped.
+- ``proxy``: every robot connects to the edge on loopback through its own throttling TCP proxy
+  (``common.faultproxy.FaultProxy`` with ``rate_bytes_per_s``, in a thread of this process): an
+  application-level token bucket on the byte stream.
+
+``auto`` (the default) is ``tbf`` where namespaces with tbf can be made, else ``proxy``.
 
 Below the robots' data rate nothing is lost — the robots' outboxes absorb the backlog (up to
 ``recslam robot --backlog-minutes``) and frames arrive late. Per budget the table gives:
@@ -46,6 +53,8 @@ class BandwidthConfig:
 
     data: dataset folder. budgets: kbit/s per robot link, None = unlimited, run in this order.
     robots: sequence folders to run (empty = all). out: output folder. timeout_s: per run.
+    shaper: "proxy" or "tbf" (see the module docstring; :func:`resolve_shaper` turns "auto"
+    into one of them).
     """
 
     data: Path
@@ -53,6 +62,33 @@ class BandwidthConfig:
     robots: tuple[str, ...] = ()
     out: Path = Path("out/bandwidth")
     timeout_s: float = 1800.0
+    shaper: str = "proxy"
+
+    def __post_init__(self) -> None:
+        if self.shaper not in SHAPERS:
+            raise RecslamError(f"shaper must be one of {SHAPERS}, got {self.shaper!r}")
+
+
+SHAPERS = ("proxy", "tbf")
+
+
+def resolve_shaper(name: str) -> str:
+    """``auto`` -> ``tbf`` where network namespaces with tbf can be made here, else
+    ``proxy``; ``tbf`` where they cannot -> RecslamError naming why; else ``name``."""
+    from common.netem import shaping_unavailable
+
+    if name == "auto":
+        reason = shaping_unavailable()
+        if reason is not None:
+            log.info("shaper: proxy (kernel tbf in namespaces unavailable: %s)", reason)
+        return "proxy" if reason is not None else "tbf"
+    if name == "tbf":
+        from lab.netns import check_available
+
+        check_available()
+    elif name not in SHAPERS:
+        raise RecslamError(f"--shaper must be auto, {' or '.join(SHAPERS)}; got {name!r}")
+    return name
 
 
 def parse_budgets(text: str) -> list[float | None]:
@@ -113,6 +149,39 @@ class ThrottledLinks:
         self.loop.close()
 
 
+PEAK_WINDOW_S = 30.0
+
+
+def peak_rate(samples_path: Path, window_s: float = PEAK_WINDOW_S) -> float | None:
+    """The highest robot→edge rate of any robot over any ``window_s`` seconds, kbit/s: the
+    bytes the edge received on that robot's link (its counters, protocol headers included)
+    between two of its once-a-second stats writes at least ``window_s`` apart, timed by the
+    edge's own clock (``edge.time``). Where a link is shaped and has a backlog, this sits at
+    the budget; None without two such writes."""
+    samples = [json.loads(line) for line in samples_path.read_text().splitlines() if line]
+    series: dict[str, list[tuple[float, int]]] = {}
+    for s in samples:
+        edge = s.get("edge", {})
+        if "time" not in edge:
+            continue
+        for name, link in edge.get("links", {}).items():
+            points = series.setdefault(name, [])
+            if not points or edge["time"] > points[-1][0]:
+                points.append((float(edge["time"]), int(link["rx"]["bytes"])))
+    best: float | None = None
+    for points in series.values():
+        j = 0
+        for t0, b0 in points:
+            while j < len(points) and points[j][0] - t0 < window_s:
+                j += 1
+            if j == len(points):
+                break
+            t1, b1 = points[j]
+            rate = 8 * (b1 - b0) / (t1 - t0) / 1000
+            best = rate if best is None else max(best, rate)
+    return best
+
+
 def timing(samples_path: Path, frames: dict[str, int]) -> dict[str, Any]:
     """Frame delays and the last keyframe's lag from ``stats/samples.jsonl`` (see docstring)."""
     samples = [json.loads(line) for line in samples_path.read_text().splitlines() if line]
@@ -144,31 +213,69 @@ def timing(samples_path: Path, frames: dict[str, int]) -> dict[str, Any]:
 
 
 def run_budget(
-    data: Path, robots: tuple[str, ...], kbit_s: float | None, out: Path, timeout: float
+    data: Path,
+    robots: tuple[str, ...],
+    kbit_s: float | None,
+    out: Path,
+    timeout: float,
+    shaper: str = "proxy",
 ) -> dict[str, Any]:
-    """One run at ``kbit_s`` (None = unlimited); returns its table row."""
+    """One run at ``kbit_s`` (None = unlimited) shaped by ``shaper``; returns its table row."""
     import shutil
 
-    from recslam.orchestration import Job, JobConfig, robot_frames
-    from recslam.report import RunFacts, write_report
+    from recslam.orchestration import JobConfig
 
     if out.exists():
         shutil.rmtree(out)
-    links = ThrottledLinks(kbit_s)
-    try:
-        config = JobConfig(dataset=data, run_dir=out / "run", robots=robots, robot_links=links.link)
-        t0 = time.perf_counter()
-        with Job(config) as job:
-            job.start()
-            t_robots = time.perf_counter()
-            job.wait_robots(timeout, every_s=0.5)
-            stream_s = time.perf_counter() - t_robots
-            job.wait_edge_idle()
-            codes = job.stop()
-            frames = robot_frames(data, job.robot_names)
-    finally:
-        links.close()
-    facts = RunFacts(stream_s, time.perf_counter() - t0, codes, frames)
+    t0 = time.perf_counter()
+    if shaper == "tbf":
+        from lab.netns import Tbf, star
+
+        names = robots or tuple(sorted(p.parent.name for p in data.glob("*/mav0")))
+        with star(names, None if kbit_s is None else Tbf(kbit_s)) as topology:
+            config = JobConfig(
+                dataset=data, run_dir=out / "run", robots=robots, placement=topology.placement()
+            )
+            stream_s, codes, frames = _run_job(config, timeout)
+    else:
+        links = ThrottledLinks(kbit_s)
+        try:
+            config = JobConfig(
+                dataset=data, run_dir=out / "run", robots=robots, robot_links=links.link
+            )
+            stream_s, codes, frames = _run_job(config, timeout)
+        finally:
+            links.close()
+    return _row(out, kbit_s, stream_s, time.perf_counter() - t0, codes, frames)
+
+
+def _run_job(config: Any, timeout: float) -> tuple[float, dict[str, int], dict[str, int]]:
+    """Start the job of ``config``, wait for the robots and the edge, stop it: the streaming
+    time, the exit codes and the frames per robot."""
+    from recslam.orchestration import Job, robot_frames
+
+    with Job(config) as job:
+        job.start()
+        t_robots = time.perf_counter()
+        job.wait_robots(timeout, every_s=0.5)
+        stream_s = time.perf_counter() - t_robots
+        job.wait_edge_idle()
+        codes = job.stop()
+        frames = robot_frames(config.dataset, job.robot_names)
+    return stream_s, codes, frames
+
+
+def _row(
+    out: Path,
+    kbit_s: float | None,
+    stream_s: float,
+    wall_s: float,
+    codes: dict[str, int],
+    frames: dict[str, int],
+) -> dict[str, Any]:
+    from recslam.report import RunFacts, write_report
+
+    facts = RunFacts(stream_s, wall_s, codes, frames)
     report = write_report(out / "run", out, facts)
     rs = report["robots"]
     own = [r["ate_rmse_m"] for r in rs.values() if r["ate_rmse_m"] is not None]
@@ -187,6 +294,7 @@ def run_budget(
         "failed": report["failed"],
     }
     row.update(timing(out / "run" / "stats" / "samples.jsonl", frames))
+    row["peak_kbit_s"] = peak_rate(out / "run" / "stats" / "samples.jsonl")
     return row
 
 
@@ -207,8 +315,9 @@ def write_table(rows: list[dict[str, Any]], out: Path, note: str) -> str:
         note,
         "",
         "| budget kbit/s | ATE joint m | ATE per robot (mean) m | frames sent | decoded | lost "
-        "| achieved kbit/s | frame delay mean / max s | KF lag s | streaming s | keyframes |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
+        "| achieved kbit/s | frame delay mean / max s | KF lag s | streaming s | keyframes "
+        f"| peak {PEAK_WINDOW_S:g} s kbit/s |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         budget = "unlimited" if r["budget_kbit_s"] is None else f"{r['budget_kbit_s']:g}"
@@ -217,7 +326,8 @@ def write_table(rows: list[dict[str, Any]], out: Path, note: str) -> str:
             f"{r['frames_sent']} | {r['frames_decoded']} | "
             f"{r['frames_sent'] - r['frames_decoded']} | {_f(r['achieved_kbit_s'], '.1f')} | "
             f"{_f(r['frame_delay_mean_s'], '.1f')} / {_f(r['frame_delay_max_s'], '.1f')} | "
-            f"{_f(r['kf_lag_s'], '.1f')} | {r['stream_s']:.0f} | {r['keyframes']} |"
+            f"{_f(r['kf_lag_s'], '.1f')} | {r['stream_s']:.0f} | {r['keyframes']} | "
+            f"{_f(r.get('peak_kbit_s'), '.1f')} |"
         )
     text = "\n".join(lines) + "\n"
     (out / "bandwidth.md").write_text(text)
@@ -264,14 +374,31 @@ def run_bandwidth(
         name = budget_name(kbit_s)
         progress(f"== budget {name}")
         t = time.perf_counter()
-        row = run_budget(config.data, config.robots, kbit_s, config.out / name, config.timeout_s)
+        row = run_budget(
+            config.data, config.robots, kbit_s, config.out / name, config.timeout_s, config.shaper
+        )
         rows.append(row)
         progress(f"   done in {time.perf_counter() - t:.0f} s: {row}")
+    if config.shaper == "tbf":
+        from lab.netns import Tbf
+
+        qdisc = Tbf(1.0)  # the default burst and latency every budget's qdisc has
+        shaped = (
+            "kernel tbf: each robot in its own network namespace, linked to the namespace of "
+            "the edge and the cloud by a veth pair with `tbf rate BUDGET burst "
+            f"{qdisc.burst_bytes} latency {qdisc.latency_ms}ms` on both ends (both "
+            "directions; `unlimited`: the same namespaces, no qdisc)"
+        )
+    else:
+        shaped = (
+            "application-level token bucket (throttling TCP proxy per robot→edge link, both "
+            "directions), not kernel tbf"
+        )
     note = (
-        f"Dataset `{config.data}`, robots {', '.join(config.robots) or 'all'}; application-level "
-        "token bucket (throttling TCP proxy per robot→edge link, both directions), not kernel "
-        "tbf. Frame delay = edge decode time − camera time (first decoded frame + i/20 Hz), "
+        f"Dataset `{config.data}`, robots {', '.join(config.robots) or 'all'}; {shaped}. "
+        "Frame delay = edge decode time − camera time (first decoded frame + i/20 Hz), "
         "sampled once a second; KF lag = last keyframe at the cloud − nominal end of the robots' "
-        "streams."
+        "streams; peak = the highest rate of any robot's link over any "
+        f"{PEAK_WINDOW_S:g} s (the edge's counters and clock)."
     )
     return rows, write_table(rows, config.out, note)

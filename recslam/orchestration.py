@@ -27,7 +27,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -48,6 +48,23 @@ def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return int(s.getsockname()[1])
+
+
+@dataclass(frozen=True)
+class Placement:
+    """Where the processes of a run live, when not all on this host's loopback.
+
+    Attributes:
+        prefix: service name ("cloud", "edge", a robot's name) -> the argv prefix that runs it
+            there (e.g. ``ip netns exec NS``); a missing name runs as is.
+        edge_listen_host: the address the edge listens on (e.g. 0.0.0.0 in a hub namespace).
+        edge_host: robot name -> the edge's address as that robot reaches it (default
+            127.0.0.1). The cloud listens on, and the edge reaches it at, 127.0.0.1 of theirs.
+    """
+
+    prefix: Mapping[str, tuple[str, ...]] = field(default_factory=dict)
+    edge_listen_host: str = "127.0.0.1"
+    edge_host: Mapping[str, str] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -73,6 +90,8 @@ class JobConfig:
             default 0: not).
         wire: how the edge encodes what it sends to the robots and the cloud (``recslam edge
             --wire``; default coded; robots and cloud accept both).
+        placement: where each process runs (default: all on loopback here), e.g. the robots
+            in network namespaces of their own (``lab.netns``).
     """
 
     dataset: Path
@@ -88,6 +107,7 @@ class JobConfig:
     mbp: bool = True
     mbp_every: int = 0
     wire: WireFormat = WireFormat.CODED
+    placement: Placement = field(default_factory=Placement)
 
 
 @dataclass
@@ -170,7 +190,7 @@ class Job:
         return self._recslam(
             "edge",
             "--listen",
-            f"127.0.0.1:{self.edge_port}",
+            f"{c.placement.edge_listen_host}:{self.edge_port}",
             "--cloud",
             f"127.0.0.1:{self.cloud_port}",
             "--state-dir",
@@ -193,7 +213,7 @@ class Job:
             "--dataset",
             str(Path(c.dataset) / name),
             "--edge",
-            f"127.0.0.1:{port}",
+            f"{c.placement.edge_host.get(name, '127.0.0.1')}:{port}",
             "--agent-id",
             name,
             "--rate",
@@ -207,7 +227,9 @@ class Job:
 
     # ------------------------------------------------------------------ processes
     def launch(self, name: str, argv: list[str]) -> Service:
-        """Start (or restart) process ``name``; its output is appended to its log."""
+        """Start (or restart) process ``name`` (where ``placement`` puts it); its output is
+        appended to its log."""
+        argv = [*self.config.placement.prefix.get(name, ()), *argv]
         svc = self.services.get(name)
         if svc is None:
             svc = Service(name, argv, self.run_dir / "logs" / f"{name}.log")

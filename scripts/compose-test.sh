@@ -15,7 +15,8 @@
 #     report, every frame decoded exactly once at the edge, exit codes, no traceback);
 #  5. checks loud failures on the built image: the placeholder secret, a non-empty folder the
 #     container user cannot write, NETEM on a kernel without netem (and the restart policy
-#     giving up on it), a robot whose edge is gone stopped with SIGTERM (bounded flush);
+#     giving up on it), a robot whose edge is gone stopped with SIGTERM (bounded flush) and
+#     giving up by itself after --give-up-after (exit 4, one line);
 #  6. removes the stack (containers, volumes) and stops every daemon it started.
 #
 # Needs root (it may start dockerd), debootstrap when the base image must be made, docker
@@ -239,6 +240,13 @@ else
     say "  FAIL robot without an edge: exit $code after $took s: $(tail -3 <<<"$robot_log")"
     failed=1
 fi
+
+# ... and with --give-up-after it exits by itself, non-zero, with one line saying why.
+port=$(free_port)
+expect 4 "giving up on 127.0.0.1:$port" -- --network host \
+    -e RECSLAM_SECRET="$(cut -d= -f2 docker/secret.env)" -e SEQUENCE=synth/robot0 \
+    -e AGENT_ID=robot0 -e EDGE="127.0.0.1:$port" -v "$PWD/datasets:/datasets:ro" \
+    recslam:latest recslam robot --give-up-after 3
 
 [ $failed = 0 ] || die "some checks failed (logs in $work)"
 say "PASS: $ROBOTS robots x $SECONDS_PER_ROBOT s through docker compose; image $((size / 1000000)) MB; cloud shutdown $shutdown s"

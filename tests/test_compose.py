@@ -254,3 +254,19 @@ def test_secure_override_gives_each_service_only_its_own_key_file(tmp_path) -> N
     assert TlsFiles(cert, key, cert).server_context() is not None
     gitignore = (ROOT / ".gitignore").read_text().split()
     assert {"/keys/", "/tls/"} <= set(gitignore)
+
+
+def test_containers_give_up_on_an_unreachable_peer_and_flush_within_their_grace(parser) -> None:
+    """Robots and the edge exit (non-zero, one line why) after --give-up-after without a
+    session upstream, so restart caps apply instead of a silent wait; the edge's bounded
+    flush at stop fits in its stop_grace_period."""
+    services = _merged()
+    for name, service in services.items():
+        if name in ("cloud", "dataset"):
+            continue
+        args = parser.parse_args([_substitute(c) for c in service["command"]][1:])
+        assert args.give_up_after > 0, name  # 0 would wait for ever
+        assert str(service["restart"]).startswith("on-failure:"), name
+    edge = _load(COMPOSE)["services"]["edge"]
+    args = parser.parse_args([_substitute(c) for c in edge["command"]][1:])
+    assert args.stop_flush_timeout < _seconds(edge["stop_grace_period"])

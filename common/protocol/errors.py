@@ -45,5 +45,10 @@ class PeerRejectedError(ProtocolError):
     on a link that stops on a refusal) or the peer refused our credential."""
 
 
+class PeerUnreachableError(PeerRejectedError):
+    """The link was given up: no session with the peer within the client's give-up time
+    (``TransportConfig.give_up_after``); the message says where, why and for how long."""
+
+
 class PeerTimeoutError(ProtocolError):
     """The peer stayed silent past the idle timeout or the handshake deadline."""

@@ -60,6 +60,11 @@ class TransportConfig:
         connect_timeout: TCP (+TLS) connect timeout (s).
         unreachable_warning_interval: a client that cannot connect warns at the first
             failure and then at most this often (s), with the attempt count.
+        give_up_after: a client that has had no session with its server for this long (s;
+            since it started or since its last session ended: the server unreachable,
+            timing out or closing before the handshake) stops reconnecting, logs one line
+            why and raises PeerUnreachableError from ``send`` and ``flush``; 0 = never
+            (see ``reconnect.py``). A refused credential stops it at once either way.
         handler_retry_initial: a handler that raised (other than ``RejectedMessageError``,
             e.g. a full disk) is retried on the same connection after this delay (s),
             doubled per failure; the sender is held back by the receive window meanwhile.
@@ -77,6 +82,7 @@ class TransportConfig:
     reconnect_jitter: float = 0.5
     connect_timeout: float = 10.0
     unreachable_warning_interval: float = 30.0
+    give_up_after: float = 0.0
     handler_retry_initial: float = 0.5
     handler_retry_max: float = 30.0
 
@@ -147,6 +153,7 @@ class Peer:
         self._delivery = asyncio.create_task(self._deliver_loop(), name=f"deliver-{name}")
         self.attach_lock = asyncio.Lock()
         self.rejected: str | None = None  # the peer's reason when it refused our message
+        self._given_up: PeerRejectedError | None = None  # why our client stopped on its own
         self.rejections: list[tuple[int, str]] = []  # (seq, reason) the peer refused, latest 100
         self.stop_on_reject = stop_on_reject
         self._transport = transport or TransportConfig()
@@ -198,7 +205,16 @@ class Peer:
         self.rejected = reason
         self._space.set()
 
+    def give_up(self, error: PeerRejectedError) -> None:
+        """Give the link up because our client stopped trying (its credential refused, or
+        no session within its give-up time): senders and flushers raise ``error``."""
+        self._given_up = error
+        self.rejected = str(error)
+        self._space.set()
+
     def _check_rejected(self) -> None:
+        if self._given_up is not None:
+            raise self._given_up
         if self.rejected is not None:
             raise PeerRejectedError(f"{self.agent_id} refused our message: {self.rejected}")
 

@@ -7,7 +7,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-import random
 import ssl as ssl_module
 from typing import Any
 
@@ -17,6 +16,8 @@ from common.protocol import (
     LocalProtocolError,
     Message,
     PeerAuthenticated,
+    PeerRejectedError,
+    PeerUnreachableError,
     Session,
     SessionConfig,
 )
@@ -28,20 +29,21 @@ from common.transport.connection import (
     TransportConfig,
     _Connection,
 )
+from common.transport.reconnect import GiveUp, ReconnectPolicy
 
 logger = logging.getLogger(__name__)
 
 
-def _jittered(delay: float, jitter: float) -> float:
-    return delay * random.uniform(1.0 - jitter, 1.0 + jitter)
-
-
 class Client:
-    """Connecting side of one link; keeps reconnecting until :meth:`close`, or until the
-    handshake fails authentication (a wrong key or secret cannot get better by retrying):
-    then ``peer.rejected`` holds the reason and ``send``/``flush`` raise PeerRejectedError,
-    as they do after the server's application refused a message of ours (``Reject``) when
-    ``stop_on_reject`` (default; False logs the refusal and carries on).
+    """Connecting side of one link; keeps reconnecting (``reconnect.py``: backoff, a
+    warning at the first failure and then every ``unreachable_warning_interval``) until
+    :meth:`close`, or until the handshake fails authentication (a wrong key or secret cannot
+    get better by retrying), or until it has had no session for
+    ``TransportConfig.give_up_after`` seconds (when > 0). On those two it logs one ERROR line
+    saying why, :attr:`failure` holds the error, :meth:`wait_failed` returns it and
+    ``send``/``flush`` raise it (PeerRejectedError; PeerUnreachableError for the give-up), as
+    they raise PeerRejectedError after the server's application refused a message of ours
+    (``Reject``) when ``stop_on_reject`` (default; False logs the refusal and carries on).
 
     Args:
         config: protocol settings (role, agent id, secret, limits).
@@ -83,6 +85,8 @@ class Client:
         self._closed = asyncio.Event()
         self._conn: _Connection | None = None
         self.connections = 0
+        self._failure: PeerRejectedError | None = None
+        self._failed = asyncio.Event()
 
     async def start(self) -> None:
         """Start connecting in the background (returns at once)."""
@@ -138,15 +142,34 @@ class Client:
         if self.peer is not None:
             await self.peer._stop()
 
+    @property
+    def failure(self) -> PeerRejectedError | None:
+        """Why the client stopped on its own (credential refused, or no session within
+        ``give_up_after``), or None while it goes on or after :meth:`close`."""
+        return self._failure
+
+    async def wait_failed(self) -> PeerRejectedError:
+        """Return once the client has stopped on its own; the error says why."""
+        await self._failed.wait()
+        assert self._failure is not None
+        return self._failure
+
+    def _fail(self, error: PeerRejectedError) -> None:
+        logger.error("%s", error)  # the one line that says why the link was given up
+        self._failure = error
+        assert self.peer is not None
+        self.peer.give_up(error)
+        self._failed.set()
+
     async def _run(self) -> None:
         assert self.peer is not None
         t = self.transport
-        delay = t.reconnect_initial_delay
         loop = asyncio.get_running_loop()
-        failed_since: float | None = None  # first failed attempt since the last success
-        failures = 0
-        warned_at = 0.0
+        policy = ReconnectPolicy(t, loop.time())
+        where = f"{self.host}:{self.port}"
+        who = f"{self.config.role} {self.config.agent_id}"
         while not self._closing:
+            established = False
             try:
                 reader, writer = await asyncio.wait_for(
                     asyncio.open_connection(
@@ -159,53 +182,51 @@ class Client:
                     t.connect_timeout,
                 )
             except (OSError, TimeoutError, ssl_module.SSLError) as exc:
-                now = loop.time()
-                failures += 1
-                failed_since = now if failed_since is None else failed_since
-                if failures == 1 or now - warned_at >= t.unreachable_warning_interval:
-                    warned_at = now
-                    logger.warning(
-                        "%s %s cannot reach %s:%d (%d attempts in %.0f s, retrying): %s",
-                        self.config.role,
-                        self.config.agent_id,
-                        self.host,
-                        self.port,
-                        failures,
-                        now - failed_since,
-                        exc,
-                    )
+                reason = f"cannot connect: {exc!r}" if not str(exc) else f"cannot connect: {exc}"
             else:
-                if failures:
-                    logger.info("reached %s:%d after %d attempts", self.host, self.port, failures)
-                failures, failed_since = 0, None
                 self.connections += 1
                 session = Session(self.config, client=True, now=loop.time(), link=self.peer.link)
                 self._conn = _Connection(reader, writer, session, t, peer=self.peer)
-                await self._conn.run()
-                if self._conn.established_once:
-                    delay = t.reconnect_initial_delay
+                reason = await self._conn.run()
+                established = self._conn.established_once
                 closed, failure = self._conn.peer_closed, self._conn.failure
                 self._conn = None
                 refusal = None
                 if isinstance(failure, AuthenticationError):
                     refusal = str(failure)
                 elif closed is not None and closed.code == CloseCode.AUTH_FAILED:
-                    refusal = f"{self.host}:{self.port} refused our credential: {closed.reason}"
+                    refusal = f"{where} refused our credential: {closed.reason}"
                 if refusal is not None:
-                    logger.error(
-                        "%s %s: authentication failed, not reconnecting (check --key-file / "
-                        "the secret): %s",
-                        self.config.role,
-                        self.config.agent_id,
-                        refusal,
+                    self._fail(
+                        PeerRejectedError(
+                            f"{who}: authentication failed, not reconnecting (check "
+                            f"--key-file / the secret): {refusal}"
+                        )
                     )
-                    self.peer.reject(f"authentication failed: {refusal}")
                     break
             if self._closing:
                 break
+            step = policy.attempt_ended(loop.time(), established=established)
+            if isinstance(step, GiveUp):
+                self._fail(
+                    PeerUnreachableError(
+                        f"{who}: giving up on {where}: no session for {step.down_s:.1f} s "
+                        f"({step.attempts} attempts; give-up time {t.give_up_after:g} s); "
+                        f"last failure: {reason}"
+                    )
+                )
+                break
+            if step.warn:
+                logger.warning(
+                    "%s: no session with %s (%d attempts in %.0f s, retrying): %s",
+                    who,
+                    where,
+                    step.attempts,
+                    step.down_s,
+                    reason,
+                )
             with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(self._closed.wait(), _jittered(delay, t.reconnect_jitter))
-            delay = min(2 * delay, t.reconnect_max_delay)
+                await asyncio.wait_for(self._closed.wait(), step.delay)
 
 
 class Server:

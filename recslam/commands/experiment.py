@@ -17,7 +17,7 @@ import logging
 from pathlib import Path
 
 from lab import bandwidth
-from lab.bandwidth import BandwidthConfig, parse_budgets
+from lab.bandwidth import BandwidthConfig, parse_budgets, resolve_shaper
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -43,6 +43,14 @@ def register(sub: argparse._SubParsersAction) -> None:
     b.add_argument("--robots", default="", help="comma-separated sequence folders (default: all)")
     b.add_argument("--out", type=Path, default=Path("out/bandwidth"), help="output folder")
     b.add_argument("--timeout", type=float, default=1800.0, help="per-run timeout (s)")
+    b.add_argument(
+        "--shaper",
+        choices=("auto", "tbf", "proxy"),
+        default="auto",
+        help="tbf: kernel tbf on veth pairs, robots in network namespaces (root); proxy: an "
+        "application-level token bucket per robot link; auto (default): tbf where namespaces "
+        "can be made, else proxy",
+    )
     b.set_defaults(func=run)
     t = which.add_parser(
         "table3",
@@ -169,6 +177,7 @@ def bandwidth_config(args: argparse.Namespace) -> BandwidthConfig:
         robots=tuple(r for r in args.robots.split(",") if r),
         out=args.out,
         timeout_s=args.timeout,
+        shaper=resolve_shaper(args.shaper),
     )
 
 

@@ -11,8 +11,12 @@ services.edge`` alike; ``config_from_args`` turns them into an :class:`EdgeRunCo
 - starts the :class:`~services.edge.server.EdgeServer` (connects to the cloud, replays the
   journals of ``--state-dir``, then listens for robots) and announces ``edge listening on
   HOST:PORT, replayed N frames``;
-- rewrites ``--stats-out`` every second; on a signal stops the server (workers drained,
-  journals fsynced) and returns 0.
+- rewrites ``--stats-out`` every second; on a signal stops the server (robots' side closed,
+  workers stopped, the cloud uplink flushed for at most ``--stop-flush-timeout`` seconds with
+  what is queued and what was left unsent logged, journals fsynced) and returns 0;
+- exits by itself when the cloud link is given up: 3 when the cloud refused the edge's
+  credential, 4 after ``--give-up-after`` seconds without a session with the cloud (one line
+  saying why: the address, the last failure, how long; 0 = keep trying, the default).
 
 Heavy modules (the server, the VIO, gtsam) are imported inside ``serve`` so that parsing and
 ``--help`` stay fast.
@@ -21,6 +25,8 @@ Heavy modules (the server, the VIO, gtsam) are imported inside ``serve`` so that
 from __future__ import annotations
 
 import argparse
+import asyncio
+import contextlib
 import json
 import logging
 import time
@@ -30,6 +36,7 @@ from typing import TYPE_CHECKING, Any
 
 from common.entry import (
     Announce,
+    add_give_up_argument,
     add_security_arguments,
     listen_address,
     run_until_signal,
@@ -37,6 +44,7 @@ from common.entry import (
     tls_from_args,
 )
 from common.links import WireFormat, codec_cpu
+from common.protocol import PeerUnreachableError
 from common.protocol.auth import Keyring
 from common.protocol.credentials import load_keys
 from common.transport.tls import TlsFiles
@@ -64,6 +72,8 @@ class EdgeRunConfig:
         vocabulary: vocabulary file (None: the repository's default).
         wire: encoding of the messages to the robots and the cloud.
         stats_out: JSON counters file rewritten every second and at exit (None: none).
+        stop_flush_timeout_s: at SIGINT/SIGTERM, longest flush of the cloud uplink (s).
+        give_up_after_s: exit after this long without a session with the cloud (0 = never).
     """
 
     listen: tuple[str, int] = ("0.0.0.0", 7000)
@@ -77,6 +87,8 @@ class EdgeRunConfig:
     vocabulary: Path | None = None
     wire: WireFormat = WireFormat.CODED
     stats_out: Path | None = None
+    stop_flush_timeout_s: float = 10.0
+    give_up_after_s: float = 0.0
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -132,6 +144,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="rewrite service and per-link traffic counters as JSON here every second and at "
         "exit (default: none)",
     )
+    p.add_argument(
+        "--stop-flush-timeout",
+        type=float,
+        default=10.0,
+        metavar="S",
+        help="after SIGINT/SIGTERM, seconds to flush the uplink backlog to the cloud before "
+        "giving up (logged: what is queued, what is left unsent; default 10)",
+    )
+    add_give_up_argument(p, "cloud")
 
 
 def config_from_args(args: argparse.Namespace) -> EdgeRunConfig:
@@ -148,6 +169,8 @@ def config_from_args(args: argparse.Namespace) -> EdgeRunConfig:
         vocabulary=args.vocabulary,
         wire=WireFormat(args.wire),
         stats_out=args.stats_out,
+        stop_flush_timeout_s=args.stop_flush_timeout,
+        give_up_after_s=args.give_up_after,
     )
 
 
@@ -180,13 +203,19 @@ def write_stats(path: Path, edge: EdgeServer) -> None:
 def serve(config: EdgeRunConfig, announce: Announce = logger.info) -> int:
     """Run the edge until SIGINT / SIGTERM (see the module docstring); the exit code: 0, or
     2 when the keys, the TLS files or the vocabulary cannot be loaded or a folder it writes
-    (``--state-dir``, ``--stats-out``'s) is not writable."""
+    (``--state-dir``, ``--stats-out``'s) is not writable or an option is out of range, or 3 /
+    4 when the cloud link was given up (credential refused / no session for
+    ``--give-up-after`` seconds)."""
     from common.errors import RecslamError
     from common.folders import writable_folder
     from common.transport import run
     from common.vocabulary import DEFAULT_VOCABULARY_PATH, Vocabulary
 
     try:
+        if not config.stop_flush_timeout_s >= 0:
+            raise RecslamError(
+                f"--stop-flush-timeout must be >= 0 seconds, got {config.stop_flush_timeout_s}"
+            )
         identity = ("edge", config.agent_id) if config.cloud is not None else None
         secret = load_keys(config.key_file, config.secret_file, identity=identity)
         config.tls.server_context()  # a bad certificate fails here, with its name
@@ -209,7 +238,11 @@ def _server(config: EdgeRunConfig, secret: Keyring, vocab: Vocabulary) -> EdgeSe
 
     cloud_host, cloud_port = config.cloud if config.cloud is not None else (None, 0)
     service = EdgeServiceConfig(
-        agent_id=config.agent_id, cloud_host=cloud_host, cloud_port=cloud_port
+        agent_id=config.agent_id,
+        cloud_host=cloud_host,
+        cloud_port=cloud_port,
+        stop_flush_timeout_s=config.stop_flush_timeout_s,
+        give_up_after_s=config.give_up_after_s,
     )
     app = EdgeConfig(worker=config.worker, session=SessionOptions(wire=config.wire))
     return EdgeServer(secret, vocab, app, service, state_dir=config.state_dir, tls=config.tls)
@@ -230,11 +263,19 @@ async def _run(
         if stats_out is not None:
             write_stats(stats_out, edge)
 
+    # the cloud link given up (the client logged the one line why) stops the edge too
+    cloud_failed = asyncio.ensure_future(edge.wait_cloud_failed())
+    cloud_failed.add_done_callback(lambda _: stop.set())
     try:
         await run_until_signal(stop, tick)
     finally:
         announce("edge stopping")
-        await edge.stop()  # drains the workers: their last uplinks count in the stats
+        await edge.stop()  # its last uplinks count in the stats
         if stats_out is not None:
             write_stats(stats_out, edge)
-    return 0
+    if not cloud_failed.done():
+        cloud_failed.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await cloud_failed
+        return 0
+    return 4 if isinstance(cloud_failed.result(), PeerUnreachableError) else 3

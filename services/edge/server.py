@@ -18,16 +18,26 @@ its new stream opens with its sensors again).
 
 The edge's link to the cloud is not persisted: after a restart it is a new stream; the VIO
 replay re-sends keyframes (the cloud treats ``KeyframeUpdate`` as idempotent).
+
+Stopping with a backlog for the cloud: :meth:`EdgeServer.stop` closes the robots' side, stops
+the workers and then flushes the cloud uplink for at most ``stop_flush_timeout_s``, logging
+how many messages and bytes are queued and, if the cloud does not take them in time, how many
+are left unsent (with ``state_dir`` they are not lost: the robots' frames are in the journal
+and the next start's VIO replay sends their keyframes again; without it they are). The cloud
+link gives up (``give_up_after_s`` > 0) when there has been no session with the cloud for that
+long: :meth:`EdgeServer.wait_cloud_failed` returns the reason (as it does when the cloud
+refused the edge's credential) and the process exits non-zero (``runner.py``).
 """
 
 from __future__ import annotations
 
+import asyncio
 import logging
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from common.protocol import OutboxFullError, SessionConfig
+from common.protocol import OutboxFullError, PeerRejectedError, SessionConfig
 from common.protocol.auth import Keyring, as_keyring
 from common.protocol.messages import Message
 from common.transport import Client, Server, TransportConfig
@@ -43,7 +53,9 @@ logger = logging.getLogger(__name__)
 @dataclass(frozen=True)
 class EdgeServiceConfig:
     """Network-side options: the edge's agent id, the cloud address (None: no cloud; the
-    uplink is dropped and counted), heartbeat/idle timeouts (s), journal fsync batch (s)."""
+    uplink is dropped and counted), heartbeat/idle timeouts (s), journal fsync batch (s),
+    the longest flush of the cloud uplink at stop (s), and how long the cloud link goes on
+    without a session before the edge gives up (s, 0 = never; see the module docstring)."""
 
     agent_id: str = "edge"
     cloud_host: str | None = None
@@ -51,6 +63,14 @@ class EdgeServiceConfig:
     heartbeat_interval_s: float = 1.0
     idle_timeout_s: float = 10.0
     fsync_interval_s: float = 0.2
+    stop_flush_timeout_s: float = 10.0
+    give_up_after_s: float = 0.0
+
+    def __post_init__(self) -> None:
+        if not self.stop_flush_timeout_s >= 0:
+            raise ValueError(f"stop_flush_timeout_s must be >= 0: {self.stop_flush_timeout_s}")
+        if not self.give_up_after_s >= 0:
+            raise ValueError(f"give_up_after_s must be >= 0 (0 = never): {self.give_up_after_s}")
 
 
 def flat_counters(snap: dict[str, Any]) -> dict[str, int]:
@@ -132,6 +152,7 @@ class EdgeServer:
                 server_name="cloud",
                 ssl=tls.client_context(),
                 server_hostname=sv.cloud_host,
+                transport=TransportConfig(give_up_after=sv.give_up_after_s),
                 stop_on_reject=False,  # a refused keyframe is logged; the other robots go on
             )
         self.dropped_feedback = 0
@@ -154,10 +175,13 @@ class EdgeServer:
         return True
 
     async def to_cloud(self, message: Message) -> None:
-        if self.cloud is None:
+        if self.cloud is None or self.cloud.failure is not None:
             self.dropped_uplink += 1
             return
-        await self.cloud.send(message)
+        try:
+            await self.cloud.send(message)
+        except PeerRejectedError:  # the link was given up meanwhile (the client said why)
+            self.dropped_uplink += 1
 
     def link_counters(self, agent_id: str) -> dict[str, int]:
         peer = self.server.peers.get(agent_id)
@@ -185,14 +209,72 @@ class EdgeServer:
         if self.cloud is not None:
             await self.cloud.flush()
 
+    async def wait_cloud_failed(self) -> PeerRejectedError:
+        """Return once the cloud link was given up (credential refused, or no session for
+        ``give_up_after_s``); never returns without a cloud."""
+        if self.cloud is None:
+            await asyncio.Event().wait()
+        assert self.cloud is not None
+        return await self.cloud.wait_failed()
+
     async def stop(self) -> None:
-        """Close the robots' connections, stop the workers, close journals and the cloud link."""
+        """Close the robots' connections, stop the workers, flush the cloud uplink for at most
+        ``stop_flush_timeout_s`` (logged), close the cloud link and the journals."""
         await self.server.close()
         await self.app.close()
         if self.cloud is not None:
+            await self._flush_cloud_at_stop()
             await self.cloud.close()
         if self.store is not None:
             self.store.close()
+
+    async def _flush_cloud_at_stop(self) -> None:
+        assert self.cloud is not None and self.cloud.peer is not None
+        c = self.cloud.counters()
+        queued, size = c["outbox_messages"], c["outbox_bytes"]
+        if queued == 0 or self.cloud.failure is not None:
+            if queued:
+                logger.warning(
+                    "edge stopping: %d messages (%d B) for the cloud unsent (the link was "
+                    "given up); %s",
+                    queued,
+                    size,
+                    self._unsent_fate(),
+                )
+            return
+        timeout = self.service.stop_flush_timeout_s
+        logger.log(
+            logging.INFO if c["connected"] else logging.WARNING,  # the cloud away: say it loud
+            "edge stopping: %d messages (%d B) queued for the cloud at %s:%d; flushing them for "
+            "at most %.3g s",
+            queued,
+            size,
+            self.cloud.host,
+            self.cloud.port,
+            timeout,
+        )
+        try:
+            await asyncio.wait_for(self.cloud.flush(), timeout)
+        except (TimeoutError, PeerRejectedError):
+            c = self.cloud.counters()
+            logger.warning(
+                "edge stopping: the cloud did not take the backlog within %.3g s: giving up "
+                "with %d messages (%d B) unsent; %s",
+                timeout,
+                c["outbox_messages"],
+                c["outbox_bytes"],
+                self._unsent_fate(),
+            )
+        else:
+            logger.info("edge stopping: the cloud took all %d queued messages", queued)
+
+    def _unsent_fate(self) -> str:
+        if self.store is not None:
+            return (
+                f"not lost: the robots' frames are journaled in {self.store.directory} and the "
+                "next start replays them, sending their keyframes again"
+            )
+        return "they are lost (no --state-dir: nothing is journaled)"
 
     async def __aenter__(self) -> EdgeServer:
         return self

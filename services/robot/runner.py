@@ -10,7 +10,8 @@ else a development default with a warning);
 ``serve`` plays the sequence with SIGINT / SIGTERM handled
 (:func:`services.robot.server.serve`). Exit code 0 once the edge has taken every frame, 130
 when interrupted, 1 when ``--flush-timeout`` expired, 3 when the edge refused the robot (e.g.
-another calibration under an agent id it knows); a configuration error raises
+another calibration under an agent id it knows) or its credential, 4 when there was no session
+with the edge for ``--give-up-after`` seconds; a configuration error raises
 :class:`~common.errors.RecslamError` (the entry points exit with 2).
 
 The service modules (OpenCV, the front end) are imported inside the functions so that
@@ -24,7 +25,7 @@ import os
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from common.entry import add_security_arguments
+from common.entry import add_give_up_argument, add_security_arguments
 
 if TYPE_CHECKING:
     from services.robot.server import RobotServiceConfig
@@ -104,6 +105,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="after SIGINT/SIGTERM, seconds to flush the backlog to the edge before giving up "
         "(default 10; a second signal gives up at once)",
     )
+    add_give_up_argument(p, "edge")
 
 
 def config_from_args(args: argparse.Namespace) -> RobotServiceConfig:
@@ -144,6 +146,7 @@ def config_from_args(args: argparse.Namespace) -> RobotServiceConfig:
         backlog_s=60.0 * args.backlog_minutes,
         flush_timeout_s=args.flush_timeout,
         stop_flush_timeout_s=args.stop_flush_timeout,
+        give_up_after_s=args.give_up_after,
     )
 
 

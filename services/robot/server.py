@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
 import enum
 import logging
 import math
@@ -55,7 +56,7 @@ from common.data.sources import SequenceSource, open_source
 from common.errors import RecslamError
 from common.links.robot_edge import RobotFrame, sensors_message
 from common.links.sensors import Sensors
-from common.protocol import PeerRejectedError, SessionConfig
+from common.protocol import PeerRejectedError, PeerUnreachableError, SessionConfig
 from common.protocol.auth import MIN_SECRET_SIZE, Keyring, as_keyring
 from common.protocol.messages import Message
 from common.transport import Client, TransportConfig
@@ -102,6 +103,10 @@ class RobotServiceConfig:
         flush_timeout_s: longest wait for the edge to take the rest at the end (None = wait).
         stop_flush_timeout_s: longest wait, after a first SIGINT/SIGTERM, for the edge to take
             the backlog (10 s; within compose's stop_grace_period).
+        give_up_after_s: stop (exit code 4, one line saying why) when there has been no
+            session with the edge for this long (s): unreachable, timing out, or closing the
+            connection before the handshake; 0 = keep trying for ever (default). A refused
+            credential stops the robot at once either way (exit code 3).
         heartbeat_interval_s, idle_timeout_s: protocol liveness (2 s, 10 s).
         front_end: front-end options.
         vocabulary: ORB vocabulary file (the repository's default).
@@ -124,6 +129,7 @@ class RobotServiceConfig:
     max_backlog_bytes: int = 256 * 1024 * 1024
     flush_timeout_s: float | None = None
     stop_flush_timeout_s: float = 10.0
+    give_up_after_s: float = 0.0
     heartbeat_interval_s: float = 2.0
     idle_timeout_s: float = 10.0
     front_end: FrontEndConfig = field(default_factory=FrontEndConfig)
@@ -172,6 +178,10 @@ class RobotServiceConfig:
             )
         if self.idle_timeout_s <= self.heartbeat_interval_s:
             raise RobotConfigError("idle_timeout_s must exceed heartbeat_interval_s")
+        if not self.give_up_after_s >= 0:
+            raise RobotConfigError(
+                f"give_up_after_s must be >= 0 (0 = never), got {self.give_up_after_s}"
+            )
 
 
 def open_sequence(config: RobotServiceConfig) -> SequenceSource:
@@ -288,12 +298,15 @@ class RobotService:
     async def run(self) -> RobotRunResult:
         cfg = self.config
         t_start = time.monotonic()
+        transport = dataclasses.replace(
+            self.transport or TransportConfig(), give_up_after=cfg.give_up_after_s
+        )
         self.client = Client(
             self.session_config(),
             self.app.on_message,
             cfg.edge_host,
             cfg.edge_port,
-            transport=self.transport,
+            transport=transport,
             server_name="edge",
             ssl=cfg.tls.client_context(),
             server_hostname=cfg.edge_host,
@@ -448,7 +461,8 @@ def _close_frames(frames: Iterator[EurocFrame]) -> None:
 async def serve(config: RobotServiceConfig, transport: TransportConfig | None = None) -> int:
     """Run the service with SIGINT/SIGTERM handlers; exit code 0, or 130 if interrupted, or
     1 if the edge did not take everything before ``flush_timeout_s``, or 3 if the edge refused
-    the robot (its reason is logged)."""
+    the robot or its credential, or 4 if there was no session with the edge for
+    ``give_up_after_s`` (the reason is logged, one line)."""
     service = RobotService(config, transport)
     loop = asyncio.get_running_loop()
     installed = []
@@ -459,8 +473,9 @@ async def serve(config: RobotServiceConfig, transport: TransportConfig | None = 
     try:
         result = await service.run()
     except PeerRejectedError as exc:
-        logger.error("robot %s: %s", config.agent_id, exc)
-        return 3
+        if service.client is None or service.client.failure is not exc:
+            logger.error("robot %s: %s", config.agent_id, exc)  # else the client said it
+        return 4 if isinstance(exc, PeerUnreachableError) else 3
     finally:
         for sig in installed:
             loop.remove_signal_handler(sig)

@@ -13,6 +13,8 @@ from lab.bandwidth import (
     BandwidthConfig,
     budget_name,
     parse_budgets,
+    peak_rate,
+    resolve_shaper,
     run_bandwidth,
     timing,
     write_table,
@@ -85,3 +87,68 @@ def test_run_bandwidth_rejects_a_missing_dataset(tmp_path: Path) -> None:
     with pytest.raises(RecslamError, match="no such dataset folder"):
         run_bandwidth(config)
     assert not (tmp_path / "out").exists()
+
+
+def test_shapers_resolve_and_a_bad_one_is_named(monkeypatch) -> None:
+    import common.netem
+    import lab.netns
+
+    assert resolve_shaper("proxy") == "proxy"
+    monkeypatch.setattr(common.netem, "shaping_unavailable", lambda: "network namespaces need root")
+    monkeypatch.setattr(lab.netns, "shaping_unavailable", lambda: "network namespaces need root")
+    assert resolve_shaper("auto") == "proxy"
+    with pytest.raises(RecslamError, match="need root"):
+        resolve_shaper("tbf")
+    monkeypatch.setattr(common.netem, "shaping_unavailable", lambda: None)
+    assert resolve_shaper("auto") == "tbf"
+    with pytest.raises(RecslamError, match="'bogus'"):
+        BandwidthConfig(data=Path("d"), budgets=(None,), shaper="bogus")
+
+
+def test_a_star_places_robots_in_their_namespaces_and_the_edge_in_the_hub(tmp_path) -> None:
+    """What the tbf shaper hands the orchestration: argv prefixes and the addresses."""
+    from lab.netns import Leaf, Star
+    from recslam.orchestration import Job, JobConfig
+
+    for name in ("robot0", "robot1"):
+        (tmp_path / "data" / name / "mav0").mkdir(parents=True)
+    leaves = {
+        f"robot{i}": Leaf(f"robot{i}", f"ns{i}", f"10.9.{i}.2", f"10.9.{i}.1", "r", "h")
+        for i in range(2)
+    }
+    placement = Star("hub", leaves, None).placement()
+    job = Job(JobConfig(dataset=tmp_path / "data", run_dir=tmp_path / "run", placement=placement))
+    assert placement.prefix["edge"] == placement.prefix["cloud"] == ("ip", "netns", "exec", "hub")
+    assert placement.prefix["robot1"] == ("ip", "netns", "exec", "ns1")
+    edge = job.edge_argv()
+    assert edge[edge.index("--listen") + 1] == f"0.0.0.0:{job.edge_port}"
+    assert edge[edge.index("--cloud") + 1] == f"127.0.0.1:{job.cloud_port}"
+    robot = job.robot_argv("robot1")
+    assert robot[robot.index("--edge") + 1] == f"10.9.1.1:{job.edge_port}"
+    plain = Job(JobConfig(dataset=tmp_path / "data", run_dir=tmp_path / "plain"))
+    robot = plain.robot_argv("robot1")
+    assert robot[robot.index("--edge") + 1] == f"127.0.0.1:{plain.edge_port}"
+
+
+def test_peak_rate_is_the_busiest_window_of_any_link_on_the_edges_clock(tmp_path) -> None:
+    # robot a: 10 kB/s for 30 s, then 50 kB/s for 30 s; robot b: 1 kB/s; the sampler's own
+    # clock ("time") runs late and bunched, the edge's ("edge.time") is what counts.
+    samples = []
+    a = b = 0
+    for t in range(61):
+        samples.append(
+            {
+                "time": 1000.0 + (t // 5) * 5,
+                "edge": {
+                    "time": 100.0 + t,
+                    "links": {"a": {"rx": {"bytes": a}}, "b": {"rx": {"bytes": b}}},
+                },
+            }
+        )
+        a += 10_000 if t < 30 else 50_000
+        b += 1_000
+    path = tmp_path / "samples.jsonl"
+    path.write_text("".join(json.dumps(s) + "\n" for s in samples))
+    assert peak_rate(path, 30.0) == pytest.approx(8 * 50_000 / 1000)  # 400 kbit/s
+    assert peak_rate(path, 60.0) == pytest.approx(8 * (30 * 10_000 + 30 * 50_000) / 60 / 1000)
+    assert peak_rate(path, 61.0) is None

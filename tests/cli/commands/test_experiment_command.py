@@ -20,6 +20,8 @@ def parse(argv: list[str]) -> argparse.Namespace:
 
 
 def test_bandwidth_defaults() -> None:
+    from common.netem import shaping_unavailable
+
     args = parse([])
     assert args.func is experiment.run
     assert experiment.bandwidth_config(args) == BandwidthConfig(
@@ -28,7 +30,9 @@ def test_bandwidth_defaults() -> None:
         robots=(),
         out=Path("out/bandwidth"),
         timeout_s=1800.0,
+        shaper="tbf" if shaping_unavailable() is None else "proxy",  # --shaper auto
     )
+    assert experiment.bandwidth_config(parse(["--shaper", "proxy"])).shaper == "proxy"
 
 
 def test_bandwidth_options_reach_the_config() -> None:

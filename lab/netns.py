@@ -1,0 +1,198 @@
+"""Robots in network namespaces of their own, each linked to a hub namespace by a veth pair
+shaped with kernel ``tbf`` in both directions: the topology of
+``recslam experiment bandwidth --shaper tbf``.
+
+::
+
+    namespace rsbw<pid>-0   veth 10.215.0.2 ──tbf── 10.215.0.1 veth ┐
+    namespace rsbw<pid>-1   veth 10.215.1.2 ──tbf── 10.215.1.1 veth ┤ namespace rsbw<pid>-hub
+    ...                                                               ┘ (edge, cloud on its lo)
+
+Nothing is added to the caller's own namespace (no interface, address, route or firewall
+rule); the addresses exist only inside the namespaces, so traffic cannot leave the machine.
+Each veth end gets ``tc qdisc add dev X root tbf rate R burst B latency L`` (its egress: the
+robot's end shapes robot→edge, the hub's end edge→robot). :func:`star` creates it all,
+yields, and deletes the namespaces (and with them their veth pairs) on the way out, also
+after an error; it first deletes namespaces of this prefix left by a process that no longer
+runs. Needs root and iproute2 (``ip``, ``tc``); :func:`check_available` says why not.
+
+The services run inside with ``ip netns exec NS``: :meth:`Star.placement` gives
+``recslam.orchestration`` the argv prefixes and addresses.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import re
+import subprocess
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass
+
+from common.netem import ShapingError, run_checked, shaping_unavailable
+from recslam.orchestration import Placement
+
+log = logging.getLogger(__name__)
+
+PREFIX = "rsbw"
+"""Namespaces of this module are named ``rsbw<pid>-hub`` and ``rsbw<pid>-<i>``."""
+
+_SUBNET = "10.215"
+
+
+@dataclass(frozen=True)
+class Tbf:
+    """One ``tbf`` qdisc: ``rate`` kbit/s (1 kbit = 1000 bit), bucket ``burst_bytes``, and
+    ``latency_ms``, the longest a packet may wait in the queue before it is dropped (so the
+    queue holds about rate × latency + burst bytes)."""
+
+    rate_kbit: float
+    burst_bytes: int = 4000
+    latency_ms: int = 400
+
+    def __post_init__(self) -> None:
+        if not self.rate_kbit > 0:
+            raise ShapingError(f"tbf rate must be positive, got {self.rate_kbit} kbit/s")
+        if self.burst_bytes < 1600:
+            raise ShapingError(f"tbf burst {self.burst_bytes} B is below one packet (1600 B)")
+        if self.latency_ms <= 0:
+            raise ShapingError(f"tbf latency must be positive, got {self.latency_ms} ms")
+
+    def tc_args(self) -> list[str]:
+        """The qdisc's ``tc`` parameters (after ``root``)."""
+        rate_bit = round(self.rate_kbit * 1000)
+        burst, latency = str(self.burst_bytes), f"{self.latency_ms}ms"
+        return ["tbf", "rate", f"{rate_bit}bit", "burst", burst, "latency", latency]
+
+
+@dataclass(frozen=True)
+class Leaf:
+    """One robot's namespace and its link: ``addr`` its address, ``hub_addr`` the hub's end."""
+
+    name: str
+    namespace: str
+    addr: str
+    hub_addr: str
+    device: str
+    hub_device: str
+
+
+@dataclass(frozen=True)
+class Star:
+    """A hub namespace and one shaped leaf namespace per name (see the module docstring)."""
+
+    hub: str
+    leaves: dict[str, Leaf]
+    shape: Tbf | None
+
+    def exec_argv(self, namespace: str, argv: Sequence[str]) -> list[str]:
+        """argv that runs ``argv`` inside ``namespace``."""
+        return ["ip", "netns", "exec", namespace, *argv]
+
+    def placement(self, hub_services: Sequence[str] = ("cloud", "edge")) -> Placement:
+        """Cloud and edge in the hub (the edge listening on every hub address), each leaf's
+        robot in its namespace reaching the edge at its link's hub address."""
+        prefix = {name: tuple(self.exec_argv(self.hub, [])) for name in hub_services}
+        for name, leaf in self.leaves.items():
+            prefix[name] = tuple(self.exec_argv(leaf.namespace, []))
+        edge_host = {name: leaf.hub_addr for name, leaf in self.leaves.items()}
+        return Placement(prefix=prefix, edge_listen_host="0.0.0.0", edge_host=edge_host)
+
+
+def check_available() -> None:
+    """Raise ShapingError naming why namespaces with tbf cannot be made here (not root, no
+    ``ip`` / ``tc``, no namespaces, no tbf qdisc)."""
+    reason = shaping_unavailable()
+    if reason is not None:
+        raise ShapingError(f"kernel tbf shaping in network namespaces unavailable: {reason}")
+
+
+def namespaces() -> list[str]:
+    """Names of the network namespaces ``ip netns list`` shows."""
+    out = subprocess.run(["ip", "netns", "list"], capture_output=True, text=True, check=False)
+    return [line.split()[0] for line in out.stdout.splitlines() if line.strip()]
+
+
+def cleanup_leftovers(prefix: str = PREFIX) -> list[str]:
+    """Delete namespaces of ``prefix`` whose creating process no longer runs; returns them."""
+    pattern = re.compile(rf"^{re.escape(prefix)}(\d+)-")
+    removed = []
+    for ns in namespaces():
+        m = pattern.match(ns)
+        if m is None or _alive(int(m.group(1))):
+            continue
+        subprocess.run(["ip", "netns", "del", ns], capture_output=True, check=False)
+        removed.append(ns)
+    if removed:
+        log.warning("deleted namespaces left by an earlier run: %s", ", ".join(removed))
+    return removed
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+@contextmanager
+def star(names: Sequence[str], shape: Tbf | None, prefix: str = PREFIX) -> Iterator[Star]:
+    """Create the hub and one leaf namespace per name (at most 250), each link shaped with
+    ``shape`` in both directions (None: not shaped, same topology); delete them on exit."""
+    check_available()
+    if not 0 < len(names) <= 250:
+        raise ShapingError(f"1..250 leaves, got {len(names)}")
+    cleanup_leftovers(prefix)
+    tag = f"{prefix}{os.getpid()}"
+    hub = f"{tag}-hub"
+    created: list[str] = []
+    try:
+        _add_namespace(hub, created)
+        leaves = {}
+        for i, name in enumerate(names):
+            leaf = Leaf(
+                name=name,
+                namespace=f"{tag}-{i}",
+                addr=f"{_SUBNET}.{i}.2",
+                hub_addr=f"{_SUBNET}.{i}.1",
+                device=f"rsbw{i}r",
+                hub_device=f"rsbw{i}h",
+            )
+            _add_namespace(leaf.namespace, created)
+            _link(hub, leaf, shape)
+            leaves[name] = leaf
+        log.info(
+            "namespaces %s: %d robots linked to %s, %s",
+            tag,
+            len(leaves),
+            hub,
+            "unshaped" if shape is None else f"tbf {' '.join(shape.tc_args()[1:])} each way",
+        )
+        yield Star(hub, leaves, shape)
+    finally:
+        for ns in reversed(created):
+            subprocess.run(["ip", "netns", "del", ns], capture_output=True, check=False)
+
+
+def _add_namespace(ns: str, created: list[str]) -> None:
+    run_checked(["ip", "netns", "add", ns])
+    created.append(ns)
+    run_checked(["ip", "-n", ns, "link", "set", "lo", "up"])
+
+
+def _link(hub: str, leaf: Leaf, shape: Tbf | None) -> None:
+    veth = ["type", "veth", "peer", "name", leaf.hub_device, "netns", hub]
+    run_checked(["ip", "-n", leaf.namespace, "link", "add", leaf.device, *veth])
+    for ns, dev, addr in (
+        (leaf.namespace, leaf.device, leaf.addr),
+        (hub, leaf.hub_device, leaf.hub_addr),
+    ):
+        run_checked(["ip", "-n", ns, "addr", "add", f"{addr}/30", "dev", dev])
+        run_checked(["ip", "-n", ns, "link", "set", dev, "up"])
+        if shape is not None:
+            tc = ["tc", "qdisc", "add", "dev", dev, "root", *shape.tc_args()]
+            run_checked(["ip", "netns", "exec", ns, *tc])
