@@ -83,9 +83,10 @@ def test_new_edge_map_of_a_robot_is_a_new_agent_and_survives_restart(tmp_path, v
         restarted.close()
 
 
-def test_mbp_through_the_app_marks_pruned_items_and_is_durable(tmp_path, vocab):
+def _half_circle_session():
+    """One agent's 30 keyframes over half a circle with its map points (MBP has work)."""
     world = make_world(31, n_points=2000)
-    kfs, mps = make_session(
+    return make_session(
         world,
         default_camera(),
         0,
@@ -95,6 +96,10 @@ def test_mbp_through_the_app_marks_pruned_items_and_is_durable(tmp_path, vocab):
         dt=0.2,
         track_gap=30,
     )
+
+
+def test_mbp_through_the_app_marks_pruned_items_and_is_durable(tmp_path, vocab):
+    kfs, mps = _half_circle_session()
     app = _app(tmp_path, vocab)
     for k in kfs:
         app.fusion.add_keyframe(k, detect=False)
@@ -128,17 +133,7 @@ def test_mbp_through_the_app_marks_pruned_items_and_is_durable(tmp_path, vocab):
 def test_mbp_while_running_keeps_the_unsettled_newest_keyframes(tmp_path, vocab):
     """A pass while running never removes an agent's ``mbp_settle_keyframes`` newest
     keyframes (still in the edge's reach); the final pass at shutdown may."""
-    world = make_world(31, n_points=2000)
-    kfs, mps = make_session(
-        world,
-        default_camera(),
-        0,
-        circle_poses(30, turns=0.5),
-        np.eye(4),
-        seed=6,
-        dt=0.2,
-        track_gap=30,
-    )
+    kfs, mps = _half_circle_session()
     newest = {make_key(0, k.keyframe_id) for k in kfs[-12:]}
     removed = {}
     for final in (False, True):

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from common.data.synth.imu_sim import GRAVITY_WORLD, ideal_imu
-from common.geometry import R_to_quat_wxyz, quat_wxyz_to_R
+from common.geometry import R_to_quat_wxyz, quat_wxyz_to_R, so3_log
 
 # A 8 s arc of about 0.55 m/s with a slow yaw turn (t x y z qx qy qz qw), typed by hand.
 HAND_MADE_TUM = """\
@@ -83,3 +83,23 @@ def _integrate(traj, t0: float, t1: float, h: float = 0.002) -> tuple[np.ndarray
 @pytest.fixture
 def integrate_imu() -> Callable[..., tuple[np.ndarray, ...]]:
     return _integrate
+
+
+def check_derivatives(traj, t: np.ndarray, h: float = 1e-4) -> None:
+    """A flight's velocity, acceleration and body rate at ``t`` (N,) agree with central
+    finite differences of its position, velocity and attitude."""
+    st, sp, sm = traj.evaluate(t), traj.evaluate(t + h), traj.evaluate(t - h)
+    v_num = (sp.p_world_body - sm.p_world_body) / (2 * h)
+    a_num = (sp.v_world_body - sm.v_world_body) / (2 * h)
+    np.testing.assert_allclose(st.v_world_body, v_num, atol=1e-6)
+    np.testing.assert_allclose(st.a_world_body, a_num, atol=1e-5)
+    w_num = np.array(
+        [so3_log(a.T @ b) / (2 * h) for a, b in zip(sm.R_world_body, sp.R_world_body, strict=True)]
+    )
+    np.testing.assert_allclose(st.omega_body, w_num, atol=1e-6)
+
+
+@pytest.fixture
+def derivatives_agree() -> Callable[..., None]:
+    """:func:`check_derivatives`, for the tests of this folder."""
+    return check_derivatives
