@@ -278,9 +278,9 @@ class CloudServiceConfig:
         optimisation (default 0.5 s).
     mbp_every_keyframes: MBP runs on a map (when ``domain.mbp.enabled``) after this many new
         keyframes since its last pass, right after an optimisation (0 = never while running;
-        default 0: on the recorded 3-robot run, pruning every 100 keyframes while loops were
-        still reshaping the map raised the final joint ATE from 1.4 to 3.8 cm, see
-        benchmarks/results/table3.md) ...
+        default 0: pruning every 40 keyframes still costs joint ATE on some recordings even
+        with ``mbp_settle_keyframes``, +3 / +9 / +109 % on three, see
+        benchmarks/results/mbp_midrun.md) ...
     mbp_at_shutdown: ... and over every map at shutdown, after the last full BA, before the
         trajectories are written (default True): the persisted map is the pruned one.
     mbp_keep_recent: each agent's newest keyframes MBP never removes (default 5) ...
