@@ -30,7 +30,15 @@ from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 
-from common.netem import ShapingError, run_checked, shaping_unavailable
+from common.netem import (
+    ShapingError,
+    Tbf,
+    add_namespace,
+    delete_namespaces,
+    netns_exec,
+    shaping_unavailable,
+    veth_link,
+)
 from recslam.orchestration import Placement
 
 log = logging.getLogger(__name__)
@@ -39,31 +47,6 @@ PREFIX = "rsbw"
 """Namespaces of this module are named ``rsbw<pid>-hub`` and ``rsbw<pid>-<i>``."""
 
 _SUBNET = "10.215"
-
-
-@dataclass(frozen=True)
-class Tbf:
-    """One ``tbf`` qdisc: ``rate`` kbit/s (1 kbit = 1000 bit), bucket ``burst_bytes``, and
-    ``latency_ms``, the longest a packet may wait in the queue before it is dropped (so the
-    queue holds about rate × latency + burst bytes)."""
-
-    rate_kbit: float
-    burst_bytes: int = 4000
-    latency_ms: int = 400
-
-    def __post_init__(self) -> None:
-        if not self.rate_kbit > 0:
-            raise ShapingError(f"tbf rate must be positive, got {self.rate_kbit} kbit/s")
-        if self.burst_bytes < 1600:
-            raise ShapingError(f"tbf burst {self.burst_bytes} B is below one packet (1600 B)")
-        if self.latency_ms <= 0:
-            raise ShapingError(f"tbf latency must be positive, got {self.latency_ms} ms")
-
-    def tc_args(self) -> list[str]:
-        """The qdisc's ``tc`` parameters (after ``root``)."""
-        rate_bit = round(self.rate_kbit * 1000)
-        burst, latency = str(self.burst_bytes), f"{self.latency_ms}ms"
-        return ["tbf", "rate", f"{rate_bit}bit", "burst", burst, "latency", latency]
 
 
 @dataclass(frozen=True)
@@ -88,7 +71,7 @@ class Star:
 
     def exec_argv(self, namespace: str, argv: Sequence[str]) -> list[str]:
         """argv that runs ``argv`` inside ``namespace``."""
-        return ["ip", "netns", "exec", namespace, *argv]
+        return netns_exec(namespace, argv)
 
     def placement(self, hub_services: Sequence[str] = ("cloud", "edge")) -> Placement:
         """Cloud and edge in the hub (the edge listening on every hub address), each leaf's
@@ -122,7 +105,7 @@ def cleanup_leftovers(prefix: str = PREFIX) -> list[str]:
         m = pattern.match(ns)
         if m is None or _alive(int(m.group(1))):
             continue
-        subprocess.run(["ip", "netns", "del", ns], capture_output=True, check=False)
+        delete_namespaces([ns])
         removed.append(ns)
     if removed:
         log.warning("deleted namespaces left by an earlier run: %s", ", ".join(removed))
@@ -151,7 +134,7 @@ def star(names: Sequence[str], shape: Tbf | None, prefix: str = PREFIX) -> Itera
     hub = f"{tag}-hub"
     created: list[str] = []
     try:
-        _add_namespace(hub, created)
+        add_namespace(hub, created)
         leaves = {}
         for i, name in enumerate(names):
             leaf = Leaf(
@@ -162,8 +145,13 @@ def star(names: Sequence[str], shape: Tbf | None, prefix: str = PREFIX) -> Itera
                 device=f"rsbw{i}r",
                 hub_device=f"rsbw{i}h",
             )
-            _add_namespace(leaf.namespace, created)
-            _link(hub, leaf, shape)
+            add_namespace(leaf.namespace, created)
+            veth_link(
+                (leaf.namespace, leaf.device, leaf.addr),
+                (hub, leaf.hub_device, leaf.hub_addr),
+                shape,
+                shape,
+            )
             leaves[name] = leaf
         log.info(
             "namespaces %s: %d robots linked to %s, %s",
@@ -174,25 +162,4 @@ def star(names: Sequence[str], shape: Tbf | None, prefix: str = PREFIX) -> Itera
         )
         yield Star(hub, leaves, shape)
     finally:
-        for ns in reversed(created):
-            subprocess.run(["ip", "netns", "del", ns], capture_output=True, check=False)
-
-
-def _add_namespace(ns: str, created: list[str]) -> None:
-    run_checked(["ip", "netns", "add", ns])
-    created.append(ns)
-    run_checked(["ip", "-n", ns, "link", "set", "lo", "up"])
-
-
-def _link(hub: str, leaf: Leaf, shape: Tbf | None) -> None:
-    veth = ["type", "veth", "peer", "name", leaf.hub_device, "netns", hub]
-    run_checked(["ip", "-n", leaf.namespace, "link", "add", leaf.device, *veth])
-    for ns, dev, addr in (
-        (leaf.namespace, leaf.device, leaf.addr),
-        (hub, leaf.hub_device, leaf.hub_addr),
-    ):
-        run_checked(["ip", "-n", ns, "addr", "add", f"{addr}/30", "dev", dev])
-        run_checked(["ip", "-n", ns, "link", "set", dev, "up"])
-        if shape is not None:
-            tc = ["tc", "qdisc", "add", "dev", dev, "root", *shape.tc_args()]
-            run_checked(["ip", "netns", "exec", ns, *tc])
+        delete_namespaces(created[::-1])
