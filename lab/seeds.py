@@ -357,10 +357,8 @@ def constraint_check(
     ``constraints``, ``wrong_constraints``, ``max_constraint_err_m`` / ``_deg``; None where
     not computable (no state, no ground truth)."""
     criterion = criterion or LoopCriterion()
-    from common.evaluation.metrics import rotation_angles_deg
     from common.evaluation.results import load_groundtruth
-    from common.geometry import inverse_T
-    from lab.loop_scoring import GroundTruthPoses
+    from lab.loop_scoring import Detection, GroundTruthPoses, KeyframeInfo, score_detection
     from services.cloud.persistence import CloudStore
 
     none: dict[str, float | int | None] = dict.fromkeys(
@@ -378,23 +376,20 @@ def constraint_check(
         return none
     # Identity extrinsic: body poses only (constraints are between keyframe bodies).
     gt = GroundTruthPoses(refs, np.eye(4), criterion.max_gt_gap_s)
-    errs_m, errs_deg = [], []
-    for edge in atlas.loops():
-        ka, kb = atlas.keyframe(edge.key_a), atlas.keyframe(edge.key_b)
-        Ta = gt.T_world_body(names[ka.agent_id], ka.timestamp)
-        Tb = gt.T_world_body(names[kb.agent_id], kb.timestamp)
-        if Ta is None or Tb is None:
-            continue
-        T_gt = inverse_T(Ta) @ Tb
-        errs_m.append(float(np.linalg.norm(edge.T_a_b[:3, 3] - T_gt[:3, 3])))
-        errs_deg.append(float(rotation_angles_deg(T_gt[:3, :3].T @ edge.T_a_b[:3, :3])[0]))
-    m, d = np.array(errs_m), np.array(errs_deg)
-    wrong = (m > criterion.max_trans_err_m) | (d > criterion.max_rot_err_deg)
+    info = {
+        k.key: KeyframeInfo(k.key, names[k.agent_id], k.timestamp)
+        for k in (atlas.keyframe(key) for key in atlas.keyframe_keys())
+    }
+    # T_a_b: body b in body a, the detection's T_match_query with b as the query.
+    detections = (Detection(e.key_b, e.key_a, e.T_a_b, True, "loop", "", 0) for e in atlas.loops())
+    scores = [score_detection(d, info, gt, criterion) for d in detections]
+    errors = [(s.trans_err_m, s.rot_err_deg, s.true) for s in scores]
+    judged = [(m, d, ok) for m, d, ok in errors if m is not None and d is not None]
     return {
-        "constraints": len(m),
-        "wrong_constraints": int(wrong.sum()),
-        "max_constraint_err_m": float(m.max()) if len(m) else None,
-        "max_constraint_err_deg": float(d.max()) if len(d) else None,
+        "constraints": len(judged),
+        "wrong_constraints": sum(1 for _, _, ok in judged if not ok),
+        "max_constraint_err_m": max((m for m, _, _ in judged), default=None),
+        "max_constraint_err_deg": max((d for _, d, _ in judged), default=None),
     }
 
 

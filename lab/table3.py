@@ -126,7 +126,8 @@ class _Observations:
             return  # not a new keyframe (an update, or one the cloud pruned)
         kf = self.app.atlas.keyframe(events.key)
         self.info[events.key] = KeyframeInfo(events.key, self._name(kf.agent_id), kf.timestamp)
-        connected = [k for k, _ in self.app.atlas.covisible(events.key) if k in set(held)]
+        held_keys = set(held.tolist())
+        connected = [k for k, _ in self.app.atlas.covisible(events.key) if k in held_keys]
         self.queries.append(QueryEvent(events.key, held, np.array(connected, np.int64)))
         accepted = {(o.loop.key_b, o.loop.key_a): o for o in events.outcomes}
         for v in events.verifications:
