@@ -7,7 +7,7 @@ benchmarks) read :meth:`TrafficCounters.snapshot`, which returns plain data::
             "by_type": {"Blob": {"messages": 10, "bytes": 3300}, "Hello": {...}}},
      "rx": {...},
      "retransmitted_messages": 0, "retransmitted_bytes": 0,
-     "duplicates_dropped": 0, "connections": 1}
+     "duplicates_dropped": 0, "late_acks": 0, "connections": 1}
 """
 
 from __future__ import annotations
@@ -25,6 +25,7 @@ class TrafficCounters:
         self.retransmitted_messages = 0
         self.retransmitted_bytes = 0
         self.duplicates_dropped = 0
+        self.late_acks = 0  # retransmit timeouts while the peer was talking (no resend)
         self.connections = 0
 
     def record(self, direction: Direction, type_name: str, nbytes: int) -> None:
@@ -45,6 +46,7 @@ class TrafficCounters:
         self.retransmitted_messages += other.retransmitted_messages
         self.retransmitted_bytes += other.retransmitted_bytes
         self.duplicates_dropped += other.duplicates_dropped
+        self.late_acks += other.late_acks
         self.connections += other.connections
 
     def total(self, direction: Direction) -> tuple[int, int]:
@@ -68,5 +70,6 @@ class TrafficCounters:
         out["retransmitted_messages"] = self.retransmitted_messages
         out["retransmitted_bytes"] = self.retransmitted_bytes
         out["duplicates_dropped"] = self.duplicates_dropped
+        out["late_acks"] = self.late_acks
         out["connections"] = self.connections
         return out

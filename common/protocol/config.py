@@ -30,8 +30,10 @@ class SessionConfig:
         heartbeat_interval: send a Heartbeat after this many idle seconds.
         idle_timeout: peer silent this long (s) = dead; must exceed heartbeat_interval.
         handshake_timeout: handshake must complete within this many seconds.
-        retransmit_timeout: initial timeout (s) before the oldest in-flight message is resent.
-        max_retransmit_timeout: cap of the doubling retransmit timeout (s).
+        retransmit_timeout: least timeout (s) before the oldest in-flight message is resent;
+            it adapts upwards to the measured time to an ack, and a peer heard from meanwhile
+            gets no resend (``recovery.py``).
+        max_retransmit_timeout: cap of the adaptive and doubling retransmit timeout (s).
         ack_delay: an explicit Ack goes out at most this many seconds after a delivery.
         ack_every: ... or immediately after this many unacknowledged deliveries.
         window_messages: receive window, messages accepted but not yet delivered.
@@ -69,6 +71,11 @@ class SessionConfig:
                 raise LocalProtocolError(f"{name} must be a non-empty str of <= 64 chars")
         if self.idle_timeout <= self.heartbeat_interval:
             raise LocalProtocolError("idle_timeout must exceed heartbeat_interval")
+        if not 0 < self.retransmit_timeout <= self.max_retransmit_timeout:
+            raise LocalProtocolError(
+                "need 0 < retransmit_timeout <= max_retransmit_timeout, got "
+                f"{self.retransmit_timeout}, {self.max_retransmit_timeout}"
+            )
         if min(self.window_messages, self.window_bytes, self.ack_every) < 1:
             raise LocalProtocolError("windows and ack_every must be positive")
 

@@ -23,7 +23,9 @@ delivered them (the receiver acks after ``mark_delivered``, never on arrival); a
 cumulative and ride in every frame header (explicit ``Ack`` after ``ack_delay`` or
 ``ack_every`` deliveries); on (re)connect both sides exchange stream ids, first unacked and
 last delivered sequences and the sender replays everything unacknowledged; duplicates are
-dropped; the oldest in-flight message is retransmitted on timeout with exponential backoff;
+dropped; the oldest in-flight message is retransmitted on timeout with exponential backoff,
+but only to a peer silent since (``recovery.py``: on a live TCP connection a late ack is a busy
+handler, not a loss; the timeout adapts to the measured time to an ack);
 heartbeats keep an idle link alive and silence beyond ``idle_timeout`` is a dead peer.
 The receiver bounds what it holds with a window (messages and bytes) that the sender honours.
 """
@@ -64,6 +66,7 @@ from common.protocol.framing import (
     encode_frame,
 )
 from common.protocol.link import Link
+from common.protocol.recovery import RetransmitTimer
 from common.protocol.messages import (
     SCHEMA_VERSION,
     Ack,
@@ -141,8 +144,7 @@ class Session:
         self._last_tx = now
         self._ack_sent = 0
         self._ack_deadline: float | None = None
-        self._rto = config.retransmit_timeout
-        self._rto_deadline: float | None = None
+        self._recovery = RetransmitTimer(config.retransmit_timeout, config.max_retransmit_timeout)
         self._next_tx = 1
         self._inflight_bytes = 0
         self._peer_window = (1, 1)
@@ -265,16 +267,16 @@ class Session:
         Returns at most about ``limit`` bytes of application frames per call.
         """
         if self.state is State.ESTABLISHED:
-            self._transmit_outbox(limit)
+            self._transmit_outbox(limit, now)
         out, self._out = self._out, []
         if out:
             self._last_tx = now
             if (
                 self.state is State.ESTABLISHED
-                and self._rto_deadline is None
+                and self._recovery.deadline is None
                 and self._next_tx > self._first_inflight()
             ):
-                self._rto_deadline = now + self._rto
+                self._recovery.arm(now)
         return out
 
     def get_timer(self) -> float | None:
@@ -289,8 +291,8 @@ class Session:
         ]
         if self._ack_deadline is not None:
             times.append(self._ack_deadline)
-        if self._rto_deadline is not None:
-            times.append(self._rto_deadline)
+        if self._recovery.deadline is not None:
+            times.append(self._recovery.deadline)
         return min(times)
 
     def handle_timer(self, now: float) -> None:
@@ -310,8 +312,10 @@ class Session:
             )
         if self._ack_deadline is not None and now >= self._ack_deadline:
             self._emit(Ack())
-        if self._rto_deadline is not None and now >= self._rto_deadline:
-            self._retransmit_oldest(now)
+        late = self._recovery.late_acks
+        if self._recovery.due(now, self._last_rx):
+            self._retransmit_oldest()
+        self.counters.late_acks += self._recovery.late_acks - late
         if now >= self._last_tx + self.config.heartbeat_interval and not self._out:
             self._emit(Heartbeat())
             self._last_tx = now
@@ -382,8 +386,11 @@ class Session:
             if seq < self._next_tx:
                 self._inflight_bytes -= size
         self._next_tx = max(self._next_tx, ack + 1)
-        self._rto = self.config.retransmit_timeout
-        self._rto_deadline = now + self._rto if self._next_tx > link.first_unacked else None
+        self._recovery.on_acked(ack, now)
+        if self._next_tx > link.first_unacked:
+            self._recovery.arm(now)
+        else:
+            self._recovery.disarm()
         self._events.append(Acknowledged(ack))
 
     # handshake handlers -----------------------------------------------------------
@@ -481,6 +488,7 @@ class Session:
             raise RemoteProtocolError("invalid window in handshake")
         link.resume(peer_out_stream, peer_first_unacked, peer_in_stream, peer_last_delivered)
         self._next_tx = link.first_unacked
+        self._recovery.forget()
         self._inflight_bytes = 0
         self._peer_window = peer_window
         self._ack_sent = link.last_delivered
@@ -505,7 +513,7 @@ class Session:
         assert self.link is not None
         return self.link.first_unacked
 
-    def _transmit_outbox(self, limit: int) -> None:
+    def _transmit_outbox(self, limit: int, now: float) -> None:
         link = self.link
         assert link is not None
         window_messages, window_bytes = self._peer_window
@@ -522,25 +530,25 @@ class Session:
             flags = FLAG_RETRANSMIT if seq <= link.highest_sent else 0
             frame = self._frame(entry.type_id, entry.payload, seq, flags)
             self._count_tx(entry.type_name, len(frame), flags)
+            self._recovery.on_sent(seq, now, resent=bool(flags))
             self._out.append(frame)
             link.highest_sent = max(link.highest_sent, seq)
             self._next_tx += 1
             self._inflight_bytes += size
             sent += len(frame)
 
-    def _retransmit_oldest(self, now: float) -> None:
+    def _retransmit_oldest(self) -> None:
         link = self.link
         assert link is not None
         first = link.first_unacked
         if self._next_tx <= first:
-            self._rto_deadline = None
+            self._recovery.disarm()
             return
         entry = link.outbox[first]
         frame = self._frame(entry.type_id, entry.payload, first, FLAG_RETRANSMIT)
         self._count_tx(entry.type_name, len(frame), FLAG_RETRANSMIT)
         self._out.append(frame)
-        self._rto = min(2 * self._rto, self.config.max_retransmit_timeout)
-        self._rto_deadline = now + self._rto
+        self._recovery.on_sent(first, 0.0, resent=True)
 
     def _frame(self, type_id: int, payload: bytes, seq: int, flags: int) -> bytes:
         ack = 0

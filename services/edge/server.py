@@ -41,6 +41,7 @@ from common.protocol import OutboxFullError, PeerRejectedError, SessionConfig
 from common.protocol.auth import Keyring, as_keyring
 from common.protocol.messages import Message
 from common.transport import Client, Server, TransportConfig
+from common.transport.stalls import StallMonitor
 from common.transport.tls import TlsFiles
 from common.vocabulary import Vocabulary
 from services.edge.app import EdgeApp, EdgeConfig
@@ -82,7 +83,7 @@ def flat_counters(snap: dict[str, Any]) -> dict[str, int]:
         out[f"{direction}.bytes"] = int(d.get("bytes", 0))
         for name, e in d.get("by_type", {}).items():
             out[f"{direction}.{name}"] = int(e["bytes"])
-    for key in ("retransmitted_messages", "retransmitted_bytes", "duplicates_dropped"):
+    for key in ("retransmitted_messages", "retransmitted_bytes", "duplicates_dropped", "late_acks"):
         out[key] = int(snap.get(key, 0))
     return out
 
@@ -159,6 +160,7 @@ class EdgeServer:
         self.dropped_uplink = 0
         self.replayed_frames = 0
         self.address: tuple[str, int] | None = None
+        self.stalls = StallMonitor("edge")
 
     # ------------------------------------------------------------------ Sink
     def to_robot(self, agent_id: str, message: Message) -> bool:
@@ -190,6 +192,7 @@ class EdgeServer:
     # ------------------------------------------------------------------ lifecycle
     async def start(self, host: str = "127.0.0.1", port: int = 0) -> tuple[str, int]:
         """Connect to the cloud, replay the journals, then listen; returns the bound address."""
+        self.stalls.start()
         if self.cloud is not None:
             await self.cloud.start()
         self.replayed_frames = await self.app.replay()
@@ -227,6 +230,7 @@ class EdgeServer:
             await self.cloud.close()
         if self.store is not None:
             self.store.close()
+        await self.stalls.stop()
 
     async def _flush_cloud_at_stop(self) -> None:
         assert self.cloud is not None and self.cloud.peer is not None
@@ -289,6 +293,7 @@ class EdgeServer:
             "replayed_frames": self.replayed_frames,
             "dropped_feedback": self.dropped_feedback,
             "dropped_uplink": self.dropped_uplink,
+            "loop_stalls": self.stalls.stats.snapshot(),
             "cloud": None
             if self.cloud is None or self.cloud.peer is None
             else self.cloud.counters(),
