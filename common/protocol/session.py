@@ -66,7 +66,6 @@ from common.protocol.framing import (
     encode_frame,
 )
 from common.protocol.link import Link
-from common.protocol.recovery import RetransmitTimer
 from common.protocol.messages import (
     SCHEMA_VERSION,
     Ack,
@@ -82,6 +81,7 @@ from common.protocol.messages import (
     encode_payload,
     message_class,
 )
+from common.protocol.recovery import RetransmitTimer
 
 logger = logging.getLogger(__name__)
 
@@ -142,6 +142,7 @@ class Session:
         self._handshake_deadline: float | None = now + config.handshake_timeout
         self._last_rx = now
         self._last_tx = now
+        self._last_run = now  # the last call of ours: time we were not running is not silence
         self._ack_sent = 0
         self._ack_deadline: float | None = None
         self._recovery = RetransmitTimer(config.retransmit_timeout, config.max_retransmit_timeout)
@@ -180,6 +181,7 @@ class Session:
         """Feed bytes from the connection. Raises RemoteProtocolError on a bad peer."""
         if self.state is State.CLOSED:
             return
+        self._attend(now)
         try:
             self._decoder.receive_data(data)
             while self.state is not State.CLOSED:
@@ -299,6 +301,7 @@ class Session:
         """Run due timers. Raises PeerTimeoutError for a dead peer or a stalled handshake."""
         if self.state is State.CLOSED:
             return
+        self._attend(now)
         if self.state is not State.ESTABLISHED:
             if self._handshake_deadline is not None and now >= self._handshake_deadline:
                 limit = self.config.handshake_timeout
@@ -508,6 +511,16 @@ class Session:
         self._events.append(
             HandshakeComplete(self.peer_role or "", self.peer_agent_id or "", replay)
         )
+
+    def _attend(self, now: float) -> None:
+        """We run at ``now``. The transport runs us at least once per heartbeat interval
+        (``get_timer``); if we had not run for more than two (our own process stalled: a busy
+        loop, a starved CPU), the peer's frames of that time may sit unread in the socket: the
+        time beyond one interval is not counted as the peer's silence."""
+        away = now - self._last_run
+        if away > 2 * self.config.heartbeat_interval:
+            self._last_rx += away - self.config.heartbeat_interval
+        self._last_run = max(self._last_run, now)
 
     def _first_inflight(self) -> int:
         assert self.link is not None

@@ -11,14 +11,19 @@ draining it:
   before any description, or a robot that re-joins under the same agent id with a different
   calibration is refused (``RejectedMessageError``: the robot is told why with a ``Reject``
   and stops; the message is never redelivered); other robots are unaffected;
-- ``RobotFrame``: decoded at once on the loop (in stream order; a frame that does not decode
-  is refused likewise and leaves the decoders untouched), journaled (when a journal
-  is configured) and queued; the handler returns, so the transport acknowledges, once the
+- ``RobotFrame``: decoded at once (in stream order; a frame that does not decode is refused
+  likewise and leaves the decoders untouched), journaled (when a journal is configured) and
+  queued; the handler returns, so the transport acknowledges, once the
   frame is in the journal. The queue is bounded (``EdgeConfig.max_queued_frames``): a full
   queue makes the handler wait, which back-pressures the robot through the protocol window;
 - the robot's task feeds the worker frame by frame, one frame ahead (the worker computes the
   next frame while the loop turns the previous result into messages via the :class:`Sink`:
   feedback to the robot, uplink to the cloud);
+- the robot's codec work (decoding its frames, turning its VIO results into messages) runs on
+  the robot's own codec thread, one call at a time, never on the event loop: six robots'
+  decoding on a loaded machine once held the loop for 12 s, longer than the peers' idle
+  timeout, and every robot timed out (#20). The loop only moves messages, so heartbeats and
+  acks keep flowing however busy the codecs are;
 - ``PoseCorrection`` from the cloud is attached to that robot's next frame;
 - on start, :meth:`EdgeApp.replay` re-decodes each journal and fast-forwards the VIO over it
   (no robot feedback during replay; keyframes are uplinked again, the cloud is idempotent).
@@ -29,8 +34,10 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import dataclasses
+import functools
 import logging
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
@@ -93,6 +100,7 @@ class _Robot:
     worker: Worker
     queue: asyncio.Queue[tuple[WorkItem | None, bool]]
     space: asyncio.Event
+    codec: ThreadPoolExecutor  # decode and on_result, one at a time (they share state)
     corrections: list[tuple[int, dict[int, np.ndarray]]] = field(default_factory=list)
     task: asyncio.Task[None] | None = None
     idle: asyncio.Event = field(default_factory=asyncio.Event)
@@ -131,6 +139,7 @@ class EdgeApp:
             self.worker_factory(spec, self.config.worker),
             asyncio.Queue(),
             asyncio.Event(),
+            ThreadPoolExecutor(1, thread_name_prefix=f"codec-{agent_id}"),
         )
         rb.idle.set()
         rb.task = asyncio.create_task(self._drain(rb), name=f"edge-robot-{agent_id}")
@@ -211,7 +220,8 @@ class EdgeApp:
         res = await step
         if res.failed:
             logger.error("robot %s: %s (other robots unaffected)", s.agent_id, res.failed)
-        out = s.on_result(res, replaying=replaying)
+        on_result = functools.partial(s.on_result, res, replaying=replaying)
+        out = await asyncio.get_running_loop().run_in_executor(rb.codec, on_result)
         for m in out.robot:
             if not self.sink.to_robot(s.agent_id, m):
                 s.feedback_lost()
@@ -253,7 +263,8 @@ class EdgeApp:
             )
         if isinstance(m, RobotFrame):
             try:
-                item = rb.session.decode(m)
+                loop = asyncio.get_running_loop()
+                item = await loop.run_in_executor(rb.codec, rb.session.decode, m)
             except CodecError as exc:  # the robot's fault: refused once, decoders untouched
                 raise RejectedMessageError(
                     f"robot {agent_id}: frame {m.frame_index} does not decode: {exc}"
@@ -365,3 +376,4 @@ class EdgeApp:
                 with contextlib.suppress(asyncio.CancelledError):
                     await rb.task
             await rb.worker.close()
+            rb.codec.shutdown(wait=False)

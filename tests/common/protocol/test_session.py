@@ -248,12 +248,29 @@ def test_heartbeat_idle_timeout_and_handshake_timeout():
     assert p.c.get_timer() == pytest.approx(1.0)
     p.c.handle_timer(1.0)
     assert p.client_link.counters.snapshot()["tx"]["by_type"]["Heartbeat"]["messages"] == 1
+    p.c.handle_timer(2.0)
+    p.c.handle_timer(3.0)
     with pytest.raises(PeerTimeoutError):
         p.c.handle_timer(3.5)  # the server never answered
     lone = Session(cfg("e", "edge", handshake_timeout=2.0), client=False, now=0.0)
     assert lone.get_timer() == 2.0
     with pytest.raises(PeerTimeoutError, match="handshake"):
         lone.handle_timer(2.0)
+
+
+def test_own_stall_is_not_the_peers_silence():
+    """Our process did not run for 12 s (idle timeout 3 s): the peer's frames may be unread in
+    the socket, so the first timer after the stall does not declare it dead; real silence
+    afterwards still does."""
+    p = Pair(cfg("r", "robot", heartbeat_interval=1.0, idle_timeout=3.0), cfg("e", "edge"))
+    p.pump()
+    p.c.handle_timer(1.0)
+    p.c.handle_timer(13.0)  # back after a 12 s stall: not a timeout
+    assert p.c.established
+    p.c.handle_timer(14.0)
+    p.c.handle_timer(15.0)
+    with pytest.raises(PeerTimeoutError):
+        p.c.handle_timer(15.5)  # 3 s of silence while we were running
 
 
 def test_retransmit_on_timeout_and_duplicate_dropped():
