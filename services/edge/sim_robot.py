@@ -106,6 +106,7 @@ async def play(
     transport: TransportConfig | None = None,
     flush_timeout_s: float = 120.0,
     linger: asyncio.Event | None = None,
+    retransmit_timeout_s: float = 5.0,
 ) -> PlayResult:
     """Send ``sensors``, ``frames`` then :class:`RobotSequenceEnd` to the edge at
     ``host:port`` (as fast as the link allows, or at ``rate_hz``); wait until the edge
@@ -115,7 +116,14 @@ async def play(
     async def on_message(d: Delivery) -> None:
         feedback.append(d.message)
 
-    cfg = SessionConfig("robot", agent_id, secret, heartbeat_interval=0.5, idle_timeout=5.0)
+    cfg = SessionConfig(
+        "robot",
+        agent_id,
+        secret,
+        heartbeat_interval=0.5,
+        idle_timeout=5.0,
+        retransmit_timeout=retransmit_timeout_s,
+    )
     client = Client(cfg, on_message, host, port, transport=transport, server_name="edge")
     await client.start()
     t0 = time.monotonic()
