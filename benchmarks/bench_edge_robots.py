@@ -18,6 +18,7 @@ import argparse
 import datetime
 import logging
 import os
+import threading
 import time
 from pathlib import Path
 
@@ -28,6 +29,28 @@ from lab.seeds import ensure_dataset
 
 log = logging.getLogger("bench_edge_robots")
 RESULTS = Path(__file__).resolve().parent / "results" / "edge_robots.md"
+
+
+class LoadSampler:
+    """The 1-min load average every 10 s while a run goes (other jobs share the machine)."""
+
+    def __init__(self) -> None:
+        self.samples: list[float] = []
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+
+    def _run(self) -> None:
+        while not self._stop.wait(10.0):
+            self.samples.append(os.getloadavg()[0])
+
+    def __enter__(self) -> LoadSampler:
+        self.samples.append(os.getloadavg()[0])
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        self._thread.join()
 
 
 def main() -> None:
@@ -49,10 +72,12 @@ def main() -> None:
         if ensure_dataset(data, n, args.seconds, args.seed):
             log.info("built %s", data)
         t0 = time.monotonic()
-        load0 = os.getloadavg()[0]
-        run_job(data, args.out / f"robots{n}", WireFormat.CODED, "realtime", args.timeout, f"[{n}]")
+        with LoadSampler() as load:
+            run_job(
+                data, args.out / f"robots{n}", WireFormat.CODED, "realtime", args.timeout, f"[{n}]"
+            )
         r = read_run(args.out / f"robots{n}")
-        r["load"] = (load0, os.getloadavg()[0])
+        r["load"] = (sum(load.samples) / len(load.samples), max(load.samples))
         log.info(
             "%d robots in %.0f s: stall max %s s, timeouts %s, duplicates %d, joint %s",
             n,
@@ -63,7 +88,7 @@ def main() -> None:
             r["joint_m"],
         )
         runs.append(r)
-    loads = ", ".join(f"{r['robots']}: {r['load'][0]:.1f}→{r['load'][1]:.1f}" for r in runs)
+    loads = ", ".join(f"{r['robots']}: {r['load'][0]:.1f} / {r['load'][1]:.1f}" for r in runs)
     header = (
         "# One edge, 3 / 6 / 9 robots: event-loop stalls, timeouts, duplicates\n\n"
         f"`benchmarks/bench_edge_robots.py --robots {args.robots} --seconds {args.seconds:g} "
@@ -71,7 +96,7 @@ def main() -> None:
         f"each robot count ({args.seconds:g} s per robot, seed {args.seed}) through the whole "
         "job (`recslam demo --no-dashboard --rate realtime`: cloud, one edge, the robots as "
         "processes on loopback, 2 cores), no fault injected. One run per row. Load average "
-        f"(1 min) at the start → end of each run: {loads}.\n\n"
+        f"(1 min, sampled every 10 s) mean / max during each run: {loads}.\n\n"
         "Peer timeouts: `PeerTimeoutError` lines in all the run's logs. Reconnects: robot "
         "links' connections beyond the first. Late acks: retransmission timeouts on a live "
         "connection whose peer was talking (no resend, `common/protocol/recovery.py`)."

@@ -89,6 +89,10 @@ def read_run(report_dir: Path) -> dict[str, Any]:
     }
 
 
+def _s(v: float | None) -> str:
+    return "-" if v is None else f"{v:.2f}"
+
+
 def _cm(v: float | None) -> str:
     return "-" if v is None else f"{100 * v:.2f}"
 
@@ -110,7 +114,7 @@ def write_table(runs: Sequence[dict[str, Any]], out_md: Path, header: str) -> Pa
         late = sum(x["late_acks"] for x in r["per_robot"].values())
         t = sum(r["timeouts"].values())
         lines.append(
-            f"| {r['robots']} | {r['stall_max_s'] if r['stall_max_s'] is not None else '-'} | "
+            f"| {r['robots']} | {_s(r['stall_max_s'])} | "
             f"{r['stalls_over_1s']} | {t} | {r['reconnects']} | {r['duplicates']} | "
             f"{r['frames_lost']} | {late} | {r['maps']} | {_cm(r['joint_m'])} | {_cm(worst)} |"
         )
@@ -123,22 +127,18 @@ def write_table(runs: Sequence[dict[str, Any]], out_md: Path, header: str) -> Pa
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(1, 3, figsize=(12, 3.6))
-    n = [r["robots"] for r in runs]
-    axes[0].bar([str(x) for x in n], [r["stall_max_s"] or 0 for r in runs], color="tab:blue")
+    n = [f"{r['robots']} robots" for r in runs]
+    axes[0].bar(n, [r["stall_max_s"] or 0 for r in runs], color="tab:blue")
     axes[0].axhline(10.0, color="tab:red", ls="--", lw=1, label="idle timeout (10 s)")
-    axes[0].set(title="edge: longest event-loop stall", xlabel="robots", ylabel="s")
+    axes[0].set(title="edge: longest event-loop stall", ylabel="s")
     axes[0].legend(fontsize=8)
-    axes[1].bar(
-        [str(x) for x in n], [r["duplicates"] for r in runs], color="tab:orange", label="duplicates"
-    )
-    axes[1].plot(
-        [str(x) for x in n], [sum(r["timeouts"].values()) for r in runs], "k^", label="timeouts"
-    )
-    axes[1].set(title="duplicates dropped / peer timeouts", xlabel="robots")
+    axes[1].bar(n, [r["duplicates"] for r in runs], color="tab:orange", label="duplicates")
+    axes[1].plot(n, [sum(r["timeouts"].values()) for r in runs], "k^", label="timeouts")
+    axes[1].set(title="duplicates dropped / peer timeouts")
     axes[1].legend(fontsize=8)
-    axes[2].bar([str(x) for x in n], [100 * (r["joint_m"] or 0) for r in runs], color="tab:green")
+    axes[2].bar(n, [100 * (r["joint_m"] or 0) for r in runs], color="tab:green")
     axes[2].axhline(2.0, color="tab:red", ls="--", lw=1, label="target 2 cm")
-    axes[2].set(title="joint ATE", xlabel="robots", ylabel="cm")
+    axes[2].set(title="joint ATE", ylabel="cm")
     axes[2].legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(png, dpi=110)
