@@ -15,23 +15,17 @@ A run is the whole job as ``recslam demo --no-dashboard`` runs it (:func:`lab.li
 
 from __future__ import annotations
 
-import json
 import logging
 import re
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from lab.links import load_json
+
 log = logging.getLogger(__name__)
 
 _TIMEOUT = re.compile(r"PeerTimeoutError: (.*)$")
-
-
-def _load(path: Path) -> dict[str, Any]:
-    try:
-        return dict(json.loads(path.read_text()))
-    except (OSError, ValueError):
-        return {}
 
 
 def timeouts(logs: Path) -> dict[str, int]:
@@ -49,9 +43,9 @@ def timeouts(logs: Path) -> dict[str, int]:
 def read_run(report_dir: Path) -> dict[str, Any]:
     """The numbers of one finished run in ``report_dir`` (``report.json`` + ``run/``)."""
     report_dir = Path(report_dir)
-    rep = _load(report_dir / "report.json")
+    rep = load_json(report_dir / "report.json")
     run = report_dir / "run"
-    edge = _load(run / "stats" / "edge.json")
+    edge = load_json(run / "stats" / "edge.json")
     stalls = edge.get("loop_stalls", {})
     links = edge.get("links", {})
     robots = rep.get("robots", {})
@@ -67,7 +61,7 @@ def read_run(report_dir: Path) -> dict[str, Any]:
             "resent": c.get("retransmitted_messages", 0),
             "late_acks": c.get("late_acks", 0),
         }
-    cloud_link = _load(run / "stats" / "cloud.json").get("links", {})
+    cloud_link = load_json(run / "stats" / "cloud.json").get("links", {})
     return {
         "folder": str(report_dir),
         "robots": len(robots),

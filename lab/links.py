@@ -149,7 +149,8 @@ def run_folder(out: Path, dataset: str, wire: WireFormat, k: int) -> Path:
 
 
 # ---------------------------------------------------------------------- one run
-def _load(path: Path) -> dict[str, Any]:
+def load_json(path: Path) -> dict[str, Any]:
+    """A run's JSON file ({} if missing; LinksError naming it if it is not JSON)."""
     try:
         return json.loads(path.read_text())
     except FileNotFoundError:
@@ -166,8 +167,8 @@ def link_counters(stats_dir: Path) -> dict[str, dict[str, dict[str, Any]]]:
     """``{direction: {endpoint: transport counters}}`` from the edge's and the cloud's stats
     (endpoint: the robot, or the edge; counters ``{"bytes", "messages", "by_type": {type:
     {"bytes", "messages"}}}``)."""
-    edge = _load(Path(stats_dir) / "edge.json")
-    cloud = _load(Path(stats_dir) / "cloud.json")
+    edge = load_json(Path(stats_dir) / "edge.json")
+    cloud = load_json(Path(stats_dir) / "cloud.json")
     out: dict[str, dict[str, dict[str, Any]]] = {d: {} for d in DIRECTIONS}
     for robot, c in edge.get("links", {}).items():
         out["robot->edge"][robot] = c.get("rx", {})
@@ -216,11 +217,11 @@ def _peak_map_points(samples_path: Path) -> int | None:
 def read_run(report_dir: Path) -> RunMetrics:
     """The numbers of one run from its report folder (``report.json`` and ``run/stats/``)."""
     report_dir = Path(report_dir)
-    report = _load(report_dir / "report.json")
+    report = load_json(report_dir / "report.json")
     if not report:
         raise LinksError(f"{report_dir}: no report.json (the run did not finish)")
     stats_dir = report_dir / "run" / "stats"
-    edge, cloud = _load(stats_dir / "edge.json"), _load(stats_dir / "cloud.json")
+    edge, cloud = load_json(stats_dir / "edge.json"), load_json(stats_dir / "cloud.json")
     camera_s = float(report.get("camera_s") or 0.0)
     counters = link_counters(stats_dir)
     links = {

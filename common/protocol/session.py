@@ -317,7 +317,7 @@ class Session:
             self._emit(Ack())
         late = self._recovery.late_acks
         if self._recovery.due(now, self._last_rx):
-            self._retransmit_oldest()
+            self._retransmit_oldest(now)
         self.counters.late_acks += self._recovery.late_acks - late
         if now >= self._last_tx + self.config.heartbeat_interval and not self._out:
             self._emit(Heartbeat())
@@ -550,7 +550,7 @@ class Session:
             self._inflight_bytes += size
             sent += len(frame)
 
-    def _retransmit_oldest(self) -> None:
+    def _retransmit_oldest(self, now: float) -> None:
         link = self.link
         assert link is not None
         first = link.first_unacked
@@ -561,7 +561,7 @@ class Session:
         frame = self._frame(entry.type_id, entry.payload, first, FLAG_RETRANSMIT)
         self._count_tx(entry.type_name, len(frame), FLAG_RETRANSMIT)
         self._out.append(frame)
-        self._recovery.on_sent(first, 0.0, resent=True)
+        self._recovery.on_sent(first, now, resent=True)
 
     def _frame(self, type_id: int, payload: bytes, seq: int, flags: int) -> bytes:
         ack = 0

@@ -262,8 +262,8 @@ class EdgeApp:
                 "--state-dir the robot must restart its stream)"
             )
         if isinstance(m, RobotFrame):
+            loop = asyncio.get_running_loop()
             try:
-                loop = asyncio.get_running_loop()
                 item = await loop.run_in_executor(rb.codec, rb.session.decode, m)
             except CodecError as exc:  # the robot's fault: refused once, decoders untouched
                 raise RejectedMessageError(
