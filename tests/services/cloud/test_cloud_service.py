@@ -182,6 +182,7 @@ def test_two_edges_merge_send_corrections_and_write_trajectories(tmp_path, vocab
             assert cloud.map_source.snapshot(v).empty
             st = cloud.map_source.stats()
             assert {r.status.value for r in st.agents} == {"merged"}
+            assert {(r.name, r.edge) for r in st.agents} == {("r0", "edge-a"), ("r1", "edge-b")}
             assert any(s.link == "edge-a→cloud" for s in st.bandwidth)
         finally:
             await a.client.close()
