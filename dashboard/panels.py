@@ -142,7 +142,8 @@ def edge_rates(stats: StatsSnapshot, window_s: float = 10.0) -> list[EdgeRates]:
 def edges_markdown(stats: StatsSnapshot, window_s: float = 10.0) -> str:
     """Edges table: each edge's robots and link rates (kbit/s, last ``window_s`` s)."""
     rows = [
-        f"| Edge | Robots | robots→edge ↑ / ↓ | edge→cloud ↑ / ↓ (kbit/s, last {window_s:g} s) |",
+        f"kbit/s over the last {window_s:g} s\n",
+        "| Edge | Robots | robots→edge ↑/↓ | edge→cloud ↑/↓ |",
         "|---|---|---:|---:|",
     ]
     for e in edge_rates(stats, window_s):
@@ -150,7 +151,7 @@ def edges_markdown(stats: StatsSnapshot, window_s: float = 10.0) -> str:
             f"| {e.edge} | {', '.join(e.robots) or '–'} | {e.robots_up:.1f} / "
             f"{e.robots_down:.1f} | {e.cloud_up:.1f} / {e.cloud_down:.1f} |"
         )
-    if len(rows) == 2:
+    if len(rows) == 3:
         rows.append("| – | no edges yet | | |")
     return "\n".join(rows) + "\n"
 
