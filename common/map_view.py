@@ -196,7 +196,8 @@ class MapDelta:
 @dataclass(frozen=True)
 class AgentRecord:
     """One agent's status: frames seen, keyframes in the map, ``last_seen`` (source clock, s),
-    the map it belongs to, and its live ATE RMSE in metres when the source knows it."""
+    the map it belongs to, its live ATE RMSE in metres when the source knows it, and which
+    robot it is (``name``) on which edge (``edge``; "" when the source does not say)."""
 
     agent_id: int
     status: AgentState
@@ -205,6 +206,8 @@ class AgentRecord:
     last_seen: float
     map_id: int
     ate_rmse_m: float | None = None
+    name: str = ""
+    edge: str = ""
 
 
 class Direction(enum.Enum):

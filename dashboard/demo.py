@@ -161,6 +161,8 @@ def make_demo_map(config: DemoConfig | None = None) -> tuple[MapDelta, StatsSnap
             keyframes=K,
             last_seen=cfg.duration_s,
             map_id=0,
+            name=f"robot{a}",
+            edge=demo_edge(a),
         )
         for a in range(A)
     )
@@ -176,14 +178,22 @@ def _demo_bandwidth(rng: np.random.Generator, cfg: DemoConfig) -> tuple[Bandwidt
     for s in range(int(cfg.duration_s)):
         t = float(s)
         for a in range(cfg.n_agents):
-            link = f"robot{a}→edge"
+            link = f"robot{a}→{demo_edge(a)}"
             out.append(BandwidthSample(t, link, up, "frame", int(rng.normal(12_000, 1_500))))
             out.append(BandwidthSample(t, link, up, "keyframe", int(rng.normal(9_000, 3_000))))
             out.append(BandwidthSample(t, link, up, "imu", int(rng.normal(4_000, 200))))
             out.append(BandwidthSample(t, link, down, "ack", int(rng.normal(600, 50))))
-        kf = int(abs(rng.normal(14_000 * cfg.n_agents, 4_000)))
-        out.append(BandwidthSample(t, "edge→cloud", up, "keyframe", kf))
-        mp = int(abs(rng.normal(6_000 * cfg.n_agents, 2_000)))
-        out.append(BandwidthSample(t, "edge→cloud", up, "map_points", mp))
-        out.append(BandwidthSample(t, "edge→cloud", down, "map_update", int(rng.normal(800, 80))))
+        for edge in sorted({demo_edge(a) for a in range(cfg.n_agents)}):
+            n = sum(demo_edge(a) == edge for a in range(cfg.n_agents))
+            link = f"{edge}→cloud"
+            kf = int(abs(rng.normal(14_000 * n, 4_000)))
+            out.append(BandwidthSample(t, link, up, "keyframe", kf))
+            mp = int(abs(rng.normal(6_000 * n, 2_000)))
+            out.append(BandwidthSample(t, link, up, "map_points", mp))
+            out.append(BandwidthSample(t, link, down, "map_update", int(rng.normal(800, 80))))
     return tuple(out)
+
+
+def demo_edge(agent: int) -> str:
+    """The demo's two sites: robot 0 and 1 on edge ``site-a``, the others on ``site-b``."""
+    return "site-a" if agent < 2 else "site-b"

@@ -1,6 +1,8 @@
-"""GUI panels: map counts, agents table (with live ATE), per-link bandwidth plots (uPlot).
+"""GUI panels: map counts, agents table (with live ATE, each agent's robot and edge), the
+edges (sites: which robots each serves, its link rates), per-link bandwidth plots (uPlot).
 
-:func:`bandwidth_series` (pure) bins bandwidth samples into kbit/s per link, direction and
+:func:`edge_rates` (pure) sums the recent bandwidth samples per edge; :func:`bandwidth_series`
+(pure) bins bandwidth samples into kbit/s per link, direction and
 message type; :class:`Panels` shows a :class:`StatsSnapshot` in the viser GUI.
 """
 
@@ -71,17 +73,86 @@ def counts_markdown(stats: StatsSnapshot) -> str:
 
 def agents_markdown(stats: StatsSnapshot, ate_m: dict[int, float | None]) -> str:
     """Agents table; ``ate_m`` supplies the live ATE where the source gave none."""
-    rows = ["| Agent | Status | Frames | KFs | Last seen | ATE |", "|---|---|---:|---:|---:|---:|"]
+    rows = [
+        "| Agent | Robot @ edge | Status | Frames | KFs | Last seen | ATE |",
+        "|---|---|---|---:|---:|---:|---:|",
+    ]
     for a in stats.agents:
         ate = a.ate_rmse_m if a.ate_rmse_m is not None else ate_m.get(a.agent_id)
         ate_txt = f"{ate:.3f} m" if ate is not None else "–"
         ago = max(stats.time - a.last_seen, 0.0)
+        where = f"{a.name or '–'} @ {a.edge or '–'}"
         rows.append(
-            f"| robot {a.agent_id} | {a.status.value} | {a.frames} | {a.keyframes} "
+            f"| robot {a.agent_id} | {where} | {a.status.value} | {a.frames} | {a.keyframes} "
             f"| {ago:.1f} s ago | {ate_txt} |"
         )
     if not stats.agents:
-        rows.append("| – | no agents yet | | | | |")
+        rows.append("| – | | no agents yet | | | | |")
+    return "\n".join(rows) + "\n"
+
+
+@dataclass(frozen=True)
+class EdgeRates:
+    """One edge (site): the robots it serves and its links' kbit/s over the recent window
+    (``robots_up``: all its robots -> it, ``robots_down`` back; ``cloud_up``: it -> cloud,
+    ``cloud_down`` back)."""
+
+    edge: str
+    robots: tuple[str, ...]
+    robots_up: float
+    robots_down: float
+    cloud_up: float
+    cloud_down: float
+
+
+def edge_rates(stats: StatsSnapshot, window_s: float = 10.0) -> list[EdgeRates]:
+    """Per edge, sorted by name: the robots of the agents it serves and its link rates over
+    the last ``window_s`` seconds of bandwidth samples (links ``"robot→edge"`` and
+    ``"edge→cloud"``)."""
+    names = {a.edge for a in stats.agents if a.edge}
+    names |= {s.link.rsplit("→", 1)[0] for s in stats.bandwidth if s.link.endswith("→cloud")}
+    t0 = stats.time - window_s
+    kbit = 8.0 / 1000.0 / window_s
+    out = []
+    for edge in sorted(names):
+        rate = {("robots", d): 0.0 for d in Direction} | {("cloud", d): 0.0 for d in Direction}
+        for s in stats.bandwidth:
+            if s.time <= t0:
+                continue
+            src, _, dst = s.link.rpartition("→")
+            if dst == edge:
+                rate["robots", s.direction] += s.n_bytes * kbit
+            elif src == edge and dst == "cloud":
+                rate["cloud", s.direction] += s.n_bytes * kbit
+        robots = tuple(sorted({a.name for a in stats.agents if a.edge == edge and a.name}))
+        up, down = Direction.UP, Direction.DOWN
+        out.append(
+            EdgeRates(
+                edge,
+                robots,
+                rate["robots", up],
+                rate["robots", down],
+                rate["cloud", up],
+                rate["cloud", down],
+            )
+        )
+    return out
+
+
+def edges_markdown(stats: StatsSnapshot, window_s: float = 10.0) -> str:
+    """Edges table: each edge's robots and link rates (kbit/s, last ``window_s`` s)."""
+    rows = [
+        f"kbit/s over the last {window_s:g} s\n",
+        "| Edge | Robots | robots→edge ↑/↓ | edge→cloud ↑/↓ |",
+        "|---|---|---:|---:|",
+    ]
+    for e in edge_rates(stats, window_s):
+        rows.append(
+            f"| {e.edge} | {', '.join(e.robots) or '–'} | {e.robots_up:.1f} / "
+            f"{e.robots_down:.1f} | {e.cloud_up:.1f} / {e.cloud_down:.1f} |"
+        )
+    if len(rows) == 3:
+        rows.append("| – | no edges yet | | |")
     return "\n".join(rows) + "\n"
 
 
@@ -96,6 +167,8 @@ class Panels:
             self.counts = gui.add_markdown("*waiting for the map…*")
         with gui.add_folder("Agents"):
             self.agents = gui.add_markdown("*waiting for agents…*")
+        with gui.add_folder("Edges"):
+            self.edges = gui.add_markdown("*waiting for edges…*")
         self._bw_folder = gui.add_folder("Bandwidth (kbit/s)")
         self._plots: dict[str, tuple[tuple[str, ...], viser.GuiUplotHandle]] = {}
         self.last_update = 0.0
@@ -110,6 +183,7 @@ class Panels:
         with self._server.atomic():
             self.counts.content = counts_markdown(stats)
             self.agents.content = agents_markdown(stats, ate_m)
+            self.edges.content = edges_markdown(stats)
             for ls in bandwidth_series(stats.bandwidth, self._window_s):
                 self._update_plot(ls)
         self.last_update = time.monotonic()

@@ -1,17 +1,23 @@
-"""Process supervision for a whole run: cloud, edge and N robots as separate processes.
+"""Process supervision for a whole run: cloud, edges and N robots as separate processes.
 
 Used by ``recslam demo``, ``recslam experiment`` and the end-to-end tests. Everything runs on
 loopback with free ports and a freshly generated shared secret (a 0600 file in the run
-folder). Each service writes its log to ``RUN_DIR/logs/<name>.log``; the edge and the cloud
-also rewrite their counters every second (``--stats-out``, ``RUN_DIR/stats/{edge,cloud}.json``),
-which is where progress and bandwidth come from.
+folder). Each service writes its log to ``RUN_DIR/logs/<name>.log``; the edges and the cloud
+also rewrite their counters every second (``--stats-out``, ``RUN_DIR/stats/cloud.json`` and
+:func:`edge_stats_name` per edge), which is where progress and bandwidth come from.
+
+Sites: one edge named ``edge`` by default; ``edges=N`` starts ``edge0``..``edgeN-1`` with the
+robots assigned round-robin, ``sites`` names the edges and their robots (``parse_sites``:
+``edgeA=robot0,robot1;edgeB=robot2``). ``moves`` hands a robot over to another edge at a frame
+(``recslam robot --handover``). Each edge has its own port, key file, state directory and log;
+they all reach the one cloud, which keeps their agents apart by (edge, robot, edge map).
 
 Run folder layout::
 
     RUN_DIR/keys/             operator secret and one key file per process (0600)
     RUN_DIR/logs/*.log        one log per process (stdout + stderr)
     RUN_DIR/stats/*.json      edge and cloud counters (last sample), stats/samples.jsonl history
-    RUN_DIR/state/{edge,cloud} the services' state directories
+    RUN_DIR/state/<edge>, state/cloud the services' state directories
     RUN_DIR/results/          the cloud's trajectories/ and eval/ (written at its exit)
 """
 
@@ -35,6 +41,7 @@ from typing import Any
 from common.errors import RecslamError
 from common.links import WireFormat
 from common.protocol.credentials import issue_keys
+from recslam.sites import SINGLE_EDGE, assign_sites, edge_stats_name, merge_edge_stats
 
 log = logging.getLogger(__name__)
 
@@ -92,6 +99,13 @@ class JobConfig:
             --wire``; default coded; robots and cloud accept both).
         placement: where each process runs (default: all on loopback here), e.g. the robots
             in network namespaces of their own (``lab.netns``).
+        edges: number of edges (sites), robots round-robin (default 1: one edge ``edge``).
+        sites: edge name -> its robots (overrides ``edges``; see :func:`parse_sites`).
+        moves: ``(robot, frame, edge)``: from that frame on the robot plays to that edge
+            (``recslam robot --handover``; default none).
+        edge_restarts: ``(edge, seconds)``: a fault drill, that edge is killed (SIGKILL) this
+            long after the robots started and restarted at once on its state directory
+            (default none).
     """
 
     dataset: Path
@@ -108,6 +122,10 @@ class JobConfig:
     mbp_every: int = 0
     wire: WireFormat = WireFormat.CODED
     placement: Placement = field(default_factory=Placement)
+    edges: int = 1
+    sites: Mapping[str, tuple[str, ...]] | None = None
+    moves: tuple[tuple[str, int, str], ...] = ()
+    edge_restarts: tuple[tuple[str, float], ...] = ()
 
 
 @dataclass
@@ -142,12 +160,23 @@ class Job:
         if not names:
             raise OrchestrationError(f"{config.dataset}: no */mav0 sequence folders")
         self.robot_names = names
+        self.sites = assign_sites(names, config.edges, config.sites)
+        self.edge_names = tuple(self.sites)
+        self.site_of = {r: e for e, rs in self.sites.items() for r in rs}
+        for robot, _, edge in config.moves:
+            if robot not in self.site_of or edge not in self.sites:
+                raise OrchestrationError(f"move of {robot!r} to {edge!r}: no such robot or edge")
+        for edge, _ in config.edge_restarts:
+            if edge not in self.sites:
+                raise OrchestrationError(f"restart of {edge!r}: no such edge")
+        self._restarts = sorted(config.edge_restarts, key=lambda r: r[1])
         # One identity per process: the operator secret stays here, each process gets its
         # own key file (the robots only their own credential).
         self.keys_dir = self.run_dir / "keys"
-        issue_keys(self.keys_dir, ["edge"], names)
+        issue_keys(self.keys_dir, list(self.edge_names), names)
         self.cloud_port = free_port()
-        self.edge_port = free_port()
+        self.edge_ports = {e: free_port() for e in self.edge_names}
+        self.edge_port = self.edge_ports[self.edge_names[0]]
         self.services: dict[str, Service] = {}
         self.robot_started_at: float = 0.0
         self.samples_path = self.run_dir / "stats" / "samples.jsonl"
@@ -185,35 +214,44 @@ class Job:
             *record,
         )
 
-    def edge_argv(self) -> list[str]:
+    def edge_argv(self, name: str | None = None) -> list[str]:
+        """The command of edge ``name`` (default: the first)."""
         c = self.config
+        name = name or self.edge_names[0]
         return self._recslam(
             "edge",
             "--listen",
-            f"{c.placement.edge_listen_host}:{self.edge_port}",
+            f"{c.placement.edge_listen_host}:{self.edge_ports[name]}",
             "--cloud",
             f"127.0.0.1:{self.cloud_port}",
+            "--agent-id",
+            name,
             "--state-dir",
-            str(self.run_dir / "state" / "edge"),
+            str(self.run_dir / "state" / name),
             "--key-file",
-            str(self.keys_dir / "edge-edge.keys"),
+            str(self.keys_dir / f"edge-{name}.keys"),
             "--worker",
             c.worker,
             "--wire",
             c.wire.value,
             "--stats-out",
-            str(self.run_dir / "stats" / "edge.json"),
+            str(self.run_dir / "stats" / f"{edge_stats_name(name)}.json"),
         )
+
+    def _edge_address(self, robot: str, edge: str) -> str:
+        c = self.config
+        port = self.edge_ports[edge]
+        port = port if c.robot_links is None else c.robot_links(robot, port)
+        return f"{c.placement.edge_host.get(robot, '127.0.0.1')}:{port}"
 
     def robot_argv(self, name: str) -> list[str]:
         c = self.config
-        port = self.edge_port if c.robot_links is None else c.robot_links(name, self.edge_port)
         argv = self._recslam(
             "robot",
             "--dataset",
             str(Path(c.dataset) / name),
             "--edge",
-            f"{c.placement.edge_host.get(name, '127.0.0.1')}:{port}",
+            self._edge_address(name, self.site_of[name]),
             "--agent-id",
             name,
             "--rate",
@@ -221,6 +259,9 @@ class Job:
             "--key-file",
             str(self.keys_dir / f"robot-{name}.keys"),
         )
+        for robot, frame, edge in sorted(c.moves, key=lambda m: m[1]):
+            if robot == name:
+                argv += ["--handover", f"{frame}={self._edge_address(name, edge)}"]
         if c.max_frames is not None:
             argv += ["--max-frames", str(c.max_frames)]
         return argv
@@ -260,9 +301,10 @@ class Job:
             time.sleep(0.1)
 
     def start(self) -> None:
-        """Start the cloud, then the edge, then every robot (each once the previous listens)."""
+        """Start the cloud, then the edges, then every robot (each once the previous listens)."""
         self._wait_for_line(self.launch("cloud", self.cloud_argv()), "cloud listening")
-        self.start_edge()
+        for edge in self.edge_names:
+            self.start_edge(edge)
         self.robot_started_at = time.time()
         for name in self.robot_names:
             self.launch(name, self.robot_argv(name))
@@ -272,11 +314,13 @@ class Job:
         found = re.search(r"dashboard at (\S+)", self.services["cloud"].log_text())
         return found.group(1) if found else None
 
-    def start_edge(self) -> None:
-        """Start (or restart, on the same state directory) the edge and wait until it listens."""
-        svc = self.services.get("edge")
+    def start_edge(self, name: str | None = None) -> None:
+        """Start (or restart, on the same state directory) edge ``name`` (default: the first)
+        and wait until it listens."""
+        name = name or self.edge_names[0]
+        svc = self.services.get(name)
         count = 1 + (svc.log_text().count("edge listening") if svc is not None else 0)
-        self._wait_for_line(self.launch("edge", self.edge_argv()), "edge listening", count)
+        self._wait_for_line(self.launch(name, self.edge_argv(name)), "edge listening", count)
 
     def kill(self, name: str, sig: int = signal.SIGKILL) -> int:
         """Send ``sig`` to service ``name`` and wait for it; returns its exit code."""
@@ -289,16 +333,27 @@ class Job:
         return code
 
     def stats(self, which: str) -> dict[str, Any]:
-        """The last counters ``which`` ("edge" or "cloud") wrote ({} before the first)."""
-        path = self.run_dir / "stats" / f"{which}.json"
+        """The last counters ``which`` ("cloud", or an edge's name) wrote ({} before the
+        first); "edge" is every edge's robots together (:func:`merge_edge_stats`)."""
+        if which == "edge" and self.edge_names != (SINGLE_EDGE,):
+            return merge_edge_stats({e: self.stats(e) for e in self.edge_names})
+        stem = edge_stats_name(which) if which in self.edge_names else which
+        path = self.run_dir / "stats" / f"{stem}.json"
         try:
             return json.loads(path.read_text())
         except (OSError, ValueError):
             return {}
 
     def sample(self) -> dict[str, Any]:
-        """Current edge and cloud counters, also appended to ``stats/samples.jsonl``."""
-        s = {"time": time.time(), "edge": self.stats("edge"), "cloud": self.stats("cloud")}
+        """Current edge and cloud counters, also appended to ``stats/samples.jsonl``: "edge"
+        all edges' robots together, "edges" each edge's own counters."""
+        edges = {e: self.stats(e) for e in self.edge_names}
+        s = {
+            "time": time.time(),
+            "edge": merge_edge_stats(edges),
+            "edges": edges,
+            "cloud": self.stats("cloud"),
+        }
         with self.samples_path.open("a") as f:
             f.write(json.dumps(s) + "\n")
         return s
@@ -310,7 +365,7 @@ class Job:
             code = svc.poll()
             if code is not None and code != 0:
                 bad.append(f"{svc.name} (exit {code})")
-            elif code == 0 and svc.name in ("cloud", "edge"):
+            elif code == 0 and svc.name in ("cloud", *self.edge_names):
                 bad.append(f"{svc.name} (exited early)")
         return bad
 
@@ -323,8 +378,8 @@ class Job:
     ) -> dict[str, int]:
         """Wait until every robot process exits; returns their exit codes.
 
-        Raises OrchestrationError when the edge or cloud dies, or after ``timeout_s``.
-        ``on_tick`` (tests: kill/restart the edge mid-run) runs after every sample.
+        Raises OrchestrationError when an edge or the cloud dies, or after ``timeout_s``.
+        ``on_tick`` (tests: kill/restart an edge mid-run) runs after every sample.
         """
         deadline = time.monotonic() + timeout_s
         while True:
@@ -333,10 +388,17 @@ class Job:
                 progress(s)
             if on_tick is not None:
                 on_tick(self, s)
+            while self._restarts and time.time() - self.robot_started_at >= self._restarts[0][1]:
+                edge, at = self._restarts.pop(0)
+                code = self.kill(edge, signal.SIGKILL)
+                log.warning(
+                    "drill: killed %s (exit %d) %.0f s into the run; restarting", edge, code, at
+                )
+                self.start_edge(edge)
             codes = {n: self.services[n].poll() for n in self.robot_names}
             if all(c is not None for c in codes.values()):
                 return {n: int(c) for n, c in codes.items() if c is not None}
-            for name in ("cloud", "edge"):
+            for name in ("cloud", *self.edge_names):
                 if self.services[name].poll() is not None:
                     raise OrchestrationError(
                         f"{name} exited with {self.services[name].poll()}; log "
@@ -368,7 +430,7 @@ class Job:
     def stop(self, timeout_s: float = 120.0) -> dict[str, int]:
         """SIGTERM robots still running, then the edge, then the cloud (which writes its
         results); SIGKILL after ``timeout_s``. Returns every service's last exit code."""
-        order = [n for n in self.robot_names] + ["edge", "cloud"]
+        order = [*self.robot_names, *self.edge_names, "cloud"]
         codes: dict[str, int] = {}
         for name in order:
             svc = self.services.get(name)
@@ -417,10 +479,14 @@ def robot_frames(dataset: Path, names: Sequence[str]) -> dict[str, int]:
 
 
 def progress_line(sample: dict[str, Any], elapsed: float) -> str:
-    """One progress line from a :meth:`Job.sample` (edge and cloud counters)."""
+    """One progress line from a :meth:`Job.sample` (edge and cloud counters; with several
+    edges each robot is prefixed by its edge)."""
     robots = sample["edge"].get("robots", {})
+    edges = sample.get("edges", {})
+    where = sample["edge"].get("edge_of", {}) if len(edges) > 1 else {}
     parts = [
-        f"{n} {r['frames_decoded']}f/{r['keyframes_uplinked']}kf {r['state']}"
+        f"{'/'.join(where.get(n, []))}{':' if n in where else ''}{n} "
+        f"{r['frames_decoded']}f/{r['keyframes_uplinked']}kf {r['state']}"
         for n, r in sorted(robots.items())
     ]
     c = sample["cloud"]
@@ -454,7 +520,11 @@ def run_and_report(
             progress(sample, time.perf_counter() - t0)
 
     with Job(config) as job:
-        say(f"starting cloud, edge and {len(job.robot_names)} robots (run folder {job.run_dir})")
+        sites = "; ".join(f"{e}: {', '.join(rs)}" for e, rs in job.sites.items())
+        say(
+            f"starting cloud, {len(job.edge_names)} edge(s) and {len(job.robot_names)} robots "
+            f"({sites}; run folder {job.run_dir})"
+        )
         job.start()
         if config.dashboard_port:
             say(f"dashboard: {job.dashboard_url()}")

@@ -2,7 +2,10 @@
 
 Inputs (see ``recslam.orchestration``): the cloud's result folder (``results/eval/ate.json``
 and its plots, ``results/cloud_maps.json``), the last edge and cloud counters
-(``stats/{edge,cloud}.json``) and their history (``stats/samples.jsonl``).
+(``stats/{edge,cloud}.json``, with several edges one ``stats/edge-<name>.json`` each: a
+robot's counters are summed over the edges that served it, its links are shown per edge, and
+a table of sites gives each edge's robots and rates) and their history
+(``stats/samples.jsonl``).
 
 Bandwidth is the traffic counters of each link divided by the robots' streaming time
 (first robot start to last robot exit), in kbit/s (1 kbit = 1000 bit), and divided by the
@@ -21,6 +24,8 @@ import shutil
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
+
+from recslam.sites import SINGLE_EDGE, merge_edge_stats
 
 log = logging.getLogger(__name__)
 
@@ -59,7 +64,8 @@ def _kbps(nbytes: int, seconds: float) -> float:
 def collect(run_dir: Path, facts: RunFacts) -> dict[str, Any]:
     """Everything the report shows, as plain data (this is ``report.json``)."""
     run_dir = Path(run_dir)
-    edge = _load(run_dir / "stats" / "edge.json")
+    per_edge = edges_stats(run_dir)
+    edge = merge_edge_stats(per_edge) if per_edge else {}
     cloud = _load(run_dir / "stats" / "cloud.json")
     ate = _load(run_dir / "results" / "eval" / "ate.json")
     maps = _load(run_dir / "results" / "cloud_maps.json")
@@ -67,8 +73,10 @@ def collect(run_dir: Path, facts: RunFacts) -> dict[str, Any]:
     camera_s = max(facts.frames_sent.values(), default=0) / CAMERA_HZ
 
     links: dict[str, Any] = {}
-    for robot, c in sorted(edge.get("links", {}).items()):
-        links[f"{robot}->edge"] = {
+    for edge_name, robot, c in sorted(
+        (e, r, c) for e, st in per_edge.items() for r, c in st.get("links", {}).items()
+    ):
+        links[f"{robot}->{edge_name}"] = {
             "kbit_s": _kbps(c["rx"]["bytes"], secs),
             "kbit_s_camera": _kbps(c["rx"]["bytes"], camera_s),
             "by_type_kbit_s": {t: _kbps(e["bytes"], secs) for t, e in c["rx"]["by_type"].items()},
@@ -105,7 +113,20 @@ def collect(run_dir: Path, facts: RunFacts) -> dict[str, Any]:
             "ate_rmse_m": agent.get("individual", {}).get("stats_m", {}).get("rmse"),
             "ate_under_joint_rmse_m": agent.get("under_joint", {}).get("stats_m", {}).get("rmse"),
             "keyframes_matched": agent.get("n_matched"),
+            "edges": edge.get("edge_of", {}).get(name, []),
         }
+    sites = {
+        name: {
+            "robots": sorted(st.get("robots", {})),
+            "robots_kbit_s": _kbps(
+                sum(c["rx"]["bytes"] for c in st.get("links", {}).values()), secs
+            ),
+            "to_cloud_kbit_s": _kbps(
+                cloud.get("links", {}).get(name, {}).get("rx", {}).get("bytes", 0), secs
+            ),
+        }
+        for name, st in per_edge.items()
+    }
     joint = ate.get("joint", {})
     return {
         "wall_s": facts.wall_s,
@@ -131,7 +152,18 @@ def collect(run_dir: Path, facts: RunFacts) -> dict[str, Any]:
             "optimizations": cloud.get("optimizations"),
         },
         "links": links,
+        "sites": sites,
     }
+
+
+def edges_stats(run_dir: Path) -> dict[str, dict[str, Any]]:
+    """Each edge's last counters in ``run_dir/stats`` (``edge.json`` of the single edge,
+    ``edge-<name>.json`` of each site), by edge name."""
+    stats = Path(run_dir) / "stats"
+    out = {SINGLE_EDGE: _load(stats / "edge.json")} if (stats / "edge.json").is_file() else {}
+    for path in sorted(stats.glob("edge-*.json")):
+        out[path.stem.removeprefix("edge-")] = _load(path)
+    return out
 
 
 def _fmt(x: Any, spec: str = ".3f") -> str:
@@ -191,6 +223,19 @@ def render_markdown(data: dict[str, Any]) -> str:
             f"{link['reverse_kbit_s']:.1f} | "
             f"{link['duplicates_dropped']} |"
         )
+    if len(data.get("sites", {})) > 1:
+        lines += [
+            "",
+            "## Sites",
+            "",
+            "| edge | robots | robots -> edge kbit/s | edge -> cloud kbit/s |",
+            "|---|---|---|---|",
+        ]
+        for name, site in data["sites"].items():
+            lines.append(
+                f"| {name} | {', '.join(site['robots'])} | {site['robots_kbit_s']:.1f} | "
+                f"{site['to_cloud_kbit_s']:.1f} |"
+            )
     lines += ["", "## Plots", ""]
     lines += [f"![{p}]({p})" for p in data.get("plots", [])]
     return "\n".join(lines) + "\n"

@@ -270,3 +270,46 @@ def test_containers_give_up_on_an_unreachable_peer_and_flush_within_their_grace(
     edge = _load(COMPOSE)["services"]["edge"]
     args = parser.parse_args([_substitute(c) for c in edge["command"]][1:])
     assert args.stop_flush_timeout < _seconds(edge["stop_grace_period"])
+
+
+def test_sites_override_runs_two_edges_and_a_robot_that_moves(parser) -> None:
+    """docker-compose.sites.yml: a second edge with its own identity, state and stats, three
+    robots on it, one of which hands over to the first edge; every command parses."""
+    base = _load(COMPOSE)
+    sites = _load(ROOT / "docker-compose.sites.yml")
+    services = {k: dict(v) for k, v in base["services"].items()}
+    for name, over in sites["services"].items():
+        services[name] = {**services.get(name, {}), **over}
+    commands = {n: [_substitute(c) for c in s["command"]] for n, s in services.items()}
+    for name, command in commands.items():
+        assert callable(parser.parse_args(command[1:]).func), name
+    edges = {n: c for n, c in commands.items() if c[2] == "edge"}
+    assert set(edges) == {"edge", "edge-b"}
+    ids = {n: _flag(c, "--agent-id") if "--agent-id" in c else "edge" for n, c in edges.items()}
+    assert len(set(ids.values())) == 2  # the cloud tells the edges apart by their ids
+    for flag in ("--state-dir", "--stats-out"):
+        assert len({_flag(c, flag) for c in edges.values()}) == 2, flag
+    assert {_flag(c, "--cloud") for c in edges.values()} == {_flag(commands["edge"], "--cloud")}
+    b = services["edge-b"]
+    assert "edge-b-state" in sites["volumes"]
+    assert _flag(edges["edge-b"], "--state-dir").startswith("/state")
+    assert "edge-b-state:/state" in b["volumes"]
+    assert b["environment"]["RECSLAM_WRITABLE"] == "/results" and "/results" in _mount_targets(b)
+    port = _flag(edges["edge-b"], "--listen").rsplit(":", 1)[1]
+    assert port in " ".join(b["healthcheck"]["test"])
+    # Robots: unique ids, each on an edge service it waits for; the moving robot's handover
+    # target is the other edge's address.
+    robots = {n: s for n, s in services.items() if n.startswith("robot")}
+    agent_ids = [s["environment"]["AGENT_ID"] for s in robots.values()]
+    assert len(agent_ids) == len(set(agent_ids)) == 6
+    n_robots = int(_flag(commands["dataset"], "--robots"))
+    for name, s in robots.items():
+        env = s["environment"]
+        edge = env.get("EDGE", "edge:7000").split(":")[0]
+        assert edge in edges and s["depends_on"][edge]["condition"] == "service_healthy", name
+        assert int(env["SEQUENCE"].rsplit("robot", 1)[1]) < n_robots, name
+        if "--handover" in commands[name]:
+            target = _flag(commands[name], "--handover").split("=", 1)[1].split(":")[0]
+            assert target in edges and target != edge, name
+            assert s["depends_on"][target]["condition"] == "service_healthy", name
+    assert sum("--handover" in commands[n] for n in robots) == 1

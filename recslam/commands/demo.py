@@ -5,7 +5,9 @@ Builds the embedded synthetic multi-robot dataset (if missing, or if ``--robots`
 made with: without them an existing dataset is used as it is;
 a ``--data`` folder of downloaded sequences, e.g. EuRoC ``MH_01_easy/mav0``..., is used as
 is, one robot per sequence),
-starts the cloud, the edge and one robot process per sequence on loopback (free ports, a
+starts the cloud, the edge (``--edges N`` or ``--sites``: several, each robot on one of them;
+``--move`` hands a robot over to another edge mid-run) and one robot process per sequence on
+loopback (free ports, a
 generated secret), shows progress every few seconds, prints the dashboard URL, waits for the
 robots to finish, lets the edge and cloud drain, stops them (SIGTERM: the cloud writes its
 trajectories and ATE report) and writes the report folder::
@@ -58,6 +60,36 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="one camera preset per robot for the synthetic dataset, comma-separated, from "
         "euroc, wide, fisheye (e.g. euroc,wide,fisheye: a mixed team); default: an existing "
         "dataset's cameras, all euroc for a new one",
+    )
+    p.add_argument(
+        "--edges",
+        type=int,
+        default=1,
+        metavar="N",
+        help="number of edges (sites), robots assigned round-robin (default 1)",
+    )
+    p.add_argument(
+        "--sites",
+        default=None,
+        metavar="EDGE=ROBOT,...;EDGE=...",
+        help="which edge serves which robots, e.g. 'edgeA=robot0,robot1;edgeB=robot2' "
+        "(instead of --edges)",
+    )
+    p.add_argument(
+        "--move",
+        action="append",
+        default=[],
+        metavar="ROBOT@FRAME=EDGE",
+        help="from frame FRAME on, ROBOT ends its session with its edge and continues with EDGE "
+        "(repeat)",
+    )
+    p.add_argument(
+        "--restart-edge",
+        action="append",
+        default=[],
+        metavar="EDGE@SECONDS",
+        help="fault drill: SIGKILL edge EDGE this many seconds after the robots started and "
+        "restart it on its state directory (repeat)",
     )
     p.add_argument("--out", type=Path, default=Path("out/demo"), help="report folder")
     p.add_argument("--dashboard-port", type=int, default=8080, help="dashboard port (default 8080)")
@@ -186,6 +218,7 @@ def run(args: argparse.Namespace) -> int:
     import shutil
 
     from recslam.orchestration import JobConfig, progress_line, run_and_report
+    from recslam.sites import parse_move, parse_restart, parse_sites
 
     start = time.perf_counter()
     build_dataset(args)
@@ -203,6 +236,10 @@ def run(args: argparse.Namespace) -> int:
         mbp=args.mbp,
         mbp_every=args.mbp_every,
         wire=WireFormat(args.wire),
+        edges=args.edges,
+        sites=parse_sites(args.sites) if args.sites else None,
+        moves=tuple(parse_move(m) for m in args.move),
+        edge_restarts=tuple(parse_restart(r) for r in args.restart_edge),
     )
     last_print = [0.0]
 

@@ -13,14 +13,20 @@ acknowledged keyframe is durable, and a restarted cloud tells the edge where to 
 nothing acknowledged is lost and nothing is applied twice (:class:`PositionStore`).
 
 Robots are named by strings on the wire (``KeyframeUpdate.agent_id``) and each robot's edge
-may start a new map for it (``map_id``, e.g. after tracking was lost): every (robot, edge
-map) pair has its own frame, so it is one *atlas agent*, numbered 0, 1, ... in order of
-appearance. The table of agents (robot name, edge, edge map) is persisted with the
-keyframes. Corrections go back per atlas agent, in that edge map's frame.
+may start a new map for it (``map_id``, e.g. after tracking was lost): every (edge, robot,
+edge map) triple has its own frame, so it is one *atlas agent* (:data:`AgentKey`), numbered
+0, 1, ... in order of appearance. Several edges (sites) share one cloud: the edge is part of
+the key, so two edges' agents never mix (an edge can only address its own), a robot that
+moves to another edge becomes a new agent there whose map merges by place recognition as
+any other, and merging across edges is the same as within one. The table of agents (robot
+name, edge, edge map) is persisted with the keyframes. Corrections go back per atlas agent,
+to the edge that serves it, in that edge map's frame.
 
 Each robot's sensors (``AgentSensors``, sent by its edge before the robot's first keyframe)
-are persisted by robot name (``services.cloud.robot_sensors``): every atlas agent of that
-robot projects with its camera (``MapFusion.cameras``) and its keyframes decode with its image
+are persisted by robot name (``services.cloud.robot_sensors``; robot names are unique in a
+team, so a robot seen on a second edge keeps the sensors it first announced, and other
+sensors from another edge are logged and ignored): every atlas agent of that robot, on any
+edge, projects with its camera (``MapFusion.cameras``) and its keyframes decode with its image
 size; a robot without one (recordings made before calibrations travelled) uses the fallback
 camera the service was given.
 """
@@ -75,6 +81,9 @@ from services.cloud.uplink import (
 )
 
 log = logging.getLogger(__name__)
+
+AgentKey = tuple[str, str, int]
+"""An atlas agent's identity: (edge id, robot name, edge map id)."""
 
 
 class PositionStore:
@@ -152,10 +161,10 @@ class CloudApp:
         self.vocabulary = vocabulary
         self.config = config
         self.positions = positions or PositionStore()
-        self._agents: dict[tuple[str, int], _Agent] = {}  # (robot, edge map) -> agent
+        self._agents: dict[AgentKey, _Agent] = {}
         self.sensors = RobotSensorBook(store.sensors(), fusion.camera)
         for aid, (name, edge, edge_map) in store.agents().items():
-            self._agents[name, edge_map] = _Agent(aid, name, edge, edge_map)
+            self._agents[edge, name, edge_map] = _Agent(aid, name, edge, edge_map)
             self._use_camera(aid, name)
         for edge, (stream, seq) in store.positions().items():
             self.positions.set(edge, InboundPosition(stream, seq))
@@ -173,22 +182,22 @@ class CloudApp:
         return self.fusion.atlas
 
     # ------------------------------------------------------------------ agents
-    def _agent(self, name: str, edge_id: str, edge_map: int) -> tuple[_Agent, bool]:
-        """The agent of robot ``name``'s map ``edge_map`` and whether it is new; UplinkError
-        if another edge serves it (an edge may only update or cull its own agents)."""
-        a = self._agents.get((name, edge_map))
-        if a is None:
-            next_id = max((x.agent_id for x in self._agents.values()), default=-1) + 1
-            a = self._agents[name, edge_map] = _Agent(next_id, name, edge_id, edge_map)
-            log.info("new agent %d: robot %r, map %d of edge %r", next_id, name, edge_map, edge_id)
-            self._use_camera(next_id, name)
-            return a, True
-        if a.edge_id != edge_id:  # only the edge that serves an agent may change it
-            raise UplinkError(
-                f"edge {edge_id!r} does not serve robot {name!r} (its map {edge_map} is "
-                f"edge {a.edge_id!r}'s)"
-            )
-        return a, False
+    def _agent(
+        self, name: str, edge_id: str, edge_map: int, create: bool = True
+    ) -> tuple[_Agent, bool]:
+        """The agent (``edge_id``, robot ``name``, ``edge_map``) and whether it is new. An edge
+        only ever addresses its own agents; a message that may not start one (``create``
+        False: culls, pose updates) for an agent the edge never had raises UplinkError."""
+        a = self._agents.get((edge_id, name, edge_map))
+        if a is not None:
+            return a, False
+        if not create:
+            raise UplinkError(f"edge {edge_id!r} has no agent of robot {name!r} map {edge_map}")
+        next_id = max((x.agent_id for x in self._agents.values()), default=-1) + 1
+        a = self._agents[edge_id, name, edge_map] = _Agent(next_id, name, edge_id, edge_map)
+        log.info("new agent %d: robot %r, map %d of edge %r", next_id, name, edge_map, edge_id)
+        self._use_camera(next_id, name)
+        return a, True
 
     def _use_camera(self, agent_id: int, name: str) -> None:
         cam = self.sensors.camera(name)
@@ -333,7 +342,7 @@ class CloudApp:
         self, edge_id: str, msg: KeyframePoses, position: dict[str, tuple[bytes, int]]
     ) -> Reaction:
         """New states of known keyframes; each map point follows its reference keyframe."""
-        a, _ = self._agent(msg.agent_id, edge_id, msg.map_id)
+        a, _ = self._agent(msg.agent_id, edge_id, msg.map_id, create=False)
         t0 = time.perf_counter()
         try:
             updates = decode_keyframe_poses(msg)
@@ -374,7 +383,7 @@ class CloudApp:
     def _cull(
         self, edge_id: str, msg: CullEvent, position: dict[str, tuple[bytes, int]]
     ) -> Reaction:
-        a, _ = self._agent(msg.agent_id, edge_id, msg.map_id)
+        a, _ = self._agent(msg.agent_id, edge_id, msg.map_id, create=False)
         try:
             kf_ids, mp_ids = decode_cull_event(msg)
         except UplinkError:

@@ -264,7 +264,16 @@ class CloudMapSource:
             if a.map_id != a.agent_id or a.map_id in shared:
                 status = AgentState.MERGED
             agents.append(
-                AgentRecord(a.agent_id, status, a.frames, a.keyframes, a.last_seen, a.map_id)
+                AgentRecord(
+                    a.agent_id,
+                    status,
+                    a.frames,
+                    a.keyframes,
+                    a.last_seen,
+                    a.map_id,
+                    name=a.name,
+                    edge=a.edge_id,
+                )
             )
         for edge, snap in view.edge_counters.items():
             for key, direction in (("rx", Direction.UP), ("tx", Direction.DOWN)):

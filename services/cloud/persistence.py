@@ -11,7 +11,8 @@ acknowledged is on disk. :meth:`CloudStore.load` rebuilds an :class:`Atlas` from
 Two tables serve the network service: ``edge_positions`` (the transport's inbound position
 per edge link: the edge's stream id and last delivered sequence, overwritten when the edge
 starts a new stream, see :meth:`CloudStore.positions`) and ``agent_names`` (each atlas agent
-is one robot's map on its edge: the robot's name, the edge serving it and the edge's map id).
+is one robot's map on its edge: the robot's name, the edge serving it and the edge's map id;
+unique per (edge, robot, edge map), so that one robot on two edges is two agents).
 
 Keyframe arrays are stored as ``.npy`` payloads (``numpy.save``, no pickle) inside an
 uncompressed ``.npz`` blob per row. Map point rows (many, small, rewritten whenever an
@@ -45,10 +46,11 @@ from services.cloud.atlas import (
 log = logging.getLogger(__name__)
 
 DB_NAME = "cloud.sqlite"
-SCHEMA_VERSION = 5
-# Older schemas this one only adds tables to (``_SCHEMA`` creates them): opened and upgraded.
-# 5 added ``robot_sensors``.
-_UPGRADABLE = (3, 4)
+SCHEMA_VERSION = 6
+# Older schemas this one upgrades when it opens them: 5 added ``robot_sensors`` (``_SCHEMA``
+# creates it); 6 keys ``agent_names`` by (edge, robot, edge map), not (robot, edge map), so
+# that several edges' agents stay apart (:func:`_migrate_agent_names`).
+_UPGRADABLE = (3, 4, 5)
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS meta (name TEXT PRIMARY KEY, value INTEGER NOT NULL);
@@ -74,7 +76,7 @@ CREATE TABLE IF NOT EXISTS edge_sequences (edge_id TEXT PRIMARY KEY, last_seq IN
 CREATE TABLE IF NOT EXISTS edge_positions (edge_id TEXT PRIMARY KEY, stream_id BLOB NOT NULL,
     last_seq INTEGER NOT NULL);
 CREATE TABLE IF NOT EXISTS agent_names (agent INTEGER PRIMARY KEY, name TEXT NOT NULL,
-    edge_id TEXT NOT NULL, edge_map INTEGER NOT NULL, UNIQUE (name, edge_map));
+    edge_id TEXT NOT NULL, edge_map INTEGER NOT NULL, UNIQUE (edge_id, name, edge_map));
 CREATE TABLE IF NOT EXISTS robot_sensors (name TEXT PRIMARY KEY, sensors BLOB NOT NULL);
 """
 
@@ -119,6 +121,19 @@ def _arr(blob: bytes) -> np.ndarray:
     return _unpack(blob)["a"]
 
 
+def _migrate_agent_names(db: sqlite3.Connection) -> None:
+    """Rebuild ``agent_names`` with the schema-6 key UNIQUE(edge_id, name, edge_map), keeping
+    its rows (SQLite cannot change a table's constraints in place). Inside the caller's
+    transaction."""
+    db.execute(
+        "CREATE TABLE agent_names_v6 (agent INTEGER PRIMARY KEY, name TEXT NOT NULL, "
+        "edge_id TEXT NOT NULL, edge_map INTEGER NOT NULL, UNIQUE (edge_id, name, edge_map))"
+    )
+    db.execute("INSERT INTO agent_names_v6 SELECT agent, name, edge_id, edge_map FROM agent_names")
+    db.execute("DROP TABLE agent_names")
+    db.execute("ALTER TABLE agent_names_v6 RENAME TO agent_names")
+
+
 class CloudStore:
     """The cloud's state directory (``<state_dir>/cloud.sqlite``)."""
 
@@ -138,7 +153,15 @@ class CloudStore:
         if row is None:
             self._db.execute("INSERT INTO meta VALUES ('schema', ?)", (SCHEMA_VERSION,))
         elif row[0] in _UPGRADABLE:
-            self._db.execute("UPDATE meta SET value = ? WHERE name='schema'", (SCHEMA_VERSION,))
+            self._db.execute("BEGIN IMMEDIATE")
+            try:
+                _migrate_agent_names(self._db)
+                self._db.execute("UPDATE meta SET value = ? WHERE name='schema'", (SCHEMA_VERSION,))
+                self._db.execute("COMMIT")
+            except BaseException:
+                self._db.execute("ROLLBACK")
+                raise
+            log.info("%s: upgraded schema %d -> %d", self.path, row[0], SCHEMA_VERSION)
         elif row[0] != SCHEMA_VERSION:
             raise PersistenceError(f"{self.path}: schema {row[0]}, expected {SCHEMA_VERSION}")
 

@@ -105,6 +105,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="after SIGINT/SIGTERM, seconds to flush the backlog to the edge before giving up "
         "(default 10; a second signal gives up at once)",
     )
+    p.add_argument(
+        "--handover",
+        action="append",
+        default=[],
+        metavar="FRAME=HOST:PORT",
+        help="from sequence frame FRAME on, end the session with the current edge (after it "
+        "took everything) and continue with the edge at HOST:PORT (repeat, in frame order)",
+    )
     add_give_up_argument(p, "edge")
 
 
@@ -113,7 +121,13 @@ def config_from_args(args: argparse.Namespace) -> RobotServiceConfig:
     CredentialsError on a bad address or secret)."""
     from common.entry import tls_from_args
     from common.protocol.credentials import load_keys, parse_address
-    from services.robot.server import DEV_SECRET, Rate, RobotConfigError, RobotServiceConfig
+    from services.robot.server import (
+        DEV_SECRET,
+        Handover,
+        Rate,
+        RobotConfigError,
+        RobotServiceConfig,
+    )
 
     host, port = parse_address(args.edge)
     if args.backlog_minutes is None or args.backlog_minutes <= 0:
@@ -124,7 +138,14 @@ def config_from_args(args: argparse.Namespace) -> RobotServiceConfig:
         if from_env is None or Path(from_env) != dataset:
             raise RobotConfigError("give --dataset or --bag, not both")
         dataset = None  # $RECSLAM_DATASET gives way to an explicit --bag
+    handovers = []
+    for text in args.handover:
+        frame, sep, address = text.partition("=")
+        if not sep or not frame.strip().isdigit():
+            raise RobotConfigError(f"--handover {text!r} is not FRAME=HOST:PORT")
+        handovers.append(Handover(int(frame), *parse_address(address)))
     return RobotServiceConfig(
+        handovers=tuple(handovers),
         dataset=dataset,
         bag=args.bag,
         calibration=args.calibration,

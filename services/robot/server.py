@@ -29,6 +29,16 @@ Shared secret (:func:`common.protocol.credentials.load_secret`): ``--secret-file
 (contents, trailing newline stripped), else the environment variable ``RECSLAM_SECRET``, else
 a development default with a logged warning. At least 16 bytes.
 
+Moving between sites (``handovers``): the robot may end its session with one edge and
+continue with another at a given frame. Up to that frame it plays to the first edge; then it
+sends that edge its ``RobotSequenceEnd`` and waits until the edge's application has taken every
+message (the same flush as at the end: what the first edge acknowledged stays with it, nothing
+is left in between), closes that link, and opens a new stream with the next edge, starting with
+its ``RobotSensors``, from a fresh front end (the next edge holds none of the first one's
+tracks, keyframes or inertial state: its VIO starts a new map, which the cloud merges by place
+recognition like any other). Each frame is sent to exactly one edge, so nothing is lost or
+counted twice; the frame indices of each stream start at 0.
+
 Signals: SIGINT/SIGTERM stop the playback after the current frame; the sequence end is still
 sent and flushed, for at most ``stop_flush_timeout_s`` after the signal (logged: how many
 messages and bytes are still queued, and how long the robot waits); then, or at a second
@@ -41,6 +51,7 @@ import asyncio
 import contextlib
 import dataclasses
 import enum
+import itertools
 import logging
 import math
 import signal
@@ -84,6 +95,15 @@ class Rate(enum.Enum):
 
 
 @dataclass(frozen=True)
+class Handover:
+    """From sequence frame ``frame`` on, the robot plays to the edge at ``host:port``."""
+
+    frame: int
+    host: str
+    port: int
+
+
+@dataclass(frozen=True)
 class RobotServiceConfig:
     """Everything the robot service needs (built once, handed down).
 
@@ -115,6 +135,8 @@ class RobotServiceConfig:
         calibration: calibration file or folder (Kalibr camchain.yaml, EuRoC sensor.yaml);
             overrides the folder's, required with ``bag``.
         image_topic, imu_topic: the bag's topics (default: the calibration's ``rostopic``).
+        handovers: moves to other edges (sites), in increasing frame order, each after
+            ``start_frame`` (see the module docstring; default none).
     """
 
     dataset: Path | None
@@ -140,6 +162,7 @@ class RobotServiceConfig:
     image_topic: str | None = None
     imu_topic: str | None = None
     tls: TlsFiles = field(default_factory=TlsFiles)
+    handovers: tuple[Handover, ...] = ()
 
     def __post_init__(self) -> None:
         if self.dataset is None and self.bag is None:
@@ -182,6 +205,14 @@ class RobotServiceConfig:
             raise RobotConfigError(
                 f"give_up_after_s must be >= 0 (0 = never), got {self.give_up_after_s}"
             )
+        frames = [self.start_frame, *(h.frame for h in self.handovers)]
+        if any(b <= a for a, b in itertools.pairwise(frames)):
+            raise RobotConfigError(
+                f"handover frames must increase and follow the start frame, got {frames}"
+            )
+        for h in self.handovers:
+            if not h.host or not 0 < int(h.port) < 65536:
+                raise RobotConfigError(f"handover at frame {h.frame}: bad edge {h.host}:{h.port}")
 
 
 def open_sequence(config: RobotServiceConfig) -> SequenceSource:
@@ -201,7 +232,8 @@ def open_sequence(config: RobotServiceConfig) -> SequenceSource:
 @dataclass(frozen=True)
 class RobotRunResult:
     """Outcome of one run: frames and keyframes sent, whether a signal stopped it, whether
-    the edge took everything, wall time [s], link counters (``Client.counters()``)."""
+    the edge took everything, wall time [s], link counters (``Client.counters()``) of the last
+    edge session, and of every session in order (``sessions``: one per edge, see handovers)."""
 
     frames: int
     keyframes: int
@@ -210,6 +242,7 @@ class RobotRunResult:
     wall_s: float
     feedback_applied: int
     counters: dict[str, Any]
+    sessions: tuple[dict[str, Any], ...] = ()
 
 
 class RobotService:
@@ -228,18 +261,32 @@ class RobotService:
                 f"({len(self.sequence)} in the sequence)"
             )
         self._stop_index = stop
-        self.app = RobotApp(
-            config.front_end,
-            self.sequence.cam0,
-            self.sequence.imu,
-            Vocabulary.load(config.vocabulary),
-            record=config.record,
-        )
+        self._vocabulary = Vocabulary.load(config.vocabulary)
+        self.app = self._new_app()
+        self.apps = [self.app]  # one per edge session (a handover starts a fresh one)
         self.client: Client | None = None
         self._stop = asyncio.Event()
         self._abort = asyncio.Event()
         self._signals = 0
         self._give_up: asyncio.TimerHandle | None = None
+
+    def _new_app(self) -> RobotApp:
+        return RobotApp(
+            self.config.front_end,
+            self.sequence.cam0,
+            self.sequence.imu,
+            self._vocabulary,
+            record=self.config.record,
+        )
+
+    def segments(self) -> list[tuple[int, int, str, int]]:
+        """``(first frame, end frame, edge host, edge port)`` of each edge session, in order
+        (handovers at or past the end of the played frames are ignored)."""
+        cfg = self.config
+        edges = [(cfg.start_frame, cfg.edge_host, cfg.edge_port)]
+        edges += [(h.frame, h.host, h.port) for h in cfg.handovers if h.frame < self._stop_index]
+        ends = [e[0] for e in edges[1:]] + [self._stop_index]
+        return [(a, end, host, port) for (a, host, port), end in zip(edges, ends, strict=True)]
 
     def session_config(self) -> SessionConfig:
         cfg = self.config
@@ -298,68 +345,103 @@ class RobotService:
     async def run(self) -> RobotRunResult:
         cfg = self.config
         t_start = time.monotonic()
+        executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix=f"robot-{cfg.agent_id}")
+        sessions: list[dict[str, Any]] = []
+        flushed = True
+        try:
+            for i, (first, end, host, port) in enumerate(self.segments()):
+                if i > 0:
+                    if self._stop.is_set():
+                        break
+                    self.app = self._new_app()
+                    self.apps.append(self.app)
+                    logger.info(
+                        "robot %s: handover at frame %d to the edge at %s:%d",
+                        self.name,
+                        first,
+                        host,
+                        port,
+                    )
+                took, counters = await self._session(executor, first, end, host, port)
+                sessions.append(counters)
+                flushed = flushed and took
+                if not took:
+                    break
+        finally:
+            if self._give_up is not None:
+                self._give_up.cancel()
+            executor.shutdown(wait=True)
+        wall = time.monotonic() - t_start
+        frames = sum(a.frames for a in self.apps)
+        keyframes = sum(a.keyframes for a in self.apps)
+        logger.info(
+            "robot %s: %d frames (%d keyframes) to %d edge(s) in %.1f s, %d B sent, flushed=%s",
+            cfg.agent_id,
+            frames,
+            keyframes,
+            len(sessions),
+            wall,
+            sum(c["tx"]["bytes"] for c in sessions),
+            flushed,
+        )
+        return RobotRunResult(
+            frames=frames,
+            keyframes=keyframes,
+            interrupted=self._signals > 0,
+            flushed=flushed,
+            wall_s=wall,
+            feedback_applied=sum(a.feedback_applied for a in self.apps),
+            counters=sessions[-1] if sessions else {},
+            sessions=tuple(sessions),
+        )
+
+    async def _session(
+        self, executor: ThreadPoolExecutor, first: int, end: int, host: str, port: int
+    ) -> tuple[bool, dict[str, Any]]:
+        """Play frames ``first..end-1`` to the edge at ``host:port`` on a stream of their own
+        (sensors first, sequence end last); returns whether that edge took everything and the
+        link's counters."""
+        cfg = self.config
         transport = dataclasses.replace(
             self.transport or TransportConfig(), give_up_after=cfg.give_up_after_s
         )
         self.client = Client(
             self.session_config(),
             self.app.on_message,
-            cfg.edge_host,
-            cfg.edge_port,
+            host,
+            port,
             transport=transport,
             server_name="edge",
             ssl=cfg.tls.client_context(),
-            server_hostname=cfg.edge_host,
+            server_hostname=host,
         )
         await self.client.start()
-        # The stream's first message: this robot's calibrations (the edge builds its decoders
-        # and VIO from them).
-        await self.client.send(sensors_message(Sensors(self.sequence.cam0, self.sequence.imu)))
-        logger.info(
-            "robot %s: playing %s frames %d..%d to %s:%d (%s)",
-            cfg.agent_id,
-            self.sequence.name,
-            cfg.start_frame,
-            self._stop_index - 1,
-            cfg.edge_host,
-            cfg.edge_port,
-            cfg.rate.value,
-        )
-        executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix=f"robot-{cfg.agent_id}")
         try:
-            await self._play(executor)
+            # The stream's first message: this robot's calibrations (the edge builds its
+            # decoders and VIO from them).
+            await self.client.send(sensors_message(Sensors(self.sequence.cam0, self.sequence.imu)))
+            logger.info(
+                "robot %s: playing %s frames %d..%d to %s:%d (%s)",
+                cfg.agent_id,
+                self.sequence.name,
+                first,
+                end - 1,
+                host,
+                port,
+                cfg.rate.value,
+            )
+            await self._play(executor, first, end)
             flushed = await self._send(self.app.end_message()) and await self._flush()
             self.app.apply_pending()
         finally:
-            if self._give_up is not None:
-                self._give_up.cancel()
-            executor.shutdown(wait=True)
             counters = self.client.counters()
             await self.client.close()
-        wall = time.monotonic() - t_start
-        logger.info(
-            "robot %s: %d frames (%d keyframes) in %.1f s, %d B sent, flushed=%s",
-            cfg.agent_id,
-            self.app.frames,
-            self.app.keyframes,
-            wall,
-            counters["tx"]["bytes"],
-            flushed,
-        )
-        return RobotRunResult(
-            frames=self.app.frames,
-            keyframes=self.app.keyframes,
-            interrupted=self._signals > 0,
-            flushed=flushed,
-            wall_s=wall,
-            feedback_applied=self.app.feedback_applied,
-            counters=counters,
-        )
+        return flushed, counters
 
-    async def _play(self, executor: ThreadPoolExecutor) -> None:
+    async def _play(self, executor: ThreadPoolExecutor, first: int, end: int) -> None:
         assert self.client is not None and self.client.peer is not None  # run() started it
         loop = asyncio.get_running_loop()
-        frames = self.sequence.frames(self.config.start_frame, self._stop_index)
+        frames = self.sequence.frames(first, end)
         t0_wall: float | None = None
         t0_ns = 0
         blocked = False

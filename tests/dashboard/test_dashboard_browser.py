@@ -139,5 +139,9 @@ def test_dashboard_draws_points_and_panels_in_chromium(browser, tmp_path):
     for a in range(3):
         assert f"robot {a}" in text
     assert "tracking" in text and "merged" in text
-    assert "edge→cloud" in text and "robot0→edge" in text
+    # Edges (two sites in the demo): which robot is on which edge, each edge's link rates.
+    assert "site-a→cloud" in text and "site-b→cloud" in text and "robot0→site-a" in text
+    assert "robot0 @ site-a" in text and "robot2 @ site-b" in text
+    assert "robots→edge" in text and "robot0, robot1" in text and "robot2" in text
+    assert "no edges yet" in empty_text
     assert "no agents yet" in empty_text and str(c.map_points) not in empty_text

@@ -12,7 +12,7 @@ from common.map_view import (
     PointSet,
 )
 from dashboard.map_state import KeyframeTracks, PointChunks, live_ate_rmse
-from dashboard.panels import bandwidth_series
+from dashboard.panels import agents_markdown, bandwidth_series, edge_rates, edges_markdown
 from dashboard.scene import frustum_segments
 
 
@@ -131,3 +131,32 @@ def test_frustum_segments_geometry():
     np.testing.assert_allclose(seg[0, 0], [0, 0, 0])
     assert np.allclose(seg[:4, 1, 2], 1.0)  # corners at depth 1 along +z
     np.testing.assert_allclose(seg[8, 0], [5, 0, 0])
+
+
+def test_edges_show_their_robots_and_link_rates():
+    """Two sites: each edge lists the robots of the agents it serves (a robot that moved is on
+    both) and the kbit/s of its robot links and its cloud link over the recent window."""
+    from common.map_view import AgentRecord, AgentState, MapCounts, StatsSnapshot
+
+    up, down = Direction.UP, Direction.DOWN
+    agents = tuple(
+        AgentRecord(i, AgentState.TRACKING, 10, 2, 9.0, 0, name=n, edge=e)
+        for i, (n, e) in enumerate([("r0", "a"), ("r1", "a"), ("r1", "b"), ("r2", "b")])
+    )
+    samples = (
+        BandwidthSample(1.0, "r0→a", up, "frame", 10_000),  # outside the 5 s window
+        BandwidthSample(6.0, "r0→a", up, "frame", 1000),
+        BandwidthSample(7.0, "r1→a", up, "frame", 1500),
+        BandwidthSample(8.0, "r1→a", down, "ack", 250),
+        BandwidthSample(9.0, "r2→b", up, "frame", 625),
+        BandwidthSample(9.0, "a→cloud", up, "keyframe", 5000),
+        BandwidthSample(9.5, "b→cloud", down, "correction", 1250),
+    )
+    stats = StatsSnapshot(10.0, agents, MapCounts(0, 0, 0, 0, 0, 0), samples)
+    a, b = edge_rates(stats, window_s=5.0)
+    assert (a.edge, a.robots, b.edge, b.robots) == ("a", ("r0", "r1"), "b", ("r1", "r2"))
+    assert (a.robots_up, a.robots_down, a.cloud_up, a.cloud_down) == (4.0, 0.4, 8.0, 0.0)
+    assert (b.robots_up, b.cloud_down) == (1.0, 2.0)
+    text = edges_markdown(stats, window_s=5.0)
+    assert "| a | r0, r1 | 4.0 / 0.4 | 8.0 / 0.0 |" in text
+    assert "r1 @ b" in agents_markdown(stats, {})

@@ -119,3 +119,17 @@ def test_environment_supplies_missing_arguments(monkeypatch, tmp_path):
     monkeypatch.delenv("RECSLAM_EDGE")
     with pytest.raises(SystemExit):
         parse([])  # --edge is required again
+
+
+def test_handovers_parse_in_frame_order_and_a_malformed_one_is_named(tmp_path, monkeypatch):
+    from services.robot.server import Handover
+
+    monkeypatch.setenv("RECSLAM_SECRET", "0123456789abcdef-robot")
+    base = ["--dataset", str(tmp_path), "--edge", "a:7000", "--agent-id", "r1"]
+    args = parse([*base, "--handover", "100=b:7001", "--handover", "250=[::1]:7002"])
+    cfg = robot.build_config(args)
+    assert cfg.handovers == (Handover(100, "b", 7001), Handover(250, "::1", 7002))
+    with pytest.raises(RobotConfigError, match="FRAME=HOST:PORT"):
+        robot.build_config(parse([*base, "--handover", "b:7001"]))
+    with pytest.raises(RobotConfigError, match="must increase"):
+        robot.build_config(parse([*base, "--handover", "9=b:1", "--handover", "3=c:2"]))

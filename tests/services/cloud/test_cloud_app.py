@@ -24,6 +24,7 @@ from services.cloud.simulation import (
     make_session,
     make_world,
 )
+from services.cloud.uplink import UplinkError
 
 
 @pytest.fixture(scope="module")
@@ -226,3 +227,37 @@ def test_ground_truth_is_associated_by_time_and_aligned_onto_the_keyframes(tmp_p
         assert app.ground_truth({"robot": ref}, max_dt_ns=1_000_000) == ()
     finally:
         app.close()
+
+
+def test_one_robot_on_two_edges_is_two_agents_each_corrected_through_its_own_edge(tmp_path, vocab):
+    """Several edges, one cloud: the agent key is (edge, robot, edge map). A robot that moved
+    from edge-a to edge-b (same name, both edges number its map 0) is two agents; a pose
+    correction of each goes to the edge that serves it; the identities survive a restart;
+    edge-b cannot cull edge-a's keyframes."""
+    world = make_world(8, n_points=1500)
+    kfs, _ = make_session(world, default_camera(), 0, circle_poses(4, turns=0.1), np.eye(4))
+    app = _app(tmp_path, vocab)
+    for seq, (edge, k) in enumerate(zip(["edge-a"] * 2 + ["edge-b"] * 2, kfs, strict=True), 1):
+        msg, _ = encode_keyframe_update(k, "robot", vocab, edge_map_id=0)
+        app.handle(edge, msg, edge.encode(), seq)
+    assert app.agents() == {0: ("robot", "edge-a", 0), 1: ("robot", "edge-b", 0)}
+    routed = {c.edge_id: c.message.agent_id for m in app.atlas.maps() for c in app.corrections(m)}
+    assert routed == {"edge-a": "robot", "edge-b": "robot"}
+    for m in app.atlas.maps():
+        for c in app.corrections(m):
+            ids, _ = decode_pose_correction(c.message)
+            assert ids.tolist() == ([0, 1] if c.edge_id == "edge-a" else [2, 3])
+    with pytest.raises(UplinkError, match="has no agent"):
+        app.handle("edge-b", CullEvent("robot", 7, pack_array(np.array([0]), "<i8"), b""), b"b", 9)
+    assert app.atlas.n_keyframes() == 4
+    app.close()
+    restarted = _app(tmp_path, vocab)
+    try:
+        assert restarted.agents() == app.agents()
+        # edge-b's next keyframe lands in its agent, not in edge-a's.
+        msg, _ = encode_keyframe_update(kfs[0], "robot", vocab, edge_map_id=0)
+        restarted.handle("edge-b", msg, b"b", 10)
+        assert restarted.atlas.has_keyframe(make_key(1, kfs[0].keyframe_id))
+        assert restarted.agents() == app.agents()
+    finally:
+        restarted.close()

@@ -104,3 +104,33 @@ def test_a_full_database_reports_itself_not_a_failed_rollback(tmp_path):
         store._db.execute(f"PRAGMA max_page_count = {100 * pages}")  # space again
         store.commit(atlas, keys, pkeys, {"e": 2})
         assert store.last_sequences() == {"e": 2}
+
+
+def test_a_schema_5_state_dir_is_migrated_to_agents_keyed_by_edge(tmp_path):
+    """A state dir written before several edges (schema 5: agent_names UNIQUE(name, edge_map))
+    opens with its agents kept, and then holds the same robot and map on two edges."""
+    import sqlite3
+
+    from services.cloud.persistence import DB_NAME, SCHEMA_VERSION
+
+    db = sqlite3.connect(tmp_path / DB_NAME)
+    db.executescript(
+        "CREATE TABLE meta (name TEXT PRIMARY KEY, value INTEGER NOT NULL);"
+        "INSERT INTO meta VALUES ('schema', 5);"
+        "CREATE TABLE agent_names (agent INTEGER PRIMARY KEY, name TEXT NOT NULL,"
+        " edge_id TEXT NOT NULL, edge_map INTEGER NOT NULL, UNIQUE (name, edge_map));"
+        "INSERT INTO agent_names VALUES (0, 'r0', 'edge', 0), (1, 'r1', 'edge', 0);"
+    )
+    db.commit()
+    db.close()
+    with CloudStore(tmp_path) as store:
+        assert store.agents() == {0: ("r0", "edge", 0), 1: ("r1", "edge", 0)}
+        store.commit(Atlas(), agents={2: ("r0", "edge-b", 0)})  # refused by the old key
+        assert store.agents()[2] == ("r0", "edge-b", 0)
+    with CloudStore(tmp_path) as store:
+        assert len(store.agents()) == 3
+    db = sqlite3.connect(tmp_path / DB_NAME)
+    assert db.execute("SELECT value FROM meta WHERE name='schema'").fetchone() == (SCHEMA_VERSION,)
+    with pytest.raises(sqlite3.IntegrityError):  # the new key is enforced
+        db.execute("INSERT INTO agent_names VALUES (3, 'r0', 'edge-b', 0)")
+    db.close()

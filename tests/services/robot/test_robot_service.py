@@ -404,3 +404,60 @@ def test_first_stop_flushes_for_a_bounded_time_and_says_so(vocabulary, euroc_mic
     text = caplog.text
     assert "stop requested: 8 messages" in text and "for at most 0.5 s" in text
     assert "giving up with 8 messages" in text
+
+
+def test_handover_to_a_second_edge_sends_each_frame_exactly_once(vocabulary, euroc_micro):
+    """A robot that moves between sites: frames 0..24 go to edge A, which takes them all (its
+    stream ends with RobotSequenceEnd(25)) before the robot opens a new stream with edge B,
+    starting with its sensors, frame indices from 0 and a fresh front end (a keyframe first).
+    Each sequence frame reaches exactly one edge, decoded."""
+    from common.links.robot_edge import RobotSensors
+    from services.robot.server import Handover
+
+    seq = EurocSequence(euroc_micro)
+    at = 25
+
+    class Site(EdgeStub):
+        def __init__(self, vocabulary) -> None:
+            super().__init__(vocabulary)
+            self.kinds: list[str] = []
+
+        async def __call__(self, d: Delivery) -> None:
+            self.kinds.append(type(d.message).__name__)
+            await super().__call__(d)
+
+    async def main():
+        a, b = Site(vocabulary), Site(vocabulary)
+        _, port_a = await a.start()
+        _, port_b = await b.start()
+        try:
+            cfg = robot_config(euroc_micro, port_a, handovers=(Handover(at, "127.0.0.1", port_b),))
+            service = RobotService(cfg, FAST)
+            result = await service.run()
+            await asyncio.wait_for(b.ended.wait(), 5)
+        finally:
+            await a.server.close()
+            await b.server.close()
+        return service, result, a, b
+
+    service, result, a, b = run(main())
+    assert not a.errors and not b.errors
+    assert result.flushed and result.frames == N_FRAMES and len(result.sessions) == 2
+    assert a.end is not None and a.end.frames == at and len(a.frames) == at
+    assert b.end is not None and b.end.frames == N_FRAMES - at and len(b.frames) == N_FRAMES - at
+    for site in (a, b):
+        assert site.kinds[0] == RobotSensors.__name__ and site.kinds[-1] == "RobotSequenceEnd"
+        assert site.frames[0][0].keyframe  # a new stream starts with a keyframe
+    stamps = [m.timestamp_ns for site in (a, b) for m, _, _ in site.frames]
+    assert stamps == [int(t) for t in seq.frame_timestamps_ns[:N_FRAMES]]
+    assert [m.frame_index for m, _, _ in b.frames] == list(range(N_FRAMES - at))
+    assert [len(x.recorded) for x in service.apps] == [at, N_FRAMES - at]
+
+
+def test_handover_frames_must_increase(tmp_path):
+    from services.robot.server import Handover, RobotConfigError
+
+    with pytest.raises(RobotConfigError, match="handover frames must increase"):
+        robot_config(tmp_path, 7000, handovers=(Handover(10, "h", 1), Handover(5, "h", 2)))
+    with pytest.raises(RobotConfigError, match="handover frames must increase"):
+        robot_config(tmp_path, 7000, start_frame=10, handovers=(Handover(10, "h", 1),))
