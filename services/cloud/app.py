@@ -165,6 +165,9 @@ class CloudApp:
         self.messages = 0
         self.rejected = 0
         self.codec_timer = CodecTimer()
+        # Wall time of the worker's stages (``stage.*``: map fusion's per keyframe, the
+        # commits, building and applying optimisations, MBP), for ``--stats-out``.
+        self.stage_timer = fusion.timer
         self._changes = 0  # bumped by every atlas mutation (the view is rebuilt only then)
         self._view_cache: tuple[int, AtlasSnapshot] | None = None
 
@@ -285,14 +288,16 @@ class CloudApp:
         merged = any(o.merge is not None for o in events.outcomes)
         agents = self._rows(a)
         if merged or events.outcomes:
-            self.store.save_all(self.atlas, positions=position, agents=agents)
+            with self.stage_timer.span("stage.save_all"):
+                self.store.save_all(self.atlas, positions=position, agents=agents)
             reaction.merged = merged
         else:
             mps: list[int] = []
             if self.atlas.has_keyframe(key):
                 mk = self.atlas.keyframe(key).map_point_keys
                 mps = np.unique(mk[mk >= 0]).tolist()
-            self.store.commit(self.atlas, [key], mps, positions=position, agents=agents)
+            with self.stage_timer.span("stage.commit"):
+                self.store.commit(self.atlas, [key], mps, positions=position, agents=agents)
         if is_new and self.atlas.has_keyframe(key):
             reaction.new_keyframes[self.atlas.map_id_of_keyframe(key)] = 1
         return reaction
@@ -402,7 +407,8 @@ class CloudApp:
         is gone or too small)."""
         if map_id not in self.atlas.maps() or self.atlas.n_keyframes(map_id) < 2:
             return None
-        return self.fusion.pose_graph(map_id), len(self.atlas.merges())
+        with self.stage_timer.span("stage.pose_graph_build"):
+            return self.fusion.pose_graph(map_id), len(self.atlas.merges())
 
     def full_ba_problem(self, map_id: int) -> tuple[FullBAProblem, int] | None:
         """The full bundle adjustment of ``map_id`` and the merge-state token (None if the
@@ -411,7 +417,8 @@ class CloudApp:
             return None
         if self.atlas.n_keyframes(map_id) < 2:
             return None
-        return self.fusion.full_ba_problem(map_id), len(self.atlas.merges())
+        with self.stage_timer.span("stage.full_ba_build"):
+            return self.fusion.full_ba_problem(map_id), len(self.atlas.merges())
 
     def apply_optimization(
         self, map_id: int, result: PoseGraphResult | FullBAResult, token: int
@@ -420,11 +427,13 @@ class CloudApp:
         in a stale frame and the caller should optimise again); returns the corrections."""
         if token != len(self.atlas.merges()) or map_id not in self.atlas.maps():
             return None
-        n = self.fusion.apply_optimization(result)
-        self._changes += 1
-        self.store.commit_poses(
-            self.atlas, self.atlas.keyframe_keys(map_id), self.atlas.map_point_keys(map_id)
-        )
+        kind = "full_ba" if isinstance(result, FullBAResult) else "pose_graph"
+        with self.stage_timer.span(f"stage.{kind}_apply"):
+            n = self.fusion.apply_optimization(result)
+            self._changes += 1
+            self.store.commit_poses(
+                self.atlas, self.atlas.keyframe_keys(map_id), self.atlas.map_point_keys(map_id)
+            )
         log.info(
             "map %d: applied optimisation of %d keyframes (error %.3g -> %.3g)",
             map_id,
@@ -432,7 +441,8 @@ class CloudApp:
             result.initial_error,
             result.final_error,
         )
-        return self.corrections(map_id)
+        with self.stage_timer.span("stage.corrections"):
+            return self.corrections(map_id)
 
     def corrections(self, map_id: int) -> list[Correction]:
         """Current keyframe poses of every agent in ``map_id``, each in its own map frame."""
@@ -465,7 +475,8 @@ class CloudApp:
         before = set(self.atlas.map_point_keys(map_id))
         cfg = self.config
         keep = cfg.mbp_keep_recent if final else max(cfg.mbp_keep_recent, cfg.mbp_settle_keyframes)
-        report = self.fusion.prune(map_id, keep)
+        with self.stage_timer.span("stage.mbp"):
+            report = self.fusion.prune(map_id, keep)
         self._changes += 1
         self._pruned_points |= before - set(self.atlas.map_point_keys(map_id))
         self._pruned_keyframes.update(report.removed_keyframes)
