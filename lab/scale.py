@@ -35,7 +35,7 @@ import math
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -116,7 +116,9 @@ def plan_copies(
 
 def rename(message: Message, prefix: str) -> Message:
     """``message`` with its robot renamed ``prefix + agent_id``."""
-    return dataclasses.replace(message, agent_id=prefix + message.agent_id)  # type: ignore[attr-defined]
+    name = str(getattr(message, "agent_id"))  # noqa: B009  (every uplink message has one)
+    renamed: Message = dataclasses.replace(cast(Any, message), agent_id=prefix + name)
+    return renamed
 
 
 def _camera_t0(records: Sequence[Record]) -> float:
@@ -332,6 +334,7 @@ class ScaleConfig:
         work: scratch folder (one sub-folder per team size and run).
         out: where scale.md, scale.json and scale.png go.
         runs: live replays per team size (their spread is reported).
+        command: the command line that ran it (for the report).
     """
 
     recordings: tuple[Path, ...]
@@ -341,6 +344,7 @@ class ScaleConfig:
     work: Path = Path("/tmp/recslam-scale")
     out: Path = Path("benchmarks/results")
     runs: int = 1
+    command: str = ""
 
 
 def run_scale(config: ScaleConfig, live_config: Any = None) -> list[list[TeamRow]]:

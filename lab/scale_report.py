@@ -52,10 +52,11 @@ def scale_markdown(config: ScaleConfig, rows: Sequence[Sequence[TeamRow]], copie
     """``scale.md``: how it was made, the table, the stages, the verdict."""
     labels = [lbl for lbl, _ in (*KEYFRAME_STAGES, *OPTIMISATION_STAGES, *SOLVES)]
     cpus = os.cpu_count()
+    command = config.command or "recslam experiment scale"
     lines = [
         "# Many robots at one cloud: cost against agents and keyframes",
         "",
-        f"Made {datetime.date.today().isoformat()} by `recslam experiment scale` "
+        f"Made {datetime.date.today().isoformat()} by `{command}` "
         "(`lab/scale.py`, `lab/scale_live.py`) on this machine "
         f"({cpus} cores, shared with other work). Recordings: "
         + ", ".join(f"`{p}`" for p in config.recordings)
