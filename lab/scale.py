@@ -379,3 +379,72 @@ def run_scale(config: ScaleConfig, live_config: Any = None) -> list[list[TeamRow
         rows.append(runs)
         write_scale(config, rows, [plan_copies(robots, m, config.shift_s) for m in config.agents])
     return rows
+
+
+@dataclass
+class CoreRow:
+    """A team through the service's core in this process (:func:`core_replay`): CPU per
+    keyframe per stage (ms), solves included, and the end state."""
+
+    agents: int
+    keyframes: int
+    messages: int
+    stage_ms: dict[str, float]
+    worker_ms_per_keyframe: float
+    seconds: float
+    maps: int
+    merges: int
+    optimizations: int
+
+
+def core_replay(
+    sends: Sequence[Send], agents: int, state_dir: Path, full_ba: bool = True
+) -> CoreRow:
+    """``sends`` through a fresh cloud app and the service's core (:func:`lab.table3.replay`,
+    modelled schedule, solves in this thread taking no time on the replay's clock): the
+    same input in the same order every time, CPU per stage without the network."""
+    import time
+
+    from common.vocabulary import Vocabulary
+    from lab.table3 import replay, service_config
+    from services.cloud.core import SolveRequest, SolveResult, solve
+    from services.cloud.simulation import default_camera
+
+    solves: dict[str, dict[str, float]] = {}
+
+    def timed(request: SolveRequest) -> SolveResult:
+        t0 = time.perf_counter()
+        try:
+            return solve(request)
+        finally:
+            e = solves.setdefault(f"solve.{request.kind.name.lower()}", {"seconds": 0.0})
+            e["seconds"] += time.perf_counter() - t0
+
+    res = replay(
+        records_of(sends),
+        default_camera(),
+        Vocabulary.load(),
+        service_config(mbp=False),
+        state_dir,
+        f"{agents} agents",
+        full_ba=full_ba,
+        solve_fn=timed,
+    )
+    stages = {**res.stages, **solves}
+    n_kf = max(1, res.keyframes_received)
+    ms = {
+        label: 1e3 * _seconds(stages, keys) / n_kf
+        for label, keys in (*KEYFRAME_STAGES, *OPTIMISATION_STAGES, *SOLVES)
+    }
+    worker = sum(v for k, v in ms.items() if k not in dict(SOLVES))
+    return CoreRow(
+        agents=agents,
+        keyframes=res.keyframes_received,
+        messages=res.messages,
+        stage_ms=ms,
+        worker_ms_per_keyframe=worker,
+        seconds=res.seconds,
+        maps=len(res.maps),
+        merges=res.merges,
+        optimizations=res.optimizations,
+    )

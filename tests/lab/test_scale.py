@@ -135,3 +135,16 @@ def test_live_replay_to_a_cloud_process(recording, tmp_path):
     text = md.read_text()
     assert f"| 4 | 2 | 84 | {len(sends)} |" in text and "site1: recording 0" in text
     assert png.stat().st_size > 10_000
+
+
+def test_core_replay_times_every_stage(recording, tmp_path):
+    from lab.scale import core_replay
+
+    recs = load_recordings([recording])
+    sends = timeline(recs, plan_copies([robots_of(recs[0])], 2), "camera")
+    row = core_replay(sends, 2, tmp_path / "core", full_ba=False)
+    assert row.keyframes == 42 and row.messages == len(sends)
+    assert row.merges >= 1 and row.optimizations >= 1
+    assert row.stage_ms["place recognition"] > 0 and row.stage_ms["pose graph solve"] > 0
+    assert row.stage_ms["full BA solve"] == 0.0
+    assert row.worker_ms_per_keyframe >= row.stage_ms["verification"]
