@@ -335,6 +335,7 @@ class ScaleConfig:
         out: where scale.md, scale.json and scale.png go.
         runs: live replays per team size (their spread is reported).
         command: the command line that ran it (for the report).
+        core: also replay each team through the core in-process (:func:`core_replay`).
     """
 
     recordings: tuple[Path, ...]
@@ -345,6 +346,7 @@ class ScaleConfig:
     out: Path = Path("benchmarks/results")
     runs: int = 1
     command: str = ""
+    core: bool = False
 
 
 def run_scale(config: ScaleConfig, live_config: Any = None) -> list[list[TeamRow]]:
@@ -357,6 +359,7 @@ def run_scale(config: ScaleConfig, live_config: Any = None) -> list[list[TeamRow
     recordings = load_recordings(config.recordings)
     robots = [robots_of(r) for r in recordings]
     rows: list[list[TeamRow]] = []
+    cores: list[CoreRow] = []
     for n in config.agents:
         copies = plan_copies(robots, n, config.shift_s)
         sends = timeline(recordings, copies, config.schedule)
@@ -377,7 +380,11 @@ def run_scale(config: ScaleConfig, live_config: Any = None) -> list[list[TeamRow
                 100 * r.worker_busy,
             )
         rows.append(runs)
-        write_scale(config, rows, [plan_copies(robots, m, config.shift_s) for m in config.agents])
+        if config.core:
+            work = config.work / f"agents-{n}" / "core"
+            cores.append(core_replay(sends, n, work / "state"))
+        plans = [plan_copies(robots, m, config.shift_s) for m in config.agents[: len(rows)]]
+        write_scale(config, rows, plans, cores)
     return rows
 
 

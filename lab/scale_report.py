@@ -21,6 +21,7 @@ from lab.scale import (
     OPTIMISATION_STAGES,
     SOLVES,
     AgentCopy,
+    CoreRow,
     ScaleConfig,
     TeamRow,
 )
@@ -48,7 +49,12 @@ def _keeps_up(r: TeamRow) -> bool:
     return r.drain_s <= 5.0 and r.queue_end <= max(50, r.messages // 10)
 
 
-def scale_markdown(config: ScaleConfig, rows: Sequence[Sequence[TeamRow]], copies) -> str:
+def scale_markdown(
+    config: ScaleConfig,
+    rows: Sequence[Sequence[TeamRow]],
+    copies: Sequence[Sequence[AgentCopy]],
+    cores: Sequence[CoreRow] = (),
+) -> str:
     """``scale.md``: how it was made, the table, the stages, the verdict."""
     labels = [lbl for lbl, _ in (*KEYFRAME_STAGES, *OPTIMISATION_STAGES, *SOLVES)]
     cpus = os.cpu_count()
@@ -133,6 +139,23 @@ def scale_markdown(config: ScaleConfig, rows: Sequence[Sequence[TeamRow]], copie
     for runs in rows:
         cells = [_spread([r.stage_ms[lbl] for r in runs], ".2f") for lbl in labels]
         lines.append(f"| {runs[0].agents} | " + " | ".join(cells) + " |")
+    if cores:
+        lines += [
+            "",
+            "The same teams through the service's core in one process (`core_replay`: the "
+            "same input in the same order, solves in-process taking no time on the replay's "
+            "clock, full BA on), ms per keyframe:",
+            "",
+            "| agents | keyframes | worker ms/KF | " + " | ".join(labels) + " | replay s |",
+            "|" + "---|" * (len(labels) + 4),
+        ]
+        for c in cores:
+            cells = [f"{c.stage_ms[lbl]:.2f}" for lbl in labels]
+            lines.append(
+                f"| {c.agents} | {c.keyframes} | {c.worker_ms_per_keyframe:.1f} | "
+                + " | ".join(cells)
+                + f" | {c.seconds:.0f} |"
+            )
     lines += ["", "Teams:", ""]
     for runs, cs in zip(rows, copies, strict=False):
         desc = "; ".join(
@@ -195,13 +218,14 @@ def write_scale(
     config: ScaleConfig,
     rows: Sequence[Sequence[TeamRow]],
     copies: Sequence[Sequence[AgentCopy]],
+    cores: Sequence[CoreRow] = (),
 ) -> list[Path]:
     """Write ``scale.md`` and ``scale.png`` into ``config.out``, ``scale.json`` (every row,
     queue traces included) into ``config.work``."""
     out = Path(config.out)
     out.mkdir(parents=True, exist_ok=True)
     md = out / "scale.md"
-    md.write_text(scale_markdown(config, rows, copies))
+    md.write_text(scale_markdown(config, rows, copies, cores))
     Path(config.work).mkdir(parents=True, exist_ok=True)
     js = Path(config.work) / "scale.json"
     js.write_text(json.dumps(_jsonable(rows), indent=1, default=str))

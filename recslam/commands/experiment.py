@@ -197,6 +197,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         metavar="ARG",
         help="one more 'recslam cloud' argument (repeatable), e.g. --cloud-arg=--no-full-ba",
     )
+    sc.add_argument(
+        "--core",
+        action="store_true",
+        help="also replay each team through the cloud's core in-process (CPU per stage on "
+        "the same input every time)",
+    )
     sc.set_defaults(func=run_scale)
 
 
@@ -372,6 +378,7 @@ def scale_config(args: argparse.Namespace, argv: list[str] | None = None):
         out=args.results,
         runs=args.runs,
         command="recslam " + shlex.join(words),
+        core=args.core,
     )
     live = LiveConfig(
         cloud_cpu=args.cloud_cpu or None,
