@@ -243,12 +243,14 @@ KEYFRAME_STAGES = (
     ("commit", ("stage.commit", "stage.save_all")),
 )
 """The stages of a new keyframe on the cloud's worker (row label, stats keys)."""
-OPTIMISATION_STAGES = (
+OTHER_STAGES = (
     ("build", ("stage.pose_graph_build", "stage.full_ba_build")),
     ("apply + corrections", ("stage.pose_graph_apply", "stage.full_ba_apply", "stage.corrections")),
     ("MBP", ("stage.mbp",)),
+    ("dashboard view", ("stage.view",)),
 )
-"""The optimisation's stages on the worker; the solves run in the optimizer process."""
+"""The worker's other stages: optimisation (the solves run in the optimizer process), MBP,
+the dashboard's atlas snapshot (every ``publish_every_s`` when the atlas changed)."""
 SOLVES = (("pose graph solve", ("solve.pose_graph",)), ("full BA solve", ("solve.full_ba",)))
 
 
@@ -291,10 +293,10 @@ def team_row(agents: int, live: Any) -> TeamRow:
     n_kf = max(1, len(live.arrivals))
     ms = {
         label: 1e3 * _seconds(stages, keys) / n_kf
-        for label, keys in (*KEYFRAME_STAGES, *OPTIMISATION_STAGES, *SOLVES)
+        for label, keys in (*KEYFRAME_STAGES, *OTHER_STAGES, *SOLVES)
     }
     handle = sum(v["seconds"] for k, v in stages.items() if k.startswith("handle."))
-    busy_worker = handle + _seconds(stages, [k for _, ks in OPTIMISATION_STAGES for k in ks])
+    busy_worker = handle + _seconds(stages, [k for _, ks in OTHER_STAGES for k in ks])
     lat = summarize(correction_latencies(live.arrivals, live.corrections).values())
     during = [s for s in live.samples if s["t"] <= live.duration_s]
     return TeamRow(
@@ -441,7 +443,7 @@ def core_replay(
     n_kf = max(1, res.keyframes_received)
     ms = {
         label: 1e3 * _seconds(stages, keys) / n_kf
-        for label, keys in (*KEYFRAME_STAGES, *OPTIMISATION_STAGES, *SOLVES)
+        for label, keys in (*KEYFRAME_STAGES, *OTHER_STAGES, *SOLVES)
     }
     worker = sum(v for k, v in ms.items() if k not in dict(SOLVES))
     return CoreRow(

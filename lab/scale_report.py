@@ -18,7 +18,7 @@ import numpy as np
 
 from lab.scale import (
     KEYFRAME_STAGES,
-    OPTIMISATION_STAGES,
+    OTHER_STAGES,
     SOLVES,
     AgentCopy,
     CoreRow,
@@ -56,7 +56,7 @@ def scale_markdown(
     cores: Sequence[CoreRow] = (),
 ) -> str:
     """``scale.md``: how it was made, the table, the stages, the verdict."""
-    labels = [lbl for lbl, _ in (*KEYFRAME_STAGES, *OPTIMISATION_STAGES, *SOLVES)]
+    labels = [lbl for lbl, _ in (*KEYFRAME_STAGES, *OTHER_STAGES, *SOLVES)]
     cpus = os.cpu_count()
     command = config.command or "recslam experiment scale"
     lines = [
@@ -179,7 +179,7 @@ def scale_plot(rows: Sequence[Sequence[TeamRow]], path: Path) -> None:
     agents = [runs[0].agents for runs in rows]
     x = np.arange(len(agents))
     bottom = np.zeros(len(agents))
-    for label, _ in (*KEYFRAME_STAGES, *OPTIMISATION_STAGES):
+    for label, _ in (*KEYFRAME_STAGES, *OTHER_STAGES):
         h = np.array([np.median([r.stage_ms[label] for r in runs]) for runs in rows])
         ax[0].bar(x, h, bottom=bottom, label=label)
         bottom += h

@@ -558,7 +558,8 @@ class CloudApp:
         """Plain data for the dashboard's map source (built on the worker thread; the atlas
         snapshot is rebuilt only after the atlas changed)."""
         if self._view_cache is None or self._view_cache[0] != self._changes:
-            self._view_cache = (self._changes, self.atlas.snapshot())
+            with self.stage_timer.span("stage.view"):
+                self._view_cache = (self._changes, self.atlas.snapshot())
         snap = self._view_cache[1]
         agents = tuple(
             AgentInfo(
