@@ -148,11 +148,15 @@ def start_cloud(work: Path, edges: Sequence[str], config: LiveConfig) -> tuple[A
         str(work / "cloud.json"),
         *config.cloud_args,
     ]
-    if config.cloud_cpu is not None:
+    env = dict(os.environ)
+    if config.cloud_cpu is not None:  # one core: no BLAS / OpenMP thread pools on it
         argv = ["taskset", "-c", config.cloud_cpu, *argv]
+        env.update(OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1", MKL_NUM_THREADS="1")
     log_path = work / "cloud.log"
     out = log_path.open("ab")
-    proc = subprocess.Popen(argv, stdout=out, stderr=subprocess.STDOUT, start_new_session=True)
+    proc = subprocess.Popen(
+        argv, stdout=out, stderr=subprocess.STDOUT, start_new_session=True, env=env
+    )
     out.close()
     deadline = time.monotonic() + 120.0
     while "cloud listening" not in log_path.read_text(errors="replace"):

@@ -81,12 +81,14 @@ def scale_markdown(
         "optimizer process share it; defaults otherwise: full BA on, MBP at shutdown only); "
         "the fake edges run in the replaying process on the other core.",
         "",
-        "- **CPU per keyframe**: wall time of each stage on the cloud's worker (its "
-        "`--stats-out` `stages`), summed over the run and divided by the keyframes sent; "
-        "solves run in the optimizer process. *worker*: everything the worker did (every "
-        "message, building and applying optimisations) per keyframe; *busy*: that over the "
-        "run's duration (1.0 = the worker never idles); *cloud CPU*: the cloud processes' "
-        "user + system CPU time over the duration (/proc, optimizer included).",
+        "- **CPU per keyframe**: CPU time (`time.thread_time`) of each stage on the cloud's "
+        "worker thread (its `--stats-out` `stages`), summed over the run and divided by the "
+        "keyframes sent: what a loaded machine's other processes do not inflate; solves run "
+        "in the optimizer process (wall time). *worker*: all the worker's CPU (every "
+        "message, building and applying optimisations, the dashboard's snapshot) per "
+        "keyframe; *busy*: that over the time until the cloud had applied everything (1.0 = "
+        "a whole core); *cloud CPU*: the cloud processes' user + system CPU time over the "
+        "same time (/proc, optimizer included; > busy: the event loop, the solves).",
         "- **Queue**: messages the edges had sent and the cloud had not applied yet (their "
         "outboxes: acknowledged after the cloud's handler), sampled every 0.5 s; *end*: at "
         "the last message's slot. *drain*: seconds after the last slot until the cloud had "
@@ -131,7 +133,8 @@ def scale_markdown(
         )
     lines += [
         "",
-        "CPU per keyframe by stage (ms, wall time on the worker; solves in the optimizer):",
+        "CPU per keyframe by stage (ms, the worker thread's CPU time; solves: wall time in the "
+        "optimizer process, on the same core):",
         "",
         "| agents | " + " | ".join(labels) + " |",
         "|" + "---|" * (len(labels) + 1),
@@ -185,7 +188,7 @@ def scale_plot(rows: Sequence[Sequence[TeamRow]], path: Path) -> None:
         bottom += h
     ax[0].set_xticks(x, [str(a) for a in agents])
     ax[0].set_xlabel("agents")
-    ax[0].set_ylabel("worker wall time per keyframe [ms]")
+    ax[0].set_ylabel("worker CPU per keyframe [ms]")
     ax[0].set_title("cloud worker cost per keyframe")
     ax[0].legend(fontsize=7)
     for runs in rows:

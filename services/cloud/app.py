@@ -67,6 +67,7 @@ from services.cloud.persistence import CloudStore
 from services.cloud.robot_sensors import RobotSensorBook
 from services.cloud.uplink import (
     DecodedKeyframe,
+    KeyframeDecoders,
     UplinkError,
     decode_cull_event,
     decode_keyframe_poses,
@@ -165,7 +166,8 @@ class CloudApp:
         self.messages = 0
         self.rejected = 0
         self.codec_timer = CodecTimer()
-        # Wall time of the worker's stages (``stage.*``: map fusion's per keyframe, the
+        self._decoders = KeyframeDecoders(vocabulary)  # one feature decoder per codec config
+        # CPU time of the worker's stages (``stage.*``: map fusion's per keyframe, the
         # commits, building and applying optimisations, MBP), for ``--stats-out``.
         self.stage_timer = fusion.timer
         self._changes = 0  # bumped by every atlas mutation (the view is rebuilt only then)
@@ -265,13 +267,16 @@ class CloudApp:
         position: dict[str, tuple[bytes, int]],
     ) -> Reaction:
         a, _ = self._agent(msg.agent_id, edge_id, msg.map_id)
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), self.stage_timer.clock()
         try:
-            d = decode_keyframe_update(msg, a.agent_id, self.vocabulary, self.sensors.codec(a.name))
+            d = decode_keyframe_update(
+                msg, a.agent_id, self.vocabulary, self.sensors.codec(a.name), self._decoders
+            )
         except UplinkError:
             self.rejected += 1
             raise
         self.codec_timer.add(f"decode.{type(msg).__name__}", time.perf_counter() - t0)
+        self.stage_timer.add("stage.decode", self.stage_timer.clock() - c0)
         if d.imu is not None:
             self.fusion.imu.add(a.agent_id, d.imu.timestamps_ns, d.imu.gyro, d.imu.accel)
         key = make_key(a.agent_id, d.keyframe_id)

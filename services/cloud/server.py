@@ -124,10 +124,11 @@ class CloudStats:
     """The most there ever were (one per edge link at most: each delivers in order; the rest
     wait in the edges' outboxes, held back by the receive window)."""
     stages: dict[str, dict[str, float]] = field(default_factory=dict)
-    """Wall time per stage, ``{"stage.place_recognition": {"seconds": s, "messages": n},
-    ...}``: the app's :attr:`~services.cloud.app.CloudApp.stage_timer`, ``handle.<Type>``
-    (a message on the worker, all of it), ``wait.worker`` (received -> applied),
-    ``solve.<kind>`` (in the optimizer)."""
+    """Time per stage, ``{"stage.place_recognition": {"seconds": s, "messages": n}, ...}``:
+    the worker thread's CPU time in the app's
+    :attr:`~services.cloud.app.CloudApp.stage_timer` and ``handle.<Type>`` (a message on the
+    worker, all of it); wall time in ``wait.worker`` (received -> applied) and
+    ``solve.<kind>`` (in the optimizer, waited for on the event loop)."""
 
 
 class CloudServer:
@@ -187,7 +188,8 @@ class CloudServer:
         self._corrections = 0
         self._queued = 0  # messages handed to the worker and not applied yet
         self._queued_max = 0
-        self.timer = CodecTimer()  # handle.*, wait.worker (worker thread); solve.* (loop)
+        self.timer = CodecTimer()  # wall time: wait.worker (worker thread), solve.* (loop)
+        self.cpu_timer = CodecTimer(clock=time.thread_time)  # handle.* (worker thread)
         self._final_stats: CloudStats | None = None
         self.address: tuple[str, int] | None = None
         self._references: dict[str, Trajectory] = {}  # ground truth per robot name
@@ -312,7 +314,7 @@ class CloudServer:
         deadline after it. ``t_queued``: the loop time it was handed to the worker."""
         now = clock()
         self.timer.add("wait.worker", now - t_queued)
-        with self.timer.span(f"handle.{type(d.message).__name__}"):
+        with self.cpu_timer.span(f"handle.{type(d.message).__name__}"):
             core.handle(d.peer, d.message, d.stream_id, d.seq, now)
         if self._recorder is not None:
             self._recorder.write(d.peer, d.stream_id, d.seq, d.message, t_recv, now)
@@ -541,6 +543,7 @@ class CloudServer:
             stages = CodecTimer()
             stages.merge(app.stage_timer)
             stages.merge(self.timer)
+            stages.merge(self.cpu_timer)
             return CloudStats(
                 app.messages,
                 app.rejected,
