@@ -272,6 +272,8 @@ class TeamRow:
     stage_ms: dict[str, float]
     worker_ms_per_keyframe: float
     worker_busy: float
+    worker_busy_wall: float
+    messages_ms_wall: float
     cloud_cpu: float
     queue_max: int
     queue_end: int
@@ -296,7 +298,9 @@ def team_row(agents: int, live: Any) -> TeamRow:
         for label, keys in (*KEYFRAME_STAGES, *OTHER_STAGES, *SOLVES)
     }
     handle = sum(v["seconds"] for k, v in stages.items() if k.startswith("handle."))
+    wall = sum(v["seconds"] for k, v in stages.items() if k.startswith("wall."))
     busy_worker = handle + _seconds(stages, [k for _, ks in OTHER_STAGES for k in ks])
+    busy_wall = wall + _seconds(stages, [k for _, ks in OTHER_STAGES for k in ks])
     lat = summarize(correction_latencies(live.arrivals, live.corrections).values())
     during = [s for s in live.samples if s["t"] <= live.duration_s]
     return TeamRow(
@@ -310,6 +314,8 @@ def team_row(agents: int, live: Any) -> TeamRow:
         stage_ms=ms,
         worker_ms_per_keyframe=1e3 * busy_worker / n_kf,
         worker_busy=busy_worker / max(live.applied_s, 1e-9),
+        worker_busy_wall=busy_wall / max(live.applied_s, 1e-9),
+        messages_ms_wall=1e3 * wall / max(1, live.sent),
         cloud_cpu=live.cloud_cpu_s / max(live.applied_s, 1e-9),
         queue_max=max((s["queue"] for s in live.samples), default=0),
         queue_end=during[-1]["queue"] if during else 0,

@@ -88,7 +88,9 @@ def scale_markdown(
         "message, building and applying optimisations, the dashboard's snapshot) per "
         "keyframe; *busy*: that over the time until the cloud had applied everything (1.0 = "
         "a whole core); *cloud CPU*: the cloud processes' user + system CPU time over the "
-        "same time (/proc, optimizer included; > busy: the event loop, the solves).",
+        "same time (/proc, optimizer included; > busy: the event loop, the solves). *busy "
+        "wall*: the worker's wall time over that time (with SQLite's fsync per message and "
+        "the other processes' share of the core); *ms/msg wall*: per message applied.",
         "- **Queue**: messages the edges had sent and the cloud had not applied yet (their "
         "outboxes: acknowledged after the cloud's handler), sampled every 0.5 s; *end*: at "
         "the last message's slot. *drain*: seconds after the last slot until the cloud had "
@@ -100,7 +102,8 @@ def scale_markdown(
         "",
     ]
     head = (
-        "| agents | edges | keyframes | messages | worker ms/KF | busy | cloud CPU | "
+        "| agents | edges | keyframes | messages | worker ms/KF | busy | busy wall | "
+        "ms/msg wall | cloud CPU | "
         "queue max | queue end | drain s | latency median s | latency p95 s | corrected | "
         "RSS MB | maps | keeps up |"
     )
@@ -117,6 +120,8 @@ def scale_markdown(
                     str(r0.messages),
                     _spread([r.worker_ms_per_keyframe for r in runs], ".1f"),
                     _spread([r.worker_busy for r in runs]),
+                    _spread([r.worker_busy_wall for r in runs]),
+                    _spread([r.messages_ms_wall for r in runs], ".1f"),
                     _spread([r.cloud_cpu for r in runs]),
                     _spread([r.queue_max for r in runs], ".0f"),
                     _spread([r.queue_end for r in runs], ".0f"),

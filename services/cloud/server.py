@@ -127,8 +127,9 @@ class CloudStats:
     """Time per stage, ``{"stage.place_recognition": {"seconds": s, "messages": n}, ...}``:
     the worker thread's CPU time in the app's
     :attr:`~services.cloud.app.CloudApp.stage_timer` and ``handle.<Type>`` (a message on the
-    worker, all of it); wall time in ``wait.worker`` (received -> applied) and
-    ``solve.<kind>`` (in the optimizer, waited for on the event loop)."""
+    worker, all of it); wall time in ``wall.<Type>`` (the same, with the waits: SQLite's
+    fsync), ``wait.worker`` (received -> applied) and ``solve.<kind>`` (in the optimizer,
+    waited for on the event loop)."""
 
 
 class CloudServer:
@@ -188,7 +189,7 @@ class CloudServer:
         self._corrections = 0
         self._queued = 0  # messages handed to the worker and not applied yet
         self._queued_max = 0
-        self.timer = CodecTimer()  # wall time: wait.worker (worker thread), solve.* (loop)
+        self.timer = CodecTimer()  # wall: wait.worker, wall.* (worker thread), solve.* (loop)
         self.cpu_timer = CodecTimer(clock=time.thread_time)  # handle.* (worker thread)
         self._final_stats: CloudStats | None = None
         self.address: tuple[str, int] | None = None
@@ -314,7 +315,8 @@ class CloudServer:
         deadline after it. ``t_queued``: the loop time it was handed to the worker."""
         now = clock()
         self.timer.add("wait.worker", now - t_queued)
-        with self.cpu_timer.span(f"handle.{type(d.message).__name__}"):
+        kind = type(d.message).__name__
+        with self.timer.span(f"wall.{kind}"), self.cpu_timer.span(f"handle.{kind}"):
             core.handle(d.peer, d.message, d.stream_id, d.seq, now)
         if self._recorder is not None:
             self._recorder.write(d.peer, d.stream_id, d.seq, d.message, t_recv, now)
