@@ -309,7 +309,7 @@ def team_row(agents: int, live: Any) -> TeamRow:
         keyframes=len(live.arrivals),
         messages=live.sent,
         duration_s=live.duration_s,
-        drain_s=live.applied_s - live.duration_s,
+        drain_s=live.applied_s - live.duration_s if live.drained else math.inf,
         late_max_s=live.late_max_s,
         stage_ms=ms,
         worker_ms_per_keyframe=1e3 * busy_worker / n_kf,

@@ -62,7 +62,7 @@ class LiveConfig:
     replayer_cpu: tuple[int, ...] | None = (1,)
     sample_every_s: float = 0.5
     drain_s: float = 15.0
-    flush_timeout_s: float = 900.0
+    flush_timeout_s: float = 240.0
     stop_timeout_s: float = 30.0
     cloud_args: tuple[str, ...] = ()
 
@@ -84,6 +84,8 @@ class LiveResult:
     edges: int
     log_tail: str = ""
     rejected: list[str] = field(default_factory=list)
+    drained: bool = True
+    """The cloud applied every message within ``flush_timeout_s`` after the last one."""
 
 
 class LiveError(RecslamError):
@@ -263,9 +265,17 @@ async def play(
     try:
         await asyncio.gather(*(sender(e) for e in edges))
         duration = loop.time() - t0
-        await asyncio.wait_for(
-            asyncio.gather(*(c.flush() for c in clients.values())), config.flush_timeout_s
-        )
+        drained = True
+        try:
+            await asyncio.wait_for(
+                asyncio.gather(*(c.flush() for c in clients.values())), config.flush_timeout_s
+            )
+        except TimeoutError:
+            drained = False
+            log.warning(
+                "the cloud had not applied everything %.0f s after the last message",
+                config.flush_timeout_s,
+            )
         applied = loop.time() - t0
         await asyncio.sleep(config.drain_s)
         await asyncio.sleep(1.5)  # one more stats file
@@ -289,6 +299,7 @@ async def play(
         sent=sent[0],
         edges=len(edges),
         rejected=rejected,
+        drained=drained,
     )
 
 

@@ -125,7 +125,9 @@ def scale_markdown(
                     _spread([r.cloud_cpu for r in runs]),
                     _spread([r.queue_max for r in runs], ".0f"),
                     _spread([r.queue_end for r in runs], ".0f"),
-                    _spread([r.drain_s for r in runs], ".1f"),
+                    "not drained"
+                    if any(math.isinf(r.drain_s) for r in runs)
+                    else _spread([r.drain_s for r in runs], ".1f"),
                     _spread([r.latency["median"] for r in runs]),
                     _spread([r.latency["p95"] for r in runs]),
                     _spread([r.corrected for r in runs]),
