@@ -360,7 +360,9 @@ class CloudApp:
             old[key] = self.atlas.keyframe(key).T_map_body
             self.fusion.add_keyframe(kf)
         moved = self.atlas.move_points_with(old)
-        self.store.commit(self.atlas, list(old), moved, positions=position, agents=self._rows(a))
+        self.store.commit(
+            self.atlas, list(old), positions=position, agents=self._rows(a), moved_points=moved
+        )
         return Reaction()
 
     def _map_points(

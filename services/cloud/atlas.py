@@ -22,6 +22,7 @@ Nothing mutable leaves this module: :meth:`Atlas.keyframe` returns a frozen copy
 from __future__ import annotations
 
 import logging
+from collections.abc import Iterable, Iterator
 
 import numpy as np
 
@@ -518,6 +519,11 @@ class Atlas:
 
     def map_point(self, key: int) -> MapPointView:
         return self._mp(key).view()
+
+    def map_point_rows(self, keys: Iterable[int]) -> Iterator[tuple[object, ...]]:
+        """:meth:`MapPointRecord.row` of each of ``keys`` the atlas holds (for persistence:
+        no read-only view built per point)."""
+        return (self._mps[k].row() for k in keys if k in self._mps)
 
     def state(self) -> AtlasState:
         return AtlasState(
