@@ -166,6 +166,7 @@ def scale_markdown(
                 + " | ".join(cells)
                 + f" | {c.seconds:.0f} |"
             )
+    lines += ["", *bound_lines(rows)]
     lines += ["", "Teams:", ""]
     for runs, cs in zip(rows, copies, strict=False):
         desc = "; ".join(
@@ -176,6 +177,33 @@ def scale_markdown(
         lines.append(f"- {runs[0].agents} agents ({len(runs)} run(s)): {desc}")
     lines.append("")
     return "\n".join(lines)
+
+
+def bound_lines(rows: Sequence[Sequence[TeamRow]]) -> list[str]:
+    """What bounds the cloud, per team: its largest stages per keyframe and where the
+    worker's time went (CPU vs wall)."""
+    out = ["What bounds the cloud (largest stages per keyframe, first run of each team):", ""]
+    for runs in rows:
+        r = runs[0]
+        top = sorted(r.stage_ms.items(), key=lambda kv: -kv[1])[:4]
+        stages = ", ".join(f"{k} {v:.0f} ms" for k, v in top)
+        out.append(
+            f"- {r.agents} agents: worker CPU {r.worker_busy:.2f} of a core, wall "
+            f"{r.worker_busy_wall:.2f} (the difference: fsync and the core's other "
+            f"processes); {stages}"
+        )
+    return out
+
+
+def rows_from_json(path: Path) -> list[list[TeamRow]]:
+    """The rows :func:`write_scale` saved in ``scale.json`` (to rewrite the report)."""
+    data = json.loads(Path(path).read_text())
+    rows = []
+    for runs in data:
+        rows.append(
+            [TeamRow(**{**r, "queue_trace": [tuple(x) for x in r["queue_trace"]]}) for r in runs]
+        )
+    return rows
 
 
 def scale_plot(rows: Sequence[Sequence[TeamRow]], path: Path) -> None:

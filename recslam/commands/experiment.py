@@ -203,6 +203,11 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="also replay each team through the cloud's core in-process (CPU per stage on "
         "the same input every time)",
     )
+    sc.add_argument(
+        "--from-work",
+        action="store_true",
+        help="do not run: rewrite scale.md and scale.png from --work's scale.json",
+    )
     sc.set_defaults(func=run_scale)
 
 
@@ -394,6 +399,15 @@ def run_scale(args: argparse.Namespace) -> int:
 
     logging.getLogger("lab").setLevel(logging.INFO)  # progress: one line per team
     config, live = scale_config(args)
-    scale(config, live)
+    if args.from_work:
+        from lab.scale import load_recordings, plan_copies, robots_of
+        from lab.scale_report import rows_from_json, write_scale
+
+        rows = rows_from_json(config.work / "scale.json")
+        robots = [robots_of(r) for r in load_recordings(config.recordings)]
+        plans = [plan_copies(robots, runs[0].agents, config.shift_s) for runs in rows]
+        write_scale(config, rows, plans)
+    else:
+        scale(config, live)
     print((config.out / "scale.md").read_text())
     return 0
