@@ -217,9 +217,10 @@ def scale_plot(rows: Sequence[Sequence[TeamRow]], path: Path) -> None:
     agents = [runs[0].agents for runs in rows]
     x = np.arange(len(agents))
     bottom = np.zeros(len(agents))
-    for label, _ in (*KEYFRAME_STAGES, *OTHER_STAGES):
+    colours = plt.get_cmap("tab20").colors
+    for i, (label, _) in enumerate((*KEYFRAME_STAGES, *OTHER_STAGES)):
         h = np.array([np.median([r.stage_ms[label] for r in runs]) for runs in rows])
-        ax[0].bar(x, h, bottom=bottom, label=label)
+        ax[0].bar(x, h, bottom=bottom, label=label, color=colours[i % len(colours)])
         bottom += h
     ax[0].set_xticks(x, [str(a) for a in agents])
     ax[0].set_xlabel("agents")

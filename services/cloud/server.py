@@ -237,10 +237,9 @@ class CloudServer:
             app.atlas.maps(),
         )
         self.address = await self._server.start(host, port)
-        self._tasks = [
-            asyncio.create_task(self._optimize_loop(), name="cloud-optimize"),
-            asyncio.create_task(self._publish_loop(), name="cloud-publish"),
-        ]
+        self._tasks = [asyncio.create_task(self._optimize_loop(), name="cloud-optimize")]
+        if self.config.publish_every_s > 0:  # 0: no dashboard reads the map view
+            self._tasks.append(asyncio.create_task(self._publish_loop(), name="cloud-publish"))
         if self.output is not None and self.config.output_every_s > 0:
             self._tasks.append(asyncio.create_task(self._output_loop(), name="cloud-output"))
         return self.address

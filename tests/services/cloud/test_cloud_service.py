@@ -482,3 +482,22 @@ def test_an_edge_cannot_cull_or_update_a_robot_another_edge_serves(tmp_path, voc
             await cloud.stop(write_output=False)
 
     run(main())
+
+
+def test_no_map_view_refresh_without_a_dashboard(tmp_path, vocab):
+    """publish_every_s = 0 (``recslam cloud --dashboard-port 0``): no task snapshots the
+    atlas for a dashboard nobody serves."""
+    cfg = CloudServiceConfig(publish_every_s=0.0, output_every_s=0)
+
+    async def main():
+        cloud = CloudServer(
+            SessionConfig("cloud", "cloud", SECRET), tmp_path / "s", default_camera(), vocab, cfg
+        )
+        await cloud.start()
+        try:
+            names = {t.get_name() for t in cloud._tasks}
+            assert "cloud-optimize" in names and "cloud-publish" not in names
+        finally:
+            await cloud.stop()
+
+    run(main())
