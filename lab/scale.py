@@ -292,7 +292,8 @@ def team_row(agents: int, live: Any) -> TeamRow:
     st = live.stats
     stages: dict[str, dict[str, float]] = dict(st.get("stages", {}))
     stages.update(st.get("codec_cpu", {}))
-    n_kf = max(1, len(live.arrivals))
+    # per keyframe the cloud applied (decoded): a cloud that fell behind applied fewer
+    n_kf = max(1, int(stages.get("stage.decode", {}).get("messages", len(live.arrivals))))
     ms = {
         label: 1e3 * _seconds(stages, keys) / n_kf
         for label, keys in (*KEYFRAME_STAGES, *OTHER_STAGES, *SOLVES)
@@ -321,7 +322,7 @@ def team_row(agents: int, live: Any) -> TeamRow:
         queue_end=during[-1]["queue"] if during else 0,
         worker_queue_max=int(st.get("worker_queue_max", 0)),
         latency=lat,
-        corrected=lat["n"] / n_kf,
+        corrected=lat["n"] / max(1, len(live.arrivals)),
         rss_max_mb=live.rss_max_mb,
         maps=len(st.get("maps", [])),
         merges=int(st.get("merges", 0)),

@@ -83,7 +83,7 @@ def scale_markdown(
         "",
         "- **CPU per keyframe**: CPU time (`time.thread_time`) of each stage on the cloud's "
         "worker thread (its `--stats-out` `stages`), summed over the run and divided by the "
-        "keyframes sent: what a loaded machine's other processes do not inflate; solves run "
+        "keyframes it applied: what a loaded machine's other processes do not inflate; solves run "
         "in the optimizer process (wall time). *worker*: all the worker's CPU (every "
         "message, building and applying optimisations, the dashboard's snapshot) per "
         "keyframe; *busy*: that over the time until the cloud had applied everything (1.0 = "
