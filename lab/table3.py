@@ -101,6 +101,9 @@ class ReplayResult:
     detections: list[Detection] = field(default_factory=list)
     queries: list[QueryEvent] = field(default_factory=list)
     schedule: str = "modelled"
+    stages: dict[str, dict[str, float]] = field(default_factory=dict)
+    """The app's stage and codec timings at the end (``CloudApp.stage_timer``,
+    ``codec_timer``: ``{"stage.place_recognition": {"seconds": s, "messages": n}, ...}``)."""
 
 
 class _Observations:
@@ -256,6 +259,7 @@ def replay(
             queries=obs.queries,
             backbone=backbone_breakdown(app),
             schedule=schedule,
+            stages={**app.stage_timer.snapshot(), **app.codec_timer.snapshot()},
         )
     finally:
         app.close()

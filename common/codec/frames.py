@@ -105,6 +105,17 @@ def _seal(head: bytes, body: bytes) -> bytes:
     return payload + struct.pack("<I", zlib.crc32(payload))
 
 
+def _unseal(payload: bytes) -> bytes:
+    """``payload`` without its CRC, which must match (CodecError otherwise)."""
+    payload = bytes(payload)
+    if len(payload) < HEADER.size + 4:
+        raise CodecError(f"feature payload of {len(payload)} bytes is too short")
+    (crc,) = struct.unpack("<I", payload[-4:])
+    if zlib.crc32(payload[:-4]) != crc:
+        raise CodecError("feature payload checksum mismatch (corrupted or truncated)")
+    return payload[:-4]
+
+
 class _Base:
     def __init__(self, vocabulary: Vocabulary, config: CodecConfig | None = None) -> None:
         config = CodecConfig() if config is None else config
@@ -262,16 +273,28 @@ class FeatureDecoder(_Base):
     """Edge/cloud side: ``decode(payload)`` -> KeyframeFeatures | NonKeyframeFeatures."""
 
     def decode(self, payload: bytes) -> KeyframeFeatures | NonKeyframeFeatures:
-        payload = bytes(payload)
-        if len(payload) < HEADER.size + 4:
-            raise CodecError(f"feature payload of {len(payload)} bytes is too short")
-        (crc,) = struct.unpack("<I", payload[-4:])
-        if zlib.crc32(payload[:-4]) != crc:
-            raise CodecError("feature payload checksum mismatch (corrupted or truncated)")
-        return self.decode_unchecked(payload[:-4])
+        return self.decode_unchecked(_unseal(payload))
+
+    def decode_detached(self, payload: bytes) -> KeyframeFeatures | NonKeyframeFeatures:
+        """Decode ``payload`` as :meth:`decode` would, and leave this decoder's state as it
+        was: the descriptor tables the keyframe updated in place are restored through the
+        undo journal instead of being copied. One decoder so decodes any number of payloads
+        that were each coded from the same state, e.g. the cloud's keyframes, each coded
+        intra by a fresh encoder, without a fresh decoder's 8 MB tables per payload."""
+        out, st, undo = self._decode(_unseal(payload))
+        rollback(st.descriptors, undo)
+        return out
 
     def decode_unchecked(self, framed: bytes) -> KeyframeFeatures | NonKeyframeFeatures:
         """Decode header + body without the CRC (used by robustness tests)."""
+        out, self.state, _ = self._decode(framed)
+        return out
+
+    def _decode(
+        self, framed: bytes
+    ) -> tuple[KeyframeFeatures | NonKeyframeFeatures, FeatureCodecState, UndoLog]:
+        """Decode header + body; the result, the state after it (its descriptor tables
+        updated in place, as the undo journal records; not yet this decoder's state)."""
         if len(framed) < HEADER.size:
             raise CodecError("feature payload too short")
         magic, vk, seq, fp = HEADER.unpack(framed[: HEADER.size])
@@ -286,9 +309,9 @@ class FeatureDecoder(_Base):
         r = BitReader(framed[HEADER.size :])
         kind = vk & 0xF
         out: KeyframeFeatures | NonKeyframeFeatures
+        undo: UndoLog = []
         if kind == KIND_KEYFRAME:
             st = self.state.copy_sharing_tables()
-            undo: UndoLog = []
             try:
                 out = self._decode_keyframe(r, st, undo)
             except BaseException:
@@ -300,8 +323,7 @@ class FeatureDecoder(_Base):
         else:
             raise CodecError(f"unknown frame kind {kind}")
         st.seq += 1
-        self.state = st
-        return out
+        return out, st, undo
 
     def _decode_keyframe(
         self, r: BitReader, st: FeatureCodecState, undo: UndoLog

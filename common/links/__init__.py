@@ -9,8 +9,10 @@
 
 from __future__ import annotations
 
+import contextlib
 import enum
-from collections.abc import Iterable
+import time
+from collections.abc import Callable, Iterable, Iterator
 
 
 class WireFormat(enum.Enum):
@@ -26,10 +28,16 @@ class WireFormat(enum.Enum):
 class CodecTimer:
     """CPU time spent encoding / decoding link messages, per ``"encode.Type"`` /
     ``"decode.Type"`` key (``time.process_time`` of the calling thread is not used: the
-    timings are wall-clock ``perf_counter`` spans of pure-CPU codec calls)."""
+    timings are wall-clock ``perf_counter`` spans of pure-CPU codec calls).
 
-    def __init__(self) -> None:
+    The cloud uses the same accumulator for the stages of its worker (``stage.*`` keys,
+    :attr:`services.cloud.app.CloudApp.stage_timer`), with ``clock=time.thread_time``: the
+    CPU time of the calling thread, which a loaded machine's other processes do not inflate.
+    :meth:`span` reads ``clock``; :meth:`add` takes any seconds."""
+
+    def __init__(self, clock: Callable[[], float] = time.perf_counter) -> None:
         self._acc: dict[str, list[float]] = {}
+        self.clock = clock
 
     def add(self, key: str, seconds: float, messages: int = 1) -> None:
         """Count ``messages`` coded in ``seconds``."""
@@ -37,9 +45,19 @@ class CodecTimer:
         entry[0] += seconds
         entry[1] += messages
 
+    @contextlib.contextmanager
+    def span(self, key: str) -> Iterator[None]:
+        """Count the time (``clock``) of the ``with`` block as one call under ``key`` (also
+        when it raises)."""
+        t0 = self.clock()
+        try:
+            yield
+        finally:
+            self.add(key, self.clock() - t0)
+
     def merge(self, other: CodecTimer) -> None:
         """Add ``other``'s counts into these."""
-        for key, (s, n) in other._acc.items():
+        for key, (s, n) in list(other._acc.items()):  # a copy: another thread may add
             self.add(key, s, int(n))
 
     def snapshot(self) -> dict[str, dict[str, float]]:

@@ -6,6 +6,8 @@
   recorded run, and loop-detection precision / recall (:mod:`lab.table3`).
 - ``recslam experiment links``: the bit budget of every link, raw vs coded wire
   (:mod:`lab.links`).
+- ``recslam experiment scale``: the cloud's cost against agents and keyframes, recordings
+  replayed as teams to a cloud process on one core (:mod:`lab.scale`).
 
 ``recslam experiment EXPERIMENT --help`` describes each one's method and output files.
 """
@@ -143,6 +145,70 @@ def register(sub: argparse._SubParsersAction) -> None:
     _whole_run_options(sd, "seeds", 2400.0, "report")
     # --out defaults to out/seeds, or out/seeds_hard with a generator option (seeds_config).
     sd.set_defaults(func=run_seeds, out=None)
+    sc = which.add_parser(
+        "scale",
+        help="the cloud's cost against agents and keyframes: recordings replayed as 3, 6, 12, "
+        "24 ... agents to a real cloud process on one core (queue, CPU per stage, correction "
+        "latency, memory)",
+        description="Replays uplink recordings (recslam demo --record-uplink) as teams of "
+        "renamed copies, one fake edge per copy, over TCP to a 'recslam cloud' pinned to one "
+        "core, and writes scale.md and scale.png (see lab/scale.py). A team takes the "
+        "recordings' duration plus the cloud's start and drain.",
+    )
+    sc.add_argument(
+        "--recordings",
+        required=True,
+        metavar="FILE[,FILE...]",
+        help="uplink recordings, comma-separated (e.g. one per seed of the generator)",
+    )
+    sc.add_argument("--agents", default="3,6,12,24", help="team sizes (default %(default)s)")
+    sc.add_argument(
+        "--schedule",
+        choices=("camera", "recorded"),
+        default="camera",
+        help="camera: each message at its robot's latest keyframe's camera time (default); "
+        "recorded: when the recording's cloud received it",
+    )
+    sc.add_argument(
+        "--shift", type=float, default=5.0, help="time shift per reuse of a recording (s)"
+    )
+    sc.add_argument("--runs", type=int, default=1, help="live replays per team size")
+    sc.add_argument(
+        "--work", type=Path, default=Path("out/scale"), help="scratch folder (states, logs)"
+    )
+    sc.add_argument(
+        "--results",
+        type=Path,
+        default=Path("benchmarks/results"),
+        help="where scale.md and scale.png go (default %(default)s)",
+    )
+    sc.add_argument(
+        "--cloud-cpu", default="0", help="taskset -c list of the cloud process ('' = unpinned)"
+    )
+    sc.add_argument(
+        "--replayer-cpu",
+        default="1",
+        help="CPUs of the replaying process, comma-separated ('' = unpinned)",
+    )
+    sc.add_argument(
+        "--cloud-arg",
+        action="append",
+        default=[],
+        metavar="ARG",
+        help="one more 'recslam cloud' argument (repeatable), e.g. --cloud-arg=--no-full-ba",
+    )
+    sc.add_argument(
+        "--core",
+        action="store_true",
+        help="also replay each team through the cloud's core in-process (CPU per stage on "
+        "the same input every time)",
+    )
+    sc.add_argument(
+        "--from-work",
+        action="store_true",
+        help="do not run: rewrite scale.md and scale.png from --work's scale.json",
+    )
+    sc.set_defaults(func=run_scale)
 
 
 def _whole_run_options(
@@ -296,3 +362,52 @@ def _printed(table: Path, data: dict, files: list[Path]) -> int:
     print(table.read_text())
     print("wrote " + ", ".join(str(f) for f in files))
     return 1 if data["errors"] else 0
+
+
+def scale_config(args: argparse.Namespace, argv: list[str] | None = None):
+    """The :class:`lab.scale.ScaleConfig` and :class:`lab.scale_live.LiveConfig` of
+    ``recslam experiment scale`` arguments."""
+    import shlex
+    import sys
+
+    from lab.scale import ScaleConfig
+    from lab.scale_live import LiveConfig
+
+    words = sys.argv[1:] if argv is None else argv
+    config = ScaleConfig(
+        recordings=tuple(Path(p) for p in args.recordings.split(",") if p),
+        agents=tuple(int(a) for a in args.agents.split(",") if a),
+        schedule=args.schedule,
+        shift_s=args.shift,
+        work=args.work,
+        out=args.results,
+        runs=args.runs,
+        command="recslam " + shlex.join(words),
+        core=args.core,
+    )
+    live = LiveConfig(
+        cloud_cpu=args.cloud_cpu or None,
+        replayer_cpu=tuple(int(c) for c in args.replayer_cpu.split(",") if c) or None,
+        cloud_args=tuple(args.cloud_arg),
+    )
+    return config, live
+
+
+def run_scale(args: argparse.Namespace) -> int:
+    """``recslam experiment scale`` (logic in :mod:`lab.scale`)."""
+    from lab.scale import run_scale as scale
+
+    logging.getLogger("lab").setLevel(logging.INFO)  # progress: one line per team
+    config, live = scale_config(args)
+    if args.from_work:
+        from lab.scale import load_recordings, plan_copies, robots_of
+        from lab.scale_report import rows_from_json, write_scale
+
+        rows = rows_from_json(config.work / "scale.json")
+        robots = [robots_of(r) for r in load_recordings(config.recordings)]
+        plans = [plan_copies(robots, runs[0].agents, config.shift_s) for runs in rows]
+        write_scale(config, rows, plans)
+    else:
+        scale(config, live)
+    print((config.out / "scale.md").read_text())
+    return 0

@@ -73,6 +73,7 @@ from services.cloud.persistence import CloudStore
 from services.cloud.robot_sensors import RobotSensorBook
 from services.cloud.uplink import (
     DecodedKeyframe,
+    KeyframeDecoders,
     UplinkError,
     decode_cull_event,
     decode_keyframe_poses,
@@ -174,6 +175,10 @@ class CloudApp:
         self.messages = 0
         self.rejected = 0
         self.codec_timer = CodecTimer()
+        self._decoders = KeyframeDecoders(vocabulary)  # one feature decoder per codec config
+        # CPU time of the worker's stages (``stage.*``: map fusion's per keyframe, the
+        # commits, building and applying optimisations, MBP), for ``--stats-out``.
+        self.stage_timer = fusion.timer
         self._changes = 0  # bumped by every atlas mutation (the view is rebuilt only then)
         self._view_cache: tuple[int, AtlasSnapshot] | None = None
 
@@ -271,13 +276,16 @@ class CloudApp:
         position: dict[str, tuple[bytes, int]],
     ) -> Reaction:
         a, _ = self._agent(msg.agent_id, edge_id, msg.map_id)
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), self.stage_timer.clock()
         try:
-            d = decode_keyframe_update(msg, a.agent_id, self.vocabulary, self.sensors.codec(a.name))
+            d = decode_keyframe_update(
+                msg, a.agent_id, self.vocabulary, self.sensors.codec(a.name), self._decoders
+            )
         except UplinkError:
             self.rejected += 1
             raise
         self.codec_timer.add(f"decode.{type(msg).__name__}", time.perf_counter() - t0)
+        self.stage_timer.add("stage.decode", self.stage_timer.clock() - c0)
         if d.imu is not None:
             self.fusion.imu.add(a.agent_id, d.imu.timestamps_ns, d.imu.gyro, d.imu.accel)
         key = make_key(a.agent_id, d.keyframe_id)
@@ -294,14 +302,16 @@ class CloudApp:
         merged = any(o.merge is not None for o in events.outcomes)
         agents = self._rows(a)
         if merged or events.outcomes:
-            self.store.save_all(self.atlas, positions=position, agents=agents)
+            with self.stage_timer.span("stage.save_all"):
+                self.store.save_all(self.atlas, positions=position, agents=agents)
             reaction.merged = merged
         else:
             mps: list[int] = []
             if self.atlas.has_keyframe(key):
                 mk = self.atlas.keyframe(key).map_point_keys
                 mps = np.unique(mk[mk >= 0]).tolist()
-            self.store.commit(self.atlas, [key], mps, positions=position, agents=agents)
+            with self.stage_timer.span("stage.commit"):
+                self.store.commit(self.atlas, [key], mps, positions=position, agents=agents)
         if is_new and self.atlas.has_keyframe(key):
             reaction.new_keyframes[self.atlas.map_id_of_keyframe(key)] = 1
         return reaction
@@ -359,7 +369,9 @@ class CloudApp:
             old[key] = self.atlas.keyframe(key).T_map_body
             self.fusion.add_keyframe(kf)
         moved = self.atlas.move_points_with(old)
-        self.store.commit(self.atlas, list(old), moved, positions=position, agents=self._rows(a))
+        self.store.commit(
+            self.atlas, list(old), positions=position, agents=self._rows(a), moved_points=moved
+        )
         return Reaction()
 
     def _map_points(
@@ -411,7 +423,8 @@ class CloudApp:
         is gone or too small)."""
         if map_id not in self.atlas.maps() or self.atlas.n_keyframes(map_id) < 2:
             return None
-        return self.fusion.pose_graph(map_id), len(self.atlas.merges())
+        with self.stage_timer.span("stage.pose_graph_build"):
+            return self.fusion.pose_graph(map_id), len(self.atlas.merges())
 
     def full_ba_problem(self, map_id: int) -> tuple[FullBAProblem, int] | None:
         """The full bundle adjustment of ``map_id`` and the merge-state token (None if the
@@ -420,7 +433,8 @@ class CloudApp:
             return None
         if self.atlas.n_keyframes(map_id) < 2:
             return None
-        return self.fusion.full_ba_problem(map_id), len(self.atlas.merges())
+        with self.stage_timer.span("stage.full_ba_build"):
+            return self.fusion.full_ba_problem(map_id), len(self.atlas.merges())
 
     def apply_optimization(
         self, map_id: int, result: PoseGraphResult | FullBAResult, token: int
@@ -429,11 +443,13 @@ class CloudApp:
         in a stale frame and the caller should optimise again); returns the corrections."""
         if token != len(self.atlas.merges()) or map_id not in self.atlas.maps():
             return None
-        n = self.fusion.apply_optimization(result)
-        self._changes += 1
-        self.store.commit_poses(
-            self.atlas, self.atlas.keyframe_keys(map_id), self.atlas.map_point_keys(map_id)
-        )
+        kind = "full_ba" if isinstance(result, FullBAResult) else "pose_graph"
+        with self.stage_timer.span(f"stage.{kind}_apply"):
+            n = self.fusion.apply_optimization(result)
+            self._changes += 1
+            self.store.commit_poses(
+                self.atlas, self.atlas.keyframe_keys(map_id), self.atlas.map_point_keys(map_id)
+            )
         log.info(
             "map %d: applied optimisation of %d keyframes (error %.3g -> %.3g)",
             map_id,
@@ -441,7 +457,8 @@ class CloudApp:
             result.initial_error,
             result.final_error,
         )
-        return self.corrections(map_id)
+        with self.stage_timer.span("stage.corrections"):
+            return self.corrections(map_id)
 
     def corrections(self, map_id: int) -> list[Correction]:
         """Current keyframe poses of every agent in ``map_id``, each in its own map frame."""
@@ -474,7 +491,8 @@ class CloudApp:
         before = set(self.atlas.map_point_keys(map_id))
         cfg = self.config
         keep = cfg.mbp_keep_recent if final else max(cfg.mbp_keep_recent, cfg.mbp_settle_keyframes)
-        report = self.fusion.prune(map_id, keep)
+        with self.stage_timer.span("stage.mbp"):
+            report = self.fusion.prune(map_id, keep)
         self._changes += 1
         self._pruned_points |= before - set(self.atlas.map_point_keys(map_id))
         self._pruned_keyframes.update(report.removed_keyframes)
@@ -556,7 +574,8 @@ class CloudApp:
         """Plain data for the dashboard's map source (built on the worker thread; the atlas
         snapshot is rebuilt only after the atlas changed)."""
         if self._view_cache is None or self._view_cache[0] != self._changes:
-            self._view_cache = (self._changes, self.atlas.snapshot())
+            with self.stage_timer.span("stage.view"):
+                self._view_cache = (self._changes, self.atlas.snapshot())
         snap = self._view_cache[1]
         agents = tuple(
             AgentInfo(

@@ -22,6 +22,7 @@ Nothing mutable leaves this module: :meth:`Atlas.keyframe` returns a frozen copy
 from __future__ import annotations
 
 import logging
+from collections.abc import Iterable, Iterator
 
 import numpy as np
 
@@ -408,9 +409,13 @@ class Atlas:
             return []
         corr = {k: self._kfs[k].T_map_body @ inverse_T(T) for k, T in old_poses.items()}
         moved = []
-        for m in self._mps.values():
-            c = corr.get(m.ref_kf)
-            if c is not None:
+        # A point's reference keyframe is one of its observers (or -1), so the candidates
+        # are the moved keyframes' points, not every point of the atlas.
+        candidates = np.concatenate([self._kfs[k].mp_keys for k in corr])
+        for key in np.unique(candidates[candidates >= 0]).tolist():
+            m = self._mps.get(key)
+            c = None if m is None else corr.get(m.ref_kf)
+            if m is not None and c is not None:
                 m.p_map = c[:3, :3] @ m.p_map + c[:3, 3]
                 moved.append(m.key)
         return moved
@@ -518,6 +523,11 @@ class Atlas:
 
     def map_point(self, key: int) -> MapPointView:
         return self._mp(key).view()
+
+    def map_point_rows(self, keys: Iterable[int]) -> Iterator[tuple[object, ...]]:
+        """:meth:`MapPointRecord.row` of each of ``keys`` the atlas holds (for persistence:
+        no read-only view built per point)."""
+        return (self._mps[k].row() for k in keys if k in self._mps)
 
     def state(self) -> AtlasState:
         return AtlasState(

@@ -117,6 +117,22 @@ class MapPointRecord:
         self.pending: dict[int, int] = {}  # keyframe not arrived yet -> keypoint index
         self.ref_kf = -1
 
+    def row(self) -> tuple[int, int, int, int, int, bytes, bytes]:
+        """Plain data for persistence, without a view: key, agent, map point id, map,
+        reference keyframe, ``p_map`` as "<f8 (3,)" bytes, the observations sorted by
+        keyframe key as "<i8 (N, 2)" bytes [keyframe key, keypoint index]."""
+        obs = np.array(sorted(self.obs.items()), "<i8").reshape(-1, 2)
+        p = np.asarray(self.p_map, "<f8").tobytes()
+        return (
+            self.key,
+            self.agent_id,
+            self.map_point_id,
+            self.map_id,
+            self.ref_kf,
+            p,
+            obs.tobytes(),
+        )
+
     def view(self) -> MapPointView:
         """A read-only copy (observations sorted by keyframe key)."""
         items = sorted(self.obs.items())

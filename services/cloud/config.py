@@ -296,7 +296,9 @@ class CloudServiceConfig:
         few flipped descriptor bits that change the leaf do not lose the match).
     output_every_s: trajectories (and the ATE report) are rewritten this often (default 30 s;
         0 = only at shutdown).
-    publish_every_s: the dashboard's map view is refreshed this often (default 0.5 s).
+    publish_every_s: the dashboard's map view is refreshed this often (default 0.5 s; 0 =
+        never: no dashboard reads it, and the atlas snapshot it takes on the worker grows with
+        the map, 66 ms per refresh at 3 agents in benchmarks/results/scale.md).
     bandwidth_window_s: bandwidth samples kept for the dashboard (default 120 s).
     display_spacing_m: in the dashboard, maps that are not merged yet are shown side by side,
         this far apart along x (default 0 m: each in its own frame, overlapping).

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import logging
 import re
+import time
 from collections import Counter
 from dataclasses import dataclass, field
 
@@ -23,6 +24,7 @@ import numpy as np
 
 from common.calibration import EUROC_IMU, CameraCalibration, ImuCalibration
 from common.errors import RecslamError
+from common.links import CodecTimer
 from services.cloud.atlas import Atlas, KeyframeInput, MapPointInput, make_key
 from services.cloud.config import CloudConfig
 from services.cloud.full_ba import FullBAProblem, FullBAResult, apply_full_ba, build_full_ba
@@ -90,6 +92,10 @@ class MapFusion:
             self.recognizer.add(self.atlas, key)
         # Verification outcomes so far, by reason ("ok" or the rejection's first word).
         self.verification_counts: Counter[str] = Counter()
+        # CPU time (this thread's) of the stages of a new keyframe (``stage.insert``,
+        # ``.place_recognition``, ``.verification``, ``.merge``, ``.database``): one call per
+        # keyframe each.
+        self.timer = CodecTimer(clock=time.thread_time)
 
     def camera_of(self, agent_id: int) -> CameraCalibration:
         """The camera of atlas agent ``agent_id``: its robot's own, else the fallback (logged
@@ -116,17 +122,22 @@ class MapFusion:
         """Insert a keyframe (an update of a known one only refreshes its state), then detect,
         verify and act on places seen before."""
         known = self.atlas.has_keyframe(make_key(kf.agent_id, kf.keyframe_id))
-        key = self.atlas.add_keyframe(kf)
+        with self.timer.span("stage.insert"):
+            key = self.atlas.add_keyframe(kf)
         events = FusionEvents(key)
         if known or not self.atlas.has_keyframe(key):
             return events
         if detect:
-            for cand in self.recognizer.detect(self.atlas, key):
+            with self.timer.span("stage.place_recognition"):
+                candidates = self.recognizer.detect(self.atlas, key)
+            verify_s = merge_s = 0.0
+            for cand in candidates:
                 same_map = self.atlas.map_id_of_keyframe(key) == self.atlas.map_id_of_keyframe(
                     cand.candidate_key
                 )
                 if same_map and any(o.loop.key_b == key for o in events.outcomes):
                     continue
+                t0 = self.timer.clock()
                 res = verify_candidate(
                     self.atlas,
                     key,
@@ -135,6 +146,7 @@ class MapFusion:
                     self.config.verification,
                     self.word_group,
                 )
+                verify_s += self.timer.clock() - t0
                 events.verifications.append(res)
                 self.verification_counts[reason_kind(res.reason)] += 1
                 log.info(
@@ -152,12 +164,17 @@ class MapFusion:
                 )
                 if not res.accepted:
                     continue
+                t0 = self.timer.clock()
                 outcome = apply_match(self.atlas, res, self.config.merge)
+                merge_s += self.timer.clock() - t0
                 events.outcomes.append(outcome)
                 events.maps_to_optimize.add(self.atlas.map_id_of_keyframe(key))
                 self.recognizer.reset_consistency(kf.agent_id)
                 break  # one accepted match per keyframe
-        self.recognizer.add(self.atlas, key)
+            self.timer.add("stage.verification", verify_s)
+            self.timer.add("stage.merge", merge_s)
+        with self.timer.span("stage.database"):
+            self.recognizer.add(self.atlas, key)
         return events
 
     def remove_keyframe(self, key: int) -> None:

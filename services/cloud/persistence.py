@@ -96,10 +96,6 @@ def _unpack(blob: bytes) -> dict[str, np.ndarray]:
         return {k: z[k] for k in z.files}
 
 
-def _pack_obs(obs_keyframes: np.ndarray, obs_indices: np.ndarray) -> bytes:
-    return np.stack([obs_keyframes, obs_indices], axis=1).astype("<i8").tobytes()
-
-
 def _unpack_point(p: bytes, blob: bytes) -> dict[str, np.ndarray]:
     if len(p) != 24 or len(blob) % 16:
         raise ValueError(f"map point position of {len(p)} bytes, observations of {len(blob)}")
@@ -184,17 +180,20 @@ class CloudStore:
         positions: Mapping[str, tuple[bytes, int]] | None = None,
         agents: Mapping[int, tuple[str, str, int]] | None = None,
         sensors: Mapping[str, bytes] | None = None,
+        moved_points: Iterable[int] = (),
     ) -> None:
         """In one transaction: write the given keyframes and map points as the atlas holds them
         (rows of keys no longer in the atlas are deleted), the atlas bookkeeping, the last
         delivered sequence of each edge, the transport ``positions`` ``{edge: (stream id,
         last delivered seq)}`` (replacing the stored ones), ``agents`` ``{agent id: (robot
         name, edge id, edge map id)}`` and ``sensors`` ``{robot name: its encoded sensor
-        description}``. Returns once the data is durable."""
+        description}``; of ``moved_points`` only the position (points that followed a moved
+        keyframe). Returns once the data is durable."""
         db = self._db
         db.execute("BEGIN IMMEDIATE")
         try:
             removed = self._write_points(atlas, keyframes, map_points)
+            self._write_positions(atlas, moved_points)
             self._write_state(atlas.state(), removals=removed)
             for edge_id, seq in (edge_sequences or {}).items():
                 db.execute(
@@ -230,8 +229,6 @@ class CloudStore:
         """In one transaction: only the poses, positions and map ids of the given (existing)
         keyframes and map points, plus the atlas bookkeeping (after an optimisation)."""
         kf = [int(k) for k in keyframes if atlas.has_keyframe(int(k))]
-        mp = np.array([int(k) for k in map_points if atlas.has_map_point(int(k))], np.int64)
-        P = atlas.map_point_positions(mp) if mp.size else np.zeros((0, 3))
         db = self._db
         db.execute("BEGIN IMMEDIATE")
         try:
@@ -246,15 +243,23 @@ class CloudStore:
                     for k in kf
                 ],
             )
-            db.executemany(
-                "UPDATE map_points SET p = ? WHERE key = ?",
-                [(np.asarray(P[i], "<f8").tobytes(), int(k)) for i, k in enumerate(mp.tolist())],
-            )
+            self._write_positions(atlas, map_points)
             self._write_state(atlas.state())
             db.execute("COMMIT")
         except BaseException:
             self._rollback()
             raise
+
+    def _write_positions(self, atlas: Atlas, map_points: Iterable[int]) -> None:
+        """Only the positions of these map points (those the atlas still holds)."""
+        mp = np.array([int(k) for k in map_points if atlas.has_map_point(int(k))], np.int64)
+        if not mp.size:
+            return
+        P = np.ascontiguousarray(atlas.map_point_positions(mp), "<f8")
+        self._db.executemany(
+            "UPDATE map_points SET p = ? WHERE key = ?",
+            [(P[i].tobytes(), k) for i, k in enumerate(mp.tolist())],
+        )
 
     def _rollback(self) -> None:
         """Undo the open transaction, if SQLite has not already (it rolls back by itself on
@@ -315,24 +320,16 @@ class CloudStore:
                     blob,
                 ),
             )
-        for key in map_points:
-            key = int(key)
-            if not atlas.has_map_point(key):
-                db.execute("DELETE FROM map_points WHERE key = ?", (key,))
-                continue
-            m = atlas.map_point(key)
-            db.execute(
-                "INSERT OR REPLACE INTO map_points VALUES (?, ?, ?, ?, ?, ?, ?)",
-                (
-                    key,
-                    m.agent_id,
-                    m.map_point_id,
-                    m.map_id,
-                    m.ref_kf,
-                    np.asarray(m.p_map, "<f8").tobytes(),
-                    _pack_obs(m.obs_keyframes, m.obs_indices),
-                ),
-            )
+        # Each point once, in one executemany each (a commit can touch thousands: every
+        # point a keyframe observes, every point that follows a moved keyframe).
+        keys = list(dict.fromkeys(int(k) for k in map_points))
+        gone = [(k,) for k in keys if not atlas.has_map_point(k)]
+        if gone:
+            db.executemany("DELETE FROM map_points WHERE key = ?", gone)
+        db.executemany(
+            "INSERT OR REPLACE INTO map_points VALUES (?, ?, ?, ?, ?, ?, ?)",
+            atlas.map_point_rows(keys),
+        )
         return removed
 
     def _write_state(self, st: AtlasState, removals: bool = False) -> None:

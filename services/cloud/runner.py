@@ -327,6 +327,8 @@ def _server(
         output_every_s=config.output_every_s,
         wire=config.wire,
         mbp_every_keyframes=config.mbp_every,
+        # no dashboard: no map view to refresh (its atlas snapshot costs the worker)
+        publish_every_s=CloudServiceConfig.publish_every_s if config.dashboard_port else 0.0,
     )
     return CloudServer(
         SessionConfig("cloud", config.agent_id, keys=secret),

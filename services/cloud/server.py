@@ -42,7 +42,7 @@ import time
 from collections import deque
 from collections.abc import Callable, Iterable
 from concurrent.futures import BrokenExecutor, Executor, ProcessPoolExecutor, ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from ssl import SSLContext
 from typing import Any, TypeVar
@@ -52,6 +52,7 @@ from common.errors import RecslamError
 from common.evaluation.errors import EvaluationError
 from common.evaluation.results import load_groundtruth
 from common.evaluation.trajectory import Trajectory
+from common.links import CodecTimer
 from common.protocol import OutboxFullError, SessionConfig
 from common.protocol.errors import LocalProtocolError, RejectedMessageError
 from common.transport import Delivery, Server, TransportConfig
@@ -117,6 +118,18 @@ class CloudStats:
     merges: int
     loops: int
     full_ba_passes: int = 0
+    worker_queue: int = 0
+    """Messages received and waiting for (or being applied on) the worker thread now."""
+    worker_queue_max: int = 0
+    """The most there ever were (one per edge link at most: each delivers in order; the rest
+    wait in the edges' outboxes, held back by the receive window)."""
+    stages: dict[str, dict[str, float]] = field(default_factory=dict)
+    """Time per stage, ``{"stage.place_recognition": {"seconds": s, "messages": n}, ...}``:
+    the worker thread's CPU time in the app's
+    :attr:`~services.cloud.app.CloudApp.stage_timer` and ``handle.<Type>`` (a message on the
+    worker, all of it); wall time in ``wall.<Type>`` (the same, with the waits: SQLite's
+    fsync), ``wait.worker`` (received -> applied) and ``solve.<kind>`` (in the optimizer,
+    waited for on the event loop)."""
 
 
 class CloudServer:
@@ -174,6 +187,10 @@ class CloudServer:
         self._round_lock = asyncio.Lock()  # one round of the core at a time
         self._tasks: list[asyncio.Task[None]] = []
         self._corrections = 0
+        self._queued = 0  # messages handed to the worker and not applied yet
+        self._queued_max = 0
+        self.timer = CodecTimer()  # wall: wait.worker, wall.* (worker thread), solve.* (loop)
+        self.cpu_timer = CodecTimer(clock=time.thread_time)  # handle.* (worker thread)
         self._final_stats: CloudStats | None = None
         self.address: tuple[str, int] | None = None
         self._references: dict[str, Trajectory] = {}  # ground truth per robot name
@@ -220,10 +237,9 @@ class CloudServer:
             app.atlas.maps(),
         )
         self.address = await self._server.start(host, port)
-        self._tasks = [
-            asyncio.create_task(self._optimize_loop(), name="cloud-optimize"),
-            asyncio.create_task(self._publish_loop(), name="cloud-publish"),
-        ]
+        self._tasks = [asyncio.create_task(self._optimize_loop(), name="cloud-optimize")]
+        if self.config.publish_every_s > 0:  # 0: no dashboard reads the map view
+            self._tasks.append(asyncio.create_task(self._publish_loop(), name="cloud-publish"))
         if self.output is not None and self.config.output_every_s > 0:
             self._tasks.append(asyncio.create_task(self._output_loop(), name="cloud-output"))
         return self.address
@@ -272,23 +288,35 @@ class CloudServer:
         if app is None or core is None:
             raise LocalProtocolError("cloud is not running")
         clock = asyncio.get_running_loop().time  # read on the worker, when the message is applied
+        self._queued += 1
+        self._queued_max = max(self._queued_max, self._queued)
         try:
-            deadline = await self._on_worker(self._handle, core, d, clock, time.time())
+            deadline = await self._on_worker(self._handle, core, d, clock, time.time(), clock())
         except PersistenceError:
             raise  # not the message's fault: the transport retries it (with backoff)
         except RecslamError as exc:  # malformed or inconsistent input (UplinkError, AtlasError)
             await self._on_worker(app.skip, d.peer, d.stream_id, d.seq)
             raise RejectedMessageError(f"{type(d.message).__name__}: {exc}") from exc
+        finally:
+            self._queued -= 1
         if deadline != self._armed:  # the schedule changed: the timer re-arms
             self._wake.set()
 
     def _handle(
-        self, core: CloudCore, d: Delivery, clock: Callable[[], float], t_recv: float
+        self,
+        core: CloudCore,
+        d: Delivery,
+        clock: Callable[[], float],
+        t_recv: float,
+        t_queued: float,
     ) -> float | None:
         """Apply one message (worker thread), record it when recording; the core's next
-        deadline after it."""
+        deadline after it. ``t_queued``: the loop time it was handed to the worker."""
         now = clock()
-        core.handle(d.peer, d.message, d.stream_id, d.seq, now)
+        self.timer.add("wait.worker", now - t_queued)
+        kind = type(d.message).__name__
+        with self.timer.span(f"wall.{kind}"), self.cpu_timer.span(f"handle.{kind}"):
+            core.handle(d.peer, d.message, d.stream_id, d.seq, now)
         if self._recorder is not None:
             self._recorder.write(d.peer, d.stream_id, d.seq, d.message, t_recv, now)
         return core.next_deadline()
@@ -378,7 +406,8 @@ class CloudServer:
         """Run a pure solver in the optimizer (restarted if its process died)."""
         loop = asyncio.get_running_loop()
         try:
-            return await loop.run_in_executor(self._optimizer, request.job())
+            with self.timer.span(f"solve.{request.kind.name.lower()}"):
+                return await loop.run_in_executor(self._optimizer, request.job())
         except BrokenExecutor:
             log.error("optimizer process died on map %d; starting a new one", request.map_id)
             self._optimizer.shutdown(wait=False)
@@ -512,6 +541,10 @@ class CloudServer:
 
         def collect() -> CloudStats:
             a = app.atlas
+            stages = CodecTimer()
+            stages.merge(app.stage_timer)
+            stages.merge(self.timer)
+            stages.merge(self.cpu_timer)
             return CloudStats(
                 app.messages,
                 app.rejected,
@@ -524,6 +557,9 @@ class CloudServer:
                 len(a.merges()),
                 len(a.loops()),
                 core.full_bas,
+                self._queued,
+                self._queued_max,
+                stages.snapshot(),
             )
 
         return await self._on_worker(collect)

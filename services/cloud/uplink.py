@@ -3,11 +3,14 @@
 Decoding turns the wire messages of ``common.protocol.messages`` into the atlas' inputs:
 
 - :class:`KeyframeUpdate` -> :class:`KeyframeInput`. The features are the keyframe coded
-  *intra* by ``common.codec.frames`` with a fresh encoder state, so each one is decoded by a
-  fresh :class:`FeatureDecoder`. Keypoints come back on the codec's level grid (level-0
-  pixels via ``KeyframeFeatures.uv``); descriptors are lossless. The codec does not expose
-  the word index it coded, but its encoder codes exactly ``Vocabulary.lookup(descriptor)``,
-  so the same lookup on the decoded (identical) descriptors gives the coded words.
+  *intra* by ``common.codec.frames`` with a fresh encoder state, so each one is decoded from
+  a fresh decoder's state: by a fresh :class:`FeatureDecoder`, or, with
+  :class:`KeyframeDecoders`, by one decoder per codec config kept at that state
+  (``FeatureDecoder.decode_detached``: no 8 MB of tables built and copied per keyframe).
+  Keypoints come back on the codec's level grid (level-0 pixels via
+  ``KeyframeFeatures.uv``); descriptors are lossless. The codec does not expose the word
+  index it coded, but its encoder codes exactly ``Vocabulary.lookup(descriptor)``, so the
+  same lookup on the decoded (identical) descriptors gives the coded words.
 - :class:`MapPointUpdate` -> one :class:`MapPointInput` per point id.
 - :class:`CullEvent` -> keyframe and map point ids.
 
@@ -29,7 +32,7 @@ import numpy as np
 from common.codec.errors import CodecError, CodecUsageError
 from common.codec.frames import FeatureDecoder
 from common.codec.imu import ImuDecoder
-from common.codec.types import CodecConfig, ImuChunk, KeyframeFeatures
+from common.codec.types import CodecConfig, ImuChunk, KeyframeFeatures, NonKeyframeFeatures
 from common.errors import RecslamError
 from common.links.edge_cloud import (
     CullEvent,
@@ -132,14 +135,32 @@ def _ids(data: bytes, what: str) -> np.ndarray:
         raise UplinkError(str(exc)) from exc
 
 
+class KeyframeDecoders:
+    """One :class:`FeatureDecoder` per codec config, kept at a fresh decoder's state and
+    reused for every keyframe coded with that config (``decode_detached``); decodes exactly
+    what a fresh decoder would. Not thread-safe: one owner (the cloud's worker)."""
+
+    def __init__(self, vocabulary: Vocabulary) -> None:
+        self.vocabulary = vocabulary
+        self._decoders: dict[CodecConfig, FeatureDecoder] = {}
+
+    def decode(self, payload: bytes, config: CodecConfig) -> KeyframeFeatures | NonKeyframeFeatures:
+        decoder = self._decoders.get(config)
+        if decoder is None:
+            decoder = self._decoders[config] = FeatureDecoder(self.vocabulary, config)
+        return decoder.decode_detached(payload)
+
+
 def decode_keyframe_update(
     msg: KeyframeUpdate | KeyframeUpdateCoded,
     agent_id: int,
     vocabulary: Vocabulary,
     codec: CodecConfig | None = None,
+    decoders: KeyframeDecoders | None = None,
 ) -> DecodedKeyframe:
     """Decode one keyframe (schema-1 or coded); ``agent_id`` is the cloud's integer id of
-    ``msg.agent_id``."""
+    ``msg.agent_id``; ``decoders`` (of ``vocabulary``): decode the features with those
+    (default: a fresh decoder)."""
     what = f"{type(msg).__name__} {msg.agent_id}/{msg.keyframe_id}"
     if msg.keyframe_id < 0:
         raise UplinkError(f"{what}: negative keyframe id")
@@ -168,7 +189,10 @@ def decode_keyframe_update(
     if msg.features:
         cfg = codec or CodecConfig()
         try:
-            feats = FeatureDecoder(vocabulary, cfg).decode(msg.features)
+            if decoders is None:
+                feats = FeatureDecoder(vocabulary, cfg).decode(msg.features)
+            else:
+                feats = decoders.decode(msg.features, cfg)
         except CodecError as exc:
             raise UplinkError(f"{what}: features: {exc}") from exc
         if not isinstance(feats, KeyframeFeatures):

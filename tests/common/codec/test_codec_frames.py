@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import contextlib
+import struct
+import zlib
+
 import cv2
 import numpy as np
 import pytest
@@ -257,3 +261,28 @@ def test_standalone_keyframe(vocab, orb_kf):
     assert np.array_equal(out.descriptors, orb_kf.descriptors)
     assert np.all(out.links == -1)
     assert decode_standalone_keyframe(vocab, payload).equals(out)  # no hidden state
+
+
+def test_detached_decoding_leaves_the_decoder_at_its_state(vocab, orb_kf):
+    """Keyframes each coded by a fresh encoder, decoded by one decoder in turn (a corrupt
+    one among them): each as a fresh decoder decodes it, and the tables end as they began."""
+    n = len(orb_kf.keypoints[::2])
+    half = KeyframeFeatures(orb_kf.keypoints[::2], orb_kf.descriptors[::2], np.full(n, -1))
+    payloads = [FeatureEncoder(vocab, CFG).encode_keyframe(kf) for kf in (orb_kf, half, orb_kf)]
+    dec = FeatureDecoder(vocab, CFG)
+    ones, total = dec.state.descriptors.ones.copy(), dec.state.descriptors.total.copy()
+    # cut in the descriptors, with a valid checksum: garbage or an error, after updating
+    # the tables either way
+    body = payloads[1][: len(payloads[1]) * 3 // 4]
+    with contextlib.suppress(CodecError):
+        dec.decode_detached(body + struct.pack("<I", zlib.crc32(body)))
+    for p in payloads:
+        out = dec.decode_detached(p)
+        assert out.equals(FeatureDecoder(vocab, CFG).decode(p))
+    assert dec.state.seq == 0
+    assert np.array_equal(dec.state.descriptors.ones, ones)
+    assert np.array_equal(dec.state.descriptors.total, total)
+    # A decoder that kept the first keyframe's state would not decode the others alike.
+    kept = FeatureDecoder(vocab, CFG)
+    kept.decode(payloads[0])
+    assert not np.array_equal(kept.state.descriptors.total, total)

@@ -143,6 +143,13 @@ def test_two_edges_merge_send_corrections_and_write_trajectories(tmp_path, vocab
             stats = await cloud.stats()
             assert stats.keyframes == 36 and stats.merges == 1 and len(stats.maps) == 1
             assert stats.rejected == 0
+            # Per-stage timings: each new keyframe was queried, inserted and committed once;
+            # at most one message per edge link waited for the worker.
+            st = stats.stages
+            for stage in ("stage.place_recognition", "stage.database", "handle.KeyframeUpdate"):
+                assert st[stage]["messages"] == 36, stage
+            assert st["wait.worker"]["messages"] == stats.messages
+            assert 1 <= stats.worker_queue_max <= 2 and stats.worker_queue == 0
             # Either map may absorb the other; the merged map has that robot's frame.
             T_map_world[:] = np.eye(4) if stats.maps == (0,) else T_A1_WORLD
 
@@ -151,6 +158,9 @@ def test_two_edges_merge_send_corrections_and_write_trajectories(tmp_path, vocab
                 return bool(a.corrections) and bool(b.corrections)
 
             await _until(both_corrected)
+            stages = (await cloud.stats()).stages
+            assert stages["solve.pose_graph"]["messages"] >= 1
+            assert stages["stage.pose_graph_apply"]["messages"] >= 1
             merge = await cloud.call(lambda app: app.atlas.merges()[0])
             T_exp = inverse_T(T_A1_WORLD) if merge.target_map == 0 else T_A1_WORLD
             assert np.linalg.norm(merge.T_target_source[:3, 3] - T_exp[:3, 3]) < 0.02
@@ -475,5 +485,24 @@ def test_an_edge_cannot_cull_or_update_a_robot_another_edge_serves(tmp_path, voc
             await owner.client.close()
             await intruder.client.close()
             await cloud.stop(write_output=False)
+
+    run(main())
+
+
+def test_no_map_view_refresh_without_a_dashboard(tmp_path, vocab):
+    """publish_every_s = 0 (``recslam cloud --dashboard-port 0``): no task snapshots the
+    atlas for a dashboard nobody serves."""
+    cfg = CloudServiceConfig(publish_every_s=0.0, output_every_s=0)
+
+    async def main():
+        cloud = CloudServer(
+            SessionConfig("cloud", "cloud", SECRET), tmp_path / "s", default_camera(), vocab, cfg
+        )
+        await cloud.start()
+        try:
+            names = {t.get_name() for t in cloud._tasks}
+            assert "cloud-optimize" in names and "cloud-publish" not in names
+        finally:
+            await cloud.stop()
 
     run(main())
