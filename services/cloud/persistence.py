@@ -11,7 +11,16 @@ acknowledged is on disk. :meth:`CloudStore.load` rebuilds an :class:`Atlas` from
 Two tables serve the network service: ``edge_positions`` (the transport's inbound position
 per edge link: the edge's stream id and last delivered sequence, overwritten when the edge
 starts a new stream, see :meth:`CloudStore.positions`) and ``agent_names`` (each atlas agent
-is one robot's map on its edge: the robot's name, the edge serving it and the edge's map id).
+is one robot's map on its edge: the robot's name, the edge serving it, the edge's map id and
+the mission it belongs to).
+
+Missions (``missions``, ``meta.mission``): a state directory can hold several missions, one after
+the other. The current mission's agents are live; every agent of an earlier mission belongs to
+the *prior map* (read-only, see ``services.cloud.app``). :meth:`CloudStore.enter_mission` makes a
+named mission current: resuming it when it already is (a crash restart runs the same command
+line), else starting it, which clears the stored edge positions (the new mission's edges start
+new streams). A robot name and edge map id are unique per mission only, so that a new mission's
+``robot0`` on edge map 0 is a new agent, not the old one's continuation.
 
 Keyframe arrays are stored as ``.npy`` payloads (``numpy.save``, no pickle) inside an
 uncompressed ``.npz`` blob per row. Map point rows (many, small, rewritten whenever an
@@ -45,10 +54,11 @@ from services.cloud.atlas import (
 log = logging.getLogger(__name__)
 
 DB_NAME = "cloud.sqlite"
-SCHEMA_VERSION = 5
+SCHEMA_VERSION = 6
 # Older schemas this one only adds tables to (``_SCHEMA`` creates them): opened and upgraded.
-# 5 added ``robot_sensors``.
-_UPGRADABLE = (3, 4)
+# 5 added ``robot_sensors``; 6 added ``missions`` and the ``mission`` column of ``agent_names``
+# (:func:`_migrate_agent_names`: the table is rebuilt, its old rows are mission 0).
+_UPGRADABLE = (3, 4, 5)
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS meta (name TEXT PRIMARY KEY, value INTEGER NOT NULL);
@@ -74,9 +84,38 @@ CREATE TABLE IF NOT EXISTS edge_sequences (edge_id TEXT PRIMARY KEY, last_seq IN
 CREATE TABLE IF NOT EXISTS edge_positions (edge_id TEXT PRIMARY KEY, stream_id BLOB NOT NULL,
     last_seq INTEGER NOT NULL);
 CREATE TABLE IF NOT EXISTS agent_names (agent INTEGER PRIMARY KEY, name TEXT NOT NULL,
-    edge_id TEXT NOT NULL, edge_map INTEGER NOT NULL, UNIQUE (name, edge_map));
+    edge_id TEXT NOT NULL, edge_map INTEGER NOT NULL, mission INTEGER NOT NULL DEFAULT 0,
+    UNIQUE (mission, name, edge_map));
 CREATE TABLE IF NOT EXISTS robot_sensors (name TEXT PRIMARY KEY, sensors BLOB NOT NULL);
+CREATE TABLE IF NOT EXISTS missions (mission INTEGER PRIMARY KEY, name TEXT NOT NULL UNIQUE);
 """
+
+FIRST_MISSION = "mission-0"
+"""The name of a state directory's first mission when none was given."""
+
+
+def _migrate_agent_names(db: sqlite3.Connection) -> None:
+    """Give a schema <= 5 ``agent_names`` its ``mission`` column (rows: mission 0) and the
+    per-mission uniqueness; a no-op on a current table."""
+    cols = [r[1] for r in db.execute("PRAGMA table_info(agent_names)")]
+    if "mission" in cols:
+        return
+    db.execute("BEGIN IMMEDIATE")
+    try:
+        db.execute("ALTER TABLE agent_names RENAME TO agent_names_old")
+        db.execute(
+            "CREATE TABLE agent_names (agent INTEGER PRIMARY KEY, name TEXT NOT NULL, "
+            "edge_id TEXT NOT NULL, edge_map INTEGER NOT NULL, mission INTEGER NOT NULL "
+            "DEFAULT 0, UNIQUE (mission, name, edge_map))"
+        )
+        db.execute(
+            "INSERT INTO agent_names SELECT agent, name, edge_id, edge_map, 0 FROM agent_names_old"
+        )
+        db.execute("DROP TABLE agent_names_old")
+        db.execute("COMMIT")
+    except BaseException:
+        db.execute("ROLLBACK")
+        raise
 
 
 class PersistenceError(RecslamError):
@@ -138,9 +177,16 @@ class CloudStore:
         if row is None:
             self._db.execute("INSERT INTO meta VALUES ('schema', ?)", (SCHEMA_VERSION,))
         elif row[0] in _UPGRADABLE:
+            _migrate_agent_names(self._db)
             self._db.execute("UPDATE meta SET value = ? WHERE name='schema'", (SCHEMA_VERSION,))
         elif row[0] != SCHEMA_VERSION:
             raise PersistenceError(f"{self.path}: schema {row[0]}, expected {SCHEMA_VERSION}")
+        self._db.execute("INSERT OR IGNORE INTO meta VALUES ('mission', 0)")
+        self._db.execute("INSERT OR IGNORE INTO missions VALUES (0, ?)", (FIRST_MISSION,))
+        self.mission = int(
+            self._db.execute("SELECT value FROM meta WHERE name='mission'").fetchone()[0]
+        )
+        """The current mission's number (0, 1, ...; see :meth:`enter_mission`)."""
 
     def close(self) -> None:
         self._db.close()
@@ -185,9 +231,9 @@ class CloudStore:
                     (str(edge_id), bytes(stream_id), int(seq)),
                 )
             for agent, (name, edge_id, edge_map) in (agents or {}).items():
-                db.execute(
-                    "INSERT OR REPLACE INTO agent_names VALUES (?, ?, ?, ?)",
-                    (int(agent), str(name), str(edge_id), int(edge_map)),
+                db.execute(  # agents are created and changed in the current mission only
+                    "INSERT OR REPLACE INTO agent_names VALUES (?, ?, ?, ?, ?)",
+                    (int(agent), str(name), str(edge_id), int(edge_map), self.mission),
                 )
             for name, blob in (sensors or {}).items():
                 db.execute(
@@ -365,6 +411,56 @@ class CloudStore:
                 for r in st.retired
             ],
         )
+
+    # ------------------------------------------------------------------ missions
+    def enter_mission(self, name: str) -> tuple[int, bool]:
+        """Make mission ``name`` current: ``(its number, whether it was started now)``.
+
+        The current mission of that name is resumed (nothing changes), and so is a current
+        mission without agents yet (it takes the name); a name never used
+        starts a new mission in one transaction: it becomes current, and the stored edge
+        positions are cleared (the new mission's edges start their streams afresh; the old
+        ones' replays would land in the new mission's agents). PersistenceError for the name
+        of an earlier mission (its agents are the prior map now and cannot be continued)."""
+        if not name:
+            raise PersistenceError("a mission needs a name")
+        row = self._db.execute("SELECT mission FROM missions WHERE name = ?", (name,)).fetchone()
+        if row is not None:
+            if int(row[0]) != self.mission:
+                raise PersistenceError(
+                    f"{self.path}: mission {name!r} ended (the current one is "
+                    f"{self.missions()[self.mission]!r}); start a new mission with a new name"
+                )
+            return self.mission, False
+        db = self._db
+        used = db.execute("SELECT 1 FROM agent_names WHERE mission = ?", (self.mission,))
+        if used.fetchone() is None:  # the current mission never had an agent: it is this one
+            db.execute("UPDATE missions SET name = ? WHERE mission = ?", (name, self.mission))
+            return self.mission, False
+        number = self.mission + 1
+        db.execute("BEGIN IMMEDIATE")
+        try:
+            db.execute("INSERT INTO missions VALUES (?, ?)", (number, name))
+            db.execute("UPDATE meta SET value = ? WHERE name = 'mission'", (number,))
+            db.execute("DELETE FROM edge_positions")
+            db.execute("DELETE FROM edge_sequences")
+            db.execute("COMMIT")
+        except BaseException:
+            self._rollback()
+            raise
+        self.mission = number
+        log.info("%s: mission %d %r started", self.path, number, name)
+        return number, True
+
+    def missions(self) -> dict[int, str]:
+        """``{mission number: name}``."""
+        return {int(m): str(n) for m, n in self._db.execute("SELECT mission, name FROM missions")}
+
+    def agent_missions(self) -> dict[int, int]:
+        """``{agent id: its mission's number}``."""
+        return {
+            int(a): int(m) for a, m in self._db.execute("SELECT agent, mission FROM agent_names")
+        }
 
     # ------------------------------------------------------------------ reading
     def last_sequences(self) -> dict[str, int]:
