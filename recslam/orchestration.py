@@ -92,6 +92,9 @@ class JobConfig:
             --wire``; default coded; robots and cloud accept both).
         placement: where each process runs (default: all on loopback here), e.g. the robots
             in network namespaces of their own (``lab.netns``).
+        mission: the cloud serves this named mission (``recslam cloud --mission``; None: the
+            state directory's current one), e.g. in a saved map copied to ``state/cloud``.
+        prior_frame: the earlier mission's ``eval/ate.json`` (``recslam cloud --prior-frame``).
     """
 
     dataset: Path
@@ -108,6 +111,8 @@ class JobConfig:
     mbp_every: int = 0
     wire: WireFormat = WireFormat.CODED
     placement: Placement = field(default_factory=Placement)
+    mission: str | None = None
+    prior_frame: Path | None = None
 
 
 @dataclass
@@ -159,6 +164,10 @@ class Job:
     def cloud_argv(self) -> list[str]:
         c = self.config
         record = [] if c.record_uplink is None else ["--record", str(c.record_uplink)]
+        if c.mission is not None:
+            record += ["--mission", c.mission]
+        if c.prior_frame is not None:
+            record += ["--prior-frame", str(c.prior_frame)]
         return self._recslam(
             "cloud",
             "--listen",

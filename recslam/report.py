@@ -63,6 +63,8 @@ def collect(run_dir: Path, facts: RunFacts) -> dict[str, Any]:
     cloud = _load(run_dir / "stats" / "cloud.json")
     ate = _load(run_dir / "results" / "eval" / "ate.json")
     maps = _load(run_dir / "results" / "cloud_maps.json")
+    mission = _load(run_dir / "results" / "mission.json")
+    prior_frame = _load(run_dir / "results" / "eval" / "ate_prior_frame.json")
     secs = facts.stream_s
     camera_s = max(facts.frames_sent.values(), default=0) / CAMERA_HZ
 
@@ -131,6 +133,15 @@ def collect(run_dir: Path, facts: RunFacts) -> dict[str, Any]:
             "optimizations": cloud.get("optimizations"),
         },
         "links": links,
+        "mission": {
+            "name": mission.get("mission"),
+            "prior_agents": mission.get("prior_agents", 0),
+            "prior_keyframes": mission.get("prior_keyframes", 0),
+            "merge_delay_s": {n: r.get("delay_s") for n, r in mission.get("robots", {}).items()},
+            "first_merge_delay_s": mission.get("first_merge_delay_s"),
+            "joint_rmse_prior_frame_m": prior_frame.get("joint", {}).get("stats_m", {}).get("rmse"),
+            "prior_frame_of": prior_frame.get("frame_of"),
+        },
     }
 
 

@@ -45,25 +45,23 @@ def vocab() -> Vocabulary:
 def missions(vocab):
     """Per mission: per robot its messages per keyframe (as an edge sends them) and the true
     poses ``T_world_body``; keyframes every 0.5 s, mission 2 a day later."""
-    world = make_world(WORLD_SEED)
+    world = make_world(WORLD_SEED, n_points=2500)
     cam = default_camera()
     plan = {
         "m1": {
-            "robot0": (circle_poses(24, turns=1.0), 1, 0.0),
-            "robot1": (circle_poses(12, turns=0.5, phase=2.0), 2, 50.0),
+            "robot0": (circle_poses(16, turns=1.0), 1, 0.0),
+            "robot1": (circle_poses(8, turns=0.5, phase=2.0), 2, 50.0),
         },
         "m2": {
-            "robot0": (circle_poses(20, turns=0.8, phase=1.0), 3, 86400.0),
-            "robot1": (circle_poses(16, turns=0.6, phase=4.0), 4, 86400.0),
+            "robot0": (circle_poses(12, turns=0.7, phase=1.0), 3, 86400.0),
+            "robot1": (circle_poses(10, turns=0.6, phase=4.0), 4, 86400.0),
         },
     }
     out: dict[str, dict[str, tuple[list, np.ndarray]]] = {}
     for mission, robots in plan.items():
         out[mission] = {}
         for name, (poses, seed, t0) in robots.items():
-            kfs, mps = make_session(
-                world, cam, 0, poses, FRAMES[mission, name], seed=seed, t0=t0
-            )
+            kfs, mps = make_session(world, cam, 0, poses, FRAMES[mission, name], seed=seed, t0=t0)
             out[mission][name] = (encode_session(kfs, mps, name, vocab, 7), poses)
     return out
 
@@ -84,9 +82,8 @@ def _feed(app: CloudApp, edge: str, stream: bytes, robots: dict, seq: int = 0) -
         for g in groups.values():
             for m in g[i] if i < len(g) else []:
                 seq += 1
-                reaction = app.handle(edge, m, stream, seq)
-                for map_id in reaction.urgent_maps:
-                    _optimize(app, map_id)
+                if app.handle(edge, m, stream, seq).merged:
+                    _optimize(app, app.atlas.maps()[0])
     return seq
 
 
