@@ -9,7 +9,7 @@ from common.data.synth import generate
 from common.data.synth.generate import SynthConfig, generate_dataset
 
 
-class _Stop(Exception):
+class _StopError(Exception):
     pass
 
 
@@ -23,13 +23,13 @@ def test_the_rooms_look_follows_the_scene_seed(monkeypatch, tmp_path):
 
     def atlas(scene, seed, cfg):
         seen.append(("textures", seed))
-        raise _Stop
+        raise _StopError
 
     monkeypatch.setattr(generate, "make_world", world)
     monkeypatch.setattr(generate, "build_atlas", atlas)
     configs = [SynthConfig(seed=2, scene_seed=1), SynthConfig(seed=1), SynthConfig(seed=2)]
     for i, config in enumerate(configs):
-        with pytest.raises(_Stop):
+        with pytest.raises(_StopError):
             generate_dataset(tmp_path / str(i), config)
     assert seen == [("world", 1), ("textures", 1)] * 2 + [("world", 2), ("textures", 2)]
     assert [c.room_seed for c in configs] == [1, 1, 2]
