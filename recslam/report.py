@@ -202,6 +202,22 @@ def render_markdown(data: dict[str, Any]) -> str:
             f"{link['reverse_kbit_s']:.1f} | "
             f"{link['duplicates_dropped']} |"
         )
+    ms = data.get("mission", {})
+    if ms.get("prior_agents"):
+        delays = ", ".join(
+            f"{n} {d:.1f} s" if d is not None else f"{n} not merged"
+            for n, d in ms["merge_delay_s"].items()
+        )
+        lines += [
+            "",
+            "## Mission in a saved map",
+            "",
+            f"Mission {ms['name']!r} started inside a saved map ({ms['prior_agents']} agents, "
+            f"{ms['prior_keyframes']} keyframes). Merged into it after (data time from the "
+            f"mission's first keyframe): {delays or 'never'}. Joint ATE RMSE in the prior "
+            f"mission's frame (its alignment, not re-aligned): "
+            f"{_fmt(ms['joint_rmse_prior_frame_m'])} m.",
+        ]
     lines += ["", "## Plots", ""]
     lines += [f"![{p}]({p})" for p in data.get("plots", [])]
     return "\n".join(lines) + "\n"
