@@ -199,11 +199,27 @@ class MapFusion:
             self.imu_of,
         )
         held = self._held(problem.keys)
-        if held.size:
-            problem = dataclasses.replace(
-                problem, held=held, fixed=int(held[0]), held_points=self._held(problem.point_keys)
-            )
-        return problem
+        if not held.size:
+            return problem
+        held_points = self._held(problem.point_keys)
+        # Observations between a held keyframe and a held point constrain nothing that moves:
+        # left out (the prior map's own observations would otherwise dominate the solve).
+        kf_held = np.zeros(problem.keys.shape[0], bool)
+        kf_held[held] = True
+        pt_held = np.zeros(problem.point_keys.shape[0], bool)
+        pt_held[held_points] = True
+        use = ~(kf_held[problem.obs_kf] & pt_held[problem.obs_point])
+        return dataclasses.replace(
+            problem,
+            held=held,
+            fixed=int(held[0]),
+            held_points=held_points,
+            obs_kf=problem.obs_kf[use],
+            obs_point=problem.obs_point[use],
+            obs_xy=problem.obs_xy[use],
+            obs_sigma=problem.obs_sigma[use],
+            dropped_observations=problem.dropped_observations + int((~use).sum()),
+        )
 
     def apply_optimization(self, result: PoseGraphResult | FullBAResult) -> int:
         """Write a result back; the held agents' keyframes and points are left exactly as
