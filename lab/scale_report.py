@@ -217,7 +217,8 @@ def scale_plot(rows: Sequence[Sequence[TeamRow]], path: Path) -> None:
     agents = [runs[0].agents for runs in rows]
     x = np.arange(len(agents))
     bottom = np.zeros(len(agents))
-    colours = plt.get_cmap("tab20").colors
+    cmap = plt.get_cmap("tab20")
+    colours = [cmap(i) for i in range(20)]
     for i, (label, _) in enumerate((*KEYFRAME_STAGES, *OTHER_STAGES)):
         h = np.array([np.median([r.stage_ms[label] for r in runs]) for runs in rows])
         ax[0].bar(x, h, bottom=bottom, label=label, color=colours[i % len(colours)])

@@ -106,6 +106,9 @@ class JobConfig:
         edge_restarts: ``(edge, seconds)``: a fault drill, that edge is killed (SIGKILL) this
             long after the robots started and restarted at once on its state directory
             (default none).
+        mission: the cloud serves this named mission (``recslam cloud --mission``; None: the
+            state directory's current one), e.g. in a saved map copied to ``state/cloud``.
+        prior_frame: the earlier mission's ``eval/ate.json`` (``recslam cloud --prior-frame``).
     """
 
     dataset: Path
@@ -126,6 +129,8 @@ class JobConfig:
     sites: Mapping[str, tuple[str, ...]] | None = None
     moves: tuple[tuple[str, int, str], ...] = ()
     edge_restarts: tuple[tuple[str, float], ...] = ()
+    mission: str | None = None
+    prior_frame: Path | None = None
 
 
 @dataclass
@@ -188,6 +193,10 @@ class Job:
     def cloud_argv(self) -> list[str]:
         c = self.config
         record = [] if c.record_uplink is None else ["--record", str(c.record_uplink)]
+        if c.mission is not None:
+            record += ["--mission", c.mission]
+        if c.prior_frame is not None:
+            record += ["--prior-frame", str(c.prior_frame)]
         return self._recslam(
             "cloud",
             "--listen",

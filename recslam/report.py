@@ -69,6 +69,8 @@ def collect(run_dir: Path, facts: RunFacts) -> dict[str, Any]:
     cloud = _load(run_dir / "stats" / "cloud.json")
     ate = _load(run_dir / "results" / "eval" / "ate.json")
     maps = _load(run_dir / "results" / "cloud_maps.json")
+    mission = _load(run_dir / "results" / "mission.json")
+    prior_frame = _load(run_dir / "results" / "eval" / "ate_prior_frame.json")
     secs = facts.stream_s
     camera_s = max(facts.frames_sent.values(), default=0) / CAMERA_HZ
 
@@ -153,6 +155,15 @@ def collect(run_dir: Path, facts: RunFacts) -> dict[str, Any]:
         },
         "links": links,
         "sites": sites,
+        "mission": {
+            "name": mission.get("mission"),
+            "prior_agents": mission.get("prior_agents", 0),
+            "prior_keyframes": mission.get("prior_keyframes", 0),
+            "merge_delay_s": {n: r.get("delay_s") for n, r in mission.get("robots", {}).items()},
+            "first_merge_delay_s": mission.get("first_merge_delay_s"),
+            "joint_rmse_prior_frame_m": prior_frame.get("joint", {}).get("stats_m", {}).get("rmse"),
+            "prior_frame_of": prior_frame.get("frame_of"),
+        },
     }
 
 
@@ -236,6 +247,22 @@ def render_markdown(data: dict[str, Any]) -> str:
                 f"| {name} | {', '.join(site['robots'])} | {site['robots_kbit_s']:.1f} | "
                 f"{site['to_cloud_kbit_s']:.1f} |"
             )
+    ms = data.get("mission", {})
+    if ms.get("prior_agents"):
+        delays = ", ".join(
+            f"{n} {d:.1f} s" if d is not None else f"{n} not merged"
+            for n, d in ms["merge_delay_s"].items()
+        )
+        lines += [
+            "",
+            "## Mission in a saved map",
+            "",
+            f"Mission {ms['name']!r} started inside a saved map ({ms['prior_agents']} agents, "
+            f"{ms['prior_keyframes']} keyframes). Merged into it after (data time from the "
+            f"mission's first keyframe): {delays or 'never'}. Joint ATE RMSE in the prior "
+            f"mission's frame (its alignment, not re-aligned): "
+            f"{_fmt(ms['joint_rmse_prior_frame_m'])} m.",
+        ]
     lines += ["", "## Plots", ""]
     lines += [f"![{p}]({p})" for p in data.get("plots", [])]
     return "\n".join(lines) + "\n"

@@ -66,6 +66,19 @@ class SimilarityTransform:
         """Trajectory expressed in the reference frame (rotations turned by ``R_ref_est``)."""
         return traj.transformed(self.R_ref_est, self.t_ref_est, self.scale)
 
+    @classmethod
+    def from_dict(cls, d: dict[str, object]) -> SimilarityTransform:
+        """Inverse of :meth:`as_dict`; AlignmentError for anything else."""
+        try:
+            R = np.array(d["R_ref_est"], np.float64)
+            t = np.array(d["t_ref_est"], np.float64)
+            scale = float(d.get("scale", 1.0))  # type: ignore[arg-type]
+        except (KeyError, TypeError, ValueError) as exc:
+            raise AlignmentError(f"not a transform: {exc}") from exc
+        if R.shape != (3, 3) or t.shape != (3,) or not np.isfinite([*R.ravel(), *t, scale]).all():
+            raise AlignmentError(f"not a transform: R {R.shape}, t {t.shape}")
+        return cls(R, t, scale)
+
     def as_dict(self) -> dict[str, object]:
         """JSON-friendly form (lists of floats)."""
         return {

@@ -212,12 +212,15 @@ def compute_joint_ate(
     references: Mapping[str, Trajectory],
     estimates: Mapping[str, Trajectory],
     config: AteConfig | None = None,
+    transform: SimilarityTransform | None = None,
 ) -> JointAteResult:
     """Joint ATE over agents (see module docstring). Keys are agent names.
 
     Every estimated agent needs a reference; extra references are ignored. With
     ``AlignMode.ORIGIN`` the first agent (in ``estimates`` order) fixes the transform; with
-    ``n_align`` the first ``n_align`` poses of every agent are used.
+    ``n_align`` the first ``n_align`` poses of every agent are used. ``transform``: measure
+    under this alignment instead of estimating one (e.g. an earlier mission's, for estimates
+    that should be in that mission's map frame); ``individual`` is still estimated.
     """
     cfg = config or AteConfig()
     if not estimates:
@@ -231,7 +234,9 @@ def compute_joint_ate(
         agent: associate(references[agent], est, cfg.association)
         for agent, est in estimates.items()
     }
-    if cfg.align is AlignMode.ORIGIN:
+    if transform is not None:
+        pass
+    elif cfg.align is AlignMode.ORIGIN:
         first = next(iter(assocs.values()))
         transform = align(first.ref, first.est, AlignMode.ORIGIN)
     else:

@@ -19,8 +19,8 @@ import logging
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from common.evaluation.alignment import AlignMode
-from common.evaluation.errors import MetricsError
+from common.evaluation.alignment import AlignMode, SimilarityTransform
+from common.evaluation.errors import AlignmentError, MetricsError, ResultFolderError
 from common.evaluation.metrics import (
     AteConfig,
     AteResult,
@@ -294,3 +294,55 @@ def _rpe_align(cfg: EvalConfig) -> AlignMode:
     if cfg.ate.align in (AlignMode.SIM3, AlignMode.SCALE):
         return AlignMode.SCALE
     return AlignMode.NONE
+
+
+PRIOR_FRAME_FILE = "ate_prior_frame.json"
+"""The report of :func:`evaluate_in_frame`, next to ``ate.json``."""
+
+
+def read_joint_transform(ate_json: Path | str) -> SimilarityTransform:
+    """The joint alignment an ``ate.json`` (of :func:`evaluate_run`) holds; ResultFolderError
+    when the file is missing or has none."""
+    path = Path(ate_json)
+    try:
+        return SimilarityTransform.from_dict(json.loads(path.read_text())["joint"]["transform"])
+    except (OSError, ValueError, KeyError, TypeError, AlignmentError) as exc:
+        raise ResultFolderError(f"{path}: no joint alignment to measure in ({exc})") from exc
+
+
+def evaluate_in_frame(
+    result_dir: Path | str,
+    frame_of: Path | str,
+    groundtruth: Path | str | None = None,
+    out_dir: Path | str | None = None,
+    config: EvalConfig | None = None,
+) -> tuple[JointAteResult, Path]:
+    """ATE of ``RESULT_DIR``'s trajectories under the joint alignment of an earlier run's
+    ``ate.json`` (``frame_of``), without aligning again: for a mission that started inside
+    that run's saved map (``services.cloud.mission``), whose trajectories are in its map
+    frame, this measures how well the new mission sits in the old map, not just its own
+    shape. Writes ``OUT/ate_prior_frame.json`` (``out_dir`` defaults to ``RESULT_DIR/eval``)
+    and returns the result and that file."""
+    cfg = config or EvalConfig()
+    root = Path(result_dir)
+    out = Path(out_dir) if out_dir is not None else root / EVAL_DIR
+    frame = read_joint_transform(frame_of)
+    estimates = read_result_trajectories(root)
+    references, _ = load_groundtruth(list(estimates), groundtruth, root)
+    joint = compute_joint_ate(references, estimates, cfg.ate, transform=frame)
+    summary = {
+        "frame_of": str(frame_of),
+        "transform": frame.as_dict(),
+        "joint": {"stats_m": joint.stats.as_dict(), "rot_stats_deg": joint.rot_stats.as_dict()},
+        "agents": {
+            a: {
+                "stats_m": r.stats.as_dict(),
+                "own_alignment_rmse_m": joint.individual[a].stats.rmse,
+            }
+            for a, r in joint.under_joint.items()
+        },
+    }
+    out.mkdir(parents=True, exist_ok=True)
+    path = out / PRIOR_FRAME_FILE
+    path.write_text(json.dumps(summary, indent=2) + "\n")
+    return joint, path

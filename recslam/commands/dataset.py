@@ -41,6 +41,15 @@ def register(sub: argparse._SubParsersAction) -> None:
     s.add_argument("--seconds", type=float, default=60.0, help="length per robot (default 60)")
     s.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     s.add_argument(
+        "--scene-seed",
+        type=int,
+        default=None,
+        metavar="N",
+        help="seed of the room's look (textures, posters, room-random's furniture) instead of "
+        "--seed: datasets of one scene seed and other seeds fly through the same room (e.g. a "
+        "second mission in the first one's saved map); default: --seed",
+    )
+    s.add_argument(
         "--no-noise",
         action="store_true",
         help="noise-free IMU and images (no biases, no read noise)",
@@ -115,6 +124,7 @@ def run_synth(args: argparse.Namespace) -> int:
             robots=robots,
             seconds=args.seconds,
             seed=args.seed,
+            scene_seed=args.scene_seed,
             progress=not args.no_progress,
             cameras=tuple(c.strip() for c in args.cameras.split(",") if c.strip()),
             flight=args.flight,

@@ -15,6 +15,13 @@ trajectories and ATE report) and writes the report folder::
     OUT/report.md, report.json, trajectories_*.png, ate_over_time.png
     OUT/run/  logs/, stats/, state/, results/ (see recslam.orchestration)
 
+With --resume-map PREV (the --out folder of an earlier demo), the cloud starts from a copy of
+PREV's saved map (PREV/run/state/cloud, left as it is) as a new mission: the robots relocalise
+against it and merge into it, the report says when each merged and gives the joint ATE in
+PREV's frame (under PREV's alignment, PREV/run/results/eval/ate.json). Give it a dataset of
+the same room, e.g. another seed: ``recslam demo --data data/synth2 --seed 2 --out out/m2
+--resume-map out/demo``.
+
 Exit code 0 when every service exited cleanly, 1 otherwise.
 """
 
@@ -92,6 +99,20 @@ def register(sub: argparse._SubParsersAction) -> None:
         "restart it on its state directory (repeat)",
     )
     p.add_argument("--out", type=Path, default=Path("out/demo"), help="report folder")
+    p.add_argument(
+        "--resume-map",
+        type=Path,
+        default=None,
+        metavar="PREV",
+        help="start inside the map an earlier demo left (its --out folder): a new mission "
+        "whose robots merge into that map (default: a fresh map)",
+    )
+    p.add_argument(
+        "--mission",
+        default=None,
+        metavar="NAME",
+        help="the new mission's name with --resume-map (default: the --out folder's name)",
+    )
     p.add_argument("--dashboard-port", type=int, default=8080, help="dashboard port (default 8080)")
     p.add_argument("--no-dashboard", action="store_true", help="do not serve the dashboard")
     p.add_argument(
@@ -221,10 +242,26 @@ def run(args: argparse.Namespace) -> int:
     from recslam.sites import parse_move, parse_restart, parse_sites
 
     start = time.perf_counter()
+    prior = None
+    if args.resume_map is not None:
+        prior = args.resume_map / "run"
+        if not (prior / "state" / "cloud" / "cloud.sqlite").is_file():
+            print(f"--resume-map {args.resume_map}: no saved map (run/state/cloud/cloud.sqlite)")
+            return 2
+        if args.resume_map.resolve() == args.out.resolve():
+            print("--resume-map: give the new mission another --out folder than the old one's")
+            return 2
     build_dataset(args)
     run_dir = args.out / "run"
     if run_dir.exists():
         shutil.rmtree(run_dir)
+    mission = prior_frame = None
+    if prior is not None:
+        shutil.copytree(prior / "state" / "cloud", run_dir / "state" / "cloud")
+        mission = args.mission or args.out.resolve().name
+        ate = prior / "results" / "eval" / "ate.json"
+        prior_frame = ate.resolve() if ate.is_file() else None
+        print(f"starting mission {mission!r} inside the map of {args.resume_map}")
     port = 0 if args.no_dashboard else args.dashboard_port
     record = args.record_uplink.resolve() if args.record_uplink is not None else None
     config = JobConfig(
@@ -240,6 +277,8 @@ def run(args: argparse.Namespace) -> int:
         sites=parse_sites(args.sites) if args.sites else None,
         moves=tuple(parse_move(m) for m in args.move),
         edge_restarts=tuple(parse_restart(r) for r in args.restart_edge),
+        mission=mission,
+        prior_frame=prior_frame,
     )
     last_print = [0.0]
 

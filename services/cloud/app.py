@@ -22,6 +22,11 @@ any other, and merging across edges is the same as within one. The table of agen
 name, edge, edge map) is persisted with the keyframes. Corrections go back per atlas agent,
 to the edge that serves it, in that edge map's frame.
 
+Missions (:mod:`services.cloud.mission`): the agents of earlier missions in the state
+directory are the read-only *prior map* (:attr:`CloudApp._prior`, by atlas agent id, apart
+from the current mission's ``(robot, edge map)`` keys); new robots relocalise against it and
+their maps merge into it.
+
 Each robot's sensors (``AgentSensors``, sent by its edge before the robot's first keyframe)
 are persisted by robot name (``services.cloud.robot_sensors``; robot names are unique in a
 team, so a robot seen on a second edge keeps the sensors it first announced, and other
@@ -69,6 +74,7 @@ from services.cloud.ground_truth import references_in_maps
 from services.cloud.map_fusion import FusionEvents, MapFusion
 from services.cloud.map_source import AgentInfo, CloudView
 from services.cloud.mbp import MbpReport
+from services.cloud.mission import MissionClock
 from services.cloud.persistence import CloudStore
 from services.cloud.robot_sensors import RobotSensorBook
 from services.cloud.uplink import (
@@ -162,11 +168,23 @@ class CloudApp:
         self.vocabulary = vocabulary
         self.config = config
         self.positions = positions or PositionStore()
+        # The current mission's agents by (edge, robot, edge map); earlier missions' by id.
         self._agents: dict[AgentKey, _Agent] = {}
+        self._prior: dict[int, _Agent] = {}
         self.sensors = RobotSensorBook(store.sensors(), fusion.camera)
+        missions = store.agent_missions()
         for aid, (name, edge, edge_map) in store.agents().items():
-            self._agents[edge, name, edge_map] = _Agent(aid, name, edge, edge_map)
+            a = _Agent(aid, name, edge, edge_map)
+            if missions.get(aid, store.mission) < store.mission:
+                a.status = "prior"
+                self._prior[aid] = a
+            else:
+                self._agents[edge, name, edge_map] = a
             self._use_camera(aid, name)
+        fusion.held_agents = frozenset(self._prior)
+        self.mission = MissionClock(
+            store.missions().get(store.mission, ""), self.atlas, self._prior, self._names()
+        )
         for edge, (stream, seq) in store.positions().items():
             self.positions.set(edge, InboundPosition(stream, seq))
         self._mbp_done: dict[int, int] = {}  # map -> keyframes at its last MBP pass
@@ -190,15 +208,17 @@ class CloudApp:
     def _agent(
         self, name: str, edge_id: str, edge_map: int, create: bool = True
     ) -> tuple[_Agent, bool]:
-        """The agent (``edge_id``, robot ``name``, ``edge_map``) and whether it is new. An edge
-        only ever addresses its own agents; a message that may not start one (``create``
-        False: culls, pose updates) for an agent the edge never had raises UplinkError."""
+        """The current mission's agent (``edge_id``, robot ``name``, ``edge_map``) and whether
+        it is new. An edge only ever addresses its own agents; a message that may not start one
+        (``create`` False: culls, pose updates) for an agent the edge never had raises
+        UplinkError. New agents are numbered after the prior map's too."""
         a = self._agents.get((edge_id, name, edge_map))
         if a is not None:
             return a, False
         if not create:
             raise UplinkError(f"edge {edge_id!r} has no agent of robot {name!r} map {edge_map}")
-        next_id = max((x.agent_id for x in self._agents.values()), default=-1) + 1
+        known = [*self._agents.values(), *self._prior.values()]
+        next_id = max((x.agent_id for x in known), default=-1) + 1
         a = self._agents[edge_id, name, edge_map] = _Agent(next_id, name, edge_id, edge_map)
         log.info("new agent %d: robot %r, map %d of edge %r", next_id, name, edge_map, edge_id)
         self._use_camera(next_id, name)
@@ -218,14 +238,25 @@ class CloudApp:
         """A robot's sensors: remembered (durably) and used by all its atlas agents."""
         learnt = self.sensors.learn(edge_id, msg)
         self.store.commit(self.atlas, positions=position, sensors=dict([learnt] if learnt else []))
-        for a in self._agents.values():
+        for a in self._agents.values():  # the prior map's agents keep the camera they had
             if a.name == msg.agent_id:
                 self._use_camera(a.agent_id, a.name)
         return Reaction()
 
     def agents(self) -> dict[int, tuple[str, str, int]]:
-        """``{atlas agent id: (robot name, edge id, edge map id)}``."""
+        """The current mission's ``{atlas agent id: (robot name, edge id, edge map id)}``."""
         return {a.agent_id: (a.name, a.edge_id, a.edge_map) for a in self._agents.values()}
+
+    def prior_agents(self) -> dict[int, tuple[str, str, int]]:
+        """Earlier missions' agents (the prior map), as :meth:`agents`."""
+        return {a.agent_id: (a.name, a.edge_id, a.edge_map) for a in self._prior.values()}
+
+    def _names(self) -> dict[int, str]:
+        return {a.agent_id: a.name for a in self._agents.values()}
+
+    def mission_report(self) -> dict[str, object]:
+        """The current mission and its merges into the prior map (``MissionClock.report``)."""
+        return self.mission.report(a.name for a in self._agents.values())
 
     def _rows(self, a: _Agent) -> dict[int, tuple[str, str, int]]:
         return {a.agent_id: (a.name, a.edge_id, a.edge_map)}
@@ -298,8 +329,12 @@ class CloudApp:
         is_new = not self.atlas.has_keyframe(key) and key not in self.atlas.removed_keyframes()
         events = self.fusion.add_keyframe(kf)
         a.last_seen = d.timestamp_ns * 1e-9
+        if is_new and self.atlas.has_keyframe(key):
+            self.mission.keyframe(kf.timestamp)
         reaction = Reaction(urgent_maps=set(events.maps_to_optimize), events=events)
         merged = any(o.merge is not None for o in events.outcomes)
+        if merged:
+            self.mission.note_merge(kf.timestamp, self._names())
         agents = self._rows(a)
         if merged or events.outcomes:
             with self.stage_timer.span("stage.save_all"):
@@ -591,7 +626,9 @@ class CloudApp:
                 else a.agent_id,
                 link_counters=dict(a.link_counters),
             )
-            for a in sorted(self._agents.values(), key=lambda x: x.agent_id)
+            for a in sorted(
+                [*self._agents.values(), *self._prior.values()], key=lambda x: x.agent_id
+            )
         )
         return CloudView(
             atlas=snap,

@@ -305,6 +305,9 @@ class CloudServiceConfig:
     optimizer_process: solve pose graphs in a separate process (default True: gtsam holds the
         GIL during most of a solve, which would stall the event loop's thread); False uses a
         thread (no process start-up, fine for small maps).
+    mission: the named mission to serve (``services.cloud.mission``): resumed when it is the
+        state directory's current one, else started, the earlier missions' agents becoming
+        the read-only prior map (default None: the current mission continues).
     gt_every_s: with ground truth, the dashboard's reference trajectories are re-aligned to
         the maps this often (default 5 s).
     full_ba_every_keyframes: when ``domain.full_ba.enabled``, a map gets a full bundle
@@ -332,6 +335,7 @@ class CloudServiceConfig:
     mbp_keep_recent: int = 5
     mbp_settle_keyframes: int = 30
     word_group_level: int | None = 3
+    mission: str | None = None
     output_every_s: float = 30.0
     publish_every_s: float = 0.5
     bandwidth_window_s: float = 120.0

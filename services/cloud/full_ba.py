@@ -48,6 +48,7 @@ from services.cloud.global_optimization import (
     PoseGraphResult,
     add_attitude_factors,
     apply_pose_graph,
+    held_indices,
     up_in_body,
 )
 from services.cloud.inertial import (
@@ -107,6 +108,10 @@ class FullBAProblem:
     :func:`services.cloud.global_optimization.add_attitude_factors`)."""
     imu: ImuTerms | None = None
     """IMU terms between consecutive keyframes (None: IMU factors off)."""
+    held: np.ndarray | None = None
+    """(H,) indices of keyframes held by a prior as tight as ``fixed``'s (a prior map)."""
+    held_points: np.ndarray | None = None
+    """(Q,) indices of points held where they are (a prior map's; None: none)."""
 
     @property
     def n_observations(self) -> int:
@@ -317,13 +322,15 @@ def solve_full_ba(
         values.insert(X(i), _pose3(problem.T_world_body[i]))
     for j in range(n_pts):
         values.insert(L(j), np.asarray(problem.p_world[j], np.float64))
-    graph.add(
-        gtsam.PriorFactorPose3(
-            X(problem.fixed),
-            _pose3(problem.T_world_body[problem.fixed]),
-            gtsam.noiseModel.Isotropic.Sigma(6, graph_config.prior_sigma),
-        )
-    )
+    prior = gtsam.noiseModel.Isotropic.Sigma(6, graph_config.prior_sigma)
+    for i in held_indices(problem.fixed, problem.held):
+        graph.add(gtsam.PriorFactorPose3(X(i), _pose3(problem.T_world_body[i]), prior))
+    if problem.held_points is not None and problem.held_points.size:
+        point_prior = gtsam.noiseModel.Isotropic.Sigma(3, graph_config.prior_sigma)
+        for j in np.asarray(problem.held_points, np.int64).tolist():
+            graph.add(
+                gtsam.PriorFactorPoint3(L(j), np.asarray(problem.p_world[j], float), point_prior)
+            )
     poses = [X(i) for i in range(n)]
     add_attitude_factors(graph, poses, problem.up_body, config.attitude_sigma_rad)
     loop_kernel = _kernel(graph_config.loop_robust_kernel, graph_config.loop_kernel_scale)

@@ -68,6 +68,9 @@ class PoseGraphProblem:
     up_body: np.ndarray | None = None
     """(N, 3) the map's up direction (z) in each keyframe's body frame when the graph was
     built: the roll and pitch :func:`add_attitude_factors` holds (None: not held)."""
+    held: np.ndarray | None = None
+    """(H,) indices of keyframes held where they are by a prior as tight as ``fixed``'s
+    (a prior map's, see ``services.cloud.mission``; None: only ``fixed``)."""
 
 
 def up_in_body(T_world_body: np.ndarray) -> np.ndarray:
@@ -173,6 +176,12 @@ def build_pose_graph(
     )
 
 
+def held_indices(fixed: int, held: np.ndarray | None) -> list[int]:
+    """The keyframe indices a solve holds with a tight prior: ``fixed`` and ``held``."""
+    extra = [] if held is None else np.asarray(held, np.int64).tolist()
+    return sorted({int(fixed), *extra})
+
+
 def _pose3(T: np.ndarray) -> gtsam.Pose3:
     return gtsam.Pose3(gtsam.Rot3(np.asarray(T[:3, :3])), np.asarray(T[:3, 3]))
 
@@ -191,9 +200,8 @@ def optimize_pose_graph(
     for i in range(n):
         values.insert(i, _pose3(problem.T_world_body[i]))
     prior = gtsam.noiseModel.Isotropic.Sigma(6, config.prior_sigma)
-    graph.add(
-        gtsam.PriorFactorPose3(problem.fixed, _pose3(problem.T_world_body[problem.fixed]), prior)
-    )
+    for i in held_indices(problem.fixed, problem.held):
+        graph.add(gtsam.PriorFactorPose3(i, _pose3(problem.T_world_body[i]), prior))
     add_attitude_factors(graph, list(range(n)), problem.up_body, config.attitude_sigma_rad)
     kernels: dict[str, Callable[[float], gtsam.noiseModel.mEstimator.Base]] = {
         "cauchy": gtsam.noiseModel.mEstimator.Cauchy.Create,

@@ -14,6 +14,7 @@ Sans-I/O: no sockets, clocks or threads here.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import re
 import time
@@ -25,7 +26,7 @@ import numpy as np
 from common.calibration import EUROC_IMU, CameraCalibration, ImuCalibration
 from common.errors import RecslamError
 from common.links import CodecTimer
-from services.cloud.atlas import Atlas, KeyframeInput, MapPointInput, make_key
+from services.cloud.atlas import Atlas, KeyframeInput, MapPointInput, make_key, split_key
 from services.cloud.config import CloudConfig
 from services.cloud.full_ba import FullBAProblem, FullBAResult, apply_full_ba, build_full_ba
 from services.cloud.global_optimization import (
@@ -90,6 +91,9 @@ class MapFusion:
         self.recognizer = PlaceRecognizer(KeyframeDatabase(idf), config.place_recognition)
         for key in self.atlas.keyframe_keys():  # restored atlas: rebuild the database
             self.recognizer.add(self.atlas, key)
+        # Agents whose keyframes and points stay where they are (a prior map, see
+        # services.cloud.mission): held in every optimisation, never pruned.
+        self.held_agents: frozenset[int] = frozenset()
         # Verification outcomes so far, by reason ("ok" or the rejection's first word).
         self.verification_counts: Counter[str] = Counter()
         # CPU time (this thread's) of the stages of a new keyframe (``stage.insert``,
@@ -183,13 +187,26 @@ class MapFusion:
         if key in self.recognizer.db:
             self.recognizer.db.remove(key)
 
+    def _held(self, keys: np.ndarray) -> np.ndarray:
+        """Indices into ``keys`` (keyframe or map point keys) of the held agents' items."""
+        if not self.held_agents:
+            return np.zeros(0, np.int64)
+        agent = [split_key(k)[0] for k in keys.tolist()]
+        return np.flatnonzero([a in self.held_agents for a in agent]).astype(np.int64)
+
     def pose_graph(self, map_id: int) -> PoseGraphProblem:
-        """Plain pose-graph problem of a map (give it to ``optimize_pose_graph`` elsewhere)."""
-        return build_pose_graph(self.atlas, map_id, self.config.optimization)
+        """Plain pose-graph problem of a map (give it to ``optimize_pose_graph`` elsewhere);
+        the held agents' keyframes are held, one of them fixes the gauge."""
+        problem = build_pose_graph(self.atlas, map_id, self.config.optimization)
+        held = self._held(problem.keys)
+        if held.size:
+            problem = dataclasses.replace(problem, held=held, fixed=int(held[0]))
+        return problem
 
     def full_ba_problem(self, map_id: int) -> FullBAProblem:
-        """Plain full-BA problem of a map (give it to ``solve_full_ba`` elsewhere)."""
-        return build_full_ba(
+        """Plain full-BA problem of a map (give it to ``solve_full_ba`` elsewhere); the held
+        agents' keyframes and map points are held."""
+        problem = build_full_ba(
             self.atlas,
             map_id,
             self.camera_of,
@@ -198,15 +215,52 @@ class MapFusion:
             self.imu,
             self.imu_of,
         )
+        held = self._held(problem.keys)
+        if not held.size:
+            return problem
+        held_points = self._held(problem.point_keys)
+        # Observations between a held keyframe and a held point constrain nothing that moves:
+        # left out (the prior map's own observations would otherwise dominate the solve).
+        kf_held = np.zeros(problem.keys.shape[0], bool)
+        kf_held[held] = True
+        pt_held = np.zeros(problem.point_keys.shape[0], bool)
+        pt_held[held_points] = True
+        use = ~(kf_held[problem.obs_kf] & pt_held[problem.obs_point])
+        return dataclasses.replace(
+            problem,
+            held=held,
+            fixed=int(held[0]),
+            held_points=held_points,
+            obs_kf=problem.obs_kf[use],
+            obs_point=problem.obs_point[use],
+            obs_xy=problem.obs_xy[use],
+            obs_sigma=problem.obs_sigma[use],
+            dropped_observations=problem.dropped_observations + int((~use).sum()),
+        )
 
     def apply_optimization(self, result: PoseGraphResult | FullBAResult) -> int:
+        """Write a result back; the held agents' keyframes and points are left exactly as
+        they are (their priors kept them within ``prior_sigma`` anyway)."""
+        keep = np.setdiff1d(np.arange(result.keys.shape[0]), self._held(result.keys))
+        if keep.size < result.keys.shape[0]:
+            result = dataclasses.replace(
+                result, keys=result.keys[keep], T_world_body=result.T_world_body[keep]
+            )
         if isinstance(result, FullBAResult):
+            pts = np.setdiff1d(np.arange(result.point_keys.shape[0]), self._held(result.point_keys))
+            if pts.size < result.point_keys.shape[0]:
+                result = dataclasses.replace(
+                    result, point_keys=result.point_keys[pts], p_world=result.p_world[pts]
+                )
             return apply_full_ba(self.atlas, result)
         return apply_pose_graph(self.atlas, result)
 
     def prune(self, map_id: int, keep_recent: int = 5) -> MbpReport:
-        """Run MBP on a map and drop the removed keyframes from the database."""
-        report = run_mbp(self.atlas, map_id, self.camera_of, self.config.mbp, keep_recent)
+        """Run MBP on a map (the held agents' keyframes stay) and drop the removed keyframes
+        from the database."""
+        report = run_mbp(
+            self.atlas, map_id, self.camera_of, self.config.mbp, keep_recent, self.held_agents
+        )
         for key in report.removed_keyframes:
             self.recognizer.db.remove(key)
         return report

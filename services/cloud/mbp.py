@@ -110,11 +110,17 @@ def covisibility_components(atlas: Atlas, keys: list[int], min_weight: int = 1) 
     return int(connected_components(g, directed=False)[0])
 
 
-def protected_keyframes(atlas: Atlas, map_id: int, keep_recent: int) -> set[int]:
-    """Each agent's first keyframe in ``map_id`` and its ``keep_recent`` newest."""
+def protected_keyframes(
+    atlas: Atlas, map_id: int, keep_recent: int, hold: frozenset[int] = frozenset()
+) -> set[int]:
+    """Each agent's first keyframe in ``map_id`` and its ``keep_recent`` newest; every
+    keyframe of the agents in ``hold`` (a prior map, see ``services.cloud.mission``)."""
     keys = set()
     for agent in atlas.agents_in_map(map_id):
         ak = atlas.keyframe_keys(map_id=map_id, agent_id=agent)
+        if agent in hold:
+            keys.update(ak)
+            continue
         keys.update(ak[:1])
         keys.update(ak[-keep_recent:] if keep_recent > 0 else [])
     return keys
@@ -145,14 +151,20 @@ class _Coverage:
         return float(np.mean(self.count[p] - int(kept) >= 1))
 
 
-def backbone(atlas: Atlas, map_id: int, config: MbpConfig, keep_recent: int = 5) -> Backbone:
+def backbone(
+    atlas: Atlas,
+    map_id: int,
+    config: MbpConfig,
+    keep_recent: int = 5,
+    hold: frozenset[int] = frozenset(),
+) -> Backbone:
     """MBP's keyframe selection for ``map_id`` (steps 1–2 of the module docstring)."""
     keys = atlas.keyframe_keys(map_id=map_id)
     in_map = set(keys)
     w_of = {k: {b: w for b, w in atlas.covisible(k) if b in in_map} for k in keys}
     strong = {k: [b for b, w in w_of[k].items() if w >= config.min_shared] for k in keys}
     cov = _Coverage(atlas, keys)
-    protected = protected_keyframes(atlas, map_id, keep_recent)
+    protected = protected_keyframes(atlas, map_id, keep_recent, hold)
     kept = set(keys)
     removed: list[int] = []
     reasons: dict[int, str] = {}
@@ -334,17 +346,19 @@ def run_mbp(
     camera: CameraCalibration | CameraOf,
     config: MbpConfig,
     keep_recent: int = 5,
+    hold: frozenset[int] = frozenset(),
 ) -> MbpReport:
     """One MBP pass over ``map_id``: keep the backbone, move loops, fold, remove the rest and
-    cull points. ``camera``: each agent's camera (or one for all). The caller also removes
-    ``report.removed_keyframes`` from its place-recognition database."""
+    cull points. ``camera``: each agent's camera (or one for all); ``hold``: agents whose
+    keyframes all stay (a prior map). The caller also removes ``report.removed_keyframes``
+    from its place-recognition database."""
     camera_of = camera_lookup(camera)
     keys = atlas.keyframe_keys(map_id=map_id)
     n_kf, n_mp = len(keys), atlas.n_map_points(map_id)
     connected_before = covisibility_components(atlas, keys) == 1
     if not config.enabled or n_kf < 3:
         return MbpReport(map_id, n_kf, n_kf, n_mp, n_mp, 0, (), connected_before, connected_before)
-    bb = backbone(atlas, map_id, config, keep_recent)
+    bb = backbone(atlas, map_id, config, keep_recent, hold)
     removed = [k for k in keys if k not in bb.kept]
     anchors = loop_anchors(atlas, map_id, bb.kept)
     n_loops = _move_loops(atlas, anchors)

@@ -5,6 +5,9 @@ Layout (``common.evaluation.results``)::
     RESULT_DIR/trajectories/<robot>.tum   T_map_body of each robot's keyframes, TUM format
     RESULT_DIR/cloud_maps.json            which map each robot is in, and whether all share one
     RESULT_DIR/eval/ate.json, ate.md, *.png   with ground truth (``common.evaluation.report``)
+    RESULT_DIR/mission.json               the mission and its merges into a prior map
+    RESULT_DIR/eval/ate_prior_frame.json  with ``prior_frame`` (an earlier mission's ate.json):
+                                          the ATE under that mission's alignment
 
 All robots whose maps were merged are in the same (merged) map frame, which is what the joint
 ATE needs. A robot whose map never merged is still written in its own map frame: its file is
@@ -20,9 +23,10 @@ from collections.abc import Mapping
 from pathlib import Path
 
 from common.evaluation.errors import EvaluationError
-from common.evaluation.report import evaluate_run
+from common.evaluation.report import evaluate_in_frame, evaluate_run
 from common.evaluation.results import MAPS_FILE, write_result_trajectories
 from common.evaluation.trajectory import Trajectory
+from services.cloud.mission import MISSION_FILE
 
 log = logging.getLogger(__name__)
 
@@ -30,22 +34,34 @@ __all__ = ["MAPS_FILE", "OutputWriter"]
 
 
 class OutputWriter:
-    """Writes ``results_dir``; ``groundtruth`` (dataset folder or file) enables the report."""
+    """Writes ``results_dir``; ``groundtruth`` (dataset folder or file) enables the report;
+    ``prior_frame``: the ``eval/ate.json`` of the mission whose saved map this one started in
+    (its trajectories are then also measured in that mission's frame)."""
 
-    def __init__(self, results_dir: Path, groundtruth: str | Path | None = None) -> None:
+    def __init__(
+        self,
+        results_dir: Path,
+        groundtruth: str | Path | None = None,
+        prior_frame: str | Path | None = None,
+    ) -> None:
         self.results_dir = Path(results_dir)
         self.groundtruth = groundtruth
+        self.prior_frame = prior_frame
 
     def write(
         self,
         trajectories: Mapping[str, Trajectory],
         map_of_robot: Mapping[str, int],
         evaluate: bool = True,
+        mission: Mapping[str, object] | None = None,
     ) -> list[Path]:
-        """Write the trajectories (and the report); returns the files written."""
+        """Write the trajectories (and the report, and ``mission``: the cloud's
+        ``CloudApp.mission_report``); returns the files written."""
         if not trajectories:
             return []
         self.results_dir.mkdir(parents=True, exist_ok=True)
+        if mission is not None:
+            (self.results_dir / MISSION_FILE).write_text(json.dumps(mission, indent=2) + "\n")
         folder = write_result_trajectories(self.results_dir, trajectories)
         files = [folder / f"{name}.tum" for name in trajectories]
         maps = sorted(set(map_of_robot.values()))
@@ -81,4 +97,16 @@ class OutputWriter:
                     )
                 else:
                     log.warning("ATE report: maps did not merge, no joint ATE")
+                if self.prior_frame is not None:
+                    files.extend(self._in_prior_frame())
         return files
+
+    def _in_prior_frame(self) -> list[Path]:
+        assert self.prior_frame is not None
+        try:
+            joint, path = evaluate_in_frame(self.results_dir, self.prior_frame, self.groundtruth)
+        except EvaluationError as exc:
+            log.warning("ATE in the prior mission's frame not written: %s", exc)
+            return []
+        log.info("joint ATE RMSE %.4f m in the prior mission's frame", joint.stats.rmse)
+        return [path]

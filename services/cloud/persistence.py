@@ -11,8 +11,17 @@ acknowledged is on disk. :meth:`CloudStore.load` rebuilds an :class:`Atlas` from
 Two tables serve the network service: ``edge_positions`` (the transport's inbound position
 per edge link: the edge's stream id and last delivered sequence, overwritten when the edge
 starts a new stream, see :meth:`CloudStore.positions`) and ``agent_names`` (each atlas agent
-is one robot's map on its edge: the robot's name, the edge serving it and the edge's map id;
-unique per (edge, robot, edge map), so that one robot on two edges is two agents).
+is one robot's map on its edge: the robot's name, the edge serving it, the edge's map id and
+the mission it belongs to; unique per (mission, edge, robot, edge map), so that one robot on two
+edges is two agents).
+
+Missions (``missions``, ``meta.mission``): a state directory can hold several missions, one after
+the other. The current mission's agents are live; every agent of an earlier mission belongs to
+the *prior map* (read-only, see ``services.cloud.app``). :meth:`CloudStore.enter_mission` makes a
+named mission current: resuming it when it already is (a crash restart runs the same command
+line), else starting it, which clears the stored edge positions (the new mission's edges start
+new streams). A robot name and edge map id are unique per mission and edge only, so that a new
+mission's ``robot0`` on edge map 0 is a new agent, not the old one's continuation.
 
 Keyframe arrays are stored as ``.npy`` payloads (``numpy.save``, no pickle) inside an
 uncompressed ``.npz`` blob per row. Map point rows (many, small, rewritten whenever an
@@ -48,8 +57,10 @@ log = logging.getLogger(__name__)
 DB_NAME = "cloud.sqlite"
 SCHEMA_VERSION = 6
 # Older schemas this one upgrades when it opens them: 5 added ``robot_sensors`` (``_SCHEMA``
-# creates it); 6 keys ``agent_names`` by (edge, robot, edge map), not (robot, edge map), so
-# that several edges' agents stay apart (:func:`_migrate_agent_names`).
+# creates it); 6 added ``missions`` and the ``mission`` column of ``agent_names`` and keys that
+# table by (mission, edge, robot, edge map), not (robot, edge map), so that several edges' and
+# missions' agents stay apart (:func:`_migrate_agent_names`: the table is rebuilt, its old rows
+# are mission 0).
 _UPGRADABLE = (3, 4, 5)
 
 _SCHEMA = """
@@ -76,9 +87,14 @@ CREATE TABLE IF NOT EXISTS edge_sequences (edge_id TEXT PRIMARY KEY, last_seq IN
 CREATE TABLE IF NOT EXISTS edge_positions (edge_id TEXT PRIMARY KEY, stream_id BLOB NOT NULL,
     last_seq INTEGER NOT NULL);
 CREATE TABLE IF NOT EXISTS agent_names (agent INTEGER PRIMARY KEY, name TEXT NOT NULL,
-    edge_id TEXT NOT NULL, edge_map INTEGER NOT NULL, UNIQUE (edge_id, name, edge_map));
+    edge_id TEXT NOT NULL, edge_map INTEGER NOT NULL, mission INTEGER NOT NULL DEFAULT 0,
+    UNIQUE (mission, edge_id, name, edge_map));
 CREATE TABLE IF NOT EXISTS robot_sensors (name TEXT PRIMARY KEY, sensors BLOB NOT NULL);
+CREATE TABLE IF NOT EXISTS missions (mission INTEGER PRIMARY KEY, name TEXT NOT NULL UNIQUE);
 """
+
+FIRST_MISSION = "mission-0"
+"""The name of a state directory's first mission when none was given."""
 
 
 class PersistenceError(RecslamError):
@@ -118,14 +134,17 @@ def _arr(blob: bytes) -> np.ndarray:
 
 
 def _migrate_agent_names(db: sqlite3.Connection) -> None:
-    """Rebuild ``agent_names`` with the schema-6 key UNIQUE(edge_id, name, edge_map), keeping
-    its rows (SQLite cannot change a table's constraints in place). Inside the caller's
-    transaction."""
+    """Rebuild ``agent_names`` with the schema-6 ``mission`` column (old rows: mission 0) and
+    key UNIQUE(mission, edge_id, name, edge_map), keeping its rows (SQLite cannot change a
+    table's constraints in place). Inside the caller's transaction."""
     db.execute(
         "CREATE TABLE agent_names_v6 (agent INTEGER PRIMARY KEY, name TEXT NOT NULL, "
-        "edge_id TEXT NOT NULL, edge_map INTEGER NOT NULL, UNIQUE (edge_id, name, edge_map))"
+        "edge_id TEXT NOT NULL, edge_map INTEGER NOT NULL, mission INTEGER NOT NULL DEFAULT 0, "
+        "UNIQUE (mission, edge_id, name, edge_map))"
     )
-    db.execute("INSERT INTO agent_names_v6 SELECT agent, name, edge_id, edge_map FROM agent_names")
+    db.execute(
+        "INSERT INTO agent_names_v6 SELECT agent, name, edge_id, edge_map, 0 FROM agent_names"
+    )
     db.execute("DROP TABLE agent_names")
     db.execute("ALTER TABLE agent_names_v6 RENAME TO agent_names")
 
@@ -160,6 +179,12 @@ class CloudStore:
             log.info("%s: upgraded schema %d -> %d", self.path, row[0], SCHEMA_VERSION)
         elif row[0] != SCHEMA_VERSION:
             raise PersistenceError(f"{self.path}: schema {row[0]}, expected {SCHEMA_VERSION}")
+        self._db.execute("INSERT OR IGNORE INTO meta VALUES ('mission', 0)")
+        self._db.execute("INSERT OR IGNORE INTO missions VALUES (0, ?)", (FIRST_MISSION,))
+        self.mission = int(
+            self._db.execute("SELECT value FROM meta WHERE name='mission'").fetchone()[0]
+        )
+        """The current mission's number (0, 1, ...; see :meth:`enter_mission`)."""
 
     def close(self) -> None:
         self._db.close()
@@ -207,9 +232,9 @@ class CloudStore:
                     (str(edge_id), bytes(stream_id), int(seq)),
                 )
             for agent, (name, edge_id, edge_map) in (agents or {}).items():
-                db.execute(
-                    "INSERT OR REPLACE INTO agent_names VALUES (?, ?, ?, ?)",
-                    (int(agent), str(name), str(edge_id), int(edge_map)),
+                db.execute(  # agents are created and changed in the current mission only
+                    "INSERT OR REPLACE INTO agent_names VALUES (?, ?, ?, ?, ?)",
+                    (int(agent), str(name), str(edge_id), int(edge_map), self.mission),
                 )
             for name, blob in (sensors or {}).items():
                 db.execute(
@@ -385,6 +410,56 @@ class CloudStore:
                 for r in st.retired
             ],
         )
+
+    # ------------------------------------------------------------------ missions
+    def enter_mission(self, name: str) -> tuple[int, bool]:
+        """Make mission ``name`` current: ``(its number, whether it was started now)``.
+
+        The current mission of that name is resumed (nothing changes), and so is a current
+        mission without agents yet (it takes the name); a name never used
+        starts a new mission in one transaction: it becomes current, and the stored edge
+        positions are cleared (the new mission's edges start their streams afresh; the old
+        ones' replays would land in the new mission's agents). PersistenceError for the name
+        of an earlier mission (its agents are the prior map now and cannot be continued)."""
+        if not name:
+            raise PersistenceError("a mission needs a name")
+        row = self._db.execute("SELECT mission FROM missions WHERE name = ?", (name,)).fetchone()
+        if row is not None:
+            if int(row[0]) != self.mission:
+                raise PersistenceError(
+                    f"{self.path}: mission {name!r} ended (the current one is "
+                    f"{self.missions()[self.mission]!r}); start a new mission with a new name"
+                )
+            return self.mission, False
+        db = self._db
+        used = db.execute("SELECT 1 FROM agent_names WHERE mission = ?", (self.mission,))
+        if used.fetchone() is None:  # the current mission never had an agent: it is this one
+            db.execute("UPDATE missions SET name = ? WHERE mission = ?", (name, self.mission))
+            return self.mission, False
+        number = self.mission + 1
+        db.execute("BEGIN IMMEDIATE")
+        try:
+            db.execute("INSERT INTO missions VALUES (?, ?)", (number, name))
+            db.execute("UPDATE meta SET value = ? WHERE name = 'mission'", (number,))
+            db.execute("DELETE FROM edge_positions")
+            db.execute("DELETE FROM edge_sequences")
+            db.execute("COMMIT")
+        except BaseException:
+            self._rollback()
+            raise
+        self.mission = number
+        log.info("%s: mission %d %r started", self.path, number, name)
+        return number, True
+
+    def missions(self) -> dict[int, str]:
+        """``{mission number: name}``."""
+        return {int(m): str(n) for m, n in self._db.execute("SELECT mission, name FROM missions")}
+
+    def agent_missions(self) -> dict[int, int]:
+        """``{agent id: its mission's number}``."""
+        return {
+            int(a): int(m) for a, m in self._db.execute("SELECT agent, mission FROM agent_names")
+        }
 
     # ------------------------------------------------------------------ reading
     def last_sequences(self) -> dict[str, int]:

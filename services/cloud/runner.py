@@ -79,6 +79,10 @@ class CloudRunConfig:
         output_every_s: rewrite outputs every so many seconds, 0 = only at exit.
         stats_out: JSON counters file rewritten every second and at exit (None: none).
         record: uplink recording appended to (None: off).
+        mission: the named mission to serve (None: the state directory's current one; see
+            ``services.cloud.mission``).
+        prior_frame: ``eval/ate.json`` of the mission whose map this one starts in (the ATE
+            is also reported in its frame; None: not).
     """
 
     state_dir: Path
@@ -101,6 +105,8 @@ class CloudRunConfig:
     output_every_s: float = 30.0
     stats_out: Path | None = None
     record: Path | None = None
+    mission: str | None = None
+    prior_frame: Path | None = None
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -118,6 +124,23 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         required=True,
         metavar="DIR",
         help="SQLite state directory (created; resumed when it exists)",
+    )
+    p.add_argument(
+        "--mission",
+        default=None,
+        metavar="NAME",
+        help="serve mission NAME: resumed when it is the state directory's current mission "
+        "(a restart), else started inside the saved map, whose agents become a read-only "
+        "prior map that the new robots relocalise against and merge into (default: the "
+        "current mission continues)",
+    )
+    p.add_argument(
+        "--prior-frame",
+        type=Path,
+        default=None,
+        metavar="ATE_JSON",
+        help="eval/ate.json of the mission whose map this one starts in: the ATE is also "
+        "reported under its alignment (eval/ate_prior_frame.json)",
     )
     p.add_argument(
         "--dashboard-port",
@@ -247,6 +270,8 @@ def config_from_args(args: argparse.Namespace) -> CloudRunConfig:
         output_every_s=args.output_every,
         stats_out=args.stats_out,
         record=args.record,
+        mission=args.mission,
+        prior_frame=args.prior_frame,
     )
 
 
@@ -329,6 +354,7 @@ def _server(
         mbp_every_keyframes=config.mbp_every,
         # no dashboard: no map view to refresh (its atlas snapshot costs the worker)
         publish_every_s=CloudServiceConfig.publish_every_s if config.dashboard_port else 0.0,
+        mission=config.mission,
     )
     return CloudServer(
         SessionConfig("cloud", config.agent_id, keys=secret),
@@ -341,6 +367,7 @@ def _server(
         transport=TransportConfig(accept_roles=("edge",)),
         record=config.record,
         ssl=config.tls.server_context(),
+        prior_frame=config.prior_frame,
     )
 
 

@@ -90,6 +90,8 @@ def open_app(
     """The cloud's :class:`CloudApp` on ``state_dir`` (resumed if it holds a previous run);
     ``camera``: the fallback for robots whose calibration never arrives."""
     store = CloudStore(Path(state_dir))
+    if config.mission is not None:
+        store.enter_mission(config.mission)
     atlas = store.load()
     wg = None
     if config.word_group_level is not None:
@@ -147,6 +149,8 @@ class CloudServer:
         transport: socket settings.
         record: append every applied uplink message to this recording file (default: none).
         ssl: TLS context of the listening side (None: plain TCP; frames are sealed anyway).
+        prior_frame: the ``eval/ate.json`` of the mission whose map this one started in
+            (``services.cloud.mission``): the ATE is also reported in its frame.
     """
 
     def __init__(
@@ -161,6 +165,7 @@ class CloudServer:
         transport: TransportConfig | None = None,
         record: str | Path | None = None,
         ssl: SSLContext | None = None,
+        prior_frame: str | Path | None = None,
     ) -> None:
         self.session = session
         self.config = config or CloudServiceConfig()
@@ -171,7 +176,9 @@ class CloudServer:
             self.config.display_spacing_m, self.config.bandwidth_window_s
         )
         self.output = (
-            OutputWriter(Path(results_dir), groundtruth) if results_dir is not None else None
+            OutputWriter(Path(results_dir), groundtruth, prior_frame)
+            if results_dir is not None
+            else None
         )
         self.positions = PositionStore()
         self._worker = ThreadPoolExecutor(1, thread_name_prefix="cloud-worker")
@@ -519,8 +526,9 @@ class CloudServer:
         if app is None or out is None:
             return []
         trajs, maps = await self._on_worker(app.trajectories)
+        mission = await self._on_worker(app.mission_report)
         loop = asyncio.get_running_loop()
-        return await loop.run_in_executor(self._io, out.write, trajs, maps, evaluate)
+        return await loop.run_in_executor(self._io, out.write, trajs, maps, evaluate, mission)
 
     async def _output_loop(self) -> None:
         while True:

@@ -101,6 +101,10 @@ class SynthConfig:
     recorded ground truth per robot to fly instead of a family
     (:mod:`~common.data.synth.recorded`); ``effects``: exposure steps and motion blur;
     ``flights``: limits and style of the families (``trajectory`` is the ring's).
+    ``scene_seed``: the room's appearance (textures, posters, ``room-random``'s furniture)
+    derives from it instead of ``seed`` (None: from ``seed``): datasets of one scene seed and
+    different seeds are different flights through one room, e.g. two missions, one starting
+    in the map the other left (``services.cloud.mission``).
     """
 
     robots: int = 3
@@ -122,6 +126,12 @@ class SynthConfig:
     trajectory_files: tuple[str, ...] = ()
     effects: EffectsConfig = field(default_factory=EffectsConfig)
     flights: FlightConfig = field(default_factory=FlightConfig)
+    scene_seed: int | None = None
+
+    @property
+    def room_seed(self) -> int:
+        """The seed of the room's appearance: ``scene_seed``, else ``seed``."""
+        return self.seed if self.scene_seed is None else self.scene_seed
 
     def __post_init__(self) -> None:
         if self.robots < 1:
@@ -369,11 +379,11 @@ def generate_dataset(out: Path, config: SynthConfig = SynthConfig()) -> DatasetS
         raise SynthError(f"{out}: exists and is not a folder")
     out.mkdir(parents=True, exist_ok=True)
     _clear_previous(out)
-    world = make_world(config.world, config.seed)
+    world = make_world(config.world, config.room_seed)
     scene = world.scene
     # A world's own texture resolution unless the config asks for other textures.
     textures = world.textures if config.textures == TextureConfig() else config.textures
-    atlas = build_atlas(scene, config.seed, textures)
+    atlas = build_atlas(scene, config.room_seed, textures)
     renderers: dict[str, Renderer] = {}
     for k in range(config.robots):
         preset = config.camera(k)
@@ -453,6 +463,7 @@ def generate_dataset(out: Path, config: SynthConfig = SynthConfig()) -> DatasetS
             for k, v in asdict(config).items()
             if k != "progress"
             and (k != "cameras" or config.cameras)
+            and (k != "scene_seed" or config.scene_seed is not None)
             and (k not in HARDER_KEYS or config.harder() != DEFAULT_HARDER)
         },
         "room": {

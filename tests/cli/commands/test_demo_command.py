@@ -43,3 +43,40 @@ def test_settings_not_given_match_any(tmp_path) -> None:
     assert not _dataset_matches(folder, None, 40.0, None)
     assert not _dataset_matches(folder, None, None, 17)
     assert not _dataset_matches(tmp_path / "missing", None, None, None)
+
+
+def test_resume_map_without_a_saved_map_is_refused(tmp_path, capsys) -> None:
+    from recslam.cli import main
+
+    code = main(["demo", "--out", str(tmp_path / "m2"), "--resume-map", str(tmp_path / "m1")])
+    assert code == 2 and "no saved map" in capsys.readouterr().out
+
+
+def test_a_new_mission_reaches_the_cloud_and_the_report(tmp_path) -> None:
+    """The cloud of a resumed map runs the named mission; the report shows its merges and
+    its ATE in the prior mission's frame."""
+    from recslam.orchestration import Job, JobConfig
+    from recslam.report import RunFacts, collect, render_markdown
+
+    (tmp_path / "data" / "robot0" / "mav0").mkdir(parents=True)
+    prior = tmp_path / "m1" / "ate.json"
+    job = Job(JobConfig(tmp_path / "data", tmp_path / "run", mission="m2", prior_frame=prior))
+    argv = job.cloud_argv()
+    assert argv[argv.index("--mission") + 1] == "m2"
+    assert argv[argv.index("--prior-frame") + 1] == str(prior)
+    results = tmp_path / "run" / "results"
+    (results / "eval").mkdir(parents=True)
+    mission = {
+        "mission": "m2",
+        "prior_agents": 2,
+        "prior_keyframes": 41,
+        "robots": {"robot0": {"delay_s": 3.25}, "robot1": {"delay_s": None}},
+        "first_merge_delay_s": 3.25,
+    }
+    (results / "mission.json").write_text(json.dumps(mission))
+    frame = {"joint": {"stats_m": {"rmse": 0.0123}}, "frame_of": str(prior)}
+    (results / "eval" / "ate_prior_frame.json").write_text(json.dumps(frame))
+    data = collect(tmp_path / "run", RunFacts(10.0, 12.0, {}, {"robot0": 5}))
+    assert data["mission"]["merge_delay_s"] == {"robot0": 3.25, "robot1": None}
+    text = render_markdown(data)
+    assert "robot0 3.2 s, robot1 not merged" in text and "0.012 m" in text
