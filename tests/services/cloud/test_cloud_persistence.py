@@ -132,5 +132,5 @@ def test_a_schema_5_state_dir_is_migrated_to_agents_keyed_by_edge(tmp_path):
     db = sqlite3.connect(tmp_path / DB_NAME)
     assert db.execute("SELECT value FROM meta WHERE name='schema'").fetchone() == (SCHEMA_VERSION,)
     with pytest.raises(sqlite3.IntegrityError):  # the new key is enforced
-        db.execute("INSERT INTO agent_names VALUES (3, 'r0', 'edge-b', 0)")
+        db.execute("INSERT INTO agent_names VALUES (3, 'r0', 'edge-b', 0, 0)")
     db.close()
