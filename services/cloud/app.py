@@ -66,7 +66,7 @@ from common.map_view import GroundTruth
 from common.protocol.messages import Message
 from common.protocol.store import InboundPosition
 from common.vocabulary import Vocabulary
-from services.cloud.atlas import Atlas, AtlasSnapshot, KeyframeInput, make_key
+from services.cloud.atlas import Atlas, AtlasSnapshot, KeyframeInput, make_key, split_key
 from services.cloud.config import CloudServiceConfig
 from services.cloud.full_ba import FullBAProblem, FullBAResult
 from services.cloud.global_optimization import PoseGraphProblem, PoseGraphResult
@@ -505,7 +505,7 @@ class CloudApp:
             if not keys:
                 continue
             T_agent_map = inverse_T(self.atlas.T_map_agent(a.agent_id))
-            ids = np.array([self.atlas.keyframe(k).keyframe_id for k in keys], np.int64)
+            ids = np.array([split_key(k)[1] for k in keys], np.int64)
             T = np.array([T_agent_map @ self.atlas.T_map_body(k) for k in keys])
             coded = self.config.wire is WireFormat.CODED
             msg = encode_pose_correction(a.name, a.edge_map, ids, T, coded)

@@ -26,9 +26,9 @@ from collections.abc import Iterable, Iterator
 
 import numpy as np
 
-from common.geometry import inverse_T, transform_points
+from common.geometry import inverse_T
 from services.cloud.atlas_graph import CovisibilityGraph
-from services.cloud.atlas_records import KeyframeRecord, MapPointRecord
+from services.cloud.atlas_records import KeyframeRecord, MapPointRecord, Unsaved
 from services.cloud.map_types import (
     AtlasError,
     AtlasSnapshot,
@@ -84,6 +84,7 @@ class Atlas:
         # sit at the map's origin for verification, BA and the map view until it came).
         self._announced: dict[int, dict[int, int]] = {}
         self._alias: dict[int, int] = {}  # fused map point -> surviving map point
+        self._unsaved = Unsaved()  # what changed since the store last wrote it
 
     # ------------------------------------------------------------------ agents and maps
     def _ensure_agent(self, agent_id: int) -> None:
@@ -138,6 +139,7 @@ class Atlas:
                     f"keyframe {kf.agent_id}/{kf.keyframe_id}: update changes the "
                     f"keypoint count {n_real} -> {kf.keypoints.shape[0]}"
                 )
+        self._unsaved.keyframes.add(key)
         k.timestamp = float(kf.timestamp)
         k.T_map_body = T_ma @ kf.T_world_body
         k.velocity = T_ma[:3, :3] @ kf.velocity
@@ -182,8 +184,10 @@ class Atlas:
                 return mkey  # a moved point the cloud culled (or never had): no observer left
             mp = self._new_map_point(mkey, mp_in.agent_id)
             mp.pending.update(self._announced.pop(mkey, {}))
+        self._unsaved.points.add(mkey)
         if fused_into is None:
-            mp.p_map = transform_points(self._T_map_agent[mp_in.agent_id], mp_in.p_world)[0]
+            T = self._T_map_agent[mp_in.agent_id]
+            mp.p_map = T[:3, :3] @ mp_in.p_world + T[:3, 3]
         for kf_id, kp_idx in mp_in.observations:
             kkey = make_key(mp_in.agent_id, int(kf_id))
             if kkey not in mp.obs and kkey not in self._removed_kfs:
@@ -212,6 +216,8 @@ class Atlas:
         if old >= 0 and old != mp.key:
             return  # keypoint already bound to another point; keep the first binding
         k.mp_keys[idx] = mp.key
+        self._unsaved.keyframes.add(k.key)
+        self._unsaved.points.add(mp.key)
         for other in mp.obs:
             self._graph.add_weight(k.key, other, 1)
         mp.obs[k.key] = idx
@@ -276,10 +282,11 @@ class Atlas:
 
     def map_point_positions(self, keys: np.ndarray) -> np.ndarray:
         """Positions (N, 3) in their map's frame of the given map point keys (must exist)."""
-        out = np.empty((len(keys), 3))
-        for i, mk in enumerate(np.asarray(keys).tolist()):
-            out[i] = self._mp(mk).p_map
-        return out
+        mps = self._mps
+        try:
+            return np.array([mps[k].p_map for k in np.asarray(keys).tolist()]).reshape(-1, 3)
+        except KeyError as exc:
+            raise AtlasError(f"unknown map point {split_key(exc.args[0])}") from None
 
     def _mp(self, key: int) -> MapPointRecord:
         m = self._mps.get(key)
@@ -347,6 +354,7 @@ class Atlas:
         R = T[:3, :3] / scale
         for k in self._kfs.values():
             if k.map_id == source_map:
+                self._unsaved.keyframes.add(k.key)
                 k.map_id = target_map
                 Tk = k.T_map_body.copy()
                 k.T_map_body = np.eye(4)
@@ -355,6 +363,7 @@ class Atlas:
                 k.velocity = scale * (R @ k.velocity)
         for m in self._mps.values():
             if m.map_id == source_map:
+                self._unsaved.points.add(m.key)
                 m.map_id = target_map
                 m.p_map = T[:3, :3] @ m.p_map + T[:3, 3]
         for a, mid in self._map_of_agent.items():
@@ -400,6 +409,7 @@ class Atlas:
             k = self._kf(key)
             old[key] = k.T_map_body
             k.T_map_body = np.array(T, dtype=np.float64)
+            self._unsaved.poses.add(key)
         self.move_points_with(old)
 
     def move_points_with(self, old_poses: dict[int, np.ndarray]) -> list[int]:
@@ -407,27 +417,36 @@ class Atlas:
         before a change, map frame) with that keyframe; returns the moved points' keys."""
         if not old_poses:
             return []
-        corr = {k: self._kfs[k].T_map_body @ inverse_T(T) for k, T in old_poses.items()}
-        moved = []
+        refs = list(old_poses)
+        corr = np.array([self._kfs[k].T_map_body @ inverse_T(old_poses[k]) for k in refs])
+        slot = {k: i for i, k in enumerate(refs)}
         # A point's reference keyframe is one of its observers (or -1), so the candidates
         # are the moved keyframes' points, not every point of the atlas.
-        candidates = np.concatenate([self._kfs[k].mp_keys for k in corr])
-        for key in np.unique(candidates[candidates >= 0]).tolist():
-            m = self._mps.get(key)
-            c = None if m is None else corr.get(m.ref_kf)
-            if m is not None and c is not None:
-                m.p_map = c[:3, :3] @ m.p_map + c[:3, 3]
-                moved.append(m.key)
+        candidates = np.concatenate([self._kfs[k].mp_keys for k in refs])
+        got = (self._mps.get(k) for k in np.unique(candidates[candidates >= 0]).tolist())
+        mps = [m for m in got if m is not None and m.ref_kf in slot]
+        if not mps:
+            return []
+        c = corr[[slot[m.ref_kf] for m in mps]]  # (M, 4, 4) each point's correction
+        P = np.array([m.p_map for m in mps])
+        P = np.einsum("mij,mj->mi", c[:, :3, :3], P) + c[:, :3, 3]
+        for m, p in zip(mps, P, strict=True):
+            m.p_map = p
+        moved = [m.key for m in mps]
+        self._unsaved.positions.update(moved)
         return moved
 
     def set_map_point_positions(self, positions: dict[int, np.ndarray]) -> None:
         for key, p in positions.items():
             self._mp(key).p_map = np.asarray(p, dtype=np.float64).reshape(3).copy()
+            self._unsaved.positions.add(key)
 
     # ------------------------------------------------------------------ removal (MBP)
     def remove_map_point(self, key: int) -> None:
         m = self._mp(key)
         keys = list(m.obs)
+        self._unsaved.points.add(key)
+        self._unsaved.keyframes.update(keys)
         for i, a in enumerate(keys):
             self._kfs[a].mp_keys[m.obs[a]] = -1
             for b in keys[i + 1 :]:
@@ -442,6 +461,8 @@ class Atlas:
         idx = m.obs.pop(kf_key, None)
         if idx is None:
             return
+        self._unsaved.points.add(mp_key)
+        self._unsaved.keyframes.add(kf_key)
         self._kfs[kf_key].mp_keys[idx] = -1
         for other in m.obs:
             self._graph.add_weight(kf_key, other, -1)
@@ -484,6 +505,7 @@ class Atlas:
             self.remove_observation(int(mk), key)
         self._graph.remove_keyframe(key)
         del self._kfs[key]
+        self._unsaved.keyframes.add(key)
         for mkey in [m for m, kfs in self._announced.items() if kfs.pop(key, None) is not None]:
             if not self._announced[mkey]:
                 del self._announced[mkey]
@@ -507,6 +529,7 @@ class Atlas:
         m = int(np.asarray(map_point_keys).size)
         if m == 0:
             return 0
+        self._unsaved.keyframes.add(key)
         k.keypoints = np.concatenate([k.keypoints, np.asarray(keypoints, np.float64).reshape(m, 2)])
         k.levels = np.concatenate([k.levels, np.asarray(levels, np.int16).reshape(m)])
         k.descriptors = np.concatenate([k.descriptors, np.asarray(descriptors, np.uint8)])
@@ -528,6 +551,13 @@ class Atlas:
         """:meth:`MapPointRecord.row` of each of ``keys`` the atlas holds (for persistence:
         no read-only view built per point)."""
         return (self._mps[k].row() for k in keys if k in self._mps)
+
+    # ------------------------------------------------------------------ persistence
+    @property
+    def unsaved(self) -> Unsaved:
+        """What changed since the one store that keeps this atlas last wrote it
+        (``CloudStore.save_all``: :meth:`Unsaved.take`, :meth:`Unsaved.forget`)."""
+        return self._unsaved
 
     def state(self) -> AtlasState:
         return AtlasState(
@@ -570,6 +600,7 @@ class Atlas:
         atlas._removed_kfs = set(state.removed_keyframes)
         atlas._alias = dict(state.aliases)
         atlas._retired = RetiredKeyframes(r for r in state.retired if r.anchor in atlas._kfs)
+        atlas._unsaved = Unsaved()  # as stored
         return atlas
 
     # ------------------------------------------------------------------ snapshot

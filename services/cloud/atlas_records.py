@@ -8,6 +8,9 @@ an atlas is restored. Poses are in the record's map frame (``map_id``).
 
 from __future__ import annotations
 
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+
 import numpy as np
 
 from services.cloud.map_types import KeyframeInput, KeyframeView, MapPointView, ro
@@ -146,3 +149,39 @@ class MapPointRecord:
             obs_indices=ro(np.array([b for _, b in items], np.int64)),
             ref_kf=self.ref_kf,
         )
+
+
+@dataclass
+class Unsaved:
+    """Keys the atlas changed since its store last wrote them (see ``CloudStore.save_all``):
+    a keyframe or map point whose whole row changed (new, observations, state, map, removed),
+    and those of which only the keyframe pose / the point position changed."""
+
+    keyframes: set[int] = field(default_factory=set)
+    poses: set[int] = field(default_factory=set)
+    points: set[int] = field(default_factory=set)
+    positions: set[int] = field(default_factory=set)
+
+    def take(self) -> Unsaved:
+        """What changed until now, forgotten here (changes after this call are kept)."""
+        taken = Unsaved(self.keyframes, self.poses, self.points, self.positions)
+        self.keyframes, self.poses, self.points, self.positions = set(), set(), set(), set()
+        return taken
+
+    def forget(
+        self,
+        keyframes: Iterable[int] = (),
+        poses: Iterable[int] = (),
+        points: Iterable[int] = (),
+        positions: Iterable[int] = (),
+    ) -> None:
+        """The store wrote these rows (whole keyframes, keyframe poses only, whole map points,
+        point positions only) as the atlas holds them now."""
+        for k in keyframes:
+            self.keyframes.discard(k)
+            self.poses.discard(k)
+        self.poses.difference_update(poses)
+        for k in points:
+            self.points.discard(k)
+            self.positions.discard(k)
+        self.positions.difference_update(positions)

@@ -59,7 +59,7 @@ from services.cloud.inertial import (
     build_imu_terms,
     inertial_states,
 )
-from services.cloud.map_types import CameraOf, camera_lookup
+from services.cloud.map_types import CameraOf, camera_lookup, split_key
 
 log = logging.getLogger(__name__)
 
@@ -184,7 +184,7 @@ def build_full_ba(
     index = {k: i for i, k in enumerate(keys)}
     T = np.array([atlas.T_map_body(k) for k in keys])
     camera_of = camera_lookup(camera)
-    cams = [camera_of(atlas.keyframe(k).agent_id) for k in keys]
+    cams = [camera_of(split_key(k)[0]) for k in keys]
     fx_kf = np.array([float(c.fx) for c in cams])
     fx = float(np.median(fx_kf))
     T_body_cam = np.array([np.asarray(c.T_body_cam, np.float64) for c in cams])

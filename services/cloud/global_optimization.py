@@ -37,7 +37,7 @@ import numpy as np
 
 from common.errors import RecslamError
 from common.geometry import inverse_T
-from services.cloud.atlas import Atlas
+from services.cloud.atlas import Atlas, split_key
 from services.cloud.config import GlobalOptimizationConfig
 
 log = logging.getLogger(__name__)
@@ -273,14 +273,14 @@ def apply_pose_graph(atlas: Atlas, result: PoseGraphResult) -> int:
         if not atlas.has_keyframe(k):
             continue
         poses[k] = result.T_world_body[i]
-        agent = atlas.keyframe(k).agent_id
+        agent = split_key(k)[0]
         if agent not in corr_of_agent or k > corr_of_agent[agent][0]:
             corr_of_agent[agent] = (k, result.T_world_body[i] @ inverse_T(atlas.T_map_body(k)))
     done = set(poses)
     map_ids = {atlas.map_id_of_keyframe(k) for k in done}
     for m in map_ids:
         for k in atlas.keyframe_keys(map_id=m):
-            a = atlas.keyframe(k).agent_id
+            a = split_key(k)[0]
             if k not in done and a in corr_of_agent:
                 poses[k] = corr_of_agent[a][1] @ atlas.T_map_body(k)
     atlas.set_keyframe_poses(poses)

@@ -136,6 +136,42 @@ class MapPointInput:
         object.__setattr__(self, "p_world", p)
         object.__setattr__(self, "observations", obs)
 
+    @classmethod
+    def batch(
+        cls,
+        agent_id: int,
+        ids: np.ndarray,
+        p_world: np.ndarray,
+        observations: np.ndarray,
+        starts: np.ndarray,
+        ends: np.ndarray,
+    ) -> list[MapPointInput]:
+        """One point per id, checked as whole arrays (what ``__post_init__`` checks per point,
+        at a fraction of its cost for the thousands of points of one update): ``ids (N,)``,
+        ``p_world (N, 3)``, ``observations (M, 2)`` rows ``(keyframe_id, keypoint_index)``,
+        point ``i``'s being rows ``starts[i]:ends[i]``."""
+        what = f"map points of agent {agent_id}"
+        n = int(np.asarray(ids).shape[0])
+        P = _check(p_world, (n, 3), np.float64, f"{what}: p_world")
+        obs = _check(np.asarray(observations).reshape(-1, 2), (None, 2), np.int64, what)
+        lo, hi = np.asarray(starts, np.int64), np.asarray(ends, np.int64)
+        if lo.shape != (n,) or hi.shape != (n,) or np.any(lo < 0) or np.any(hi < lo):
+            raise AtlasError(f"{what}: observation ranges do not fit the ids")
+        if n and int(hi.max()) > obs.shape[0]:
+            raise AtlasError(f"{what}: observation ranges beyond the observations")
+        for v in (P, obs):
+            v.setflags(write=False)
+        out = []
+        rows = zip(np.asarray(ids).tolist(), lo.tolist(), hi.tolist(), strict=True)
+        for i, (mp_id, a, b) in enumerate(rows):
+            mp = object.__new__(cls)
+            object.__setattr__(mp, "agent_id", int(agent_id))
+            object.__setattr__(mp, "map_point_id", int(mp_id))
+            object.__setattr__(mp, "p_world", P[i])
+            object.__setattr__(mp, "observations", obs[a:b])
+            out.append(mp)
+        return out
+
 
 @dataclass(frozen=True, eq=False)
 class KeyframeView:

@@ -36,6 +36,7 @@ from __future__ import annotations
 import io
 import logging
 import sqlite3
+import weakref
 from collections.abc import Iterable, Mapping
 from pathlib import Path
 
@@ -185,6 +186,9 @@ class CloudStore:
             self._db.execute("SELECT value FROM meta WHERE name='mission'").fetchone()[0]
         )
         """The current mission's number (0, 1, ...; see :meth:`enter_mission`)."""
+        # The atlas whose rows this store holds as they are, but for the atlas's unsaved
+        # changes (then :meth:`save_all` writes only those); None: write it whole.
+        self._kept: weakref.ref[Atlas] | None = None
 
     def close(self) -> None:
         self._db.close()
@@ -214,28 +218,15 @@ class CloudStore:
         name, edge id, edge map id)}`` and ``sensors`` ``{robot name: its encoded sensor
         description}``; of ``moved_points`` only the position (points that followed a moved
         keyframe). Returns once the data is durable."""
+        keyframes, map_points = [int(k) for k in keyframes], [int(k) for k in map_points]
+        moved_points = [int(k) for k in moved_points]
         db = self._db
         db.execute("BEGIN IMMEDIATE")
         try:
             removed = self._write_points(atlas, keyframes, map_points)
             self._write_positions(atlas, moved_points)
             self._write_state(atlas.state(), removals=removed)
-            for edge_id, seq in (edge_sequences or {}).items():
-                db.execute(
-                    "INSERT INTO edge_sequences VALUES (?, ?) ON CONFLICT(edge_id) DO UPDATE "
-                    "SET last_seq = max(last_seq, excluded.last_seq)",
-                    (str(edge_id), int(seq)),
-                )
-            for edge_id, (stream_id, seq) in (positions or {}).items():
-                db.execute(
-                    "INSERT OR REPLACE INTO edge_positions VALUES (?, ?, ?)",
-                    (str(edge_id), bytes(stream_id), int(seq)),
-                )
-            for agent, (name, edge_id, edge_map) in (agents or {}).items():
-                db.execute(  # agents are created and changed in the current mission only
-                    "INSERT OR REPLACE INTO agent_names VALUES (?, ?, ?, ?, ?)",
-                    (int(agent), str(name), str(edge_id), int(edge_map), self.mission),
-                )
+            self._write_links(edge_sequences, positions, agents)
             for name, blob in (sensors or {}).items():
                 db.execute(
                     "INSERT OR REPLACE INTO robot_sensors VALUES (?, ?)", (str(name), bytes(blob))
@@ -244,6 +235,33 @@ class CloudStore:
         except BaseException:
             self._rollback()
             raise
+        atlas.unsaved.forget(keyframes=keyframes, points=map_points, positions=moved_points)
+
+    def _write_links(
+        self,
+        edge_sequences: Mapping[str, int] | None,
+        positions: Mapping[str, tuple[bytes, int]] | None,
+        agents: Mapping[int, tuple[str, str, int]] | None,
+    ) -> None:
+        """The edges' sequences and transport positions, and the agents' rows (see
+        :meth:`commit`)."""
+        db = self._db
+        for edge_id, seq in (edge_sequences or {}).items():
+            db.execute(
+                "INSERT INTO edge_sequences VALUES (?, ?) ON CONFLICT(edge_id) DO UPDATE "
+                "SET last_seq = max(last_seq, excluded.last_seq)",
+                (str(edge_id), int(seq)),
+            )
+        for edge_id, (stream_id, seq) in (positions or {}).items():
+            db.execute(
+                "INSERT OR REPLACE INTO edge_positions VALUES (?, ?, ?)",
+                (str(edge_id), bytes(stream_id), int(seq)),
+            )
+        for agent, (name, edge_id, edge_map) in (agents or {}).items():
+            db.execute(  # agents are created and changed in the current mission only
+                "INSERT OR REPLACE INTO agent_names VALUES (?, ?, ?, ?, ?)",
+                (int(agent), str(name), str(edge_id), int(edge_map), self.mission),
+            )
 
     def commit_poses(
         self,
@@ -254,26 +272,33 @@ class CloudStore:
         """In one transaction: only the poses, positions and map ids of the given (existing)
         keyframes and map points, plus the atlas bookkeeping (after an optimisation)."""
         kf = [int(k) for k in keyframes if atlas.has_keyframe(int(k))]
+        mp = [int(k) for k in map_points]
         db = self._db
         db.execute("BEGIN IMMEDIATE")
         try:
-            db.executemany(
-                "UPDATE keyframes SET pose = ?, map_id = ? WHERE key = ?",
-                [
-                    (
-                        np.asarray(atlas.T_map_body(k), "<f8").tobytes(),
-                        atlas.map_id_of_keyframe(k),
-                        k,
-                    )
-                    for k in kf
-                ],
-            )
-            self._write_positions(atlas, map_points)
+            self._write_poses(atlas, kf)
+            self._write_positions(atlas, mp)
             self._write_state(atlas.state())
             db.execute("COMMIT")
         except BaseException:
             self._rollback()
             raise
+        atlas.unsaved.forget(poses=kf, positions=mp)
+
+    def _write_poses(self, atlas: Atlas, keyframes: Iterable[int]) -> None:
+        """Only the poses and map ids of these keyframes (those the atlas still holds)."""
+        self._db.executemany(
+            "UPDATE keyframes SET pose = ?, map_id = ? WHERE key = ?",
+            [
+                (
+                    np.asarray(atlas.T_map_body(k), "<f8").tobytes(),
+                    atlas.map_id_of_keyframe(k),
+                    k,
+                )
+                for k in keyframes
+                if atlas.has_keyframe(k)
+            ],
+        )
 
     def _write_positions(self, atlas: Atlas, map_points: Iterable[int]) -> None:
         """Only the positions of these map points (those the atlas still holds)."""
@@ -299,14 +324,36 @@ class CloudStore:
         positions: Mapping[str, tuple[bytes, int]] | None = None,
         agents: Mapping[int, tuple[str, str, int]] | None = None,
     ) -> None:
-        """Write the whole atlas (after a merge, an optimisation or MBP), deleting stale rows."""
-        kf_keys = atlas.keyframe_keys()
-        mp_keys = atlas.map_point_keys()
-        stale_kf = {r[0] for r in self._db.execute("SELECT key FROM keyframes")} - set(kf_keys)
-        stale_mp = {r[0] for r in self._db.execute("SELECT key FROM map_points")} - set(mp_keys)
-        self.commit(
-            atlas, [*kf_keys, *stale_kf], [*mp_keys, *stale_mp], edge_sequences, positions, agents
-        )
+        """Make the stored atlas the atlas (after a merge, an optimisation or MBP) in one
+        transaction, with the bookkeeping as :meth:`commit` writes it.
+
+        The first time for an atlas (or after a failed write) every row is written and stale
+        ones deleted; after that, and for the atlas :meth:`load` built, only what the atlas
+        changed since (:attr:`Atlas.unsaved`: whole rows of keyframes and points whose
+        observations, state or map changed, pose / position columns of those that only
+        moved, deletions), so that its cost follows the change, not the atlas."""
+        whole = self._kept is None or self._kept() is not atlas
+        u = atlas.unsaved.take()
+        self._kept = None  # a failed write leaves the rows unknown: the next one is whole
+        if whole:
+            kf_keys, mp_keys = atlas.keyframe_keys(), atlas.map_point_keys()
+            u.keyframes = {r[0] for r in self._db.execute("SELECT key FROM keyframes")}
+            u.keyframes.update(kf_keys)
+            u.points = {r[0] for r in self._db.execute("SELECT key FROM map_points")}
+            u.points.update(mp_keys)
+        db = self._db
+        db.execute("BEGIN IMMEDIATE")
+        try:
+            removed = self._write_points(atlas, sorted(u.keyframes), sorted(u.points))
+            self._write_poses(atlas, sorted(u.poses - u.keyframes))
+            self._write_positions(atlas, sorted(u.positions - u.points))
+            self._write_state(atlas.state(), removals=removed or whole)
+            self._write_links(edge_sequences, positions, agents)
+            db.execute("COMMIT")
+        except BaseException:
+            self._rollback()
+            raise
+        self._kept = weakref.ref(atlas)
 
     def _write_points(
         self, atlas: Atlas, keyframes: Iterable[int], map_points: Iterable[int]
@@ -539,5 +586,6 @@ class CloudStore:
         except (sqlite3.DatabaseError, ValueError, KeyError, TypeError) as exc:
             raise PersistenceError(f"{self.path}: corrupt cloud state ({exc})") from exc
         atlas = Atlas.restore(kfs, mps, state)
+        self._kept = weakref.ref(atlas)
         log.info("loaded %d keyframes, %d map points from %s", len(kfs), len(mps), self.path)
         return atlas

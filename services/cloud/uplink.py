@@ -293,13 +293,10 @@ def decode_map_point_update(
     ends = np.searchsorted(obs[:, 0], ids, side="right")
     if int((ends - starts).sum()) != obs.shape[0]:
         raise UplinkError(f"{what}: observations name map points not in ids")
-    out = []
-    for i in range(n):
-        try:
-            out.append(MapPointInput(agent_id, int(ids[i]), p[i], obs[starts[i] : ends[i], 1:3]))
-        except AtlasError as exc:
-            raise UplinkError(f"{what}: {exc}") from exc
-    return out
+    try:
+        return MapPointInput.batch(agent_id, ids, p, obs[:, 1:3], starts, ends)
+    except AtlasError as exc:
+        raise UplinkError(f"{what}: {exc}") from exc
 
 
 def decode_cull_event(msg: CullEvent) -> tuple[np.ndarray, np.ndarray]:

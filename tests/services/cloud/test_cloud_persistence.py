@@ -134,3 +134,107 @@ def test_a_schema_5_state_dir_is_migrated_to_agents_keyed_by_edge(tmp_path):
     with pytest.raises(sqlite3.IntegrityError):  # the new key is enforced
         db.execute("INSERT INTO agent_names VALUES (3, 'r0', 'edge-b', 0, 0)")
     db.close()
+
+
+def _stored(path):
+    """Everything a store directory holds, as the atlas it loads into (plain comparable data)."""
+    with CloudStore(path) as store:
+        atlas = store.load()
+    kfs = {}
+    for key in atlas.keyframe_keys():
+        v = atlas.keyframe(key)
+        arrays = (v.T_map_body, v.velocity, v.bias_gyro, v.bias_accel, v.descriptors)
+        arrays += (v.keypoints, v.levels, v.word_ids, v.map_point_keys, v.virtual)
+        kfs[key] = (v.map_id, v.timestamp, *(np.asarray(x).tobytes() for x in arrays))
+    mps = {}
+    for key in atlas.map_point_keys():
+        m = atlas.map_point(key)
+        mps[key] = (m.map_id, m.ref_kf, m.p_map.tobytes(), m.obs_keyframes.tobytes())
+        mps[key] += (m.obs_indices.tobytes(),)
+    st = atlas.state()
+    return kfs, mps, (st.map_of_agent, len(st.merges), len(st.loops), st.removed_keyframes)
+
+
+def test_incremental_saves_store_what_a_whole_save_stores(tmp_path):
+    """After its first whole write, save_all writes only what the atlas changed since (and the
+    atlas a store loaded starts as stored): after every kind of change, the directory holds
+    exactly what one whole save of the same atlas into a fresh directory holds."""
+    world = make_world(43, n_points=1500)
+    cam = default_camera()
+    poses = circle_poses(12, turns=0.35)
+    T_a1 = yaw_T(0.4, [0.5, 0.2, 0.0])
+    k0, m0 = make_session(world, cam, 0, poses, np.eye(4), seed=3)
+    k1, m1 = make_session(world, cam, 1, poses, T_a1, seed=4)
+    live = tmp_path / "live"
+    atlas = Atlas()
+    store = CloudStore(live)
+    checks = 0
+
+    def check(name):
+        nonlocal checks
+        whole = tmp_path / f"whole-{checks}"
+        with CloudStore(whole) as fresh:
+            fresh.save_all(atlas)
+        assert _stored(live) == _stored(whole), name
+        checks += 1
+
+    keys = [atlas.add_keyframe(x) for x in k0[:6]]
+    store.commit(atlas, keys, [atlas.add_map_point(x) for x in m0])
+    store.save_all(atlas)  # the first: whole
+    keys = [atlas.add_keyframe(x) for x in k0[6:]] + [atlas.add_keyframe(x) for x in k1]
+    pkeys = [atlas.add_map_point(x) for x in m1]
+    store.commit(atlas, keys[:3], pkeys[:10])  # part of it committed, the rest unsaved
+    store.save_all(atlas)
+    check("new keyframes and points")
+    atlas.merge_maps(0, 1, inverse_T(T_a1))
+    store.save_all(atlas)
+    check("merge")
+    k = atlas.keyframe_keys(agent_id=1)
+    atlas.fuse_map_points(atlas.map_point_keys()[0], atlas.map_point_keys()[1])
+    atlas.add_loop(k[1], atlas.keyframe_keys(agent_id=0)[1], np.eye(4))
+    store.save_all(atlas)
+    check("fused points, loop")
+    moved = {key: yaw_T(0.01, [0.01, 0.0, 0.0]) @ atlas.T_map_body(key) for key in k[:5]}
+    atlas.set_keyframe_poses(moved)  # an optimisation: poses and the points that follow them
+    store.commit_poses(atlas, k[:2], [])  # written in part
+    store.save_all(atlas)
+    check("optimised poses")
+    atlas.set_map_point_positions({atlas.map_point_keys()[5]: np.array([1.0, 2.0, 3.0])})
+    atlas.remove_keyframe(atlas.keyframe_keys(agent_id=0)[3])
+    atlas.retire_keyframe(k[7], k[6])
+    v = atlas.keyframe(k[2])
+    atlas.add_virtual_observations(
+        k[2], v.keypoints[:2], v.levels[:2], v.descriptors[:2], v.word_ids[:2],
+        np.array(atlas.map_point_keys()[-2:]),
+    )  # fmt: skip
+    store.save_all(atlas)
+    check("MBP: removed, retired, virtual observations")
+    store.close()
+    store = CloudStore(live)
+    atlas = store.load()  # as stored: its changes from here on are the unsaved ones
+    atlas.remove_map_point(atlas.map_point_keys()[7])
+    atlas.add_keyframe(k1[-1])
+    store.save_all(atlas)
+    check("after a restart")
+    store.close()
+
+
+def test_a_failed_incremental_save_makes_the_next_one_whole(tmp_path, monkeypatch):
+    world = make_world(44, n_points=800)
+    k0, m0 = make_session(world, default_camera(), 0, circle_poses(6, turns=0.2), np.eye(4))
+    atlas = Atlas()
+    with CloudStore(tmp_path / "live") as store:
+        store.save_all(atlas)
+        for x in k0:
+            atlas.add_keyframe(x)
+        for x in m0:
+            atlas.add_map_point(x)
+        with monkeypatch.context() as m:
+            m.setattr(store, "_write_state", lambda *a, **k: 1 / 0)
+            with pytest.raises(ZeroDivisionError):
+                store.save_all(atlas)  # rolled back, and the changes it took are forgotten
+        store.save_all(atlas)
+    with CloudStore(tmp_path / "whole") as fresh:
+        fresh.save_all(atlas)
+    assert _stored(tmp_path / "live") == _stored(tmp_path / "whole")
+    assert len(_stored(tmp_path / "live")[0]) == len(k0)

@@ -94,6 +94,11 @@ def test_malformed_messages_name_the_field(vocab, session):
     mp = encode_map_point_update(mps[:3], "robot-3")
     with pytest.raises(UplinkError, match="positions"):
         decode_map_point_update(dataclasses.replace(mp, p_world=mp.p_world[:24]), 0)
+    p_nan = np.frombuffer(mp.p_world, "<f8").copy()
+    p_nan[4] = np.nan
+    nan_msg = dataclasses.replace(mp, p_world=p_nan.astype("<f8").tobytes())
+    with pytest.raises(UplinkError, match="non-finite"):
+        decode_map_point_update(nan_msg, 0)
     with pytest.raises(UplinkError, match="negative"):
         decode_cull_event(CullEvent("r", 0, pack_array(np.array([-1]), "<i8"), b""))
 
