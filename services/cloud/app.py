@@ -482,9 +482,7 @@ class CloudApp:
         with self.stage_timer.span(f"stage.{kind}_apply"):
             n = self.fusion.apply_optimization(result)
             self._changes += 1
-            self.store.commit_poses(
-                self.atlas, self.atlas.keyframe_keys(map_id), self.atlas.map_point_keys(map_id)
-            )
+            self.store.commit_poses(self.atlas)  # what it changed (Atlas.unsaved)
         log.info(
             "map %d: applied optimisation of %d keyframes (error %.3g -> %.3g)",
             map_id,

@@ -28,7 +28,13 @@ import numpy as np
 
 from common.geometry import inverse_T
 from services.cloud.atlas_graph import CovisibilityGraph
-from services.cloud.atlas_records import KeyframeRecord, MapPointRecord, Unsaved
+from services.cloud.atlas_records import (
+    KeyframeRecord,
+    MapPointRecord,
+    Unsaved,
+    snapshot_of,
+    stored_rows,
+)
 from services.cloud.map_types import (
     AtlasError,
     AtlasSnapshot,
@@ -140,6 +146,8 @@ class Atlas:
                     f"keypoint count {n_real} -> {kf.keypoints.shape[0]}"
                 )
         self._unsaved.keyframes.add(key)
+        if not new:  # its points' stored positions are relative to the old pose
+            self._unsaved.positions.update(self._referencing(k))
         k.timestamp = float(kf.timestamp)
         k.T_map_body = T_ma @ kf.T_world_body
         k.velocity = T_ma[:3, :3] @ kf.velocity
@@ -432,9 +440,7 @@ class Atlas:
         P = np.einsum("mij,mj->mi", c[:, :3, :3], P) + c[:, :3, 3]
         for m, p in zip(mps, P, strict=True):
             m.p_map = p
-        moved = [m.key for m in mps]
-        self._unsaved.positions.update(moved)
-        return moved
+        return [m.key for m in mps]  # their stored rows follow their keyframe: unchanged
 
     def set_map_point_positions(self, positions: dict[int, np.ndarray]) -> None:
         for key, p in positions.items():
@@ -549,8 +555,18 @@ class Atlas:
 
     def map_point_rows(self, keys: Iterable[int]) -> Iterator[tuple[object, ...]]:
         """:meth:`MapPointRecord.row` of each of ``keys`` the atlas holds (for persistence:
-        no read-only view built per point)."""
-        return (self._mps[k].row() for k in keys if k in self._mps)
+        no read-only view built per point), positions relative to the reference keyframe."""
+        return stored_rows(self._mps, self._kfs, keys, MapPointRecord.row)
+
+    def map_point_position_rows(self, keys: Iterable[int]) -> Iterator[tuple[object, ...]]:
+        """``(position, in_ref, key)`` of each of ``keys`` the atlas holds, as
+        :meth:`map_point_rows` stores it."""
+        return stored_rows(self._mps, self._kfs, keys, MapPointRecord.position_row)
+
+    def _referencing(self, k: KeyframeRecord) -> list[int]:
+        """The map points whose reference keyframe is ``k``."""
+        mps = (self._mps.get(m) for m in k.mp_keys[k.mp_keys >= 0].tolist())
+        return [m.key for m in mps if m is not None and m.ref_kf == k.key]
 
     # ------------------------------------------------------------------ persistence
     @property
@@ -605,25 +621,13 @@ class Atlas:
 
     # ------------------------------------------------------------------ snapshot
     def snapshot(self) -> AtlasSnapshot:
-        kfs = [self._kfs[k] for k in sorted(self._kfs)]
-        mps = [self._mps[k] for k in sorted(self._mps)]
-        cov = self._graph.edges()
-        tree = self._graph.tree()
-        i64 = np.int64
-        return AtlasSnapshot(
-            keyframe_keys=ro(np.array([k.key for k in kfs], i64)),
-            keyframe_agent=ro(np.array([k.agent_id for k in kfs], i64)),
-            keyframe_map=ro(np.array([k.map_id for k in kfs], i64)),
-            keyframe_timestamp=ro(np.array([k.timestamp for k in kfs], np.float64)),
-            T_map_body=ro(np.array([k.T_map_body for k in kfs]).reshape(-1, 4, 4)),
-            point_keys=ro(np.array([m.key for m in mps], i64)),
-            point_map=ro(np.array([m.map_id for m in mps], i64)),
-            p_map=ro(np.array([m.p_map for m in mps]).reshape(-1, 3)),
-            covisibility=ro(np.array([(a, b) for a, b, _ in cov], i64).reshape(-1, 2)),
-            covisibility_weight=ro(np.array([w for _, _, w in cov], i64)),
-            spanning_tree=ro(np.array(tree, i64).reshape(-1, 2)),
-            loops=ro(np.array([(e.key_a, e.key_b) for e in self._loops], i64).reshape(-1, 2)),
-            map_of_agent=dict(self._map_of_agent),
-            T_map_agent={a: ro(T) for a, T in self._T_map_agent.items()},
-            merges=tuple(self._merges),
+        """The whole atlas as plain read-only arrays (the dashboard's map view)."""
+        return snapshot_of(
+            self._kfs,
+            self._mps,
+            self._graph,
+            self._loops,
+            self._map_of_agent,
+            self._T_map_agent,
+            self._merges,
         )

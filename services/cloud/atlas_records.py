@@ -8,12 +8,24 @@ an atlas is restored. Poses are in the record's map frame (``map_id``).
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
+from typing import TypeVar
 
 import numpy as np
 
-from services.cloud.map_types import KeyframeInput, KeyframeView, MapPointView, ro
+from services.cloud.atlas_graph import CovisibilityGraph
+from services.cloud.map_types import (
+    AtlasSnapshot,
+    KeyframeInput,
+    KeyframeView,
+    LoopEdge,
+    MapPointView,
+    MergeRecord,
+    ro,
+)
+
+T = TypeVar("T")
 
 
 class KeyframeRecord:
@@ -120,12 +132,14 @@ class MapPointRecord:
         self.pending: dict[int, int] = {}  # keyframe not arrived yet -> keypoint index
         self.ref_kf = -1
 
-    def row(self) -> tuple[int, int, int, int, int, bytes, bytes]:
+    def row(
+        self, T_map_ref: np.ndarray | None
+    ) -> tuple[int, int, int, int, int, bytes, bytes, int]:
         """Plain data for persistence, without a view: key, agent, map point id, map,
-        reference keyframe, ``p_map`` as "<f8 (3,)" bytes, the observations sorted by
-        keyframe key as "<i8 (N, 2)" bytes [keyframe key, keypoint index]."""
+        reference keyframe, position (:meth:`stored_position`), the observations sorted by
+        keyframe key as "<i8 (N, 2)" bytes [keyframe key, keypoint index], in_ref."""
         obs = np.array(sorted(self.obs.items()), "<i8").reshape(-1, 2)
-        p = np.asarray(self.p_map, "<f8").tobytes()
+        p, in_ref = self.stored_position(T_map_ref)
         return (
             self.key,
             self.agent_id,
@@ -134,7 +148,20 @@ class MapPointRecord:
             self.ref_kf,
             p,
             obs.tobytes(),
+            in_ref,
         )
+
+    def position_row(self, T_map_ref: np.ndarray | None) -> tuple[bytes, int, int]:
+        """:meth:`stored_position` and the key."""
+        return (*self.stored_position(T_map_ref), self.key)
+
+    def stored_position(self, T_map_ref: np.ndarray | None) -> tuple[bytes, int]:
+        """The position as "<f8 (3,)" bytes in the reference keyframe's body frame
+        (``T_map_ref`` its pose) and 1, or without one in the map frame and 0."""
+        if T_map_ref is None:
+            return np.asarray(self.p_map, "<f8").tobytes(), 0
+        p_ref = T_map_ref[:3, :3].T @ (self.p_map - T_map_ref[:3, 3])
+        return np.asarray(p_ref, "<f8").tobytes(), 1
 
     def view(self) -> MapPointView:
         """A read-only copy (observations sorted by keyframe key)."""
@@ -162,6 +189,13 @@ class Unsaved:
     points: set[int] = field(default_factory=set)
     positions: set[int] = field(default_factory=set)
 
+    def update(self, other: Unsaved) -> None:
+        """Also what ``other`` holds."""
+        self.keyframes |= other.keyframes
+        self.poses |= other.poses
+        self.points |= other.points
+        self.positions |= other.positions
+
     def take(self) -> Unsaved:
         """What changed until now, forgotten here (changes after this call are kept)."""
         taken = Unsaved(self.keyframes, self.poses, self.points, self.positions)
@@ -185,3 +219,50 @@ class Unsaved:
             self.points.discard(k)
             self.positions.discard(k)
         self.positions.difference_update(positions)
+
+
+def stored_rows(
+    mps: Mapping[int, MapPointRecord],
+    kfs: Mapping[int, KeyframeRecord],
+    keys: Iterable[int],
+    row: Callable[[MapPointRecord, np.ndarray | None], T],
+) -> Iterator[T]:
+    """``row(point, its reference keyframe's pose or None)`` of each of ``keys`` in ``mps``."""
+    for key in keys:
+        m = mps.get(key)
+        if m is not None:
+            ref = kfs.get(m.ref_kf)
+            yield row(m, None if ref is None else ref.T_map_body)
+
+
+def snapshot_of(
+    kf_records: Mapping[int, KeyframeRecord],
+    mp_records: Mapping[int, MapPointRecord],
+    graph: CovisibilityGraph,
+    loops: Sequence[LoopEdge],
+    map_of_agent: Mapping[int, int],
+    T_map_agent: Mapping[int, np.ndarray],
+    merges: Sequence[MergeRecord],
+) -> AtlasSnapshot:
+    """An :class:`AtlasSnapshot` (copies, read-only) of an atlas's records."""
+    kfs = [kf_records[k] for k in sorted(kf_records)]
+    mps = [mp_records[k] for k in sorted(mp_records)]
+    cov = graph.edges()
+    i64 = np.int64
+    return AtlasSnapshot(
+        keyframe_keys=ro(np.array([k.key for k in kfs], i64)),
+        keyframe_agent=ro(np.array([k.agent_id for k in kfs], i64)),
+        keyframe_map=ro(np.array([k.map_id for k in kfs], i64)),
+        keyframe_timestamp=ro(np.array([k.timestamp for k in kfs], np.float64)),
+        T_map_body=ro(np.array([k.T_map_body for k in kfs]).reshape(-1, 4, 4)),
+        point_keys=ro(np.array([m.key for m in mps], i64)),
+        point_map=ro(np.array([m.map_id for m in mps], i64)),
+        p_map=ro(np.array([m.p_map for m in mps]).reshape(-1, 3)),
+        covisibility=ro(np.array([(a, b) for a, b, _ in cov], i64).reshape(-1, 2)),
+        covisibility_weight=ro(np.array([w for _, _, w in cov], i64)),
+        spanning_tree=ro(np.array(graph.tree(), i64).reshape(-1, 2)),
+        loops=ro(np.array([(e.key_a, e.key_b) for e in loops], i64).reshape(-1, 2)),
+        map_of_agent=dict(map_of_agent),
+        T_map_agent={a: ro(T) for a, T in T_map_agent.items()},
+        merges=tuple(merges),
+    )

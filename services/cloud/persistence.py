@@ -23,17 +23,17 @@ line), else starting it, which clears the stored edge positions (the new mission
 new streams). A robot name and edge map id are unique per mission and edge only, so that a new
 mission's ``robot0`` on edge map 0 is a new agent, not the old one's continuation.
 
-Keyframe arrays are stored as ``.npy`` payloads (``numpy.save``, no pickle) inside an
-uncompressed ``.npz`` blob per row. Map point rows (many, small, rewritten whenever an
-observation is added) use a flat little-endian blob instead, ~40x cheaper to write:
-``(M, 2)`` ``<i8`` rows ``(keyframe key, keypoint index)``. Keyframe poses (16 ``<f8``) and
-map point positions (3 ``<f8``) have their own columns, so that writing an optimisation back
-(:meth:`CloudStore.commit_poses`) is a cheap ``UPDATE`` of those columns only.
+Rows (:mod:`services.cloud.persistence_schema`): keyframe arrays as ``.npz`` blobs, map point
+observations as flat ``<i8`` blobs; keyframe poses and map point positions have their own
+columns, and a point's position is in its reference keyframe's frame, so that writing an
+optimisation back (:meth:`CloudStore.commit_poses`) updates the poses of the keyframes it moved
+and only the positions of the points it moved relative to them (a full BA's; a pose graph
+moves points rigidly with their keyframe). Every write takes what the atlas changed since the
+last one (:attr:`Atlas.unsaved`) and the bookkeeping tables that changed.
 """
 
 from __future__ import annotations
 
-import io
 import logging
 import sqlite3
 import weakref
@@ -42,7 +42,6 @@ from pathlib import Path
 
 import numpy as np
 
-from common.errors import RecslamError
 from services.cloud.atlas import (
     Atlas,
     AtlasState,
@@ -52,102 +51,26 @@ from services.cloud.atlas import (
     MergeRecord,
     RetiredKeyframe,
 )
+from services.cloud.atlas_records import Unsaved
+from services.cloud.persistence_schema import (
+    DB_NAME,
+    SCHEMA,
+    SCHEMA_VERSION,
+    UPGRADABLE,
+    PersistenceError,
+    arr,
+    pack,
+    unpack,
+    unpack_point,
+    unpack_pose,
+    upgrade,
+    write_state,
+)
 
 log = logging.getLogger(__name__)
 
-DB_NAME = "cloud.sqlite"
-SCHEMA_VERSION = 6
-# Older schemas this one upgrades when it opens them: 5 added ``robot_sensors`` (``_SCHEMA``
-# creates it); 6 added ``missions`` and the ``mission`` column of ``agent_names`` and keys that
-# table by (mission, edge, robot, edge map), not (robot, edge map), so that several edges' and
-# missions' agents stay apart (:func:`_migrate_agent_names`: the table is rebuilt, its old rows
-# are mission 0).
-_UPGRADABLE = (3, 4, 5)
-
-_SCHEMA = """
-CREATE TABLE IF NOT EXISTS meta (name TEXT PRIMARY KEY, value INTEGER NOT NULL);
-CREATE TABLE IF NOT EXISTS keyframes (
-    key INTEGER PRIMARY KEY, agent INTEGER NOT NULL, keyframe_id INTEGER NOT NULL,
-    map_id INTEGER NOT NULL, timestamp REAL NOT NULL, pose BLOB NOT NULL, data BLOB NOT NULL);
-CREATE TABLE IF NOT EXISTS map_points (
-    key INTEGER PRIMARY KEY, agent INTEGER NOT NULL, map_point_id INTEGER NOT NULL,
-    map_id INTEGER NOT NULL, ref_kf INTEGER NOT NULL, p BLOB NOT NULL,
-    data BLOB NOT NULL);
-CREATE TABLE IF NOT EXISTS agents (agent INTEGER PRIMARY KEY, map_id INTEGER NOT NULL,
-    T_map_agent BLOB NOT NULL);
-CREATE TABLE IF NOT EXISTS merges (seq INTEGER PRIMARY KEY, target_map INTEGER NOT NULL,
-    source_map INTEGER NOT NULL, T BLOB NOT NULL, query_key INTEGER NOT NULL,
-    candidate_key INTEGER NOT NULL, fused INTEGER NOT NULL);
-CREATE TABLE IF NOT EXISTS loops (seq INTEGER PRIMARY KEY, key_a INTEGER NOT NULL,
-    key_b INTEGER NOT NULL, T BLOB NOT NULL, inter_agent INTEGER NOT NULL);
-CREATE TABLE IF NOT EXISTS aliases (dropped INTEGER PRIMARY KEY, kept INTEGER NOT NULL);
-CREATE TABLE IF NOT EXISTS removed_keyframes (key INTEGER PRIMARY KEY);
-CREATE TABLE IF NOT EXISTS retired_keyframes (key INTEGER PRIMARY KEY, agent INTEGER NOT NULL,
-    timestamp REAL NOT NULL, anchor INTEGER NOT NULL, T BLOB NOT NULL);
-CREATE TABLE IF NOT EXISTS edge_sequences (edge_id TEXT PRIMARY KEY, last_seq INTEGER NOT NULL);
-CREATE TABLE IF NOT EXISTS edge_positions (edge_id TEXT PRIMARY KEY, stream_id BLOB NOT NULL,
-    last_seq INTEGER NOT NULL);
-CREATE TABLE IF NOT EXISTS agent_names (agent INTEGER PRIMARY KEY, name TEXT NOT NULL,
-    edge_id TEXT NOT NULL, edge_map INTEGER NOT NULL, mission INTEGER NOT NULL DEFAULT 0,
-    UNIQUE (mission, edge_id, name, edge_map));
-CREATE TABLE IF NOT EXISTS robot_sensors (name TEXT PRIMARY KEY, sensors BLOB NOT NULL);
-CREATE TABLE IF NOT EXISTS missions (mission INTEGER PRIMARY KEY, name TEXT NOT NULL UNIQUE);
-"""
-
 FIRST_MISSION = "mission-0"
 """The name of a state directory's first mission when none was given."""
-
-
-class PersistenceError(RecslamError):
-    """Unreadable or incompatible state directory."""
-
-
-def _pack(**arrays: np.ndarray) -> bytes:
-    buf = io.BytesIO()
-    np.savez(buf, allow_pickle=False, **arrays)
-    return buf.getvalue()
-
-
-def _unpack(blob: bytes) -> dict[str, np.ndarray]:
-    with np.load(io.BytesIO(blob), allow_pickle=False) as z:
-        return {k: z[k] for k in z.files}
-
-
-def _unpack_point(p: bytes, blob: bytes) -> dict[str, np.ndarray]:
-    if len(p) != 24 or len(blob) % 16:
-        raise ValueError(f"map point position of {len(p)} bytes, observations of {len(blob)}")
-    obs = np.frombuffer(blob, "<i8").reshape(-1, 2).astype(np.int64)
-    return {
-        "p_map": np.frombuffer(p, "<f8", 3).astype(np.float64),
-        "obs_keyframes": obs[:, 0].copy(),
-        "obs_indices": obs[:, 1].copy(),
-    }
-
-
-def _pose(blob: bytes) -> np.ndarray:
-    if len(blob) != 128:
-        raise ValueError(f"keyframe pose of {len(blob)} bytes")
-    return np.frombuffer(blob, "<f8").reshape(4, 4).astype(np.float64)
-
-
-def _arr(blob: bytes) -> np.ndarray:
-    return _unpack(blob)["a"]
-
-
-def _migrate_agent_names(db: sqlite3.Connection) -> None:
-    """Rebuild ``agent_names`` with the schema-6 ``mission`` column (old rows: mission 0) and
-    key UNIQUE(mission, edge_id, name, edge_map), keeping its rows (SQLite cannot change a
-    table's constraints in place). Inside the caller's transaction."""
-    db.execute(
-        "CREATE TABLE agent_names_v6 (agent INTEGER PRIMARY KEY, name TEXT NOT NULL, "
-        "edge_id TEXT NOT NULL, edge_map INTEGER NOT NULL, mission INTEGER NOT NULL DEFAULT 0, "
-        "UNIQUE (mission, edge_id, name, edge_map))"
-    )
-    db.execute(
-        "INSERT INTO agent_names_v6 SELECT agent, name, edge_id, edge_map, 0 FROM agent_names"
-    )
-    db.execute("DROP TABLE agent_names")
-    db.execute("ALTER TABLE agent_names_v6 RENAME TO agent_names")
 
 
 class CloudStore:
@@ -160,7 +83,7 @@ class CloudStore:
             self._db = sqlite3.connect(self.path, isolation_level=None)
             self._db.execute("PRAGMA journal_mode=WAL")
             self._db.execute("PRAGMA synchronous=FULL")
-            self._db.executescript(_SCHEMA)
+            self._db.executescript(SCHEMA)
             row = self._db.execute("SELECT value FROM meta WHERE name='schema'").fetchone()
         except sqlite3.DatabaseError as exc:
             raise PersistenceError(
@@ -168,11 +91,10 @@ class CloudStore:
             ) from exc
         if row is None:
             self._db.execute("INSERT INTO meta VALUES ('schema', ?)", (SCHEMA_VERSION,))
-        elif row[0] in _UPGRADABLE:
+        elif row[0] in UPGRADABLE:
             self._db.execute("BEGIN IMMEDIATE")
             try:
-                _migrate_agent_names(self._db)
-                self._db.execute("UPDATE meta SET value = ? WHERE name='schema'", (SCHEMA_VERSION,))
+                upgrade(self._db, int(row[0]))
                 self._db.execute("COMMIT")
             except BaseException:
                 self._db.execute("ROLLBACK")
@@ -189,6 +111,7 @@ class CloudStore:
         # The atlas whose rows this store holds as they are, but for the atlas's unsaved
         # changes (then :meth:`save_all` writes only those); None: write it whole.
         self._kept: weakref.ref[Atlas] | None = None
+        self._state: AtlasState | None = None  # the bookkeeping as the rows hold it (None: unknown)
 
     def close(self) -> None:
         self._db.close()
@@ -212,20 +135,77 @@ class CloudStore:
         moved_points: Iterable[int] = (),
     ) -> None:
         """In one transaction: write the given keyframes and map points as the atlas holds them
-        (rows of keys no longer in the atlas are deleted), the atlas bookkeeping, the last
+        (rows of keys no longer in the atlas are deleted) and whatever else the atlas changed
+        since the last write (:attr:`Atlas.unsaved`), the atlas bookkeeping, the last
         delivered sequence of each edge, the transport ``positions`` ``{edge: (stream id,
         last delivered seq)}`` (replacing the stored ones), ``agents`` ``{agent id: (robot
         name, edge id, edge map id)}`` and ``sensors`` ``{robot name: its encoded sensor
-        description}``; of ``moved_points`` only the position (points that followed a moved
-        keyframe). Returns once the data is durable."""
-        keyframes, map_points = [int(k) for k in keyframes], [int(k) for k in map_points]
-        moved_points = [int(k) for k in moved_points]
+        description}``; of ``moved_points`` only the position. Returns once the data is
+        durable."""
+        u = atlas.unsaved.take()
+        u.keyframes.update(int(k) for k in keyframes)
+        u.points.update(int(k) for k in map_points)
+        u.positions.update(int(k) for k in moved_points)
+        self._transaction(atlas, u, edge_sequences, positions, agents, sensors)
+
+    def commit_poses(
+        self, atlas: Atlas, keyframes: Iterable[int] = (), map_points: Iterable[int] = ()
+    ) -> None:
+        """After an optimisation, in one transaction: what it changed (:attr:`Atlas.unsaved`:
+        the poses of the keyframes it moved, the positions of the points it moved relative
+        to their reference keyframe; points that only followed theirs keep their rows), the
+        poses of ``keyframes`` and positions of ``map_points``, and the bookkeeping."""
+        u = atlas.unsaved.take()
+        u.poses.update(int(k) for k in keyframes)
+        u.positions.update(int(k) for k in map_points)
+        self._transaction(atlas, u)
+
+    def save_all(
+        self,
+        atlas: Atlas,
+        edge_sequences: Mapping[str, int] | None = None,
+        positions: Mapping[str, tuple[bytes, int]] | None = None,
+        agents: Mapping[int, tuple[str, str, int]] | None = None,
+    ) -> None:
+        """Make the stored atlas the atlas (after a merge, an optimisation or MBP) in one
+        transaction, with the bookkeeping as :meth:`commit` writes it.
+
+        The first time for an atlas (or after a failed write) every row is written and stale
+        ones deleted; after that, and for the atlas :meth:`load` built, only what the atlas
+        changed since (:attr:`Atlas.unsaved`: whole rows of keyframes and points whose
+        observations, state or map changed, pose / position columns of those that only
+        moved, deletions), so that its cost follows the change, not the atlas."""
+        whole = self._kept is None or self._kept() is not atlas
+        u = atlas.unsaved.take()
+        if whole:
+            u.keyframes.update(r[0] for r in self._db.execute("SELECT key FROM keyframes"))
+            u.keyframes.update(atlas.keyframe_keys())
+            u.points.update(r[0] for r in self._db.execute("SELECT key FROM map_points"))
+            u.points.update(atlas.map_point_keys())
+        self._transaction(atlas, u, edge_sequences, positions, agents, whole=whole)
+        self._kept = weakref.ref(atlas)
+
+    def _transaction(
+        self,
+        atlas: Atlas,
+        u: Unsaved,
+        edge_sequences: Mapping[str, int] | None = None,
+        positions: Mapping[str, tuple[bytes, int]] | None = None,
+        agents: Mapping[int, tuple[str, str, int]] | None = None,
+        sensors: Mapping[str, bytes] | None = None,
+        whole: bool = False,
+    ) -> None:
+        """Write ``u`` (taken from the atlas; given back to it if the write fails) and the
+        rest in one transaction; ``whole``: every bookkeeping table too."""
         db = self._db
+        st = atlas.state()
         db.execute("BEGIN IMMEDIATE")
         try:
-            removed = self._write_points(atlas, keyframes, map_points)
-            self._write_positions(atlas, moved_points)
-            self._write_state(atlas.state(), removals=removed)
+            removed = self._write_points(atlas, sorted(u.keyframes), sorted(u.points))
+            self._write_poses(atlas, sorted(u.poses - u.keyframes))
+            self._write_positions(atlas, sorted(u.positions - u.points))
+            last = None if whole else self._state
+            write_state(db, st, last, removals=removed or whole)
             self._write_links(edge_sequences, positions, agents)
             for name, blob in (sensors or {}).items():
                 db.execute(
@@ -234,8 +214,10 @@ class CloudStore:
             db.execute("COMMIT")
         except BaseException:
             self._rollback()
+            atlas.unsaved.update(u)  # still to be written
+            self._kept = self._state = None  # the next save_all is whole
             raise
-        atlas.unsaved.forget(keyframes=keyframes, points=map_points, positions=moved_points)
+        self._state = st
 
     def _write_links(
         self,
@@ -263,28 +245,6 @@ class CloudStore:
                 (int(agent), str(name), str(edge_id), int(edge_map), self.mission),
             )
 
-    def commit_poses(
-        self,
-        atlas: Atlas,
-        keyframes: Iterable[int],
-        map_points: Iterable[int],
-    ) -> None:
-        """In one transaction: only the poses, positions and map ids of the given (existing)
-        keyframes and map points, plus the atlas bookkeeping (after an optimisation)."""
-        kf = [int(k) for k in keyframes if atlas.has_keyframe(int(k))]
-        mp = [int(k) for k in map_points]
-        db = self._db
-        db.execute("BEGIN IMMEDIATE")
-        try:
-            self._write_poses(atlas, kf)
-            self._write_positions(atlas, mp)
-            self._write_state(atlas.state())
-            db.execute("COMMIT")
-        except BaseException:
-            self._rollback()
-            raise
-        atlas.unsaved.forget(poses=kf, positions=mp)
-
     def _write_poses(self, atlas: Atlas, keyframes: Iterable[int]) -> None:
         """Only the poses and map ids of these keyframes (those the atlas still holds)."""
         self._db.executemany(
@@ -302,13 +262,9 @@ class CloudStore:
 
     def _write_positions(self, atlas: Atlas, map_points: Iterable[int]) -> None:
         """Only the positions of these map points (those the atlas still holds)."""
-        mp = np.array([int(k) for k in map_points if atlas.has_map_point(int(k))], np.int64)
-        if not mp.size:
-            return
-        P = np.ascontiguousarray(atlas.map_point_positions(mp), "<f8")
         self._db.executemany(
-            "UPDATE map_points SET p = ? WHERE key = ?",
-            [(P[i].tobytes(), k) for i, k in enumerate(mp.tolist())],
+            "UPDATE map_points SET p = ?, in_ref = ? WHERE key = ?",
+            atlas.map_point_position_rows(map_points),
         )
 
     def _rollback(self) -> None:
@@ -316,44 +272,6 @@ class CloudStore:
         e.g. a full disk, and a second ROLLBACK would hide the real error)."""
         if self._db.in_transaction:
             self._db.execute("ROLLBACK")
-
-    def save_all(
-        self,
-        atlas: Atlas,
-        edge_sequences: Mapping[str, int] | None = None,
-        positions: Mapping[str, tuple[bytes, int]] | None = None,
-        agents: Mapping[int, tuple[str, str, int]] | None = None,
-    ) -> None:
-        """Make the stored atlas the atlas (after a merge, an optimisation or MBP) in one
-        transaction, with the bookkeeping as :meth:`commit` writes it.
-
-        The first time for an atlas (or after a failed write) every row is written and stale
-        ones deleted; after that, and for the atlas :meth:`load` built, only what the atlas
-        changed since (:attr:`Atlas.unsaved`: whole rows of keyframes and points whose
-        observations, state or map changed, pose / position columns of those that only
-        moved, deletions), so that its cost follows the change, not the atlas."""
-        whole = self._kept is None or self._kept() is not atlas
-        u = atlas.unsaved.take()
-        self._kept = None  # a failed write leaves the rows unknown: the next one is whole
-        if whole:
-            kf_keys, mp_keys = atlas.keyframe_keys(), atlas.map_point_keys()
-            u.keyframes = {r[0] for r in self._db.execute("SELECT key FROM keyframes")}
-            u.keyframes.update(kf_keys)
-            u.points = {r[0] for r in self._db.execute("SELECT key FROM map_points")}
-            u.points.update(mp_keys)
-        db = self._db
-        db.execute("BEGIN IMMEDIATE")
-        try:
-            removed = self._write_points(atlas, sorted(u.keyframes), sorted(u.points))
-            self._write_poses(atlas, sorted(u.poses - u.keyframes))
-            self._write_positions(atlas, sorted(u.positions - u.points))
-            self._write_state(atlas.state(), removals=removed or whole)
-            self._write_links(edge_sequences, positions, agents)
-            db.execute("COMMIT")
-        except BaseException:
-            self._rollback()
-            raise
-        self._kept = weakref.ref(atlas)
 
     def _write_points(
         self, atlas: Atlas, keyframes: Iterable[int], map_points: Iterable[int]
@@ -369,7 +287,7 @@ class CloudStore:
                 removed = True
                 continue
             v = atlas.keyframe(key)
-            blob = _pack(
+            blob = pack(
                 velocity=v.velocity,
                 bias_gyro=v.bias_gyro,
                 bias_accel=v.bias_accel,
@@ -399,64 +317,10 @@ class CloudStore:
         if gone:
             db.executemany("DELETE FROM map_points WHERE key = ?", gone)
         db.executemany(
-            "INSERT OR REPLACE INTO map_points VALUES (?, ?, ?, ?, ?, ?, ?)",
+            "INSERT OR REPLACE INTO map_points VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
             atlas.map_point_rows(keys),
         )
         return removed
-
-    def _write_state(self, st: AtlasState, removals: bool = False) -> None:
-        """The atlas bookkeeping; the removed and retired keyframes only with ``removals``
-        (they change only when a keyframe goes: MBP, or the edge culling one)."""
-        db = self._db
-        for table in ("agents", "merges", "loops", "aliases"):
-            db.execute(f"DELETE FROM {table}")
-        db.executemany(
-            "INSERT INTO agents VALUES (?, ?, ?)",
-            [(a, st.map_of_agent[a], _pack(a=st.T_map_agent[a])) for a in st.map_of_agent],
-        )
-        db.executemany(
-            "INSERT INTO merges VALUES (?, ?, ?, ?, ?, ?, ?)",
-            [
-                (
-                    i,
-                    m.target_map,
-                    m.source_map,
-                    _pack(a=m.T_target_source),
-                    m.query_key,
-                    m.candidate_key,
-                    m.fused_points,
-                )
-                for i, m in enumerate(st.merges)
-            ],
-        )
-        db.executemany(
-            "INSERT INTO loops VALUES (?, ?, ?, ?, ?)",
-            [
-                (i, e.key_a, e.key_b, _pack(a=e.T_a_b), int(e.inter_agent))
-                for i, e in enumerate(st.loops)
-            ],
-        )
-        db.executemany("INSERT INTO aliases VALUES (?, ?)", list(st.aliases.items()))
-        if not removals:
-            return
-        db.executemany(
-            "INSERT OR IGNORE INTO removed_keyframes VALUES (?)",
-            [(k,) for k in st.removed_keyframes],
-        )
-        db.execute("DELETE FROM retired_keyframes")
-        db.executemany(
-            "INSERT INTO retired_keyframes VALUES (?, ?, ?, ?, ?)",
-            [
-                (
-                    r.key,
-                    r.agent_id,
-                    r.timestamp,
-                    r.anchor,
-                    np.asarray(r.T_anchor_body, "<f8").tobytes(),
-                )
-                for r in st.retired
-            ],
-        )
 
     # ------------------------------------------------------------------ missions
     def enter_mission(self, name: str) -> tuple[int, bool]:
@@ -537,17 +401,21 @@ class CloudStore:
                 "SELECT key, agent, keyframe_id, map_id, timestamp, pose, data FROM keyframes "
                 "ORDER BY key"
             ):
-                d = {**_unpack(blob), "T_map_body": _pose(pose)}
+                d = {**unpack(blob), "T_map_body": unpack_pose(pose)}
                 kfs.append(
                     KeyframeView(
                         key=key, agent_id=agent, keyframe_id=kf_id, map_id=map_id, timestamp=ts, **d
                     )
                 )
+            T_ref = {v.key: v.T_map_body for v in kfs}
             mps = []
-            for key, agent, mp_id, map_id, ref, p, blob in db.execute(
-                "SELECT key, agent, map_point_id, map_id, ref_kf, p, data FROM map_points"
+            for key, agent, mp_id, map_id, ref, p, blob, in_ref in db.execute(
+                "SELECT key, agent, map_point_id, map_id, ref_kf, p, data, in_ref FROM map_points"
             ):
-                d = _unpack_point(p, blob)
+                d = unpack_point(p, blob)
+                if in_ref:  # in its reference keyframe's frame
+                    T = T_ref[ref]
+                    d["p_map"] = T[:3, :3] @ d["p_map"] + T[:3, 3]
                 mps.append(
                     MapPointView(
                         key=key, agent_id=agent, map_point_id=mp_id, map_id=map_id, ref_kf=ref, **d
@@ -555,21 +423,21 @@ class CloudStore:
                 )
             agents = list(db.execute("SELECT agent, map_id, T_map_agent FROM agents"))
             merges = tuple(
-                MergeRecord(t, s, _arr(T), q, c, f)
+                MergeRecord(t, s, arr(T), q, c, f)
                 for t, s, T, q, c, f in db.execute(
                     "SELECT target_map, source_map, T, query_key, candidate_key, fused "
                     "FROM merges ORDER BY seq"
                 )
             )
             loops = tuple(
-                LoopEdge(a, b, _arr(T), bool(i))
+                LoopEdge(a, b, arr(T), bool(i))
                 for a, b, T, i in db.execute(
                     "SELECT key_a, key_b, T, inter_agent FROM loops ORDER BY seq"
                 )
             )
             state = AtlasState(
                 map_of_agent={a: m for a, m, _ in agents},
-                T_map_agent={a: _arr(T) for a, _, T in agents},
+                T_map_agent={a: arr(T) for a, _, T in agents},
                 merges=merges,
                 loops=loops,
                 removed_keyframes=frozenset(
@@ -577,7 +445,7 @@ class CloudStore:
                 ),
                 aliases=dict(db.execute("SELECT dropped, kept FROM aliases")),
                 retired=tuple(
-                    RetiredKeyframe(k, a, t, n, _pose(T))
+                    RetiredKeyframe(k, a, t, n, unpack_pose(T))
                     for k, a, t, n, T in db.execute(
                         "SELECT key, agent, timestamp, anchor, T FROM retired_keyframes"
                     )
@@ -587,5 +455,6 @@ class CloudStore:
             raise PersistenceError(f"{self.path}: corrupt cloud state ({exc})") from exc
         atlas = Atlas.restore(kfs, mps, state)
         self._kept = weakref.ref(atlas)
+        self._state = atlas.state()
         log.info("loaded %d keyframes, %d map points from %s", len(kfs), len(mps), self.path)
         return atlas

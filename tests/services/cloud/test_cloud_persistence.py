@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -136,8 +138,17 @@ def test_a_schema_5_state_dir_is_migrated_to_agents_keyed_by_edge(tmp_path):
     db.close()
 
 
+def _same_store(a, b):
+    """Two directories hold the same atlas (positions to rounding: a point is stored in its
+    reference keyframe's frame, and the two wrote it under different poses of it)."""
+    (kfs_a, mps_a, st_a, p_a), (kfs_b, mps_b, st_b, p_b) = _stored(a), _stored(b)
+    same = (kfs_a, mps_a, st_a) == (kfs_b, mps_b, st_b) and p_a.keys() == p_b.keys()
+    return same and all(np.allclose(p, p_b[k], rtol=0, atol=1e-9) for k, p in p_a.items())
+
+
 def _stored(path):
-    """Everything a store directory holds, as the atlas it loads into (plain comparable data)."""
+    """Everything a store directory holds, as the atlas it loads into (plain comparable data;
+    the map points' positions apart)."""
     with CloudStore(path) as store:
         atlas = store.load()
     kfs = {}
@@ -149,10 +160,15 @@ def _stored(path):
     mps = {}
     for key in atlas.map_point_keys():
         m = atlas.map_point(key)
-        mps[key] = (m.map_id, m.ref_kf, m.p_map.tobytes(), m.obs_keyframes.tobytes())
-        mps[key] += (m.obs_indices.tobytes(),)
+        mps[key] = (m.map_id, m.ref_kf, m.obs_keyframes.tobytes(), m.obs_indices.tobytes())
     st = atlas.state()
-    return kfs, mps, (st.map_of_agent, len(st.merges), len(st.loops), st.removed_keyframes)
+    positions = {key: atlas.map_point(key).p_map for key in atlas.map_point_keys()}
+    return (
+        kfs,
+        mps,
+        (st.map_of_agent, len(st.merges), len(st.loops), st.removed_keyframes),
+        positions,
+    )
 
 
 def test_incremental_saves_store_what_a_whole_save_stores(tmp_path):
@@ -175,7 +191,7 @@ def test_incremental_saves_store_what_a_whole_save_stores(tmp_path):
         whole = tmp_path / f"whole-{checks}"
         with CloudStore(whole) as fresh:
             fresh.save_all(atlas)
-        assert _stored(live) == _stored(whole), name
+        assert _same_store(live, whole), name
         checks += 1
 
     keys = [atlas.add_keyframe(x) for x in k0[:6]]
@@ -219,7 +235,10 @@ def test_incremental_saves_store_what_a_whole_save_stores(tmp_path):
     store.close()
 
 
-def test_a_failed_incremental_save_makes_the_next_one_whole(tmp_path, monkeypatch):
+@pytest.mark.parametrize("how", ["save_all", "commit"])
+def test_what_a_failed_write_took_is_written_by_the_next_one(tmp_path, monkeypatch, how):
+    """A write that fails rolls back and gives the changes it took back to the atlas: the
+    next write (a whole save_all, or a commit naming nothing) stores them."""
     world = make_world(44, n_points=800)
     k0, m0 = make_session(world, default_camera(), 0, circle_poses(6, turns=0.2), np.eye(4))
     atlas = Atlas()
@@ -230,11 +249,85 @@ def test_a_failed_incremental_save_makes_the_next_one_whole(tmp_path, monkeypatc
         for x in m0:
             atlas.add_map_point(x)
         with monkeypatch.context() as m:
-            m.setattr(store, "_write_state", lambda *a, **k: 1 / 0)
+            m.setattr(store, "_write_links", lambda *a, **k: 1 / 0)
             with pytest.raises(ZeroDivisionError):
-                store.save_all(atlas)  # rolled back, and the changes it took are forgotten
-        store.save_all(atlas)
+                getattr(store, how)(atlas)  # rolled back
+        assert atlas.unsaved.keyframes and atlas.unsaved.points
+        getattr(store, how)(atlas)
+        assert not atlas.unsaved.keyframes and not atlas.unsaved.points
     with CloudStore(tmp_path / "whole") as fresh:
         fresh.save_all(atlas)
-    assert _stored(tmp_path / "live") == _stored(tmp_path / "whole")
+    assert _same_store(tmp_path / "live", tmp_path / "whole")
     assert len(_stored(tmp_path / "live")[0]) == len(k0)
+
+
+def _point_rows(path):
+    import sqlite3
+
+    from services.cloud.persistence import DB_NAME
+
+    db = sqlite3.connect(path / DB_NAME)
+    try:
+        return {k: (bytes(p), r) for k, p, r in db.execute("SELECT key, p, in_ref FROM map_points")}
+    finally:
+        db.close()
+
+
+def test_points_follow_their_keyframe_without_rewriting_their_rows(tmp_path):
+    """A pose graph moves points rigidly with their reference keyframe: writing it back
+    updates keyframe poses only, and the reloaded points are where the atlas moved them. A
+    keyframe whose pose the edge updates (its points stay) has its points' rows rewritten."""
+    world = make_world(45, n_points=1200)
+    k0, m0 = make_session(world, default_camera(), 0, circle_poses(8, turns=0.25), np.eye(4))
+    atlas = Atlas()
+    store = CloudStore(tmp_path)
+    keys = [atlas.add_keyframe(x) for x in k0]
+    pkeys = [atlas.add_map_point(x) for x in m0]
+    store.commit(atlas, keys, pkeys)
+    before = _point_rows(tmp_path)
+    moved = {k: yaw_T(0.05, [0.1, -0.2, 0.0]) @ atlas.T_map_body(k) for k in keys[:4]}
+    atlas.set_keyframe_poses(moved)
+    assert not atlas.unsaved.positions and atlas.unsaved.poses == set(moved)
+    store.commit_poses(atlas)
+    assert _point_rows(tmp_path) == before  # no point row written
+    reloaded = CloudStore(tmp_path).load()
+    moved_points = {m for m in pkeys if atlas.map_point(m).ref_kf in moved}
+    assert moved_points
+    for m in pkeys:
+        assert np.allclose(reloaded.map_point(m).p_map, atlas.map_point(m).p_map, atol=1e-9)
+    # The edge re-sends keyframe 0 with another pose; its points do not move with it.
+    update = dataclasses.replace(
+        k0[0], T_world_body=yaw_T(0.1, [0.3, 0.0, 0.0]) @ k0[0].T_world_body
+    )
+    atlas.add_keyframe(update)
+    store.commit(atlas, [keys[0]])
+    reloaded = CloudStore(tmp_path).load()
+    for m in pkeys:
+        assert np.allclose(reloaded.map_point(m).p_map, atlas.map_point(m).p_map, atol=1e-9)
+    assert _point_rows(tmp_path) != before
+
+
+def test_a_schema_6_state_dir_keeps_its_map_frame_positions(tmp_path):
+    """Schema 6 stored every position in the map frame: its rows load as they were (in_ref 0)."""
+    import sqlite3
+
+    from services.cloud.persistence import DB_NAME, SCHEMA_VERSION
+
+    db = sqlite3.connect(tmp_path / DB_NAME)
+    db.executescript(
+        "CREATE TABLE meta (name TEXT PRIMARY KEY, value INTEGER NOT NULL);"
+        "INSERT INTO meta VALUES ('schema', 6);"
+        "CREATE TABLE map_points (key INTEGER PRIMARY KEY, agent INTEGER NOT NULL,"
+        " map_point_id INTEGER NOT NULL, map_id INTEGER NOT NULL, ref_kf INTEGER NOT NULL,"
+        " p BLOB NOT NULL, data BLOB NOT NULL);"
+    )
+    p = np.array([1.5, -2.0, 0.25], "<f8")
+    db.execute("INSERT INTO map_points VALUES (7, 0, 7, 0, -1, ?, ?)", (p.tobytes(), b""))
+    db.commit()
+    db.close()
+    with CloudStore(tmp_path) as store:
+        atlas = store.load()
+    assert np.array_equal(atlas.map_point(7).p_map, p)
+    db = sqlite3.connect(tmp_path / DB_NAME)
+    assert db.execute("SELECT value FROM meta WHERE name='schema'").fetchone() == (SCHEMA_VERSION,)
+    db.close()
