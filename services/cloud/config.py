@@ -276,6 +276,10 @@ class CloudServiceConfig:
         loop or merge (default 25); a verified loop or merge schedules it at once.
     debounce_s: after a trigger, wait this long so that a burst of triggers costs one
         optimisation (default 0.5 s).
+    optimize_rest_factor: a scheduled round starts no sooner than this many times the last
+        round's duration after its end (default 1.0: the optimisation rounds take at most
+        about half of the time, whatever the map's size, and the messages the rest; a small
+        map's rounds are shorter than ``debounce_s``, which rules then).
     mbp_every_keyframes: MBP runs on a map (when ``domain.mbp.enabled``) after this many new
         keyframes since its last pass, right after an optimisation (0 = never while running;
         default 0: pruning every 40 keyframes still costs joint ATE on some recordings even
@@ -330,6 +334,7 @@ class CloudServiceConfig:
     domain: CloudConfig = field(default_factory=CloudConfig)
     optimize_every_keyframes: int = 25
     debounce_s: float = 0.5
+    optimize_rest_factor: float = 1.0
     mbp_every_keyframes: int = 0
     mbp_at_shutdown: bool = True
     mbp_keep_recent: int = 5

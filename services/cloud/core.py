@@ -20,6 +20,11 @@ The schedule:
   (:class:`SendCorrections`, each robot's poses in its own map frame).
 - **A round at a time.** While a round's solve is out, messages keep being handled; a trigger
   that arrives meanwhile arms its deadline ``debounce_s`` after the round ends.
+- **Rest after a round.** A scheduled round (debounced or quiet) starts no sooner than
+  ``optimize_rest_factor`` times the last round's duration after its end, so that as maps
+  grow the optimisation's share of the time stays bounded and the messages keep theirs
+  (rounds on request: :meth:`CloudCore.optimize`, ``full_ba``, ``flush``, ``shutdown`` do not
+  wait).
 - **Merged during a solve.** If maps were merged while a solve was out
   (``apply_optimization`` returns None: the result is in a stale frame), a pose graph is
   scheduled again (dirty + trigger); a full BA counts as one more change of its map, picked up
@@ -182,6 +187,8 @@ class CloudCore:
         self._triggered = False
         self._trigger_t: float | None = None  # None while triggered in a round: set at its end
         self._busy = False
+        self._round_t0 = 0.0  # when the running round started
+        self._rest_until = -math.inf  # no scheduled round before (see optimize_rest_factor)
         self._steps: deque[_Step] = deque()
         self._outstanding: tuple[SolveRequest, _PoseGraph | _FullBA] | None = None
         self.optimizations = 0  # pose graphs applied
@@ -248,9 +255,9 @@ class CloudCore:
             return None
         if self._triggered:
             assert self._trigger_t is not None
-            return self._trigger_t + self.config.debounce_s
+            return max(self._trigger_t + self.config.debounce_s, self._rest_until)
         if self._quiet_pending():
-            return self._last_keyframe_t + self.config.full_ba_quiet_s
+            return max(self._last_keyframe_t + self.config.full_ba_quiet_s, self._rest_until)
         return None
 
     def on_timer(self, now: float) -> list[Action]:
@@ -367,6 +374,7 @@ class CloudCore:
     def _start(self, steps: Iterable[_Step], now: float) -> list[Action]:
         self._check_idle()
         self._busy = True
+        self._round_t0 = now
         self._steps = deque(steps)
         return self._advance(now)
 
@@ -388,6 +396,8 @@ class CloudCore:
 
     def _end(self, now: float) -> None:
         self._busy = False
+        rest = self.config.optimize_rest_factor * max(0.0, now - self._round_t0)
+        self._rest_until = now + rest if rest > 0 else -math.inf
         if self._triggered and self._trigger_t is None:
             self._trigger_t = now  # triggered during the round: debounce from its end
 

@@ -64,7 +64,9 @@ def _config(full_ba: bool = False, mbp: bool = False, **kw) -> CloudServiceConfi
     domain = CloudConfig(
         full_ba=FullBAConfig(enabled=full_ba, max_iterations=3), mbp=MbpConfig(enabled=mbp)
     )
-    base = CloudServiceConfig(domain=domain, debounce_s=0.5, optimize_every_keyframes=1000)
+    base = CloudServiceConfig(
+        domain=domain, debounce_s=0.5, optimize_every_keyframes=1000, optimize_rest_factor=0.0
+    )
     return dataclasses.replace(base, **kw)
 
 
@@ -148,6 +150,27 @@ def test_a_trigger_during_a_solve_is_debounced_from_the_end_of_the_round(feed):
     assert core.next_deadline() == pytest.approx(2.5)
     with pytest.raises(CloudCoreError):
         core.solved(req, solve(req), 2.0)  # handed back twice
+
+
+def test_after_a_long_round_the_next_rests_rest_factor_times_as_long(feed):
+    """A round that took 4 s (a big map on a busy core) is followed by 2 s without a
+    scheduled one (factor 0.5), whatever the debounce; a short round by the debounce."""
+    f = feed(_config(optimize_every_keyframes=2, optimize_rest_factor=0.5))
+    core = f.core
+    f.keyframe("r0", 0.0)
+    f.keyframe("r0", 0.1)
+    [req] = core.on_timer(0.6)
+    f.keyframe("r0", 1.0)
+    f.keyframe("r0", 1.1)  # triggers during the round
+    core.solved(req, solve(req), 4.6)  # the round took 4 s
+    assert core.next_deadline() == pytest.approx(6.6)  # 4.6 + 0.5 * 4, not 4.6 + 0.5
+    assert core.on_timer(6.5) == []
+    [req] = core.on_timer(6.6)
+    f.keyframe("r0", 6.7)
+    f.keyframe("r0", 6.8)
+    core.solved(req, solve(req), 6.8)  # 0.2 s: the debounce rules
+    assert core.next_deadline() == pytest.approx(7.3)
+    assert core.optimize(0, 6.9)  # on request: at once
 
 
 def test_a_merge_during_a_solve_reschedules_the_map(feed):
