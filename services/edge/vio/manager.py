@@ -201,9 +201,13 @@ class VioManager:
         with the nearest earlier corrected keyframe, each map point moves rigidly with its first
         observer (nothing re-sent to the cloud), and the tracking state with the newest keyframe.
         Returns keyframes updated;
-        corrections for another map are ignored (0)."""
+        corrections for another map are ignored (0), and so are those of a map before its VI
+        initialisation: the cloud's poses are in the metric, gravity-aligned frame it got the
+        map in, a visual map has its own scale until then (e.g. the re-run of a map that a
+        restarted edge replays from its journal while the cloud still corrects the first run,
+        which broke its initialisation: "IMU and visual poses disagree", the map 17 m off)."""
         vmap = self._map
-        if vmap is None or vmap.map_id != map_id:
+        if vmap is None or vmap.map_id != map_id or not vmap.vi_initialized:
             return 0
         delta = np.eye(4)
         deltas: dict[int, np.ndarray] = {}

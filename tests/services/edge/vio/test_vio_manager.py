@@ -98,6 +98,27 @@ def test_rejects_malformed_frames():
         vio.feed_imu(np.array([5, 4]), np.zeros((2, 3)), np.zeros((2, 3)))
 
 
+def test_a_visual_map_before_vi_initialisation_takes_no_pose_correction():
+    """Corrections are metric; before VI initialisation (e.g. a restarted edge re-running a
+    map from its journal) the map's scale is its own: they are ignored, nothing moves."""
+    from common.geometry import make_T, so3_exp
+
+    seq = simulate(SimOptions(duration_s=8.0, seed=6))
+    vio = VioManager(seq.camera, seq.imu)
+    for t, g, a, fr in seq.feed():
+        vio.feed_imu(t, g, a)
+        vio.feed_frame(fr)
+        vmap = vio.current_map
+        if vmap is not None and len(vmap.keyframe_list()) >= 2:
+            break
+    assert vmap is not None and not vio.initialized
+    before = {k.id: k.T_world_body.copy() for k in vmap.keyframe_list()}
+    D = make_T(so3_exp([0.0, 0.0, 0.2]), [0.5, -0.3, 0.0])
+    assert vio.apply_pose_corrections(vmap.map_id, {k: D @ T for k, T in before.items()}) == 0
+    assert all(np.array_equal(k.T_world_body, before[k.id]) for k in vmap.keyframe_list())
+    assert vio.pop_point_moves() == []
+
+
 def test_pose_corrections_move_map_rigidly_and_tracking_continues():
     from common.geometry import make_T, so3_exp
     from services.edge.vio.local_ba import reprojection_chi2
