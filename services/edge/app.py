@@ -26,7 +26,10 @@ draining it:
   acks keep flowing however busy the codecs are;
 - ``PoseCorrection`` from the cloud is attached to that robot's next frame;
 - on start, :meth:`EdgeApp.replay` re-decodes each journal and fast-forwards the VIO over it
-  (no robot feedback during replay; keyframes are uplinked again, the cloud is idempotent).
+  (no robot feedback during replay). The re-run is a new map (map ids of this run's
+  generations, :data:`~services.edge.worker.GENERATIONS_PER_RUN`): the VIO is not
+  deterministic, so its keyframes and points are not the first run's under the same ids, and
+  the cloud merges the new map with the old one as with any other map of the robot.
 """
 
 from __future__ import annotations
@@ -59,7 +62,14 @@ from common.vocabulary import Vocabulary
 from services.edge.journal import JournalRecord, JournalStore
 from services.edge.robot_session import RobotSession, SessionOptions
 from services.edge.vio.types import VioOptions
-from services.edge.worker import Worker, WorkerFactory, WorkerSpec, WorkItem, make_worker
+from services.edge.worker import (
+    GENERATIONS_PER_RUN,
+    Worker,
+    WorkerFactory,
+    WorkerSpec,
+    WorkItem,
+    make_worker,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -132,7 +142,8 @@ class EdgeApp:
         """The session and worker of a robot that joined with ``sensors``."""
         camera = sensors.camera
         session = RobotSession(agent_id, camera, self.vocabulary, self.config.session)
-        spec = WorkerSpec(agent_id, camera, sensors.imu, self.config.vio)
+        run = 0 if self.journal is None else self.journal.next_run(agent_id)
+        spec = WorkerSpec(agent_id, camera, sensors.imu, self.config.vio, run * GENERATIONS_PER_RUN)
         rb = _Robot(
             sensors,
             session,

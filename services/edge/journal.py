@@ -142,6 +142,23 @@ class JournalStore:
             out.append(name_file.read_text() if name_file.exists() else p.stem)
         return out
 
+    def next_run(self, agent_id: str) -> int:
+        """How many edge runs served this robot before this one (0 the first time), counted
+        durably in ``<agent>.runs``: a restarted edge re-runs the robot's VIO from the journal,
+        and that re-run is a new map, not the first run's (which the cloud already holds)."""
+        path = self.path(agent_id).with_suffix(".runs")
+        try:
+            run = int(path.read_text()) if path.exists() else 0
+        except ValueError as exc:
+            raise JournalError(f"{path}: not a run count ({exc})") from exc
+        tmp = path.with_suffix(".runs.tmp")
+        with open(tmp, "w") as f:
+            f.write(str(run + 1))
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+        return run
+
     def register(self, agent_id: str) -> None:
         """Remember the exact agent id of a journal (file names are sanitised)."""
         name_file = self.path(agent_id).with_suffix(".agent")

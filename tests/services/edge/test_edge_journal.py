@@ -2,8 +2,10 @@
 
 from pathlib import Path
 
+import pytest
+
 from common.protocol.link_state import InboundPosition
-from services.edge.journal import JournalRecord, JournalStore, RobotJournal
+from services.edge.journal import JournalError, JournalRecord, JournalStore, RobotJournal
 
 
 def test_records_round_trip_and_position_is_the_last_record(tmp_path: Path) -> None:
@@ -37,3 +39,15 @@ def test_torn_last_record_is_cut_and_appends_continue(tmp_path: Path) -> None:
     j.append(JournalRecord(b"s", 2, 0x0201, b"again"))
     j.close()
     assert [r.payload for r in RobotJournal(path).read()] == [b"abc", b"again"]
+
+
+def test_runs_are_counted_per_robot_across_restarts(tmp_path):
+    """Each edge start that serves a robot gets the next run number, kept on disk."""
+    store = JournalStore(tmp_path)
+    assert [store.next_run("robot-a"), store.next_run("robot-a")] == [0, 1]
+    assert store.next_run("robot/b") == 0  # another robot (a sanitised file name)
+    store.close()
+    assert JournalStore(tmp_path).next_run("robot-a") == 2
+    (tmp_path / "robot-a.runs").write_text("two")
+    with pytest.raises(JournalError, match=r"robot-a\.runs"):
+        JournalStore(tmp_path).next_run("robot-a")
