@@ -179,10 +179,14 @@ class VioManager:
         )
 
     def pop_map_updates(self) -> list[MapUpdate]:
-        """Changes of keyframes and map points (per map) since the previous call."""
+        """Changes of keyframes and map points (per map) since the previous call, of
+        VI-initialised maps only: before its VI initialisation a map has its own scale and no
+        gravity, and the cloud would merge maps into it (a map that dies before, e.g. on a
+        killed edge, stayed there as the frame of the whole atlas: 8 deg off gravity, 10 m
+        off); its changes wait, and go up at once when it is initialised."""
         out = self._pending_updates
         self._pending_updates = []
-        if self._map is not None:
+        if self._map is not None and self._map.vi_initialized:
             upd = self._collect_update(self._map)
             if upd.keyframes or upd.points or upd.removed_point_ids:
                 out.append(upd)
@@ -294,7 +298,8 @@ class VioManager:
         if self._map is not None:
             if self._map.vi_initialized and self._last_bias is not None:
                 self._bias_guess = self._last_bias
-            self._pending_updates.append(self._collect_update(self._map))
+            if self._map.vi_initialized:  # (one that never was never leaves the edge)
+                self._pending_updates.append(self._collect_update(self._map))
             logger.warning(
                 "%s: map %d lost (%s); starting map %d",
                 self.name,

@@ -364,7 +364,7 @@ def test_edge_killed_and_restarted_loses_no_frame(tmp_path, vocab, sim_frames) -
     from services.edge.worker import GENERATIONS_PER_RUN, MAP_ID_STRIDE
 
     rerun = {m: ids for m, ids in by_map.items() if m >= GENERATIONS_PER_RUN * MAP_ID_STRIDE}
-    assert rerun and len(rerun) < len(by_map), sorted(by_map)
+    assert rerun, sorted(by_map)  # (the first run's map, killed before its VI init, never went up)
     assert final.keyframes == sum(len(v) for v in rerun.values())
     sent = cloud.of(AgentSensors, "robot-1")
     assert len(sent) == 2  # once per edge run: the restarted edge had it from its journal

@@ -150,3 +150,25 @@ def test_pose_corrections_move_map_rigidly_and_tracking_continues():
         results.append(vio.feed_frame(fr))
     assert all(r.status == TrackingStatus.TRACKING for r in results)
     assert {r.map_id for r in results} == {vmap.map_id}
+
+
+def test_a_map_goes_up_only_once_vi_initialised_and_then_whole():
+    """No map updates before VI initialisation (no scale, no gravity yet); the first one after
+    holds every keyframe of the map."""
+    seq = simulate(SimOptions(duration_s=8.0, seed=6))
+    vio = VioManager(seq.camera, seq.imu)
+    before_init = []
+    first = None
+    for t, g, a, fr in seq.feed():
+        vio.feed_imu(t, g, a)
+        vio.feed_frame(fr)
+        ups = vio.pop_map_updates()
+        if not vio.initialized:
+            before_init += ups
+        elif ups:
+            first = ups[0]
+            break
+    assert before_init == []
+    vmap = vio.current_map
+    assert first is not None and first.vi_initialized and vmap is not None
+    assert {k.keyframe_id for k in first.keyframes} == {k.id for k in vmap.keyframe_list()}
