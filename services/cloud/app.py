@@ -403,10 +403,8 @@ class CloudApp:
             key = make_key(a.agent_id, d.keyframe_id)
             old[key] = self.atlas.keyframe(key).T_map_body
             self.fusion.add_keyframe(kf)
-        moved = self.atlas.move_points_with(old)
-        self.store.commit(
-            self.atlas, list(old), positions=position, agents=self._rows(a), moved_points=moved
-        )
+        self.atlas.move_points_with(old)  # (their stored rows follow their keyframe)
+        self.store.commit(self.atlas, list(old), positions=position, agents=self._rows(a))
         return Reaction()
 
     def _map_points(

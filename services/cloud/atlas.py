@@ -147,7 +147,7 @@ class Atlas:
                 )
         self._unsaved.keyframes.add(key)
         if not new:  # its points' stored positions are relative to the old pose
-            self._unsaved.positions.update(self._referencing(k))
+            self._unsaved.followers.update(self._referencing(k))
         k.timestamp = float(kf.timestamp)
         k.T_map_body = T_ma @ kf.T_world_body
         k.velocity = T_ma[:3, :3] @ kf.velocity
@@ -440,7 +440,9 @@ class Atlas:
         P = np.einsum("mij,mj->mi", c[:, :3, :3], P) + c[:, :3, 3]
         for m, p in zip(mps, P, strict=True):
             m.p_map = p
-        return [m.key for m in mps]  # their stored rows follow their keyframe: unchanged
+        moved = [m.key for m in mps]
+        self._unsaved.followers.difference_update(moved)  # their stored rows hold again
+        return moved
 
     def set_map_point_positions(self, positions: dict[int, np.ndarray]) -> None:
         for key, p in positions.items():

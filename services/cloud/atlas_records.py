@@ -188,6 +188,9 @@ class Unsaved:
     poses: set[int] = field(default_factory=set)
     points: set[int] = field(default_factory=set)
     positions: set[int] = field(default_factory=set)
+    followers: set[int] = field(default_factory=set)
+    """Points whose reference keyframe moved without them (stored relative to it, their rows
+    are stale), until they follow it (:meth:`Atlas.move_points_with`)."""
 
     def update(self, other: Unsaved) -> None:
         """Also what ``other`` holds."""
@@ -195,30 +198,14 @@ class Unsaved:
         self.poses |= other.poses
         self.points |= other.points
         self.positions |= other.positions
+        self.followers |= other.followers
 
     def take(self) -> Unsaved:
         """What changed until now, forgotten here (changes after this call are kept)."""
-        taken = Unsaved(self.keyframes, self.poses, self.points, self.positions)
+        taken = Unsaved(self.keyframes, self.poses, self.points, self.positions, self.followers)
         self.keyframes, self.poses, self.points, self.positions = set(), set(), set(), set()
+        self.followers = set()
         return taken
-
-    def forget(
-        self,
-        keyframes: Iterable[int] = (),
-        poses: Iterable[int] = (),
-        points: Iterable[int] = (),
-        positions: Iterable[int] = (),
-    ) -> None:
-        """The store wrote these rows (whole keyframes, keyframe poses only, whole map points,
-        point positions only) as the atlas holds them now."""
-        for k in keyframes:
-            self.keyframes.discard(k)
-            self.poses.discard(k)
-        self.poses.difference_update(poses)
-        for k in points:
-            self.points.discard(k)
-            self.positions.discard(k)
-        self.positions.difference_update(positions)
 
 
 def stored_rows(

@@ -132,7 +132,6 @@ class CloudStore:
         positions: Mapping[str, tuple[bytes, int]] | None = None,
         agents: Mapping[int, tuple[str, str, int]] | None = None,
         sensors: Mapping[str, bytes] | None = None,
-        moved_points: Iterable[int] = (),
     ) -> None:
         """In one transaction: write the given keyframes and map points as the atlas holds them
         (rows of keys no longer in the atlas are deleted) and whatever else the atlas changed
@@ -140,12 +139,10 @@ class CloudStore:
         delivered sequence of each edge, the transport ``positions`` ``{edge: (stream id,
         last delivered seq)}`` (replacing the stored ones), ``agents`` ``{agent id: (robot
         name, edge id, edge map id)}`` and ``sensors`` ``{robot name: its encoded sensor
-        description}``; of ``moved_points`` only the position. Returns once the data is
-        durable."""
+        description}``. Returns once the data is durable."""
         u = atlas.unsaved.take()
         u.keyframes.update(int(k) for k in keyframes)
         u.points.update(int(k) for k in map_points)
-        u.positions.update(int(k) for k in moved_points)
         self._transaction(atlas, u, edge_sequences, positions, agents, sensors)
 
     def commit_poses(
@@ -203,7 +200,7 @@ class CloudStore:
         try:
             removed = self._write_points(atlas, sorted(u.keyframes), sorted(u.points))
             self._write_poses(atlas, sorted(u.poses - u.keyframes))
-            self._write_positions(atlas, sorted(u.positions - u.points))
+            self._write_positions(atlas, sorted((u.positions | u.followers) - u.points))
             last = None if whole else self._state
             write_state(db, st, last, removals=removed or whole)
             self._write_links(edge_sequences, positions, agents)

@@ -305,6 +305,17 @@ def test_points_follow_their_keyframe_without_rewriting_their_rows(tmp_path):
     for m in pkeys:
         assert np.allclose(reloaded.map_point(m).p_map, atlas.map_point(m).p_map, atol=1e-9)
     assert _point_rows(tmp_path) != before
+    # A pose-only update the points follow (the edge's KeyframePoses): no point row written.
+    rows = _point_rows(tmp_path)
+    old = {keys[1]: atlas.T_map_body(keys[1])}
+    T = yaw_T(-0.1, [0.0, 0.2, 0.0]) @ k0[1].T_world_body
+    atlas.add_keyframe(dataclasses.replace(k0[1], T_world_body=T))
+    assert atlas.move_points_with(old)
+    store.commit(atlas, [keys[1]])
+    assert _point_rows(tmp_path) == rows
+    reloaded = CloudStore(tmp_path).load()
+    for m in pkeys:
+        assert np.allclose(reloaded.map_point(m).p_map, atlas.map_point(m).p_map, atol=1e-9)
 
 
 def test_a_schema_6_state_dir_keeps_its_map_frame_positions(tmp_path):
