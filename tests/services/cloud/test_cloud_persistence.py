@@ -21,13 +21,19 @@ def _covis(atlas):
     }
 
 
+def _two_agents(world_seed, n_poses, turns, T_a1, seeds):
+    """Two agents' sessions over one world: agent 0 in the world frame, agent 1 in ``T_a1``."""
+    world, cam = make_world(world_seed, n_points=1500), default_camera()
+    poses = circle_poses(n_poses, turns=turns)
+    return (
+        make_session(world, cam, 0, poses, np.eye(4), seed=seeds[0]),
+        make_session(world, cam, 1, poses, T_a1, seed=seeds[1]),
+    )
+
+
 def test_restart_resumes_with_the_same_state(tmp_path):
-    world = make_world(41, n_points=1500)
-    cam = default_camera()
-    poses = circle_poses(10, turns=0.3)
     T_a1 = yaw_T(0.5, [1.0, 0.0, 0.0])
-    k0, m0 = make_session(world, cam, 0, poses, np.eye(4), seed=1)
-    k1, m1 = make_session(world, cam, 1, poses, T_a1, seed=2)
+    (k0, m0), (k1, m1) = _two_agents(41, 10, 0.3, T_a1, seeds=(1, 2))
     atlas = Atlas()
     with CloudStore(tmp_path) as store:
         # Batches of messages from two edges, each committed before its acknowledgement.
@@ -175,12 +181,8 @@ def test_incremental_saves_store_what_a_whole_save_stores(tmp_path):
     """After its first whole write, save_all writes only what the atlas changed since (and the
     atlas a store loaded starts as stored): after every kind of change, the directory holds
     exactly what one whole save of the same atlas into a fresh directory holds."""
-    world = make_world(43, n_points=1500)
-    cam = default_camera()
-    poses = circle_poses(12, turns=0.35)
     T_a1 = yaw_T(0.4, [0.5, 0.2, 0.0])
-    k0, m0 = make_session(world, cam, 0, poses, np.eye(4), seed=3)
-    k1, m1 = make_session(world, cam, 1, poses, T_a1, seed=4)
+    (k0, m0), (k1, m1) = _two_agents(43, 12, 0.35, T_a1, seeds=(3, 4))
     live = tmp_path / "live"
     atlas = Atlas()
     store = CloudStore(live)
