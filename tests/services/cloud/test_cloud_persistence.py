@@ -222,9 +222,13 @@ def test_incremental_saves_store_what_a_whole_save_stores(tmp_path):
     atlas.retire_keyframe(k[7], k[6])
     v = atlas.keyframe(k[2])
     atlas.add_virtual_observations(
-        k[2], v.keypoints[:2], v.levels[:2], v.descriptors[:2], v.word_ids[:2],
+        k[2],
+        v.keypoints[:2],
+        v.levels[:2],
+        v.descriptors[:2],
+        v.word_ids[:2],
         np.array(atlas.map_point_keys()[-2:]),
-    )  # fmt: skip
+    )
     store.save_all(atlas)
     check("MBP: removed, retired, virtual observations")
     store.close()
