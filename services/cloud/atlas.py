@@ -573,8 +573,8 @@ class Atlas:
     # ------------------------------------------------------------------ persistence
     @property
     def unsaved(self) -> Unsaved:
-        """What changed since the one store that keeps this atlas last wrote it
-        (``CloudStore.save_all``: :meth:`Unsaved.take`, :meth:`Unsaved.forget`)."""
+        """What changed since the one store that keeps this atlas last wrote it (every
+        ``CloudStore`` write takes it, :meth:`Unsaved.take`, and gives it back if it fails)."""
         return self._unsaved
 
     def state(self) -> AtlasState:

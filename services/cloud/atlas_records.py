@@ -9,7 +9,7 @@ an atlas is restored. Poses are in the record's map frame (``map_id``).
 from __future__ import annotations
 
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from typing import TypeVar
 
 import numpy as np
@@ -194,17 +194,14 @@ class Unsaved:
 
     def update(self, other: Unsaved) -> None:
         """Also what ``other`` holds."""
-        self.keyframes |= other.keyframes
-        self.poses |= other.poses
-        self.points |= other.points
-        self.positions |= other.positions
-        self.followers |= other.followers
+        for f in fields(self):
+            getattr(self, f.name).update(getattr(other, f.name))
 
     def take(self) -> Unsaved:
         """What changed until now, forgotten here (changes after this call are kept)."""
-        taken = Unsaved(self.keyframes, self.poses, self.points, self.positions, self.followers)
-        self.keyframes, self.poses, self.points, self.positions = set(), set(), set(), set()
-        self.followers = set()
+        taken = Unsaved(**{f.name: getattr(self, f.name) for f in fields(self)})
+        for f in fields(self):
+            setattr(self, f.name, set())
         return taken
 
 
