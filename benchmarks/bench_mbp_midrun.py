@@ -1,7 +1,8 @@
 """MBP during operation (issue 17, item 2): keyframes kept and joint ATE, same recordings.
 
 Run: ``.venv/bin/python benchmarks/bench_mbp_midrun.py --ab RECORDING:DATASET [...] [--every 40]
-[--settle 0,30]``; writes ``benchmarks/results/mbp_midrun.md`` and ``mbp_midrun.png``.
+[--settle 30] [--variant LABEL:KEY=VALUE[,KEY=VALUE...] ...]``; writes
+``benchmarks/results/mbp_midrun.md`` and ``mbp_midrun.png``.
 
 Each recording (``recslam demo --record-uplink``) is replayed through the cloud service's own
 core (:func:`lab.table3.replay`, modelled schedule, solves taking no time: the result does not
@@ -10,19 +11,27 @@ keyframes and at shutdown) and:
 
 - **no MBP**;
 - **MBP at shutdown** (the service's default);
-- **MBP every N keyframes** while running, once per ``--settle`` value S: a pass while running
-  keeps each agent's S newest keyframes (``CloudServiceConfig.mbp_settle_keyframes``; 0 is
-  the behaviour before it: only ``mbp_keep_recent`` = 5), the final pass at shutdown keeps 5.
+- **MBP every N keyframes** while running, once per ``--settle`` value S (a pass while running
+  keeps each agent's S newest keyframes, ``CloudServiceConfig.mbp_settle_keyframes``; the
+  final pass at shutdown keeps ``mbp_keep_recent`` = 5), each twice: the pass right after
+  the pose graph that finds it due, and the pass after a full BA of the map that this pose
+  graph then schedules (``mbp_after_full_ba``);
+- one row per ``--variant``: the last of those (every N, last settle, after a full BA) with
+  ``KEY=VALUE`` overrides: a ``CloudServiceConfig`` field, or ``full_ba.X`` / ``mbp.X`` /
+  ``optimization.X`` of its domain (values parsed as int, float, true/false, else string).
 
 Keyframes: the atlas at the end over the keyframes received. ATE: joint RMSE (SE(3)) of every
 keyframe received (a pruned one through the kept keyframe it is anchored to), as the cloud's
-report computes it.
+report computes it; "kept" is the same over the kept keyframes only. Full BAs: how many ran
+(shutdown included) and their solve time here, the price of the extra full BAs.
 """
 
 from __future__ import annotations
 
 import argparse
+import concurrent.futures
 import dataclasses
+import functools
 import logging
 import platform
 import subprocess
@@ -34,6 +43,7 @@ from common.evaluation.results import load_groundtruth
 from common.vocabulary import DEFAULT_VOCABULARY_PATH, Vocabulary
 from lab.table3 import ReplayResult, joint_ate, replay, service_config
 from services.cloud.config import CloudServiceConfig
+from services.cloud.core import SolveKind, SolveRequest, SolveResult, solve
 from services.cloud.recording import read_schedule
 from services.cloud.runner import find_camera
 
@@ -41,7 +51,35 @@ log = logging.getLogger("bench_mbp_midrun")
 RESULTS = Path(__file__).resolve().parent / "results"
 
 
-def variants(every: int, settles: list[int]) -> list[tuple[str, CloudServiceConfig]]:
+def _value(text: str) -> object:
+    low = text.lower()
+    if low in ("true", "false"):
+        return low == "true"
+    for kind in (int, float):
+        try:
+            return kind(text)
+        except ValueError:
+            pass
+    return text
+
+
+def overridden(cfg: CloudServiceConfig, spec: str) -> CloudServiceConfig:
+    """``cfg`` with ``KEY=VALUE[,KEY=VALUE...]`` applied (module docstring)."""
+    for item in filter(None, spec.split(",")):
+        key, _, text = item.partition("=")
+        value = _value(text)
+        part, _, name = key.partition(".")
+        if name:
+            sub = dataclasses.replace(getattr(cfg.domain, part), **{name: value})
+            cfg = dataclasses.replace(cfg, domain=dataclasses.replace(cfg.domain, **{part: sub}))
+        else:
+            cfg = dataclasses.replace(cfg, **{key: value})
+    return cfg
+
+
+def variants(
+    every: int, settles: list[int], extra: list[str]
+) -> list[tuple[str, CloudServiceConfig]]:
     """(label, configuration) of every row of one recording."""
     rows = [
         ("no MBP", service_config(False)),
@@ -49,12 +87,34 @@ def variants(every: int, settles: list[int]) -> list[tuple[str, CloudServiceConf
     ]
     for s in settles:
         cfg = dataclasses.replace(service_config(True, every), mbp_settle_keyframes=s)
-        rows.append((f"MBP every {every}, settle {s}", cfg))
+        rows.append((f"every {every}, settle {s}, after its pose graph", cfg))
+        cfg = dataclasses.replace(cfg, mbp_after_full_ba=True)
+        rows.append((f"every {every}, settle {s}, after a full BA", cfg))
+    base = rows[-1][1]
+    for spec in extra:
+        label, _, keys = spec.partition(":")
+        rows.append((label, overridden(base, keys)))
     return rows
+
+
+class _TimedSolve:
+    """The service's in-thread solve, timed per kind of request."""
+
+    def __init__(self) -> None:
+        self.seconds: dict[SolveKind, float] = {}
+
+    def __call__(self, request: SolveRequest) -> SolveResult:
+        t0 = time.perf_counter()
+        try:
+            return solve(request)
+        finally:
+            dt = time.perf_counter() - t0
+            self.seconds[request.kind] = self.seconds.get(request.kind, 0.0) + dt
 
 
 def run_one(rec: Path, data: Path, label: str, cfg: CloudServiceConfig, vocab: Vocabulary) -> dict:
     camera = find_camera(None, data)
+    timed = _TimedSolve()
     with tempfile.TemporaryDirectory() as tmp:
         r: ReplayResult = replay(
             read_schedule(rec, allow_truncated_tail=True),
@@ -64,11 +124,13 @@ def run_one(rec: Path, data: Path, label: str, cfg: CloudServiceConfig, vocab: V
             Path(tmp) / "state",
             label,
             full_ba=True,
+            solve_fn=timed,
             schedule="modelled",
             latency_scale=0.0,
         )
     refs, _ = load_groundtruth(sorted(r.trajectories), data)
     ate = joint_ate(refs, r.trajectories)
+    kept = joint_ate(refs, r.kept_trajectories)
     return {
         "label": label,
         "keyframes": r.keyframes,
@@ -77,7 +139,10 @@ def run_one(rec: Path, data: Path, label: str, cfg: CloudServiceConfig, vocab: V
         "maps": len(r.maps),
         "loops": r.loops,
         "passes": r.mbp_passes,
+        "full_bas": r.full_bas,
+        "full_ba_s": timed.seconds.get(SolveKind.FULL_BA, 0.0),
         "joint_m": None if ate is None else ate.stats.rmse,
+        "kept_m": None if kept is None else kept.stats.rmse,
         "per_robot_m": {}
         if ate is None
         else {n: a.stats.rmse for n, a in sorted(ate.under_joint.items())},
@@ -112,29 +177,51 @@ def plot(results: dict[str, list[dict]], path: Path) -> None:
     plt.close(fig)
 
 
+@functools.cache
+def _vocabulary() -> Vocabulary:
+    return Vocabulary.load(DEFAULT_VOCABULARY_PATH)
+
+
+def _run_job(job: tuple[str, str, str, CloudServiceConfig]) -> dict:
+    rec, data, label, cfg = job
+    logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(name)s: %(message)s")
+    row = run_one(Path(rec), Path(data), label, cfg, _vocabulary())
+    log.info("%s: %s: %s", Path(rec).name, label, row)
+    return row
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument(
         "--ab", action="append", required=True, metavar="RECORDING:DATASET", help="repeatable"
     )
     ap.add_argument("--every", type=int, default=40, help="MBP every N new keyframes")
-    ap.add_argument("--settle", default="0,30", help="settle values, comma-separated")
+    ap.add_argument("--settle", default="30", help="settle values, comma-separated")
+    ap.add_argument(
+        "--variant",
+        action="append",
+        default=[],
+        metavar="LABEL:KEY=VALUE[,KEY=VALUE...]",
+        help="one more row (module docstring); repeatable",
+    )
+    ap.add_argument("--jobs", type=int, default=1, help="replays run in parallel (processes)")
     ap.add_argument("--out", type=Path, default=RESULTS, help="folder of the md and png")
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(name)s: %(message)s")
     log.setLevel(logging.INFO)
-    vocab = Vocabulary.load(DEFAULT_VOCABULARY_PATH)
     settles = [int(s) for s in args.settle.split(",") if s]
-    results: dict[str, list[dict]] = {}
-    t0 = time.perf_counter()
+    rows_of = variants(args.every, settles, args.variant)
+    jobs = []
     for spec in args.ab:
         rec_s, data_s = spec.split(":", 1)
-        rec, data = Path(rec_s), Path(data_s)
-        rows = results.setdefault(rec.name, [])
-        for label, cfg in variants(args.every, settles):
-            log.info("%s: %s ...", rec.name, label)
-            rows.append(run_one(rec, data, label, cfg, vocab))
-            log.info("  %s", rows[-1])
+        jobs += [(rec_s, data_s, label, cfg) for label, cfg in rows_of]
+    t0 = time.perf_counter()
+    log.info("%d replays, %d at a time", len(jobs), args.jobs)
+    with concurrent.futures.ProcessPoolExecutor(args.jobs) as pool:
+        done = list(pool.map(_run_job, jobs))
+    results: dict[str, list[dict]] = {}
+    for (rec_s, _, _, _), row in zip(jobs, done, strict=True):
+        results.setdefault(Path(rec_s).name, []).append(row)
     commit = subprocess.run(
         ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, check=False
     ).stdout.strip()
@@ -142,31 +229,36 @@ def main() -> None:
         "# MBP during operation: keyframes kept and joint ATE on the same recordings",
         "",
         f"Command: `benchmarks/bench_mbp_midrun.py {' '.join('--ab ' + a for a in args.ab)} "
-        f"--every {args.every} --settle {args.settle}`; commit {commit}; "
+        f"--every {args.every} --settle {args.settle}"
+        + "".join(f" --variant '{v}'" for v in args.variant)
+        + f"`; commit {commit}; "
         f"{time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}; {platform.machine()}, "
-        f"{time.perf_counter() - t0:.0f} s in all. Replays through the service's core, "
-        "modelled schedule with solves taking no time (deterministic; see the script's "
-        "docstring). Keyframes: kept at the end / received.",
+        f"{time.perf_counter() - t0:.0f} s in all ({args.jobs} at a time). Replays through the "
+        "service's core, modelled schedule with solves taking no time (deterministic; see the "
+        "script's docstring). Keyframes: kept at the end / received. Kept ATE: over the kept "
+        "keyframes only. Full BAs: count, and their solve time here.",
         "",
         "| recording | run | keyframes | kept % | map points | maps | loops | MBP passes "
-        "| joint ATE cm | change vs no MBP | per robot cm |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
+        "| full BAs | joint ATE cm | change vs no MBP | kept ATE cm | per robot cm |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for rec, rows in results.items():
         base = rows[0]["joint_m"]
         for r in rows:
-            j = r["joint_m"]
+            j, k = r["joint_m"], r["kept_m"]
             change = (
                 ""
                 if j is None or base is None or r is rows[0]
-                else f"{100 * (j / base - 1):+.0f} %"
+                else f"{100 * (j / base - 1):+.1f} %"
             )
             per = ", ".join(f"{100 * v:.2f}" for v in r["per_robot_m"].values())
             lines.append(
                 f"| `{rec}` | {r['label']} | {r['keyframes']} / {r['received']} "
                 f"| {100 * r['keyframes'] / max(r['received'], 1):.0f} | {r['map_points']} "
                 f"| {r['maps']} | {r['loops']} | {r['passes']} "
-                f"| {'–' if j is None else f'{100 * j:.2f}'} | {change} | {per} |"
+                f"| {r['full_bas']} ({r['full_ba_s']:.0f} s) "
+                f"| {'–' if j is None else f'{100 * j:.2f}'} | {change} "
+                f"| {'–' if k is None else f'{100 * k:.2f}'} | {per} |"
             )
     lines += ["", "![mbp_midrun.png](mbp_midrun.png)", ""]
     args.out.mkdir(parents=True, exist_ok=True)

@@ -95,6 +95,7 @@ class ReplayResult:
     seconds: float
     trajectories: dict[str, Trajectory]
     map_of_robot: dict[str, int]
+    full_bas: int = 0
     kept_trajectories: dict[str, Trajectory] = field(default_factory=dict)
     info: dict[int, KeyframeInfo] = field(default_factory=dict)
     backbone: dict[str, int] = field(default_factory=dict)
@@ -250,6 +251,7 @@ def replay(
             loops=len(a.loops()),
             optimizations=core.optimizations,
             mbp_passes=core.mbp_passes,
+            full_bas=core.full_bas,
             seconds=time.perf_counter() - t0,
             trajectories=trajs,
             map_of_robot=maps,

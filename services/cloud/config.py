@@ -295,6 +295,10 @@ class CloudServiceConfig:
         (benchmarks/results/mbp_midrun.md): protecting 5 raised the joint ATE 0.95 -> 2.99,
         1.47 -> 10.3 and 1.02 -> 4.99 cm; protecting 30 gave 1.04, 1.51 and 2.12 cm (the
         last one still worse, why is open), hence ``mbp_every_keyframes`` stays 0.
+    mbp_after_full_ba: with full BA on, a pass while running waits for a full BA: the pose
+        graph that finds MBP due schedules a full BA of the map at once and the pass runs
+        right after it is applied (default False; measured in
+        benchmarks/results/mbp_midrun.md) ...
     word_group_level: verification matches words within their vocabulary ancestor at this
         tree level (None = same word only; default 3 of a k=10, L=4 vocabulary, so that a
         few flipped descriptor bits that change the leaf do not lose the match).
@@ -339,6 +343,7 @@ class CloudServiceConfig:
     mbp_at_shutdown: bool = True
     mbp_keep_recent: int = 5
     mbp_settle_keyframes: int = 30
+    mbp_after_full_ba: bool = False
     word_group_level: int | None = 3
     mission: str | None = None
     output_every_s: float = 30.0

@@ -29,8 +29,11 @@ The schedule:
   (``apply_optimization`` returns None: the result is in a stale frame), a pose graph is
   scheduled again (dirty + trigger); a full BA counts as one more change of its map, picked up
   by the next full-BA occasion.
-- **MBP when due.** Right after a pose graph is applied, MBP runs on the map when
-  ``CloudApp.prune_due`` (``mbp_every_keyframes`` new keyframes since its last pass).
+- **MBP when due** (``CloudApp.prune_due``: ``mbp_every_keyframes`` new keyframes since the
+  map's last pass). With full BA on and ``mbp_after_full_ba``, the pose graph that finds it
+  due is followed by a full BA of the map and the pass runs right after that full BA is
+  applied (not after the full BA at shutdown: the shutdown pass follows it anyway); else
+  the pass runs right after the pose graph is applied.
 - **Full bundle adjustment** (when ``domain.full_ba.enabled``), built, solved and applied like
   a pose graph, corrections included: right after a map's pose graph once it has
   ``full_ba_every_keyframes`` changes (new keyframes, loops / merges) since its last full BA;
@@ -341,9 +344,13 @@ class CloudCore:
                 return actions + self._advance(now)
             self.optimizations += 1
             actions.insert(0, SendCorrections(tuple(corrections)))
-            self._prune_if_due(m)
+            full_on = self.config.domain.full_ba.enabled
             due = self._since_full.get(m, 0) >= self.config.full_ba_every_keyframes
-            if due and self.config.domain.full_ba.enabled:
+            if full_on and self.config.mbp_after_full_ba and self.app.prune_due(m):
+                due = True  # the pass follows the full BA
+            else:
+                self._prune_if_due(m)
+            if due and full_on:
                 self._steps.appendleft(_FullBA(m, "after its pose graph"))
         elif corrections is None:
             log.info("map %d merged during its full BA; rescheduling", m)
@@ -352,6 +359,8 @@ class CloudCore:
             self.full_bas += 1
             if step.send:
                 actions.insert(0, SendCorrections(tuple(corrections)))
+            if self.config.mbp_after_full_ba and step.send:  # not at shutdown
+                self._prune_if_due(m)
         return actions + self._advance(now)
 
     def failed(self, request: SolveRequest, now: float) -> list[Action]:

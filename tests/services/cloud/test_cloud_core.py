@@ -256,6 +256,35 @@ def test_quiet_waits_while_a_pose_graph_is_scheduled(feed):
     assert _requests(core.on_timer(5.0))[0].kind is SolveKind.FULL_BA
 
 
+@pytest.mark.parametrize("after_full_ba", [True, False])
+def test_mbp_while_running_follows_a_full_ba_when_mbp_after_full_ba(feed, after_full_ba):
+    f = feed(
+        _config(
+            full_ba=True,
+            mbp=True,
+            optimize_every_keyframes=3,
+            full_ba_every_keyframes=1000,  # never due by itself here
+            mbp_every_keyframes=3,
+            mbp_after_full_ba=after_full_ba,
+        )
+    )
+    core = f.core
+    for i in range(3):
+        f.keyframe("r0", 0.1 * i)
+    [pg] = core.on_timer(1.0)
+    assert pg.kind is SolveKind.POSE_GRAPH
+    full = _requests(core.solved(pg, solve(pg), 1.0))
+    if after_full_ba:  # MBP is due: a full BA first, the pass after it
+        assert [(r.map_id, r.kind) for r in full] == [(0, SolveKind.FULL_BA)]
+        assert core.mbp_passes == 0 and core.busy
+        actions = core.solved(full[0], solve(full[0]), 1.5)
+        assert any(isinstance(a, SendCorrections) for a in actions)
+        assert core.full_bas == 1
+    else:  # the pass right after the pose graph, no full BA
+        assert full == [] and core.full_bas == 0
+    assert core.mbp_passes == 1 and not core.busy
+
+
 @pytest.mark.parametrize("elapsed", [10.0, 31.0])
 def test_shutdown_pose_graphs_then_full_ba_within_the_budget_then_mbp(feed, elapsed):
     f = feed(
