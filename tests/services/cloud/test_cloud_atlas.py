@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -180,6 +182,29 @@ def test_remove_keyframe_clears_observations_and_covisibility(session):
     # A late update of the pruned keyframe is ignored.
     atlas.add_keyframe(kfs[3])
     assert not atlas.has_keyframe(key)
+
+
+def test_a_point_whose_reference_goes_follows_the_observer_nearest_in_time(session):
+    kfs, mps = session
+    # Stamps shuffled: the nearest in time is then often not the oldest key (the old rule).
+    order = np.random.default_rng(4).permutation(len(kfs))
+    kfs = [
+        dataclasses.replace(k, timestamp=kfs[j].timestamp) for k, j in zip(kfs, order, strict=True)
+    ]
+    atlas = _atlas(kfs, mps)
+    stamp = {make_key(0, k.keyframe_id): k.timestamp for k in kfs}
+    cases = 0
+    for mk in atlas.map_point_keys():
+        m = atlas.map_point(mk)
+        rest = [k for k in m.obs_keyframes.tolist() if k != m.ref_kf]
+        nearest = min(rest, key=lambda k: abs(stamp[k] - stamp[m.ref_kf]), default=None)
+        if nearest is None or nearest == min(rest):
+            continue  # only points where the oldest observer is not the nearest one
+        ref = m.ref_kf
+        atlas.remove_observation(mk, ref)
+        assert atlas.map_point(mk).ref_kf == nearest, (mk, ref, rest)
+        cases += 1
+    assert cases >= 5
 
 
 def test_moved_point_the_cloud_removed_is_not_recreated_without_observers(session):
