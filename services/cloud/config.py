@@ -343,7 +343,7 @@ class CloudServiceConfig:
     mbp_at_shutdown: bool = True
     mbp_keep_recent: int = 5
     mbp_settle_keyframes: int = 30
-    mbp_after_full_ba: bool = False
+    mbp_after_full_ba: bool = True
     word_group_level: int | None = 3
     mission: str | None = None
     output_every_s: float = 30.0
