@@ -20,6 +20,13 @@ keyframes and at shutdown) and:
   ``KEY=VALUE`` overrides: a ``CloudServiceConfig`` field, or ``full_ba.X`` / ``mbp.X`` /
   ``optimization.X`` of its domain (values parsed as int, float, true/false, else string).
 
+A replay is open-loop: the recorded edge applied the corrections of the *live* cloud, and its
+later updates (map points re-observed on a revisit, in its corrected frame) are placed by the
+cloud through the robot's one map-from-edge transform. A configuration whose corrections
+differ from the live run's receives them in a frame that no longer fits its own keyframes, so
+a replay is faithful only for the configuration the recording was made with; compare on
+recordings made with each (``recslam demo --mbp-every 40 --record-uplink ...``) and live.
+
 Keyframes: the atlas at the end over the keyframes received. ATE: joint RMSE (SE(3)) of every
 keyframe received (a pruned one through the kept keyframe it is anchored to), as the cloud's
 report computes it; "kept" is the same over the kept keyframes only. Full BAs: how many ran

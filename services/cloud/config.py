@@ -282,23 +282,22 @@ class CloudServiceConfig:
         map's rounds are shorter than ``debounce_s``, which rules then).
     mbp_every_keyframes: MBP runs on a map (when ``domain.mbp.enabled``) after this many new
         keyframes since its last pass, right after an optimisation (0 = never while running;
-        default 0: pruning every 40 keyframes still costs joint ATE on some recordings even
-        with ``mbp_settle_keyframes``, +3 / +9 / +109 % on three, see
-        benchmarks/results/mbp_midrun.md) ...
+        default 0; measured in benchmarks/results/mbp_midrun.md: live, pruning every 40
+        keyframes kept 31 % of the keyframes at the same joint ATE, but replays of recordings
+        made without it still lose accuracy on one of three) ...
     mbp_at_shutdown: ... and over every map at shutdown, after the last full BA, before the
         trajectories are written (default True): the persisted map is the pruned one.
     mbp_keep_recent: each agent's newest keyframes MBP never removes (default 5) ...
     mbp_settle_keyframes: ... and, in a pass while running, each agent's this many newest
         keyframes (default 30): they are still in the edge's reach (it keeps re-sending their
         poses and their young points keep moving), and pruning them folds and freezes
-        unsettled geometry. The replays of three recordings with MBP every 40 keyframes
-        (benchmarks/results/mbp_midrun.md): protecting 5 raised the joint ATE 0.95 -> 2.99,
-        1.47 -> 10.3 and 1.02 -> 4.99 cm; protecting 30 gave 1.04, 1.51 and 2.12 cm (the
-        last one still worse, why is open), hence ``mbp_every_keyframes`` stays 0.
+        unsettled geometry (protecting 5 instead raised the replays' joint ATE 2-7x).
     mbp_after_full_ba: with full BA on, a pass while running waits for a full BA: the pose
-        graph that finds MBP due schedules a full BA of the map at once and the pass runs
-        right after it is applied (default False; measured in
-        benchmarks/results/mbp_midrun.md) ...
+        graph that finds MBP due schedules a full BA of the map at once, and the pass runs
+        right after that is applied (default True). A pose graph moves the keyframes and each
+        map point only with its reference keyframe, so right after one the points seen across
+        a loop are where the loop left them; a pass then folds that geometry into the
+        absorbing keyframes' virtual observations. Costs one more full BA per pass.
     word_group_level: verification matches words within their vocabulary ancestor at this
         tree level (None = same word only; default 3 of a k=10, L=4 vocabulary, so that a
         few flipped descriptor bits that change the leaf do not lose the match).

@@ -204,8 +204,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         type=int,
         default=0,
         metavar="N",
-        help="with --mbp, also prune a map every N new keyframes while running, keeping each "
-        "robot's 30 newest (default 0: only at shutdown; see benchmarks/results/mbp_midrun.md)",
+        help="with --mbp, also prune a map every N new keyframes while running, right after a "
+        "full BA of it (with --full-ba), keeping each robot's 30 newest (default 0: only at "
+        "shutdown; see benchmarks/results/mbp_midrun.md)",
     )
     p.add_argument(
         "--full-ba",
