@@ -1,0 +1,151 @@
+"""MBP during operation, live (issue 17, item 2): the whole job with and without pruning.
+
+Run: ``.venv/bin/python benchmarks/bench_mbp_live.py --data DATASET [...] [--every 40]
+[--repeats 1] [--root DIR]`` runs, per dataset and repeat, ``recslam demo --data DATASET
+--no-dashboard --rate realtime --no-mbp`` and then the same with ``--mbp-every N`` (alternating,
+so that the load of the machine falls on both alike), each into its own folder under
+``--root``; ``--from-runs`` only reads the folders a run left there. Writes
+``benchmarks/results/mbp_live.md`` and ``mbp_live.png``.
+
+A live run is the only faithful test of a configuration that changes the corrections sent to
+the edges: the edge applies them and sends its later updates in the corrected frame (see
+``bench_mbp_midrun.py``). Live runs are not deterministic (robots, edge and cloud race on the
+machine's cores), so the table shows every run and the spread per dataset.
+
+Per run (the demo's ``report.json``): keyframes the edges uplinked and kept at the end, MBP
+passes, joint ATE (SE(3), every keyframe received), and the wall time of the whole job.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import platform
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+log = logging.getLogger("bench_mbp_live")
+RESULTS = Path(__file__).resolve().parent / "results"
+
+
+def folder(root: Path, data: Path, variant: str, repeat: int) -> Path:
+    return root / data.name / f"{variant}-{repeat}"
+
+
+def run_demo(data: Path, out: Path, every: int) -> None:
+    """One whole job (``every`` 0: no MBP at all)."""
+    mbp = ["--no-mbp"] if every == 0 else ["--mbp-every", str(every)]
+    cmd = [sys.executable, "-m", "recslam", "demo", "--data", str(data), "--no-dashboard"]
+    cmd += ["--rate", "realtime", *mbp, "--out", str(out)]
+    log.info("%s", " ".join(cmd))
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with (out.parent / f"{out.name}.log").open("w") as f:
+        subprocess.run(cmd, stdout=f, stderr=subprocess.STDOUT, check=True)
+
+
+def summary(out: Path) -> dict:
+    r = json.loads((out / "report.json").read_text())
+    m, ate = r["map"], r["ate"]
+    return {
+        "run": out.name,
+        "uplinked": m["keyframes_uplinked"],
+        "kept": m["keyframes_after_mbp"],
+        "passes": m["mbp_passes"],
+        "maps": len(m["maps"]),
+        "joint_m": ate.get("joint_rmse_m"),
+        "wall_s": r["wall_s"],
+        "failed": r["failed"],
+    }
+
+
+def plot(rows: dict[str, dict[str, list[dict]]], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6.4, 4.0))
+    for i, (name, by) in enumerate(rows.items()):
+        for j, runs in enumerate(by.values()):
+            xs = [100 * r["kept"] / max(r["uplinked"], 1) for r in runs]
+            ys = [100 * (r["joint_m"] or float("nan")) for r in runs]
+            ax.plot(xs, ys, "os"[j], color=f"C{i}", ms=7, alpha=0.8, mfc="none" if j else None)
+        ax.plot([], [], "o", color=f"C{i}", label=name)
+    ax.plot([], [], "o", color="0.4", label="no MBP")
+    ax.plot([], [], "s", color="0.4", mfc="none", label="MBP while running")
+    ax.axvline(60, color="#e45756", ls="--", lw=1)
+    ax.set_xlabel("keyframes kept at the end, % of uplinked")
+    ax.set_ylabel("joint ATE cm")
+    ax.set_title("Live runs: MBP while running vs none")
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--data", type=Path, action="append", required=True, help="repeatable")
+    ap.add_argument("--every", type=int, default=40, help="MBP every N new keyframes")
+    ap.add_argument("--repeats", type=int, default=1, help="runs of each variant per dataset")
+    ap.add_argument("--root", type=Path, default=Path("runs/mbp_live"), help="run folders")
+    ap.add_argument("--from-runs", action="store_true", help="only summarise the folders")
+    ap.add_argument("--out", type=Path, default=RESULTS, help="folder of the md and png")
+    args = ap.parse_args()
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
+    variants = {"no MBP": 0, f"MBP every {args.every}": args.every}
+    t0 = time.perf_counter()
+    if not args.from_runs:
+        for data in args.data:
+            for k in range(args.repeats):
+                for every in variants.values():
+                    run_demo(data, folder(args.root, data, f"mbp{every}", k), every)
+    rows: dict[str, dict[str, list[dict]]] = {}
+    for data in args.data:
+        by = rows.setdefault(data.name, {})
+        for name, every in variants.items():
+            for k in range(args.repeats):
+                out = folder(args.root, data, f"mbp{every}", k)
+                if (out / "report.json").is_file():
+                    by.setdefault(name, []).append(summary(out))
+    commit = subprocess.run(
+        ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, check=False
+    ).stdout.strip()
+    lines = [
+        "# MBP during operation, live: the whole job with and without pruning",
+        "",
+        f"Command: `benchmarks/bench_mbp_live.py {' '.join('--data ' + str(d) for d in args.data)}"
+        f" --every {args.every} --repeats {args.repeats} --root {args.root}"
+        f"{' --from-runs' if args.from_runs else ''}`; commit {commit}; "
+        f"{time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}; {platform.machine()}"
+        f"{'' if args.from_runs else f', {time.perf_counter() - t0:.0f} s in all'}. Each run: "
+        "`recslam demo --data DATASET --no-dashboard --rate realtime` with `--no-mbp` or "
+        f"`--mbp-every {args.every}` (the cloud's defaults otherwise: VI full BA, each pass "
+        "after a full BA, 30 newest keyframes per robot kept while running).",
+        "",
+        "| dataset | variant | run | keyframes kept / uplinked | kept % | MBP passes | maps "
+        "| joint ATE cm | wall s |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for name, by in rows.items():
+        for variant, runs in by.items():
+            for r in runs:
+                j = r["joint_m"]
+                lines.append(
+                    f"| {name} | {variant} | {r['run']} | {r['kept']} / {r['uplinked']} "
+                    f"| {100 * r['kept'] / max(r['uplinked'], 1):.0f} | {r['passes']} "
+                    f"| {r['maps']} | {'–' if j is None else f'{100 * j:.2f}'} "
+                    f"| {r['wall_s']:.0f}{' (failed)' if r['failed'] else ''} |"
+                )
+    lines += ["", "![mbp_live.png](mbp_live.png)", ""]
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "mbp_live.md").write_text("\n".join(lines))
+    plot(rows, args.out / "mbp_live.png")
+    log.info("wrote %s", args.out / "mbp_live.md")
+
+
+if __name__ == "__main__":
+    main()
