@@ -282,9 +282,8 @@ class CloudServiceConfig:
         map's rounds are shorter than ``debounce_s``, which rules then).
     mbp_every_keyframes: MBP runs on a map (when ``domain.mbp.enabled``) after this many new
         keyframes since its last pass, right after an optimisation (0 = never while running;
-        default 0; measured in benchmarks/results/mbp_midrun.md: live, pruning every 40
-        keyframes kept 31 % of the keyframes at the same joint ATE, but replays of recordings
-        made without it still lose accuracy on one of three) ...
+        default 0: live, every 40 kept 31-54 % of the keyframes at -7 to +15 % joint ATE
+        against runs without it, benchmarks/results/mbp_live.md; replays, mbp_midrun.md) ...
     mbp_at_shutdown: ... and over every map at shutdown, after the last full BA, before the
         trajectories are written (default True): the persisted map is the pruned one.
     mbp_keep_recent: each agent's newest keyframes MBP never removes (default 5) ...
