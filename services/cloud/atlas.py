@@ -22,7 +22,6 @@ Nothing mutable leaves this module: :meth:`Atlas.keyframe` returns a frozen copy
 from __future__ import annotations
 
 import logging
-import math
 from collections.abc import Iterable, Iterator
 
 import numpy as np
@@ -33,6 +32,7 @@ from services.cloud.atlas_records import (
     KeyframeRecord,
     MapPointRecord,
     Unsaved,
+    heir_reference,
     snapshot_of,
     stored_rows,
 )
@@ -476,21 +476,7 @@ class Atlas:
         for other in m.obs:
             self._graph.add_weight(kf_key, other, -1)
         if m.ref_kf == kf_key:
-            m.ref_kf = self._heir_reference(m.obs, self._kfs[kf_key])
-
-    def _heir_reference(self, observers: Iterable[int], gone: KeyframeRecord) -> int:
-        """The reference keyframe a map point takes when ``gone`` (its reference) stops
-        observing it: the remaining observer of the same agent nearest in time, else the
-        nearest in time of any agent (-1: none left). The point then keeps following the
-        robot whose keyframes made it when later updates move that robot's keyframes (the
-        edge's re-sent poses, a pose graph), not another robot's."""
-        best, best_rank = -1, (True, math.inf, 0)
-        for key in observers:
-            o = self._kfs[key]
-            rank = (o.agent_id != gone.agent_id, abs(o.timestamp - gone.timestamp), key)
-            if rank < best_rank:
-                best, best_rank = key, rank
-        return best
+            m.ref_kf = heir_reference([self._kfs[k] for k in m.obs], self._kfs[kf_key])
 
     def retire_keyframe(self, key: int, anchor: int) -> None:
         """Remove ``key`` as :meth:`remove_keyframe` does but keep its pose relative to

@@ -8,6 +8,7 @@ an atlas is restored. Poses are in the record's map frame (``map_id``).
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field, fields
 from typing import TypeVar
@@ -250,3 +251,17 @@ def snapshot_of(
         T_map_agent={a: ro(T) for a, T in T_map_agent.items()},
         merges=tuple(merges),
     )
+
+
+def heir_reference(observers: Iterable[KeyframeRecord], gone: KeyframeRecord) -> int:
+    """The key of the reference keyframe a map point takes when ``gone`` (its reference)
+    stops observing it: of its remaining ``observers``, the one of the same agent nearest in
+    time, else the nearest in time of any agent (-1: none left). The point then keeps following
+    the robot whose keyframes made it when later updates move that robot's keyframes (the
+    edge's re-sent poses, a pose graph), not another robot's."""
+    best, best_rank = -1, (True, math.inf, 0)
+    for o in observers:
+        rank = (o.agent_id != gone.agent_id, abs(o.timestamp - gone.timestamp), o.key)
+        if rank < best_rank:
+            best, best_rank = o.key, rank
+    return best
