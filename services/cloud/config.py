@@ -290,7 +290,7 @@ class CloudServiceConfig:
     mbp_settle_keyframes: ... and, in a pass while running, each agent's this many newest
         keyframes (default 30): they are still in the edge's reach (it keeps re-sending their
         poses and their young points keep moving), and pruning them folds and freezes
-        unsettled geometry (protecting 5 instead raised the replays' joint ATE 2-7x).
+        unsettled geometry (protecting 5 instead raised the replays' joint ATE 3-7x).
     mbp_after_full_ba: with full BA on, a pass while running waits for a full BA: the pose
         graph that finds MBP due schedules a full BA of the map at once, and the pass runs
         right after that is applied (default True). A pose graph moves the keyframes and each
