@@ -1,9 +1,10 @@
 """MBP during operation, live (issue 17, item 2): the whole job with and without pruning.
 
 Run: ``.venv/bin/python benchmarks/bench_mbp_live.py --data DATASET [...] [--every 40]
-[--repeats 1] [--root DIR]`` runs, per dataset and repeat, ``recslam demo --data DATASET
---no-dashboard --rate realtime --no-mbp`` and then the same with ``--mbp-every N`` (alternating,
-so that the load of the machine falls on both alike), each into its own folder under
+[--repeats 1] [--root DIR]`` runs, per dataset and repeat, the whole job as ``recslam demo
+--data DATASET --no-dashboard --rate realtime --no-mbp`` runs it (:func:`lab.links.run_job`)
+and then the same with ``--mbp-every N`` (alternating, so that the load of the machine falls
+on both alike), each into its own folder under
 ``--root``; ``--from-runs`` only reads the folders a run left there. Writes
 ``benchmarks/results/mbp_live.md`` and ``mbp_live.png``.
 
@@ -19,13 +20,14 @@ passes, joint ATE (SE(3), every keyframe received), and the wall time of the who
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import platform
-import subprocess
-import sys
 import time
 from pathlib import Path
+
+from common.links import WireFormat
+from lab.links import git_commit, run_job
+from lab.seeds import read_report
 
 log = logging.getLogger("bench_mbp_live")
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -35,27 +37,16 @@ def folder(root: Path, data: Path, variant: str, repeat: int) -> Path:
     return root / data.name / f"{variant}-{repeat}"
 
 
-def run_demo(data: Path, out: Path, every: int) -> None:
-    """One whole job (``every`` 0: no MBP at all)."""
-    mbp = ["--no-mbp"] if every == 0 else ["--mbp-every", str(every)]
-    cmd = [sys.executable, "-m", "recslam", "demo", "--data", str(data), "--no-dashboard"]
-    cmd += ["--rate", "realtime", *mbp, "--out", str(out)]
-    log.info("%s", " ".join(cmd))
-    out.parent.mkdir(parents=True, exist_ok=True)
-    with (out.parent / f"{out.name}.log").open("w") as f:
-        subprocess.run(cmd, stdout=f, stderr=subprocess.STDOUT, check=True)
-
-
 def summary(out: Path) -> dict:
-    r = json.loads((out / "report.json").read_text())
-    m, ate = r["map"], r["ate"]
+    """The numbers of one run folder this table shows (:func:`lab.seeds.read_report`)."""
+    r = read_report(out)
     return {
         "run": out.name,
-        "uplinked": m["keyframes_uplinked"],
-        "kept": m["keyframes_after_mbp"],
-        "passes": m["mbp_passes"],
-        "maps": len(m["maps"]),
-        "joint_m": ate.get("joint_rmse_m"),
+        "uplinked": r["keyframes_uplinked"],
+        "kept": r["keyframes_kept"],
+        "passes": r["mbp_passes"],
+        "maps": r["maps"],
+        "joint_m": r["joint_m"],
         "wall_s": r["wall_s"],
         "failed": r["failed"],
     }
@@ -93,6 +84,7 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=1, help="runs of each variant per dataset")
     ap.add_argument("--root", type=Path, default=Path("runs/mbp_live"), help="run folders")
     ap.add_argument("--from-runs", action="store_true", help="only summarise the folders")
+    ap.add_argument("--timeout", type=float, default=1800.0, help="seconds a run may take")
     ap.add_argument("--out", type=Path, default=RESULTS, help="folder of the md and png")
     args = ap.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
@@ -101,8 +93,19 @@ def main() -> None:
     if not args.from_runs:
         for data in args.data:
             for k in range(args.repeats):
-                for every in variants.values():
-                    run_demo(data, folder(args.root, data, f"mbp{every}", k), every)
+                for name, every in variants.items():
+                    out = folder(args.root, data, f"mbp{every}", k)
+                    label = f"[{data.name} {name} #{k}]"
+                    run_job(
+                        data,
+                        out,
+                        WireFormat.CODED,
+                        "realtime",
+                        args.timeout,
+                        label,
+                        mbp=every > 0,
+                        mbp_every=every,
+                    )
     rows: dict[str, dict[str, list[dict]]] = {}
     for data in args.data:
         by = rows.setdefault(data.name, {})
@@ -111,9 +114,7 @@ def main() -> None:
                 out = folder(args.root, data, f"mbp{every}", k)
                 if (out / "report.json").is_file():
                     by.setdefault(name, []).append(summary(out))
-    commit = subprocess.run(
-        ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, check=False
-    ).stdout.strip()
+    commit = git_commit()
     lines = [
         "# MBP during operation, live: the whole job with and without pruning",
         "",

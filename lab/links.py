@@ -407,15 +407,30 @@ def run_one(
 
 
 def run_job(
-    dataset: Path, report_dir: Path, wire: WireFormat, rate: str, timeout_s: float, label: str
+    dataset: Path,
+    report_dir: Path,
+    wire: WireFormat,
+    rate: str,
+    timeout_s: float,
+    label: str,
+    mbp: bool = True,
+    mbp_every: int = 0,
 ) -> dict[str, Any]:
-    """One whole run of ``dataset`` (as ``recslam demo --no-dashboard --wire WIRE`` runs it)
-    into ``report_dir`` (replaced); its ``report.json``; progress every 30 s in the log."""
+    """One whole run of ``dataset`` (as ``recslam demo --no-dashboard --wire WIRE`` runs it,
+    with ``--no-mbp`` / ``--mbp-every`` as ``mbp`` / ``mbp_every`` say) into ``report_dir``
+    (replaced); its ``report.json``; progress every 30 s in the log."""
     from recslam.orchestration import JobConfig, progress_line, run_and_report
 
     if report_dir.exists():
         shutil.rmtree(report_dir)
-    job = JobConfig(dataset=dataset, run_dir=report_dir / "run", rate=rate, wire=wire)
+    job = JobConfig(
+        dataset=dataset,
+        run_dir=report_dir / "run",
+        rate=rate,
+        wire=wire,
+        mbp=mbp,
+        mbp_every=mbp_every,
+    )
     last = [0.0]
 
     def progress(sample: dict[str, Any], elapsed: float) -> None:

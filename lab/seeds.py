@@ -222,6 +222,10 @@ def read_report(folder: Path) -> dict[str, Any]:
         "frames_lost": sum(int(r.get("frames_lost", 0)) for r in robots.values()),
         "failed": list(rep.get("failed", [])),
         "camera_s": rep.get("camera_s"),
+        "wall_s": rep.get("wall_s"),
+        "keyframes_uplinked": m.get("keyframes_uplinked"),
+        "keyframes_kept": m.get("keyframes_after_mbp"),
+        "mbp_passes": m.get("mbp_passes"),
     }
 
 
