@@ -41,13 +41,13 @@ import dataclasses
 import functools
 import logging
 import platform
-import subprocess
 import tempfile
 import time
 from pathlib import Path
 
 from common.evaluation.results import load_groundtruth
 from common.vocabulary import DEFAULT_VOCABULARY_PATH, Vocabulary
+from lab.links import git_commit
 from lab.table3 import ReplayResult, joint_ate, replay, service_config
 from services.cloud.config import CloudServiceConfig
 from services.cloud.core import SolveKind, SolveRequest, SolveResult, solve
@@ -231,9 +231,7 @@ def main() -> None:
     results: dict[str, list[dict]] = {}
     for (rec_s, _, _, _), row in zip(jobs, done, strict=True):
         results.setdefault(Path(rec_s).name, []).append(row)
-    commit = subprocess.run(
-        ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, check=False
-    ).stdout.strip()
+    commit = git_commit()
     lines = [
         "# MBP during operation: keyframes kept and joint ATE on the same recordings",
         "",
