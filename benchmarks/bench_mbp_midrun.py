@@ -44,6 +44,7 @@ import platform
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 from common.evaluation.results import load_groundtruth
 from common.vocabulary import DEFAULT_VOCABULARY_PATH, Vocabulary
@@ -58,7 +59,7 @@ log = logging.getLogger("bench_mbp_midrun")
 RESULTS = Path(__file__).resolve().parent / "results"
 
 
-def _value(text: str) -> object:
+def _value(text: str) -> Any:  # a field value of any type, checked by the dataclass
     low = text.lower()
     if low in ("true", "false"):
         return low == "true"
