@@ -311,6 +311,11 @@ class CloudServiceConfig:
     optimizer_process: solve pose graphs in a separate process (default True: gtsam holds the
         GIL during most of a solve, which would stall the event loop's thread); False uses a
         thread (no process start-up, fine for small maps).
+    optimizer_nice: the optimizer process's niceness increment (``os.nice``; default 10;
+        0 = the service's priority). The solves are background work whose results can wait;
+        the worker that applies the edges' messages cannot, or their queue grows. On a core
+        shared by both, nice 10 gives the worker ~10x the solver's share while both run,
+        and the solver the whole core whenever the worker is idle.
     mission: the named mission to serve (``services.cloud.mission``): resumed when it is the
         state directory's current one, else started, the earlier missions' agents becoming
         the read-only prior map (default None: the current mission continues).
@@ -349,7 +354,12 @@ class CloudServiceConfig:
     bandwidth_window_s: float = 120.0
     display_spacing_m: float = 0.0
     optimizer_process: bool = True
+    optimizer_nice: int = 10
     gt_every_s: float = 5.0
     full_ba_every_keyframes: int = 100
     full_ba_quiet_s: float = 0.0
     full_ba_at_shutdown_s: float = 30.0
+
+    def __post_init__(self) -> None:
+        if not 0 <= self.optimizer_nice <= 19:
+            raise ValueError(f"optimizer_nice must be in 0..19, got {self.optimizer_nice}")

@@ -287,12 +287,15 @@ def apply_pose_graph(atlas: Atlas, result: PoseGraphResult) -> int:
     return len(poses)
 
 
-def optimizer_process_init(parent_pid: int) -> None:
+def optimizer_process_init(parent_pid: int, nice: int = 0) -> None:
     """Initializer of a separate optimizer process (``ProcessPoolExecutor(initializer=...)``).
 
     The service owns its lifecycle: SIGINT / SIGTERM (e.g. Ctrl-C to the process group) are
     ignored, and the process exits as soon as ``parent_pid`` is gone, even after a SIGKILL of
-    the service (checked every second)."""
+    the service (checked every second). ``nice``: added to the process's niceness
+    (``CloudServiceConfig.optimizer_nice``)."""
+    if nice:
+        os.nice(nice)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
 

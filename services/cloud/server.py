@@ -214,7 +214,7 @@ class CloudServer:
                 1,
                 mp_context=multiprocessing.get_context("spawn"),
                 initializer=optimizer_process_init,
-                initargs=(os.getpid(),),
+                initargs=(os.getpid(), self.config.optimizer_nice),
             )
         return ThreadPoolExecutor(1, thread_name_prefix="cloud-optimizer")
 

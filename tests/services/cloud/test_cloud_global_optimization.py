@@ -2,18 +2,23 @@
 
 from __future__ import annotations
 
+import multiprocessing
+import os
+from concurrent.futures import ProcessPoolExecutor
+
 import numpy as np
 import pytest
 
 from common.geometry import inverse_T, so3_exp
 from services.cloud.atlas import Atlas, make_key
-from services.cloud.config import GlobalOptimizationConfig
+from services.cloud.config import CloudServiceConfig, GlobalOptimizationConfig
 from services.cloud.global_optimization import (
     GlobalOptimizationError,
     PoseGraphProblem,
     apply_pose_graph,
     build_pose_graph,
     optimize_pose_graph,
+    optimizer_process_init,
     up_in_body,
 )
 from services.cloud.simulation import circle_poses, default_camera, make_session, make_world, yaw_T
@@ -131,3 +136,25 @@ def test_attitude_factors_keep_roll_and_pitch_while_the_loop_corrects_yaw() -> N
     yaw = lambda T: np.arctan2(T[1, 0], T[0, 0])  # noqa: E731
     before = abs(yaw(drift[-1]) - yaw(true[-1]))
     assert abs(yaw(held.T_world_body[-1]) - yaw(true[-1])) < 0.5 * before
+
+
+def _niceness() -> int:
+    return os.nice(0)
+
+
+@pytest.mark.parametrize("nice", [0, 10])
+def test_the_optimizer_process_runs_at_the_configured_niceness(nice: int) -> None:
+    """The solves are background work: the optimizer process runs ``optimizer_nice`` above
+    the service, so a shared core goes to the worker that applies the edges' messages."""
+    with ProcessPoolExecutor(
+        1,
+        mp_context=multiprocessing.get_context("spawn"),
+        initializer=optimizer_process_init,
+        initargs=(os.getpid(), nice),
+    ) as pool:
+        assert pool.submit(_niceness).result(timeout=60) == os.nice(0) + nice
+
+
+def test_optimizer_nice_out_of_range_is_refused() -> None:
+    with pytest.raises(ValueError, match="optimizer_nice"):
+        CloudServiceConfig(optimizer_nice=-1)
