@@ -318,6 +318,17 @@ class Atlas:
         k = self._kfs[m.ref_kf]
         return k.descriptors[m.obs[m.ref_kf]].copy()
 
+    def map_point_descriptors(self, keys: np.ndarray) -> np.ndarray:
+        """``(N, 32) uint8``: :meth:`map_point_descriptor` of each of ``keys (N,)``."""
+        out = np.empty((len(keys), 32), np.uint8)
+        kfs = self._kfs
+        for i, key in enumerate(np.asarray(keys).tolist()):
+            m = self._mp(key)
+            if m.ref_kf < 0:
+                raise AtlasError(f"map point {split_key(key)} has no observation")
+            out[i] = kfs[m.ref_kf].descriptors[m.obs[m.ref_kf]]
+        return out
+
     def loops(self) -> list[LoopEdge]:
         return list(self._loops)
 

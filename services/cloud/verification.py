@@ -85,6 +85,23 @@ def hamming(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.bitwise_count(a64[:, None, :] ^ b64[None, :, :]).sum(axis=2, dtype=np.int32)
 
 
+def pair_hamming(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Hamming distances ``(N,) int32`` of row pairs ``a[i]``, ``b[i]`` (``(N, 32) uint8``)."""
+    a64 = np.ascontiguousarray(a, dtype=np.uint8).view(np.uint64)
+    b64 = np.ascontiguousarray(b, dtype=np.uint8).view(np.uint64)
+    return np.bitwise_count(a64 ^ b64).sum(axis=1, dtype=np.int32)
+
+
+def _first_per(group: np.ndarray, *keys: np.ndarray) -> np.ndarray:
+    """Indices of the first element of each ``group`` value when sorted by ``keys`` (most
+    significant first), ties broken by position: one index per group, groups ascending."""
+    order = np.lexsort((np.arange(group.size), *keys[::-1], group))
+    g = group[order]
+    first = np.ones(g.size, bool)
+    first[1:] = g[1:] != g[:-1]
+    return order[first]
+
+
 def match_by_words(
     desc_a: np.ndarray,
     group_a: np.ndarray,
@@ -95,31 +112,40 @@ def match_by_words(
 ) -> np.ndarray:
     """One-to-one matches ``(K, 2)`` (index in a, index in b) between descriptors sharing a
     group id (word or vocabulary node), with distance ≤ ``max_hamming`` and the ratio test
-    against the second-best candidate of the same group."""
+    against the second-best candidate of the same group (none: passes); of equal distances
+    the lower index in b is the best. Only same-group pairs are compared (a direct index,
+    as DBoW2's): the cost grows with the pairs, not with ``len(a) * len(b)``."""
+    empty = np.zeros((0, 2), np.int64)
     if desc_a.shape[0] == 0 or desc_b.shape[0] == 0:
-        return np.zeros((0, 2), np.int64)
-    big = 1 << 16
-    D = hamming(desc_a, desc_b)
-    D[np.asarray(group_a)[:, None] != np.asarray(group_b)[None, :]] = big
-    if D.shape[1] == 1:
-        best, d1, d2 = np.zeros(D.shape[0], np.int64), D[:, 0], np.full(D.shape[0], big)
-    else:
-        part = np.argpartition(D, 1, axis=1)[:, :2]
-        rows = np.arange(D.shape[0])
-        d_two = D[rows[:, None], part]
-        first = np.argmin(d_two, axis=1)
-        best = part[rows, first]
-        d1 = d_two[rows, first]
-        d2 = d_two[rows, 1 - first]
-    ok = (d1 <= max_hamming) & ((d2 >= big) | (d1 < ratio * d2))
-    a_idx = np.flatnonzero(ok)
-    b_idx = best[a_idx]
-    # One-to-one: for each b keep the a with the smallest distance.
-    order = np.lexsort((d1[a_idx], b_idx))
-    a_idx, b_idx = a_idx[order], b_idx[order]
-    first_of_b = np.ones(b_idx.size, bool)
-    first_of_b[1:] = b_idx[1:] != b_idx[:-1]
-    return np.stack([a_idx[first_of_b], b_idx[first_of_b]], axis=1).astype(np.int64)
+        return empty
+    ga, gb = np.asarray(group_a, np.int64), np.asarray(group_b, np.int64)
+    order_b = np.argsort(gb, kind="stable")
+    sorted_b = gb[order_b]
+    lo = np.searchsorted(sorted_b, ga, "left")
+    n = np.searchsorted(sorted_b, ga, "right") - lo  # candidates of each a
+    if not n.any():
+        return empty
+    # every same-group pair (i, j), grouped by i
+    pa = np.repeat(np.arange(ga.size), n)
+    starts = np.repeat(lo - (np.cumsum(n) - n), n)
+    pb = order_b[starts + np.arange(pa.size)]
+    d = pair_hamming(desc_a[pa], desc_b[pb])
+    best = _first_per(pa, d, pb)  # one pair per a that has any, a ascending
+    a_has = pa[best]
+    d1 = d[best]
+    d2 = np.full(a_has.size, np.iinfo(np.int32).max, np.int64)
+    rest = np.ones(pa.size, bool)
+    rest[best] = False
+    if rest.any():
+        second = _first_per(pa[rest], d[rest])
+        d2[np.searchsorted(a_has, pa[rest][second])] = d[rest][second]
+    ok = (d1 <= max_hamming) & ((n[a_has] < 2) | (d1 < ratio * d2))
+    a_idx = a_has[ok]
+    b_idx = pb[best][ok]
+    d_ok = d1[ok]
+    # One-to-one: for each b keep the a with the smallest distance (then the lowest a).
+    keep = _first_per(b_idx, d_ok)
+    return np.stack([a_idx[keep], b_idx[keep]], axis=1).astype(np.int64)
 
 
 def _pose(uv: np.ndarray, p: np.ndarray, camera: pycolmap.Camera, cfg: VerificationConfig):
@@ -204,22 +230,23 @@ def verify_candidate(
     )
     keys_arr, P, uv = keys_arr[inside], P[inside], uv[inside]
     tree = cKDTree(Q.keypoints[qi])
-    pairs: dict[int, tuple[int, int]] = {}  # query keypoint -> (distance, point row)
-    for row, near in enumerate(tree.query_ball_point(uv, cfg.projection_radius_px)):
-        if not near:
-            continue
-        d = hamming(atlas.map_point_descriptor(int(keys_arr[row]))[None], Q.descriptors[qi[near]])[
-            0
-        ]
-        j = int(np.argmin(d))
-        if d[j] <= cfg.max_hamming:
-            qk = int(qi[near[j]])
-            if qk not in pairs or d[j] < pairs[qk][0]:
-                pairs[qk] = (int(d[j]), row)
-    if len(pairs) < cfg.min_inliers:
-        return _reject(query_key, candidate_key, f"{len(pairs)} projected matches", len(pairs))
-    q_idx = np.array(sorted(pairs), np.int64)
-    rows = np.array([pairs[k][1] for k in q_idx.tolist()], np.int64)
+    near = tree.query_ball_point(uv, cfg.projection_radius_px)
+    counts = np.fromiter((len(x) for x in near), np.int64, len(near))
+    pr = np.repeat(np.arange(len(near)), counts)  # (point row, query keypoint) pairs
+    pq = np.fromiter((j for x in near for j in x), np.int64, int(counts.sum()))
+    has = counts > 0
+    desc = np.zeros((len(near), 32), np.uint8)
+    desc[has] = atlas.map_point_descriptors(keys_arr[has])
+    d = pair_hamming(desc[pr], Q.descriptors[qi[pq]])
+    # each projected point's nearest query descriptor (first in the ball's order on ties) ...
+    best = _first_per(pr, d)
+    best = best[d[best] <= cfg.max_hamming]
+    # ... and each query keypoint's nearest such point (the lowest row on ties)
+    won = best[_first_per(pq[best], d[best])]
+    if won.size < cfg.min_inliers:
+        return _reject(query_key, candidate_key, f"{won.size} projected matches", int(won.size))
+    q_idx = qi[pq[won]]  # ascending, as qi
+    rows = pr[won]
     T_cam_cmap, inl = _pose(Q.keypoints[q_idx], P[rows], col_cam, cfg)
     if T_cam_cmap is None:
         return _reject(query_key, candidate_key, "no refined pose")

@@ -59,6 +59,43 @@ def test_word_guided_matching_respects_groups_distance_and_uniqueness():
     assert m2.tolist() == [[0, 0]]
 
 
+def _match_by_words_brute(desc_a, group_a, desc_b, group_b, max_hamming, ratio):
+    """The definition, one query at a time over every candidate (the dense reference)."""
+    found = []
+    for i in range(desc_a.shape[0]):
+        d = [
+            (int(np.unpackbits(desc_a[i] ^ desc_b[j]).sum()), j)
+            for j in range(desc_b.shape[0])
+            if group_b[j] == group_a[i]
+        ]
+        if not d:
+            continue
+        d.sort()
+        d1, j = d[0]
+        if d1 <= max_hamming and (len(d) == 1 or d1 < ratio * d[1][0]):
+            found.append((j, d1, i))
+    found.sort()  # one-to-one: per candidate the closest query, then the lowest index
+    out, taken = [], set()
+    for j, _, i in found:
+        if j not in taken:
+            taken.add(j)
+            out.append((i, j))
+    return sorted(out)
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_word_guided_matching_equals_the_dense_definition(seed):
+    """Near-duplicates, ties and groups of every size against the one-by-one definition."""
+    rng = np.random.default_rng(seed)
+    base = rng.integers(0, 256, (40, 32), dtype=np.uint8)
+    a = base[rng.integers(0, 40, 300)] ^ (rng.random((300, 32)) < 0.02).astype(np.uint8)
+    b = base[rng.integers(0, 40, 200)] ^ (rng.random((200, 32)) < 0.02).astype(np.uint8)
+    ga, gb = rng.integers(0, 25, 300), rng.integers(0, 25, 200)
+    m = match_by_words(a, ga, b, gb, max_hamming=50, ratio=0.8)
+    assert sorted(map(tuple, m.tolist())) == _match_by_words_brute(a, ga, b, gb, 50, 0.8)
+    assert len(m) > 10
+
+
 def test_revisit_is_verified_with_the_true_relative_pose(world):
     poses = circle_poses(40, turns=2.0)
     kfs, mps = make_session(world, CAM, 0, poses, np.eye(4), seed=3, dt=1.0)
