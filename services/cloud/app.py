@@ -395,16 +395,15 @@ class CloudApp:
             self.rejected += 1
             raise
         self.codec_timer.add("decode.KeyframePoses", time.perf_counter() - t0)
-        old: dict[int, np.ndarray] = {}
+        moved: list[int] = []
         for d in updates:
             kf = self._pose_only(a, d)
             if kf is None:
                 continue
-            key = make_key(a.agent_id, d.keyframe_id)
-            old[key] = self.atlas.keyframe(key).T_map_body
+            moved.append(make_key(a.agent_id, d.keyframe_id))
             self.fusion.add_keyframe(kf)
-        self.atlas.move_points_with(old)  # (their stored rows follow their keyframe)
-        self.store.commit(self.atlas, list(old), positions=position, agents=self._rows(a))
+        # (held relative to their keyframes, the points follow: no point row changes)
+        self.store.commit(self.atlas, moved, positions=position, agents=self._rows(a))
         return Reaction()
 
     def _map_points(

@@ -33,8 +33,8 @@ from services.cloud.atlas_records import (
     MapPointRecord,
     Unsaved,
     heir_reference,
+    map_positions,
     snapshot_of,
-    stored_rows,
 )
 from services.cloud.map_types import (
     AtlasError,
@@ -147,8 +147,6 @@ class Atlas:
                     f"keypoint count {n_real} -> {kf.keypoints.shape[0]}"
                 )
         self._unsaved.keyframes.add(key)
-        if not new:  # its points' stored positions are relative to the old pose
-            self._unsaved.followers.update(self._referencing(k))
         k.timestamp = float(kf.timestamp)
         k.T_map_body = T_ma @ kf.T_world_body
         k.velocity = T_ma[:3, :3] @ kf.velocity
@@ -230,8 +228,8 @@ class Atlas:
         for other in mp.obs:
             self._graph.add_weight(k.key, other, 1)
         mp.obs[k.key] = idx
-        if mp.ref_kf < 0:
-            mp.ref_kf = k.key
+        if mp.ref is None:
+            mp.set_ref(k)
         if not self._graph.is_attached(k.key):
             self._graph.attach(k.key)
 
@@ -293,7 +291,7 @@ class Atlas:
         """Positions (N, 3) in their map's frame of the given map point keys (must exist)."""
         mps = self._mps
         try:
-            return np.array([mps[k].p_map for k in np.asarray(keys).tolist()]).reshape(-1, 3)
+            return map_positions([mps[k] for k in np.asarray(keys).tolist()])
         except KeyError as exc:
             raise AtlasError(f"unknown map point {split_key(exc.args[0])}") from None
 
@@ -372,6 +370,10 @@ class Atlas:
         T = np.asarray(T_target_source, dtype=np.float64)
         scale = float(np.cbrt(np.linalg.det(T[:3, :3])))
         R = T[:3, :3] / scale
+        # The points' new positions first: they follow their reference keyframes, which move
+        # next, by the rigid part only (a Sim(3) also scales the points about the map origin).
+        moved = [m for m in self._mps.values() if m.map_id == source_map]
+        P = map_positions(moved) @ T[:3, :3].T + T[:3, 3]
         for k in self._kfs.values():
             if k.map_id == source_map:
                 self._unsaved.keyframes.add(k.key)
@@ -381,11 +383,10 @@ class Atlas:
                 k.T_map_body[:3, :3] = R @ Tk[:3, :3]
                 k.T_map_body[:3, 3] = T[:3, :3] @ Tk[:3, 3] + T[:3, 3]
                 k.velocity = scale * (R @ k.velocity)
-        for m in self._mps.values():
-            if m.map_id == source_map:
-                self._unsaved.points.add(m.key)
-                m.map_id = target_map
-                m.p_map = T[:3, :3] @ m.p_map + T[:3, 3]
+        for m, p in zip(moved, P, strict=True):
+            self._unsaved.points.add(m.key)
+            m.map_id = target_map
+            m.p_map = p
         for a, mid in self._map_of_agent.items():
             if mid == source_map:
                 self._map_of_agent[a] = target_map
@@ -422,39 +423,12 @@ class Atlas:
         self._alias[drop_key] = keep_key
 
     def set_keyframe_poses(self, poses: dict[int, np.ndarray]) -> None:
-        """Replace keyframe poses (map frame) and move each map point with its reference
-        keyframe (``p' = T'_ref @ T_ref^-1 @ p``)."""
-        old = {}
+        """Replace keyframe poses (map frame); each map point follows its reference keyframe
+        (``p' = T'_ref @ T_ref^-1 @ p``: it is held relative to it, :class:`MapPointRecord`)."""
         for key, T in poses.items():
             k = self._kf(key)
-            old[key] = k.T_map_body
             k.T_map_body = np.array(T, dtype=np.float64)
             self._unsaved.poses.add(key)
-        self.move_points_with(old)
-
-    def move_points_with(self, old_poses: dict[int, np.ndarray]) -> list[int]:
-        """Move each map point whose reference keyframe is in ``old_poses`` (key -> its pose
-        before a change, map frame) with that keyframe; returns the moved points' keys."""
-        if not old_poses:
-            return []
-        refs = list(old_poses)
-        corr = np.array([self._kfs[k].T_map_body @ inverse_T(old_poses[k]) for k in refs])
-        slot = {k: i for i, k in enumerate(refs)}
-        # A point's reference keyframe is one of its observers (or -1), so the candidates
-        # are the moved keyframes' points, not every point of the atlas.
-        candidates = np.concatenate([self._kfs[k].mp_keys for k in refs])
-        got = (self._mps.get(k) for k in np.unique(candidates[candidates >= 0]).tolist())
-        mps = [m for m in got if m is not None and m.ref_kf in slot]
-        if not mps:
-            return []
-        c = corr[[slot[m.ref_kf] for m in mps]]  # (M, 4, 4) each point's correction
-        P = np.array([m.p_map for m in mps])
-        P = np.einsum("mij,mj->mi", c[:, :3, :3], P) + c[:, :3, 3]
-        for m, p in zip(mps, P, strict=True):
-            m.p_map = p
-        moved = [m.key for m in mps]
-        self._unsaved.followers.difference_update(moved)  # their stored rows hold again
-        return moved
 
     def set_map_point_positions(self, positions: dict[int, np.ndarray]) -> None:
         for key, p in positions.items():
@@ -487,7 +461,8 @@ class Atlas:
         for other in m.obs:
             self._graph.add_weight(kf_key, other, -1)
         if m.ref_kf == kf_key:
-            m.ref_kf = heir_reference([self._kfs[k] for k in m.obs], self._kfs[kf_key])
+            heir = heir_reference([self._kfs[k] for k in m.obs], self._kfs[kf_key])
+            m.set_ref(self._kfs.get(heir))
 
     def retire_keyframe(self, key: int, anchor: int) -> None:
         """Remove ``key`` as :meth:`remove_keyframe` does but keep its pose relative to
@@ -570,17 +545,14 @@ class Atlas:
     def map_point_rows(self, keys: Iterable[int]) -> Iterator[tuple[object, ...]]:
         """:meth:`MapPointRecord.row` of each of ``keys`` the atlas holds (for persistence:
         no read-only view built per point), positions relative to the reference keyframe."""
-        return stored_rows(self._mps, self._kfs, keys, MapPointRecord.row)
+        mps = self._mps
+        return (mps[k].row() for k in keys if k in mps)
 
     def map_point_position_rows(self, keys: Iterable[int]) -> Iterator[tuple[object, ...]]:
         """``(position, in_ref, key)`` of each of ``keys`` the atlas holds, as
         :meth:`map_point_rows` stores it."""
-        return stored_rows(self._mps, self._kfs, keys, MapPointRecord.position_row)
-
-    def _referencing(self, k: KeyframeRecord) -> list[int]:
-        """The map points whose reference keyframe is ``k``."""
-        mps = (self._mps.get(m) for m in k.mp_keys[k.mp_keys >= 0].tolist())
-        return [m.key for m in mps if m is not None and m.ref_kf == k.key]
+        mps = self._mps
+        return (mps[k].position_row() for k in keys if k in mps)
 
     # ------------------------------------------------------------------ persistence
     @property
@@ -622,7 +594,7 @@ class Atlas:
                 if kk in atlas._kfs:
                     atlas._link(m, atlas._kfs[kk], idx)
             if pv.ref_kf in m.obs:
-                m.ref_kf = pv.ref_kf
+                m.set_ref(atlas._kfs[pv.ref_kf])
         for key in atlas._kfs:
             atlas._graph.attach(key)
         atlas._merges = list(state.merges)

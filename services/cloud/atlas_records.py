@@ -9,9 +9,8 @@ an atlas is restored. Poses are in the record's map frame (``map_id``).
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field, fields
-from typing import TypeVar
 
 import numpy as np
 
@@ -25,8 +24,6 @@ from services.cloud.map_types import (
     MergeRecord,
     ro,
 )
-
-T = TypeVar("T")
 
 
 class KeyframeRecord:
@@ -118,29 +115,63 @@ class KeyframeRecord:
 
 
 class MapPointRecord:
-    """One map point as the atlas holds it: ``p_map (3,)`` in its map's frame, the linked
-    observations, those of keyframes not arrived yet, and its reference keyframe (-1: none)."""
+    """One map point as the atlas holds it: its position ``p_ref (3,)`` in its reference
+    keyframe's body frame (``ref``; None: no observer, and ``p_ref`` is in the map frame),
+    the linked observations, and those of keyframes not arrived yet.
 
-    __slots__ = ("agent_id", "key", "map_id", "map_point_id", "obs", "p_map", "pending", "ref_kf")
+    The point follows its reference keyframe: ``p_map`` is computed from the keyframe's
+    current pose, so moving keyframes (a pose graph, the edge's re-sent poses) moves their
+    points without touching them. Setting ``p_map`` stores it relative to the current pose;
+    :meth:`set_ref` changes the reference and keeps ``p_map``."""
+
+    __slots__ = ("agent_id", "key", "map_id", "map_point_id", "obs", "p_ref", "pending", "ref")
 
     def __init__(self, key: int, agent_id: int, map_point_id: int, map_id: int) -> None:
         self.key = key
         self.agent_id = agent_id
         self.map_point_id = map_point_id
         self.map_id = map_id
-        self.p_map = np.zeros(3)
+        self.p_ref = np.zeros(3)
+        self.ref: KeyframeRecord | None = None
         self.obs: dict[int, int] = {}  # linked keyframe key -> keypoint index
         self.pending: dict[int, int] = {}  # keyframe not arrived yet -> keypoint index
-        self.ref_kf = -1
 
-    def row(
-        self, T_map_ref: np.ndarray | None
-    ) -> tuple[int, int, int, int, int, bytes, bytes, int]:
+    @property
+    def ref_kf(self) -> int:
+        """The reference keyframe's key (-1: none)."""
+        return -1 if self.ref is None else self.ref.key
+
+    @property
+    def p_map(self) -> np.ndarray:
+        """``(3,)`` in the map frame (a new array)."""
+        if self.ref is None:
+            return self.p_ref.copy()
+        T = self.ref.T_map_body
+        return T[:3, :3] @ self.p_ref + T[:3, 3]
+
+    @p_map.setter
+    def p_map(self, p: np.ndarray) -> None:
+        p = np.asarray(p, np.float64).reshape(3)
+        if self.ref is None:
+            self.p_ref = p.copy()
+        else:
+            T = self.ref.T_map_body
+            self.p_ref = T[:3, :3].T @ (p - T[:3, 3])
+
+    def set_ref(self, ref: KeyframeRecord | None) -> None:
+        """Make ``ref`` the reference keyframe; the point stays where it is."""
+        if ref is self.ref:
+            return
+        p = self.p_map
+        self.ref = ref
+        self.p_map = p
+
+    def row(self) -> tuple[int, int, int, int, int, bytes, bytes, int]:
         """Plain data for persistence, without a view: key, agent, map point id, map,
         reference keyframe, position (:meth:`stored_position`), the observations sorted by
         keyframe key as "<i8 (N, 2)" bytes [keyframe key, keypoint index], in_ref."""
         obs = np.array(sorted(self.obs.items()), "<i8").reshape(-1, 2)
-        p, in_ref = self.stored_position(T_map_ref)
+        p, in_ref = self.stored_position()
         return (
             self.key,
             self.agent_id,
@@ -152,17 +183,14 @@ class MapPointRecord:
             in_ref,
         )
 
-    def position_row(self, T_map_ref: np.ndarray | None) -> tuple[bytes, int, int]:
+    def position_row(self) -> tuple[bytes, int, int]:
         """:meth:`stored_position` and the key."""
-        return (*self.stored_position(T_map_ref), self.key)
+        return (*self.stored_position(), self.key)
 
-    def stored_position(self, T_map_ref: np.ndarray | None) -> tuple[bytes, int]:
-        """The position as "<f8 (3,)" bytes in the reference keyframe's body frame
-        (``T_map_ref`` its pose) and 1, or without one in the map frame and 0."""
-        if T_map_ref is None:
-            return np.asarray(self.p_map, "<f8").tobytes(), 0
-        p_ref = T_map_ref[:3, :3].T @ (self.p_map - T_map_ref[:3, 3])
-        return np.asarray(p_ref, "<f8").tobytes(), 1
+    def stored_position(self) -> tuple[bytes, int]:
+        """The position as "<f8 (3,)" bytes in the reference keyframe's body frame and 1, or
+        without one in the map frame and 0."""
+        return np.asarray(self.p_ref, "<f8").tobytes(), int(self.ref is not None)
 
     def view(self) -> MapPointView:
         """A read-only copy (observations sorted by keyframe key)."""
@@ -189,9 +217,6 @@ class Unsaved:
     poses: set[int] = field(default_factory=set)
     points: set[int] = field(default_factory=set)
     positions: set[int] = field(default_factory=set)
-    followers: set[int] = field(default_factory=set)
-    """Points whose reference keyframe moved without them (stored relative to it, their rows
-    are stale), until they follow it (:meth:`Atlas.move_points_with`)."""
 
     def update(self, other: Unsaved) -> None:
         """Also what ``other`` holds."""
@@ -206,18 +231,14 @@ class Unsaved:
         return taken
 
 
-def stored_rows(
-    mps: Mapping[int, MapPointRecord],
-    kfs: Mapping[int, KeyframeRecord],
-    keys: Iterable[int],
-    row: Callable[[MapPointRecord, np.ndarray | None], T],
-) -> Iterator[T]:
-    """``row(point, its reference keyframe's pose or None)`` of each of ``keys`` in ``mps``."""
-    for key in keys:
-        m = mps.get(key)
-        if m is not None:
-            ref = kfs.get(m.ref_kf)
-            yield row(m, None if ref is None else ref.T_map_body)
+def map_positions(mps: Sequence[MapPointRecord]) -> np.ndarray:
+    """``(N, 3)``: the ``p_map`` of each of ``mps``, in one pass."""
+    if not mps:
+        return np.zeros((0, 3))
+    eye = np.eye(4)
+    P = np.array([m.p_ref for m in mps], np.float64).reshape(-1, 3)
+    Ts = np.array([eye if m.ref is None else m.ref.T_map_body for m in mps]).reshape(-1, 4, 4)
+    return np.einsum("nij,nj->ni", Ts[:, :3, :3], P) + Ts[:, :3, 3]
 
 
 def snapshot_of(
@@ -242,7 +263,7 @@ def snapshot_of(
         T_map_body=ro(np.array([k.T_map_body for k in kfs]).reshape(-1, 4, 4)),
         point_keys=ro(np.array([m.key for m in mps], i64)),
         point_map=ro(np.array([m.map_id for m in mps], i64)),
-        p_map=ro(np.array([m.p_map for m in mps]).reshape(-1, 3)),
+        p_map=ro(map_positions(mps)),
         covisibility=ro(np.array([(a, b) for a, b, _ in cov], i64).reshape(-1, 2)),
         covisibility_weight=ro(np.array([w for _, _, w in cov], i64)),
         spanning_tree=ro(np.array(graph.tree(), i64).reshape(-1, 2)),

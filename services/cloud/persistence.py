@@ -200,7 +200,7 @@ class CloudStore:
         try:
             removed = self._write_points(atlas, sorted(u.keyframes), sorted(u.points))
             self._write_poses(atlas, sorted(u.poses - u.keyframes))
-            self._write_positions(atlas, sorted((u.positions | u.followers) - u.points))
+            self._write_positions(atlas, sorted(u.positions - u.points))
             last = None if whole else self._state
             write_state(db, st, last, removals=removed or whole)
             self._write_links(edge_sequences, positions, agents)

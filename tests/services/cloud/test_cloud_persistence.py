@@ -301,24 +301,20 @@ def test_points_follow_their_keyframe_without_rewriting_their_rows(tmp_path):
     assert moved_points
     for m in pkeys:
         assert np.allclose(reloaded.map_point(m).p_map, atlas.map_point(m).p_map, atol=1e-9)
-    # The edge re-sends keyframe 0 with another pose; its points do not move with it.
-    update = dataclasses.replace(
-        k0[0], T_world_body=yaw_T(0.1, [0.3, 0.0, 0.0]) @ k0[0].T_world_body
-    )
-    atlas.add_keyframe(update)
-    store.commit(atlas, [keys[0]])
-    reloaded = CloudStore(tmp_path).load()
-    for m in pkeys:
-        assert np.allclose(reloaded.map_point(m).p_map, atlas.map_point(m).p_map, atol=1e-9)
-    assert _point_rows(tmp_path) != before
-    # A pose-only update the points follow (the edge's KeyframePoses): no point row written.
-    rows = _point_rows(tmp_path)
-    old = {keys[1]: atlas.T_map_body(keys[1])}
+    # A pose-only update (the edge's KeyframePoses): the points it references follow it
+    # (held relative to it), and no point row is written.
+    followers = [m for m in pkeys if atlas.map_point(m).ref_kf == keys[1]]
+    assert followers
+    p_before = {m: atlas.map_point(m).p_map for m in followers}
+    T_old = atlas.T_map_body(keys[1])
     T = yaw_T(-0.1, [0.0, 0.2, 0.0]) @ k0[1].T_world_body
     atlas.add_keyframe(dataclasses.replace(k0[1], T_world_body=T))
-    assert atlas.move_points_with(old)
+    T_new = atlas.T_map_body(keys[1])
+    for m in followers:
+        expect = (T_new @ inverse_T(T_old) @ np.append(p_before[m], 1.0))[:3]
+        assert np.allclose(atlas.map_point(m).p_map, expect, atol=1e-9)
     store.commit(atlas, [keys[1]])
-    assert _point_rows(tmp_path) == rows
+    assert _point_rows(tmp_path) == before
     reloaded = CloudStore(tmp_path).load()
     for m in pkeys:
         assert np.allclose(reloaded.map_point(m).p_map, atlas.map_point(m).p_map, atol=1e-9)
