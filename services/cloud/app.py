@@ -420,8 +420,10 @@ class CloudApp:
             self.rejected += 1
             raise
         self.codec_timer.add(f"decode.{type(msg).__name__}", time.perf_counter() - t0)
-        keys = [self.fusion.add_map_point(p) for p in points]
-        self.store.commit(self.atlas, [], keys, positions=position, agents=self._rows(a))
+        self.fusion.add_map_points(points)
+        # (new points and changed observations are whole rows, re-sent positions only theirs;
+        # the atlas' unsaved changes say which)
+        self.store.commit(self.atlas, positions=position, agents=self._rows(a))
         return Reaction()
 
     def _cull(

@@ -22,7 +22,7 @@ Nothing mutable leaves this module: :meth:`Atlas.keyframe` returns a frozen copy
 from __future__ import annotations
 
 import logging
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable, Iterator, Sequence
 
 import numpy as np
 
@@ -177,30 +177,49 @@ class Atlas:
         """Insert or update a map point (position and observations); returns its key. An update
         of an unknown point without observations of live keyframes (an edge re-sending a point
         the cloud removed, e.g. by MBP, because it moved) creates nothing."""
-        self._ensure_agent(mp_in.agent_id)
-        mkey = make_key(mp_in.agent_id, mp_in.map_point_id)
-        fused_into = self._alias.get(mkey)
-        if fused_into is not None:
-            mkey = fused_into  # fused at a merge: keep the survivor's position, link new obs
-        mp = self._mps.get(mkey)
-        if mp is None:
-            if mkey not in self._announced and not any(
-                make_key(mp_in.agent_id, int(k)) not in self._removed_kfs
-                for k, _ in mp_in.observations
-            ):
-                return mkey  # a moved point the cloud culled (or never had): no observer left
-            mp = self._new_map_point(mkey, mp_in.agent_id)
-            mp.pending.update(self._announced.pop(mkey, {}))
-        self._unsaved.points.add(mkey)
-        if fused_into is None:
-            T = self._T_map_agent[mp_in.agent_id]
-            mp.p_map = T[:3, :3] @ mp_in.p_world + T[:3, 3]
-        for kf_id, kp_idx in mp_in.observations:
-            kkey = make_key(mp_in.agent_id, int(kf_id))
-            if kkey not in mp.obs and kkey not in self._removed_kfs:
-                mp.pending.setdefault(kkey, int(kp_idx))
-        self._link_pending(mp)
-        return mkey
+        return self.add_map_points([mp_in])[0]
+
+    def add_map_points(self, points: Sequence[MapPointInput]) -> list[int]:
+        """:meth:`add_map_point` of each of ``points`` in order (their map positions computed
+        in one pass per agent); their keys."""
+        if not points:
+            return []
+        p_map = np.empty((len(points), 3))
+        agents = np.array([p.agent_id for p in points])
+        P = np.array([p.p_world for p in points], np.float64).reshape(-1, 3)
+        for agent in np.unique(agents).tolist():
+            self._ensure_agent(agent)
+            sel = agents == agent
+            T = self._T_map_agent[agent]
+            p_map[sel] = P[sel] @ T[:3, :3].T + T[:3, 3]
+        unsaved = self._unsaved
+        keys = []
+        for mp_in, p in zip(points, p_map, strict=True):
+            mkey = make_key(mp_in.agent_id, mp_in.map_point_id)
+            fused_into = self._alias.get(mkey)
+            if fused_into is not None:
+                mkey = fused_into  # fused at a merge: keep the survivor's position, link new obs
+            keys.append(mkey)
+            mp = self._mps.get(mkey)
+            if mp is None:
+                if mkey not in self._announced and not any(
+                    make_key(mp_in.agent_id, int(k)) not in self._removed_kfs
+                    for k, _ in mp_in.observations
+                ):
+                    continue  # a moved point the cloud culled (or never had): no observer left
+                mp = self._new_map_point(mkey, mp_in.agent_id)
+                mp.pending.update(self._announced.pop(mkey, {}))
+                unsaved.points.add(mkey)  # a new row
+            if fused_into is None:
+                mp.p_map = p
+                unsaved.positions.add(mkey)  # (its row, if observations change: _link)
+            for kf_id, kp_idx in mp_in.observations.tolist():
+                kkey = make_key(mp_in.agent_id, kf_id)
+                if kkey not in mp.obs and kkey not in self._removed_kfs:
+                    mp.pending.setdefault(kkey, kp_idx)
+            if mp.pending:
+                self._link_pending(mp)
+        return keys
 
     def _link_pending(self, mp: MapPointRecord) -> None:
         for kkey in list(mp.pending):

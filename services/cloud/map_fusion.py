@@ -19,6 +19,7 @@ import logging
 import re
 import time
 from collections import Counter
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -121,6 +122,9 @@ class MapFusion:
 
     def add_map_point(self, mp: MapPointInput) -> int:
         return self.atlas.add_map_point(mp)
+
+    def add_map_points(self, mps: Sequence[MapPointInput]) -> list[int]:
+        return self.atlas.add_map_points(mps)
 
     def add_keyframe(self, kf: KeyframeInput, detect: bool = True) -> FusionEvents:
         """Insert a keyframe (an update of a known one only refreshes its state), then detect,

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from common.geometry import inverse_T
-from services.cloud.atlas import Atlas
+from services.cloud.atlas import Atlas, make_key
 from services.cloud.persistence import CloudStore, PersistenceError
 from services.cloud.simulation import circle_poses, default_camera, make_session, make_world, yaw_T
 
@@ -281,8 +281,8 @@ def _point_rows(path):
 
 def test_points_follow_their_keyframe_without_rewriting_their_rows(tmp_path):
     """A pose graph moves points rigidly with their reference keyframe: writing it back
-    updates keyframe poses only, and the reloaded points are where the atlas moved them. A
-    keyframe whose pose the edge updates (its points stay) has its points' rows rewritten."""
+    updates keyframe poses only, and the reloaded points are where the atlas moved them; so
+    does a pose-only update of a keyframe from the edge."""
     world = make_world(45, n_points=1200)
     k0, m0 = make_session(world, default_camera(), 0, circle_poses(8, turns=0.25), np.eye(4))
     atlas = Atlas()
@@ -343,4 +343,48 @@ def test_a_schema_6_state_dir_keeps_its_map_frame_positions(tmp_path):
     assert np.array_equal(atlas.map_point(7).p_map, p)
     db = sqlite3.connect(tmp_path / DB_NAME)
     assert db.execute("SELECT value FROM meta WHERE name='schema'").fetchone() == (SCHEMA_VERSION,)
+    db.close()
+
+
+def test_re_sent_points_rewrite_their_positions_only(tmp_path):
+    """The edge re-sends points that local BA moved: a commit without keys writes their new
+    positions (not their observation blobs), a new observation rewrites the whole row, and
+    the reloaded atlas holds both."""
+    import sqlite3
+
+    from services.cloud.persistence import DB_NAME
+
+    world = make_world(46, n_points=800)
+    k0, m0 = make_session(world, default_camera(), 0, circle_poses(6, turns=0.2), np.eye(4))
+    atlas = Atlas()
+    store = CloudStore(tmp_path)
+    keys = [atlas.add_keyframe(x) for x in k0]
+    pkeys = atlas.add_map_points(m0)
+    store.commit(atlas, keys, pkeys)
+    db = sqlite3.connect(tmp_path / DB_NAME)
+    db.executescript(  # a log of every whole-row write from here on
+        "CREATE TABLE row_writes (key INTEGER);"
+        "CREATE TRIGGER w_ins AFTER INSERT ON map_points "
+        "BEGIN INSERT INTO row_writes VALUES (new.key); END;"
+        "CREATE TRIGGER w_upd AFTER UPDATE OF data ON map_points "
+        "BEGIN INSERT INTO row_writes VALUES (new.key); END;"
+    )
+    moved = [dataclasses.replace(m, p_world=m.p_world + 0.01) for m in m0[:50]]
+    assert atlas.add_map_points(moved) == pkeys[:50]
+    store.commit(atlas)
+    assert not list(db.execute("SELECT key FROM row_writes"))  # positions only
+    # a new observation of a known point: its whole row
+    v = atlas.keyframe(keys[-1])
+    free = int(np.flatnonzero(v.map_point_keys < 0)[0])
+    linked = next(m for m in m0[50:] if k0[-1].keyframe_id not in m.observations[:, 0])
+    obs = np.vstack([linked.observations, [[k0[-1].keyframe_id, free]]])
+    atlas.add_map_points([dataclasses.replace(linked, observations=obs)])
+    store.commit(atlas)
+    key = make_key(linked.agent_id, linked.map_point_id)
+    assert [k for (k,) in db.execute("SELECT key FROM row_writes")] == [key]
+    assert keys[-1] in CloudStore(tmp_path).load().map_point_observations(key)
+    reloaded_p = {m: CloudStore(tmp_path).load().map_point(m).p_map for m in pkeys[:50]}
+    for m, mp_in in zip(pkeys[:50], moved, strict=True):
+        assert np.allclose(reloaded_p[m], mp_in.p_world, atol=1e-9)
+        assert np.allclose(atlas.map_point(m).p_map, mp_in.p_world, atol=1e-9)
     db.close()
