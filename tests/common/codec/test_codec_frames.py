@@ -263,6 +263,30 @@ def test_standalone_keyframe(vocab, orb_kf):
     assert decode_standalone_keyframe(vocab, payload).equals(out)  # no hidden state
 
 
+def test_a_standalone_keyframe_is_one_block_that_leaves_the_tables_alone(vocab, orb_kf):
+    """Kind 3: the same descriptor bits as one adaptive block of the stream's coder, read by
+    a decoder whose tables it does not change, and a keyframe of the stream's kind (1)
+    still decodes (recordings made before kind 3)."""
+    from common.codec import FeatureDecoder, FeatureEncoder, encode_standalone_keyframe
+    from common.codec.frames import HEADER, KIND_KEYFRAME, KIND_STANDALONE_KEYFRAME
+    from common.codec.types import CodecConfig
+
+    plain = KeyframeFeatures(orb_kf.keypoints, orb_kf.descriptors, np.full(len(orb_kf), -1))
+    payload = encode_standalone_keyframe(vocab, plain)
+    assert HEADER.unpack(payload[: HEADER.size])[1] & 0xF == KIND_STANDALONE_KEYFRAME
+    one_block = CodecConfig(descriptor_block=len(orb_kf))
+    stream = FeatureEncoder(vocab, one_block)
+    same = stream.encode_keyframe(plain)
+    assert HEADER.unpack(same[: HEADER.size])[1] & 0xF == KIND_KEYFRAME
+    assert payload[HEADER.size : -4] == same[HEADER.size : -4]  # the same coded body
+    dec = FeatureDecoder(vocab)
+    ones = dec.state.descriptors.ones.copy()
+    assert np.array_equal(dec.decode(payload).descriptors, orb_kf.descriptors)
+    assert np.array_equal(dec.state.descriptors.ones, ones)  # tables untouched
+    old_kind = FeatureDecoder(vocab, one_block).decode(same)
+    assert np.array_equal(old_kind.descriptors, orb_kf.descriptors)
+
+
 def test_detached_decoding_leaves_the_decoder_at_its_state(vocab, orb_kf):
     """Keyframes each coded by a fresh encoder, decoded by one decoder in turn (a corrupt
     one among them): each as a fresh decoder decodes it, and the tables end as they began."""
