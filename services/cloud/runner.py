@@ -74,6 +74,8 @@ class CloudRunConfig:
         mbp_every: MBP also every this many new keyframes of a map while running (0: only
             at shutdown).
         full_ba: full bundle adjustment after the pose graph on/off.
+        optimizer_nice: niceness added to the optimizer process
+            (``CloudServiceConfig.optimizer_nice``).
         agent_id: this service's agent id.
         wire: encoding of the pose corrections to the edges.
         output_every_s: rewrite outputs every so many seconds, 0 = only at exit.
@@ -100,6 +102,7 @@ class CloudRunConfig:
     mbp: bool = True
     mbp_every: int = 0
     full_ba: bool = True
+    optimizer_nice: int = 10
     agent_id: str = "cloud"
     wire: WireFormat = WireFormat.CODED
     output_every_s: float = 30.0
@@ -209,6 +212,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "shutdown; see benchmarks/results/mbp_midrun.md)",
     )
     p.add_argument(
+        "--optimizer-nice",
+        type=int,
+        default=10,
+        choices=range(20),
+        metavar="N",
+        help="niceness (0-19) added to the optimizer process, so that a shared core goes to "
+        "applying the edges' messages first and the solves run in what is left (default 10; "
+        "0: the same priority; see benchmarks/results/scale.md)",
+    )
+    p.add_argument(
         "--full-ba",
         action=argparse.BooleanOptionalAction,
         default=True,
@@ -266,6 +279,7 @@ def config_from_args(args: argparse.Namespace) -> CloudRunConfig:
         mbp=args.mbp,
         mbp_every=args.mbp_every,
         full_ba=args.full_ba,
+        optimizer_nice=args.optimizer_nice,
         agent_id=args.agent_id,
         wire=WireFormat(args.wire),
         output_every_s=args.output_every,
@@ -353,6 +367,7 @@ def _server(
         output_every_s=config.output_every_s,
         wire=config.wire,
         mbp_every_keyframes=config.mbp_every,
+        optimizer_nice=config.optimizer_nice,
         # no dashboard: no map view to refresh (its atlas snapshot costs the worker)
         publish_every_s=CloudServiceConfig.publish_every_s if config.dashboard_port else 0.0,
         mission=config.mission,
