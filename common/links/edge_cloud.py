@@ -35,7 +35,9 @@ class KeyframeUpdate(Message):
     ``T_world_body`` "<f8 (4,4)", ``velocity_world``/``bias_gyro``/``bias_accel`` "<f8 (3)".
     ``features``: the keyframe's features coded *intra* by ``common.codec.frames`` (a fresh
     encoder state per keyframe, so the cloud decodes each keyframe on its own; the robot's
-    stream is differential against frames the cloud never sees). Empty on a pose-only update.
+    stream is differential against frames the cloud never sees; frame kind 3,
+    ``KIND_STANDALONE_KEYFRAME``; kind 1, which older edges sent, still decodes). Empty on a
+    pose-only update.
     ``map_point_ids`` "<i8 (N)": map point of each feature (-1 if none), in the coded order.
     ``imu`` "<f8 (M,7)": [t_s, gyro xyz, accel xyz] since the previous keyframe.
     ``previous_keyframe_id``: the robot's previous keyframe in the same map (-1 if first).
