@@ -311,11 +311,13 @@ class CloudServiceConfig:
     optimizer_process: solve pose graphs in a separate process (default True: gtsam holds the
         GIL during most of a solve, which would stall the event loop's thread); False uses a
         thread (no process start-up, fine for small maps).
-    optimizer_nice: the optimizer process's niceness increment (``os.nice``; default 10;
-        0 = the service's priority). The solves are background work whose results can wait;
-        the worker that applies the edges' messages cannot, or their queue grows. On a core
-        shared by both, nice 10 gives the worker ~10x the solver's share while both run,
-        and the solver the whole core whenever the worker is idle.
+    optimizer_nice: the optimizer process's niceness increment (``os.nice``; 0-19; default
+        0: the service's priority). Higher gives a core shared by the worker and the solver
+        to the worker first (nice 10: ~9x the solver's share while both run). Measured on 12
+        agents at one core (benchmarks/results/scale.md): nice 10 against 0, queue peak
+        1995 vs 2600 messages, drained 31 vs 58 s after the end, but 52 vs 88 % of the
+        keyframes corrected before it: an overloaded cloud then takes the edges' messages
+        faster and corrects the robots less, so it is not the default.
     mission: the named mission to serve (``services.cloud.mission``): resumed when it is the
         state directory's current one, else started, the earlier missions' agents becoming
         the read-only prior map (default None: the current mission continues).
@@ -354,7 +356,7 @@ class CloudServiceConfig:
     bandwidth_window_s: float = 120.0
     display_spacing_m: float = 0.0
     optimizer_process: bool = True
-    optimizer_nice: int = 10
+    optimizer_nice: int = 0
     gt_every_s: float = 5.0
     full_ba_every_keyframes: int = 100
     full_ba_quiet_s: float = 0.0

@@ -102,7 +102,7 @@ class CloudRunConfig:
     mbp: bool = True
     mbp_every: int = 0
     full_ba: bool = True
-    optimizer_nice: int = 10
+    optimizer_nice: int = 0
     agent_id: str = "cloud"
     wire: WireFormat = WireFormat.CODED
     output_every_s: float = 30.0
@@ -214,12 +214,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--optimizer-nice",
         type=int,
-        default=10,
+        default=0,
         choices=range(20),
         metavar="N",
-        help="niceness (0-19) added to the optimizer process, so that a shared core goes to "
-        "applying the edges' messages first and the solves run in what is left (default 10; "
-        "0: the same priority; see benchmarks/results/scale.md)",
+        help="niceness (0-19) added to the optimizer process: a shared core goes to applying "
+        "the edges' messages first and the solves run in what is left (default 0; 10 on an "
+        "overloaded core: a smaller queue, fewer corrections; benchmarks/results/scale.md)",
     )
     p.add_argument(
         "--full-ba",
