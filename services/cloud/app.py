@@ -193,7 +193,7 @@ class CloudApp:
         self.messages = 0
         self.rejected = 0
         self.codec_timer = CodecTimer()
-        self._decoders = KeyframeDecoders(vocabulary)  # one feature decoder per codec config
+        self.decoders = KeyframeDecoders(vocabulary)  # one feature decoder per codec config
         # CPU time of the worker's stages (``stage.*``: map fusion's per keyframe, the
         # commits, building and applying optimisations, MBP), for ``--stats-out``.
         self.stage_timer = fusion.timer
@@ -310,7 +310,7 @@ class CloudApp:
         t0, c0 = time.perf_counter(), self.stage_timer.clock()
         try:
             d = decode_keyframe_update(
-                msg, a.agent_id, self.vocabulary, self.sensors.codec(a.name), self._decoders
+                msg, a.agent_id, self.vocabulary, self.sensors.codec(a.name), self.decoders
             )
         except UplinkError:
             self.rejected += 1

@@ -329,14 +329,10 @@ class Atlas:
 
     def map_point_descriptor(self, key: int) -> np.ndarray:
         """(32,) uint8 descriptor of the point, taken from its reference keyframe."""
-        m = self._mp(key)
-        if m.ref_kf < 0:
-            raise AtlasError(f"map point {split_key(key)} has no observation")
-        k = self._kfs[m.ref_kf]
-        return k.descriptors[m.obs[m.ref_kf]].copy()
+        return self.map_point_descriptors(np.array([key]))[0]
 
     def map_point_descriptors(self, keys: np.ndarray) -> np.ndarray:
-        """``(N, 32) uint8``: :meth:`map_point_descriptor` of each of ``keys (N,)``."""
+        """``(N, 32) uint8``: each point's descriptor, taken from its reference keyframe."""
         out = np.empty((len(keys), 32), np.uint8)
         kfs = self._kfs
         for i, key in enumerate(np.asarray(keys).tolist()):

@@ -318,6 +318,10 @@ class CloudServiceConfig:
         1995 vs 2600 messages, drained 31 vs 58 s after the end, but 52 vs 88 % of the
         keyframes corrected before it: an overloaded cloud then takes the edges' messages
         faster and corrects the robots less, so it is not the default.
+    decode_workers: decode the keyframes' features in this many helper processes before the
+        worker applies them (default 0: on the worker). The worker applies every message in
+        turn on one thread, and a 1000-feature keyframe's decode is ~25 ms of it; with
+        workers it overlaps the worker's other messages on other cores (no help on one core).
     mission: the named mission to serve (``services.cloud.mission``): resumed when it is the
         state directory's current one, else started, the earlier missions' agents becoming
         the read-only prior map (default None: the current mission continues).
@@ -357,6 +361,7 @@ class CloudServiceConfig:
     display_spacing_m: float = 0.0
     optimizer_process: bool = True
     optimizer_nice: int = 0
+    decode_workers: int = 0
     gt_every_s: float = 5.0
     full_ba_every_keyframes: int = 100
     full_ba_quiet_s: float = 0.0
@@ -365,3 +370,5 @@ class CloudServiceConfig:
     def __post_init__(self) -> None:
         if not 0 <= self.optimizer_nice <= 19:
             raise ValueError(f"optimizer_nice must be in 0..19, got {self.optimizer_nice}")
+        if self.decode_workers < 0:
+            raise ValueError(f"decode_workers must be >= 0, got {self.decode_workers}")

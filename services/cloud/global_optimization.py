@@ -25,10 +25,6 @@ from __future__ import annotations
 
 import itertools
 import logging
-import os
-import signal
-import threading
-import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -285,26 +281,6 @@ def apply_pose_graph(atlas: Atlas, result: PoseGraphResult) -> int:
                 poses[k] = corr_of_agent[a][1] @ atlas.T_map_body(k)
     atlas.set_keyframe_poses(poses)
     return len(poses)
-
-
-def optimizer_process_init(parent_pid: int, nice: int = 0) -> None:
-    """Initializer of a separate optimizer process (``ProcessPoolExecutor(initializer=...)``).
-
-    The service owns its lifecycle: SIGINT / SIGTERM (e.g. Ctrl-C to the process group) are
-    ignored, and the process exits as soon as ``parent_pid`` is gone, even after a SIGKILL of
-    the service (checked every second). ``nice``: added to the process's niceness
-    (``CloudServiceConfig.optimizer_nice``)."""
-    if nice:
-        os.nice(nice)
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, signal.SIG_IGN)
-
-    def watch() -> None:
-        while os.getppid() == parent_pid:
-            time.sleep(1.0)
-        os._exit(0)
-
-    threading.Thread(target=watch, name="parent-watch", daemon=True).start()
 
 
 def warm_up() -> None:

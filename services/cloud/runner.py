@@ -76,6 +76,7 @@ class CloudRunConfig:
         full_ba: full bundle adjustment after the pose graph on/off.
         optimizer_nice: niceness added to the optimizer process
             (``CloudServiceConfig.optimizer_nice``).
+        decode_workers: keyframe decode processes (``CloudServiceConfig.decode_workers``).
         agent_id: this service's agent id.
         wire: encoding of the pose corrections to the edges.
         output_every_s: rewrite outputs every so many seconds, 0 = only at exit.
@@ -103,6 +104,7 @@ class CloudRunConfig:
     mbp_every: int = 0
     full_ba: bool = True
     optimizer_nice: int = 0
+    decode_workers: int = 0
     agent_id: str = "cloud"
     wire: WireFormat = WireFormat.CODED
     output_every_s: float = 30.0
@@ -222,6 +224,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "overloaded core: a smaller queue, fewer corrections; benchmarks/results/scale.md)",
     )
     p.add_argument(
+        "--decode-workers",
+        type=int,
+        default=0,
+        choices=range(33),
+        metavar="N",
+        help="decode the keyframes' features in N helper processes, beside the worker that "
+        "applies the messages (default 0: on the worker; with spare cores, 1 takes ~25 ms "
+        "of each keyframe off it; benchmarks/results/scale.md)",
+    )
+    p.add_argument(
         "--full-ba",
         action=argparse.BooleanOptionalAction,
         default=True,
@@ -280,6 +292,7 @@ def config_from_args(args: argparse.Namespace) -> CloudRunConfig:
         mbp_every=args.mbp_every,
         full_ba=args.full_ba,
         optimizer_nice=args.optimizer_nice,
+        decode_workers=args.decode_workers,
         agent_id=args.agent_id,
         wire=WireFormat(args.wire),
         output_every_s=args.output_every,
@@ -368,6 +381,7 @@ def _server(
         wire=config.wire,
         mbp_every_keyframes=config.mbp_every,
         optimizer_nice=config.optimizer_nice,
+        decode_workers=config.decode_workers,
         # no dashboard: no map view to refresh (its atlas snapshot costs the worker)
         publish_every_s=CloudServiceConfig.publish_every_s if config.dashboard_port else 0.0,
         mission=config.mission,

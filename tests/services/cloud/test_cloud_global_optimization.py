@@ -11,6 +11,7 @@ import pytest
 
 from common.geometry import inverse_T, so3_exp
 from services.cloud.atlas import Atlas, make_key
+from services.cloud.child_process import child_process_init
 from services.cloud.config import CloudServiceConfig, GlobalOptimizationConfig
 from services.cloud.global_optimization import (
     GlobalOptimizationError,
@@ -18,7 +19,6 @@ from services.cloud.global_optimization import (
     apply_pose_graph,
     build_pose_graph,
     optimize_pose_graph,
-    optimizer_process_init,
     up_in_body,
 )
 from services.cloud.simulation import circle_poses, default_camera, make_session, make_world, yaw_T
@@ -149,7 +149,7 @@ def test_the_optimizer_process_runs_at_the_configured_niceness(nice: int) -> Non
     with ProcessPoolExecutor(
         1,
         mp_context=multiprocessing.get_context("spawn"),
-        initializer=optimizer_process_init,
+        initializer=child_process_init,
         initargs=(os.getpid(), nice),
     ) as pool:
         assert pool.submit(_niceness).result(timeout=60) == os.nice(0) + nice

@@ -105,8 +105,14 @@ async def _until(predicate, timeout: float = 180.0) -> None:
     await asyncio.wait_for(loop(), timeout)
 
 
-def _cloud(tmp_path, vocab, **kw) -> CloudServer:
-    cfg = CloudServiceConfig(debounce_s=0.2, output_every_s=0, publish_every_s=0.2, gt_every_s=0)
+def _cloud(tmp_path, vocab, decode_workers: int = 0, **kw) -> CloudServer:
+    cfg = CloudServiceConfig(
+        debounce_s=0.2,
+        output_every_s=0,
+        publish_every_s=0.2,
+        gt_every_s=0,
+        decode_workers=decode_workers,
+    )
     session = SessionConfig("cloud", "cloud", SECRET, **kw.pop("session", {}))
     return CloudServer(
         session,
@@ -295,6 +301,67 @@ def test_malformed_message_is_refused_once_and_disturbs_no_edge(tmp_path, vocab,
             await good.client.close()
             await bad.client.close()
             await cloud.stop(write_output=False)
+
+    run(main())
+
+
+def test_keyframes_decoded_in_the_decode_process_land_as_decoded_on_the_worker(
+    tmp_path, vocab, scenario
+):
+    """With a decode process, each keyframe's features are decoded there and the worker takes
+    them (none decoded twice); a payload that does not decode is still refused once, by the
+    worker, with the codec's reason, and the atlas holds exactly the good keyframes."""
+    msgs = scenario["r1"]["messages"]
+    first = next(m for m in msgs if getattr(m, "features", b""))
+    broken = type(first)(
+        **{
+            **{f: getattr(first, f) for f in first.__slots__},
+            "keyframe_id": 999,
+            "features": first.features[:-9] + bytes(9),  # CRC and body broken
+        }
+    )
+
+    async def main():
+        cloud = _cloud(tmp_path, vocab, decode_workers=1)
+        _, port = await cloud.start()
+        edge = await Edge("edge-a", port).start()
+        try:
+            await edge.send_all([*msgs, broken])
+            await edge.client.flush()
+            stats = await cloud.stats()
+            assert stats.keyframes == scenario["r1"]["n_keyframes"]
+            assert stats.rejected == 1 and "features" in edge.client.peer.rejections[0][1]
+            taken = await cloud.call(lambda app: app.decoders.taken)
+            assert taken == sum(1 for m in msgs if getattr(m, "features", b""))
+            descs = await cloud.call(
+                lambda app: [app.atlas.keyframe(k).descriptors for k in app.atlas.keyframe_keys()]
+            )
+        finally:
+            await edge.client.close()
+            await cloud.stop(write_output=False)
+        # the same keyframes as the worker decodes them itself
+        (tmp_path / "inline").mkdir()
+
+        async def inline():
+            cloud = _cloud(tmp_path / "inline", vocab)
+            _, port = await cloud.start()
+            edge = await Edge("edge-a", port).start()
+            try:
+                await edge.send_all(msgs)
+                await edge.client.flush()
+                assert await cloud.call(lambda app: app.decoders.taken) == 0
+                return await cloud.call(
+                    lambda app: [
+                        app.atlas.keyframe(k).descriptors for k in app.atlas.keyframe_keys()
+                    ]
+                )
+            finally:
+                await edge.client.close()
+                await cloud.stop(write_output=False)
+
+        ref = await inline()
+        assert len(ref) == len(descs)
+        assert all(np.array_equal(a, b) for a, b in zip(ref, descs, strict=True))
 
     run(main())
 
