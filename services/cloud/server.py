@@ -48,16 +48,13 @@ from ssl import SSLContext
 from typing import Any, TypeVar
 
 from common.calibration import CameraCalibration
-from common.codec.types import CodecConfig, KeyframeFeatures
 from common.errors import RecslamError
 from common.evaluation.errors import EvaluationError
 from common.evaluation.results import load_groundtruth
 from common.evaluation.trajectory import Trajectory
 from common.links import CodecTimer
-from common.links.edge_cloud import KeyframeUpdate, KeyframeUpdateCoded
 from common.protocol import OutboxFullError, SessionConfig
 from common.protocol.errors import LocalProtocolError, RejectedMessageError
-from common.protocol.messages import Message
 from common.transport import Delivery, Server, TransportConfig
 from common.vocabulary import Vocabulary
 from services.cloud.app import CloudApp, Correction, PositionStore
@@ -72,19 +69,17 @@ from services.cloud.core import (
     SolveRequest,
     SolveResult,
 )
+from services.cloud.decode_pool import DecodePool, Predecoded
 from services.cloud.global_optimization import warm_up
 from services.cloud.map_fusion import MapFusion
 from services.cloud.map_source import CloudMapSource
 from services.cloud.output import OutputWriter
 from services.cloud.persistence import CloudStore, PersistenceError
 from services.cloud.recording import RecordingWriter
-from services.cloud.uplink import decode_in_process, decode_process_init
 
 log = logging.getLogger(__name__)
 
 T = TypeVar("T")
-Predecoded = tuple[bytes, CodecConfig, KeyframeFeatures]
-"""A keyframe payload, the codec config and the features a decode process made of it."""
 
 
 def open_app(
@@ -191,7 +186,7 @@ class CloudServer:
         self._worker = ThreadPoolExecutor(1, thread_name_prefix="cloud-worker")
         self._io = ThreadPoolExecutor(1, thread_name_prefix="cloud-io")
         self._optimizer = self._new_optimizer()
-        self._decode_pool = self._new_decode_pool()
+        self._decode_pool = DecodePool(self.config.decode_workers, vocabulary)
         self._app: CloudApp | None = None
         self._core: CloudCore | None = None
         self._server = Server(
@@ -225,40 +220,6 @@ class CloudServer:
                 initargs=(os.getpid(), self.config.optimizer_nice),
             )
         return ThreadPoolExecutor(1, thread_name_prefix="cloud-optimizer")
-
-    def _new_decode_pool(self) -> Executor | None:
-        if not self.config.decode_workers:
-            return None
-        return ProcessPoolExecutor(
-            self.config.decode_workers,
-            mp_context=multiprocessing.get_context("spawn"),
-            initializer=decode_process_init,
-            initargs=(os.getpid(), self.vocabulary),
-        )
-
-    async def _predecode(self, message: Message) -> Predecoded | None:
-        """A keyframe's features decoded in the decode pool, to offer the worker (None: no
-        pool, not a coded keyframe, or the pool failed; the worker then decodes it)."""
-        pool, app = self._decode_pool, self._app
-        if (
-            pool is None
-            or app is None
-            or not isinstance(message, KeyframeUpdate | KeyframeUpdateCoded)
-        ):
-            return None
-        if not message.features:
-            return None
-        # The worker owns the app; a stale config here only makes the offer miss.
-        config = app.sensors.codec(str(message.agent_id))
-        try:
-            loop = asyncio.get_running_loop()
-            feats = await loop.run_in_executor(pool, decode_in_process, message.features, config)
-        except (BrokenExecutor, OSError, RuntimeError) as exc:
-            log.warning("decode process failed (%s); decoding on the worker", exc)
-            self._decode_pool = None
-            pool.shutdown(wait=False, cancel_futures=True)
-            return None
-        return None if feats is None else (message.features, config, feats)
 
     async def _on_worker(self, fn: Callable[..., T], *args: Any) -> T:
         return await asyncio.get_running_loop().run_in_executor(self._worker, fn, *args)
@@ -324,8 +285,7 @@ class CloudServer:
         self._worker.shutdown(wait=True)
         self._io.shutdown(wait=True)
         self._optimizer.shutdown(wait=True)
-        if self._decode_pool is not None:
-            self._decode_pool.shutdown(wait=True)
+        self._decode_pool.shutdown()
 
     async def __aenter__(self) -> CloudServer:
         return self
@@ -342,7 +302,8 @@ class CloudServer:
         self._queued += 1
         self._queued_max = max(self._queued_max, self._queued)
         try:
-            done = await self._predecode(d.message)
+            # (the worker owns the app; a stale codec read here only makes the offer miss)
+            done = await self._decode_pool.predecode(d.message, app.sensors.codec)
             deadline = await self._on_worker(
                 self._handle, core, d, clock, time.time(), clock(), done
             )
@@ -367,7 +328,7 @@ class CloudServer:
     ) -> float | None:
         """Apply one message (worker thread), record it when recording; the core's next
         deadline after it. ``t_queued``: the loop time it was handed to the worker; ``done``:
-        its features decoded in the decode pool (:meth:`_predecode`)."""
+        its features decoded in the decode pool (:class:`DecodePool`)."""
         now = clock()
         self.timer.add("wait.worker", now - t_queued)
         kind = type(d.message).__name__
