@@ -16,16 +16,41 @@ import os
 from collections.abc import Callable
 from concurrent.futures import BrokenExecutor, ProcessPoolExecutor
 
+from common.codec.errors import CodecError
 from common.codec.types import CodecConfig, KeyframeFeatures
 from common.links.edge_cloud import KeyframeUpdate, KeyframeUpdateCoded
 from common.protocol.messages import Message
 from common.vocabulary import Vocabulary
-from services.cloud.uplink import decode_in_process, decode_process_init
+from services.cloud.child_process import child_process_init
+from services.cloud.uplink import KeyframeDecoders
 
 log = logging.getLogger(__name__)
 
 Predecoded = tuple[bytes, CodecConfig, KeyframeFeatures]
 """A keyframe payload, the codec config and the features a decode process made of it."""
+
+
+_PROCESS_DECODERS: KeyframeDecoders | None = None
+
+
+def decode_process_init(parent_pid: int, vocabulary: Vocabulary) -> None:
+    """Initializer of a decode process (``ProcessPoolExecutor(initializer=...)``): the
+    service's lifecycle (:func:`child_process_init`) and this vocabulary."""
+    global _PROCESS_DECODERS
+    child_process_init(parent_pid)
+    _PROCESS_DECODERS = KeyframeDecoders(vocabulary)
+
+
+def decode_in_process(payload: bytes, config: CodecConfig) -> KeyframeFeatures | None:
+    """The keyframe features of ``payload`` in a decode process (None: not a keyframe
+    payload, or it fails to decode; the worker then decodes it and reports why)."""
+    if _PROCESS_DECODERS is None:
+        raise RuntimeError("decode_in_process outside a decode process")
+    try:
+        out = _PROCESS_DECODERS.decode(payload, config)
+    except CodecError:
+        return None
+    return out if isinstance(out, KeyframeFeatures) else None
 
 
 class DecodePool:

@@ -24,7 +24,7 @@ from common.errors import RecslamError
 from common.geometry import DegenerateAlignmentError, make_T, transform_points, umeyama_alignment
 from services.cloud.atlas import Atlas, LoopEdge, MergeRecord
 from services.cloud.config import AlignmentMode, MergeConfig
-from services.cloud.verification import VerificationResult, hamming
+from services.cloud.verification import VerificationResult, pair_hamming
 
 log = logging.getLogger(__name__)
 
@@ -125,8 +125,8 @@ def fuse_duplicates(
         keep = others[int(j)]
         if not (observed(keep) and observed(k)):
             continue
-        hd = hamming(atlas.map_point_descriptor(keep)[None], atlas.map_point_descriptor(k)[None])
-        if int(hd[0, 0]) <= max_hamming:
+        d = atlas.map_point_descriptors(np.array([keep, k]))
+        if int(pair_hamming(d[:1], d[1:])[0]) <= max_hamming:
             atlas.fuse_map_points(keep, k)
             fused += 1
     return fused

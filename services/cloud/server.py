@@ -332,14 +332,14 @@ class CloudServer:
         now = clock()
         self.timer.add("wait.worker", now - t_queued)
         kind = type(d.message).__name__
-        decoders = core.app.decoders
         if done is not None:
-            decoders.offer(*done)
+            core.app.decoders.offer(*done)
         try:
             with self.timer.span(f"wall.{kind}"), self.cpu_timer.span(f"handle.{kind}"):
                 core.handle(d.peer, d.message, d.stream_id, d.seq, now)
         finally:
-            decoders.forget()
+            if done is not None:
+                core.app.decoders.forget()
         if self._recorder is not None:
             self._recorder.write(d.peer, d.stream_id, d.seq, d.message, t_recv, now)
         return core.next_deadline()

@@ -49,7 +49,6 @@ from common.protocol.arrays import unpack_array
 from common.protocol.errors import RemoteProtocolError
 from common.vocabulary import Vocabulary
 from services.cloud.atlas import AtlasError, KeyframeInput, MapPointInput
-from services.cloud.child_process import child_process_init
 
 log = logging.getLogger(__name__)
 
@@ -141,7 +140,7 @@ class KeyframeDecoders:
     reused for every keyframe coded with that config (``decode_detached``); decodes exactly
     what a fresh decoder would. Not thread-safe: one owner (the cloud's worker).
 
-    A payload decoded elsewhere (the service's decode process, :func:`decode_in_process`) is
+    A payload decoded elsewhere (the service's decode process, ``services.cloud.decode_pool``) is
     handed in with :meth:`offer` and taken by the next :meth:`decode` of the same bytes with
     the same config; anything else is decoded here."""
 
@@ -168,29 +167,6 @@ class KeyframeDecoders:
     def forget(self) -> None:
         """Drop what was offered and not taken."""
         self._offered.clear()
-
-
-_PROCESS_DECODERS: KeyframeDecoders | None = None
-
-
-def decode_process_init(parent_pid: int, vocabulary: Vocabulary) -> None:
-    """Initializer of a decode process (``ProcessPoolExecutor(initializer=...)``): the
-    service's lifecycle (:func:`child_process_init`) and this vocabulary."""
-    global _PROCESS_DECODERS
-    child_process_init(parent_pid)
-    _PROCESS_DECODERS = KeyframeDecoders(vocabulary)
-
-
-def decode_in_process(payload: bytes, config: CodecConfig) -> KeyframeFeatures | None:
-    """The keyframe features of ``payload`` in a decode process (None: not a keyframe
-    payload, or it fails to decode; the worker then decodes it and reports why)."""
-    if _PROCESS_DECODERS is None:
-        raise RuntimeError("decode_in_process outside a decode process")
-    try:
-        out = _PROCESS_DECODERS.decode(payload, config)
-    except CodecError:
-        return None
-    return out if isinstance(out, KeyframeFeatures) else None
 
 
 def decode_keyframe_update(

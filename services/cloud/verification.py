@@ -78,13 +78,6 @@ def colmap_camera(cam: CameraCalibration) -> pycolmap.Camera:
     )
 
 
-def hamming(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Hamming distances ``(N, M) int32`` between descriptor sets ``(N, 32)`` and ``(M, 32)``."""
-    a64 = np.ascontiguousarray(a, dtype=np.uint8).view(np.uint64)
-    b64 = np.ascontiguousarray(b, dtype=np.uint8).view(np.uint64)
-    return np.bitwise_count(a64[:, None, :] ^ b64[None, :, :]).sum(axis=2, dtype=np.int32)
-
-
 def pair_hamming(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Hamming distances ``(N,) int32`` of row pairs ``a[i]``, ``b[i]`` (``(N, 32) uint8``)."""
     a64 = np.ascontiguousarray(a, dtype=np.uint8).view(np.uint64)
