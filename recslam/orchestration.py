@@ -95,6 +95,8 @@ class JobConfig:
             shutdown; default on, like the cloud).
         mbp_every: ... and every this many new keyframes while running (``--mbp-every``;
             default 0: not).
+        early_loop_candidates: ``recslam cloud --early-loop-candidates`` (None: the cloud's
+            default).
         wire: how the edge encodes what it sends to the robots and the cloud (``recslam edge
             --wire``; default coded; robots and cloud accept both).
         placement: where each process runs (default: all on loopback here), e.g. the robots
@@ -123,6 +125,7 @@ class JobConfig:
     record_uplink: Path | None = None
     mbp: bool = True
     mbp_every: int = 0
+    early_loop_candidates: int | None = None
     wire: WireFormat = WireFormat.CODED
     placement: Placement = field(default_factory=Placement)
     edges: int = 1
@@ -197,6 +200,8 @@ class Job:
             record += ["--mission", c.mission]
         if c.prior_frame is not None:
             record += ["--prior-frame", str(c.prior_frame)]
+        if c.early_loop_candidates is not None:
+            record += ["--early-loop-candidates", str(c.early_loop_candidates)]
         return self._recslam(
             "cloud",
             "--listen",

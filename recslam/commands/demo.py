@@ -135,6 +135,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="also prune every N new keyframes while running (recslam cloud --mbp-every)",
     )
     p.add_argument(
+        "--early-loop-candidates",
+        type=int,
+        default=None,
+        metavar="N",
+        help="recslam cloud --early-loop-candidates (default: the cloud's)",
+    )
+    p.add_argument(
         "--record-uplink",
         type=Path,
         default=None,
@@ -272,6 +279,7 @@ def run(args: argparse.Namespace) -> int:
         record_uplink=record,
         mbp=args.mbp,
         mbp_every=args.mbp_every,
+        early_loop_candidates=args.early_loop_candidates,
         wire=WireFormat(args.wire),
         edges=args.edges,
         sites=parse_sites(args.sites) if args.sites else None,

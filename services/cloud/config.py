@@ -41,6 +41,11 @@ class PlaceRecognitionConfig:
         query are never candidates (default 10 s).
     exclude_covisible: never return keyframes covisible with the query (default True).
     max_candidates: at most this many accepted candidates per query (default 3).
+    early_candidates: besides those, up to this many of the best candidates that are not yet
+        consistent over ``min_consistency`` queries are returned for verification now; they
+        are accepted only when the query's covisible keyframes agree with the verified pose
+        (``VerificationConfig.covisible_agree``), as ORB-SLAM3 does instead of waiting for
+        the next keyframes (default 1; 0: consecutive queries only, ORB-SLAM2's rule).
     """
 
     min_score_floor: float = 0.015
@@ -51,6 +56,7 @@ class PlaceRecognitionConfig:
     recent_window_s: float = 10.0
     exclude_covisible: bool = True
     max_candidates: int = 3
+    early_candidates: int = 1
 
 
 @dataclass(frozen=True)
@@ -75,6 +81,13 @@ class VerificationConfig:
     min_3d3d_agreement: when the query keypoints have their own map points, this fraction of
         inlier pairs must agree in 3D after alignment (default 0.5).
     agreement_distance_m: 3D agreement distance, metres (default 0.25).
+    covisible_checks: a candidate accepted before it was consistent over consecutive queries
+        (``PlaceRecognitionConfig.early_candidates``) is checked in this many of the query's
+        best covisible keyframes (ORB-SLAM3's covisibility consistency; default 5) ...
+    covisible_agree: ... at least this many of which must agree (default 2; the query makes
+        the third, as ORB-SLAM3's three) ...
+    covisible_min_matches: ... each with this many keypoints within ``reprojection_px`` of the
+        candidate group's map points projected at the keyframe's own pose (default 30).
     seed: RANSAC random seed (default 0; deterministic).
     """
 
@@ -90,6 +103,9 @@ class VerificationConfig:
     max_tilt_deg: float | None = 5.0
     min_3d3d_agreement: float = 0.5
     agreement_distance_m: float = 0.25
+    covisible_checks: int = 5
+    covisible_agree: int = 2
+    covisible_min_matches: int = 30
     seed: int = 0
 
 

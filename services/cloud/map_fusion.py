@@ -40,7 +40,11 @@ from services.cloud.inertial import ImuStore
 from services.cloud.mbp import MbpReport, run_mbp
 from services.cloud.merge import MatchOutcome, apply_match
 from services.cloud.place_recognition import KeyframeDatabase, PlaceRecognizer
-from services.cloud.verification import VerificationResult, verify_candidate
+from services.cloud.verification import (
+    VerificationResult,
+    covisible_agreement,
+    verify_candidate,
+)
 
 log = logging.getLogger(__name__)
 
@@ -154,6 +158,13 @@ class MapFusion:
                     self.config.verification,
                     self.word_group,
                 )
+                if res.accepted and cand.early(self.config.place_recognition):
+                    agree, checked = covisible_agreement(
+                        self.atlas, res, self.camera_of(kf.agent_id), self.config.verification
+                    )
+                    if agree < self.config.verification.covisible_agree:
+                        reason = f"covisible agreement {agree}/{checked}"
+                        res = dataclasses.replace(res, accepted=False, reason=reason)
                 verify_s += self.timer.clock() - t0
                 events.verifications.append(res)
                 self.verification_counts[reason_kind(res.reason)] += 1

@@ -18,8 +18,11 @@ the lowest score between the query and its covisible keyframes is the acceptance
 candidates must share ≥ 80 % of the best candidate's common words; scores are accumulated
 over each candidate's covisible group; groups below 75 % of the best are dropped; a candidate
 is accepted once its covisibility group has overlapped the candidates of ``min_consistency``
-consecutive keyframes of the query's agent. Intra- and inter-robot candidates are treated
-alike; the query's own covisible and recent keyframes are excluded.
+consecutive keyframes of the query's agent. Like ORB-SLAM3, the best candidates that are not
+consistent yet are verified at once too (``early_candidates``), and accepted when the query's
+covisible keyframes see the candidate's map points where the verified pose puts them.
+Intra- and inter-robot candidates are treated alike; the query's own covisible and recent
+keyframes are excluded.
 """
 
 from __future__ import annotations
@@ -212,7 +215,9 @@ class KeyframeDatabase:
 
 @dataclass(frozen=True)
 class LoopCandidate:
-    """An accepted place-recognition candidate for ``query_key``."""
+    """A place-recognition candidate for ``query_key`` to verify; ``consistency``: the
+    consecutive queries of its agent whose candidates overlapped its group (this one
+    included)."""
 
     query_key: int
     candidate_key: int
@@ -220,6 +225,11 @@ class LoopCandidate:
     group_score: float
     consistency: int
     inter_agent: bool
+
+    def early(self, config: PlaceRecognitionConfig) -> bool:
+        """Not yet consistent over ``min_consistency`` queries: accepted only with the
+        covisibility check (:func:`services.cloud.verification.covisible_agreement`)."""
+        return self.consistency < config.min_consistency
 
 
 class PlaceRecognizer:
@@ -288,29 +298,30 @@ class PlaceRecognizer:
         return [(k, s, acc) for k, (s, acc) in out.items()]
 
     def detect(self, atlas: Atlas, key: int) -> list[LoopCandidate]:
-        """Accepted candidates for keyframe ``key`` (consistency over consecutive queries)."""
+        """Candidates for keyframe ``key`` to verify: first those consistent over
+        ``min_consistency`` consecutive queries (at most ``max_candidates``), then up to
+        ``early_candidates`` of the best others (:meth:`LoopCandidate.early`), which need the
+        covisibility check after verification."""
         cfg = self.config
         agent = atlas.keyframe(key).agent_id
         found = self.candidates(atlas, key)
         previous = self._groups.get(agent, [])
         current: list[tuple[frozenset[int], int]] = []
         accepted: list[LoopCandidate] = []
+        early: list[LoopCandidate] = []
         for ckey, score, acc in found:
             group = frozenset([ckey, *atlas.best_covisible(ckey, 2 * cfg.group_size)])
             count = 1 + max((n for g, n in previous if g & group), default=0)
             current.append((group, count))
-            if count >= cfg.min_consistency and len(accepted) < cfg.max_candidates:
-                accepted.append(
-                    LoopCandidate(
-                        key,
-                        ckey,
-                        score,
-                        acc,
-                        count,
-                        atlas.keyframe(ckey).agent_id != agent,
-                    )
-                )
+            inter = atlas.keyframe(ckey).agent_id != agent
+            cand = LoopCandidate(key, ckey, score, acc, count, inter)
+            if count >= cfg.min_consistency:
+                if len(accepted) < cfg.max_candidates:
+                    accepted.append(cand)
+            elif len(early) < cfg.early_candidates:
+                early.append(cand)
         self._groups[agent] = current
+        accepted += early
         if accepted:
             log.debug("query %d: %d consistent candidates", key, len(accepted))
         return accepted

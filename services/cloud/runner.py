@@ -77,6 +77,8 @@ class CloudRunConfig:
         optimizer_nice: niceness added to the optimizer process
             (``CloudServiceConfig.optimizer_nice``).
         decode_workers: keyframe decode processes (``CloudServiceConfig.decode_workers``).
+        early_loop_candidates: candidates verified before they are consistent over
+            consecutive keyframes (``PlaceRecognitionConfig.early_candidates``).
         agent_id: this service's agent id.
         wire: encoding of the pose corrections to the edges.
         output_every_s: rewrite outputs every so many seconds, 0 = only at exit.
@@ -105,6 +107,7 @@ class CloudRunConfig:
     full_ba: bool = True
     optimizer_nice: int = 0
     decode_workers: int = 0
+    early_loop_candidates: int = 1
     agent_id: str = "cloud"
     wire: WireFormat = WireFormat.CODED
     output_every_s: float = 30.0
@@ -214,6 +217,17 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "shutdown; see benchmarks/results/mbp_midrun.md)",
     )
     p.add_argument(
+        "--early-loop-candidates",
+        type=int,
+        default=1,
+        choices=range(11),
+        metavar="N",
+        help="verify the N best place-recognition candidates of a keyframe at once and accept "
+        "one when the keyframe's covisible keyframes agree with it (ORB-SLAM3), besides those "
+        "consistent over 3 keyframes (default 1; 0: only those; "
+        "benchmarks/results/loop_detection.md)",
+    )
+    p.add_argument(
         "--optimizer-nice",
         type=int,
         default=0,
@@ -293,6 +307,7 @@ def config_from_args(args: argparse.Namespace) -> CloudRunConfig:
         full_ba=args.full_ba,
         optimizer_nice=args.optimizer_nice,
         decode_workers=args.decode_workers,
+        early_loop_candidates=args.early_loop_candidates,
         agent_id=args.agent_id,
         wire=WireFormat(args.wire),
         output_every_s=args.output_every,
@@ -368,12 +383,21 @@ def _server(
 ) -> CloudServer:
     from common.protocol import SessionConfig
     from common.transport import TransportConfig
-    from services.cloud.config import CloudConfig, CloudServiceConfig, FullBAConfig, MbpConfig
+    from services.cloud.config import (
+        CloudConfig,
+        CloudServiceConfig,
+        FullBAConfig,
+        MbpConfig,
+        PlaceRecognitionConfig,
+    )
     from services.cloud.server import CloudServer
 
     domain = CloudConfig(
         mbp=dataclasses.replace(MbpConfig(), enabled=config.mbp),
         full_ba=dataclasses.replace(FullBAConfig(), enabled=config.full_ba),
+        place_recognition=dataclasses.replace(
+            PlaceRecognitionConfig(), early_candidates=config.early_loop_candidates
+        ),
     )
     service = CloudServiceConfig(
         domain=domain,

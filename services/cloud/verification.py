@@ -26,6 +26,7 @@ from common.errors import RecslamError
 from common.geometry import inverse_T, transform_points
 from services.cloud.atlas import Atlas
 from services.cloud.config import VerificationConfig
+from services.cloud.map_types import KeyframeView
 
 log = logging.getLogger(__name__)
 
@@ -207,39 +208,11 @@ def verify_candidate(
         )
 
     # Guided expansion with the map points of the candidate's covisible group.
-    group = [candidate_key, *atlas.best_covisible(candidate_key, cfg.covisible_expansion)]
-    keys = set()
-    for g in group:
-        mk = atlas.keyframe(g).map_point_keys
-        keys.update(mk[mk >= 0].tolist())
-    keys_arr = np.array(sorted(keys), np.int64)
+    keys_arr = candidate_group_points(atlas, candidate_key, cfg)
     P = atlas.map_point_positions(keys_arr)
-    p_cam = transform_points(T_cam_cmap, P)
-    front = p_cam[:, 2] > 0.1
-    keys_arr, P, p_cam = keys_arr[front], P[front], p_cam[front]
-    uv = col_cam.img_from_cam(p_cam)
-    inside = (
-        (uv[:, 0] >= 0) & (uv[:, 0] < camera.width) & (uv[:, 1] >= 0) & (uv[:, 1] < camera.height)
-    )
-    keys_arr, P, uv = keys_arr[inside], P[inside], uv[inside]
-    tree = cKDTree(Q.keypoints[qi])
-    near = tree.query_ball_point(uv, cfg.projection_radius_px)
-    counts = np.fromiter((len(x) for x in near), np.int64, len(near))
-    pr = np.repeat(np.arange(len(near)), counts)  # (point row, query keypoint) pairs
-    pq = np.fromiter((j for x in near for j in x), np.int64, int(counts.sum()))
-    has = counts > 0
-    desc = np.zeros((len(near), 32), np.uint8)
-    desc[has] = atlas.map_point_descriptors(keys_arr[has])
-    d = pair_hamming(desc[pr], Q.descriptors[qi[pq]])
-    # each projected point's nearest query descriptor (first in the ball's order on ties) ...
-    best = _first_per(pr, d)
-    best = best[d[best] <= cfg.max_hamming]
-    # ... and each query keypoint's nearest such point (the lowest row on ties)
-    won = best[_first_per(pq[best], d[best])]
-    if won.size < cfg.min_inliers:
-        return _reject(query_key, candidate_key, f"{won.size} projected matches", int(won.size))
-    q_idx = qi[pq[won]]  # ascending, as qi
-    rows = pr[won]
+    q_idx, rows = project_and_match(atlas, Q, qi, T_cam_cmap, keys_arr, P, col_cam, camera, cfg)
+    if rows.size < cfg.min_inliers:
+        return _reject(query_key, candidate_key, f"{rows.size} projected matches", int(rows.size))
     T_cam_cmap, inl = _pose(Q.keypoints[q_idx], P[rows], col_cam, cfg)
     if T_cam_cmap is None:
         return _reject(query_key, candidate_key, "no refined pose")
@@ -284,3 +257,91 @@ def verify_candidate(
         point_pairs,
         np.stack([inl_q, inl_keys], axis=1).astype(np.int64),
     )
+
+
+def candidate_group_points(atlas: Atlas, candidate_key: int, cfg: VerificationConfig) -> np.ndarray:
+    """Map point keys ``(K,) int64`` (ascending) of the candidate and its
+    ``covisible_expansion`` best covisible keyframes: what the guided expansion projects."""
+    group = [candidate_key, *atlas.best_covisible(candidate_key, cfg.covisible_expansion)]
+    keys: set[int] = set()
+    for g in group:
+        mk = atlas.keyframe(g).map_point_keys
+        keys.update(mk[mk >= 0].tolist())
+    return np.array(sorted(keys), np.int64)
+
+
+def project_and_match(
+    atlas: Atlas,
+    Q: KeyframeView,
+    qi: np.ndarray,
+    T_cam_cmap: np.ndarray,
+    keys_arr: np.ndarray,
+    P: np.ndarray,
+    col_cam: pycolmap.Camera,
+    camera: CameraCalibration,
+    cfg: VerificationConfig,
+) -> tuple[np.ndarray, np.ndarray]:
+    """ORB-SLAM's ``SearchByProjection``: the points ``P (K, 3)`` (keys ``keys_arr``, in the
+    candidate's map frame) projected into keyframe ``Q`` with ``T_cam_cmap (4, 4)`` and matched
+    to its keypoints ``qi`` within ``projection_radius_px`` and ``max_hamming``, one-to-one.
+    Returns ``(q_idx, rows)``: keypoint indices of ``Q`` (ascending, as ``qi``) and the
+    matched rows of ``P``."""
+    p_cam = transform_points(T_cam_cmap, P)
+    front = np.flatnonzero(p_cam[:, 2] > 0.1)
+    uv = col_cam.img_from_cam(p_cam[front])
+    inside = (
+        (uv[:, 0] >= 0) & (uv[:, 0] < camera.width) & (uv[:, 1] >= 0) & (uv[:, 1] < camera.height)
+    )
+    front, uv = front[inside], uv[inside]
+    empty = np.zeros(0, np.int64)
+    if front.size == 0 or qi.size == 0:
+        return empty, empty
+    tree = cKDTree(Q.keypoints[qi])
+    near = tree.query_ball_point(uv, cfg.projection_radius_px)
+    counts = np.fromiter((len(x) for x in near), np.int64, len(near))
+    pr = np.repeat(np.arange(len(near)), counts)  # (point row, query keypoint) pairs
+    pq = np.fromiter((j for x in near for j in x), np.int64, int(counts.sum()))
+    has = counts > 0
+    desc = np.zeros((len(near), 32), np.uint8)
+    desc[has] = atlas.map_point_descriptors(keys_arr[front[has]])
+    d = pair_hamming(desc[pr], Q.descriptors[qi[pq]])
+    # each projected point's nearest query descriptor (first in the ball's order on ties) ...
+    best = _first_per(pr, d)
+    best = best[d[best] <= cfg.max_hamming]
+    # ... and each query keypoint's nearest such point (the lowest row on ties)
+    won = best[_first_per(pq[best], d[best])]
+    return qi[pq[won]], front[pr[won]]
+
+
+def covisible_agreement(
+    atlas: Atlas,
+    result: VerificationResult,
+    camera: CameraCalibration,
+    config: VerificationConfig,
+) -> tuple[int, int]:
+    """ORB-SLAM3's covisibility consistency of an accepted ``result``: the candidate group's
+    map points are projected, through the verified ``T_cmap_qmap``, into each of the query's
+    ``covisible_checks`` best covisible keyframes at its own pose (no new estimate). A
+    keyframe agrees when ``covisible_min_matches`` of its keypoints match a projected point
+    within ``reprojection_px``. Returns ``(agreeing, checked)``; ``camera`` is the query
+    agent's (its covisible keyframes are the same robot's)."""
+    cfg = config
+    keys_arr = candidate_group_points(atlas, result.candidate_key, cfg)
+    P = atlas.map_point_positions(keys_arr)
+    col_cam = colmap_camera(camera)
+    T_qmap_cmap = inverse_T(result.T_cmap_qmap)
+    T_cam_body = inverse_T(np.asarray(camera.T_body_cam))
+    neighbours = atlas.best_covisible(result.query_key, cfg.covisible_checks)
+    agreeing = 0
+    for k in neighbours:
+        K = atlas.keyframe(k)
+        T_cam_cmap = T_cam_body @ inverse_T(K.T_map_body) @ T_qmap_cmap
+        qi = np.flatnonzero(~K.virtual)
+        q_idx, rows = project_and_match(atlas, K, qi, T_cam_cmap, keys_arr, P, col_cam, camera, cfg)
+        if rows.size < cfg.covisible_min_matches:
+            continue
+        uv = col_cam.img_from_cam(transform_points(T_cam_cmap, P[rows]))
+        err = np.linalg.norm(uv - K.keypoints[q_idx], axis=1)
+        if int((err <= cfg.reprojection_px).sum()) >= cfg.covisible_min_matches:
+            agreeing += 1
+    return agreeing, len(neighbours)
