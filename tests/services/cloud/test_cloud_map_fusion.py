@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 
 from common.geometry import inverse_T
-from services.cloud.config import CloudConfig
+from services.cloud.atlas import split_key
+from services.cloud.config import CloudConfig, PlaceRecognitionConfig
 from services.cloud.global_optimization import optimize_pose_graph
 from services.cloud.map_fusion import MapFusion
 from services.cloud.merge import yaw_of
@@ -47,3 +48,43 @@ def test_two_robots_merge_through_the_front_object(tmp_path):
         restored = MapFusion(cam, world.idf, cfg, atlas=store.load())
     assert restored.atlas.keyframe_keys() == fusion.atlas.keyframe_keys()
     assert len(restored.recognizer.db) == len(fusion.atlas.keyframe_keys())
+
+
+def _fuse(cfg, world, cam, sessions):
+    fusion = MapFusion(cam, world.idf, cfg)
+    edges = []
+    for kfs, mps in sessions:
+        for m in mps:
+            fusion.add_map_point(m)
+        for k in kfs:
+            ev = fusion.add_keyframe(k)
+            edges += [o.loop for o in ev.outcomes]
+            for map_id in ev.maps_to_optimize:
+                fusion.apply_optimization(
+                    optimize_pose_graph(fusion.pose_graph(map_id), cfg.optimization)
+                )
+    return fusion, edges
+
+
+def test_early_candidates_close_more_revisits_and_every_one_is_true():
+    """Verified at once and confirmed by the query's covisible keyframes (ORB-SLAM3), the
+    second robot's revisits are closed at more of its keyframes than when a candidate must
+    be consistent over three keyframes; every constraint agrees with the ground truth."""
+    world = make_world(51)
+    cam = default_camera()
+    T_a1_world = yaw_T(np.radians(-60.0), [-1.5, 0.5, 0.0])
+    poses = {0: circle_poses(24, turns=1.0), 1: circle_poses(12, turns=0.5, phase=2.0)}
+    s0 = make_session(world, cam, 0, poses[0], np.eye(4), seed=1)
+    s1 = make_session(world, cam, 1, poses[1], T_a1_world, seed=2, t0=50.0)
+    found = {}
+    for early in (0, 1):
+        cfg = CloudConfig(place_recognition=PlaceRecognitionConfig(early_candidates=early))
+        fusion, edges = _fuse(cfg, world, cam, (s0, s1))
+        assert fusion.atlas.maps() == [0]
+        for e in edges:
+            (ag_a, i_a), (ag_b, i_b) = split_key(e.key_a), split_key(e.key_b)
+            T_true = inverse_T(poses[ag_a][i_a]) @ poses[ag_b][i_b]
+            assert np.linalg.norm(e.T_a_b[:3, 3] - T_true[:3, 3]) < 0.05
+        found[early] = {split_key(e.key_b) for e in edges}
+    assert found[0] <= found[1]
+    assert len(found[1]) >= len(found[0]) + 3

@@ -3,6 +3,8 @@ and map merging to the right transform."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -24,7 +26,7 @@ from services.cloud.simulation import (
     make_world,
     yaw_T,
 )
-from services.cloud.verification import match_by_words, verify_candidate
+from services.cloud.verification import covisible_agreement, match_by_words, verify_candidate
 
 CAM = default_camera()
 
@@ -206,3 +208,21 @@ def test_rejected_match_cannot_be_merged(world):
     res = verify_candidate(atlas, make_key(0, 30), make_key(0, 0), CAM, VerificationConfig())
     with pytest.raises(MergeError, match="rejected"):
         apply_match(atlas, res, MergeConfig())
+
+
+def test_covisible_keyframes_confirm_a_true_revisit_and_not_a_wrong_pose(world):
+    """ORB-SLAM3's covisibility check: the query's covisible keyframes, each at its own pose,
+    see the candidate group's points where the verified transform puts them; the same check
+    with that transform 2 degrees off (about the map's origin) finds no agreeing keyframe."""
+    poses = circle_poses(40, turns=2.0)
+    kfs, mps = make_session(world, CAM, 0, poses, np.eye(4), seed=3, dt=1.0)
+    atlas = _atlas((kfs, mps))
+    cfg = VerificationConfig()
+    res = verify_candidate(atlas, make_key(0, 25), make_key(0, 5), CAM, cfg)
+    assert res.accepted, res.reason
+    agree, checked = covisible_agreement(atlas, res, CAM, cfg)
+    assert checked == cfg.covisible_checks
+    assert agree >= cfg.covisible_agree
+    off = yaw_T(np.radians(2.0), [0.0, 0.0, 0.0])
+    wrong = dataclasses.replace(res, T_cmap_qmap=off @ res.T_cmap_qmap)
+    assert covisible_agreement(atlas, wrong, CAM, cfg)[0] == 0
