@@ -210,7 +210,8 @@ def verify_candidate(
     # Guided expansion with the map points of the candidate's covisible group.
     keys_arr = candidate_group_points(atlas, candidate_key, cfg)
     P = atlas.map_point_positions(keys_arr)
-    q_idx, rows = project_and_match(atlas, Q, qi, T_cam_cmap, keys_arr, P, col_cam, camera, cfg)
+    group = GroupDescriptors(atlas, keys_arr)
+    q_idx, rows = project_and_match(group, Q, qi, T_cam_cmap, P, col_cam, camera, cfg)
     if rows.size < cfg.min_inliers:
         return _reject(query_key, candidate_key, f"{rows.size} projected matches", int(rows.size))
     T_cam_cmap, inl = _pose(Q.keypoints[q_idx], P[rows], col_cam, cfg)
@@ -270,18 +271,37 @@ def candidate_group_points(atlas: Atlas, candidate_key: int, cfg: VerificationCo
     return np.array(sorted(keys), np.int64)
 
 
+class GroupDescriptors:
+    """Descriptors ``(32,) uint8`` of the map points ``keys (K,)``, looked up in the atlas
+    once per point and only for the rows asked for (a point's descriptor is the median of
+    its observations: costly)."""
+
+    def __init__(self, atlas: Atlas, keys: np.ndarray) -> None:
+        self.atlas = atlas
+        self.keys = keys
+        self.desc = np.zeros((keys.shape[0], 32), np.uint8)
+        self.have = np.zeros(keys.shape[0], bool)
+
+    def rows(self, rows: np.ndarray) -> np.ndarray:
+        """Descriptors ``(n, 32)`` of ``rows`` (indices into ``keys``)."""
+        missing = np.unique(rows[~self.have[rows]])
+        if missing.size:
+            self.desc[missing] = self.atlas.map_point_descriptors(self.keys[missing])
+            self.have[missing] = True
+        return self.desc[rows]
+
+
 def project_and_match(
-    atlas: Atlas,
+    descriptors: GroupDescriptors,
     Q: KeyframeView,
     qi: np.ndarray,
     T_cam_cmap: np.ndarray,
-    keys_arr: np.ndarray,
     P: np.ndarray,
     col_cam: pycolmap.Camera,
     camera: CameraCalibration,
     cfg: VerificationConfig,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """ORB-SLAM's ``SearchByProjection``: the points ``P (K, 3)`` (keys ``keys_arr``, in the
+    """ORB-SLAM's ``SearchByProjection``: the points ``P (K, 3)`` (``descriptors.keys``, in the
     candidate's map frame) projected into keyframe ``Q`` with ``T_cam_cmap (4, 4)`` and matched
     to its keypoints ``qi`` within ``projection_radius_px`` and ``max_hamming``, one-to-one.
     Returns ``(q_idx, rows)``: keypoint indices of ``Q`` (ascending, as ``qi``) and the
@@ -303,7 +323,7 @@ def project_and_match(
     pq = np.fromiter((j for x in near for j in x), np.int64, int(counts.sum()))
     has = counts > 0
     desc = np.zeros((len(near), 32), np.uint8)
-    desc[has] = atlas.map_point_descriptors(keys_arr[front[has]])
+    desc[has] = descriptors.rows(front[has])
     d = pair_hamming(desc[pr], Q.descriptors[qi[pq]])
     # each projected point's nearest query descriptor (first in the ball's order on ties) ...
     best = _first_per(pr, d)
@@ -323,25 +343,32 @@ def covisible_agreement(
     map points are projected, through the verified ``T_cmap_qmap``, into each of the query's
     ``covisible_checks`` best covisible keyframes at its own pose (no new estimate). A
     keyframe agrees when ``covisible_min_matches`` of its keypoints match a projected point
-    within ``reprojection_px``. Returns ``(agreeing, checked)``; ``camera`` is the query
-    agent's (its covisible keyframes are the same robot's)."""
+    within ``reprojection_px``. The check stops once ``covisible_agree`` keyframes agree or
+    too few are left to. Returns ``(agreeing, checked)``; ``camera`` is the query agent's (its
+    covisible keyframes are the same robot's)."""
     cfg = config
     keys_arr = candidate_group_points(atlas, result.candidate_key, cfg)
     P = atlas.map_point_positions(keys_arr)
+    group = GroupDescriptors(atlas, keys_arr)
     col_cam = colmap_camera(camera)
     T_qmap_cmap = inverse_T(result.T_cmap_qmap)
     T_cam_body = inverse_T(np.asarray(camera.T_body_cam))
     neighbours = atlas.best_covisible(result.query_key, cfg.covisible_checks)
-    agreeing = 0
+    agreeing = checked = 0
     for k in neighbours:
+        if agreeing >= cfg.covisible_agree or agreeing + len(neighbours) - checked < (
+            cfg.covisible_agree
+        ):
+            break
+        checked += 1
         K = atlas.keyframe(k)
         T_cam_cmap = T_cam_body @ inverse_T(K.T_map_body) @ T_qmap_cmap
         qi = np.flatnonzero(~K.virtual)
-        q_idx, rows = project_and_match(atlas, K, qi, T_cam_cmap, keys_arr, P, col_cam, camera, cfg)
+        q_idx, rows = project_and_match(group, K, qi, T_cam_cmap, P, col_cam, camera, cfg)
         if rows.size < cfg.covisible_min_matches:
             continue
         uv = col_cam.img_from_cam(transform_points(T_cam_cmap, P[rows]))
         err = np.linalg.norm(uv - K.keypoints[q_idx], axis=1)
         if int((err <= cfg.reprojection_px).sum()) >= cfg.covisible_min_matches:
             agreeing += 1
-    return agreeing, len(neighbours)
+    return agreeing, checked
