@@ -316,15 +316,14 @@ def project_and_match(
     empty = np.zeros(0, np.int64)
     if front.size == 0 or qi.size == 0:
         return empty, empty
-    tree = cKDTree(Q.keypoints[qi])
-    near = tree.query_ball_point(uv, cfg.projection_radius_px)
-    counts = np.fromiter((len(x) for x in near), np.int64, len(near))
-    pr = np.repeat(np.arange(len(near)), counts)  # (point row, query keypoint) pairs
-    pq = np.fromiter((j for x in near for j in x), np.int64, int(counts.sum()))
-    has = counts > 0
-    desc = np.zeros((len(near), 32), np.uint8)
-    desc[has] = descriptors.rows(front[has])
-    d = pair_hamming(desc[pr], Q.descriptors[qi[pq]])
+    # every (projected point, query keypoint) pair within the radius, by point then keypoint
+    near = cKDTree(uv).sparse_distance_matrix(
+        cKDTree(Q.keypoints[qi]), cfg.projection_radius_px, output_type="ndarray"
+    )
+    order = np.lexsort((near["j"], near["i"]))
+    pr = near["i"][order].astype(np.int64)
+    pq = near["j"][order].astype(np.int64)
+    d = pair_hamming(descriptors.rows(front[pr]), Q.descriptors[qi[pq]])
     # each projected point's nearest query descriptor (first in the ball's order on ties) ...
     best = _first_per(pr, d)
     best = best[d[best] <= cfg.max_hamming]
