@@ -41,6 +41,7 @@ from services.cloud.mbp import MbpReport, run_mbp
 from services.cloud.merge import MatchOutcome, apply_match
 from services.cloud.place_recognition import KeyframeDatabase, PlaceRecognizer
 from services.cloud.verification import (
+    CandidateGroup,
     VerificationResult,
     covisible_agreement,
     verify_candidate,
@@ -150,6 +151,7 @@ class MapFusion:
                 if same_map and any(o.loop.key_b == key for o in events.outcomes):
                     continue
                 t0 = self.timer.clock()
+                group = CandidateGroup(self.atlas, cand.candidate_key, self.config.verification)
                 res = verify_candidate(
                     self.atlas,
                     key,
@@ -157,10 +159,15 @@ class MapFusion:
                     self.camera_of(kf.agent_id),
                     self.config.verification,
                     self.word_group,
+                    group,
                 )
                 if res.accepted and cand.early(self.config.place_recognition):
                     agree, checked = covisible_agreement(
-                        self.atlas, res, self.camera_of(kf.agent_id), self.config.verification
+                        self.atlas,
+                        res,
+                        self.camera_of(kf.agent_id),
+                        self.config.verification,
+                        group,
                     )
                     if agree < self.config.verification.covisible_agree:
                         reason = f"covisible agreement {agree}/{checked}"

@@ -14,6 +14,7 @@
 
 from __future__ import annotations
 
+import functools
 import logging
 from dataclasses import dataclass
 
@@ -169,12 +170,15 @@ def verify_candidate(
     camera: CameraCalibration,
     config: VerificationConfig,
     word_group: np.ndarray | None = None,
+    group: CandidateGroup | None = None,
 ) -> VerificationResult:
     """Verify ``candidate_key`` for ``query_key``; ``camera`` is the query keyframe's (its
     robot's: the query's keypoints are located against the candidate's map points).
     ``word_group (S,)`` optionally maps each
     word to the id of the vocabulary node whose members may match (e.g.
-    ``Vocabulary.ancestor_at_level(np.arange(S), level)``); None = same word only."""
+    ``Vocabulary.ancestor_at_level(np.arange(S), level)``); None = same word only.
+    ``group``: the candidate's :class:`CandidateGroup` (None: made here), for a caller that
+    checks the result further with it."""
     cfg = config
     Q = atlas.keyframe(query_key)
     C = atlas.keyframe(candidate_key)
@@ -208,13 +212,12 @@ def verify_candidate(
         )
 
     # Guided expansion with the map points of the candidate's covisible group.
-    keys_arr = candidate_group_points(atlas, candidate_key, cfg)
-    P = atlas.map_point_positions(keys_arr)
-    group = GroupDescriptors(atlas, keys_arr)
-    q_idx, rows = project_and_match(group, Q, qi, T_cam_cmap, P, col_cam, camera, cfg)
+    if group is None:
+        group = CandidateGroup(atlas, candidate_key, cfg)
+    q_idx, rows = project_and_match(group, Q, qi, T_cam_cmap, col_cam, camera, cfg)
     if rows.size < cfg.min_inliers:
         return _reject(query_key, candidate_key, f"{rows.size} projected matches", int(rows.size))
-    T_cam_cmap, inl = _pose(Q.keypoints[q_idx], P[rows], col_cam, cfg)
+    T_cam_cmap, inl = _pose(Q.keypoints[q_idx], group.P[rows], col_cam, cfg)
     if T_cam_cmap is None:
         return _reject(query_key, candidate_key, "no refined pose")
     n_inl = int(inl.sum())
@@ -233,7 +236,7 @@ def verify_candidate(
         if tilt > cfg.max_tilt_deg:
             return _reject(query_key, candidate_key, f"tilt {tilt:.1f} deg", n_inl, ratio)
     inl_q = q_idx[inl]
-    inl_keys = keys_arr[rows[inl]]
+    inl_keys = group.keys[rows[inl]]
     q_mp = Q.map_point_keys[inl_q]
     has = q_mp >= 0
     point_pairs = np.stack([q_mp[has], inl_keys[has]], axis=1).astype(np.int64)
@@ -260,53 +263,61 @@ def verify_candidate(
     )
 
 
-def candidate_group_points(atlas: Atlas, candidate_key: int, cfg: VerificationConfig) -> np.ndarray:
-    """Map point keys ``(K,) int64`` (ascending) of the candidate and its
-    ``covisible_expansion`` best covisible keyframes: what the guided expansion projects."""
-    group = [candidate_key, *atlas.best_covisible(candidate_key, cfg.covisible_expansion)]
-    keys: set[int] = set()
-    for g in group:
-        mk = atlas.keyframe(g).map_point_keys
-        keys.update(mk[mk >= 0].tolist())
-    return np.array(sorted(keys), np.int64)
+class CandidateGroup:
+    """The map points the guided search projects: those of candidate keyframe ``key`` and of
+    its ``covisible_expansion`` best covisible keyframes. ``keys (K,) int64`` ascending and
+    their positions ``P (K, 3)`` in the candidate's map frame are gathered on first use;
+    descriptors (each the median of a point's observations: costly) once per point and only
+    for the rows asked for. One group serves verification and the covisibility check."""
 
-
-class GroupDescriptors:
-    """Descriptors ``(32,) uint8`` of the map points ``keys (K,)``, looked up in the atlas
-    once per point and only for the rows asked for (a point's descriptor is the median of
-    its observations: costly)."""
-
-    def __init__(self, atlas: Atlas, keys: np.ndarray) -> None:
+    def __init__(self, atlas: Atlas, key: int, config: VerificationConfig) -> None:
         self.atlas = atlas
-        self.keys = keys
-        self.desc = np.zeros((keys.shape[0], 32), np.uint8)
-        self.have = np.zeros(keys.shape[0], bool)
+        self.key = key
+        self.config = config
 
-    def rows(self, rows: np.ndarray) -> np.ndarray:
-        """Descriptors ``(n, 32)`` of ``rows`` (indices into ``keys``)."""
-        missing = np.unique(rows[~self.have[rows]])
+    @functools.cached_property
+    def keys(self) -> np.ndarray:
+        members = [self.key, *self.atlas.best_covisible(self.key, self.config.covisible_expansion)]
+        keys: set[int] = set()
+        for g in members:
+            mk = self.atlas.keyframe(g).map_point_keys
+            keys.update(mk[mk >= 0].tolist())
+        return np.array(sorted(keys), np.int64)
+
+    @functools.cached_property
+    def P(self) -> np.ndarray:
+        return self.atlas.map_point_positions(self.keys)
+
+    @functools.cached_property
+    def _desc(self) -> tuple[np.ndarray, np.ndarray]:
+        n = self.keys.shape[0]
+        return np.zeros((n, 32), np.uint8), np.zeros(n, bool)
+
+    def descriptors(self, rows: np.ndarray) -> np.ndarray:
+        """Descriptors ``(n, 32) uint8`` of ``rows`` (indices into :attr:`keys`)."""
+        desc, have = self._desc
+        missing = np.unique(rows[~have[rows]])
         if missing.size:
-            self.desc[missing] = self.atlas.map_point_descriptors(self.keys[missing])
-            self.have[missing] = True
-        return self.desc[rows]
+            desc[missing] = self.atlas.map_point_descriptors(self.keys[missing])
+            have[missing] = True
+        return desc[rows]
 
 
 def project_and_match(
-    descriptors: GroupDescriptors,
+    group: CandidateGroup,
     Q: KeyframeView,
     qi: np.ndarray,
     T_cam_cmap: np.ndarray,
-    P: np.ndarray,
     col_cam: pycolmap.Camera,
     camera: CameraCalibration,
     cfg: VerificationConfig,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """ORB-SLAM's ``SearchByProjection``: the points ``P (K, 3)`` (``descriptors.keys``, in the
-    candidate's map frame) projected into keyframe ``Q`` with ``T_cam_cmap (4, 4)`` and matched
+    """ORB-SLAM's ``SearchByProjection``: the points of ``group`` (in the candidate's map
+    frame) projected into keyframe ``Q`` with ``T_cam_cmap (4, 4)`` and matched
     to its keypoints ``qi`` within ``projection_radius_px`` and ``max_hamming``, one-to-one.
     Returns ``(q_idx, rows)``: keypoint indices of ``Q`` (ascending, as ``qi``) and the
-    matched rows of ``P``."""
-    p_cam = transform_points(T_cam_cmap, P)
+    matched rows of ``group.P``."""
+    p_cam = transform_points(T_cam_cmap, group.P)
     front = np.flatnonzero(p_cam[:, 2] > 0.1)
     uv = col_cam.img_from_cam(p_cam[front])
     inside = (
@@ -323,7 +334,7 @@ def project_and_match(
     order = np.lexsort((near["j"], near["i"]))
     pr = near["i"][order].astype(np.int64)
     pq = near["j"][order].astype(np.int64)
-    d = pair_hamming(descriptors.rows(front[pr]), Q.descriptors[qi[pq]])
+    d = pair_hamming(group.descriptors(front[pr]), Q.descriptors[qi[pq]])
     # each projected point's nearest query descriptor (first in the ball's order on ties) ...
     best = _first_per(pr, d)
     best = best[d[best] <= cfg.max_hamming]
@@ -337,6 +348,7 @@ def covisible_agreement(
     result: VerificationResult,
     camera: CameraCalibration,
     config: VerificationConfig,
+    group: CandidateGroup | None = None,
 ) -> tuple[int, int]:
     """ORB-SLAM3's covisibility consistency of an accepted ``result``: the candidate group's
     map points are projected, through the verified ``T_cmap_qmap``, into each of the query's
@@ -346,9 +358,8 @@ def covisible_agreement(
     too few are left to. Returns ``(agreeing, checked)``; ``camera`` is the query agent's (its
     covisible keyframes are the same robot's)."""
     cfg = config
-    keys_arr = candidate_group_points(atlas, result.candidate_key, cfg)
-    P = atlas.map_point_positions(keys_arr)
-    group = GroupDescriptors(atlas, keys_arr)
+    if group is None:
+        group = CandidateGroup(atlas, result.candidate_key, cfg)
     col_cam = colmap_camera(camera)
     T_qmap_cmap = inverse_T(result.T_cmap_qmap)
     T_cam_body = inverse_T(np.asarray(camera.T_body_cam))
@@ -363,10 +374,10 @@ def covisible_agreement(
         K = atlas.keyframe(k)
         T_cam_cmap = T_cam_body @ inverse_T(K.T_map_body) @ T_qmap_cmap
         qi = np.flatnonzero(~K.virtual)
-        q_idx, rows = project_and_match(group, K, qi, T_cam_cmap, P, col_cam, camera, cfg)
+        q_idx, rows = project_and_match(group, K, qi, T_cam_cmap, col_cam, camera, cfg)
         if rows.size < cfg.covisible_min_matches:
             continue
-        uv = col_cam.img_from_cam(transform_points(T_cam_cmap, P[rows]))
+        uv = col_cam.img_from_cam(transform_points(T_cam_cmap, group.P[rows]))
         err = np.linalg.norm(uv - K.keypoints[q_idx], axis=1)
         if int((err <= cfg.reprojection_px).sum()) >= cfg.covisible_min_matches:
             agreeing += 1
