@@ -40,12 +40,7 @@ from services.cloud.inertial import ImuStore
 from services.cloud.mbp import MbpReport, run_mbp
 from services.cloud.merge import MatchOutcome, apply_match
 from services.cloud.place_recognition import KeyframeDatabase, PlaceRecognizer
-from services.cloud.verification import (
-    CandidateGroup,
-    VerificationResult,
-    covisible_agreement,
-    verify_candidate,
-)
+from services.cloud.verification import VerificationResult, verify_candidate
 
 log = logging.getLogger(__name__)
 
@@ -151,7 +146,6 @@ class MapFusion:
                 if same_map and any(o.loop.key_b == key for o in events.outcomes):
                     continue
                 t0 = self.timer.clock()
-                group = CandidateGroup(self.atlas, cand.candidate_key, self.config.verification)
                 res = verify_candidate(
                     self.atlas,
                     key,
@@ -159,19 +153,8 @@ class MapFusion:
                     self.camera_of(kf.agent_id),
                     self.config.verification,
                     self.word_group,
-                    group,
+                    early=cand.early(self.config.place_recognition),
                 )
-                if res.accepted and cand.early(self.config.place_recognition):
-                    agree, checked = covisible_agreement(
-                        self.atlas,
-                        res,
-                        self.camera_of(kf.agent_id),
-                        self.config.verification,
-                        group,
-                    )
-                    if agree < self.config.verification.covisible_agree:
-                        reason = f"covisible agreement {agree}/{checked}"
-                        res = dataclasses.replace(res, accepted=False, reason=reason)
                 verify_s += self.timer.clock() - t0
                 events.verifications.append(res)
                 self.verification_counts[reason_kind(res.reason)] += 1

@@ -323,7 +323,7 @@ class PlaceRecognizer:
         self._groups[agent] = current
         accepted += early
         if accepted:
-            log.debug("query %d: %d consistent candidates", key, len(accepted))
+            log.debug("query %d: %d candidates (%d early)", key, len(accepted), len(early))
         return accepted
 
     def reset_consistency(self, agent_id: int) -> None:

@@ -225,7 +225,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="verify the N best place-recognition candidates of a keyframe at once and accept "
         "one when the keyframe's covisible keyframes agree with it (ORB-SLAM3), besides those "
         "consistent over 3 keyframes (default 1; 0: only those; "
-        "benchmarks/results/loop_detection.md)",
+        "benchmarks/results/loop_recall.md)",
     )
     p.add_argument(
         "--optimizer-nice",

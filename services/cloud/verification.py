@@ -170,15 +170,15 @@ def verify_candidate(
     camera: CameraCalibration,
     config: VerificationConfig,
     word_group: np.ndarray | None = None,
-    group: CandidateGroup | None = None,
+    early: bool = False,
 ) -> VerificationResult:
     """Verify ``candidate_key`` for ``query_key``; ``camera`` is the query keyframe's (its
     robot's: the query's keypoints are located against the candidate's map points).
     ``word_group (S,)`` optionally maps each
     word to the id of the vocabulary node whose members may match (e.g.
     ``Vocabulary.ancestor_at_level(np.arange(S), level)``); None = same word only.
-    ``group``: the candidate's :class:`CandidateGroup` (None: made here), for a caller that
-    checks the result further with it."""
+    ``early``: the candidate was not yet consistent over consecutive queries; a match is then
+    accepted only when :func:`covisible_agreement` confirms it."""
     cfg = config
     Q = atlas.keyframe(query_key)
     C = atlas.keyframe(candidate_key)
@@ -212,8 +212,7 @@ def verify_candidate(
         )
 
     # Guided expansion with the map points of the candidate's covisible group.
-    if group is None:
-        group = CandidateGroup(atlas, candidate_key, cfg)
+    group = CandidateGroup(atlas, candidate_key, cfg)
     q_idx, rows = project_and_match(group, Q, qi, T_cam_cmap, col_cam, camera, cfg)
     if rows.size < cfg.min_inliers:
         return _reject(query_key, candidate_key, f"{rows.size} projected matches", int(rows.size))
@@ -249,7 +248,7 @@ def verify_candidate(
                 query_key, candidate_key, f"3D agreement {agree.mean():.2f}", n_inl, ratio
             )
         point_pairs = point_pairs[agree]
-    return VerificationResult(
+    result = VerificationResult(
         query_key,
         candidate_key,
         True,
@@ -261,6 +260,12 @@ def verify_candidate(
         point_pairs,
         np.stack([inl_q, inl_keys], axis=1).astype(np.int64),
     )
+    if early:
+        agree, checked = covisible_agreement(atlas, result, camera, cfg, group)
+        if agree < cfg.covisible_agree:
+            reason = f"covisible agreement {agree}/{checked}"
+            return _reject(query_key, candidate_key, reason, n_inl, ratio)
+    return result
 
 
 class CandidateGroup:
