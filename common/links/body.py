@@ -34,16 +34,19 @@ def seal(version: int, w: BitWriter) -> bytes:
     return payload + _CRC.pack(zlib.crc32(payload))
 
 
-def open_sealed(data: bytes, version: int, what: str) -> BitReader:
+def open_sealed(data: bytes, version: int | tuple[int, ...], what: str) -> BitReader:
     """The reader of a :func:`seal`-ed payload; LinkDecodeError naming ``what`` if it is
-    short, damaged or of another version."""
+    short, damaged or of another version (``version``: the one, or the ones, accepted; the
+    payload's is ``data[0]``)."""
     if len(data) < 5:
         raise LinkDecodeError(f"{what}: coded payload of {len(data)} bytes is too short")
     (crc,) = _CRC.unpack(data[-4:])
     if zlib.crc32(data[:-4]) != crc:
         raise LinkDecodeError(f"{what}: coded payload checksum mismatch (corrupt or truncated)")
-    if data[0] != version:
-        raise LinkDecodeError(f"{what}: coded payload version {data[0]}, expected {version}")
+    accepted = (version,) if isinstance(version, int) else version
+    if data[0] not in accepted:
+        expected = " or ".join(str(v) for v in accepted)
+        raise LinkDecodeError(f"{what}: coded payload version {data[0]}, expected {expected}")
     try:
         return BitReader(data[1:-4])
     except CodecError as exc:

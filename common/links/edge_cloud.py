@@ -218,7 +218,9 @@ class KeyframePoses(Message):
 
     The cloud moves each map point whose reference keyframe moved with it
     (``p' = T'_ref T_ref^-1 p``), so the edge re-sends a point only when it moved more than
-    its threshold relative to that prediction."""
+    its threshold relative to that prediction. The states name their frame
+    (:class:`FrameAnchor`), as do a new keyframe's state and the points of
+    :class:`MapPointUpdateCoded`."""
 
     agent_id: str
     map_id: int
@@ -234,8 +236,10 @@ class MapPointUpdateCoded(Message):
     points: bytes
 
 
-STATE_VERSION = 1
-POINTS_VERSION = 1
+STATE_VERSION = 2
+"""2: an optional :class:`FrameAnchor` follows the rows (1, without one, still decodes)."""
+POINTS_VERSION = 2
+"""2: an optional :class:`FrameAnchor` follows the observation rows (1 still decodes)."""
 POINT_IDS_VERSION = 1
 POSITION_STEP_M = 1e-3
 """Map point positions travel on a 1 mm grid in the robot map's frame (error <= 0.5 mm per
@@ -246,15 +250,33 @@ _STATE_COLS = 16
 
 
 @dataclass(frozen=True, eq=False)
+class FrameAnchor:
+    """The frame a payload's poses and positions are in, named by one keyframe the cloud
+    already has: ``T_world_body`` (4, 4) is the edge's pose of keyframe ``keyframe_id`` in
+    that frame, when the payload was made.
+
+    The edge applies the cloud's corrections while its messages are on the way, so a message
+    may be in the frame before a correction the cloud has made (or after one the cloud has
+    refined since). The cloud places such a payload through its own current pose of the
+    anchor, ``T_map_anchor @ inv(T_world_body)``, instead of the one fixed map-from-agent
+    transform (COVINS' ``pos_ref`` idea, one anchor per message)."""
+
+    keyframe_id: int
+    T_world_body: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
 class KeyframeStates:
     """States of K keyframes: ``keyframe_ids`` (K,) int64, ``T_world_body`` (K, 4, 4),
-    ``velocity_world`` (K, 3) m/s, ``bias_gyro`` (K, 3) rad/s, ``bias_accel`` (K, 3) m/s²."""
+    ``velocity_world`` (K, 3) m/s, ``bias_gyro`` (K, 3) rad/s, ``bias_accel`` (K, 3) m/s²;
+    ``anchor``: their frame (None: the agent's map frame as the cloud has it)."""
 
     keyframe_ids: np.ndarray
     T_world_body: np.ndarray
     velocity_world: np.ndarray
     bias_gyro: np.ndarray
     bias_accel: np.ndarray
+    anchor: FrameAnchor | None = None
 
     def __len__(self) -> int:
         return int(self.keyframe_ids.shape[0])
@@ -264,11 +286,13 @@ class KeyframeStates:
 class PointBatch:
     """Map points of one message: ``ids`` (P,) int64 ascending, ``p_world`` (P, 3) m and the
     observation rows ``observations`` (R, 3) int64 ``[point id, keyframe id, feature index]``
-    sorted by keyframe id and feature index (every row's point is in ``ids``)."""
+    sorted by keyframe id and feature index (every row's point is in ``ids``); ``anchor``:
+    the frame of ``p_world`` (see :class:`KeyframeStates`)."""
 
     ids: np.ndarray
     p_world: np.ndarray
     observations: np.ndarray
+    anchor: FrameAnchor | None = None
 
 
 @contextlib.contextmanager
@@ -299,6 +323,34 @@ def _get_ids(r: BitReader, what: str) -> np.ndarray:
     return ids.astype(np.int64)
 
 
+def _put_anchor(w: BitWriter, anchor: FrameAnchor | None) -> None:
+    """A flag, then the anchor's keyframe id and its pose as 7 float32 (position, wxyz)."""
+    w.put_count(0 if anchor is None else 1, "anchor")
+    if anchor is not None:
+        if anchor.keyframe_id < 0:
+            raise ValueError("anchor keyframe id must be >= 0")
+        T = np.asarray(anchor.T_world_body, np.float64).reshape(4, 4)
+        if not np.all(np.isfinite(T)):
+            raise ValueError("anchor pose is not finite")
+        row = np.concatenate([T[:3, 3], R_to_quat_wxyz(T[None, :3, :3]).reshape(4)])
+        w.put_count(int(anchor.keyframe_id), "anchor")
+        w.put_raw(np.ascontiguousarray(row, "<f4").view("<u4").astype(np.uint64), 32, "anchor")
+
+
+def _get_anchor(r: BitReader, what: str) -> FrameAnchor | None:
+    flag = r.get_count(1)
+    if not flag:
+        return None
+    kf_id = r.get_count(2**62)
+    row = r.get_raw(7, 32).astype("<u4").view("<f4").astype(np.float64)
+    if not np.all(np.isfinite(row)):
+        raise LinkDecodeError(f"{what}: non-finite anchor pose")
+    T = np.eye(4)
+    T[:3, :3] = quat_wxyz_to_R(row[None, 3:7])[0]
+    T[:3, 3] = row[:3]
+    return FrameAnchor(int(kf_id), T)
+
+
 def encode_states(states: KeyframeStates) -> bytes:
     """Keyframe ids (ascending gaps, geometric), then per keyframe 16 float32: position (3),
     rotation as a unit quaternion wxyz (4), velocity (3), gyro bias (3), accel bias (3).
@@ -323,15 +375,17 @@ def encode_states(states: KeyframeStates) -> bytes:
     w = BitWriter()
     _put_ids(w, ids)
     w.put_raw(rows.view("<u4").astype(np.uint64), 32, "state")
+    _put_anchor(w, states.anchor)
     return seal(STATE_VERSION, w)
 
 
 def decode_states(data: bytes, what: str = "keyframe states") -> KeyframeStates:
     """Inverse of :func:`encode_states`; LinkDecodeError on bad input."""
-    r = open_sealed(data, STATE_VERSION, what)
+    r = open_sealed(data, (1, STATE_VERSION), what)
     with _decoding(what):
         ids = _get_ids(r, what)
         raw = r.get_raw(len(ids) * _STATE_COLS, 32).astype("<u4")
+        anchor = _get_anchor(r, what) if data[0] >= 2 else None
     rows = raw.view("<f4").astype(np.float64).reshape(-1, _STATE_COLS)
     if not np.all(np.isfinite(rows)):
         raise LinkDecodeError(f"{what}: non-finite values")
@@ -341,7 +395,7 @@ def decode_states(data: bytes, what: str = "keyframe states") -> KeyframeStates:
     T[:, :3, :3] = R
     T[:, :3, 3] = rows[:, :3]
     T[:, 3, 3] = 1.0
-    return KeyframeStates(ids, T, rows[:, 7:10], rows[:, 10:13], rows[:, 13:16])
+    return KeyframeStates(ids, T, rows[:, 7:10], rows[:, 10:13], rows[:, 13:16], anchor)
 
 
 def encode_point_ids(map_point_ids: np.ndarray) -> bytes:
@@ -438,12 +492,13 @@ def encode_points(batch: PointBatch) -> bytes:
         raise ValueError("duplicate observation rows")
     put_scaled_geometric(w, gaps, "feature")
     w.put_uniform(point_index, max(len(ids), 1), "point")
+    _put_anchor(w, batch.anchor)
     return seal(POINTS_VERSION, w)
 
 
 def decode_points(data: bytes, what: str = "map points") -> PointBatch:
     """Inverse of :func:`encode_points` (positions on the 1 mm grid); LinkDecodeError."""
-    r = open_sealed(data, POINTS_VERSION, what)
+    r = open_sealed(data, (1, POINTS_VERSION), what)
     with _decoding(what):
         ids = _get_ids(r, what)
         q = np.zeros((len(ids), 3), np.int64)
@@ -457,6 +512,7 @@ def decode_points(data: bytes, what: str = "map points") -> PointBatch:
             raise LinkDecodeError(f"{what}: {n_rows} observation rows exceed {MAX_ITEMS}")
         gaps = get_scaled_geometric(r, n_rows)
         point_index = r.get_uniform(n_rows, max(len(ids), 1))
+        anchor = _get_anchor(r, what) if data[0] >= 2 else None
     if n_rows and (len(ids) == 0 or point_index.max() >= len(ids)):
         raise LinkDecodeError(f"{what}: observation names a point outside the batch")
     starts = (np.cumsum(per_kf) - per_kf).astype(np.int64)
@@ -465,7 +521,7 @@ def decode_points(data: bytes, what: str = "map points") -> PointBatch:
     feat -= np.repeat(feat[starts] - gaps[starts], per_kf) if n_rows else 0
     point_ids = ids[point_index] if n_rows else np.zeros(0, np.int64)
     obs = np.stack([point_ids, kf_ids[group], feat], axis=1).astype(np.int64).reshape(-1, 3)
-    return PointBatch(ids, q * POSITION_STEP_M, obs)
+    return PointBatch(ids, q * POSITION_STEP_M, obs, anchor)
 
 
 @message(0x0502)

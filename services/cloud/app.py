@@ -38,6 +38,7 @@ camera the service was given.
 
 from __future__ import annotations
 
+import functools
 import logging
 import threading
 import time
@@ -76,6 +77,7 @@ from services.cloud.map_source import AgentInfo, CloudView
 from services.cloud.mbp import MbpReport
 from services.cloud.mission import MissionClock
 from services.cloud.persistence import CloudStore
+from services.cloud.rebase import FrameRebase, rebased_keyframe
 from services.cloud.robot_sensors import RobotSensorBook
 from services.cloud.uplink import (
     DecodedKeyframe,
@@ -192,6 +194,7 @@ class CloudApp:
         self._pruned_keyframes: set[int] = set()
         self.messages = 0
         self.rejected = 0
+        self.rebase = FrameRebase()  # the edge's payloads placed through their anchors
         self.codec_timer = CodecTimer()
         self.decoders = KeyframeDecoders(vocabulary)  # one feature decoder per codec config
         # CPU time of the worker's stages (``stage.*``: map fusion's per keyframe, the
@@ -317,6 +320,8 @@ class CloudApp:
             raise
         self.codec_timer.add(f"decode.{type(msg).__name__}", time.perf_counter() - t0)
         self.stage_timer.add("stage.decode", self.stage_timer.clock() - c0)
+        if (T_fix := self.rebase.correction(self.atlas, a.agent_id, d.anchor)) is not None:
+            d = rebased_keyframe(d, T_fix)
         if d.imu is not None:
             self.fusion.imu.add(a.agent_id, d.imu.timestamps_ns, d.imu.gyro, d.imu.accel)
         key = make_key(a.agent_id, d.keyframe_id)
@@ -395,6 +400,9 @@ class CloudApp:
             self.rejected += 1
             raise
         self.codec_timer.add("decode.KeyframePoses", time.perf_counter() - t0)
+        anchor = updates[0].anchor if updates else None
+        if (T_fix := self.rebase.correction(self.atlas, a.agent_id, anchor)) is not None:
+            updates = [rebased_keyframe(d, T_fix) for d in updates]
         moved: list[int] = []
         for d in updates:
             kf = self._pose_only(a, d)
@@ -415,7 +423,9 @@ class CloudApp:
         a, _ = self._agent(msg.agent_id, edge_id, msg.map_id)
         t0 = time.perf_counter()
         try:
-            points = decode_map_point_update(msg, a.agent_id)
+            points = decode_map_point_update(
+                msg, a.agent_id, functools.partial(self.rebase.correction, self.atlas, a.agent_id)
+            )
         except UplinkError:
             self.rejected += 1
             raise

@@ -127,6 +127,8 @@ class CloudStats:
     worker_queue_max: int = 0
     """The most there ever were (one per edge link at most: each delivers in order; the rest
     wait in the edges' outboxes, held back by the receive window)."""
+    rebase: dict[str, float] = field(default_factory=dict)
+    """The edge's payloads placed through their anchors (``FrameRebase.summary``)."""
     stages: dict[str, dict[str, float]] = field(default_factory=dict)
     """Time per stage, ``{"stage.place_recognition": {"seconds": s, "messages": n}, ...}``:
     the worker thread's CPU time in the app's
@@ -583,6 +585,7 @@ class CloudServer:
                 core.full_bas,
                 self._queued,
                 self._queued_max,
+                app.rebase.summary(),
                 stages.snapshot(),
             )
 

@@ -25,6 +25,7 @@ message, the agent and the field.
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -36,6 +37,7 @@ from common.codec.types import CodecConfig, ImuChunk, KeyframeFeatures, NonKeyfr
 from common.errors import RecslamError
 from common.links.edge_cloud import (
     CullEvent,
+    FrameAnchor,
     KeyframePoses,
     KeyframeUpdate,
     KeyframeUpdateCoded,
@@ -78,6 +80,8 @@ class DecodedKeyframe:
     keyframe: KeyframeInput | None
     imu: ImuChunk | None = None
     """The IMU samples since the robot's previous uplinked keyframe (None: none sent)."""
+    anchor: FrameAnchor | None = None
+    """The frame of the pose (``services.cloud.rebase``; None: the agent's map frame)."""
 
 
 def _one(data: bytes, shape: tuple[int, ...], what: str) -> np.ndarray:
@@ -182,6 +186,7 @@ def decode_keyframe_update(
     what = f"{type(msg).__name__} {msg.agent_id}/{msg.keyframe_id}"
     if msg.keyframe_id < 0:
         raise UplinkError(f"{what}: negative keyframe id")
+    anchor = None
     if isinstance(msg, KeyframeUpdateCoded):
         try:
             st = decode_states(msg.state, f"{what}: state")
@@ -191,7 +196,7 @@ def decode_keyframe_update(
             raise UplinkError(str(exc)) from exc
         if len(st) != 1 or int(st.keyframe_ids[0]) != msg.keyframe_id:
             raise UplinkError(f"{what}: state is not this keyframe's")
-        T = st.T_world_body[0]
+        T, anchor = st.T_world_body[0], st.anchor
         vel, bg, ba = st.velocity_world[0], st.bias_gyro[0], st.bias_accel[0]
         if not msg.features:
             raise UplinkError(f"{what}: no features")
@@ -239,7 +244,18 @@ def decode_keyframe_update(
         except AtlasError as exc:
             raise UplinkError(f"{what}: {exc}") from exc
     return DecodedKeyframe(
-        msg.agent_id, msg.map_id, msg.keyframe_id, msg.timestamp_ns, T, vel, bg, ba, mp_ids, kf, imu
+        msg.agent_id,
+        msg.map_id,
+        msg.keyframe_id,
+        msg.timestamp_ns,
+        T,
+        vel,
+        bg,
+        ba,
+        mp_ids,
+        kf,
+        imu,
+        anchor,
     )
 
 
@@ -272,22 +288,39 @@ def decode_keyframe_poses(msg: KeyframePoses) -> list[DecodedKeyframe]:
         vel, bg, ba = st.velocity_world[i], st.bias_gyro[i], st.bias_accel[i]
         out.append(
             DecodedKeyframe(
-                msg.agent_id, msg.map_id, kf_id, 0, st.T_world_body[i], vel, bg, ba, none, None
+                msg.agent_id,
+                msg.map_id,
+                kf_id,
+                0,
+                st.T_world_body[i],
+                vel,
+                bg,
+                ba,
+                none,
+                None,
+                anchor=st.anchor,
             )
         )
     return out
 
 
 def decode_map_point_update(
-    msg: MapPointUpdate | MapPointUpdateCoded, agent_id: int
+    msg: MapPointUpdate | MapPointUpdateCoded,
+    agent_id: int,
+    frame: Callable[[FrameAnchor | None], np.ndarray | None] | None = None,
 ) -> list[MapPointInput]:
-    """One :class:`MapPointInput` per id (observations grouped by map point id)."""
+    """One :class:`MapPointInput` per id (observations grouped by map point id). ``frame``:
+    the ``(4, 4)`` correction of a coded payload's frame, from its anchor
+    (``services.cloud.rebase.FrameRebase.correction``; None: none)."""
     what = f"{type(msg).__name__} of {msg.agent_id}"
     p: np.ndarray | None
     try:
         if isinstance(msg, MapPointUpdateCoded):
             batch = decode_points(msg.points, what)
             ids, p, obs = batch.ids, batch.p_world, batch.observations
+            T_fix = None if frame is None else frame(batch.anchor)
+            if T_fix is not None:
+                p = p @ T_fix[:3, :3].T + T_fix[:3, 3]
         else:
             ids = _ids(msg.ids, f"{what}: ids")
             p = unpack_array(msg.p_world, "<f8", (3,), f"{what}: p_world") if msg.p_world else None

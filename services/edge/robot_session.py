@@ -43,6 +43,7 @@ from common.links import CodecTimer, WireFormat
 from common.links.edge_cloud import (
     AgentStatus,
     CullEvent,
+    FrameAnchor,
     KeyframePoses,
     KeyframeStates,
     KeyframeUpdateCoded,
@@ -125,11 +126,11 @@ _StateRow = tuple[int, np.ndarray, np.ndarray, np.ndarray, np.ndarray]
 """(keyframe id, *:data:`_State`)"""
 
 
-def _states(rows: list[_StateRow]) -> KeyframeStates:
-    """Rows of :data:`_StateRow` as KeyframeStates."""
+def _states(rows: list[_StateRow], anchor: FrameAnchor | None = None) -> KeyframeStates:
+    """Rows of :data:`_StateRow` as KeyframeStates in the frame of ``anchor``."""
     ids, T, v, bg, ba = zip(*rows, strict=True)
-    stacked = (np.stack(x) for x in (T, v, bg, ba))
-    return KeyframeStates(np.array(ids, np.int64), *stacked)
+    T_, v_, bg_, ba_ = (np.stack(x) for x in (T, v, bg, ba))
+    return KeyframeStates(np.array(ids, np.int64), T_, v_, bg_, ba_, anchor)
 
 
 class RobotSession:
@@ -181,6 +182,10 @@ class RobotSession:
         self._sent_points: dict[int, SentPoints] = {}  # map id -> the points the cloud has
         # (map id, keyframe id) -> (T_world_body, v, bg, ba) the cloud has (coded wire)
         self._sent_state: dict[tuple[int, int], _State] = {}
+        # map id -> {keyframe id: T_world_body} of the uplinked keyframes whose pose here is
+        # the one the cloud was sent or sent back (not moved by local BA since): the
+        # candidates for a message's FrameAnchor (coded wire)
+        self._agreed: dict[int, dict[int, np.ndarray]] = {}
 
     def _new_decoders(self) -> tuple[FeatureDecoder, ImuDecoder]:
         return FeatureDecoder(self.vocabulary, self.codec), ImuDecoder()
@@ -294,6 +299,7 @@ class RobotSession:
             book = self._sent_points.get(map_id)
             if book is not None:
                 book.move_held(deltas)
+            self._follow_correction(map_id, deltas)
         for upd in res.updates:
             out.cloud.extend(self._uplink(upd))
         if res.state is not None and not replaying:
@@ -329,6 +335,8 @@ class RobotSession:
         msgs: list[Message] = []
         timer = self.codec_timer
         book = self._book(upd.map_id)
+        agreed = self._agreed.setdefault(upd.map_id, {})
+        anchor = self._anchor(agreed, {kf.keyframe_id for kf in upd.keyframes})
         moved: list[_StateRow] = []
         fresh: list[tuple[KeyframeSnapshot, _State, KeyframeFeatures, np.ndarray]] = []
         for kf in upd.keyframes:
@@ -346,6 +354,9 @@ class RobotSession:
                 last = self._sent_state.get(key)
                 if last is None or self._state_moved(last, state):
                     moved.append((kf.keyframe_id, *state))
+                    agreed[kf.keyframe_id] = T
+                else:  # nudged below the thresholds: no longer where the cloud has it
+                    agreed.pop(kf.keyframe_id, None)
                 continue
             feats = self._kf_features.get(kf.timestamp_ns)
             if feats is None:
@@ -360,10 +371,12 @@ class RobotSession:
             fresh.append((kf, state, feats, point_ids))
             self._sent_kfs.add(key)
             self._sent_state[key] = state
+            agreed[kf.keyframe_id] = T
             self.vio_keyframes += 1
         if moved:
             t0 = time.perf_counter()
-            msgs.append(KeyframePoses(self.agent_id, upd.map_id, encode_states(_states(moved))))
+            states = _states(moved, anchor)
+            msgs.append(KeyframePoses(self.agent_id, upd.map_id, encode_states(states)))
             timer.add("encode.KeyframePoses", time.perf_counter() - t0)
             for kf_id, *new_state in moved:
                 key = (upd.map_id, kf_id)
@@ -383,7 +396,7 @@ class RobotSession:
                     keyframe_id=kf.keyframe_id,
                     previous_keyframe_id=-1 if prev is None else int(prev),
                     timestamp_ns=kf.timestamp_ns,
-                    state=encode_states(_states([(kf.keyframe_id, *state)])),
+                    state=encode_states(_states([(kf.keyframe_id, *state)], anchor)),
                     features=encode_standalone_keyframe(self.vocabulary, feats, self.codec),
                     map_point_ids=encode_point_ids(book.carried(point_ids, kf.keyframe_id)),
                     imu=self._imu_coded(t_prev, kf.timestamp_ns),
@@ -393,16 +406,36 @@ class RobotSession:
         msgs[:0] = kf_msgs
         msgs.extend(self.release_points(keep_map=upd.map_id))
         if points is not None:
-            msgs.append(self._points_coded(upd.map_id, points))
+            msgs.append(self._points_coded(upd.map_id, points, anchor))
         msgs.extend(self._culls(upd))
         return msgs
 
-    def _points_coded(self, map_id: int, points: Selection) -> MapPointUpdateCoded:
+    @staticmethod
+    def _anchor(agreed: dict[int, np.ndarray], changed: set[int]) -> FrameAnchor | None:
+        """The newest keyframe the cloud has at the pose it has here and that this update
+        leaves alone: the frame its messages are in (None: no such keyframe yet)."""
+        best = max((k for k in agreed if k not in changed), default=None)
+        return None if best is None else FrameAnchor(best, agreed[best])
+
+    def _follow_correction(self, map_id: int, deltas: dict[int, np.ndarray]) -> None:
+        """The VIO applied a cloud correction (``{keyframe id: (4, 4) T_new T_old^-1}``):
+        the agreed poses move as its keyframes did (``VioManager.apply_pose_corrections``)."""
+        agreed = self._agreed.get(map_id)
+        if not agreed:
+            return
+        for kf_id, T in agreed.items():
+            delta = deltas.get(kf_id)
+            if delta is not None:
+                agreed[kf_id] = orthonormalize_T(delta @ T)
+
+    def _points_coded(
+        self, map_id: int, points: Selection, anchor: FrameAnchor | None = None
+    ) -> MapPointUpdateCoded:
         t0 = time.perf_counter()
         ids, p_world, rows = points
         last = len(ids) - 1 - np.unique(ids[::-1], return_index=True)[1]  # a point twice:
         ids, p_world = ids[last], p_world[last]  # its last position (rows are distinct)
-        body = encode_points(PointBatch(ids, p_world, rows))
+        body = encode_points(PointBatch(ids, p_world, rows, anchor))
         self.codec_timer.add("encode.MapPointUpdateCoded", time.perf_counter() - t0)
         return MapPointUpdateCoded(self.agent_id, map_id, body)
 
@@ -431,7 +464,8 @@ class RobotSession:
                 continue
             points = book.release(self._own(map_id), self.options.point_resend_m)
             if points is not None:
-                msgs.append(self._points_coded(map_id, points))
+                anchor = self._anchor(self._agreed.get(map_id, {}), set())
+                msgs.append(self._points_coded(map_id, points, anchor))
         return msgs
 
     def _state_moved(

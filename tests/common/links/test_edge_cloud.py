@@ -7,14 +7,17 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from common.codec.entropy import BitWriter
 from common.geometry import so3_exp
-from common.links.body import LinkDecodeError
+from common.links.body import LinkDecodeError, seal
 from common.links.edge_cloud import (
     POSITION_STEP_M,
+    FrameAnchor,
     KeyframeStates,
     PointBatch,
     PoseCorrection,
     PoseCorrectionCoded,
+    _put_ids,
     decode_point_ids,
     decode_points,
     decode_pose_correction,
@@ -49,6 +52,40 @@ def test_states_round_trip_within_float32(seed: int, k: int) -> None:
     assert np.allclose(d.velocity_world, s.velocity_world[order], rtol=1e-6, atol=1e-6)
     R = d.T_world_body[:, :3, :3]
     assert np.allclose(R @ R.transpose(0, 2, 1), np.eye(3), atol=1e-12)
+
+
+def test_states_and_points_carry_their_anchor() -> None:
+    s = _states(3, 4)
+    anchor = FrameAnchor(123456, s.T_world_body[1])
+    d = decode_states(encode_states(KeyframeStates(*_fields(s), anchor)))
+    assert d.anchor is not None and d.anchor.keyframe_id == 123456
+    assert np.abs(d.anchor.T_world_body - s.T_world_body[1]).max() < 1e-5
+    assert decode_states(encode_states(s)).anchor is None
+    batch = PointBatch(np.array([4, 9]), np.ones((2, 3)), np.array([[9, 2, 0]]), anchor)
+    got = decode_points(encode_points(batch)).anchor
+    assert got is not None and got.keyframe_id == 123456
+    assert decode_points(encode_points(PointBatch(*_fields(batch)[:3]))).anchor is None
+    with pytest.raises(ValueError, match="anchor"):
+        encode_states(KeyframeStates(*_fields(s), FrameAnchor(1, np.full((4, 4), np.nan))))
+
+
+def _fields(x: KeyframeStates | PointBatch) -> tuple:
+    if isinstance(x, KeyframeStates):
+        return x.keyframe_ids, x.T_world_body, x.velocity_world, x.bias_gyro, x.bias_accel
+    return x.ids, x.p_world, x.observations
+
+
+def test_version_1_states_without_an_anchor_still_decode() -> None:
+    """What older recordings and edge journals hold: the rows, no anchor flag."""
+    w = BitWriter()
+    _put_ids(w, np.array([42]))
+    row = np.array([1.0, 2.0, 3.0, 1.0, 0, 0, 0, 0.1, 0.2, 0.3, 0, 0, 0, 0, 0, 0], "<f4")
+    w.put_raw(row.view("<u4").astype(np.uint64), 32, "state")
+    d = decode_states(seal(1, w))
+    assert d.keyframe_ids.tolist() == [42] and d.anchor is None
+    assert np.allclose(d.T_world_body[0, :3, 3], [1, 2, 3])
+    with pytest.raises(LinkDecodeError, match="version 9, expected 1 or 2"):
+        decode_states(seal(9, w))
 
 
 @settings(max_examples=30, deadline=None)

@@ -92,3 +92,41 @@ def test_coded_uplink_sends_each_fact_once_and_points_follow_their_keyframe() ->
     T2[:3, 3] += [0.0005, 0.0, 0.0]
     T2[:3, :3] = so3_exp(np.array([0.0, 0.0, 0.1001]))
     assert _step(s, (_kf(T2, [5, -1, 3]),), (_pt(5, follow5, {0: 0}), _pt(3, moved3, {0: 2}))) == []
+
+
+def test_messages_are_anchored_on_the_newest_keyframe_the_cloud_has_where_it_is_here() -> None:
+    """The anchor (``FrameAnchor``) is the newest uplinked keyframe that the update leaves
+    alone and that local BA has not nudged since it was sent; a correction the VIO applied
+    moves it as it moved the keyframe."""
+    s = _session()
+    feats = s._kf_features[1000]
+    for ts in (1001, 1002, 1003):
+        s._kf_features[ts] = feats
+
+    def kf(kf_id: int, T: np.ndarray) -> KeyframeSnapshot:
+        z, ids = np.zeros(3), np.array([-1, -1, -1], np.int64)
+        return KeyframeSnapshot(kf_id, 0, 1000 + kf_id, T, z, z, z, np.arange(3), ids, None)
+
+    def at(x: float) -> np.ndarray:
+        T = np.eye(4)
+        T[:3, 3] = [x, 0.0, 0.0]
+        return T
+
+    def anchors(msgs: list[Message]) -> set:
+        got = {decode_keyframe_update(m, 0, VOCAB).anchor for m in _of(msgs, KeyframeUpdateCoded)}
+        got |= {decode_keyframe_poses(m)[0].anchor for m in _of(msgs, KeyframePoses)}
+        return {None if a is None else (a.keyframe_id, round(a.T_world_body[0, 3], 4)) for a in got}
+
+    assert anchors(_step(s, (kf(0, at(0.0)), kf(1, at(0.1))), ())) == {None}  # none sent yet
+    # Keyframe 2 is new and local BA nudged keyframe 1 by 0.5 mm (not re-sent): keyframe 0.
+    msgs = _step(s, (kf(2, at(0.2)), kf(1, at(0.1005))), ())
+    assert anchors(msgs) == {(0, 0.0)}
+    # The VIO applies a correction of +3 cm to every keyframe; keyframe 1 is still off what
+    # the cloud has, so keyframe 2 is the anchor, where the correction moved it.
+    C = at(0.03)
+    s._follow_correction(0, {0: C, 1: C, 2: C})
+    assert anchors(_step(s, (kf(3, at(0.33)),), ())) == {(2, 0.23)}
+    # Keyframe 1 moves beyond the threshold: re-sent, and the newest anchor again after.
+    msgs = _step(s, (kf(1, at(0.15)),), ())
+    assert anchors(msgs) == {(3, 0.33)}
+    assert max(s._agreed[0]) == 3 and s._agreed[0][1][0, 3] == 0.15
