@@ -1,11 +1,11 @@
 """MBP during operation, live (issue 17, item 2): the whole job with and without pruning.
 
 Run: ``.venv/bin/python benchmarks/bench_mbp_live.py --data DATASET [...] [--every 40]
-[--repeats 1] [--root DIR]`` runs, per dataset and repeat, the whole job as ``recslam demo
---data DATASET --no-dashboard --rate realtime --no-mbp`` runs it (:func:`lab.links.run_job`)
-and then the same with ``--mbp-every N`` (alternating, so that the load of the machine falls
-on both alike), each into its own folder under
-``--root``; ``--from-runs`` only reads the folders a run left there. Writes
+[--repeats 1] [--root DIR] [--record]`` runs, per dataset and repeat, the whole job as
+``recslam demo --data DATASET --no-dashboard --rate realtime --no-mbp`` runs it
+(:func:`lab.links.run_job`) and then the same with ``--mbp-every N`` (alternating, so that the
+load of the machine falls on both alike), each into its own folder under ``--root``
+(``--record``: with its uplink recorded beside it, for ``bench_mbp_midrun.py``); ``--from-runs`` only reads the folders a run left there. Writes
 ``benchmarks/results/mbp_live.md`` and ``mbp_live.png``.
 
 A live run is the only faithful test of a configuration that changes the corrections sent to
@@ -20,6 +20,7 @@ passes, joint ATE (SE(3), every keyframe received), and the wall time of the who
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import platform
 import time
@@ -37,10 +38,25 @@ def folder(root: Path, data: Path, variant: str, repeat: int) -> Path:
     return root / data.name / f"{variant}-{repeat}"
 
 
+def rebase_stats(out: Path) -> dict | None:
+    """The cloud's ``CloudStats.rebase`` of a run (None: a run made before it existed)."""
+    path = out / "run" / "stats" / "cloud.json"
+    if not path.is_file():
+        return None
+    return json.loads(path.read_text()).get("rebase") or None
+
+
+def rebase_cell(rb: dict | None) -> str:
+    if rb is None:
+        return "–"
+    return f"{rb['moved']} / {rb['anchored']} ({100 * rb['max_m']:.1f})"
+
+
 def summary(out: Path) -> dict:
     """The numbers of one run folder this table shows (:func:`lab.seeds.read_report`)."""
     r = read_report(out)
     return {
+        "rebase": rebase_stats(out),
         "run": out.name,
         "uplinked": r["keyframes_uplinked"],
         "kept": r["keyframes_kept"],
@@ -86,6 +102,9 @@ def main() -> None:
     ap.add_argument("--from-runs", action="store_true", help="only summarise the folders")
     ap.add_argument("--timeout", type=float, default=1800.0, help="seconds a run may take")
     ap.add_argument("--out", type=Path, default=RESULTS, help="folder of the md and png")
+    ap.add_argument(
+        "--record", action="store_true", help="record each run's uplink (RUN/uplink.rec)"
+    )
     args = ap.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
     variants = {"no MBP": 0, f"MBP every {args.every}": args.every}
@@ -105,6 +124,7 @@ def main() -> None:
                         label,
                         mbp=every > 0,
                         mbp_every=every,
+                        record_uplink=out.parent / f"{out.name}.rec" if args.record else None,
                     )
     rows: dict[str, dict[str, list[dict]]] = {}
     for data in args.data:
@@ -128,8 +148,8 @@ def main() -> None:
         "after a full BA, 30 newest keyframes per robot kept while running).",
         "",
         "| dataset | variant | run | keyframes kept / uplinked | kept % | MBP passes | maps "
-        "| joint ATE cm | wall s |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "| joint ATE cm | wall s | re-placed / anchored (max cm) |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for name, by in rows.items():
         for variant, runs in by.items():
@@ -139,8 +159,28 @@ def main() -> None:
                     f"| {name} | {variant} | {r['run']} | {r['kept']} / {r['uplinked']} "
                     f"| {100 * r['kept'] / max(r['uplinked'], 1):.0f} | {r['passes']} "
                     f"| {r['maps']} | {'–' if j is None else f'{100 * j:.2f}'} "
-                    f"| {r['wall_s']:.0f}{' (failed)' if r['failed'] else ''} |"
+                    f"| {r['wall_s']:.0f}{' (failed)' if r['failed'] else ''} "
+                    f"| {rebase_cell(r['rebase'])} |"
                 )
+    lines += [
+        "",
+        "Last column: the edge's coded messages that named their frame (`FrameAnchor`) and "
+        "how many of them the cloud placed more than 1 mm / 1 mrad away from the agent's fixed "
+        "transform (sent before the edge applied a correction, or after the cloud refined the "
+        "anchor), with the largest such move (`CloudStats.rebase`).",
+        "",
+        "| dataset | mean joint ATE, no MBP | mean joint ATE, MBP | change |",
+        "|---|---|---|---|",
+    ]
+    for name, by in rows.items():
+        means = []
+        for variant in variants:
+            js = [r["joint_m"] for r in by.get(variant, []) if r["joint_m"] is not None]
+            means.append(sum(js) / len(js) if js else None)
+        a, b = means
+        change = "–" if a is None or b is None else f"{100 * (b - a) / a:+.0f} %"
+        cells = ["–" if m is None else f"{100 * m:.2f} cm" for m in means]
+        lines.append(f"| {name} | {cells[0]} | {cells[1]} | {change} |")
     lines += ["", "![mbp_live.png](mbp_live.png)", ""]
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "mbp_live.md").write_text("\n".join(lines))

@@ -415,10 +415,12 @@ def run_job(
     label: str,
     mbp: bool = True,
     mbp_every: int = 0,
+    record_uplink: Path | None = None,
 ) -> dict[str, Any]:
     """One whole run of ``dataset`` (as ``recslam demo --no-dashboard --wire WIRE`` runs it,
-    with ``--no-mbp`` / ``--mbp-every`` as ``mbp`` / ``mbp_every`` say) into ``report_dir``
-    (replaced); its ``report.json``; progress every 30 s in the log."""
+    with ``--no-mbp`` / ``--mbp-every`` as ``mbp`` / ``mbp_every`` say, and the cloud's uplink
+    recorded to ``record_uplink``) into ``report_dir`` (replaced); its ``report.json``;
+    progress every 30 s in the log."""
     from recslam.orchestration import JobConfig, progress_line, run_and_report
 
     if report_dir.exists():
@@ -430,6 +432,7 @@ def run_job(
         wire=wire,
         mbp=mbp,
         mbp_every=mbp_every,
+        record_uplink=record_uplink,
     )
     last = [0.0]
 
