@@ -5,7 +5,8 @@ Run: ``.venv/bin/python benchmarks/bench_mbp_live.py --data DATASET [...] [--eve
 ``recslam demo --data DATASET --no-dashboard --rate realtime --no-mbp`` runs it
 (:func:`lab.links.run_job`) and then the same with ``--mbp-every N`` (alternating, so that the
 load of the machine falls on both alike), each into its own folder under ``--root``
-(``--record``: with its uplink recorded beside it, for ``bench_mbp_midrun.py``); ``--from-runs`` only reads the folders a run left there. Writes
+(``--record``: with its uplink recorded beside it, for ``bench_mbp_midrun.py``);
+``--from-runs`` only reads the folders a run left there. Writes
 ``benchmarks/results/mbp_live.md`` and ``mbp_live.png``.
 
 A live run is the only faithful test of a configuration that changes the corrections sent to
