@@ -230,8 +230,11 @@ def main() -> None:
     with concurrent.futures.ProcessPoolExecutor(args.jobs) as pool:
         done = list(pool.map(_run_job, jobs))
     results: dict[str, list[dict]] = {}
+    names = [Path(spec.split(":", 1)[0]) for spec in args.ab]
+    short = len({p.name for p in names}) == len(names)  # else also the folder of each
     for (rec_s, _, _, _), row in zip(jobs, done, strict=True):
-        results.setdefault(Path(rec_s).name, []).append(row)
+        rec = Path(rec_s)
+        results.setdefault(rec.name if short else f"{rec.parent.name}/{rec.name}", []).append(row)
     commit = git_commit()
     lines = [
         "# MBP during operation: keyframes kept and joint ATE on the same recordings",

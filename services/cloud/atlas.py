@@ -51,7 +51,7 @@ from services.cloud.map_types import (
     ro,
     split_key,
 )
-from services.cloud.retired import RetiredKeyframes
+from services.cloud.retired import RetiredKeyframes, retired_pose, retirement
 
 __all__ = [
     "Atlas",
@@ -354,10 +354,13 @@ class Atlas:
     def retired_poses(self, agent_id: int) -> list[tuple[int, float, np.ndarray]]:
         """``(key, timestamp s, T_map_body (4, 4))`` of ``agent_id``'s retired keyframes (see
         :meth:`retire_keyframe`), poses through their anchors' current estimates."""
-        return [
-            (r.key, r.timestamp, self._kfs[r.anchor].T_map_body @ r.T_anchor_body)
-            for r in self._retired.of_agent(agent_id)
-        ]
+        out = []
+        for r in self._retired.of_agent(agent_id):
+            other = None if r.other is None else self._kfs.get(r.other)
+            T_other = None if other is None else other.T_map_body
+            T = retired_pose(r, self._kfs[r.anchor].T_map_body, T_other)
+            out.append((r.key, r.timestamp, T))
+        return out
 
     # ------------------------------------------------------------------ corrections
     def add_loop(self, key_a: int, key_b: int, T_a_b: np.ndarray) -> LoopEdge:
@@ -479,22 +482,25 @@ class Atlas:
             heir = heir_reference([self._kfs[k] for k in m.obs], self._kfs[kf_key])
             m.set_ref(self._kfs.get(heir))
 
-    def retire_keyframe(self, key: int, anchor: int) -> None:
+    def retire_keyframe(self, key: int, anchor: int, other: int | None = None) -> None:
         """Remove ``key`` as :meth:`remove_keyframe` does but keep its pose relative to
-        ``anchor``, another keyframe of the same agent (a :class:`RetiredKeyframe`)."""
-        k, a = self._kf(key), self._kf(anchor)
-        if a.agent_id != k.agent_id or anchor == key:
-            raise AtlasError(
-                f"keyframe {split_key(key)}: anchor {split_key(anchor)} is not "
-                "another keyframe of its agent"
-            )
-        T_anchor_body = ro(inverse_T(a.T_map_body) @ k.T_map_body)
-        self._retired.add(RetiredKeyframe(key, k.agent_id, k.timestamp, anchor, T_anchor_body))
+        ``anchor``, another keyframe of the same agent, and to ``other`` (one on the other side
+        of it in time, or None) to blend the two (a :class:`RetiredKeyframe`)."""
+        k = self._kf(key)
+        for role, n in (("anchor", anchor), ("other", other)):
+            if n is not None and (self._kf(n).agent_id != k.agent_id or n == key):
+                raise AtlasError(
+                    f"keyframe {split_key(key)}: {role} {split_key(n)} is not another "
+                    "keyframe of its agent"
+                )
+        a, o = self._kfs[anchor], None if other in (None, anchor) else self._kfs[other]
+        self._retired.add(retirement(k, a, o))
         self.remove_keyframe(key)
 
     def _pass_on_retired(self, key: int) -> None:
         """Re-anchor the retired keyframes anchored on ``key`` (about to go) to its heir: its
         own anchor if it is retired, else the agent's keyframe nearest in time (none: drop)."""
+        self._retired.drop_other(key)
         if not self._retired.anchored_on(key):
             return
         own, k = self._retired.get(key), self._kfs[key]
@@ -616,7 +622,7 @@ class Atlas:
         atlas._loops = [e for e in state.loops if e.key_a in atlas._kfs and e.key_b in atlas._kfs]
         atlas._removed_kfs = set(state.removed_keyframes)
         atlas._alias = dict(state.aliases)
-        atlas._retired = RetiredKeyframes(r for r in state.retired if r.anchor in atlas._kfs)
+        atlas._retired = RetiredKeyframes.of_live(state.retired, atlas._kfs)
         atlas._unsaved = Unsaved()  # as stored
         return atlas
 

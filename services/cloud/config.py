@@ -263,6 +263,9 @@ class MbpConfig:
     max_virtual_reprojection_px: an observation of a removed keyframe is "good" (and folded
         into the absorbing keyframe) if it reprojects within this many pixels (default 3.0).
     min_observations: map points left with fewer observations are removed (default 2).
+    blend_retired: a removed keyframe's pose follows both kept keyframes around it in time,
+        blended by time, not only the one its loops moved to (default True;
+        ``services.cloud.retired.retired_pose``).
     """
 
     enabled: bool = True
@@ -270,6 +273,7 @@ class MbpConfig:
     cover_ratio: float = 0.5
     max_virtual_reprojection_px: float = 3.0
     min_observations: int = 2
+    blend_retired: bool = True
 
 
 @dataclass(frozen=True)

@@ -231,13 +231,23 @@ class RetiredKeyframe:
     """A keyframe MBP removed, kept only as its pose relative to a kept keyframe of the same
     agent (``anchor``), as ORB-SLAM keeps a culled keyframe's pose relative to its parent, so
     that trajectories still hold every keyframe: ``T_map_body = T_map_body(anchor) @
-    T_anchor_body``. When the anchor goes too, the record moves to the anchor's heir."""
+    T_anchor_body``. When the anchor goes too, the record moves to the anchor's heir.
+
+    ``other``: the agent's kept keyframe on the other side of it in time (None: none), with
+    its pose in that one's frame ``T_other_body``; the pose is then the blend of the two
+    (:func:`services.cloud.retired.retired_pose`), ``w_other`` (0..1) of the way to what
+    ``other`` says, by time, so that a correction that bends the stretch between two kept
+    keyframes after the removal carries the removed one along the bend, not rigidly with one
+    end. It goes (the blend with it) when ``other`` goes."""
 
     key: int
     agent_id: int
     timestamp: float
     anchor: int
     T_anchor_body: np.ndarray
+    other: int | None = None
+    T_other_body: np.ndarray | None = None
+    w_other: float = 0.0
 
 
 @dataclass(frozen=True)

@@ -37,7 +37,9 @@ keyframe and a lower fraction, applied to the whole map under a connectivity con
 5. Map points left with fewer than ``min_observations`` observations are removed.
 6. A removed keyframe is *retired* (:meth:`Atlas.retire_keyframe`): its pose stays, relative
    to the kept keyframe its loops moved to, so trajectories and the ATE still cover every
-   keyframe (ORB-SLAM reports culled keyframes through their parents the same way).
+   keyframe (ORB-SLAM reports culled keyframes through their parents the same way), and
+   relative to the kept keyframe on its other side in time, the two blended by time
+   (``MbpConfig.blend_retired``).
 """
 
 from __future__ import annotations
@@ -235,12 +237,9 @@ def select_backbone(atlas: Atlas, map_id: int, config: MbpConfig, keep_recent: i
     return set(backbone(atlas, map_id, config, keep_recent).kept)
 
 
-def loop_anchors(atlas: Atlas, map_id: int, kept: frozenset[int]) -> dict[int, int]:
-    """For each removed keyframe of ``map_id``, the kept keyframe of the same agent its loop
-    constraints move to: the kept one just before or just after it in the agent's sequence,
-    whichever shares more map points with it (then the earlier). The same agent, so that an
-    inter-agent constraint stays between the two agents and composes only with a short
-    stretch of the agent's own odometry."""
+def kept_neighbours(atlas: Atlas, map_id: int, kept: frozenset[int]) -> dict[int, list[int]]:
+    """For each removed keyframe of ``map_id``, the kept keyframes of the same agent just
+    before and just after it in the agent's sequence (one of them at its ends)."""
     out = {}
     for agent in atlas.agents_in_map(map_id):
         ak = atlas.keyframe_keys(map_id=map_id, agent_id=agent)
@@ -249,9 +248,20 @@ def loop_anchors(atlas: Atlas, map_id: int, kept: frozenset[int]) -> dict[int, i
             if r in kept or not pos:
                 continue
             j = bisect.bisect_left(pos, i)
-            near = [ak[pos[x]] for x in (j - 1, j) if 0 <= x < len(pos)]
-            w = dict(atlas.covisible(r))
-            out[r] = max(near, key=lambda k: (w.get(k, 0), -k))
+            out[r] = [ak[pos[x]] for x in (j - 1, j) if 0 <= x < len(pos)]
+    return out
+
+
+def loop_anchors(atlas: Atlas, map_id: int, kept: frozenset[int]) -> dict[int, int]:
+    """For each removed keyframe of ``map_id``, the kept keyframe of the same agent its loop
+    constraints move to: the kept one just before or just after it in the agent's sequence
+    (:func:`kept_neighbours`), whichever shares more map points with it (then the earlier).
+    The same agent, so that an inter-agent constraint stays between the two agents and
+    composes only with a short stretch of the agent's own odometry."""
+    out = {}
+    for r, near in kept_neighbours(atlas, map_id, kept).items():
+        w = dict(atlas.covisible(r))
+        out[r] = max(near, key=lambda k: (w.get(k, 0), -k))
     return out
 
 
@@ -361,13 +371,15 @@ def run_mbp(
     bb = backbone(atlas, map_id, config, keep_recent, hold)
     removed = [k for k in keys if k not in bb.kept]
     anchors = loop_anchors(atlas, map_id, bb.kept)
+    near = kept_neighbours(atlas, map_id, bb.kept)
     n_loops = _move_loops(atlas, anchors)
     n_virtual = 0
     for r in removed:
         n_virtual += _fold(atlas, r, list(bb.absorbers[r]), bb.kept, camera_of, config)
     for r in removed:  # drops its (already re-anchored) loop edges
         if r in anchors:
-            atlas.retire_keyframe(r, anchors[r])
+            other = next((k for k in near[r] if k != anchors[r]), None)
+            atlas.retire_keyframe(r, anchors[r], other if config.blend_retired else None)
         else:
             atlas.remove_keyframe(r)
     for mk in atlas.map_point_keys(map_id):

@@ -442,9 +442,12 @@ class CloudStore:
                 ),
                 aliases=dict(db.execute("SELECT dropped, kept FROM aliases")),
                 retired=tuple(
-                    RetiredKeyframe(k, a, t, n, unpack_pose(T))
-                    for k, a, t, n, T in db.execute(
-                        "SELECT key, agent, timestamp, anchor, T FROM retired_keyframes"
+                    RetiredKeyframe(
+                        k, a, t, n, unpack_pose(T), o, None if To is None else unpack_pose(To), w
+                    )
+                    for k, a, t, n, T, o, To, w in db.execute(
+                        "SELECT key, agent, timestamp, anchor, T, other, T_other, w_other "
+                        "FROM retired_keyframes"
                     )
                 ),
             )

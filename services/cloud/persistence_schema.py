@@ -20,13 +20,14 @@ from common.errors import RecslamError
 from services.cloud.map_types import AtlasState
 
 DB_NAME = "cloud.sqlite"
-SCHEMA_VERSION = 7
+SCHEMA_VERSION = 8
 # Older schemas this one upgrades when it opens them (:func:`upgrade`): 5 added
 # ``robot_sensors`` (``SCHEMA`` creates it); 6 added ``missions`` and the ``mission`` column of
 # ``agent_names`` and keys that table by (mission, edge, robot, edge map), not (robot, edge
 # map), so that several edges' and missions' agents stay apart (the table is rebuilt, its old
-# rows are mission 0); 7 added ``map_points.in_ref`` (old rows: 0, positions in the map frame).
-UPGRADABLE = (3, 4, 5, 6)
+# rows are mission 0); 7 added ``map_points.in_ref`` (old rows: 0, positions in the map frame);
+# 8 added ``retired_keyframes.other``, ``T_other`` and ``w_other`` (old rows: no blend).
+UPGRADABLE = (3, 4, 5, 6, 7)
 
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS meta (name TEXT PRIMARY KEY, value INTEGER NOT NULL);
@@ -47,7 +48,8 @@ CREATE TABLE IF NOT EXISTS loops (seq INTEGER PRIMARY KEY, key_a INTEGER NOT NUL
 CREATE TABLE IF NOT EXISTS aliases (dropped INTEGER PRIMARY KEY, kept INTEGER NOT NULL);
 CREATE TABLE IF NOT EXISTS removed_keyframes (key INTEGER PRIMARY KEY);
 CREATE TABLE IF NOT EXISTS retired_keyframes (key INTEGER PRIMARY KEY, agent INTEGER NOT NULL,
-    timestamp REAL NOT NULL, anchor INTEGER NOT NULL, T BLOB NOT NULL);
+    timestamp REAL NOT NULL, anchor INTEGER NOT NULL, T BLOB NOT NULL, other INTEGER,
+    T_other BLOB, w_other REAL NOT NULL DEFAULT 0);
 CREATE TABLE IF NOT EXISTS edge_sequences (edge_id TEXT PRIMARY KEY, last_seq INTEGER NOT NULL);
 CREATE TABLE IF NOT EXISTS edge_positions (edge_id TEXT PRIMARY KEY, stream_id BLOB NOT NULL,
     last_seq INTEGER NOT NULL);
@@ -115,6 +117,12 @@ def upgrade(db: sqlite3.Connection, version: int) -> None:
         cols = [r[1] for r in db.execute("PRAGMA table_info(map_points)")]
         if "in_ref" not in cols:
             db.execute("ALTER TABLE map_points ADD COLUMN in_ref INTEGER NOT NULL DEFAULT 0")
+    if version < 8:
+        cols = [r[1] for r in db.execute("PRAGMA table_info(retired_keyframes)")]
+        for name, decl in (("other", "INTEGER"), ("T_other", "BLOB"), ("w_other", "REAL")):
+            if name not in cols:
+                default = " NOT NULL DEFAULT 0" if name == "w_other" else ""
+                db.execute(f"ALTER TABLE retired_keyframes ADD COLUMN {name} {decl}{default}")
     db.execute("UPDATE meta SET value = ? WHERE name='schema'", (SCHEMA_VERSION,))
 
 
@@ -159,9 +167,18 @@ def write_state(
     )
     db.execute("DELETE FROM retired_keyframes")
     db.executemany(
-        "INSERT INTO retired_keyframes VALUES (?, ?, ?, ?, ?)",
+        "INSERT INTO retired_keyframes VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
         [
-            (r.key, r.agent_id, r.timestamp, r.anchor, np.asarray(r.T_anchor_body, "<f8").tobytes())
+            (
+                r.key,
+                r.agent_id,
+                r.timestamp,
+                r.anchor,
+                np.asarray(r.T_anchor_body, "<f8").tobytes(),
+                r.other,
+                None if r.T_other_body is None else np.asarray(r.T_other_body, "<f8").tobytes(),
+                r.w_other,
+            )
             for r in st.retired
         ],
     )

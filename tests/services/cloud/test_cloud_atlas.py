@@ -259,6 +259,32 @@ def test_retired_keyframe_follows_its_anchor_and_passes_to_an_heir(session):
         atlas.retire_keyframe(keys[7], keys[7])
 
 
+def test_a_retired_keyframe_between_two_kept_ones_follows_both_by_time(session):
+    """A correction of one neighbour only moves the retired keyframe by the share of the way
+    it lies towards that neighbour (position interpolated, rotation on the geodesic)."""
+    kfs, mps = session
+    atlas = _atlas(kfs, mps)
+    keys = atlas.keyframe_keys()
+    T_map_r = atlas.T_map_body(keys[5])
+    atlas.retire_keyframe(keys[5], keys[4], other=keys[6])
+    [(_, _, T)] = atlas.retired_poses(0)
+    np.testing.assert_allclose(T, T_map_r, atol=1e-9)  # both agree before any correction
+    w = (kfs[5].timestamp - kfs[4].timestamp) / (kfs[6].timestamp - kfs[4].timestamp)
+    shift = yaw_T(0.2, [0.5, -0.3, 0.1])
+    atlas.set_keyframe_poses({keys[6]: shift @ atlas.T_map_body(keys[6])})
+    [(_, _, T)] = atlas.retired_poses(0)
+    moved = shift @ T_map_r
+    np.testing.assert_allclose(T[:3, 3], (1 - w) * T_map_r[:3, 3] + w * moved[:3, 3], atol=1e-9)
+    angle = np.arccos(np.clip((np.trace(T_map_r[:3, :3].T @ T[:3, :3]) - 1) / 2, -1, 1))
+    assert angle == pytest.approx(0.2 * w, abs=1e-9)
+    # The other neighbour goes: the record keeps its anchor alone (rigidly, as before).
+    atlas.remove_keyframe(keys[6])
+    [(_, _, T)] = atlas.retired_poses(0)
+    np.testing.assert_allclose(T, T_map_r, atol=1e-9)
+    with pytest.raises(AtlasError, match="other"):
+        atlas.retire_keyframe(keys[7], keys[8], other=keys[7])
+
+
 def test_a_point_a_keyframe_names_before_it_arrives_is_no_map_point_until_it_does(session):
     """Keyframes name their points by id; a point the cloud has not received has no position,
     so it is not a map point (no point at the map's origin for verification, BA or the view)

@@ -49,7 +49,8 @@ def test_restart_resumes_with_the_same_state(tmp_path):
             atlas.keyframe_keys(agent_id=0)[2], atlas.keyframe_keys(agent_id=1)[2], np.eye(4)
         )
         atlas.remove_keyframe(atlas.keyframe_keys(agent_id=0)[4])
-        atlas.retire_keyframe(*atlas.keyframe_keys(agent_id=1)[6:4:-1])  # MBP's removal
+        k = atlas.keyframe_keys(agent_id=1)
+        atlas.retire_keyframe(k[6], k[5], other=k[7])  # MBP's removal
         store.save_all(atlas)
     with CloudStore(tmp_path) as store:
         restored = store.load()
@@ -69,6 +70,12 @@ def test_restart_resumes_with_the_same_state(tmp_path):
     [(key, t, T)] = restored.retired_poses(1)
     assert (key, t) == atlas.retired_poses(1)[0][:2]
     np.testing.assert_allclose(T, atlas.retired_poses(1)[0][2], atol=1e-12)
+    # The blend with the other neighbour came back too: moving it moves the record alike.
+    k7 = atlas.keyframe_keys(agent_id=1)[6]
+    for a in (atlas, restored):
+        a.set_keyframe_poses({k7: yaw_T(0.1, [0.2, 0.0, 0.0]) @ a.T_map_body(k7)})
+    np.testing.assert_allclose(restored.retired_poses(1)[0][2], atlas.retired_poses(1)[0][2])
+    assert not np.allclose(restored.retired_poses(1)[0][2], T, atol=1e-3)
     # A late update of agent 1 still lands in the merged frame after the restart.
     key = restored.add_keyframe(k1[-1])
     np.testing.assert_allclose(restored.T_map_body(key), atlas.T_map_body(key), atol=1e-12)
@@ -343,6 +350,30 @@ def test_a_schema_6_state_dir_keeps_its_map_frame_positions(tmp_path):
     assert np.array_equal(atlas.map_point(7).p_map, p)
     db = sqlite3.connect(tmp_path / DB_NAME)
     assert db.execute("SELECT value FROM meta WHERE name='schema'").fetchone() == (SCHEMA_VERSION,)
+    db.close()
+
+
+def test_a_schema_7_state_dir_gets_the_blend_columns_of_its_retired_keyframes(tmp_path):
+    import sqlite3
+
+    from services.cloud.persistence import DB_NAME, SCHEMA_VERSION
+
+    db = sqlite3.connect(tmp_path / DB_NAME)
+    db.executescript(
+        "CREATE TABLE meta (name TEXT PRIMARY KEY, value INTEGER NOT NULL);"
+        "INSERT INTO meta VALUES ('schema', 7);"
+        "CREATE TABLE retired_keyframes (key INTEGER PRIMARY KEY, agent INTEGER NOT NULL,"
+        " timestamp REAL NOT NULL, anchor INTEGER NOT NULL, T BLOB NOT NULL);"
+    )
+    db.execute("INSERT INTO retired_keyframes VALUES (5, 0, 1.0, 4, ?)", (np.eye(4).tobytes(),))
+    db.commit()
+    db.close()
+    with CloudStore(tmp_path) as store:
+        store.load()
+    db = sqlite3.connect(tmp_path / DB_NAME)
+    assert db.execute("SELECT value FROM meta WHERE name='schema'").fetchone() == (SCHEMA_VERSION,)
+    row = db.execute("SELECT key, other, T_other, w_other FROM retired_keyframes").fetchone()
+    assert row == (5, None, None, 0.0)
     db.close()
 
 
