@@ -106,6 +106,12 @@ def main() -> None:
     ap.add_argument(
         "--record", action="store_true", help="record each run's uplink (RUN/uplink.rec)"
     )
+    ap.add_argument(
+        "--only",
+        choices=("none", "mbp"),
+        help="run only this variant (the other's folders, e.g. linked from an earlier run of "
+        "the same commit line, are read as they are)",
+    )
     args = ap.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
     variants = {"no MBP": 0, f"MBP every {args.every}": args.every}
@@ -114,6 +120,8 @@ def main() -> None:
         for data in args.data:
             for k in range(args.repeats):
                 for name, every in variants.items():
+                    if args.only and (every > 0) != (args.only == "mbp"):
+                        continue
                     out = folder(args.root, data, f"mbp{every}", k)
                     label = f"[{data.name} {name} #{k}]"
                     run_job(
@@ -141,7 +149,8 @@ def main() -> None:
         "",
         f"Command: `benchmarks/bench_mbp_live.py {' '.join('--data ' + str(d) for d in args.data)}"
         f" --every {args.every} --repeats {args.repeats} --root {args.root}"
-        f"{' --from-runs' if args.from_runs else ''}`; commit {commit}; "
+        f"{' --from-runs' if args.from_runs else ''}"
+        f"{f' --only {args.only}' if args.only else ''}`; commit {commit}; "
         f"{time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}; {platform.machine()}"
         f"{'' if args.from_runs else f', {time.perf_counter() - t0:.0f} s in all'}. Each run: "
         "`recslam demo --data DATASET --no-dashboard --rate realtime` with `--no-mbp` or "
