@@ -528,13 +528,15 @@ class CloudApp:
 
     def prune(self, map_id: int, final: bool = False) -> MbpReport:
         """MBP on ``map_id`` (then the whole atlas is saved). While running (not ``final``)
-        each agent's ``mbp_settle_keyframes`` newest keyframes are kept, the final pass (at
-        shutdown) keeps ``mbp_keep_recent``."""
+        each agent's ``mbp_settle_keyframes`` newest keyframes are kept and a keyframe goes
+        only at ``mbp_running_cover_ratio``; the final pass (at shutdown) keeps
+        ``mbp_keep_recent``."""
         before = set(self.atlas.map_point_keys(map_id))
         cfg = self.config
         keep = cfg.mbp_keep_recent if final else max(cfg.mbp_keep_recent, cfg.mbp_settle_keyframes)
+        cover = None if final else cfg.mbp_running_cover_ratio
         with self.stage_timer.span("stage.mbp"):
-            report = self.fusion.prune(map_id, keep)
+            report = self.fusion.prune(map_id, keep, cover)
         self._changes += 1
         self._pruned_points |= before - set(self.atlas.map_point_keys(map_id))
         self._pruned_keyframes.update(report.removed_keyframes)

@@ -260,12 +260,15 @@ class MapFusion:
             return apply_full_ba(self.atlas, result)
         return apply_pose_graph(self.atlas, result)
 
-    def prune(self, map_id: int, keep_recent: int = 5) -> MbpReport:
-        """Run MBP on a map (the held agents' keyframes stay) and drop the removed keyframes
-        from the database."""
-        report = run_mbp(
-            self.atlas, map_id, self.camera_of, self.config.mbp, keep_recent, self.held_agents
-        )
+    def prune(
+        self, map_id: int, keep_recent: int = 5, cover_ratio: float | None = None
+    ) -> MbpReport:
+        """Run MBP on a map (the held agents' keyframes stay; ``cover_ratio``: in place of the
+        configured one) and drop the removed keyframes from the database."""
+        cfg = self.config.mbp
+        if cover_ratio is not None:
+            cfg = dataclasses.replace(cfg, cover_ratio=cover_ratio)
+        report = run_mbp(self.atlas, map_id, self.camera_of, cfg, keep_recent, self.held_agents)
         for key in report.removed_keyframes:
             self.recognizer.db.remove(key)
         return report

@@ -151,6 +151,27 @@ def test_mbp_while_running_keeps_the_unsettled_newest_keyframes(tmp_path, vocab)
     assert removed[True] & newest  # at shutdown only mbp_keep_recent (5) are protected
 
 
+def test_mbp_while_running_removes_only_at_its_own_cover_ratio(tmp_path, vocab):
+    """``mbp_running_cover_ratio`` rules the passes while running, not the pass at shutdown:
+    one above 1 (no keyframe can be covered that well) removes nothing while running."""
+    kfs, mps = _half_circle_session()
+    removed = {}
+    for ratio in (None, 1.01):
+        for final in (False, True):
+            cfg = dataclasses.replace(
+                CloudServiceConfig(), mbp_settle_keyframes=5, mbp_running_cover_ratio=ratio
+            )
+            app = _app(tmp_path / f"{ratio}-{final}", vocab, cfg)
+            for k in kfs:
+                app.fusion.add_keyframe(k, detect=False)
+            for m in mps:
+                app.fusion.add_map_point(m)
+            removed[ratio, final] = set(app.prune(0, final=final).removed_keyframes)
+            app.close()
+    assert removed[None, False] and not removed[1.01, False]
+    assert removed[1.01, True] == removed[None, True]
+
+
 def test_applied_optimisation_is_durable(tmp_path, vocab):
     from common.geometry import inverse_T
     from services.cloud.global_optimization import optimize_pose_graph
