@@ -313,11 +313,11 @@ class CloudServiceConfig:
         unsettled geometry (protecting 5 instead raised the replays' joint ATE 3-7x).
     mbp_running_cover_ratio: a pass while running removes a keyframe only while the kept
         keyframes observe this fraction of its map points (``MbpConfig.cover_ratio``, which
-        the pass at shutdown keeps; None: the same; default 0.7). What a pass while running
-        keeps must carry the later loops and full BAs; on the replays of three recordings
-        (benchmarks/results/mbp_midrun.md) 0.7 kept 48 / 55 / 34 % of the keyframes at
-        -9.5 / +2.3 / -6.1 % joint ATE against no pruning, 0.5 kept 48 / 54 / 31 % at
-        -9.5 / +4.4 / +2.6 %.
+        the pass at shutdown keeps; None: the same; default 0.8). What a pass while running
+        keeps must carry the later loops and full BAs. On replays of recordings of seeds 1 and
+        2 (benchmarks/results/mbp_midrun.md), against no pruning: 0.5 kept 54 / 31 % of the
+        keyframes at +4.4 / +2.6 % joint ATE, 0.7 kept 55 / 34 % at +2.3 / -6.1 %, 0.8 kept
+        57 / 34 % at +1.1 / -14 %.
     mbp_after_full_ba: with full BA on, a pass while running waits for a full BA: the pose
         graph that finds MBP due schedules a full BA of the map at once, and the pass runs
         right after that is applied (default True). A pose graph moves the keyframes and each
@@ -379,7 +379,7 @@ class CloudServiceConfig:
     mbp_at_shutdown: bool = True
     mbp_keep_recent: int = 5
     mbp_settle_keyframes: int = 30
-    mbp_running_cover_ratio: float | None = 0.7
+    mbp_running_cover_ratio: float | None = 0.8
     mbp_after_full_ba: bool = True
     word_group_level: int | None = 3
     mission: str | None = None
