@@ -21,11 +21,14 @@ keyframes and at shutdown) and:
   ``optimization.X`` of its domain (values parsed as int, float, true/false, else string).
 
 A replay is open-loop: the recorded edge applied the corrections of the *live* cloud, and its
-later updates (map points re-observed on a revisit, in its corrected frame) are placed by the
-cloud through the robot's one map-from-edge transform. A configuration whose corrections
-differ from the live run's receives them in a frame that no longer fits its own keyframes, so
-a replay is faithful only for the configuration the recording was made with; compare on
-recordings made with each (``recslam demo --mbp-every 40 --record-uplink ...``) and live.
+later updates (map points re-observed on a revisit) are in its corrected frame. In recordings
+made before the edge named the frame of its messages (``FrameAnchor``, session 19) the cloud
+placed them through the robot's one map-from-edge transform, so a configuration whose
+corrections differ from the live run's received them in a frame that no longer fit its own
+keyframes, and a replay was faithful only for the configuration the recording was made with.
+In newer recordings each message lands through the replaying cloud's own pose of its anchor
+(``services.cloud.rebase``): a rigid fix per message, close to faithful for other
+configurations; still compare live (``bench_mbp_live.py``).
 
 Keyframes: the atlas at the end over the keyframes received. ATE: joint RMSE (SE(3)) of every
 keyframe received (a pruned one through the kept keyframe it is anchored to), as the cloud's
