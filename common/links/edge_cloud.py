@@ -251,15 +251,10 @@ _STATE_COLS = 16
 
 @dataclass(frozen=True, eq=False)
 class FrameAnchor:
-    """The frame a payload's poses and positions are in, named by one keyframe the cloud
-    already has: ``T_world_body`` (4, 4) is the edge's pose of keyframe ``keyframe_id`` in
-    that frame, when the payload was made.
-
-    The edge applies the cloud's corrections while its messages are on the way, so a message
-    may be in the frame before a correction the cloud has made (or after one the cloud has
-    refined since). The cloud places such a payload through its own current pose of the
-    anchor, ``T_map_anchor @ inv(T_world_body)``, instead of the one fixed map-from-agent
-    transform (COVINS' ``pos_ref`` idea, one anchor per message)."""
+    """The frame of a payload's poses and positions, named by a keyframe the cloud has:
+    ``T_world_body`` (4, 4) is the edge's pose of ``keyframe_id`` in it. A message may be in
+    the frame before a correction the edge has not applied yet; the cloud places it through
+    its own pose of the anchor (``services.cloud.rebase``; COVINS' ``pos_ref`` idea)."""
 
     keyframe_id: int
     T_world_body: np.ndarray

@@ -127,8 +127,7 @@ class CloudStats:
     worker_queue_max: int = 0
     """The most there ever were (one per edge link at most: each delivers in order; the rest
     wait in the edges' outboxes, held back by the receive window)."""
-    rebase: dict[str, float] = field(default_factory=dict)
-    """The edge's payloads placed through their anchors (``FrameRebase.summary``)."""
+    rebase: dict[str, float] = field(default_factory=dict)  # FrameRebase.summary
     stages: dict[str, dict[str, float]] = field(default_factory=dict)
     """Time per stage, ``{"stage.place_recognition": {"seconds": s, "messages": n}, ...}``:
     the worker thread's CPU time in the app's
