@@ -302,7 +302,7 @@ class CloudServiceConfig:
         map's rounds are shorter than ``debounce_s``, which rules then).
     mbp_every_keyframes: MBP runs on a map (when ``domain.mbp.enabled``) after this many new
         keyframes since its last pass, right after an optimisation (0 = never while running;
-        default 0: live, every 40 kept 31-54 % of the keyframes at -0 / +12 / +26 % mean joint
+        default 0: live, every 40 kept 31-54 % of the keyframes at -0 / +12 / +14 % mean joint
         ATE against runs without it on seeds 0 / 1 / 2, session 19,
         benchmarks/results/mbp_live.md; replays, mbp_midrun.md) ...
     mbp_at_shutdown: ... and over every map at shutdown, after the last full BA, before the
