@@ -355,11 +355,11 @@ class Atlas:
         """``(key, timestamp s, T_map_body (4, 4))`` of ``agent_id``'s retired keyframes (see
         :meth:`retire_keyframe`), poses through their anchors' current estimates."""
         out = []
-        for r in self._retired.of_agent(agent_id):
-            other = None if r.other is None else self._kfs.get(r.other)
-            T_other = None if other is None else other.T_map_body
-            T = retired_pose(r, self._kfs[r.anchor].T_map_body, T_other)
-            out.append((r.key, r.timestamp, T))
+        for r in self._retired.of_agent(agent_id):  # (an other that went took its blend along)
+            T_other = None if r.other is None else self._kfs[r.other].T_map_body
+            out.append(
+                (r.key, r.timestamp, retired_pose(r, self._kfs[r.anchor].T_map_body, T_other))
+            )
         return out
 
     # ------------------------------------------------------------------ corrections

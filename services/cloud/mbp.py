@@ -252,14 +252,21 @@ def kept_neighbours(atlas: Atlas, map_id: int, kept: frozenset[int]) -> dict[int
     return out
 
 
-def loop_anchors(atlas: Atlas, map_id: int, kept: frozenset[int]) -> dict[int, int]:
+def loop_anchors(
+    atlas: Atlas,
+    map_id: int,
+    kept: frozenset[int],
+    neighbours: dict[int, list[int]] | None = None,
+) -> dict[int, int]:
     """For each removed keyframe of ``map_id``, the kept keyframe of the same agent its loop
     constraints move to: the kept one just before or just after it in the agent's sequence
-    (:func:`kept_neighbours`), whichever shares more map points with it (then the earlier).
-    The same agent, so that an inter-agent constraint stays between the two agents and
-    composes only with a short stretch of the agent's own odometry."""
+    (``neighbours``, default :func:`kept_neighbours`), whichever shares more map points with
+    it (then the earlier). The same agent, so that an inter-agent constraint stays between the
+    two agents and composes only with a short stretch of the agent's own odometry."""
+    if neighbours is None:
+        neighbours = kept_neighbours(atlas, map_id, kept)
     out = {}
-    for r, near in kept_neighbours(atlas, map_id, kept).items():
+    for r, near in neighbours.items():
         w = dict(atlas.covisible(r))
         out[r] = max(near, key=lambda k: (w.get(k, 0), -k))
     return out
@@ -370,8 +377,8 @@ def run_mbp(
         return MbpReport(map_id, n_kf, n_kf, n_mp, n_mp, 0, (), connected_before, connected_before)
     bb = backbone(atlas, map_id, config, keep_recent, hold)
     removed = [k for k in keys if k not in bb.kept]
-    anchors = loop_anchors(atlas, map_id, bb.kept)
     near = kept_neighbours(atlas, map_id, bb.kept)
+    anchors = loop_anchors(atlas, map_id, bb.kept, near)
     n_loops = _move_loops(atlas, anchors)
     n_virtual = 0
     for r in removed:

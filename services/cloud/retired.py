@@ -33,7 +33,7 @@ class RetiredKeyframes:
     def of_live(cls, records: Iterable[RetiredKeyframe], live: Container[int]) -> RetiredKeyframes:
         """``records`` whose anchor is ``live`` (keys), without a blend whose other is not."""
         return cls(
-            r if r.other is None or r.other in live else replace(r, other=None)
+            r if r.other is None or r.other in live else _unblended(r)
             for r in records
             if r.anchor in live
         )
@@ -60,7 +60,7 @@ class RetiredKeyframes:
     def drop_other(self, key: int) -> None:
         """``key`` goes: the records that blend with it keep their anchor alone."""
         for r in [r for r in self._by_key.values() if r.other == key]:
-            self._by_key[r.key] = replace(r, other=None, T_other_body=None, w_other=0.0)
+            self._by_key[r.key] = _unblended(r)
 
     def of_agent(self, agent_id: int) -> list[RetiredKeyframe]:
         return [r for r in self._by_key.values() if r.agent_id == agent_id]
@@ -69,13 +69,17 @@ class RetiredKeyframes:
         return tuple(self._by_key.values())
 
 
+def _unblended(r: RetiredKeyframe) -> RetiredKeyframe:
+    return replace(r, other=None, T_other_body=None, w_other=0.0)
+
+
 def retired_pose(
     r: RetiredKeyframe, T_map_anchor: np.ndarray, T_map_other: np.ndarray | None
 ) -> np.ndarray:
     """``r``'s pose (4, 4) from its anchor's current pose and, when it blends with ``other``,
     that one's (``T_map_other``): position interpolated, rotation along the geodesic."""
     A = T_map_anchor @ r.T_anchor_body
-    if r.other is None or r.T_other_body is None or T_map_other is None or r.w_other <= 0.0:
+    if r.T_other_body is None or T_map_other is None:
         return A
     B = T_map_other @ r.T_other_body
     w = float(min(r.w_other, 1.0))

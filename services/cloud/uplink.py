@@ -35,6 +35,7 @@ from common.codec.frames import FeatureDecoder
 from common.codec.imu import ImuDecoder
 from common.codec.types import CodecConfig, ImuChunk, KeyframeFeatures, NonKeyframeFeatures
 from common.errors import RecslamError
+from common.geometry import transform_points
 from common.links.edge_cloud import (
     CullEvent,
     FrameAnchor,
@@ -320,7 +321,7 @@ def decode_map_point_update(
             ids, p, obs = batch.ids, batch.p_world, batch.observations
             T_fix = None if frame is None else frame(batch.anchor)
             if T_fix is not None:
-                p = p @ T_fix[:3, :3].T + T_fix[:3, 3]
+                p = transform_points(T_fix, p)
         else:
             ids = _ids(msg.ids, f"{what}: ids")
             p = unpack_array(msg.p_world, "<f8", (3,), f"{what}: p_world") if msg.p_world else None
