@@ -219,6 +219,14 @@ class FullBAConfig:
     imu_max_gap_s: ... nor do intervals with two IMU samples further apart (default 0.05 s).
     bias_prior_accel / bias_prior_gyro: sigmas of the prior on the first bias of each agent's
         chain, at the edge's estimate (defaults 0.1 m/s², 0.01 rad/s).
+    incremental: solve on the map's iSAM2 graph, updated with what changed since the last
+        full BA (``services/cloud/incremental_ba.py``; a batch solve builds it first and
+        after merges); default False: the batch solve every time.
+    incremental_max_updates: iSAM2 updates (relinearisation steps) per full BA, at most
+        (default 4) ...
+    relinearize_threshold: ... relinearising variables whose update exceeds this (0.01).
+    point_prior_sigma_m: in the iSAM2 graph, a weak prior on every point at its start
+        position keeps a point that lost observations solvable (default 10 m).
     """
 
     enabled: bool = True
@@ -242,6 +250,10 @@ class FullBAConfig:
     imu_max_gap_s: float = 0.05
     bias_prior_accel: float = 0.1
     bias_prior_gyro: float = 0.01
+    incremental: bool = False
+    incremental_max_updates: int = 4
+    relinearize_threshold: float = 0.01
+    point_prior_sigma_m: float = 10.0
 
 
 @dataclass(frozen=True)

@@ -57,6 +57,7 @@ import enum
 import functools
 import logging
 import math
+import uuid
 from collections import deque
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
@@ -71,6 +72,7 @@ from services.cloud.global_optimization import (
     PoseGraphResult,
     optimize_pose_graph,
 )
+from services.cloud.incremental_ba import solve_full_ba_incremental
 
 log = logging.getLogger(__name__)
 
@@ -89,8 +91,9 @@ class SolveKind(enum.Enum):
 @dataclass(frozen=True, eq=False)
 class SolveRequest:
     """A built optimisation to solve: the map, the kind, the plain problem, the atlas' merge
-    state when it was built (``token``, handed back to ``apply_optimization``) and the
-    solver's options (``full_ba`` with its time budget, for a full BA)."""
+    state when it was built (``token``, handed back to ``apply_optimization``), the
+    solver's options (``full_ba`` with its time budget, for a full BA) and the core's
+    ``session`` (whose iSAM2 graphs an incremental full BA updates)."""
 
     map_id: int
     kind: SolveKind
@@ -98,6 +101,7 @@ class SolveRequest:
     token: int
     optimization: GlobalOptimizationConfig
     full_ba: FullBAConfig | None = None
+    session: str = ""
 
     def job(self) -> Callable[[], SolveResult]:
         """The pure solve as a picklable zero-argument callable (a process pool's child
@@ -106,6 +110,15 @@ class SolveRequest:
             return functools.partial(optimize_pose_graph, self.problem, self.optimization)
         if self.full_ba is None:
             raise CloudCoreError(f"map {self.map_id}: a full BA request without its options")
+        if self.full_ba.incremental:
+            return functools.partial(
+                solve_full_ba_incremental,
+                self.problem,
+                self.full_ba,
+                self.optimization,
+                self.session,
+                self.map_id,
+            )
         return functools.partial(solve_full_ba, self.problem, self.full_ba, self.optimization)
 
 
@@ -183,6 +196,7 @@ class CloudCore:
     def __init__(self, app: CloudApp) -> None:
         self.app = app
         self.config = app.config
+        self.session = uuid.uuid4().hex  # names this core's iSAM2 graphs in the optimiser
         self._dirty: set[int] = set()
         self._since_opt: dict[int, int] = {}  # map -> new keyframes since its last pose graph
         self._since_full: dict[int, int] = {}  # map -> changes since its last full BA
@@ -433,7 +447,7 @@ class CloudCore:
             cfg = self.config.domain.full_ba
             if left is not None:
                 cfg = dataclasses.replace(cfg, max_seconds=left)
-            return SolveRequest(m, SolveKind.FULL_BA, full[0], full[1], opt, cfg)
+            return SolveRequest(m, SolveKind.FULL_BA, full[0], full[1], opt, cfg, self.session)
         if isinstance(step, _FullBAChanged):
             maps = sorted(m for m, n in self._since_full.items() if n > 0)
             steps = [_FullBA(m, step.why, step.deadline, step.send) for m in maps]

@@ -49,6 +49,7 @@ from services.cloud.global_optimization import (
     add_attitude_factors,
     apply_pose_graph,
     held_indices,
+    pose3,
     up_in_body,
 )
 from services.cloud.inertial import (
@@ -144,6 +145,10 @@ class FullBAResult:
     bias_gyro: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     bias_accel: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     """... and biases (M, 3) rad/s and m/s²."""
+    mode: str = "batch"
+    """How it was solved: ``"batch"`` (Levenberg–Marquardt), ``"isam2"`` (an incremental
+    update, :mod:`services.cloud.incremental_ba`; graph errors NaN) or ``"isam2-reset"`` (a
+    batch solve that (re)built the map's iSAM2 graph)."""
 
 
 def _project(
@@ -278,11 +283,7 @@ def build_full_ba(
     )
 
 
-def _pose3(T: np.ndarray) -> gtsam.Pose3:
-    return gtsam.Pose3(gtsam.Rot3(np.asarray(T[:3, :3])), np.asarray(T[:3, 3]))
-
-
-def _kernel(name: str, scale: float) -> gtsam.noiseModel.mEstimator.Base | None:
+def kernel(name: str, scale: float) -> gtsam.noiseModel.mEstimator.Base | None:
     if name == "huber":
         return gtsam.noiseModel.mEstimator.Huber.Create(scale)
     if name == "cauchy":
@@ -292,7 +293,7 @@ def _kernel(name: str, scale: float) -> gtsam.noiseModel.mEstimator.Base | None:
     raise FullBAError(f"unknown robust kernel {name!r}")
 
 
-def _rms_px(problem: FullBAProblem, T: np.ndarray, p: np.ndarray) -> float:
+def rms_px(problem: FullBAProblem, T: np.ndarray, p: np.ndarray) -> float:
     if problem.n_observations == 0:
         return 0.0
     xy, _ = _project(problem.T_body_cam, T, p, problem.obs_kf, problem.obs_point)
@@ -319,12 +320,12 @@ def solve_full_ba(
     graph = gtsam.NonlinearFactorGraph()
     values = gtsam.Values()
     for i in range(n):
-        values.insert(X(i), _pose3(problem.T_world_body[i]))
+        values.insert(X(i), pose3(problem.T_world_body[i]))
     for j in range(n_pts):
         values.insert(L(j), np.asarray(problem.p_world[j], np.float64))
     prior = gtsam.noiseModel.Isotropic.Sigma(6, graph_config.prior_sigma)
     for i in held_indices(problem.fixed, problem.held):
-        graph.add(gtsam.PriorFactorPose3(X(i), _pose3(problem.T_world_body[i]), prior))
+        graph.add(gtsam.PriorFactorPose3(X(i), pose3(problem.T_world_body[i]), prior))
     if problem.held_points is not None and problem.held_points.size:
         point_prior = gtsam.noiseModel.Isotropic.Sigma(3, graph_config.prior_sigma)
         for j in np.asarray(problem.held_points, np.int64).tolist():
@@ -333,14 +334,14 @@ def solve_full_ba(
             )
     poses = [X(i) for i in range(n)]
     add_attitude_factors(graph, poses, problem.up_body, config.attitude_sigma_rad)
-    loop_kernel = _kernel(graph_config.loop_robust_kernel, graph_config.loop_kernel_scale)
+    loop_kernel = kernel(graph_config.loop_robust_kernel, graph_config.loop_kernel_scale)
     rejected: list[int] = []
     for e in range(problem.edge_i.shape[0]):
         i, j = int(problem.edge_i[e]), int(problem.edge_j[e])
-        meas = _pose3(problem.T_i_j[e])
+        meas = pose3(problem.T_i_j[e])
         noise: gtsam.noiseModel.Base = gtsam.noiseModel.Diagonal.Sigmas(problem.sigmas[e])
         if problem.robust[e]:
-            rel = _pose3(problem.T_world_body[i]).between(_pose3(problem.T_world_body[j]))
+            rel = pose3(problem.T_world_body[i]).between(pose3(problem.T_world_body[j]))
             err = np.asarray(gtsam.Pose3.Logmap(meas.between(rel))) / problem.sigmas[e]
             if np.linalg.norm(err) > graph_config.loop_outlier_whitened:
                 rejected.append(e)
@@ -351,8 +352,8 @@ def solve_full_ba(
     n_imu = 0
     if problem.imu is not None and problem.imu.n_pairs:
         n_imu = add_imu_factors(graph, values, problem.imu, problem.T_world_body, config)
-    kernel = _kernel(config.robust_kernel, config.kernel_scale)
-    body_P_cam = [_pose3(Tbc) for Tbc in problem.T_body_cam]
+    obs_kernel = kernel(config.robust_kernel, config.kernel_scale)
+    body_P_cam = [pose3(Tbc) for Tbc in problem.T_body_cam]
     noise_of: dict[float, gtsam.noiseModel.Base] = {}
     factor = gtsam.GenericProjectionFactorCal3_S2
     for kf, pt, xy, s in zip(
@@ -365,8 +366,8 @@ def solve_full_ba(
         obs_noise = noise_of.get(s)
         if obs_noise is None:
             obs_noise = gtsam.noiseModel.Isotropic.Sigma(2, s)
-            if kernel is not None:
-                obs_noise = gtsam.noiseModel.Robust.Create(kernel, obs_noise)
+            if obs_kernel is not None:
+                obs_noise = gtsam.noiseModel.Robust.Create(obs_kernel, obs_noise)
             noise_of[s] = obs_noise
         graph.add(factor(xy, obs_noise, X(kf), L(pt), _UNIT_K, body_P_cam[kf]))
     params = gtsam.LevenbergMarquardtParams()
@@ -408,8 +409,8 @@ def solve_full_ba(
         p_world=p_out,
         initial_error=initial_error,
         final_error=float(graph.error(result)),
-        initial_rms_px=_rms_px(problem, problem.T_world_body, problem.p_world),
-        final_rms_px=_rms_px(problem, T_out, p_out),
+        initial_rms_px=rms_px(problem, problem.T_world_body, problem.p_world),
+        final_rms_px=rms_px(problem, T_out, p_out),
         iterations=iterations,
         rejected_edges=np.array(rejected, np.int64),
         seconds=seconds,
@@ -461,7 +462,7 @@ def apply_full_ba(atlas: Atlas, result: FullBAResult) -> int:
     return n
 
 
-def reprojection_rms_px(atlas: Atlas, map_id: int, camera: CameraCalibration | CameraOf) -> float:
+def reprojectionrms_px(atlas: Atlas, map_id: int, camera: CameraCalibration | CameraOf) -> float:
     """RMS reprojection error, pixels (each keyframe's ``fx`` units), of every observation of
     a map's points in front of the camera at the atlas' current estimates (a diagnostic for
     tests and benchmarks); ``camera``: each agent's camera (or one for all)."""

@@ -178,7 +178,7 @@ def held_indices(fixed: int, held: np.ndarray | None) -> list[int]:
     return sorted({int(fixed), *extra})
 
 
-def _pose3(T: np.ndarray) -> gtsam.Pose3:
+def pose3(T: np.ndarray) -> gtsam.Pose3:
     return gtsam.Pose3(gtsam.Rot3(np.asarray(T[:3, :3])), np.asarray(T[:3, 3]))
 
 
@@ -194,10 +194,10 @@ def optimize_pose_graph(
     graph = gtsam.NonlinearFactorGraph()
     values = gtsam.Values()
     for i in range(n):
-        values.insert(i, _pose3(problem.T_world_body[i]))
+        values.insert(i, pose3(problem.T_world_body[i]))
     prior = gtsam.noiseModel.Isotropic.Sigma(6, config.prior_sigma)
     for i in held_indices(problem.fixed, problem.held):
-        graph.add(gtsam.PriorFactorPose3(i, _pose3(problem.T_world_body[i]), prior))
+        graph.add(gtsam.PriorFactorPose3(i, pose3(problem.T_world_body[i]), prior))
     add_attitude_factors(graph, list(range(n)), problem.up_body, config.attitude_sigma_rad)
     kernels: dict[str, Callable[[float], gtsam.noiseModel.mEstimator.Base]] = {
         "cauchy": gtsam.noiseModel.mEstimator.Cauchy.Create,
@@ -217,7 +217,7 @@ def optimize_pose_graph(
                 noise = gtsam.noiseModel.Robust.Create(kernel(config.loop_kernel_scale), noise)
             graph.add(
                 gtsam.BetweenFactorPose3(
-                    int(problem.edge_i[e]), int(problem.edge_j[e]), _pose3(problem.T_i_j[e]), noise
+                    int(problem.edge_i[e]), int(problem.edge_j[e]), pose3(problem.T_i_j[e]), noise
                 )
             )
         params = gtsam.LevenbergMarquardtParams()
@@ -253,7 +253,7 @@ def _whitened(problem: PoseGraphProblem, e: int, values: gtsam.Values) -> float:
     """Norm of the whitened error of edge ``e`` at ``values``."""
     pi = values.atPose3(int(problem.edge_i[e]))
     pj = values.atPose3(int(problem.edge_j[e]))
-    err = gtsam.Pose3.Logmap(_pose3(problem.T_i_j[e]).between(pi.between(pj)))
+    err = gtsam.Pose3.Logmap(pose3(problem.T_i_j[e]).between(pi.between(pj)))
     return float(np.linalg.norm(np.asarray(err) / problem.sigmas[e]))
 
 

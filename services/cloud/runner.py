@@ -74,6 +74,7 @@ class CloudRunConfig:
         mbp_every: MBP also every this many new keyframes of a map while running (0: only
             at shutdown).
         full_ba: full bundle adjustment after the pose graph on/off.
+        incremental_ba: ... solved on the map's iSAM2 graph (``FullBAConfig.incremental``).
         optimizer_nice: niceness added to the optimizer process
             (``CloudServiceConfig.optimizer_nice``).
         decode_workers: keyframe decode processes (``CloudServiceConfig.decode_workers``).
@@ -105,6 +106,7 @@ class CloudRunConfig:
     mbp: bool = True
     mbp_every: int = 0
     full_ba: bool = True
+    incremental_ba: bool = False
     optimizer_nice: int = 0
     decode_workers: int = 0
     early_loop_candidates: int = 1
@@ -254,6 +256,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="full bundle adjustment after the pose graph when there is time, and at exit "
         "(default on; --no-full-ba: pose graph only)",
     )
+    p.add_argument(
+        "--incremental-ba",
+        action=argparse.BooleanOptionalAction,
+        default=False,
+        help="solve each full BA incrementally on the map's iSAM2 graph, rebuilt by a batch "
+        "solve after merges (default off: a batch solve each time; "
+        "benchmarks/results/cloud_vi_ba.md)",
+    )
     p.add_argument("--agent-id", default="cloud", help="this service's agent id (default cloud)")
     p.add_argument(
         "--wire",
@@ -305,6 +315,7 @@ def config_from_args(args: argparse.Namespace) -> CloudRunConfig:
         mbp=args.mbp,
         mbp_every=args.mbp_every,
         full_ba=args.full_ba,
+        incremental_ba=args.incremental_ba,
         optimizer_nice=args.optimizer_nice,
         decode_workers=args.decode_workers,
         early_loop_candidates=args.early_loop_candidates,
@@ -394,7 +405,9 @@ def _server(
 
     domain = CloudConfig(
         mbp=dataclasses.replace(MbpConfig(), enabled=config.mbp),
-        full_ba=dataclasses.replace(FullBAConfig(), enabled=config.full_ba),
+        full_ba=dataclasses.replace(
+            FullBAConfig(), enabled=config.full_ba, incremental=config.incremental_ba
+        ),
         place_recognition=dataclasses.replace(
             PlaceRecognitionConfig(), early_candidates=config.early_loop_candidates
         ),

@@ -10,6 +10,7 @@ yaw + translation, exactly what the cloud must recover when it merges maps.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -27,7 +28,8 @@ from common.links.edge_cloud import (
 )
 from common.vocabulary import Vocabulary
 from services.cloud.atlas import Atlas, KeyframeInput, MapPointInput
-from services.cloud.inertial import ImuStore
+from services.cloud.full_ba import FullBAProblem
+from services.cloud.inertial import ImuStore, ImuTerms
 
 # Camera z = body x (forward), camera x = -body y, camera y = -body z.
 R_BODY_CAM = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
@@ -437,3 +439,56 @@ def map_scale(T_est: np.ndarray, T_true: np.ndarray) -> float:
     d_est = T_est[:, :3, 3] - T_est[0, :3, 3]
     d_true = T_true[:, :3, 3] - T_true[0, :3, 3]
     return float(np.sum(d_est * d_true) / np.sum(d_true * d_true))
+
+
+def problem_prefix(problem: FullBAProblem, n: int) -> FullBAProblem:
+    """The full-BA problem of the first ``n`` keyframes of ``problem`` (its observations,
+    edges and IMU pairs among them; points seen by fewer than two of them dropped): the map
+    as it was earlier, to feed an incremental solver in time order."""
+    keep_obs = problem.obs_kf < n
+    counts = np.bincount(problem.obs_point[keep_obs], minlength=problem.point_keys.size)
+    used = np.flatnonzero(counts >= 2)
+    remap = np.full(problem.point_keys.size, -1, np.int64)
+    remap[used] = np.arange(used.size)
+    keep_obs &= remap[problem.obs_point] >= 0
+    keep_e = (problem.edge_i < n) & (problem.edge_j < n)
+    imu = problem.imu
+    if imu is not None:
+        pairs = np.flatnonzero((imu.pair_i < n) & (imu.pair_j < n))
+        segs = [imu.segment(int(k)) for k in pairs]
+        sizes = [s.timestamps_ns.size for s in segs]
+        imu = ImuTerms(
+            pair_i=imu.pair_i[pairs],
+            pair_j=imu.pair_j[pairs],
+            offsets=np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64),
+            timestamps_ns=np.concatenate(
+                [s.timestamps_ns for s in segs] or [np.zeros(0, np.int64)]
+            ),
+            gyro=np.concatenate([s.gyro for s in segs] or [np.zeros((0, 3))]),
+            accel=np.concatenate([s.accel for s in segs] or [np.zeros((0, 3))]),
+            noise=imu.noise[pairs],
+            bias_gyro=imu.bias_gyro[:n],
+            bias_accel=imu.bias_accel[:n],
+            first=imu.first[imu.first < n],
+        )
+    return dataclasses.replace(
+        problem,
+        keys=problem.keys[:n],
+        T_world_body=problem.T_world_body[:n],
+        point_keys=problem.point_keys[used],
+        p_world=problem.p_world[used],
+        obs_kf=problem.obs_kf[keep_obs],
+        obs_point=remap[problem.obs_point[keep_obs]],
+        obs_xy=problem.obs_xy[keep_obs],
+        obs_sigma=problem.obs_sigma[keep_obs],
+        T_body_cam=problem.T_body_cam[:n],
+        edge_i=problem.edge_i[keep_e],
+        edge_j=problem.edge_j[keep_e],
+        T_i_j=problem.T_i_j[keep_e],
+        sigmas=problem.sigmas[keep_e],
+        robust=problem.robust[keep_e],
+        up_body=None if problem.up_body is None else problem.up_body[:n],
+        imu=imu,
+        held=None if problem.held is None else problem.held[problem.held < n],
+        held_points=None,
+    )

@@ -1,0 +1,494 @@
+"""Incremental visual-inertial global BA (paper Eq. 20, full stage) with gtsam's iSAM2.
+
+The batch solve (:func:`services.cloud.full_ba.solve_full_ba`) rebuilds and relinearises the
+whole map every time, so its cost grows with the map (2.4 s per Levenberg–Marquardt iteration
+at 5k keyframes on this machine). Here the optimiser process keeps, per (cloud session, map),
+an ``ISAM2`` whose factor graph mirrors the last problem it was given, and each new
+:class:`~services.cloud.full_ba.FullBAProblem` of that map is applied as a difference:
+
+- every term of the problem has a tag — ``("obs", keyframe, point)``, ``("edge", a, b,
+  robust)``, ``("imu", a, b)``, ``("bias", keyframe)`` (a chain's first bias),
+  ``("att", keyframe)``, ``("prior", keyframe)``, ``("point", point)`` (a weak prior that keeps
+  a point seen by one keyframe solvable), ``("hold", point)``; tags of the new problem that the
+  graph lacks are added, tags it has that the problem lacks are removed (a keyframe the edge
+  culled, an observation the edge re-associated, a stand-in relative-pose term that an IMU
+  term replaced), and iSAM2 drops the variables left without factors;
+- new keyframes start at their problem pose moved by the correction ``E · P⁻¹`` (estimate
+  times inverse problem pose) of the agent's nearest keyframe already in the graph, new points
+  by the correction of a keyframe that observes them (the atlas may have moved since the last
+  solve: a pose graph after a loop); new velocities come from the preintegrated IMU and the
+  poses as in :func:`services.cloud.inertial.initial_velocities`;
+- a new loop edge whose whitened error at the current estimate exceeds
+  ``loop_outlier_whitened`` is left out (and not tested again), as in the batch solve;
+- then ``update`` and up to ``incremental_max_updates - 1`` more (relinearisation steps)
+  while variables still get relinearised, within ``max_seconds``.
+
+The graph is built again from a batch solve (and seeded with its result) when there is none
+for the map yet, when the map's agents (a merge), its held keyframe or its prior-map
+keyframes changed, and after iSAM2 fails (an indeterminant system); the optimiser process
+dying loses every graph, which costs one batch solve per map. A graph is the same function of
+the problem as the batch graph, except for decisions taken once at insertion (outlier loops,
+the stand-in terms' measurements) and the linearisation points.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import time
+from collections import OrderedDict
+from collections.abc import Hashable
+from dataclasses import dataclass, field
+
+import gtsam
+import numpy as np
+
+from common.geometry import inverse_T, transform_points
+from common.preintegration import make_bias
+from services.cloud.config import FullBAConfig, GlobalOptimizationConfig
+from services.cloud.full_ba import (
+    FullBAError,
+    FullBAProblem,
+    FullBAResult,
+    kernel,
+    pose3,
+    rms_px,
+    solve_full_ba,
+)
+from services.cloud.global_optimization import held_indices
+from services.cloud.inertial import preintegrated
+from services.cloud.map_types import split_key
+
+log = logging.getLogger(__name__)
+
+X, V, B, L = (
+    gtsam.symbol_shorthand.X,
+    gtsam.symbol_shorthand.V,
+    gtsam.symbol_shorthand.B,
+    gtsam.symbol_shorthand.L,
+)
+_UNIT_K = gtsam.Cal3_S2(1.0, 1.0, 0.0, 0.0, 0.0)
+_MAX_SOLVERS = 8  # graphs kept per process (least recently used dropped first)
+
+Tag = tuple[Hashable, ...]
+
+
+@dataclass
+class _Solver:
+    """One map's iSAM2 and how its factors and variables map to the problem's keys."""
+
+    isam: gtsam.ISAM2
+    fingerprint: tuple[Hashable, ...]
+    slot: dict[int, int] = field(default_factory=dict)  # keyframe key -> X/V/B index
+    point_slot: dict[int, int] = field(default_factory=dict)  # point key -> L index
+    factors: dict[Tag, int | None] = field(default_factory=dict)  # None: rejected loop
+    obs: dict[int, np.ndarray] = field(default_factory=dict)  # keyframe -> sorted point keys
+    inertial: set[int] = field(default_factory=set)  # keyframes with V / B
+    next_slot: int = 0
+    next_point: int = 0
+    updates: int = 0
+
+
+_SOLVERS: OrderedDict[tuple[str, int], _Solver] = OrderedDict()
+
+
+def forget(session: str, map_id: int | None = None) -> None:
+    """Drop the graphs of ``session`` (one map, or all)."""
+    for key in [k for k in _SOLVERS if k[0] == session and map_id in (None, k[1])]:
+        del _SOLVERS[key]
+
+
+def _fingerprint(problem: FullBAProblem) -> tuple[Hashable, ...]:
+    held = held_indices(problem.fixed, problem.held)
+    keys = problem.keys
+    held_pts = () if problem.held_points is None else tuple(problem.held_points.tolist())
+    agents = frozenset(split_key(int(k))[0] for k in keys.tolist())
+    return (
+        int(keys[problem.fixed]),
+        tuple(int(keys[i]) for i in held),
+        tuple(int(problem.point_keys[j]) for j in held_pts),
+        agents,
+    )
+
+
+def _corrections(
+    solver: _Solver, problem: FullBAProblem, estimate: gtsam.Values
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per problem keyframe, the start pose (N, 4, 4) in the graph's frame, and the
+    correction (N, 4, 4) that takes its problem pose there."""
+    keys = problem.keys.tolist()
+    n = len(keys)
+    C = np.tile(np.eye(4), (n, 1, 1))
+    known = np.array([k in solver.slot for k in keys], bool)
+    for i in np.flatnonzero(known).tolist():
+        E = estimate.atPose3(X(solver.slot[keys[i]])).matrix()
+        C[i] = E @ inverse_T(problem.T_world_body[i])
+    agent = np.array([split_key(k)[0] for k in keys], np.int64)
+    local = np.array([split_key(k)[1] for k in keys], np.int64)
+    for i in np.flatnonzero(~known).tolist():
+        same = np.flatnonzero(known & (agent == agent[i]))
+        if same.size:
+            C[i] = C[same[np.argmin(np.abs(local[same] - local[i]))]]
+    return np.einsum("nij,njk->nik", C, problem.T_world_body), C
+
+
+def _velocity(
+    pim: gtsam.PreintegratedCombinedMeasurements,
+    T_i: np.ndarray,
+    T_j: np.ndarray,
+    gravity_mps2: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Velocities (3,) at both ends of a pair that fit its preintegration to the poses
+    (:func:`services.cloud.inertial.initial_velocities`)."""
+    g = np.array([0.0, 0.0, -gravity_mps2])
+    dt = pim.deltaTij()
+    R_i = T_i[:3, :3]
+    v_i = (T_j[:3, 3] - T_i[:3, 3] - 0.5 * g * dt**2 - R_i @ np.asarray(pim.deltaPij())) / dt
+    return v_i, v_i + g * dt + R_i @ np.asarray(pim.deltaVij())
+
+
+def _edge_tags(problem: FullBAProblem) -> list[Tag]:
+    """``("edge", a, b, robust, n)`` of each edge: its keyframes, kind, and how many edges of
+    the same keyframes and kind come before it (a pair can close two loops)."""
+    keys = problem.keys.tolist()
+    seen: dict[Tag, int] = {}
+    out: list[Tag] = []
+    for i, j, r in zip(
+        problem.edge_i.tolist(), problem.edge_j.tolist(), problem.robust.tolist(), strict=True
+    ):
+        base = ("edge", keys[i], keys[j], bool(r))
+        seen[base] = seen.get(base, -1) + 1
+        out.append((*base, seen[base]))
+    return out
+
+
+def _obs_rows(problem: FullBAProblem) -> dict[int, np.ndarray]:
+    """Problem keyframe index -> its observation rows (the builder groups them)."""
+    order = np.argsort(problem.obs_kf, kind="stable")
+    kf = problem.obs_kf[order]
+    cuts = np.flatnonzero(np.diff(kf)) + 1
+    return {
+        int(g[0]): order[s]
+        for g, s in zip(np.split(kf, cuts), np.split(np.arange(kf.size), cuts), strict=True)
+        if g.size
+    }
+
+
+def _diff(
+    solver: _Solver,
+    problem: FullBAProblem,
+    config: FullBAConfig,
+    graph_config: GlobalOptimizationConfig,
+    T0: np.ndarray,
+    C: np.ndarray,
+    rejected: set[int],
+    seed: FullBAResult | None,
+) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values, list[Tag], list[int], set[int]]:
+    """New factors (with their tags), new values and the factor indices to remove that take
+    the solver's graph to ``problem``; the new keyframes' slots are assigned. ``T0`` (N, 4, 4)
+    start poses, ``C`` their corrections; ``rejected``: loop edges (problem indices) to leave
+    out when ``seed`` (a batch result whose values start the graph) is given, else found by
+    the outlier test. Returns the keyframes with inertial states."""
+    keys = problem.keys.tolist()
+    graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+    tags: list[Tag] = []
+    want: set[Tag] = set()
+
+    def add(tag: Tag, factor: gtsam.NonlinearFactor) -> None:
+        graph.add(factor)
+        tags.append(tag)
+
+    present = set(keys)
+    for k in [k for k in solver.slot if k not in present]:
+        del solver.slot[k]
+        solver.obs.pop(k, None)
+    for i, k in enumerate(keys):
+        if k not in solver.slot:
+            solver.slot[k] = solver.next_slot
+            solver.next_slot += 1
+            values.insert(X(solver.next_slot - 1), pose3(T0[i]))
+    sx = [X(solver.slot[k]) for k in keys]
+    # Points: a weak prior each (``point_prior_sigma_m``), held ones a tight one.
+    pkeys = problem.point_keys.tolist()
+    pset = set(pkeys)
+    for p in [p for p in solver.point_slot if p not in pset]:
+        del solver.point_slot[p]
+    rows_of = _obs_rows(problem)
+    ref = np.zeros(len(pkeys), np.int64)
+    ref[problem.obs_point[::-1]] = problem.obs_kf[::-1]  # a keyframe observing each point
+    seed_p = None if seed is None else seed.p_world
+    weak = gtsam.noiseModel.Isotropic.Sigma(3, config.point_prior_sigma_m)
+    tight = gtsam.noiseModel.Isotropic.Sigma(3, graph_config.prior_sigma)
+    held_pts = set() if problem.held_points is None else set(problem.held_points.tolist())
+    for j, p in enumerate(pkeys):
+        want.add(("point", p))
+        if p in solver.point_slot:
+            continue
+        solver.point_slot[p] = solver.next_point
+        solver.next_point += 1
+        if seed_p is not None:
+            xyz = np.asarray(seed_p[j], np.float64)
+        else:
+            xyz = transform_points(C[ref[j]], problem.p_world[j : j + 1])[0]
+        values.insert(L(solver.point_slot[p]), xyz)
+        add(("point", p), gtsam.PriorFactorPoint3(L(solver.point_slot[p]), xyz, weak))
+        if j in held_pts:
+            want.add(("hold", p))
+            add(("hold", p), gtsam.PriorFactorPoint3(L(solver.point_slot[p]), xyz, tight))
+    for j in held_pts:
+        want.add(("hold", pkeys[j]))
+    sl = [L(solver.point_slot[p]) for p in pkeys]
+    # Keyframe priors and attitude terms.
+    prior = gtsam.noiseModel.Isotropic.Sigma(6, graph_config.prior_sigma)
+    for i in held_indices(problem.fixed, problem.held):
+        tag = ("prior", keys[i])
+        want.add(tag)
+        if tag not in solver.factors:
+            add(tag, gtsam.PriorFactorPose3(sx[i], pose3(T0[i]), prior))
+    if problem.up_body is not None and config.attitude_sigma_rad > 0:
+        noise = gtsam.noiseModel.Isotropic.Sigma(2, config.attitude_sigma_rad)
+        z = gtsam.Unit3(np.array([0.0, 0.0, 1.0]))
+        for i, k in enumerate(keys):
+            tag = ("att", k)
+            want.add(tag)
+            if tag not in solver.factors:
+                up = gtsam.Unit3(np.asarray(problem.up_body[i], np.float64))
+                add(tag, gtsam.AttitudeFactorPose3(sx[i], z, noise, up))
+    # Relative-pose terms and loops.
+    loop_kernel = kernel(graph_config.loop_robust_kernel, graph_config.loop_kernel_scale)
+    for e, tag in enumerate(_edge_tags(problem)):
+        i, j = int(problem.edge_i[e]), int(problem.edge_j[e])
+        robust = bool(problem.robust[e])
+        want.add(tag)
+        if tag in solver.factors:
+            continue
+        meas = pose3(problem.T_i_j[e])
+        noise: gtsam.noiseModel.Base = gtsam.noiseModel.Diagonal.Sigmas(problem.sigmas[e])
+        if robust:
+            if seed is not None:
+                out = e in rejected
+            else:
+                rel = pose3(T0[i]).between(pose3(T0[j]))
+                err = np.asarray(gtsam.Pose3.Logmap(meas.between(rel))) / problem.sigmas[e]
+                out = bool(np.linalg.norm(err) > graph_config.loop_outlier_whitened)
+            if out:
+                solver.factors[tag] = None
+                continue
+            if loop_kernel is not None:
+                noise = gtsam.noiseModel.Robust.Create(loop_kernel, noise)
+        add(tag, gtsam.BetweenFactorPose3(sx[i], sx[j], meas, noise))
+    # IMU terms: velocity and bias states of the keyframes in a pair.
+    inertial: set[int] = set()
+    terms = problem.imu
+    if terms is not None and terms.n_pairs:
+        seed_vb: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+        if seed is not None:
+            for m, i in enumerate(seed.inertial_index.tolist()):
+                seed_vb[i] = (seed.velocity[m], seed.bias_accel[m], seed.bias_gyro[m])
+        for m in range(terms.n_pairs):
+            inertial.update((keys[int(terms.pair_i[m])], keys[int(terms.pair_j[m])]))
+        fresh: dict[int, np.ndarray] = {}
+        for m in range(terms.n_pairs):
+            i, j = int(terms.pair_i[m]), int(terms.pair_j[m])
+            tag = ("imu", keys[i], keys[j])
+            want.add(tag)
+            if tag in solver.factors:
+                continue
+            pim = preintegrated(terms, m, config)
+            v_i, v_j = _velocity(pim, T0[i], T0[j], config.gravity_mps2)
+            fresh.setdefault(i, v_i)
+            fresh.setdefault(j, v_j)
+            a, b = solver.slot[keys[i]], solver.slot[keys[j]]
+            add(tag, gtsam.CombinedImuFactor(X(a), V(a), X(b), V(b), B(a), B(b), pim))
+        for i, k in enumerate(keys):
+            if k not in inertial or (
+                k in solver.inertial and solver.isam.valueExists(V(solver.slot[k]))
+            ):
+                continue
+            if i in seed_vb:
+                v, ba, bg = seed_vb[i]
+            else:
+                v, ba, bg = fresh.get(i, np.zeros(3)), terms.bias_accel[i], terms.bias_gyro[i]
+            values.insert(V(solver.slot[k]), np.asarray(v, np.float64))
+            values.insert(B(solver.slot[k]), make_bias(ba, bg))
+        bias_prior = gtsam.noiseModel.Diagonal.Sigmas(
+            np.array([config.bias_prior_accel] * 3 + [config.bias_prior_gyro] * 3)
+        )
+        for i in terms.first.tolist():
+            tag = ("bias", keys[i])
+            want.add(tag)
+            if tag not in solver.factors:
+                bias = make_bias(terms.bias_accel[i], terms.bias_gyro[i])
+                add(tag, gtsam.PriorFactorConstantBias(B(solver.slot[keys[i]]), bias, bias_prior))
+    # Reprojection terms, keyframe by keyframe (unchanged keyframes are skipped).
+    obs_kernel = kernel(config.robust_kernel, config.kernel_scale)
+    noise_of: dict[float, gtsam.noiseModel.Base] = {}
+    remove: list[int] = []
+    for i, k in enumerate(keys):
+        rows = rows_of.get(i, np.zeros(0, np.int64))
+        pts = problem.point_keys[problem.obs_point[rows]]
+        order = np.argsort(pts)
+        pts, rows = pts[order], rows[order]
+        old = solver.obs.get(k)
+        solver.obs[k] = pts
+        if old is not None and np.array_equal(old, pts):
+            want.update(("obs", k, p) for p in pts.tolist())
+            continue
+        body_P_cam = pose3(problem.T_body_cam[i])
+        for p, r in zip(pts.tolist(), rows.tolist(), strict=True):
+            tag = ("obs", k, p)
+            want.add(tag)
+            if tag in solver.factors:
+                continue
+            s = float(problem.obs_sigma[r])
+            noise = noise_of.get(s)
+            if noise is None:
+                noise = gtsam.noiseModel.Isotropic.Sigma(2, s)
+                if obs_kernel is not None:
+                    noise = gtsam.noiseModel.Robust.Create(obs_kernel, noise)
+                noise_of[s] = noise
+            xy = np.asarray(problem.obs_xy[r], np.float64)
+            add(
+                tag,
+                gtsam.GenericProjectionFactorCal3_S2(
+                    xy, noise, sx[i], sl[int(problem.obs_point[r])], _UNIT_K, body_P_cam
+                ),
+            )
+    for tag in [t for t in solver.factors if t not in want]:
+        idx = solver.factors.pop(tag)
+        if idx is not None:
+            remove.append(idx)
+    return graph, values, tags, remove, inertial
+
+
+def _update(
+    solver: _Solver,
+    problem: FullBAProblem,
+    config: FullBAConfig,
+    graph_config: GlobalOptimizationConfig,
+    t0: float,
+    seed: FullBAResult | None = None,
+) -> int:
+    """Apply ``problem`` to the solver's graph and relinearise; returns the updates run."""
+    if seed is not None:
+        T0, C = seed.T_world_body, np.tile(np.eye(4), (problem.keys.shape[0], 1, 1))
+        rejected = set(seed.rejected_edges.tolist())
+    else:
+        T0, C = _corrections(solver, problem, solver.isam.calculateEstimate())
+        rejected = set()
+    graph, values, tags, remove, inertial = _diff(
+        solver, problem, config, graph_config, T0, C, rejected, seed
+    )
+    result = solver.isam.update(graph, values, remove)
+    for tag, idx in zip(tags, result.getNewFactorsIndices(), strict=True):
+        solver.factors[tag] = int(idx)
+    solver.inertial = inertial
+    updates = 1
+    if seed is None:
+        while (
+            updates < config.incremental_max_updates
+            and time.perf_counter() - t0 < config.max_seconds
+        ):
+            if solver.isam.update().getVariablesRelinearized() == 0:
+                break
+            updates += 1
+    solver.updates += updates
+    log.debug(
+        "iSAM2: %d new factors, %d removed, %d new values, %d updates",
+        len(tags),
+        len(remove),
+        values.size(),
+        updates,
+    )
+    return updates
+
+
+def _result(
+    solver: _Solver, problem: FullBAProblem, updates: int, t0: float, mode: str
+) -> FullBAResult:
+    est = solver.isam.calculateEstimate()
+    keys, pkeys = problem.keys.tolist(), problem.point_keys.tolist()
+    T = np.array([est.atPose3(X(solver.slot[k])).matrix() for k in keys]).reshape(-1, 4, 4)
+    p = np.array([est.atPoint3(L(solver.point_slot[q])) for q in pkeys]).reshape(-1, 3)
+    idx = np.array([i for i, k in enumerate(keys) if k in solver.inertial], np.int64)
+    vel = np.array([est.atVector(V(solver.slot[keys[i]])) for i in idx]).reshape(-1, 3)
+    bias = [est.atConstantBias(B(solver.slot[keys[i]])) for i in idx]
+    rejected = [
+        e for e, tag in enumerate(_edge_tags(problem)) if solver.factors.get(tag, 0) is None
+    ]
+    rms0, rms1 = rms_px(problem, problem.T_world_body, problem.p_world), rms_px(problem, T, p)
+    return FullBAResult(
+        keys=problem.keys.copy(),
+        T_world_body=T,
+        point_keys=problem.point_keys.copy(),
+        p_world=p,
+        initial_error=float("nan"),
+        final_error=float("nan"),
+        initial_rms_px=rms0,
+        final_rms_px=rms1,
+        iterations=updates,
+        rejected_edges=np.array(rejected, np.int64),
+        seconds=time.perf_counter() - t0,
+        inertial_index=idx,
+        velocity=vel,
+        bias_gyro=np.array([b.gyroscope() for b in bias]).reshape(-1, 3),
+        bias_accel=np.array([b.accelerometer() for b in bias]).reshape(-1, 3),
+        mode=mode,
+    )
+
+
+def solve_full_ba_incremental(
+    problem: FullBAProblem,
+    config: FullBAConfig,
+    graph_config: GlobalOptimizationConfig,
+    session: str,
+    map_id: int,
+) -> FullBAResult:
+    """Solve ``problem`` (map ``map_id`` of cloud ``session``) on the map's iSAM2 graph
+    (module docstring); the first time, and whenever the graph is rebuilt, a batch solve."""
+    t0 = time.perf_counter()
+    if problem.keys.shape[0] == 0:
+        raise FullBAError("empty full-BA problem")
+    name = (session, map_id)
+    solver = _SOLVERS.get(name)
+    fp = _fingerprint(problem)
+    if solver is not None and solver.fingerprint == fp:
+        _SOLVERS.move_to_end(name)
+        try:
+            updates = _update(solver, problem, config, graph_config, t0)
+            out = _result(solver, problem, updates, t0, "isam2")
+        except RuntimeError as exc:  # indeterminant system: start the graph again
+            log.warning("map %d: iSAM2 update failed (%s); batch solve instead", map_id, exc)
+        else:
+            log.info(
+                "full BA (iSAM2): %d keyframes, %d points, %d observations in %.2f s (%d updates): "
+                "reprojection RMS %.2f -> %.2f px",
+                problem.keys.shape[0],
+                problem.point_keys.shape[0],
+                problem.n_observations,
+                out.seconds,
+                updates,
+                out.initial_rms_px,
+                out.final_rms_px,
+            )
+            return out
+    _SOLVERS.pop(name, None)
+    batch = solve_full_ba(problem, config, graph_config)
+    params = gtsam.ISAM2Params()
+    params.setRelinearizeThreshold(config.relinearize_threshold)
+    params.relinearizeSkip = 1
+    solver = _Solver(gtsam.ISAM2(params), fp)
+    seeded = dataclasses.replace(problem, T_world_body=batch.T_world_body, p_world=batch.p_world)
+    try:
+        _update(solver, seeded, config, graph_config, t0, seed=batch)
+    except RuntimeError as exc:
+        log.warning("map %d: iSAM2 could not take the batch result (%s)", map_id, exc)
+        return dataclasses.replace(batch, seconds=time.perf_counter() - t0)
+    _SOLVERS[name] = solver
+    while len(_SOLVERS) > _MAX_SOLVERS:
+        _SOLVERS.popitem(last=False)
+    seconds = time.perf_counter() - t0
+    log.info(
+        "full BA: map %d graph (re)built for iSAM2, %.2f s with the batch solve", map_id, seconds
+    )
+    return dataclasses.replace(batch, seconds=seconds, mode="isam2-reset")
