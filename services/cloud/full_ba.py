@@ -462,7 +462,7 @@ def apply_full_ba(atlas: Atlas, result: FullBAResult) -> int:
     return n
 
 
-def reprojectionrms_px(atlas: Atlas, map_id: int, camera: CameraCalibration | CameraOf) -> float:
+def reprojection_rms_px(atlas: Atlas, map_id: int, camera: CameraCalibration | CameraOf) -> float:
     """RMS reprojection error, pixels (each keyframe's ``fx`` units), of every observation of
     a map's points in front of the camera at the atlas' current estimates (a diagnostic for
     tests and benchmarks); ``camera``: each agent's camera (or one for all)."""
