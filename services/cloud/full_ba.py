@@ -397,10 +397,9 @@ def solve_full_ba(
     result = optimizer.values()
     T_out = np.array([result.atPose3(X(i)).matrix() for i in range(n)])
     p_out = np.array([result.atPoint3(L(j)) for j in range(n_pts)]).reshape(n_pts, 3)
-    inertial: dict[str, np.ndarray] = {}
+    idx, vel, bg, ba = np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3))
     if n_imu and problem.imu is not None:
         idx, vel, bg, ba = inertial_states(result, problem.imu)
-        inertial = {"inertial_index": idx, "velocity": vel, "bias_gyro": bg, "bias_accel": ba}
     seconds = time.perf_counter() - t0
     out = FullBAResult(
         keys=problem.keys.copy(),
@@ -414,7 +413,10 @@ def solve_full_ba(
         iterations=iterations,
         rejected_edges=np.array(rejected, np.int64),
         seconds=seconds,
-        **inertial,
+        inertial_index=idx,
+        velocity=vel,
+        bias_gyro=bg,
+        bias_accel=ba,
     )
     log.info(
         "full BA: %d keyframes, %d points, %d observations, %d IMU factors, %d iterations in "

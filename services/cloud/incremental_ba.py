@@ -241,19 +241,19 @@ def _diff(
     # Keyframe priors and attitude terms.
     prior = gtsam.noiseModel.Isotropic.Sigma(6, graph_config.prior_sigma)
     for i in held_indices(problem.fixed, problem.held):
-        tag = ("prior", keys[i])
+        tag: Tag = ("prior", keys[i])
         want.add(tag)
         if tag not in solver.factors:
             add(tag, gtsam.PriorFactorPose3(sx[i], pose3(T0[i]), prior))
     if problem.up_body is not None and config.attitude_sigma_rad > 0:
-        noise = gtsam.noiseModel.Isotropic.Sigma(2, config.attitude_sigma_rad)
+        att_noise = gtsam.noiseModel.Isotropic.Sigma(2, config.attitude_sigma_rad)
         z = gtsam.Unit3(np.array([0.0, 0.0, 1.0]))
         for i, k in enumerate(keys):
             tag = ("att", k)
             want.add(tag)
             if tag not in solver.factors:
                 up = gtsam.Unit3(np.asarray(problem.up_body[i], np.float64))
-                add(tag, gtsam.AttitudeFactorPose3(sx[i], z, noise, up))
+                add(tag, gtsam.AttitudeFactorPose3(sx[i], z, att_noise, up))
     # Relative-pose terms and loops.
     loop_kernel = kernel(graph_config.loop_robust_kernel, graph_config.loop_kernel_scale)
     for e, tag in enumerate(_edge_tags(problem)):
@@ -341,17 +341,17 @@ def _diff(
             if tag in solver.factors:
                 continue
             s = float(problem.obs_sigma[r])
-            noise = noise_of.get(s)
-            if noise is None:
-                noise = gtsam.noiseModel.Isotropic.Sigma(2, s)
+            obs_noise: gtsam.noiseModel.Base | None = noise_of.get(s)
+            if obs_noise is None:
+                obs_noise = gtsam.noiseModel.Isotropic.Sigma(2, s)
                 if obs_kernel is not None:
-                    noise = gtsam.noiseModel.Robust.Create(obs_kernel, noise)
-                noise_of[s] = noise
+                    obs_noise = gtsam.noiseModel.Robust.Create(obs_kernel, obs_noise)
+                noise_of[s] = obs_noise
             xy = np.asarray(problem.obs_xy[r], np.float64)
             add(
                 tag,
                 gtsam.GenericProjectionFactorCal3_S2(
-                    xy, noise, sx[i], sl[int(problem.obs_point[r])], _UNIT_K, body_P_cam
+                    xy, obs_noise, sx[i], sl[int(problem.obs_point[r])], _UNIT_K, body_P_cam
                 ),
             )
     for tag in [t for t in solver.factors if t not in want]:
