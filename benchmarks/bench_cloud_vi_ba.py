@@ -32,6 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from common.calibration import ImuCalibration
+from common.evaluation.alignment import umeyama
 from services.cloud.config import FullBAConfig, GlobalOptimizationConfig
 from services.cloud.full_ba import build_full_ba, solve_full_ba
 from services.cloud.incremental_ba import forget, solve_full_ba_incremental
@@ -73,41 +74,57 @@ def synthetic_rows(sizes: list[int], n_landmarks: int, max_iterations: int) -> l
     return rows
 
 
-def incremental_rows(sizes: list[int], n_landmarks: int, batch: int) -> list[str]:
+def _position_rms_cm(T_est: np.ndarray, T_true: np.ndarray) -> float:
+    """RMS keyframe position error (N, 4, 4) after a rigid (SE(3)) alignment, cm."""
+    a, t = T_est[:, :3, 3], T_true[:, :3, 3]
+    S = umeyama(a, t)
+    return float(100 * np.sqrt(np.mean(np.sum((a @ S.R_ref_est.T + S.t_ref_est - t) ** 2, 1))))
+
+
+def incremental_rows(
+    sizes: list[int], n_landmarks: int, batch: int, solvers: list[tuple[int, int]]
+) -> list[str]:
     """The service's incremental solver (:func:`solve_full_ba_incremental`) fed each
     synthetic problem in time order (:func:`problem_prefix`), ``batch`` keyframes more per
-    full BA; then one batch solve of the whole problem for comparison."""
+    full BA, with each (``incremental_max_updates``, ``relinearize_budget``) of ``solvers``;
+    then one batch solve of the whole problem for comparison."""
     cam = default_camera()
     gcfg = GlobalOptimizationConfig()
-    cfg = dataclasses.replace(FullBAConfig(), imu_factors=True, incremental=True)
+    base = dataclasses.replace(FullBAConfig(), imu_factors=True, incremental=True)
     rows = []
     for n in sizes:
         atlas, store, truth = vi_circle_atlas(n, n_landmarks=n_landmarks, scale=1.03, seed=0)
-        imu = truth.imu
-        problem = build_full_ba(atlas, 0, cam, cfg, gcfg, store, _one_imu(imu))
-        session = f"bench-{n}"
-        times, resets = [], 0
-        for m in range(min(100, n), n + 1, batch):
-            res = solve_full_ba_incremental(problem_prefix(problem, m), cfg, gcfg, session, 0)
-            if res.mode == "isam2":
-                times.append(res.seconds)
-            else:
-                resets += 1
-                first = res.seconds
-            if len(times) % 20 == 0:
-                log.info("%d keyframes: last update %.3f s (%s)", m, res.seconds, res.mode)
-        forget(session)
-        t = np.array(times)
-        last = t[-max(1, len(t) // 10) :]
-        ref = solve_full_ba(problem, dataclasses.replace(cfg, max_seconds=600.0), gcfg)
-        rows.append(
-            f"| {n} | {batch} | {len(t)} | {resets} ({first:.2f} s) | {np.median(t):.3f} | "
-            f"{last.mean():.3f} | {t.max():.3f} | {t.sum():.1f} | "
-            f"{map_scale(res.T_world_body, truth.T_world_body):.4f} | "
-            f"{map_scale(ref.T_world_body, truth.T_world_body):.4f} ({ref.seconds:.1f} s) | "
-            f"{100 * np.abs(res.T_world_body[:, :3, 3] - ref.T_world_body[:, :3, 3]).max():.2f} |"
-        )
-        log.info("%s", rows[-1])
+        problem = build_full_ba(atlas, 0, cam, base, gcfg, store, _one_imu(truth.imu))
+        ref = solve_full_ba(problem, dataclasses.replace(base, max_seconds=600.0), gcfg)
+        for max_updates, budget in solvers:
+            cfg = dataclasses.replace(
+                base, incremental_max_updates=max_updates, relinearize_budget=budget
+            )
+            session = f"bench-{n}-{max_updates}-{budget}"
+            times, resets, first = [], 0, float("nan")
+            for m in range(min(100, n), n + 1, batch):
+                res = solve_full_ba_incremental(problem_prefix(problem, m), cfg, gcfg, session, 0)
+                if res.mode == "isam2":
+                    times.append(res.seconds)
+                else:
+                    resets += 1
+                    first = res.seconds
+                if len(times) % 20 == 0:
+                    log.info("%d keyframes: last full BA %.3f s (%s)", m, res.seconds, res.mode)
+            forget(session)
+            t = np.array(times)
+            last = t[-max(1, len(t) // 10) :]
+            rows.append(
+                f"| {n} | {max_updates} | {budget or 'none'} | {len(t)} | {resets} ({first:.2f} s) "
+                f"| {np.median(t):.3f} | {np.percentile(t, 90):.3f} | {last.mean():.3f} | "
+                f"{t.max():.3f} | {t.sum():.1f} | "
+                f"{map_scale(res.T_world_body, truth.T_world_body):.4f} / "
+                f"{_position_rms_cm(res.T_world_body, truth.T_world_body):.2f} | "
+                f"{map_scale(ref.T_world_body, truth.T_world_body):.4f} / "
+                f"{_position_rms_cm(ref.T_world_body, truth.T_world_body):.2f} "
+                f"({ref.seconds:.1f} s, {ref.iterations} it.) |"
+            )
+            log.info("%s", rows[-1])
     return rows
 
 
@@ -201,6 +218,12 @@ def main() -> None:
     )
     ap.add_argument("--batch", type=int, default=25, help="keyframes per iSAM2 update")
     ap.add_argument(
+        "--solvers",
+        default="4:0,1:0,1:2000",
+        help="incremental solver settings to time, comma-separated "
+        "MAX_UPDATES:RELINEARIZE_BUDGET (0: no budget)",
+    )
+    ap.add_argument(
         "--variants",
         default="off,batch",
         help="what each --ab recording is replayed with, comma-separated: off (no IMU "
@@ -210,29 +233,32 @@ def main() -> None:
     args = ap.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     sizes = [int(s) for s in args.sizes.split(",") if s]
+    inc = [int(s) for s in args.incremental.split(",") if s]
     lines = [
         "# Cloud visual-inertial global BA (Eq. 20 with IMU factors)",
         "",
         f"Machine: {platform.processor() or platform.machine()}, Python "
         f"{platform.python_version()}, one core; `benchmarks/bench_cloud_vi_ba.py --sizes "
         f"{args.sizes} --landmarks {args.landmarks} --iterations {args.iterations}"
-        f"{' --incremental ' + args.incremental if args.incremental else ''}"
+        + (f" --incremental {args.incremental} --solvers {args.solvers}" if inc else "")
         + "".join(f" --ab {a}" for a in args.ab)
         + "`.",
-        "",
-        "## Time per batch VI global BA vs keyframes (synthetic)",
-        "",
-        "Batch Levenberg–Marquardt over every keyframe (pose, velocity, bias), point and IMU "
-        "factor (what the service runs). Start: the map scaled by "
-        "1.03 (scale column: least-squares scale of the keyframe positions to the truth about "
-        "the first keyframe), plus 1 cm / 0.6° pose noise.",
-        "",
-        "| keyframes | points | observations | IMU factors | build s | solve s | iterations "
-        "| s / iteration | scale before | scale after | RMS after px |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
-        *synthetic_rows(sizes, args.landmarks, args.iterations),
     ]
-    inc = [int(s) for s in args.incremental.split(",") if s]
+    if sizes:
+        lines += [
+            "",
+            "## Time per batch VI global BA vs keyframes (synthetic)",
+            "",
+            "Batch Levenberg–Marquardt over every keyframe (pose, velocity, bias), point and IMU "
+            "factor (what the service runs). Start: the map scaled by "
+            "1.03 (scale column: least-squares scale of the keyframe positions to the truth about "
+            "the first keyframe), plus 1 cm / 0.6° pose noise.",
+            "",
+            "| keyframes | points | observations | IMU factors | build s | solve s | iterations "
+            "| s / iteration | scale before | scale after | RMS after px |",
+            "|---|---|---|---|---|---|---|---|---|---|---|",
+            *synthetic_rows(sizes, args.landmarks, args.iterations),
+        ]
     if inc:
         lines += [
             "",
@@ -242,18 +268,27 @@ def main() -> None:
             "`FullBAConfig.incremental`) fed the same problems in time order "
             "(`services.cloud.simulation.problem_prefix`), `--batch` keyframes more per full "
             "BA from 100 keyframes: the first builds the graph from a batch solve (rebuilt "
-            "column), every later one is an iSAM2 update of what changed (at most "
-            "`incremental_max_updates` relinearisation steps) and its time is everything the "
-            "optimiser process spends on it (the difference, the updates, reading the "
-            "estimate out). Last columns: the map's scale after the last update, after one "
-            "batch solve of the whole problem from the start values (and its time), and the "
-            "largest keyframe position difference between the two, cm.",
+            "column), every later one is an iSAM2 update of what changed and at most "
+            "`incremental_max_updates` - 1 more relinearisation steps, each relinearising at "
+            "most `relinearize_budget` variables; its time is everything the optimiser process "
+            "spends on it (the difference, the updates, reading the estimate out). Last "
+            "columns: the map's scale and RMS keyframe position error (SE(3)-aligned, cm) "
+            "after the last update, and after one batch solve of the whole problem from the "
+            "start values.",
             "",
-            "| keyframes | keyframes per update | updates | rebuilt (s) | median update s | "
-            "mean of the last 10 % s | max s | total s | scale after | batch scale after (s) "
-            "| max difference cm |",
-            "|---|---|---|---|---|---|---|---|---|---|---|",
-            *incremental_rows(inc, args.landmarks, args.batch),
+            "| keyframes | updates per full BA | relinearisation budget | full BAs | rebuilt (s) "
+            "| median s | p90 s | mean of the last 10 % s | max s | total s | scale / error cm "
+            "after | batch: scale / error cm (time, iterations) |",
+            "|---|---|---|---|---|---|---|---|---|---|---|---|",
+            *incremental_rows(
+                inc,
+                args.landmarks,
+                args.batch,
+                [
+                    (int(u), int(b))
+                    for u, _, b in (x.partition(":") for x in args.solvers.split(",") if x)
+                ],
+            ),
         ]
     if args.ab:
         pairs = []

@@ -399,6 +399,10 @@ class _RecordedSteps:
                 result = None
             self._take(_hand_back(core, request, result, now))
             return
+        if step.name == "cancel":  # the live service abandoned its solve: so does the replay
+            self._out = None
+            core.cancel(now)
+            return
         if self._out is not None:
             raise self._diverged(step, "a solve is still out")
         if step.name == "timer":
@@ -415,8 +419,6 @@ class _RecordedSteps:
         elif step.name == "shutdown":
             self.shut_down = True
             self._take(core.shutdown(now))
-        elif step.name == "cancel":
-            core.cancel(now)
 
     def finish(self) -> None:
         """A round the recording ends in (a service killed mid-solve) solved to its end."""

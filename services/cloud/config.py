@@ -223,8 +223,13 @@ class FullBAConfig:
         full BA (``services/cloud/incremental_ba.py``; a batch solve builds it first and
         after merges); default False: the batch solve every time.
     incremental_max_updates: iSAM2 updates (relinearisation steps) per full BA, at most
-        (default 4) ...
+        (default 4: the service's full BA comes after tens of new keyframes, and one update
+        leaves such a step short of the batch solution; ``benchmarks/bench_cloud_vi_ba.py``
+        times 1 and 4) ...
     relinearize_threshold: ... relinearising variables whose update exceeds this (0.01).
+    relinearize_skip: ... checking for relinearisation every this many updates (1).
+    relinearize_budget: ... at most this many variables per update, those with the largest
+        pending step first (0: no bound) ...
     point_prior_sigma_m: in the iSAM2 graph, a weak prior on every point at its start
         position keeps a point that lost observations solvable (default 10 m).
     """
@@ -253,6 +258,8 @@ class FullBAConfig:
     incremental: bool = False
     incremental_max_updates: int = 4
     relinearize_threshold: float = 0.01
+    relinearize_skip: int = 1
+    relinearize_budget: int = 0
     point_prior_sigma_m: float = 10.0
 
 

@@ -159,9 +159,7 @@ def _project(
     obs_point: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Normalised projections ``(M, 2)`` and depths ``(M,)`` of every observation."""
-    T_cam_world = np.array(
-        [inverse_T(T @ Tbc) for T, Tbc in zip(T_world_body, T_body_cam, strict=True)]
-    )
+    T_cam_world = inverse_T(np.einsum("nij,njk->nik", T_world_body, T_body_cam))
     R = T_cam_world[obs_kf, :3, :3]
     t = T_cam_world[obs_kf, :3, 3]
     p_cam = np.einsum("mij,mj->mi", R, p_world[obs_point]) + t

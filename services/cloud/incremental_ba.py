@@ -83,6 +83,7 @@ class _Solver:
     point_slot: dict[int, int] = field(default_factory=dict)  # point key -> L index
     factors: dict[Tag, int | None] = field(default_factory=dict)  # None: rejected loop
     obs: dict[int, np.ndarray] = field(default_factory=dict)  # keyframe -> sorted point keys
+    obs_factors: dict[int, dict[int, int]] = field(default_factory=dict)  # kf -> point -> index
     inertial: set[int] = field(default_factory=set)  # keyframes with V / B
     next_slot: int = 0
     next_point: int = 0
@@ -199,9 +200,11 @@ def _diff(
         tags.append(tag)
 
     present = set(keys)
+    remove: list[int] = []
     for k in [k for k in solver.slot if k not in present]:
         del solver.slot[k]
         solver.obs.pop(k, None)
+        remove.extend(solver.obs_factors.pop(k, {}).values())
     for i, k in enumerate(keys):
         if k not in solver.slot:
             solver.slot[k] = solver.next_slot
@@ -320,25 +323,26 @@ def _diff(
             if tag not in solver.factors:
                 bias = make_bias(terms.bias_accel[i], terms.bias_gyro[i])
                 add(tag, gtsam.PriorFactorConstantBias(B(solver.slot[keys[i]]), bias, bias_prior))
-    # Reprojection terms, keyframe by keyframe (unchanged keyframes are skipped).
+    # Reprojection terms, keyframe by keyframe (unchanged keyframes are skipped); they are
+    # kept per keyframe (``obs_factors``), not as tags, so an unchanged keyframe costs nothing.
     obs_kernel = kernel(config.robust_kernel, config.kernel_scale)
     noise_of: dict[float, gtsam.noiseModel.Base] = {}
-    remove: list[int] = []
     for i, k in enumerate(keys):
         rows = rows_of.get(i, np.zeros(0, np.int64))
         pts = problem.point_keys[problem.obs_point[rows]]
         order = np.argsort(pts)
         pts, rows = pts[order], rows[order]
         old = solver.obs.get(k)
-        solver.obs[k] = pts
         if old is not None and np.array_equal(old, pts):
-            want.update(("obs", k, p) for p in pts.tolist())
             continue
+        solver.obs[k] = pts
+        have = solver.obs_factors.setdefault(k, {})
+        kept = set(pts.tolist())
+        for p in [p for p in have if p not in kept]:
+            remove.append(have.pop(p))
         body_P_cam = pose3(problem.T_body_cam[i])
         for p, r in zip(pts.tolist(), rows.tolist(), strict=True):
-            tag = ("obs", k, p)
-            want.add(tag)
-            if tag in solver.factors:
+            if p in have:
                 continue
             s = float(problem.obs_sigma[r])
             obs_noise: gtsam.noiseModel.Base | None = noise_of.get(s)
@@ -349,7 +353,7 @@ def _diff(
                 noise_of[s] = obs_noise
             xy = np.asarray(problem.obs_xy[r], np.float64)
             add(
-                tag,
+                ("obs", k, p),
                 gtsam.GenericProjectionFactorCal3_S2(
                     xy, obs_noise, sx[i], sl[int(problem.obs_point[r])], _UNIT_K, body_P_cam
                 ),
@@ -359,6 +363,34 @@ def _diff(
         if idx is not None:
             remove.append(idx)
     return graph, values, tags, remove, inertial
+
+
+_DIMS = {ord("x"): 6, ord("v"): 3, ord("b"): 6, ord("l"): 3}
+
+
+def _held_back(isam: gtsam.ISAM2, config: FullBAConfig) -> gtsam.KeyList | None:
+    """The variables kept at their linearisation point this update so that at most
+    ``relinearize_budget`` are relinearised (those whose pending step is largest go
+    first, the others in a later update); None when within budget or unbounded."""
+    if config.relinearize_budget <= 0:
+        return None
+    keys = np.asarray(isam.getLinearizationPoint().keys(), np.uint64)
+    if keys.size <= config.relinearize_budget:
+        return None
+    dims = np.array([_DIMS[int(c)] for c in (keys >> np.uint64(56)).tolist()], np.int64)
+    step = np.abs(isam.getDelta().vector())
+    if step.size != int(dims.sum()):  # a variable without a delta yet: no budget this time
+        return None
+    largest = np.maximum.reduceat(step, np.concatenate([[0], np.cumsum(dims)[:-1]]))
+    over = np.flatnonzero(largest >= config.relinearize_threshold)
+    if over.size <= config.relinearize_budget:
+        return None
+    keep = over[np.argsort(-largest[over], kind="stable")[config.relinearize_budget :]]
+    out = gtsam.KeyList()
+    for k in keys[keep].tolist():
+        out.push_back(int(k))
+    log.debug("iSAM2: %d of %d variables to relinearise held back", keep.size, over.size)
+    return out
 
 
 def _update(
@@ -379,9 +411,13 @@ def _update(
     graph, values, tags, remove, inertial = _diff(
         solver, problem, config, graph_config, T0, C, rejected, seed
     )
-    result = solver.isam.update(graph, values, remove)
+    held_back = _held_back(solver.isam, config) if seed is None else None
+    result = solver.isam.update(graph, values, remove, noRelinKeys=held_back)
     for tag, idx in zip(tags, result.getNewFactorsIndices(), strict=True):
-        solver.factors[tag] = int(idx)
+        if tag[0] == "obs":
+            solver.obs_factors[int(tag[1])][int(tag[2])] = int(idx)  # type: ignore[call-overload]
+        else:
+            solver.factors[tag] = int(idx)
     solver.inertial = inertial
     updates = 1
     if seed is None:
@@ -394,11 +430,14 @@ def _update(
             updates += 1
     solver.updates += updates
     log.debug(
-        "iSAM2: %d new factors, %d removed, %d new values, %d updates",
+        "iSAM2: %d new factors, %d removed, %d new values, %d updates; first: %d variables "
+        "relinearised, %d re-eliminated",
         len(tags),
         len(remove),
         values.size(),
         updates,
+        result.getVariablesRelinearized(),
+        result.getVariablesReeliminated(),
     )
     return updates
 
@@ -435,6 +474,13 @@ def _result(
         bias_accel=np.array([b.accelerometer() for b in bias]).reshape(-1, 3),
         mode=mode,
     )
+
+
+def _params(config: FullBAConfig) -> gtsam.ISAM2Params:
+    params = gtsam.ISAM2Params()
+    params.setRelinearizeThreshold(config.relinearize_threshold)
+    params.relinearizeSkip = config.relinearize_skip
+    return params
 
 
 def solve_full_ba_incremental(
@@ -474,10 +520,7 @@ def solve_full_ba_incremental(
             return out
     _SOLVERS.pop(name, None)
     batch = solve_full_ba(problem, config, graph_config)
-    params = gtsam.ISAM2Params()
-    params.setRelinearizeThreshold(config.relinearize_threshold)
-    params.relinearizeSkip = 1
-    solver = _Solver(gtsam.ISAM2(params), fp)
+    solver = _Solver(gtsam.ISAM2(_params(config)), fp)
     seeded = dataclasses.replace(problem, T_world_body=batch.T_world_body, p_world=batch.p_world)
     try:
         _update(solver, seeded, config, graph_config, t0, seed=batch)

@@ -14,7 +14,7 @@ from common.geometry import inverse_T
 from services.cloud.config import FullBAConfig, GlobalOptimizationConfig
 from services.cloud.core import SolveKind, SolveRequest, solve
 from services.cloud.full_ba import FullBAProblem, build_full_ba, solve_full_ba
-from services.cloud.incremental_ba import forget, solve_full_ba_incremental
+from services.cloud.incremental_ba import _SOLVERS, _held_back, forget, solve_full_ba_incremental
 from services.cloud.simulation import default_camera, map_scale, problem_prefix, vi_circle_atlas
 
 CFG = dataclasses.replace(FullBAConfig(), incremental=True)
@@ -59,6 +59,36 @@ def test_time_ordered_updates_reach_the_batch_solution(session):
     assert abs(s_inc - s_batch) < 0.002, (s_inc, s_batch)
     assert res.final_rms_px < 1.05 * batch.final_rms_px
     assert _positions_cm(res.T_world_body, batch.T_world_body) < 1.5
+
+
+def test_a_relinearisation_budget_holds_back_the_smallest_steps_and_still_converges(session):
+    _, _, truth, problem = _circle(160)
+    # One update per solve leaves a pending step for the next one to relinearise.
+    cfg = dataclasses.replace(CFG, relinearize_budget=40, incremental_max_updates=1)
+    for n in range(60, 141, 20):
+        solve_full_ba_incremental(problem_prefix(problem, n), cfg, GRAPH, session, 0)
+    isam = _SOLVERS[(session, 0)].isam
+    keys = list(isam.getLinearizationPoint().keys())
+    delta = isam.getDelta()
+    step = {k: float(np.abs(delta.at(k)).max()) for k in keys}
+    over = {k for k, v in step.items() if v >= cfg.relinearize_threshold}
+    assert len(over) > 40  # the next update would relinearise more than the budget
+    held = _held_back(isam, cfg)
+    assert held is not None and held.size() == len(over) - 40
+    held_keys = set()
+    while not held.empty():
+        held_keys.add(held.front())
+        held.pop_front()
+    assert held_keys <= over
+    let_go = over - held_keys
+    assert min(step[k] for k in let_go) >= max(step[k] for k in held_keys)
+    assert _held_back(isam, dataclasses.replace(cfg, relinearize_budget=len(over))) is None
+    assert _held_back(isam, CFG) is None  # no budget by default
+    res = solve_full_ba_incremental(
+        problem, dataclasses.replace(cfg, incremental_max_updates=8), GRAPH, session, 0
+    )
+    assert res.mode == "isam2"
+    assert abs(map_scale(res.T_world_body, truth.T_world_body) - 1.0) < 0.01
 
 
 def test_culled_keyframes_leave_the_graph_and_an_imu_term_spans_them(session):
