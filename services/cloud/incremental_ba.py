@@ -21,7 +21,9 @@ an ``ISAM2`` whose factor graph mirrors the last problem it was given, and each 
 - a new loop edge whose whitened error at the current estimate exceeds
   ``loop_outlier_whitened`` is left out (and not tested again), as in the batch solve;
 - then ``update`` and up to ``incremental_max_updates - 1`` more (relinearisation steps)
-  while variables still get relinearised, within ``max_seconds``.
+  while variables still get relinearised, within ``max_seconds``; with a
+  ``relinearize_budget``, each update relinearises at most that many variables (those whose
+  pending step is largest) and leaves the others for a later one.
 
 The graph is built again from a batch solve (and seeded with its result) when there is none
 for the map yet, when the map's agents (a merge), its held keyframe or its prior-map
