@@ -403,6 +403,10 @@ class _RecordedSteps:
             self._out = None
             core.cancel(now)
             return
+        if step.name == "load":  # the service's load changed its shedding (also mid-solve)
+            if not core.load(float(cast(float, args[0])), now):
+                raise self._diverged(step, "it does not change this core's overload state")
+            return
         if self._out is not None:
             raise self._diverged(step, "a solve is still out")
         if step.name == "timer":

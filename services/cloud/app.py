@@ -519,6 +519,10 @@ class CloudApp:
             out.append(Correction(a.edge_id, msg))
         return out
 
+    def shed(self, overloaded: bool) -> None:
+        """Shed (or take up again) the app's optional work: the early loop candidates."""
+        self.fusion.recognizer.shed_early = overloaded
+
     def prune_due(self, map_id: int) -> bool:
         every = self.config.mbp_every_keyframes
         if not self.config.domain.mbp.enabled or every <= 0 or map_id not in self.atlas.maps():

@@ -385,6 +385,15 @@ class CloudServiceConfig:
     full_ba_at_shutdown_s: ... and once at shutdown, before the trajectories are written,
         after the pending pose graphs, within this many seconds in all (default 30 s: the
         orchestration's stop waits 120 s; 0 = not at shutdown).
+    overload_busy: the cloud is *overloaded* once its worker thread was busy (wall time,
+        waiting for the core included) at least this share of the last ``overload_window_s``
+        (default 0.9; 0 = never overloaded). While it is, the work that only refines sheds
+        (:class:`services.cloud.core.CloudCore`): no full BA while running (nor the MBP pass
+        that waits for one; both run once the load falls, and at shutdown) and no early loop
+        candidates (``PlaceRecognitionConfig.early_candidates``: only consistent ones are
+        verified). Messages, pose graphs and their corrections go on as always ...
+    overload_clear: ... until the busy share falls to this (default 0.6) ...
+    overload_window_s: ... over this many seconds (default 10 s).
     """
 
     wire: WireFormat = WireFormat.CODED
@@ -414,8 +423,18 @@ class CloudServiceConfig:
     full_ba_every_keyframes: int = 100
     full_ba_quiet_s: float = 0.0
     full_ba_at_shutdown_s: float = 30.0
+    overload_busy: float = 0.9
+    overload_clear: float = 0.6
+    overload_window_s: float = 10.0
 
     def __post_init__(self) -> None:
+        if self.overload_busy and not 0 <= self.overload_clear < self.overload_busy <= 1:
+            raise ValueError(
+                "need 0 <= overload_clear < overload_busy <= 1 (or overload_busy 0), got "
+                f"{self.overload_clear} and {self.overload_busy}"
+            )
+        if self.overload_window_s <= 0:
+            raise ValueError(f"overload_window_s must be > 0, got {self.overload_window_s}")
         if not 0 <= self.optimizer_nice <= 19:
             raise ValueError(f"optimizer_nice must be in 0..19, got {self.optimizer_nice}")
         if self.decode_workers < 0:

@@ -39,6 +39,13 @@ The schedule:
   ``full_ba_every_keyframes`` changes (new keyframes, loops / merges) since its last full BA;
   when no new keyframe has arrived for ``full_ba_quiet_s`` and nothing is scheduled ("quiet":
   every changed map); and at shutdown.
+- **Overload** (:meth:`CloudCore.load`: the runner reports the share of recent wall time its
+  worker was busy): from ``overload_busy`` until it falls to ``overload_clear`` the cloud
+  sheds what only refines the map: no full BA is started (a due one waits, and so does the
+  MBP pass that waits for it; both run at the first pose graph after the load fell, and at
+  shutdown), no quiet full BA, and place recognition verifies only consistent candidates
+  (``CloudApp.shed``). Messages, pose graphs and corrections go on: the edges' queues stay
+  bounded as long as those alone fit the cloud's CPU.
 - **Shutdown** (:meth:`CloudCore.shutdown`): with full BA on and ``full_ba_at_shutdown_s`` > 0,
   the scheduled pose graphs first, then a full BA of every changed map, the solves sharing
   ``full_ba_at_shutdown_s`` in all (a map with no time left is skipped; no corrections are
@@ -211,6 +218,10 @@ class CloudCore:
         self.optimizations = 0  # pose graphs applied
         self.full_bas = 0  # full BAs applied
         self.mbp_passes = 0
+        self._overloaded_since: float | None = None  # None: not overloaded
+        self.overloads = 0  # times the cloud became overloaded
+        self.overloaded_s = 0.0  # time spent overloaded (closed spells)
+        self.full_bas_deferred = 0  # due full BAs not started because of the load
 
     # ------------------------------------------------------------------ state
     @property
@@ -225,6 +236,43 @@ class CloudCore:
 
     def changed_since_full_ba(self, map_id: int) -> int:
         return self._since_full.get(map_id, 0)
+
+    @property
+    def overloaded(self) -> bool:
+        """Shedding the optional work (module docstring, "Overload")."""
+        return self._overloaded_since is not None
+
+    # ------------------------------------------------------------------ load
+    def load(self, busy: float, now: float) -> bool:
+        """The share of the recent wall time (``overload_window_s``) the runner's worker was
+        busy; True when this changed :attr:`overloaded` (the runner records it then, so that
+        a replay of the recording sheds where the service did)."""
+        cfg = self.config
+        if self.overloaded:
+            if busy > cfg.overload_clear:
+                return False
+            assert self._overloaded_since is not None
+            self.overloaded_s += max(0.0, now - self._overloaded_since)
+            self._overloaded_since = None
+            log.info("load %.2f: no longer overloaded; full BA and early candidates resume", busy)
+        else:
+            if not cfg.overload_busy or busy < cfg.overload_busy:
+                return False
+            self._overloaded_since = now
+            self.overloads += 1
+            log.warning(
+                "load %.2f: overloaded; no full BA while running and no early loop candidates "
+                "until it falls to %.2f",
+                busy,
+                cfg.overload_clear,
+            )
+        self.app.shed(self.overloaded)
+        return True
+
+    def overloaded_seconds(self, now: float) -> float:
+        """Time spent overloaded up to ``now`` (the current spell included)."""
+        since = self._overloaded_since
+        return self.overloaded_s + (0.0 if since is None else max(0.0, now - since))
 
     # ------------------------------------------------------------------ messages
     def resume(self, now: float) -> None:
@@ -263,7 +311,9 @@ class CloudCore:
     # ------------------------------------------------------------------ timer
     def _quiet_pending(self) -> bool:
         full = self.config.domain.full_ba.enabled and self.config.full_ba_quiet_s > 0
-        return full and not self._dirty and any(n > 0 for n in self._since_full.values())
+        if not full or self.overloaded or self._dirty:
+            return False
+        return any(n > 0 for n in self._since_full.values())
 
     def next_deadline(self) -> float | None:
         """When :meth:`on_timer` has work: the debounce deadline of a trigger, else the quiet
@@ -364,7 +414,10 @@ class CloudCore:
                 due = True  # the pass follows the full BA
             else:
                 self._prune_if_due(m)
-            if due and full_on:
+            if due and full_on and self.overloaded:
+                self.full_bas_deferred += 1  # (and the pass that waits for it)
+                log.info("full BA of map %d deferred: the cloud is overloaded", m)
+            elif due and full_on:
                 self._steps.appendleft(_FullBA(m, "after its pose graph"))
         elif corrections is None:
             log.info("map %d merged during its full BA; rescheduling", m)

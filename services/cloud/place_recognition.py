@@ -244,6 +244,7 @@ class PlaceRecognizer:
         self.config = config
         # Per query agent: consistent groups of the previous query, (keys, count).
         self._groups: dict[int, list[tuple[frozenset[int], int]]] = {}
+        self.shed_early = False  # True: no early candidates (the cloud is overloaded)
 
     def add(self, atlas: Atlas, key: int) -> None:
         kf = atlas.keyframe(key)
@@ -301,8 +302,10 @@ class PlaceRecognizer:
         """Candidates for keyframe ``key`` to verify: first those consistent over
         ``min_consistency`` consecutive queries (at most ``max_candidates``), then up to
         ``early_candidates`` of the best others (:meth:`LoopCandidate.early`), which need the
-        covisibility check after verification."""
+        covisibility check after verification; none while :attr:`shed_early` (an overloaded
+        cloud, :class:`services.cloud.core.CloudCore`)."""
         cfg = self.config
+        n_early = 0 if self.shed_early else cfg.early_candidates
         agent = atlas.keyframe(key).agent_id
         found = self.candidates(atlas, key)
         previous = self._groups.get(agent, [])
@@ -318,7 +321,7 @@ class PlaceRecognizer:
             if count >= cfg.min_consistency:
                 if len(accepted) < cfg.max_candidates:
                     accepted.append(cand)
-            elif len(early) < cfg.early_candidates:
+            elif len(early) < n_early:
                 early.append(cand)
         self._groups[agent] = current
         accepted += early

@@ -49,12 +49,24 @@ log = logging.getLogger(__name__)
 MAGIC_V1 = b"RSLREC1\n"
 MAGIC = b"RSLREC2\n"
 STEP_NAMES = frozenset(
-    {"timer", "optimize", "full_ba", "flush", "shutdown", "cancel", "request", "solved", "failed"}
+    {
+        "timer",
+        "optimize",
+        "full_ba",
+        "flush",
+        "shutdown",
+        "cancel",
+        "request",
+        "solved",
+        "failed",
+        "load",
+    }
 )
 """The core calls a step records: a round started (``timer``: ``on_timer``; ``optimize``
 [map]; ``full_ba`` [map, max_seconds, send]; ``flush``; ``shutdown``), ``cancel``, a solve the
 core asked for (``request`` [kind, map]) and its hand-back (``solved`` / ``failed`` [kind,
-map])."""
+map]), and a ``load`` [busy] that changed whether the core is overloaded (``CloudCore.load``,
+recorded after the message it followed)."""
 _LEN = struct.Struct(">I")
 MAX_RECORD_BYTES = 256 * 1024 * 1024
 

@@ -78,6 +78,8 @@ class CloudRunConfig:
         optimizer_nice: niceness added to the optimizer process
             (``CloudServiceConfig.optimizer_nice``).
         decode_workers: keyframe decode processes (``CloudServiceConfig.decode_workers``).
+        overload_busy: the worker's busy share from which the cloud sheds its optional work
+            (``CloudServiceConfig.overload_busy``; 0: never).
         early_loop_candidates: candidates verified before they are consistent over
             consecutive keyframes (``PlaceRecognitionConfig.early_candidates``).
         agent_id: this service's agent id.
@@ -109,6 +111,7 @@ class CloudRunConfig:
     incremental_ba: bool = False
     optimizer_nice: int = 0
     decode_workers: int = 0
+    overload_busy: float = 0.9
     early_loop_candidates: int = 1
     agent_id: str = "cloud"
     wire: WireFormat = WireFormat.CODED
@@ -117,6 +120,17 @@ class CloudRunConfig:
     record: Path | None = None
     mission: str | None = None
     prior_frame: Path | None = None
+
+
+def _share(text: str) -> float:
+    """An argparse type: a share in [0, 1]."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not 0 <= value <= 1:
+        raise argparse.ArgumentTypeError(f"must be in [0, 1], got {value}")
+    return value
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -250,6 +264,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "of each keyframe off it; benchmarks/results/scale.md)",
     )
     p.add_argument(
+        "--overload-busy",
+        type=_share,
+        default=0.9,
+        metavar="F",
+        help="when the worker applying the edges' messages was busy at least this share of the "
+        "last 10 s, shed the optional work (no full BA while running, no early loop "
+        "candidates) until it falls to 0.6; pose graphs and corrections go on (default 0.9; "
+        "0: never; benchmarks/results/scale.md)",
+    )
+    p.add_argument(
         "--full-ba",
         action=argparse.BooleanOptionalAction,
         default=True,
@@ -318,6 +342,7 @@ def config_from_args(args: argparse.Namespace) -> CloudRunConfig:
         incremental_ba=args.incremental_ba,
         optimizer_nice=args.optimizer_nice,
         decode_workers=args.decode_workers,
+        overload_busy=args.overload_busy,
         early_loop_candidates=args.early_loop_candidates,
         agent_id=args.agent_id,
         wire=WireFormat(args.wire),
@@ -419,6 +444,8 @@ def _server(
         mbp_every_keyframes=config.mbp_every,
         optimizer_nice=config.optimizer_nice,
         decode_workers=config.decode_workers,
+        overload_busy=config.overload_busy,
+        overload_clear=min(CloudServiceConfig.overload_clear, config.overload_busy * 2 / 3),
         # no dashboard: no map view to refresh (its atlas snapshot costs the worker)
         publish_every_s=CloudServiceConfig.publish_every_s if config.dashboard_port else 0.0,
         mission=config.mission,

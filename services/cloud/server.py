@@ -71,6 +71,7 @@ from services.cloud.core import (
 )
 from services.cloud.decode_pool import DecodePool, Predecoded
 from services.cloud.global_optimization import warm_up
+from services.cloud.load import BusyMeter
 from services.cloud.map_fusion import MapFusion
 from services.cloud.map_source import CloudMapSource
 from services.cloud.output import OutputWriter
@@ -128,6 +129,9 @@ class CloudStats:
     """The most there ever were (one per edge link at most: each delivers in order; the rest
     wait in the edges' outboxes, held back by the receive window)."""
     rebase: dict[str, float] = field(default_factory=dict)  # FrameRebase.summary
+    overload: dict[str, float] = field(default_factory=dict)
+    """The core's load shedding: ``overloaded`` (0/1 now), ``busy`` (the worker's busy
+    share of the last window), ``overloads``, ``overloaded_s``, ``full_bas_deferred``."""
     stages: dict[str, dict[str, float]] = field(default_factory=dict)
     """Time per stage, ``{"stage.place_recognition": {"seconds": s, "messages": n}, ...}``:
     the worker thread's CPU time in the app's
@@ -200,6 +204,7 @@ class CloudServer:
         self._corrections = 0
         self._queued = 0  # messages handed to the worker and not applied yet
         self._queued_max = 0
+        self._busy = BusyMeter(self.config.overload_window_s)  # the worker's (its thread only)
         self.timer = CodecTimer()  # wall: wait.worker, wall.* (worker thread), solve.* (loop)
         self.cpu_timer = CodecTimer(clock=time.thread_time)  # handle.* (worker thread)
         self._final_stats: CloudStats | None = None
@@ -223,7 +228,17 @@ class CloudServer:
         return ThreadPoolExecutor(1, thread_name_prefix="cloud-optimizer")
 
     async def _on_worker(self, fn: Callable[..., T], *args: Any) -> T:
-        return await asyncio.get_running_loop().run_in_executor(self._worker, fn, *args)
+        return await asyncio.get_running_loop().run_in_executor(
+            self._worker, self._busy_in, fn, *args
+        )
+
+    def _busy_in(self, fn: Callable[..., T], *args: Any) -> T:
+        """``fn(*args)`` on the worker thread, its wall time counted as busy."""
+        t0 = time.monotonic()
+        try:
+            return fn(*args)
+        finally:
+            self._busy.add(t0, time.monotonic())
 
     def _open(self, now: float) -> tuple[CloudApp, CloudCore]:
         app = open_app(self.state_dir, self.camera, self.vocabulary, self.config, self.positions)
@@ -343,6 +358,9 @@ class CloudServer:
                 core.app.decoders.forget()
         if self._recorder is not None:
             self._recorder.write(d.peer, d.stream_id, d.seq, d.message, t_recv, now)
+        busy = self._busy.share(time.monotonic())  # (up to the message before this one)
+        if core.load(busy, now) and self._recorder is not None:
+            self._recorder.write_step("load", now, (busy,))
         return core.next_deadline()
 
     def _step(
@@ -564,6 +582,8 @@ class CloudServer:
             return self._final_stats
         assert app is not None and core is not None
 
+        clock = asyncio.get_running_loop().time
+
         def collect() -> CloudStats:
             a = app.atlas
             stages = CodecTimer()
@@ -585,6 +605,13 @@ class CloudServer:
                 self._queued,
                 self._queued_max,
                 app.rebase.summary(),
+                {
+                    "overloaded": float(core.overloaded),
+                    "busy": self._busy.share(time.monotonic()),
+                    "overloads": core.overloads,
+                    "overloaded_s": core.overloaded_seconds(clock()),
+                    "full_bas_deferred": core.full_bas_deferred,
+                },
                 stages.snapshot(),
             )
 

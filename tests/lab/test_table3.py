@@ -90,7 +90,8 @@ def test_replay_of_a_recording_with_each_robots_calibration(tmp_path, vocab):
     of its keyframes; the replay uses them: r1, seen through a 640x480 camera of its own
     (another size, intrinsics and mounting than the fallback camera), decodes and merges.
     It holds the service's schedule too: replayed through it, the core ends where the service
-    ended (same solves, same poses)."""
+    ended (same solves, same poses), its load shedding included (a low ``overload_busy``:
+    the worker applying messages back to back is overloaded)."""
     import asyncio
 
     from common.calibration import EUROC_IMU, CameraCalibration
@@ -116,7 +117,12 @@ def test_replay_of_a_recording_with_each_robots_calibration(tmp_path, vocab):
     msgs += [m for g in encode_session(*r1, "r1", vocab, 7, codec=codec_b) for m in g]
     rec = tmp_path / "uplink.rec"
     cfg = dataclasses.replace(
-        service_config(False), output_every_s=0, optimizer_process=False, debounce_s=0.05
+        service_config(False),
+        output_every_s=0,
+        optimizer_process=False,
+        debounce_s=0.05,
+        overload_busy=0.2,
+        overload_clear=0.01,
     )
     stats = []
 
@@ -146,6 +152,7 @@ def test_replay_of_a_recording_with_each_robots_calibration(tmp_path, vocab):
     names = [s.name for s in steps]
     assert names.count("timer") >= 2 and names[-1] in ("solved", "shutdown")
     assert names.count("request") == names.count("solved") + names.count("failed")
+    assert names.count("load") >= 1 and stats[0].overload["overloads"] >= 1
     same = replay(
         read_schedule(rec),
         default_camera(),

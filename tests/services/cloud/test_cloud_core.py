@@ -333,3 +333,46 @@ def test_a_solve_request_runs_in_another_process_as_in_this_one(feed):
     here, there = solve(req), job()
     assert np.array_equal(here.keys, there.keys)
     assert np.allclose(here.T_world_body, there.T_world_body) and there.iterations > 0
+
+
+def test_overloaded_the_due_full_ba_waits_and_runs_at_the_first_pose_graph_after(feed):
+    f = feed(_config(full_ba=True, optimize_every_keyframes=3, full_ba_every_keyframes=3))
+    core = f.core
+    assert not core.load(0.89, 0.0) and not core.overloaded  # under overload_busy 0.9
+    assert core.load(0.95, 0.0) and core.overloaded and core.overloads == 1
+    assert f.app.fusion.recognizer.shed_early  # the early loop candidates shed too
+    for i in range(3):
+        f.keyframe("r0", 0.1 * i)
+    out = run_inline(core, core.on_timer(1.0), 1.0)
+    assert [o.kind for o in out if isinstance(o, Outcome)] == [SolveKind.POSE_GRAPH]
+    assert any(isinstance(a, SendCorrections) for a in out)  # corrections go on
+    assert core.full_bas == 0 and core.full_bas_deferred == 1
+    assert core.changed_since_full_ba(0) == 3  # still owed
+    assert not core.load(0.7, 2.0) and core.overloaded  # above overload_clear 0.6: stays
+    assert core.load(0.5, 4.0) and not core.overloaded
+    assert not f.app.fusion.recognizer.shed_early
+    assert core.overloaded_seconds(9.0) == pytest.approx(4.0)
+    for i in range(3):
+        f.keyframe("r0", 5.0 + 0.1 * i)
+    out = run_inline(core, core.on_timer(6.0), 6.0)
+    kinds = [o.kind for o in out if isinstance(o, Outcome)]
+    assert kinds == [SolveKind.POSE_GRAPH, SolveKind.FULL_BA] and core.full_bas == 1
+
+
+def test_overloaded_no_quiet_full_ba_but_shutdown_runs_it(feed):
+    f = feed(_config(full_ba=True, full_ba_quiet_s=1.0))
+    core = f.core
+    core.load(1.0, 0.0)
+    f.keyframe("r0", 0.0)
+    f.keyframe("r0", 0.4)
+    assert core.next_deadline() is None  # the quiet full BA is not due while overloaded
+    out = run_inline(core, core.shutdown(5.0), 5.0)
+    assert [o.kind for o in out if isinstance(o, Outcome)] == [SolveKind.FULL_BA]
+    assert core.full_bas == 1
+
+
+def test_overload_busy_zero_never_sheds(feed):
+    f = feed(_config(overload_busy=0.0, overload_clear=0.0))
+    assert not f.core.load(1.0, 0.0) and not f.core.overloaded
+    with pytest.raises(ValueError, match="overload_clear"):
+        _config(overload_busy=0.5, overload_clear=0.6)

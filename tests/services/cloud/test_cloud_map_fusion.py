@@ -50,8 +50,9 @@ def test_two_robots_merge_through_the_front_object(tmp_path):
     assert len(restored.recognizer.db) == len(fusion.atlas.keyframe_keys())
 
 
-def _fuse(cfg, world, cam, sessions):
+def _fuse(cfg, world, cam, sessions, shed_early=False):
     fusion = MapFusion(cam, world.idf, cfg)
+    fusion.recognizer.shed_early = shed_early
     edges = []
     for kfs, mps in sessions:
         for m in mps:
@@ -88,3 +89,7 @@ def test_early_candidates_close_more_revisits_and_every_one_is_true():
         found[early] = {split_key(e.key_b) for e in edges}
     assert found[0] <= found[1]
     assert len(found[1]) >= len(found[0]) + 3
+    # An overloaded cloud sheds them (services.cloud.core): as without early candidates.
+    cfg = CloudConfig(place_recognition=PlaceRecognitionConfig(early_candidates=1))
+    _, edges = _fuse(cfg, world, cam, (s0, s1), shed_early=True)
+    assert {split_key(e.key_b) for e in edges} == found[0]
