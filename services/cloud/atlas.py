@@ -146,7 +146,8 @@ class Atlas:
                     f"keyframe {kf.agent_id}/{kf.keyframe_id}: update changes the "
                     f"keypoint count {n_real} -> {kf.keypoints.shape[0]}"
                 )
-        self._unsaved.keyframes.add(key)
+        # a new row, or a new state only (pose, velocity, biases: the features are the same)
+        (self._unsaved.keyframes if new else self._unsaved.poses).add(key)
         k.timestamp = float(kf.timestamp)
         k.T_map_body = T_ma @ kf.T_world_body
         k.velocity = T_ma[:3, :3] @ kf.velocity
@@ -241,8 +242,7 @@ class Atlas:
         old = int(k.mp_keys[idx])
         if old >= 0 and old != mp.key:
             return  # keypoint already bound to another point; keep the first binding
-        k.mp_keys[idx] = mp.key
-        self._unsaved.keyframes.add(k.key)
+        k.mp_keys[idx] = mp.key  # (stored with the point: its row's observations)
         self._unsaved.points.add(mp.key)
         for other in mp.obs:
             self._graph.add_weight(k.key, other, 1)
@@ -292,6 +292,14 @@ class Atlas:
 
     def T_map_body(self, key: int) -> np.ndarray:
         return self._kf(key).T_map_body.copy()
+
+    def keyframe_state(
+        self, key: int
+    ) -> tuple[np.ndarray, int, np.ndarray, np.ndarray, np.ndarray]:
+        """``(T_map_body (4, 4), map id, velocity (3,) m/s in the map frame, gyro bias (3,)
+        rad/s, accelerometer bias (3,) m/s²)`` of keyframe ``key`` (read-only, not copies)."""
+        k = self._kf(key)
+        return k.T_map_body, k.map_id, k.velocity, k.bias_gyro, k.bias_accel
 
     def covisible(self, key: int, min_weight: int = 1) -> list[tuple[int, int]]:
         """``[(keyframe key, weight)]`` sorted by decreasing weight (then key)."""

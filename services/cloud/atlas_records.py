@@ -210,8 +210,10 @@ class MapPointRecord:
 @dataclass
 class Unsaved:
     """Keys the atlas changed since its store last wrote them (see ``CloudStore.save_all``):
-    a keyframe or map point whose whole row changed (new, observations, state, map, removed),
-    and those of which only the keyframe pose / the point position changed."""
+    a keyframe whose whole row changed (new, its features: MBP's virtual observations, its
+    map, removed) or a map point's (new, its observations, map, removed), and those of which
+    only the keyframe's pose and state (velocity, biases) / the point's position changed. A
+    keyframe's links to map points are stored with the points (their observations)."""
 
     keyframes: set[int] = field(default_factory=set)
     poses: set[int] = field(default_factory=set)

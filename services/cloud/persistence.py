@@ -60,9 +60,11 @@ from services.cloud.persistence_schema import (
     PersistenceError,
     arr,
     pack,
+    pack_state,
     unpack,
     unpack_point,
     unpack_pose,
+    unpack_state,
     upgrade,
     write_state,
 )
@@ -243,18 +245,15 @@ class CloudStore:
             )
 
     def _write_poses(self, atlas: Atlas, keyframes: Iterable[int]) -> None:
-        """Only the poses and map ids of these keyframes (those the atlas still holds)."""
+        """Only the poses, map ids and states of these keyframes (those the atlas still
+        holds): not their features."""
+        rows = []
+        for k in keyframes:
+            if atlas.has_keyframe(k):
+                pose, map_id, v, bg, ba = atlas.keyframe_state(k)
+                rows.append((np.asarray(pose, "<f8").tobytes(), map_id, pack_state(v, bg, ba), k))
         self._db.executemany(
-            "UPDATE keyframes SET pose = ?, map_id = ? WHERE key = ?",
-            [
-                (
-                    np.asarray(atlas.T_map_body(k), "<f8").tobytes(),
-                    atlas.map_id_of_keyframe(k),
-                    k,
-                )
-                for k in keyframes
-                if atlas.has_keyframe(k)
-            ],
+            "UPDATE keyframes SET pose = ?, map_id = ?, state = ? WHERE key = ?", rows
         )
 
     def _write_positions(self, atlas: Atlas, map_points: Iterable[int]) -> None:
@@ -296,7 +295,7 @@ class CloudStore:
                 virtual=v.virtual,
             )
             db.execute(
-                "INSERT OR REPLACE INTO keyframes VALUES (?, ?, ?, ?, ?, ?, ?)",
+                "INSERT OR REPLACE INTO keyframes VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
                 (
                     key,
                     v.agent_id,
@@ -305,6 +304,7 @@ class CloudStore:
                     v.timestamp,
                     np.asarray(v.T_map_body, "<f8").tobytes(),
                     blob,
+                    pack_state(v.velocity, v.bias_gyro, v.bias_accel),
                 ),
             )
         # Each point once, in one executemany each (a commit can touch thousands: every
@@ -394,11 +394,13 @@ class CloudStore:
         db = self._db
         try:
             kfs = []
-            for key, agent, kf_id, map_id, ts, pose, blob in db.execute(
-                "SELECT key, agent, keyframe_id, map_id, timestamp, pose, data FROM keyframes "
-                "ORDER BY key"
+            for key, agent, kf_id, map_id, ts, pose, blob, state in db.execute(
+                "SELECT key, agent, keyframe_id, map_id, timestamp, pose, data, state "
+                "FROM keyframes ORDER BY key"
             ):
                 d = {**unpack(blob), "T_map_body": unpack_pose(pose)}
+                if state is not None:  # (schema 9: refreshed without the features)
+                    d.update(unpack_state(state))
                 kfs.append(
                     KeyframeView(
                         key=key, agent_id=agent, keyframe_id=kf_id, map_id=map_id, timestamp=ts, **d

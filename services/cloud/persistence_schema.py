@@ -6,7 +6,11 @@ Keyframe arrays are ``.npy`` payloads (``numpy.save``, no pickle) inside an unco
 ``(M, 2)`` ``<i8`` rows ``(keyframe key, keypoint index)``. A map point's position ``p``
 (3 ``<f8``) is in its reference keyframe's body frame when ``in_ref`` is 1 (the point then
 follows that keyframe: a pose graph that moves keyframes rewrites their poses, not their
-points), else in its map's frame.
+points), else in its map's frame. A keyframe's ``state`` column (9 ``<f8``: velocity, gyro
+and accelerometer biases) overrides those of its ``data`` blob when set: the edge refreshes a
+keyframe's state many times, and that rewrites 72 bytes, not the features. A keyframe's
+``map_point_keys`` in ``data`` are not read back (the map points' observations rebuild them),
+so a new observation of a keyframe rewrites only the point's row.
 """
 
 from __future__ import annotations
@@ -20,20 +24,22 @@ from common.errors import RecslamError
 from services.cloud.map_types import AtlasState
 
 DB_NAME = "cloud.sqlite"
-SCHEMA_VERSION = 8
+SCHEMA_VERSION = 9
 # Older schemas this one upgrades when it opens them (:func:`upgrade`): 5 added
 # ``robot_sensors`` (``SCHEMA`` creates it); 6 added ``missions`` and the ``mission`` column of
 # ``agent_names`` and keys that table by (mission, edge, robot, edge map), not (robot, edge
 # map), so that several edges' and missions' agents stay apart (the table is rebuilt, its old
 # rows are mission 0); 7 added ``map_points.in_ref`` (old rows: 0, positions in the map frame);
-# 8 added ``retired_keyframes.other``, ``T_other`` and ``w_other`` (old rows: no blend).
-UPGRADABLE = (3, 4, 5, 6, 7)
+# 8 added ``retired_keyframes.other``, ``T_other`` and ``w_other`` (old rows: no blend); 9
+# added ``keyframes.state`` (old rows: NULL, the state in ``data``).
+UPGRADABLE = (3, 4, 5, 6, 7, 8)
 
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS meta (name TEXT PRIMARY KEY, value INTEGER NOT NULL);
 CREATE TABLE IF NOT EXISTS keyframes (
     key INTEGER PRIMARY KEY, agent INTEGER NOT NULL, keyframe_id INTEGER NOT NULL,
-    map_id INTEGER NOT NULL, timestamp REAL NOT NULL, pose BLOB NOT NULL, data BLOB NOT NULL);
+    map_id INTEGER NOT NULL, timestamp REAL NOT NULL, pose BLOB NOT NULL, data BLOB NOT NULL,
+    state BLOB);
 CREATE TABLE IF NOT EXISTS map_points (
     key INTEGER PRIMARY KEY, agent INTEGER NOT NULL, map_point_id INTEGER NOT NULL,
     map_id INTEGER NOT NULL, ref_kf INTEGER NOT NULL, p BLOB NOT NULL,
@@ -94,6 +100,18 @@ def unpack_pose(blob: bytes) -> np.ndarray:
     return np.frombuffer(blob, "<f8").reshape(4, 4).astype(np.float64)
 
 
+def pack_state(velocity: np.ndarray, bias_gyro: np.ndarray, bias_accel: np.ndarray) -> bytes:
+    """A keyframe's ``state`` column."""
+    return np.concatenate([velocity, bias_gyro, bias_accel]).astype("<f8").tobytes()
+
+
+def unpack_state(blob: bytes) -> dict[str, np.ndarray]:
+    if len(blob) != 72:
+        raise ValueError(f"keyframe state of {len(blob)} bytes")
+    v = np.frombuffer(blob, "<f8").astype(np.float64)
+    return {"velocity": v[:3], "bias_gyro": v[3:6], "bias_accel": v[6:]}
+
+
 def arr(blob: bytes) -> np.ndarray:
     return unpack(blob)["a"]
 
@@ -123,6 +141,10 @@ def upgrade(db: sqlite3.Connection, version: int) -> None:
             if name not in cols:
                 default = " NOT NULL DEFAULT 0" if name == "w_other" else ""
                 db.execute(f"ALTER TABLE retired_keyframes ADD COLUMN {name} {decl}{default}")
+    if version < 9:
+        cols = [r[1] for r in db.execute("PRAGMA table_info(keyframes)")]
+        if "state" not in cols:
+            db.execute("ALTER TABLE keyframes ADD COLUMN state BLOB")
     db.execute("UPDATE meta SET value = ? WHERE name='schema'", (SCHEMA_VERSION,))
 
 

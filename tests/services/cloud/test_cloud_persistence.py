@@ -7,7 +7,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from common.geometry import inverse_T
+from common.geometry import inverse_T, make_T
 from services.cloud.atlas import Atlas, make_key
 from services.cloud.persistence import CloudStore, PersistenceError
 from services.cloud.simulation import circle_poses, default_camera, make_session, make_world, yaw_T
@@ -419,3 +419,50 @@ def test_re_sent_points_rewrite_their_positions_only(tmp_path):
         assert np.allclose(reloaded_p[m], mp_in.p_world, atol=1e-9)
         assert np.allclose(atlas.map_point(m).p_map, mp_in.p_world, atol=1e-9)
     db.close()
+
+
+def test_keyframe_state_refreshes_and_new_links_leave_the_features_unwritten(tmp_path):
+    """The edge re-sends a keyframe's state many times and its new observations link to it:
+    neither rewrites the keyframe's features (its ``data`` blob); the reloaded atlas has the
+    newest state and every link (rebuilt from the points' observations)."""
+    import sqlite3
+
+    from services.cloud.persistence import DB_NAME
+
+    world = make_world(46, n_points=800)
+    k0, m0 = make_session(world, default_camera(), 0, circle_poses(6, turns=0.2), np.eye(4))
+    atlas = Atlas()
+    store = CloudStore(tmp_path)
+    keys = [atlas.add_keyframe(x) for x in k0]
+    store.commit(atlas, keys, atlas.add_map_points(m0))
+    db = sqlite3.connect(tmp_path / DB_NAME)
+    db.executescript(  # a log of every write of a keyframe's features from here on
+        "CREATE TABLE data_writes (key INTEGER);"
+        "CREATE TRIGGER d_ins AFTER INSERT ON keyframes "
+        "BEGIN INSERT INTO data_writes VALUES (new.key); END;"
+        "CREATE TRIGGER d_upd AFTER UPDATE OF data ON keyframes "
+        "BEGIN INSERT INTO data_writes VALUES (new.key); END;"
+    )
+    refreshed = dataclasses.replace(
+        k0[-1],
+        T_world_body=k0[-1].T_world_body @ make_T(np.eye(3), np.array([0.0, 0.0, 0.02])),
+        velocity=np.array([0.3, -0.2, 0.1]),
+        bias_gyro=np.array([1e-3, 2e-3, 3e-3]),
+        bias_accel=np.array([0.01, 0.02, 0.03]),
+    )
+    atlas.add_keyframe(refreshed)
+    v = atlas.keyframe(keys[-1])
+    free = int(np.flatnonzero(v.map_point_keys < 0)[0])
+    linked = next(m for m in m0 if k0[-1].keyframe_id not in m.observations[:, 0])
+    obs = np.vstack([linked.observations, [[k0[-1].keyframe_id, free]]])
+    atlas.add_map_points([dataclasses.replace(linked, observations=obs)])
+    store.commit(atlas)
+    assert not list(db.execute("SELECT key FROM data_writes"))
+    db.close()
+    reloaded = CloudStore(tmp_path).load()
+    r = reloaded.keyframe(keys[-1])
+    np.testing.assert_allclose(r.T_map_body, refreshed.T_world_body, atol=1e-12)
+    for name in ("velocity", "bias_gyro", "bias_accel"):
+        np.testing.assert_allclose(getattr(r, name), getattr(refreshed, name), atol=1e-12)
+    np.testing.assert_array_equal(r.map_point_keys, atlas.keyframe(keys[-1]).map_point_keys)
+    assert r.map_point_keys[free] == make_key(linked.agent_id, linked.map_point_id)
