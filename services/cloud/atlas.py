@@ -37,6 +37,8 @@ from services.cloud.atlas_records import (
     snapshot_of,
 )
 from services.cloud.map_types import (
+    LOCAL_BITS,
+    LOCAL_ID_MAX,
     AtlasError,
     AtlasSnapshot,
     AtlasState,
@@ -181,46 +183,77 @@ class Atlas:
         return self.add_map_points([mp_in])[0]
 
     def add_map_points(self, points: Sequence[MapPointInput]) -> list[int]:
-        """:meth:`add_map_point` of each of ``points`` in order (their map positions computed
-        in one pass per agent); their keys."""
+        """:meth:`add_map_point` of each of ``points`` in order; their keys. The thousands of
+        points of one update go in as arrays where they can: their map positions in one pass
+        per agent, their positions relative to their reference keyframes in one pass (an edge
+        re-sends every point local BA moved, most of them with the same observations)."""
         if not points:
             return []
-        p_map = np.empty((len(points), 3))
-        agents = np.array([p.agent_id for p in points])
-        P = np.array([p.p_world for p in points], np.float64).reshape(-1, 3)
+        agents = np.array([p.agent_id for p in points], np.int64)
+        ids = np.array([p.map_point_id for p in points], np.int64)
+        if agents.min() < 0 or ids.min() < 0 or ids.max() > LOCAL_ID_MAX:
+            bad = next(
+                p for p in points if p.agent_id < 0 or not 0 <= p.map_point_id <= LOCAL_ID_MAX
+            )
+            make_key(bad.agent_id, bad.map_point_id)  # raises, naming it
+        p_map = np.array([p.p_world for p in points], np.float64).reshape(-1, 3)
         for agent in np.unique(agents).tolist():
             self._ensure_agent(agent)
             sel = agents == agent
             T = self._T_map_agent[agent]
-            p_map[sel] = P[sel] @ T[:3, :3].T + T[:3, 3]
+            p_map[sel] = p_map[sel] @ T[:3, :3].T + T[:3, 3]
         unsaved = self._unsaved
-        keys = []
-        for mp_in, p in zip(points, p_map, strict=True):
-            mkey = make_key(mp_in.agent_id, mp_in.map_point_id)
-            fused_into = self._alias.get(mkey)
+        alias, mps, removed = self._alias, self._mps, self._removed_kfs
+        keys: list[int] = []
+        todo: list[tuple[MapPointRecord, MapPointInput]] = []  # points kept, in order
+        moved: list[MapPointRecord] = []  # their positions: p_map[at]
+        at: list[int] = []
+        all_keys = ((agents << LOCAL_BITS) | ids).tolist()
+        for i, (mkey, mp_in) in enumerate(zip(all_keys, points, strict=True)):
+            fused_into = alias.get(mkey)
             if fused_into is not None:
                 mkey = fused_into  # fused at a merge: keep the survivor's position, link new obs
             keys.append(mkey)
-            mp = self._mps.get(mkey)
+            mp = mps.get(mkey)
             if mp is None:
                 if mkey not in self._announced and not any(
-                    make_key(mp_in.agent_id, int(k)) not in self._removed_kfs
-                    for k, _ in mp_in.observations
+                    make_key(mp_in.agent_id, int(k)) not in removed for k, _ in mp_in.observations
                 ):
                     continue  # a moved point the cloud culled (or never had): no observer left
                 mp = self._new_map_point(mkey, mp_in.agent_id)
                 mp.pending.update(self._announced.pop(mkey, {}))
                 unsaved.points.add(mkey)  # a new row
             if fused_into is None:
-                mp.p_map = p
-                unsaved.positions.add(mkey)  # (its row, if observations change: _link)
+                moved.append(mp)
+                at.append(i)
+            todo.append((mp, mp_in))
+        self._place(moved, p_map[at])
+        unsaved.positions.update(mp.key for mp in moved)  # (its row, if observations change)
+        for mp, mp_in in todo:
+            base, mp_obs, pending = mp_in.agent_id << LOCAL_BITS, mp.obs, mp.pending
             for kf_id, kp_idx in mp_in.observations.tolist():
-                kkey = make_key(mp_in.agent_id, kf_id)
-                if kkey not in mp.obs and kkey not in self._removed_kfs:
-                    mp.pending.setdefault(kkey, kp_idx)
-            if mp.pending:
+                if kf_id > LOCAL_ID_MAX:
+                    make_key(mp_in.agent_id, kf_id)  # raises, naming it
+                kkey = base | kf_id
+                if kkey not in mp_obs and kkey not in removed:
+                    pending.setdefault(kkey, kp_idx)
+            if pending:
                 self._link_pending(mp)
         return keys
+
+    @staticmethod
+    def _place(mps: Sequence[MapPointRecord], p_map: np.ndarray) -> None:
+        """Set each of ``mps`` at its row of ``p_map (N, 3)`` (map frame), in order (a point
+        listed twice ends at its last row): as ``MapPointRecord.p_map``'s setter, for all at
+        once."""
+        refs = [i for i, mp in enumerate(mps) if mp.ref is not None]
+        p_ref = np.array(p_map, np.float64)  # (no reference keyframe: the map frame)
+        if refs:
+            T = np.array([mps[i].ref.T_map_body for i in refs])  # type: ignore[union-attr]
+            d = p_map[refs] - T[:, :3, 3]
+            p_ref[refs] = np.einsum("nji,nj->ni", T[:, :3, :3], d)
+        for mp, row in zip(mps, p_ref, strict=True):
+            mp.p_ref = row
 
     def _link_pending(self, mp: MapPointRecord) -> None:
         for kkey in list(mp.pending):

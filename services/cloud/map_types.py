@@ -23,8 +23,8 @@ def camera_lookup(camera: CameraCalibration | CameraOf) -> CameraOf:
     return camera
 
 
-_LOCAL_BITS = 32
-_LOCAL_MASK = (1 << _LOCAL_BITS) - 1
+LOCAL_BITS = 32
+LOCAL_ID_MAX = (1 << LOCAL_BITS) - 1
 
 
 class AtlasError(RecslamError):
@@ -33,14 +33,14 @@ class AtlasError(RecslamError):
 
 def make_key(agent_id: int, local_id: int) -> int:
     """Global key of an agent's keyframe or map point id (both non-negative, local < 2**32)."""
-    if agent_id < 0 or not 0 <= local_id <= _LOCAL_MASK:
+    if agent_id < 0 or not 0 <= local_id <= LOCAL_ID_MAX:
         raise AtlasError(f"bad id: agent {agent_id}, local {local_id}")
-    return (int(agent_id) << _LOCAL_BITS) | int(local_id)
+    return (int(agent_id) << LOCAL_BITS) | int(local_id)
 
 
 def split_key(key: int) -> tuple[int, int]:
     """Inverse of :func:`make_key`: ``(agent_id, local_id)``."""
-    return int(key) >> _LOCAL_BITS, int(key) & _LOCAL_MASK
+    return int(key) >> LOCAL_BITS, int(key) & LOCAL_ID_MAX
 
 
 def ro(a: np.ndarray) -> np.ndarray:

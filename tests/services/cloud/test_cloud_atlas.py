@@ -311,3 +311,46 @@ def test_a_point_a_keyframe_names_before_it_arrives_is_no_map_point_until_it_doe
     other.remove_keyframe(key)
     other.add_map_point(MapPointInput(0, pid, m.p_world))
     assert not other.has_map_point(mkey)
+
+
+def test_a_batch_of_points_lands_as_the_same_points_one_by_one(session):
+    """add_map_points places a whole update at once: the same positions, observations and
+    references as adding its points one at a time, for new points (some before their
+    keyframes arrive), re-sent moved ones held relative to a moved keyframe, a point listed
+    twice (the last wins) and a fused one (its survivor keeps its own position)."""
+    kfs, mps = session
+    half = len(kfs) // 2
+    rng = np.random.default_rng(7)
+    moved = [dataclasses.replace(m, p_world=m.p_world + rng.normal(0, 0.01, 3)) for m in mps[::3]]
+    twice = [dataclasses.replace(mps[1], p_world=mps[1].p_world + 0.05)]
+    fused = [dataclasses.replace(mps[2], p_world=mps[2].p_world + 1.0)]
+    feeds = [mps, moved + twice + fused]
+    one, batch = Atlas(), Atlas()
+    for atlas in (one, batch):
+        for k in kfs[:half]:
+            atlas.add_keyframe(k)
+    for i, f in enumerate(feeds):
+        one_keys = [one.add_map_point(m) for m in f]
+        assert batch.add_map_points(f) == one_keys  # (a fused point's: its survivor's)
+        if i == 0:  # the rest of the keyframes arrive, and the first one moves
+            for atlas in (one, batch):
+                for k in kfs[half:]:
+                    atlas.add_keyframe(k)
+                T = atlas.T_map_body(make_key(0, kfs[0].keyframe_id))
+                atlas.set_keyframe_poses(
+                    {make_key(0, kfs[0].keyframe_id): T @ yaw_T(0.1, [0.1, 0, 0])}
+                )
+                keep, drop = make_key(0, mps[0].map_point_id), make_key(0, mps[2].map_point_id)
+                atlas.fuse_map_points(keep, drop)
+    assert one.map_point_keys() == batch.map_point_keys()
+    for key in one.map_point_keys():
+        a, b = one.map_point(key), batch.map_point(key)
+        np.testing.assert_allclose(b.p_map, a.p_map, atol=1e-12)
+        np.testing.assert_array_equal(b.obs_keyframes, a.obs_keyframes)
+        np.testing.assert_array_equal(b.obs_indices, a.obs_indices)
+        assert b.ref_kf == a.ref_kf
+    np.testing.assert_allclose(
+        batch.map_point(make_key(0, mps[1].map_point_id)).p_map, twice[0].p_world, atol=1e-12
+    )
+    assert make_key(0, mps[2].map_point_id) not in batch.map_point_keys()  # fused into mps[0]
+    assert np.linalg.norm(batch.map_point(keep).p_map - fused[0].p_world) > 0.5
