@@ -360,15 +360,7 @@ class CloudApp:
         """The atlas input of a pose-only update (None: the cloud no longer has it)."""
         key = make_key(a.agent_id, d.keyframe_id)
         if not self.atlas.has_keyframe(key):
-            # A keyframe the cloud pruned (MBP) or the edge culled is routine; others not.
-            routine = key in self.atlas.removed_keyframes()
-            log.log(
-                logging.DEBUG if routine else logging.WARNING,
-                "pose update of %s keyframe %s/%d",
-                "removed" if routine else "unknown",
-                d.agent_name,
-                d.keyframe_id,
-            )
+            self._gone(a, d)
             return None
         v = self.atlas.keyframe(key)
         real = ~v.virtual
@@ -388,6 +380,18 @@ class CloudApp:
             bias_accel=d.bias_accel,
         )
 
+    def _gone(self, a: _Agent, d: DecodedKeyframe) -> None:
+        """Log a state update of a keyframe the cloud does not hold."""
+        # A keyframe the cloud pruned (MBP) or the edge culled is routine; others not.
+        routine = make_key(a.agent_id, d.keyframe_id) in self.atlas.removed_keyframes()
+        log.log(
+            logging.DEBUG if routine else logging.WARNING,
+            "pose update of %s keyframe %s/%d",
+            "removed" if routine else "unknown",
+            d.agent_name,
+            d.keyframe_id,
+        )
+
     def _keyframe_poses(
         self, edge_id: str, msg: KeyframePoses, position: dict[str, tuple[bytes, int]]
     ) -> Reaction:
@@ -403,15 +407,13 @@ class CloudApp:
         anchor = updates[0].anchor if updates else None
         if (T_fix := self.rebase.correction(self.atlas, a.agent_id, anchor)) is not None:
             updates = [rebased_keyframe(d, T_fix) for d in updates]
-        moved: list[int] = []
         for d in updates:
-            kf = self._pose_only(a, d)
-            if kf is None:
-                continue
-            moved.append(make_key(a.agent_id, d.keyframe_id))
-            self.fusion.add_keyframe(kf)
-        # (held relative to their keyframes, the points follow: no point row changes)
-        self.store.commit(self.atlas, moved, positions=position, agents=self._rows(a))
+            state = (d.T_world_body, d.velocity, d.bias_gyro, d.bias_accel)
+            if not self.atlas.refresh_keyframe(a.agent_id, d.keyframe_id, *state):
+                self._gone(a, d)
+        # (their new states only; held relative to their keyframes, the points follow: no
+        # point row changes)
+        self.store.commit(self.atlas, positions=position, agents=self._rows(a))
         return Reaction()
 
     def _map_points(

@@ -151,10 +151,7 @@ class Atlas:
         # a new row, or a new state only (pose, velocity, biases: the features are the same)
         (self._unsaved.keyframes if new else self._unsaved.poses).add(key)
         k.timestamp = float(kf.timestamp)
-        k.T_map_body = T_ma @ kf.T_world_body
-        k.velocity = T_ma[:3, :3] @ kf.velocity
-        k.bias_gyro = kf.bias_gyro.copy()
-        k.bias_accel = kf.bias_accel.copy()
+        self._set_state(k, T_ma, kf.T_world_body, kf.velocity, kf.bias_gyro, kf.bias_accel)
         for idx in np.flatnonzero(kf.map_point_ids >= 0):
             mkey = make_key(kf.agent_id, int(kf.map_point_ids[idx]))
             mkey = self._alias.get(mkey, mkey)
@@ -170,6 +167,45 @@ class Atlas:
                 self._link_pending(mp)
             self._graph.attach(key)
         return key
+
+    def refresh_keyframe(
+        self,
+        agent_id: int,
+        keyframe_id: int,
+        T_world_body: np.ndarray,
+        velocity: np.ndarray,
+        bias_gyro: np.ndarray,
+        bias_accel: np.ndarray,
+    ) -> bool:
+        """A new state of a keyframe the atlas holds (what :meth:`add_keyframe` does for an
+        update without map point ids, without its features): ``T_world_body (4, 4)`` and
+        ``velocity (3,)`` m/s in the agent's map frame, biases ``(3,)``. False when the atlas
+        does not hold it (removed, or never received): nothing changes."""
+        key = make_key(agent_id, keyframe_id)
+        k = self._kfs.get(key)
+        if k is None:
+            return False
+        T = np.asarray(T_world_body, np.float64)
+        vectors = [np.asarray(v, np.float64) for v in (velocity, bias_gyro, bias_accel)]
+        if T.shape != (4, 4) or any(v.shape != (3,) for v in vectors):
+            raise AtlasError(f"keyframe {agent_id}/{keyframe_id}: malformed state")
+        self._set_state(k, self._T_map_agent[agent_id], T, *vectors)
+        self._unsaved.poses.add(key)
+        return True
+
+    @staticmethod
+    def _set_state(
+        k: KeyframeRecord,
+        T_map_agent: np.ndarray,
+        T_world_body: np.ndarray,
+        velocity: np.ndarray,
+        bias_gyro: np.ndarray,
+        bias_accel: np.ndarray,
+    ) -> None:
+        k.T_map_body = T_map_agent @ T_world_body
+        k.velocity = T_map_agent[:3, :3] @ velocity
+        k.bias_gyro = np.array(bias_gyro, np.float64)
+        k.bias_accel = np.array(bias_accel, np.float64)
 
     def _new_map_point(self, mkey: int, agent_id: int) -> MapPointRecord:
         mp = MapPointRecord(mkey, agent_id, split_key(mkey)[1], self._map_of_agent[agent_id])
