@@ -354,3 +354,24 @@ def test_a_batch_of_points_lands_as_the_same_points_one_by_one(session):
     )
     assert make_key(0, mps[2].map_point_id) not in batch.map_point_keys()  # fused into mps[0]
     assert np.linalg.norm(batch.map_point(keep).p_map - fused[0].p_world) > 0.5
+
+
+def test_refresh_keyframe_sets_the_state_and_refuses_what_it_lacks(session):
+    kfs, mps = session
+    atlas = _atlas(kfs[:4], mps)
+    atlas.unsaved.take()  # as after a store wrote it
+    key = make_key(0, kfs[1].keyframe_id)
+    links = atlas.keyframe(key).map_point_keys.copy()
+    v = np.array([0.5, 0.0, 0.1])
+    assert atlas.refresh_keyframe(0, kfs[1].keyframe_id, kfs[2].T_world_body, v, v / 10, v / 5)
+    got = atlas.keyframe(key)
+    np.testing.assert_allclose(got.T_map_body, kfs[2].T_world_body, atol=1e-12)
+    np.testing.assert_allclose(got.velocity, v, atol=1e-12)
+    np.testing.assert_allclose(got.bias_gyro, v / 10)
+    np.testing.assert_allclose(got.bias_accel, v / 5)
+    np.testing.assert_array_equal(got.map_point_keys, links)  # links untouched
+    u = atlas.unsaved.take()
+    assert u.poses == {key} and not u.keyframes and not u.points  # its state row only
+    assert not atlas.refresh_keyframe(0, kfs[-1].keyframe_id, np.eye(4), v, v, v)  # not held
+    with pytest.raises(AtlasError, match="malformed state"):
+        atlas.refresh_keyframe(0, kfs[1].keyframe_id, np.eye(3), v, v, v)
