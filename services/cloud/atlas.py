@@ -34,6 +34,7 @@ from services.cloud.atlas_records import (
     Unsaved,
     heir_reference,
     map_positions,
+    place_points,
     snapshot_of,
 )
 from services.cloud.map_types import (
@@ -151,7 +152,7 @@ class Atlas:
         # a new row, or a new state only (pose, velocity, biases: the features are the same)
         (self._unsaved.keyframes if new else self._unsaved.poses).add(key)
         k.timestamp = float(kf.timestamp)
-        self._set_state(k, T_ma, kf.T_world_body, kf.velocity, kf.bias_gyro, kf.bias_accel)
+        k.set_state(T_ma, kf.T_world_body, kf.velocity, kf.bias_gyro, kf.bias_accel)
         for idx in np.flatnonzero(kf.map_point_ids >= 0):
             mkey = make_key(kf.agent_id, int(kf.map_point_ids[idx]))
             mkey = self._alias.get(mkey, mkey)
@@ -189,23 +190,9 @@ class Atlas:
         vectors = [np.asarray(v, np.float64) for v in (velocity, bias_gyro, bias_accel)]
         if T.shape != (4, 4) or any(v.shape != (3,) for v in vectors):
             raise AtlasError(f"keyframe {agent_id}/{keyframe_id}: malformed state")
-        self._set_state(k, self._T_map_agent[agent_id], T, *vectors)
+        k.set_state(self._T_map_agent[agent_id], T, *vectors)
         self._unsaved.poses.add(key)
         return True
-
-    @staticmethod
-    def _set_state(
-        k: KeyframeRecord,
-        T_map_agent: np.ndarray,
-        T_world_body: np.ndarray,
-        velocity: np.ndarray,
-        bias_gyro: np.ndarray,
-        bias_accel: np.ndarray,
-    ) -> None:
-        k.T_map_body = T_map_agent @ T_world_body
-        k.velocity = T_map_agent[:3, :3] @ velocity
-        k.bias_gyro = np.array(bias_gyro, np.float64)
-        k.bias_accel = np.array(bias_accel, np.float64)
 
     def _new_map_point(self, mkey: int, agent_id: int) -> MapPointRecord:
         mp = MapPointRecord(mkey, agent_id, split_key(mkey)[1], self._map_of_agent[agent_id])
@@ -263,7 +250,7 @@ class Atlas:
                 moved.append(mp)
                 at.append(i)
             todo.append((mp, mp_in))
-        self._place(moved, p_map[at])
+        place_points(moved, p_map[at])
         unsaved.positions.update(mp.key for mp in moved)  # (its row, if observations change)
         for mp, mp_in in todo:
             base, mp_obs, pending = mp_in.agent_id << LOCAL_BITS, mp.obs, mp.pending
@@ -276,20 +263,6 @@ class Atlas:
             if pending:
                 self._link_pending(mp)
         return keys
-
-    @staticmethod
-    def _place(mps: Sequence[MapPointRecord], p_map: np.ndarray) -> None:
-        """Set each of ``mps`` at its row of ``p_map (N, 3)`` (map frame), in order (a point
-        listed twice ends at its last row): as ``MapPointRecord.p_map``'s setter, for all at
-        once."""
-        refs = [i for i, mp in enumerate(mps) if mp.ref is not None]
-        p_ref = np.array(p_map, np.float64)  # (no reference keyframe: the map frame)
-        if refs:
-            T = np.array([mps[i].ref.T_map_body for i in refs])  # type: ignore[union-attr]
-            d = p_map[refs] - T[:, :3, 3]
-            p_ref[refs] = np.einsum("nji,nj->ni", T[:, :3, :3], d)
-        for mp, row in zip(mps, p_ref, strict=True):
-            mp.p_ref = row
 
     def _link_pending(self, mp: MapPointRecord) -> None:
         for kkey in list(mp.pending):

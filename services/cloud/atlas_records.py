@@ -93,6 +93,20 @@ class KeyframeRecord:
         k.virtual = np.array(v.virtual, dtype=bool)
         return k
 
+    def set_state(
+        self,
+        T_map_agent: np.ndarray,
+        T_world_body: np.ndarray,
+        velocity: np.ndarray,
+        bias_gyro: np.ndarray,
+        bias_accel: np.ndarray,
+    ) -> None:
+        """The edge's state of this keyframe, pose and velocity in its agent's map frame."""
+        self.T_map_body = T_map_agent @ T_world_body
+        self.velocity = T_map_agent[:3, :3] @ velocity
+        self.bias_gyro = np.array(bias_gyro, np.float64)
+        self.bias_accel = np.array(bias_accel, np.float64)
+
     def view(self) -> KeyframeView:
         """A read-only copy."""
         return KeyframeView(
@@ -241,6 +255,20 @@ def map_positions(mps: Sequence[MapPointRecord]) -> np.ndarray:
     P = np.array([m.p_ref for m in mps], np.float64).reshape(-1, 3)
     Ts = np.array([eye if m.ref is None else m.ref.T_map_body for m in mps]).reshape(-1, 4, 4)
     return np.einsum("nij,nj->ni", Ts[:, :3, :3], P) + Ts[:, :3, 3]
+
+
+def place_points(mps: Sequence[MapPointRecord], p_map: np.ndarray) -> None:
+    """Set each of ``mps`` at its row of ``p_map (N, 3)`` (map frame), in order (a point
+    listed twice ends at its last row): ``MapPointRecord.p_map``'s setter for all at once,
+    the inverse of :func:`map_positions`."""
+    refs = [i for i, mp in enumerate(mps) if mp.ref is not None]
+    p_ref = np.array(p_map, np.float64).reshape(-1, 3)  # (no reference keyframe: map frame)
+    if refs:
+        T = np.array([mps[i].ref.T_map_body for i in refs])  # type: ignore[union-attr]
+        d = p_ref[refs] - T[:, :3, 3]
+        p_ref[refs] = np.einsum("nji,nj->ni", T[:, :3, :3], d)
+    for mp, row in zip(mps, p_ref, strict=True):
+        mp.p_ref = row
 
 
 def snapshot_of(
