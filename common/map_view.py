@@ -245,12 +245,15 @@ class MapCounts:
 @dataclass(frozen=True)
 class StatsSnapshot:
     """Panels' data at source time ``time`` (s): agents, counts and the bandwidth samples of a
-    recent window (the source decides its length, e.g. the last two minutes)."""
+    recent window (the source decides its length, e.g. the last two minutes), and ``status``:
+    what the source says of its own state in words ('' = nothing to say; e.g. a cloud that
+    sheds work under load)."""
 
     time: float
     agents: tuple[AgentRecord, ...]
     counts: MapCounts
     bandwidth: tuple[BandwidthSample, ...] = ()
+    status: str = ""
 
 
 @runtime_checkable

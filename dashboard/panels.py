@@ -68,6 +68,7 @@ def counts_markdown(stats: StatsSnapshot) -> str:
         f"| Keyframes | {c.keyframes} | {c.keyframes_kept} |\n"
         f"| Map points | {c.map_points} | {c.map_points_kept} |\n"
         f"| Loops | {c.loops} | |\n| Merges | {c.merges} | |\n"
+        + (f"\n**Cloud:** {stats.status}\n" if stats.status else "")
     )
 
 

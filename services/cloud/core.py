@@ -269,6 +269,16 @@ class CloudCore:
         self.app.shed(self.overloaded)
         return True
 
+    def status(self, now: float) -> str:
+        """The load shedding in words, for the dashboard ('' while not overloaded)."""
+        since = self._overloaded_since
+        if since is None:
+            return ""
+        return (
+            f"overloaded for {max(0.0, now - since):.0f} s: no full BA while running "
+            f"({self.full_bas_deferred} deferred so far), only consistent loop candidates"
+        )
+
     def overloaded_seconds(self, now: float) -> float:
         """Time spent overloaded up to ``now`` (the current spell included)."""
         since = self._overloaded_since

@@ -73,6 +73,7 @@ class CloudView:
     pruned_points: frozenset[int]
     edge_counters: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
     ground_truth: tuple[GroundTruth, ...] | None = None
+    status: str = ""  # the service's state in words (StatsSnapshot.status)
 
 
 def _ro(a: np.ndarray) -> np.ndarray:
@@ -297,7 +298,7 @@ class CloudMapSource:
             loops=len(self._loops),
             merges=len(self._merges),
         )
-        self._stats = StatsSnapshot(now, tuple(agents), counts, tuple(self._bandwidth))
+        self._stats = StatsSnapshot(now, tuple(agents), counts, tuple(self._bandwidth), view.status)
 
     def _sample(self, now: float, link: str, direction: Direction, mtype: str, total: int) -> None:
         key = (link, direction, mtype)

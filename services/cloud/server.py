@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
 import functools
 import logging
 import math
@@ -42,7 +43,6 @@ import time
 from collections import deque
 from collections.abc import Callable, Iterable
 from concurrent.futures import BrokenExecutor, Executor, ProcessPoolExecutor, ThreadPoolExecutor
-from dataclasses import dataclass, field
 from pathlib import Path
 from ssl import SSLContext
 from typing import Any, TypeVar
@@ -73,10 +73,11 @@ from services.cloud.decode_pool import DecodePool, Predecoded
 from services.cloud.global_optimization import warm_up
 from services.cloud.load import BusyMeter
 from services.cloud.map_fusion import MapFusion
-from services.cloud.map_source import CloudMapSource
+from services.cloud.map_source import CloudMapSource, CloudView
 from services.cloud.output import OutputWriter
 from services.cloud.persistence import CloudStore, PersistenceError
 from services.cloud.recording import RecordingWriter
+from services.cloud.stats import CloudStats
 
 log = logging.getLogger(__name__)
 
@@ -106,39 +107,6 @@ def open_app(
 
 def _applied(outcomes: Iterable[Outcome], map_id: int, kind: SolveKind) -> bool:
     return not any(o.map_id == map_id and o.kind is kind and not o.applied for o in outcomes)
-
-
-@dataclass(frozen=True)
-class CloudStats:
-    """Counters of a running service (plain data)."""
-
-    messages: int
-    rejected: int
-    optimizations: int
-    corrections_sent: int
-    mbp_passes: int
-    keyframes: int
-    map_points: int
-    maps: tuple[int, ...]
-    merges: int
-    loops: int
-    full_ba_passes: int = 0
-    worker_queue: int = 0
-    """Messages received and waiting for (or being applied on) the worker thread now."""
-    worker_queue_max: int = 0
-    """The most there ever were (one per edge link at most: each delivers in order; the rest
-    wait in the edges' outboxes, held back by the receive window)."""
-    rebase: dict[str, float] = field(default_factory=dict)  # FrameRebase.summary
-    overload: dict[str, float] = field(default_factory=dict)
-    """The core's load shedding: ``overloaded`` (0/1 now), ``busy`` (the worker's busy
-    share of the last window), ``overloads``, ``overloaded_s``, ``full_bas_deferred``."""
-    stages: dict[str, dict[str, float]] = field(default_factory=dict)
-    """Time per stage, ``{"stage.place_recognition": {"seconds": s, "messages": n}, ...}``:
-    the worker thread's CPU time in the app's
-    :attr:`~services.cloud.app.CloudApp.stage_timer` and ``handle.<Type>`` (a message on the
-    worker, all of it); wall time in ``wall.<Type>`` (the same, with the waits: SQLite's
-    fsync), ``wait.worker`` (received -> applied) and ``solve.<kind>`` (in the optimizer,
-    waited for on the event loop)."""
 
 
 class CloudServer:
@@ -515,8 +483,14 @@ class CloudServer:
         assert app is not None
         counters = self._server.counters()
         references = await self._load_references()
-        view = await self._on_worker(app.view, counters, references)
-        return self.map_source.publish(view)
+        core, now = self._core, asyncio.get_running_loop().time()
+
+        def build() -> CloudView:
+            view = app.view(counters, references)
+            status = "" if core is None else core.status(now)
+            return dataclasses.replace(view, status=status) if status else view
+
+        return self.map_source.publish(await self._on_worker(build))
 
     async def _load_references(self) -> dict[str, Trajectory] | None:
         """Ground truth of the known robots, every ``gt_every_s`` (None in between)."""

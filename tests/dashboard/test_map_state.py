@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 from common.map_view import (
@@ -12,7 +14,13 @@ from common.map_view import (
     PointSet,
 )
 from dashboard.map_state import KeyframeTracks, PointChunks, live_ate_rmse
-from dashboard.panels import agents_markdown, bandwidth_series, edge_rates, edges_markdown
+from dashboard.panels import (
+    agents_markdown,
+    bandwidth_series,
+    counts_markdown,
+    edge_rates,
+    edges_markdown,
+)
 from dashboard.scene import frustum_segments
 
 
@@ -160,3 +168,14 @@ def test_edges_show_their_robots_and_link_rates():
     text = edges_markdown(stats, window_s=5.0)
     assert "| a | r0, r1 | 4.0 / 0.4 | 8.0 / 0.0 |" in text
     assert "r1 @ b" in agents_markdown(stats, {})
+
+
+def test_counts_say_the_sources_status_when_it_has_one():
+    from common.map_view import MapCounts, StatsSnapshot
+
+    stats = StatsSnapshot(1.0, (), MapCounts(10, 6, 500, 300, 2, 1))
+    assert "| Keyframes | 10 | 6 |" in counts_markdown(stats) and "Cloud" not in counts_markdown(
+        stats
+    )
+    text = counts_markdown(dataclasses.replace(stats, status="overloaded for 12 s"))
+    assert "**Cloud:** overloaded for 12 s" in text

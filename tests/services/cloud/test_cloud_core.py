@@ -339,6 +339,7 @@ def test_overloaded_the_due_full_ba_waits_and_runs_at_the_first_pose_graph_after
     f = feed(_config(full_ba=True, optimize_every_keyframes=3, full_ba_every_keyframes=3))
     core = f.core
     assert not core.load(0.89, 0.0) and not core.overloaded  # under overload_busy 0.9
+    assert core.status(0.0) == ""
     assert core.load(0.95, 0.0) and core.overloaded and core.overloads == 1
     assert f.app.fusion.recognizer.shed_early  # the early loop candidates shed too
     for i in range(3):
@@ -347,6 +348,7 @@ def test_overloaded_the_due_full_ba_waits_and_runs_at_the_first_pose_graph_after
     assert [o.kind for o in out if isinstance(o, Outcome)] == [SolveKind.POSE_GRAPH]
     assert any(isinstance(a, SendCorrections) for a in out)  # corrections go on
     assert core.full_bas == 0 and core.full_bas_deferred == 1
+    assert core.status(1.5).startswith("overloaded for 2 s: no full BA while running (1 deferred")
     assert core.changed_since_full_ba(0) == 3  # still owed
     assert not core.load(0.7, 2.0) and core.overloaded  # above overload_clear 0.6: stays
     assert core.load(0.5, 4.0) and not core.overloaded

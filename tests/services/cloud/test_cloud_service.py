@@ -414,6 +414,11 @@ def test_map_source_versions_and_pruned_items():
     v3 = src.publish(CloudView(atlas.snapshot(), (), frozenset({keys[4]}), frozenset()))
     assert src.snapshot(v2).removed_keyframe_ids.tolist() == [keys[2]]
     assert len(src.snapshot(-1).keyframes) == 5 and src.snapshot(-1).version == v3
+    # The service's state in words reaches the panels' stats.
+    assert src.stats().status == ""
+    view = CloudView(atlas.snapshot(), (), frozenset({keys[4]}), frozenset(), status="busy")
+    src.publish(view)
+    assert src.stats().status == "busy"
 
 
 def _free_port() -> int:
