@@ -8,6 +8,7 @@ RECSLAM_UPDATE_SCREENSHOT=1 to also refresh docs/dashboard.png (written when mis
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import shutil
 import socket
@@ -101,6 +102,7 @@ def _settled_shot(page, want_points: bool, timeout_s: float = 30.0) -> bytes:
 
 def test_dashboard_draws_points_and_panels_in_chromium(browser, tmp_path):
     delta, stats = make_demo_map(DemoConfig(n_points=30_000))
+    stats = dataclasses.replace(stats, status="overloaded for 12 s: no full BA while running")
     token = new_access_token()  # the demo view goes through the token and cookie, as users do
     demo = Dashboard(
         StaticMapSource(delta, stats), DashboardConfig("127.0.0.1", _free_port(), token)
@@ -145,3 +147,6 @@ def test_dashboard_draws_points_and_panels_in_chromium(browser, tmp_path):
     assert "robots→edge" in text and "robot0, robot1" in text and "robot2" in text
     assert "no edges yet" in empty_text
     assert "no agents yet" in empty_text and str(c.map_points) not in empty_text
+    # The source's own state (the cloud shedding work under load), only where there is one.
+    assert "Cloud: overloaded for 12 s: no full BA while running" in text
+    assert "Cloud:" not in empty_text
