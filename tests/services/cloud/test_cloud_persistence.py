@@ -466,3 +466,40 @@ def test_keyframe_state_refreshes_and_new_links_leave_the_features_unwritten(tmp
         np.testing.assert_allclose(getattr(r, name), getattr(refreshed, name), atol=1e-12)
     np.testing.assert_array_equal(r.map_point_keys, atlas.keyframe(keys[-1]).map_point_keys)
     assert r.map_point_keys[free] == make_key(linked.agent_id, linked.map_point_id)
+
+
+def test_a_schema_8_state_dir_keeps_its_keyframes_states_and_gets_the_state_column(tmp_path):
+    """A schema-8 store (the keyframe's state only in its features blob) opens as schema 9:
+    each keyframe's velocity and biases come from the blob until a refresh writes its state
+    column."""
+    import sqlite3
+
+    from services.cloud.persistence import DB_NAME, SCHEMA_VERSION
+
+    world = make_world(46, n_points=400)
+    k0, m0 = make_session(world, default_camera(), 0, circle_poses(4, turns=0.2), np.eye(4))
+    k0 = [dataclasses.replace(k, velocity=np.array([0.1 * i, 0.2, 0.3])) for i, k in enumerate(k0)]
+    atlas = Atlas()
+    keys = [atlas.add_keyframe(k) for k in k0]
+    with CloudStore(tmp_path) as store:
+        store.commit(atlas, keys, atlas.add_map_points(m0))
+    db = sqlite3.connect(tmp_path / DB_NAME)
+    db.executescript(
+        "ALTER TABLE keyframes DROP COLUMN state; UPDATE meta SET value = 8 WHERE name='schema';"
+    )
+    db.close()
+    with CloudStore(tmp_path) as store:
+        old = store.load()
+        for k, key in zip(k0, keys, strict=True):
+            np.testing.assert_allclose(old.keyframe(key).velocity, k.velocity)
+        v = np.array([9.0, 8.0, 7.0])
+        assert old.refresh_keyframe(0, k0[1].keyframe_id, k0[1].T_world_body, v, v, v)
+        store.commit(old)
+    db = sqlite3.connect(tmp_path / DB_NAME)
+    assert db.execute("SELECT value FROM meta WHERE name='schema'").fetchone() == (SCHEMA_VERSION,)
+    states = dict(db.execute("SELECT key, state IS NOT NULL FROM keyframes"))
+    db.close()
+    assert states == {k: int(k == keys[1]) for k in keys}  # (NULL: the blob's state)
+    again = CloudStore(tmp_path).load()
+    np.testing.assert_allclose(again.keyframe(keys[1]).velocity, v)
+    np.testing.assert_allclose(again.keyframe(keys[2]).velocity, k0[2].velocity)
