@@ -191,8 +191,12 @@ class Panels:
 
     def _update_plot(self, ls: LinkSeries) -> None:
         labels = tuple(ls.kbit_s)
-        data = (ls.t_s, *(ls.kbit_s[k] for k in labels))
         known = self._plots.get(ls.link)
+        if not labels:  # a link silent for the whole window: its plot (if any) drops to 0
+            if known is not None:
+                known[1].data = (ls.t_s, *(np.zeros_like(ls.t_s) for _ in known[0]))
+            return
+        data = (ls.t_s, *(ls.kbit_s[k] for k in labels))
         if known is not None and known[0] == labels:
             known[1].data = data
             return

@@ -179,3 +179,34 @@ def test_counts_say_the_sources_status_when_it_has_one():
     )
     text = counts_markdown(dataclasses.replace(stats, status="overloaded for 12 s"))
     assert "**Cloud:** overloaded for 12 s" in text
+
+
+def test_a_link_silent_for_the_whole_window_keeps_its_plot_at_zero():
+    """Once one link's samples have all left the window (its edge finished, another goes on),
+    its plot drops to zero instead of failing the panel's update on every poll."""
+    import socket
+
+    import viser
+
+    from common.map_view import MapCounts, StatsSnapshot
+    from dashboard.panels import Panels
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    server = viser.ViserServer(host="127.0.0.1", port=port, verbose=False)
+    try:
+        panels = Panels(server, window_s=5.0)
+        up = Direction.UP
+        counts = MapCounts(0, 0, 0, 0, 0, 0)
+        early = (
+            BandwidthSample(1.0, "a→cloud", up, "keyframe", 1000),
+            BandwidthSample(1.0, "b→cloud", up, "keyframe", 1000),
+        )
+        panels.update(StatsSnapshot(1.0, (), counts, early), {})
+        late = (*early, BandwidthSample(20.0, "b→cloud", up, "keyframe", 500))
+        panels.update(StatsSnapshot(20.0, (), counts, late), {})  # a: nothing in (15, 20]
+        a_data, b_data = (panels._plots[k][1].data for k in ("a→cloud", "b→cloud"))
+        assert not np.asarray(a_data[1]).any() and np.asarray(b_data[1]).any()
+    finally:
+        server.stop()
