@@ -44,8 +44,9 @@ The schedule:
   sheds what only refines the map: no full BA is started (a due one waits, and so does the
   MBP pass that waits for it; both run at the first pose graph after the load fell, and at
   shutdown), no quiet full BA, and place recognition verifies only consistent candidates
-  (``CloudApp.shed``). Messages, pose graphs and corrections go on: the edges' queues stay
-  bounded as long as those alone fit the cloud's CPU.
+  (``CloudApp.shed``), and the dashboard's map view is refreshed less often
+  (:meth:`CloudCore.publish_every_s`). Messages, pose graphs and corrections go on: the
+  edges' queues stay bounded as long as those alone fit the cloud's CPU.
 - **Shutdown** (:meth:`CloudCore.shutdown`): with full BA on and ``full_ba_at_shutdown_s`` > 0,
   the scheduled pose graphs first, then a full BA of every changed map, the solves sharing
   ``full_ba_at_shutdown_s`` in all (a map with no time left is skipped; no corrections are
@@ -268,6 +269,13 @@ class CloudCore:
             )
         self.app.shed(self.overloaded)
         return True
+
+    def publish_every_s(self) -> float:
+        """How often the dashboard's map view is refreshed now (0: never)."""
+        every = self.config.publish_every_s
+        if every > 0 and self.overloaded:
+            return max(every, self.config.overload_publish_every_s)
+        return every
 
     def status(self, now: float) -> str:
         """The load shedding in words, for the dashboard ('' while not overloaded)."""

@@ -527,7 +527,10 @@ class CloudServer:
                 raise
             except Exception:
                 log.exception("map view refresh failed")
-            await asyncio.sleep(self.config.publish_every_s)
+            core = self._core  # (slower while it sheds work)
+            await asyncio.sleep(
+                self.config.publish_every_s if core is None else core.publish_every_s()
+            )
 
     async def write_output(self, evaluate: bool = True) -> list[Path]:
         """Write trajectories (and the ATE report when ground truth is known)."""

@@ -342,6 +342,7 @@ def test_overloaded_the_due_full_ba_waits_and_runs_at_the_first_pose_graph_after
     assert core.status(0.0) == ""
     assert core.load(0.95, 0.0) and core.overloaded and core.overloads == 1
     assert f.app.fusion.recognizer.shed_early  # the early loop candidates shed too
+    assert core.publish_every_s() == 5.0  # and the dashboard's refresh slows down
     for i in range(3):
         f.keyframe("r0", 0.1 * i)
     out = run_inline(core, core.on_timer(1.0), 1.0)
@@ -353,6 +354,7 @@ def test_overloaded_the_due_full_ba_waits_and_runs_at_the_first_pose_graph_after
     assert not core.load(0.7, 2.0) and core.overloaded  # above overload_clear 0.6: stays
     assert core.load(0.5, 4.0) and not core.overloaded
     assert not f.app.fusion.recognizer.shed_early
+    assert core.publish_every_s() == 0.5
     assert core.overloaded_seconds(9.0) == pytest.approx(4.0)
     for i in range(3):
         f.keyframe("r0", 5.0 + 0.1 * i)
