@@ -285,6 +285,8 @@ class TeamRow:
     merges: int
     optimizations: int
     queue_trace: list[tuple[float, int]]
+    overloaded_s: float = 0.0  # the cloud shedding work (CloudStats.overload)
+    full_bas_deferred: int = 0
 
 
 def team_row(agents: int, live: Any) -> TeamRow:
@@ -328,6 +330,8 @@ def team_row(agents: int, live: Any) -> TeamRow:
         merges=int(st.get("merges", 0)),
         optimizations=int(st.get("optimizations", 0)),
         queue_trace=[(float(s["t"]), int(s["queue"])) for s in live.samples],
+        overloaded_s=float(st.get("overload", {}).get("overloaded_s", 0.0)),
+        full_bas_deferred=int(st.get("overload", {}).get("full_bas_deferred", 0)),
     )
 
 

@@ -99,13 +99,16 @@ def scale_markdown(
         "camera rate: queueing counts) to the first `PoseCorrection` the edge received "
         "that covers it; *corrected*: the share of keyframes that got one before the end.",
         "- **RSS**: peak resident memory of the cloud and its children.",
+        "- **Shed**: seconds the cloud was overloaded and shed the work that only refines the "
+        "map (`recslam cloud --overload-busy`: no full BA while running, no early loop "
+        "candidates, a slower dashboard refresh) before the final stats were read.",
         "",
     ]
     head = (
         "| agents | edges | keyframes | messages | worker ms/KF | busy | busy wall | "
         "ms/msg wall | cloud CPU | "
         "queue max | queue end | drain s | latency median s | latency p95 s | corrected | "
-        "RSS MB | maps | keeps up |"
+        "RSS MB | maps | shed s | keeps up |"
     )
     lines += [head, "|" + "---|" * (head.count("|") - 1)]
     for runs in rows:
@@ -133,6 +136,7 @@ def scale_markdown(
                     _spread([r.corrected for r in runs]),
                     _spread([r.rss_max_mb for r in runs], ".0f"),
                     _spread([r.maps for r in runs], ".0f"),
+                    _spread([r.overloaded_s for r in runs], ".0f"),
                     "yes" if all(_keeps_up(r) for r in runs) else "**no**",
                 ]
             )

@@ -126,6 +126,9 @@ def test_live_replay_to_a_cloud_process(recording, tmp_path):
     assert row.keyframes == 84 and row.messages == len(sends)
     assert 0 < row.corrected <= 1 and row.latency["median"] >= 0
     assert row.stage_ms["place recognition"] > 0 and row.worker_queue_max <= 2
+    shed = live.stats["overload"]  # (10x faster than the camera: it may well shed)
+    assert row.overloaded_s == shed["overloaded_s"] >= 0
+    assert row.full_bas_deferred == shed["full_bas_deferred"] == 0  # (no full BA at all)
     # The report of that one team: its row in the table and the plot.
     from lab.scale import ScaleConfig
     from lab.scale_report import write_scale
@@ -134,6 +137,7 @@ def test_live_replay_to_a_cloud_process(recording, tmp_path):
     md, png = write_scale(config, [[row]], [copies])[0], tmp_path / "scale.png"
     text = md.read_text()
     assert f"| 4 | 2 | 84 | {len(sends)} |" in text and "site1: recording 0" in text
+    assert "| shed s |" in text
     assert png.stat().st_size > 10_000
 
 
