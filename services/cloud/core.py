@@ -270,12 +270,15 @@ class CloudCore:
         self.app.shed(self.overloaded)
         return True
 
-    def publish_every_s(self) -> float:
-        """How often the dashboard's map view is refreshed now (0: never)."""
-        every = self.config.publish_every_s
-        if every > 0 and self.overloaded:
-            return max(every, self.config.overload_publish_every_s)
-        return every
+    def publish_every_s(self, last_s: float = 0.0) -> float:
+        """How long until the dashboard's map view is refreshed again (0: never), given
+        that the last refresh took ``last_s`` seconds of the worker."""
+        cfg = self.config
+        every = cfg.publish_every_s
+        if every <= 0:
+            return every
+        every = max(every, cfg.publish_rest_factor * last_s)
+        return max(every, cfg.overload_publish_every_s) if self.overloaded else every
 
     def status(self, now: float) -> str:
         """The load shedding in words, for the dashboard ('' while not overloaded)."""

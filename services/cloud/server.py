@@ -520,17 +520,19 @@ class CloudServer:
         return dict(self._references) if self._references else None
 
     async def _publish_loop(self) -> None:
+        loop = asyncio.get_running_loop()
         while True:
+            t0 = loop.time()
             try:
                 await self.publish()
             except asyncio.CancelledError:
                 raise
             except Exception:
                 log.exception("map view refresh failed")
-            core = self._core  # (slower while it sheds work)
-            await asyncio.sleep(
-                self.config.publish_every_s if core is None else core.publish_every_s()
-            )
+            core = self._core  # (rests as long as the refresh took, and longer under load)
+            last = loop.time() - t0
+            every = self.config.publish_every_s if core is None else core.publish_every_s(last)
+            await asyncio.sleep(every)
 
     async def write_output(self, evaluate: bool = True) -> list[Path]:
         """Write trajectories (and the ATE report when ground truth is known)."""

@@ -343,6 +343,7 @@ def test_overloaded_the_due_full_ba_waits_and_runs_at_the_first_pose_graph_after
     assert core.load(0.95, 0.0) and core.overloaded and core.overloads == 1
     assert f.app.fusion.recognizer.shed_early  # the early loop candidates shed too
     assert core.publish_every_s() == 5.0  # and the dashboard's refresh slows down
+    assert core.publish_every_s(last_s=0.7) == 7.0  # (never more than ~10 % of the worker)
     for i in range(3):
         f.keyframe("r0", 0.1 * i)
     out = run_inline(core, core.on_timer(1.0), 1.0)
@@ -355,6 +356,7 @@ def test_overloaded_the_due_full_ba_waits_and_runs_at_the_first_pose_graph_after
     assert core.load(0.5, 4.0) and not core.overloaded
     assert not f.app.fusion.recognizer.shed_early
     assert core.publish_every_s() == 0.5
+    assert core.publish_every_s(last_s=0.2) == pytest.approx(2.0)
     assert core.overloaded_seconds(9.0) == pytest.approx(4.0)
     for i in range(3):
         f.keyframe("r0", 5.0 + 0.1 * i)
