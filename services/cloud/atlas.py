@@ -39,7 +39,6 @@ from services.cloud.atlas_records import (
 )
 from services.cloud.map_types import (
     LOCAL_BITS,
-    LOCAL_ID_MAX,
     AtlasError,
     AtlasSnapshot,
     AtlasState,
@@ -212,13 +211,8 @@ class Atlas:
         re-sends every point local BA moved, most of them with the same observations)."""
         if not points:
             return []
-        agents = np.array([p.agent_id for p in points], np.int64)
+        agents = np.array([p.agent_id for p in points], np.int64)  # (ids checked by the input)
         ids = np.array([p.map_point_id for p in points], np.int64)
-        if agents.min() < 0 or ids.min() < 0 or ids.max() > LOCAL_ID_MAX:
-            bad = next(
-                p for p in points if p.agent_id < 0 or not 0 <= p.map_point_id <= LOCAL_ID_MAX
-            )
-            make_key(bad.agent_id, bad.map_point_id)  # raises, naming it
         p_map = np.array([p.p_world for p in points], np.float64).reshape(-1, 3)
         for agent in np.unique(agents).tolist():
             self._ensure_agent(agent)
@@ -255,8 +249,6 @@ class Atlas:
         for mp, mp_in in todo:
             base, mp_obs, pending = mp_in.agent_id << LOCAL_BITS, mp.obs, mp.pending
             for kf_id, kp_idx in mp_in.observations.tolist():
-                if kf_id > LOCAL_ID_MAX:
-                    make_key(mp_in.agent_id, kf_id)  # raises, naming it
                 kkey = base | kf_id
                 if kkey not in mp_obs and kkey not in removed:
                     pending.setdefault(kkey, kp_idx)

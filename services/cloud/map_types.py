@@ -38,6 +38,16 @@ def make_key(agent_id: int, local_id: int) -> int:
     return (int(agent_id) << LOCAL_BITS) | int(local_id)
 
 
+def _check_ids(what: str, agents: np.ndarray, ids: np.ndarray, obs: np.ndarray) -> None:
+    """AtlasError unless every agent id is >= 0 and every local id (``ids``, the keyframe
+    ids in ``obs[:, 0]``) is in ``[0, LOCAL_ID_MAX]``: what :func:`make_key` takes."""
+    local = np.concatenate([np.asarray(ids, np.int64).ravel(), obs[:, 0]])
+    if (agents.size and agents.min() < 0) or (
+        local.size and (local.min() < 0 or local.max() > LOCAL_ID_MAX)
+    ):
+        raise AtlasError(f"{what}: bad id (agent >= 0, ids and keyframe ids in [0, 2**32))")
+
+
 def split_key(key: int) -> tuple[int, int]:
     """Inverse of :func:`make_key`: ``(agent_id, local_id)``."""
     return int(key) >> LOCAL_BITS, int(key) & LOCAL_ID_MAX
@@ -115,7 +125,8 @@ class KeyframeInput:
 @dataclass(frozen=True, eq=False)
 class MapPointInput:
     """A map point as the edge sends it: ``p_world (3,)`` metres in the agent's map frame,
-    ``observations (M, 2)`` int rows ``(keyframe_id, keypoint_index)`` of the same agent."""
+    ``observations (M, 2)`` int rows ``(keyframe_id, keypoint_index)`` of the same agent.
+    Its ids are checked as :func:`make_key` needs them, so keys are built without checks."""
 
     agent_id: int
     map_point_id: int
@@ -131,6 +142,7 @@ class MapPointInput:
             np.int64,
             f"{what}: observations",
         )
+        _check_ids(what, np.array([self.agent_id]), np.array([self.map_point_id]), obs)
         for v in (p, obs):
             v.setflags(write=False)
         object.__setattr__(self, "p_world", p)
@@ -159,6 +171,7 @@ class MapPointInput:
             raise AtlasError(f"{what}: observation ranges do not fit the ids")
         if n and int(hi.max()) > obs.shape[0]:
             raise AtlasError(f"{what}: observation ranges beyond the observations")
+        _check_ids(what, np.array([agent_id]), np.asarray(ids), obs)
         for v in (P, obs):
             v.setflags(write=False)
         out = []

@@ -375,3 +375,12 @@ def test_refresh_keyframe_sets_the_state_and_refuses_what_it_lacks(session):
     assert not atlas.refresh_keyframe(0, kfs[-1].keyframe_id, np.eye(4), v, v, v)  # not held
     with pytest.raises(AtlasError, match="malformed state"):
         atlas.refresh_keyframe(0, kfs[1].keyframe_id, np.eye(3), v, v, v)
+
+
+def test_a_map_point_input_refuses_ids_a_key_cannot_hold():
+    p = np.zeros(3)
+    for agent, mp_id, obs in ((-1, 0, []), (0, 2**32, []), (0, 1, [[-1, 0]]), (0, 1, [[2**32, 0]])):
+        with pytest.raises(AtlasError, match="bad id"):
+            MapPointInput(agent, mp_id, p, np.array(obs, np.int64).reshape(-1, 2))
+    with pytest.raises(AtlasError, match="bad id"):
+        MapPointInput.batch(0, np.array([1]), p[None], np.array([[-3, 0]]), [0], [1])
