@@ -252,8 +252,7 @@ class CloudCore:
         if self.overloaded:
             if busy > cfg.overload_clear:
                 return False
-            assert self._overloaded_since is not None
-            self.overloaded_s += max(0.0, now - self._overloaded_since)
+            self.overloaded_s += self._spell_s(now)
             self._overloaded_since = None
             log.info("load %.2f: no longer overloaded; full BA and early candidates resume", busy)
         else:
@@ -282,18 +281,21 @@ class CloudCore:
 
     def status(self, now: float) -> str:
         """The load shedding in words, for the dashboard ('' while not overloaded)."""
-        since = self._overloaded_since
-        if since is None:
+        if not self.overloaded:
             return ""
         return (
-            f"overloaded for {max(0.0, now - since):.0f} s: no full BA while running "
+            f"overloaded for {self._spell_s(now):.0f} s: no full BA while running "
             f"({self.full_bas_deferred} deferred so far), only consistent loop candidates"
         )
 
     def overloaded_seconds(self, now: float) -> float:
         """Time spent overloaded up to ``now`` (the current spell included)."""
+        return self.overloaded_s + self._spell_s(now)
+
+    def _spell_s(self, now: float) -> float:
+        """How long the current overload has lasted at ``now`` (0: none)."""
         since = self._overloaded_since
-        return self.overloaded_s + (0.0 if since is None else max(0.0, now - since))
+        return 0.0 if since is None else max(0.0, now - since)
 
     # ------------------------------------------------------------------ messages
     def resume(self, now: float) -> None:
