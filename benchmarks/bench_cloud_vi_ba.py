@@ -23,6 +23,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import logging
+import os
 import platform
 import tempfile
 import time
@@ -82,12 +83,17 @@ def _position_rms_cm(T_est: np.ndarray, T_true: np.ndarray) -> float:
 
 
 def incremental_rows(
-    sizes: list[int], n_landmarks: int, batch: int, solvers: list[tuple[int, int]]
+    sizes: list[int],
+    n_landmarks: int,
+    batch: int,
+    solvers: list[tuple[int, int, bool]],
+    full_check_max: int,
 ) -> list[str]:
     """The service's incremental solver (:func:`solve_full_ba_incremental`) fed each
     synthetic problem in time order (:func:`problem_prefix`), ``batch`` keyframes more per
-    full BA, with each (``incremental_max_updates``, ``relinearize_budget``) of ``solvers``;
-    then one batch solve of the whole problem for comparison."""
+    full BA, with each (``incremental_max_updates``, ``relinearize_budget``,
+    ``partial_relinearization_check``) of ``solvers`` (those with the full check only up to
+    ``full_check_max`` keyframes); then one batch solve of the whole problem for comparison."""
     cam = default_camera()
     gcfg = GlobalOptimizationConfig()
     base = dataclasses.replace(FullBAConfig(), imu_factors=True, incremental=True)
@@ -96,11 +102,17 @@ def incremental_rows(
         atlas, store, truth = vi_circle_atlas(n, n_landmarks=n_landmarks, scale=1.03, seed=0)
         problem = build_full_ba(atlas, 0, cam, base, gcfg, store, _one_imu(truth.imu))
         ref = solve_full_ba(problem, dataclasses.replace(base, max_seconds=600.0), gcfg)
-        for max_updates, budget in solvers:
+        for max_updates, budget, partial in solvers:
+            if not partial and n > full_check_max:
+                log.info("%d keyframes: the full relinearisation check skipped", n)
+                continue
             cfg = dataclasses.replace(
-                base, incremental_max_updates=max_updates, relinearize_budget=budget
+                base,
+                incremental_max_updates=max_updates,
+                relinearize_budget=budget,
+                partial_relinearization_check=partial,
             )
-            session = f"bench-{n}-{max_updates}-{budget}"
+            session = f"bench-{n}-{max_updates}-{budget}-{partial}"
             times, resets, first = [], 0, float("nan")
             for m in range(min(100, n), n + 1, batch):
                 res = solve_full_ba_incremental(problem_prefix(problem, m), cfg, gcfg, session, 0)
@@ -115,7 +127,8 @@ def incremental_rows(
             t = np.array(times)
             last = t[-max(1, len(t) // 10) :]
             rows.append(
-                f"| {n} | {max_updates} | {budget or 'none'} | {len(t)} | {resets} ({first:.2f} s) "
+                f"| {n} | {'partial' if partial else 'full'} | {max_updates} | {budget or 'none'} "
+                f"| {len(t)} | {resets} ({first:.2f} s) "
                 f"| {np.median(t):.3f} | {np.percentile(t, 90):.3f} | {last.mean():.3f} | "
                 f"{t.max():.3f} | {t.sum():.1f} | "
                 f"{map_scale(res.T_world_body, truth.T_world_body):.4f} / "
@@ -205,6 +218,14 @@ def ab_rows(pairs: list[tuple[Path, Path]], variants: list[str]) -> list[str]:
     return rows
 
 
+def _solver(spec: str) -> tuple[int, int, bool]:
+    """``MAX_UPDATES:BUDGET[:full]`` -> (max updates, budget, partial check)."""
+    parts = spec.split(":")
+    if len(parts) not in (2, 3) or (len(parts) == 3 and parts[2] != "full"):
+        raise SystemExit(f"--solvers: {spec!r} is not MAX_UPDATES:BUDGET[:full]")
+    return int(parts[0]), int(parts[1]), len(parts) == 2
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--sizes", default="1000,5000,20000", help="keyframe counts, comma-separated")
@@ -219,9 +240,17 @@ def main() -> None:
     ap.add_argument("--batch", type=int, default=25, help="keyframes per iSAM2 update")
     ap.add_argument(
         "--solvers",
-        default="4:0,1:0,1:2000",
+        default="4:0,1:0,4:0:full,1:0:full",
         help="incremental solver settings to time, comma-separated "
-        "MAX_UPDATES:RELINEARIZE_BUDGET (0: no budget)",
+        "MAX_UPDATES:RELINEARIZE_BUDGET[:full] (0: no budget; full: iSAM2's full "
+        "relinearisation check instead of the partial one)",
+    )
+    ap.add_argument(
+        "--full-check-max",
+        type=int,
+        default=5000,
+        help="largest keyframe count the :full solver settings run at (their updates take "
+        "seconds each beyond it)",
     )
     ap.add_argument(
         "--variants",
@@ -238,9 +267,15 @@ def main() -> None:
         "# Cloud visual-inertial global BA (Eq. 20 with IMU factors)",
         "",
         f"Machine: {platform.processor() or platform.machine()}, Python "
-        f"{platform.python_version()}, one core; `benchmarks/bench_cloud_vi_ba.py --sizes "
+        f"{platform.python_version()}, {len(os.sched_getaffinity(0))} core(s) allowed; "
+        f"`benchmarks/bench_cloud_vi_ba.py --sizes "
         f"{args.sizes} --landmarks {args.landmarks} --iterations {args.iterations}"
-        + (f" --incremental {args.incremental} --solvers {args.solvers}" if inc else "")
+        + (
+            f" --incremental {args.incremental} --solvers {args.solvers} "
+            f"--full-check-max {args.full_check_max}"
+            if inc
+            else ""
+        )
         + "".join(f" --ab {a}" for a in args.ab)
         + "`.",
     ]
@@ -270,24 +305,26 @@ def main() -> None:
             "BA from 100 keyframes: the first builds the graph from a batch solve (rebuilt "
             "column), every later one is an iSAM2 update of what changed and at most "
             "`incremental_max_updates` - 1 more relinearisation steps, each relinearising at "
-            "most `relinearize_budget` variables; its time is everything the optimiser process "
+            "most `relinearize_budget` variables (relinearisation check: iSAM2's partial "
+            "check, from the Bayes tree's root down while a clique has a variable past the "
+            "threshold, or the full one over every variable); its time is everything the "
+            "optimiser process "
             "spends on it (the difference, the updates, reading the estimate out). Last "
             "columns: the map's scale and RMS keyframe position error (SE(3)-aligned, cm) "
             "after the last update, and after one batch solve of the whole problem from the "
             "start values.",
             "",
-            "| keyframes | updates per full BA | relinearisation budget | full BAs | rebuilt (s) "
-            "| median s | p90 s | mean of the last 10 % s | max s | total s | scale / error cm "
-            "after | batch: scale / error cm (time, iterations) |",
-            "|---|---|---|---|---|---|---|---|---|---|---|---|",
+            "| keyframes | relinearisation check | updates per full BA | relinearisation "
+            "budget | full BAs | rebuilt (s) | median s | p90 s | mean of the last 10 % s | "
+            "max s | total s | scale / error cm after | batch: scale / error cm (time, "
+            "iterations) |",
+            "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
             *incremental_rows(
                 inc,
                 args.landmarks,
                 args.batch,
-                [
-                    (int(u), int(b))
-                    for u, _, b in (x.partition(":") for x in args.solvers.split(",") if x)
-                ],
+                [_solver(x) for x in args.solvers.split(",") if x],
+                args.full_check_max,
             ),
         ]
     if args.ab:

@@ -87,6 +87,7 @@ class _Solver:
     obs: dict[int, np.ndarray] = field(default_factory=dict)  # keyframe -> sorted point keys
     obs_factors: dict[int, dict[int, int]] = field(default_factory=dict)  # kf -> point -> index
     inertial: set[int] = field(default_factory=set)  # keyframes with V / B
+    poses: dict[int, np.ndarray] | None = None  # keyframe key -> its pose in the last result
     next_slot: int = 0
     next_point: int = 0
     updates: int = 0
@@ -114,18 +115,20 @@ def _fingerprint(problem: FullBAProblem) -> tuple[Hashable, ...]:
     )
 
 
-def _corrections(
-    solver: _Solver, problem: FullBAProblem, estimate: gtsam.Values
-) -> tuple[np.ndarray, np.ndarray]:
+def _corrections(solver: _Solver, problem: FullBAProblem) -> tuple[np.ndarray, np.ndarray]:
     """Per problem keyframe, the start pose (N, 4, 4) in the graph's frame, and the
     correction (N, 4, 4) that takes its problem pose there."""
     keys = problem.keys.tolist()
     n = len(keys)
     C = np.tile(np.eye(4), (n, 1, 1))
     known = np.array([k in solver.slot for k in keys], bool)
-    for i in np.flatnonzero(known).tolist():
-        E = estimate.atPose3(X(solver.slot[keys[i]])).matrix()
-        C[i] = E @ inverse_T(problem.T_world_body[i])
+    have = np.flatnonzero(known)
+    if solver.poses is not None:  # the last result's: the graph has not moved since
+        E = np.array([solver.poses[keys[i]] for i in have.tolist()]).reshape(-1, 4, 4)
+    else:
+        slots = np.array([solver.slot[keys[i]] for i in have.tolist()], np.int64)
+        E = _poses(solver.isam.calculateEstimate(), slots)
+    C[have] = np.einsum("nij,njk->nik", E, inverse_T(problem.T_world_body[have]))
     agent = np.array([split_key(k)[0] for k in keys], np.int64)
     local = np.array([split_key(k)[1] for k in keys], np.int64)
     for i in np.flatnonzero(~known).tolist():
@@ -408,7 +411,7 @@ def _update(
         T0, C = seed.T_world_body, np.tile(np.eye(4), (problem.keys.shape[0], 1, 1))
         rejected = set(seed.rejected_edges.tolist())
     else:
-        T0, C = _corrections(solver, problem, solver.isam.calculateEstimate())
+        T0, C = _corrections(solver, problem)
         rejected = set()
     graph, values, tags, remove, inertial = _diff(
         solver, problem, config, graph_config, T0, C, rejected, seed
@@ -444,16 +447,45 @@ def _update(
     return updates
 
 
+def _rows(est: gtsam.Values, char: str, slots: np.ndarray) -> np.ndarray:
+    """Rows, in ``est``'s key order among the keys of ``char``, of the variables
+    ``char``-``slots`` (gtsam's extract functions return them in that order)."""
+    keys = np.asarray(est.keys(), np.uint64)
+    mine = np.sort(keys[(keys >> np.uint64(56)) == np.uint64(ord(char))] & np.uint64(2**56 - 1))
+    rows = np.searchsorted(mine, slots.astype(np.uint64))
+    if slots.size and (rows.max() >= mine.size or np.any(mine[rows] != slots)):
+        raise RuntimeError(f"iSAM2 estimate lacks some {char} variables")
+    return rows
+
+
+def _poses(est: gtsam.Values, slots: np.ndarray) -> np.ndarray:
+    """The X poses of ``slots`` (N,) as (N, 4, 4) in one copy out of ``est``."""
+    flat = gtsam.utilities.extractPose3(est)[_rows(est, "x", slots)]  # R row-major, then t
+    T = np.tile(np.eye(4), (slots.size, 1, 1))
+    T[:, :3, :3] = flat[:, :9].reshape(-1, 3, 3)
+    T[:, :3, 3] = flat[:, 9:]
+    return T
+
+
+def _vectors(est: gtsam.Values, char: str, slots: np.ndarray) -> np.ndarray:
+    """The 3-vectors (points, velocities) ``char``-``slots`` (N,) as (N, 3)."""
+    return np.asarray(gtsam.utilities.extractVectors(est, char), np.float64).reshape(-1, 3)[
+        _rows(est, char, slots)
+    ]
+
+
 def _result(
     solver: _Solver, problem: FullBAProblem, updates: int, t0: float, mode: str
 ) -> FullBAResult:
     est = solver.isam.calculateEstimate()
     keys, pkeys = problem.keys.tolist(), problem.point_keys.tolist()
-    T = np.array([est.atPose3(X(solver.slot[k])).matrix() for k in keys]).reshape(-1, 4, 4)
-    p = np.array([est.atPoint3(L(solver.point_slot[q])) for q in pkeys]).reshape(-1, 3)
+    slots = np.array([solver.slot[k] for k in keys], np.int64)
+    T = _poses(est, slots)
+    p = _vectors(est, "l", np.array([solver.point_slot[q] for q in pkeys], np.int64))
     idx = np.array([i for i, k in enumerate(keys) if k in solver.inertial], np.int64)
-    vel = np.array([est.atVector(V(solver.slot[keys[i]])) for i in idx]).reshape(-1, 3)
-    bias = [est.atConstantBias(B(solver.slot[keys[i]])) for i in idx]
+    vel = _vectors(est, "v", slots[idx])
+    bias = [est.atConstantBias(B(int(s))) for s in slots[idx].tolist()]
+    solver.poses = dict(zip(keys, T.copy(), strict=True))
     rejected = [
         e for e, tag in enumerate(_edge_tags(problem)) if solver.factors.get(tag, 0) is None
     ]
@@ -482,6 +514,7 @@ def _params(config: FullBAConfig) -> gtsam.ISAM2Params:
     params = gtsam.ISAM2Params()
     params.setRelinearizeThreshold(config.relinearize_threshold)
     params.relinearizeSkip = config.relinearize_skip
+    params.enablePartialRelinearizationCheck = config.partial_relinearization_check
     return params
 
 

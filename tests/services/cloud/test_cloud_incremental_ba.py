@@ -14,7 +14,15 @@ from common.geometry import inverse_T
 from services.cloud.config import FullBAConfig, GlobalOptimizationConfig
 from services.cloud.core import SolveKind, SolveRequest, solve
 from services.cloud.full_ba import FullBAProblem, build_full_ba, solve_full_ba
-from services.cloud.incremental_ba import _SOLVERS, _held_back, forget, solve_full_ba_incremental
+from services.cloud.incremental_ba import (
+    _SOLVERS,
+    L,
+    V,
+    X,
+    _held_back,
+    forget,
+    solve_full_ba_incremental,
+)
 from services.cloud.simulation import default_camera, map_scale, problem_prefix, vi_circle_atlas
 
 CFG = dataclasses.replace(FullBAConfig(), incremental=True)
@@ -42,11 +50,13 @@ def _positions_cm(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.abs(a[:, :3, 3] - b[:, :3, 3]).max() * 100)
 
 
-def test_time_ordered_updates_reach_the_batch_solution(session):
+@pytest.mark.parametrize("partial", [True, False], ids=["partial-check", "full-check"])
+def test_time_ordered_updates_reach_the_batch_solution(session, partial):
     _, _, truth, problem = _circle(160)
+    cfg = dataclasses.replace(CFG, partial_relinearization_check=partial)
     modes = []
     for n in range(60, 161, 20):
-        res = solve_full_ba_incremental(problem_prefix(problem, n), CFG, GRAPH, session, 0)
+        res = solve_full_ba_incremental(problem_prefix(problem, n), cfg, GRAPH, session, 0)
         modes.append(res.mode)
         assert res.keys.tolist() == problem.keys[:n].tolist()
         assert res.velocity.shape == (n, 3)
@@ -59,6 +69,24 @@ def test_time_ordered_updates_reach_the_batch_solution(session):
     assert abs(s_inc - s_batch) < 0.002, (s_inc, s_batch)
     assert res.final_rms_px < 1.05 * batch.final_rms_px
     assert _positions_cm(res.T_world_body, batch.T_world_body) < 1.5
+
+
+def test_the_result_is_the_graph_estimate_read_key_by_key(session):
+    _, _, _, problem = _circle(120)
+    for n in (80, 120):
+        res = solve_full_ba_incremental(problem_prefix(problem, n), CFG, GRAPH, session, 0)
+    solver = _SOLVERS[(session, 0)]
+    est = solver.isam.calculateEstimate()
+    keys = res.keys.tolist()
+    T = np.array([est.atPose3(X(solver.slot[k])).matrix() for k in keys])
+    np.testing.assert_array_equal(res.T_world_body, T)
+    p = np.array([est.atPoint3(L(solver.point_slot[q])) for q in res.point_keys.tolist()])
+    np.testing.assert_array_equal(res.p_world, p)
+    v = np.array([est.atVector(V(solver.slot[keys[i]])) for i in res.inertial_index.tolist()])
+    np.testing.assert_array_equal(res.velocity, v)
+    # The next update starts from these poses (not a second read of the estimate).
+    assert solver.poses is not None and sorted(solver.poses) == sorted(keys)
+    np.testing.assert_array_equal(np.array([solver.poses[k] for k in keys]), T)
 
 
 def test_a_relinearisation_budget_holds_back_the_smallest_steps_and_still_converges(session):
