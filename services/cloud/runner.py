@@ -108,7 +108,7 @@ class CloudRunConfig:
     mbp: bool = True
     mbp_every: int = 0
     full_ba: bool = True
-    incremental_ba: bool = False
+    incremental_ba: bool = True
     optimizer_nice: int = 0
     decode_workers: int = 0
     overload_busy: float = 0.9
@@ -283,10 +283,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--incremental-ba",
         action=argparse.BooleanOptionalAction,
-        default=False,
+        default=True,
         help="solve each full BA incrementally on the map's iSAM2 graph, rebuilt by a batch "
-        "solve after merges (default off: a batch solve each time; "
-        "benchmarks/results/cloud_vi_ba.md)",
+        "solve after merges (default on; --no-incremental-ba: a batch solve each time, "
+        "whose cost grows with the map; benchmarks/results/cloud_vi_ba_incremental.md)",
     )
     p.add_argument("--agent-id", default="cloud", help="this service's agent id (default cloud)")
     p.add_argument(

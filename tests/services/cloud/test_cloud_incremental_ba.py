@@ -178,7 +178,8 @@ def test_a_new_agent_or_held_keyframe_rebuilds_the_graph(session):
 
 def test_the_service_request_dispatches_on_the_switch(session):
     _, _, _, problem = _circle(40)
-    batch = SolveRequest(0, SolveKind.FULL_BA, problem, 0, GRAPH, FullBAConfig(), session)
-    inc = dataclasses.replace(batch, full_ba=CFG)
+    off = dataclasses.replace(FullBAConfig(), incremental=False)
+    batch = SolveRequest(0, SolveKind.FULL_BA, problem, 0, GRAPH, off, session)
+    inc = dataclasses.replace(batch, full_ba=FullBAConfig())  # the default: incremental
     assert [solve(batch).mode, solve(batch).mode] == ["batch", "batch"]
     assert [solve(inc).mode, solve(inc).mode] == ["isam2-reset", "isam2"]
