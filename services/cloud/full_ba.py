@@ -291,11 +291,16 @@ def kernel(name: str, scale: float) -> gtsam.noiseModel.mEstimator.Base | None:
     raise FullBAError(f"unknown robust kernel {name!r}")
 
 
-def rms_px(problem: FullBAProblem, T: np.ndarray, p: np.ndarray) -> float:
+def rms_px(problem: FullBAProblem, T: np.ndarray, p: np.ndarray, stride: int = 1) -> float:
+    """Reprojection RMS (px at level 0) of the observations at poses ``T`` (N, 4, 4) and
+    points ``p`` (P, 3); ``stride``: of every ``stride``-th observation only."""
     if problem.n_observations == 0:
         return 0.0
-    xy, _ = _project(problem.T_body_cam, T, p, problem.obs_kf, problem.obs_point)
-    return float(np.sqrt(np.mean(np.sum((xy - problem.obs_xy) ** 2, axis=1)))) * problem.fx
+    kf, pt = problem.obs_kf[::stride], problem.obs_point[::stride]
+    xy, _ = _project(problem.T_body_cam, T, p, kf, pt)
+    return float(np.sqrt(np.mean(np.sum((xy - problem.obs_xy[::stride]) ** 2, axis=1)))) * (
+        problem.fx
+    )
 
 
 def solve_full_ba(

@@ -71,6 +71,7 @@ X, V, B, L = (
 )
 _UNIT_K = gtsam.Cal3_S2(1.0, 1.0, 0.0, 0.0, 0.0)
 _MAX_SOLVERS = 8  # graphs kept per process (least recently used dropped first)
+_RMS_OBSERVATIONS = 200_000  # a result's reprojection RMS samples about this many
 
 Tag = tuple[Hashable, ...]
 
@@ -84,7 +85,8 @@ class _Solver:
     slot: dict[int, int] = field(default_factory=dict)  # keyframe key -> X/V/B index
     point_slot: dict[int, int] = field(default_factory=dict)  # point key -> L index
     factors: dict[Tag, int | None] = field(default_factory=dict)  # None: rejected loop
-    obs: dict[int, np.ndarray] = field(default_factory=dict)  # keyframe -> sorted point keys
+    point_factors: dict[int, list[int]] = field(default_factory=dict)  # point -> its priors
+    obs_sig: dict[int, int] = field(default_factory=dict)  # keyframe -> _obs_groups signature
     obs_factors: dict[int, dict[int, int]] = field(default_factory=dict)  # kf -> point -> index
     inertial: set[int] = field(default_factory=set)  # keyframes with V / B
     poses: dict[int, np.ndarray] | None = None  # keyframe key -> its pose in the last result
@@ -168,16 +170,25 @@ def _edge_tags(problem: FullBAProblem) -> list[Tag]:
     return out
 
 
-def _obs_rows(problem: FullBAProblem) -> dict[int, np.ndarray]:
-    """Problem keyframe index -> its observation rows (the builder groups them)."""
-    order = np.argsort(problem.obs_kf, kind="stable")
-    kf = problem.obs_kf[order]
-    cuts = np.flatnonzero(np.diff(kf)) + 1
-    return {
-        int(g[0]): order[s]
-        for g, s in zip(np.split(kf, cuts), np.split(np.arange(kf.size), cuts), strict=True)
-        if g.size
-    }
+_MIX = np.uint64(0x9E3779B97F4A7C15)
+
+
+def _obs_groups(problem: FullBAProblem) -> tuple[np.ndarray, np.ndarray, list[int]]:
+    """The observation rows grouped by problem keyframe, ``(rows, start (N + 1,), signature)``:
+    keyframe i's rows are ``rows[start[i]:start[i + 1]]`` (the builder groups them already),
+    its signature a wrapping sum of its point keys, each mixed (a Fibonacci multiply and an
+    xor-shift): it changes when the set of points the keyframe observes does, so unchanged
+    keyframes are skipped without a look at their rows."""
+    kf = problem.obs_kf
+    grouped = kf.size < 2 or bool(np.all(kf[1:] >= kf[:-1]))
+    rows = np.arange(kf.size) if grouped else np.argsort(kf, kind="stable")
+    start = np.zeros(problem.keys.shape[0] + 1, np.int64)
+    np.cumsum(np.bincount(kf, minlength=problem.keys.shape[0]), out=start[1:])
+    h = problem.point_keys[problem.obs_point[rows]].astype(np.uint64) * _MIX
+    h ^= h >> np.uint64(29)
+    total = np.zeros(kf.size + 1, np.uint64)
+    np.cumsum(h * _MIX, out=total[1:])
+    return rows, start, (total[start[1:]] - total[start[:-1]]).tolist()
 
 
 def _diff(
@@ -208,7 +219,7 @@ def _diff(
     remove: list[int] = []
     for k in [k for k in solver.slot if k not in present]:
         del solver.slot[k]
-        solver.obs.pop(k, None)
+        solver.obs_sig.pop(k, None)
         remove.extend(solver.obs_factors.pop(k, {}).values())
     for i, k in enumerate(keys):
         if k not in solver.slot:
@@ -216,12 +227,12 @@ def _diff(
             solver.next_slot += 1
             values.insert(X(solver.next_slot - 1), pose3(T0[i]))
     sx = [X(solver.slot[k]) for k in keys]
-    # Points: a weak prior each (``point_prior_sigma_m``), held ones a tight one.
+    # Points: a weak prior each (``point_prior_sigma_m``), held ones a tight one; a point
+    # that left the problem takes its priors along (iSAM2 then drops it).
     pkeys = problem.point_keys.tolist()
-    pset = set(pkeys)
-    for p in [p for p in solver.point_slot if p not in pset]:
+    for p in solver.point_slot.keys() - set(pkeys):
         del solver.point_slot[p]
-    rows_of = _obs_rows(problem)
+        remove.extend(solver.point_factors.pop(p, ()))
     ref = np.zeros(len(pkeys), np.int64)
     ref[problem.obs_point[::-1]] = problem.obs_kf[::-1]  # a keyframe observing each point
     seed_p = None if seed is None else seed.p_world
@@ -229,7 +240,6 @@ def _diff(
     tight = gtsam.noiseModel.Isotropic.Sigma(3, graph_config.prior_sigma)
     held_pts = set() if problem.held_points is None else set(problem.held_points.tolist())
     for j, p in enumerate(pkeys):
-        want.add(("point", p))
         if p in solver.point_slot:
             continue
         solver.point_slot[p] = solver.next_point
@@ -240,12 +250,8 @@ def _diff(
             xyz = transform_points(C[ref[j]], problem.p_world[j : j + 1])[0]
         values.insert(L(solver.point_slot[p]), xyz)
         add(("point", p), gtsam.PriorFactorPoint3(L(solver.point_slot[p]), xyz, weak))
-        if j in held_pts:
-            want.add(("hold", p))
+        if j in held_pts:  # (held points change only with a rebuild: the fingerprint)
             add(("hold", p), gtsam.PriorFactorPoint3(L(solver.point_slot[p]), xyz, tight))
-    for j in held_pts:
-        want.add(("hold", pkeys[j]))
-    sl = [L(solver.point_slot[p]) for p in pkeys]
     # Keyframe priors and attitude terms.
     prior = gtsam.noiseModel.Isotropic.Sigma(6, graph_config.prior_sigma)
     for i in held_indices(problem.fixed, problem.held):
@@ -328,19 +334,20 @@ def _diff(
             if tag not in solver.factors:
                 bias = make_bias(terms.bias_accel[i], terms.bias_gyro[i])
                 add(tag, gtsam.PriorFactorConstantBias(B(solver.slot[keys[i]]), bias, bias_prior))
-    # Reprojection terms, keyframe by keyframe (unchanged keyframes are skipped); they are
-    # kept per keyframe (``obs_factors``), not as tags, so an unchanged keyframe costs nothing.
+    # Reprojection terms, keyframe by keyframe (unchanged keyframes are skipped by their
+    # signature); they are kept per keyframe (``obs_factors``), not as tags, so an unchanged
+    # keyframe costs nothing.
     obs_kernel = kernel(config.robust_kernel, config.kernel_scale)
     noise_of: dict[float, gtsam.noiseModel.Base] = {}
+    all_rows, start, sig = _obs_groups(problem)
     for i, k in enumerate(keys):
-        rows = rows_of.get(i, np.zeros(0, np.int64))
+        if solver.obs_sig.get(k) == sig[i]:
+            continue
+        solver.obs_sig[k] = sig[i]
+        rows = all_rows[start[i] : start[i + 1]]
         pts = problem.point_keys[problem.obs_point[rows]]
         order = np.argsort(pts)
         pts, rows = pts[order], rows[order]
-        old = solver.obs.get(k)
-        if old is not None and np.array_equal(old, pts):
-            continue
-        solver.obs[k] = pts
         have = solver.obs_factors.setdefault(k, {})
         kept = set(pts.tolist())
         for p in [p for p in have if p not in kept]:
@@ -360,7 +367,7 @@ def _diff(
             add(
                 ("obs", k, p),
                 gtsam.GenericProjectionFactorCal3_S2(
-                    xy, obs_noise, sx[i], sl[int(problem.obs_point[r])], _UNIT_K, body_P_cam
+                    xy, obs_noise, sx[i], L(solver.point_slot[p]), _UNIT_K, body_P_cam
                 ),
             )
     for tag in [t for t in solver.factors if t not in want]:
@@ -421,6 +428,8 @@ def _update(
     for tag, idx in zip(tags, result.getNewFactorsIndices(), strict=True):
         if tag[0] == "obs":
             solver.obs_factors[int(tag[1])][int(tag[2])] = int(idx)  # type: ignore[call-overload]
+        elif tag[0] in ("point", "hold"):
+            solver.point_factors.setdefault(int(tag[1]), []).append(int(idx))  # type: ignore[call-overload]
         else:
             solver.factors[tag] = int(idx)
     solver.inertial = inertial
@@ -447,10 +456,9 @@ def _update(
     return updates
 
 
-def _rows(est: gtsam.Values, char: str, slots: np.ndarray) -> np.ndarray:
-    """Rows, in ``est``'s key order among the keys of ``char``, of the variables
-    ``char``-``slots`` (gtsam's extract functions return them in that order)."""
-    keys = np.asarray(est.keys(), np.uint64)
+def _rows(keys: np.ndarray, char: str, slots: np.ndarray) -> np.ndarray:
+    """Rows, in the order of ``keys`` (an estimate's, sorted) among those of ``char``, of the
+    variables ``char``-``slots`` (gtsam's extract functions return them in that order)."""
     mine = np.sort(keys[(keys >> np.uint64(56)) == np.uint64(ord(char))] & np.uint64(2**56 - 1))
     rows = np.searchsorted(mine, slots.astype(np.uint64))
     if slots.size and (rows.max() >= mine.size or np.any(mine[rows] != slots)):
@@ -458,19 +466,22 @@ def _rows(est: gtsam.Values, char: str, slots: np.ndarray) -> np.ndarray:
     return rows
 
 
-def _poses(est: gtsam.Values, slots: np.ndarray) -> np.ndarray:
-    """The X poses of ``slots`` (N,) as (N, 4, 4) in one copy out of ``est``."""
-    flat = gtsam.utilities.extractPose3(est)[_rows(est, "x", slots)]  # R row-major, then t
+def _poses(est: gtsam.Values, slots: np.ndarray, keys: np.ndarray | None = None) -> np.ndarray:
+    """The X poses of ``slots`` (N,) as (N, 4, 4) in one copy out of ``est`` (``keys``: its
+    keys, when known)."""
+    keys = np.asarray(est.keys(), np.uint64) if keys is None else keys
+    flat = gtsam.utilities.extractPose3(est)[_rows(keys, "x", slots)]  # R row-major, then t
     T = np.tile(np.eye(4), (slots.size, 1, 1))
     T[:, :3, :3] = flat[:, :9].reshape(-1, 3, 3)
     T[:, :3, 3] = flat[:, 9:]
     return T
 
 
-def _vectors(est: gtsam.Values, char: str, slots: np.ndarray) -> np.ndarray:
-    """The 3-vectors (points, velocities) ``char``-``slots`` (N,) as (N, 3)."""
+def _vectors(est: gtsam.Values, keys: np.ndarray, char: str, slots: np.ndarray) -> np.ndarray:
+    """The 3-vectors (points, velocities) ``char``-``slots`` (N,) of ``est`` (keys ``keys``)
+    as (N, 3)."""
     return np.asarray(gtsam.utilities.extractVectors(est, char), np.float64).reshape(-1, 3)[
-        _rows(est, char, slots)
+        _rows(keys, char, slots)
     ]
 
 
@@ -480,16 +491,19 @@ def _result(
     est = solver.isam.calculateEstimate()
     keys, pkeys = problem.keys.tolist(), problem.point_keys.tolist()
     slots = np.array([solver.slot[k] for k in keys], np.int64)
-    T = _poses(est, slots)
-    p = _vectors(est, "l", np.array([solver.point_slot[q] for q in pkeys], np.int64))
+    est_keys = np.asarray(est.keys(), np.uint64)
+    T = _poses(est, slots, est_keys)
+    p = _vectors(est, est_keys, "l", np.array([solver.point_slot[q] for q in pkeys], np.int64))
     idx = np.array([i for i, k in enumerate(keys) if k in solver.inertial], np.int64)
-    vel = _vectors(est, "v", slots[idx])
+    vel = _vectors(est, est_keys, "v", slots[idx])
     bias = [est.atConstantBias(B(int(s))) for s in slots[idx].tolist()]
     solver.poses = dict(zip(keys, T.copy(), strict=True))
     rejected = [
         e for e, tag in enumerate(_edge_tags(problem)) if solver.factors.get(tag, 0) is None
     ]
-    rms0, rms1 = rms_px(problem, problem.T_world_body, problem.p_world), rms_px(problem, T, p)
+    stride = max(1, problem.n_observations // _RMS_OBSERVATIONS)  # (for the log line)
+    rms0 = rms_px(problem, problem.T_world_body, problem.p_world, stride)
+    rms1 = rms_px(problem, T, p, stride)
     return FullBAResult(
         keys=problem.keys.copy(),
         T_world_body=T,
