@@ -138,6 +138,38 @@ def test_culled_keyframes_leave_the_graph_and_an_imu_term_spans_them(session):
     assert res.final_rms_px < 1.05 * batch.final_rms_px
 
 
+def _without_rows(problem: FullBAProblem, rows: np.ndarray) -> FullBAProblem:
+    keep = np.setdiff1d(np.arange(problem.obs_kf.size), rows)
+    return dataclasses.replace(
+        problem,
+        obs_kf=problem.obs_kf[keep],
+        obs_point=problem.obs_point[keep],
+        obs_xy=problem.obs_xy[keep],
+        obs_sigma=problem.obs_sigma[keep],
+    )
+
+
+def test_only_a_keyframe_whose_observations_changed_has_its_terms_redone(session):
+    _, _, _, problem = _circle(60)
+    solve_full_ba_incremental(problem, CFG, GRAPH, session, 0)
+    solver = _SOLVERS[(session, 0)]
+    before = {k: dict(v) for k, v in solver.obs_factors.items()}
+    k = int(problem.keys[30])
+    drop = np.flatnonzero(problem.obs_kf == 30)[:3]
+    gone = set(problem.point_keys[problem.obs_point[drop]].tolist())
+    assert solve_full_ba_incremental(_without_rows(problem, drop), CFG, GRAPH, session, 0).mode == (
+        "isam2"
+    )
+    after = solver.obs_factors
+    assert after[k] == {p: i for p, i in before[k].items() if p not in gone}
+    assert {q: v for q, v in after.items() if q != k} == {q: v for q, v in before.items() if q != k}
+    # Observed again: new terms for those three, the others untouched.
+    solve_full_ba_incremental(problem, CFG, GRAPH, session, 0)
+    assert set(after[k]) == set(before[k])
+    assert all(after[k][p] != before[k][p] for p in gone)
+    assert all(after[k][p] == before[k][p] for p in set(before[k]) - gone)
+
+
 def _with_loop(problem: FullBAProblem, i: int, j: int, T_i_j: np.ndarray) -> FullBAProblem:
     sig = np.array([GRAPH.loop_sigma_rot_rad] * 3 + [GRAPH.loop_sigma_trans_m] * 3)
     return dataclasses.replace(
