@@ -96,7 +96,9 @@ def incremental_rows(
     ``full_check_max`` keyframes); then one batch solve of the whole problem for comparison."""
     cam = default_camera()
     gcfg = GlobalOptimizationConfig()
-    base = dataclasses.replace(FullBAConfig(), imu_factors=True, incremental=True)
+    base = dataclasses.replace(
+        FullBAConfig(), imu_factors=True, incremental=True, incremental_min_keyframes=0
+    )
     rows = []
     for n in sizes:
         atlas, store, truth = vi_circle_atlas(n, n_landmarks=n_landmarks, scale=1.03, seed=0)
@@ -175,7 +177,10 @@ def ab_rows(pairs: list[tuple[Path, Path]], variants: list[str]) -> list[str]:
             label, imu, incremental = VARIANTS[v]
             base = CloudServiceConfig()
             full = dataclasses.replace(
-                base.domain.full_ba, imu_factors=imu, incremental=incremental
+                base.domain.full_ba,
+                imu_factors=imu,
+                incremental=incremental,
+                incremental_min_keyframes=0,  # (iSAM2 at any size: the solvers compared)
             )
             cfg = dataclasses.replace(base, domain=dataclasses.replace(base.domain, full_ba=full))
             solves: list[FullBAResult] = []

@@ -540,11 +540,15 @@ def solve_full_ba_incremental(
     map_id: int,
 ) -> FullBAResult:
     """Solve ``problem`` (map ``map_id`` of cloud ``session``) on the map's iSAM2 graph
-    (module docstring); the first time, and whenever the graph is rebuilt, a batch solve."""
+    (module docstring); the first time, and whenever the graph is rebuilt, a batch solve;
+    a map under ``incremental_min_keyframes`` keyframes only by a batch solve."""
     t0 = time.perf_counter()
     if problem.keys.shape[0] == 0:
         raise FullBAError("empty full-BA problem")
     name = (session, map_id)
+    if problem.keys.shape[0] < config.incremental_min_keyframes:  # a batch solve pays
+        _SOLVERS.pop(name, None)  # (a graph left behind would be stale when it grows again)
+        return solve_full_ba(problem, config, graph_config)
     solver = _SOLVERS.get(name)
     fp = _fingerprint(problem)
     if solver is not None and solver.fingerprint == fp:

@@ -284,9 +284,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--incremental-ba",
         action=argparse.BooleanOptionalAction,
         default=True,
-        help="solve each full BA incrementally on the map's iSAM2 graph, rebuilt by a batch "
-        "solve after merges (default on; --no-incremental-ba: a batch solve each time, "
-        "whose cost grows with the map; benchmarks/results/cloud_vi_ba_incremental.md)",
+        help="solve each full BA of a map of 500 keyframes or more incrementally on the "
+        "map's iSAM2 graph, rebuilt by a batch solve after merges (default on; "
+        "--no-incremental-ba: a batch solve each time, whose cost grows with the map; "
+        "benchmarks/results/cloud_vi_ba_incremental.md)",
     )
     p.add_argument("--agent-id", default="cloud", help="this service's agent id (default cloud)")
     p.add_argument(

@@ -25,7 +25,7 @@ from services.cloud.incremental_ba import (
 )
 from services.cloud.simulation import default_camera, map_scale, problem_prefix, vi_circle_atlas
 
-CFG = dataclasses.replace(FullBAConfig(), incremental=True)
+CFG = dataclasses.replace(FullBAConfig(), incremental=True, incremental_min_keyframes=0)
 GRAPH = GlobalOptimizationConfig()
 
 
@@ -212,6 +212,18 @@ def test_the_service_request_dispatches_on_the_switch(session):
     _, _, _, problem = _circle(40)
     off = dataclasses.replace(FullBAConfig(), incremental=False)
     batch = SolveRequest(0, SolveKind.FULL_BA, problem, 0, GRAPH, off, session)
-    inc = dataclasses.replace(batch, full_ba=FullBAConfig())  # the default: incremental
+    inc = dataclasses.replace(batch, full_ba=CFG)
     assert [solve(batch).mode, solve(batch).mode] == ["batch", "batch"]
     assert [solve(inc).mode, solve(inc).mode] == ["isam2-reset", "isam2"]
+
+
+def test_a_map_under_the_size_threshold_is_solved_in_batch_and_drops_its_graph(session):
+    _, _, _, problem = _circle(60)
+    small = dataclasses.replace(CFG, incremental_min_keyframes=50)
+    modes = [
+        solve_full_ba_incremental(problem_prefix(problem, n), small, GRAPH, session, 0).mode
+        for n in (40, 55, 60, 45)
+    ]
+    assert modes == ["batch", "isam2-reset", "isam2", "batch"]
+    assert (session, 0) not in _SOLVERS  # grown again, it starts from a fresh graph
+    assert FullBAConfig().incremental and FullBAConfig().incremental_min_keyframes > 0
