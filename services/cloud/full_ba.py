@@ -296,11 +296,11 @@ def rms_px(problem: FullBAProblem, T: np.ndarray, p: np.ndarray, stride: int = 1
     points ``p`` (P, 3); ``stride``: of every ``stride``-th observation only."""
     if problem.n_observations == 0:
         return 0.0
-    kf, pt = problem.obs_kf[::stride], problem.obs_point[::stride]
-    xy, _ = _project(problem.T_body_cam, T, p, kf, pt)
-    return float(np.sqrt(np.mean(np.sum((xy - problem.obs_xy[::stride]) ** 2, axis=1)))) * (
-        problem.fx
+    xy, _ = _project(
+        problem.T_body_cam, T, p, problem.obs_kf[::stride], problem.obs_point[::stride]
     )
+    err2 = np.sum((xy - problem.obs_xy[::stride]) ** 2, axis=1)
+    return float(np.sqrt(np.mean(err2))) * problem.fx
 
 
 def solve_full_ba(

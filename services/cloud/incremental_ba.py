@@ -457,9 +457,10 @@ def _update(
 
 
 def _rows(keys: np.ndarray, char: str, slots: np.ndarray) -> np.ndarray:
-    """Rows, in the order of ``keys`` (an estimate's, sorted) among those of ``char``, of the
-    variables ``char``-``slots`` (gtsam's extract functions return them in that order)."""
-    mine = np.sort(keys[(keys >> np.uint64(56)) == np.uint64(ord(char))] & np.uint64(2**56 - 1))
+    """Rows, in the order of ``keys`` (an estimate's: gtsam keeps them sorted) among those of
+    ``char``, of the variables ``char``-``slots`` (gtsam's extract functions return them in
+    that order)."""
+    mine = keys[(keys >> np.uint64(56)) == np.uint64(ord(char))] & np.uint64(2**56 - 1)
     rows = np.searchsorted(mine, slots.astype(np.uint64))
     if slots.size and (rows.max() >= mine.size or np.any(mine[rows] != slots)):
         raise RuntimeError(f"iSAM2 estimate lacks some {char} variables")
