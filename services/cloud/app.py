@@ -43,7 +43,7 @@ import logging
 import threading
 import time
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -534,15 +534,25 @@ class CloudApp:
 
     def prune(self, map_id: int, final: bool = False) -> MbpReport:
         """MBP on ``map_id`` (then the whole atlas is saved). While running (not ``final``)
-        each agent's ``mbp_settle_keyframes`` newest keyframes are kept and a keyframe goes
-        only at ``mbp_running_cover_ratio``; the final pass (at shutdown) keeps
-        ``mbp_keep_recent``."""
+        each agent's ``mbp_settle_keyframes`` newest keyframes are kept, a keyframe goes only
+        at ``mbp_running_cover_ratio`` and map points go at ``mbp_running_min_observations``;
+        the final pass (at shutdown) keeps ``mbp_keep_recent`` and ``domain.mbp``."""
         before = set(self.atlas.map_point_keys(map_id))
         cfg = self.config
-        keep = cfg.mbp_keep_recent if final else max(cfg.mbp_keep_recent, cfg.mbp_settle_keyframes)
-        cover = None if final else cfg.mbp_running_cover_ratio
+        keep, mbp = cfg.mbp_keep_recent, cfg.domain.mbp
+        if not final:
+            keep = max(keep, cfg.mbp_settle_keyframes)
+            mbp = replace(
+                mbp,
+                cover_ratio=mbp.cover_ratio
+                if cfg.mbp_running_cover_ratio is None
+                else cfg.mbp_running_cover_ratio,
+                min_observations=mbp.min_observations
+                if cfg.mbp_running_min_observations is None
+                else cfg.mbp_running_min_observations,
+            )
         with self.stage_timer.span("stage.mbp"):
-            report = self.fusion.prune(map_id, keep, cover)
+            report = self.fusion.prune(map_id, keep, mbp)
         self._changes += 1
         self._pruned_points |= before - set(self.atlas.map_point_keys(map_id))
         self._pruned_keyframes.update(report.removed_keyframes)

@@ -28,7 +28,7 @@ from common.calibration import EUROC_IMU, CameraCalibration, ImuCalibration
 from common.errors import RecslamError
 from common.links import CodecTimer
 from services.cloud.atlas import Atlas, KeyframeInput, MapPointInput, make_key, split_key
-from services.cloud.config import CloudConfig
+from services.cloud.config import CloudConfig, MbpConfig
 from services.cloud.full_ba import FullBAProblem, FullBAResult, apply_full_ba, build_full_ba
 from services.cloud.global_optimization import (
     PoseGraphProblem,
@@ -261,13 +261,11 @@ class MapFusion:
         return apply_pose_graph(self.atlas, result)
 
     def prune(
-        self, map_id: int, keep_recent: int = 5, cover_ratio: float | None = None
+        self, map_id: int, keep_recent: int = 5, config: MbpConfig | None = None
     ) -> MbpReport:
-        """Run MBP on a map (the held agents' keyframes stay; ``cover_ratio``: in place of the
-        configured one) and drop the removed keyframes from the database."""
-        cfg = self.config.mbp
-        if cover_ratio is not None:
-            cfg = dataclasses.replace(cfg, cover_ratio=cover_ratio)
+        """Run MBP on a map (the held agents' keyframes stay; ``config``: in place of the
+        configured ``mbp``) and drop the removed keyframes from the database."""
+        cfg = self.config.mbp if config is None else config
         report = run_mbp(self.atlas, map_id, self.camera_of, cfg, keep_recent, self.held_agents)
         for key in report.removed_keyframes:
             self.recognizer.db.remove(key)

@@ -11,8 +11,9 @@ goes when 90 % of its points are seen by three other keyframes), here with one o
 keyframe and a lower fraction, applied to the whole map under a connectivity constraint:
 
 1. Coverage: a removed keyframe r is *covered* when the kept keyframes observe at least
-   ``cover_ratio`` of r's map points and one kept keyframe (its *absorber*, the strongest)
-   shares at least ``min_shared`` points with r.
+   ``cover_ratio`` of r's map points (those at least two keyframes observe: a point only r
+   sees constrains no pose) and one kept keyframe (its *absorber*, the strongest) shares at
+   least ``min_shared`` points with r.
 2. Backbone (reverse-delete greedy): every keyframe starts kept; pass after pass, in
    decreasing order of redundancy (the fraction of its points other kept keyframes see), a
    keyframe is removed when it is not protected, it is covered by the others, every keyframe
@@ -34,7 +35,9 @@ keyframe and a lower fraction, applied to the whole map under a connectivity con
    descriptor), which makes the absorber a virtual keyframe; points that would still have
    fewer than ``min_observations`` kept observers are also folded into the next absorbers
    (the other kept keyframes sharing ``min_shared`` points with r, strongest first).
-5. Map points left with fewer than ``min_observations`` observations are removed.
+5. Map points left with fewer than ``min_observations`` observations are removed (a pass
+   while the robots run removes only the points left without any, ``CloudServiceConfig.
+   mbp_running_min_observations``: a later keyframe or loop can still observe them).
 6. A removed keyframe is *retired* (:meth:`Atlas.retire_keyframe`): its pose stays, relative
    to the kept keyframe its loops moved to, so trajectories and the ATE still cover every
    keyframe (ORB-SLAM reports culled keyframes through their parents the same way), and
@@ -68,6 +71,10 @@ NOT_COVERED = "not_covered"  # the other kept keyframes do not cover it
 CONNECTOR = "connector"  # its removal would disconnect the kept keyframes
 COVERS_REMOVED = "covers_removed"  # a removed keyframe would lose its coverage
 REASONS = (PROTECTED, NOT_COVERED, CONNECTOR, COVERS_REMOVED)
+
+CONSTRAINING_OBSERVERS = 2
+"""Coverage (step 1) counts a map point only when at least this many keyframes observe it:
+the full BA's own rule for a point that constrains poses (``services.cloud.full_ba``)."""
 
 
 @dataclass(frozen=True)
@@ -132,18 +139,21 @@ class _Coverage:
     """Observer counts of the map points of a set of keyframes while some are removed.
 
     ``count[p]`` is how many kept keyframes observe point index p; ``points[k]`` the point
-    indices keyframe k observes (real and virtual observations)."""
+    indices keyframe k observes (real and virtual observations) among the points at least
+    :data:`CONSTRAINING_OBSERVERS` of the keyframes observe: a point only k sees constrains
+    no pose (the full BA leaves it out), so k need not be covered on it."""
 
     def __init__(self, atlas: Atlas, keys: list[int]) -> None:
         index: dict[int, int] = {}
-        self.points: dict[int, np.ndarray] = {}
+        points: dict[int, np.ndarray] = {}
         for k in keys:
             mk = atlas.keyframe(k).map_point_keys
             ids = [index.setdefault(m, len(index)) for m in np.unique(mk[mk >= 0]).tolist()]
-            self.points[k] = np.array(ids, np.int64)
+            points[k] = np.array(ids, np.int64)
         self.count = np.zeros(len(index), np.int64)
-        for p in self.points.values():
+        for p in points.values():
             self.count[p] += 1
+        self.points = {k: p[self.count[p] >= CONSTRAINING_OBSERVERS] for k, p in points.items()}
 
     def fraction(self, key: int, kept: bool) -> float:
         """Fraction of ``key``'s points seen by at least one *other* kept keyframe."""
