@@ -172,6 +172,34 @@ def test_mbp_while_running_removes_only_at_its_own_cover_ratio(tmp_path, vocab):
     assert removed[1.01, True] == removed[None, True]
 
 
+def test_mbp_while_running_keeps_the_points_left_with_one_observer(tmp_path, vocab):
+    """A pass while running removes only the points left without an observer
+    (``mbp_running_min_observations`` 1: a later keyframe or loop may see them again); one at 2
+    and the pass at shutdown remove those left with one too."""
+    kfs, mps = _half_circle_session()
+    observers = {}
+    for running_min in (1, 2):
+        for final in (False, True):
+            cfg = dataclasses.replace(
+                CloudServiceConfig(),
+                mbp_settle_keyframes=5,
+                mbp_running_min_observations=running_min,
+            )
+            app = _app(tmp_path / f"{running_min}-{final}", vocab, cfg)
+            for k in kfs:
+                app.fusion.add_keyframe(k, detect=False)
+            for m in mps:
+                app.fusion.add_map_point(m)
+            assert app.prune(0, final=final).removed_keyframes
+            observers[running_min, final] = np.bincount(
+                [len(app.atlas.map_point_observations(m)) for m in app.atlas.map_point_keys()]
+            )
+            app.close()
+    assert observers[1, False][0] == 0 and observers[1, False][1] > 0
+    for case in ((2, False), (1, True), (2, True)):
+        assert observers[case][:2].sum() == 0
+
+
 def test_applied_optimisation_is_durable(tmp_path, vocab):
     from common.geometry import inverse_T
     from services.cloud.global_optimization import optimize_pose_graph
@@ -282,3 +310,8 @@ def test_one_robot_on_two_edges_is_two_agents_each_corrected_through_its_own_edg
         assert restarted.agents() == app.agents()
     finally:
         restarted.close()
+
+
+def test_running_min_observations_below_one_is_refused() -> None:
+    with pytest.raises(ValueError, match="mbp_running_min_observations"):
+        CloudServiceConfig(mbp_running_min_observations=0)

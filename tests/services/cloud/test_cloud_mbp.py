@@ -12,6 +12,7 @@ import pytest
 from common.geometry import inverse_T, make_T, transform_points
 from services.cloud.atlas import Atlas, make_key
 from services.cloud.config import MbpConfig
+from services.cloud.map_types import MapPointInput
 from services.cloud.mbp import (
     PROTECTED,
     REASONS,
@@ -190,3 +191,28 @@ def test_mbp_disabled_changes_nothing(dense):
     report = run_mbp(atlas, 0, CAM, MbpConfig(enabled=False))
     assert report.keyframes_after == report.keyframes_before == atlas.n_keyframes()
     assert report.removed_keyframes == ()
+
+
+def test_points_only_one_keyframe_sees_do_not_keep_it(chain):
+    """Coverage counts the points at least two keyframes see (the full BA's points): binding
+    every free keypoint of every keyframe to a point only it sees (a seventh of its points)
+    changes nothing in the selection."""
+    kfs, mps = chain
+    atlas = _atlas(kfs, mps)
+    before = backbone(atlas, 0, MbpConfig(), keep_recent=1)
+    next_id = 1 + max(m.map_point_id for m in mps)
+    singles = []
+    for k in kfs:
+        free = np.flatnonzero(atlas.keyframe(make_key(0, k.keyframe_id)).map_point_keys < 0)
+        assert free.size >= 0.1 * len(k.keypoints)
+        for i in free.tolist():
+            singles.append(
+                MapPointInput(0, next_id, np.zeros(3), np.array([[k.keyframe_id, i]], np.int64))
+            )
+            next_id += 1
+    atlas.add_map_points(singles)
+    assert sum(len(atlas.map_point_observations(m)) == 1 for m in atlas.map_point_keys()) == len(
+        singles
+    )
+    after = backbone(atlas, 0, MbpConfig(), keep_recent=1)
+    assert after.kept == before.kept and after.absorbers == before.absorbers
