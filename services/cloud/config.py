@@ -119,12 +119,16 @@ class MergeConfig:
     fuse_distance_m: duplicate map points closer than this after alignment are fused
         (default 0.05 m).
     fuse_max_hamming: ... and whose descriptors differ by at most this many bits (default 50).
+    fuse_loop_points: a loop closed within one map fuses its verified 3D-3D point pairs too
+        (default True; ``services/cloud/merge.py``): the full BA then links the two visits
+        through shared points, not only through the loop's relative pose.
     """
 
     mode: AlignmentMode = AlignmentMode.YAW_TRANSLATION
     min_3d_pairs: int = 10
     fuse_distance_m: float = 0.05
     fuse_max_hamming: int = 50
+    fuse_loop_points: bool = True
 
 
 @dataclass(frozen=True)
