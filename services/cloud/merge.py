@@ -95,7 +95,8 @@ def robust_align(
 
 @dataclass(frozen=True)
 class MatchOutcome:
-    """What :func:`apply_match` did: the loop edge added, and the merge if maps differed."""
+    """What :func:`apply_match` did: the loop edge added, the merge if maps differed, and how
+    many map points were fused (at a merge, or the pairs of a loop within one map)."""
 
     loop: LoopEdge
     merge: MergeRecord | None

@@ -225,3 +225,39 @@ def test_covisible_keyframes_confirm_a_true_revisit_and_not_a_wrong_pose(world):
     off = yaw_T(np.radians(2.0), [0.0, 0.0, 0.0])
     wrong = dataclasses.replace(res, T_cmap_qmap=off @ res.T_cmap_qmap)
     assert covisible_agreement(atlas, wrong, CAM, cfg) == (0, cfg.covisible_checks - 1)
+
+
+def test_a_loop_within_one_map_fuses_its_verified_point_pairs(world):
+    """A revisit (the second lap's points are new: the track broke) fuses the verified pairs
+    into the first lap's points, each pair one landmark; ``fuse_loop_points`` off only adds the
+    loop constraint."""
+    poses = circle_poses(40, turns=2.0)
+    session = make_session(world, CAM, 0, poses, np.eye(4), seed=3, dt=1.0)
+    q, c = make_key(0, 25), make_key(0, 5)
+
+    def first_lap_points_of_q(atlas: Atlas) -> int:
+        mk = atlas.keyframe(q).map_point_keys
+        return sum(
+            any(k <= make_key(0, 19) for k in atlas.map_point_observations(m))
+            for m in mk[mk >= 0].tolist()
+        )
+
+    off = _atlas(session)
+    res = verify_candidate(off, q, c, CAM, VerificationConfig())
+    assert res.accepted, res.reason
+    n_points = off.n_map_points()
+    assert first_lap_points_of_q(off) == 0  # not closed in the map yet
+    out = apply_match(off, res, MergeConfig(fuse_loop_points=False))
+    assert out.fused_points == 0 and off.n_map_points() == n_points and len(off.loops()) == 1
+
+    atlas = _atlas(session)
+    pairs = res.point_pairs
+    distance = np.linalg.norm(
+        atlas.map_point_positions(pairs[:, 0]) - atlas.map_point_positions(pairs[:, 1]), axis=1
+    )
+    assert np.all(distance < 0.05)  # each pair one landmark (no drift here)
+    out = apply_match(atlas, res, MergeConfig())
+    assert out.merge is None and len(atlas.loops()) == 1
+    assert out.fused_points >= 50 and atlas.n_map_points() == n_points - out.fused_points
+    assert not any(atlas.has_map_point(a) for a in pairs[:, 0].tolist())
+    assert first_lap_points_of_q(atlas) >= 50  # the two laps now share points
