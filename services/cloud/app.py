@@ -551,6 +551,9 @@ class CloudApp:
                 if cfg.mbp_running_min_observations is None
                 else cfg.mbp_running_min_observations,
             )
+            ba = cfg.domain.full_ba
+            if cfg.mbp_running_keeps_imu and ba.enabled and ba.imu_factors:
+                mbp = replace(mbp, max_interval_s=ba.imu_max_interval_s)
         with self.stage_timer.span("stage.mbp"):
             report = self.fusion.prune(map_id, keep, mbp)
         self._changes += 1

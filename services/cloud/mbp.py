@@ -19,10 +19,13 @@ keyframe and a lower fraction, applied to the whole map under a connectivity con
    keyframe is removed when it is not protected, it is covered by the others, every keyframe
    removed before stays covered, and the kept keyframes stay connected through covisibility
    edges of at least ``min_shared`` points (its removal does not separate two of its kept
-   neighbours). Passes repeat until none removes anything, so every kept keyframe is kept for
-   a reason (:func:`backbone` reports which). Protected: each agent's first keyframe (the
-   pose-graph anchor) and its ``keep_recent`` newest (the edge's live window). A heuristic:
-   the result is minimal (no kept keyframe can go alone) but not minimum.
+   neighbours) and, with ``max_interval_s``, its agent's kept keyframes around it stay
+   that close in time (the IMU interval the full BA still bridges with a preintegrated
+   factor, ``FullBAConfig.imu_max_interval_s``). Passes repeat until none removes anything,
+   so every kept keyframe is kept for a reason (:func:`backbone` reports which). Protected:
+   each agent's first keyframe (the pose-graph anchor) and its ``keep_recent`` newest (the
+   edge's live window). A heuristic: the result is minimal (no kept keyframe can go alone)
+   but not minimum.
 3. Loop and merge constraints are not a reason to keep a keyframe: a constraint ``T_r_b`` of a
    removed keyframe r moves to a kept keyframe a of the same agent next to r in its sequence
    (:func:`loop_anchors`) as ``T_a_b = T_map_a^-1 T_map_r T_r_b`` (current estimates; MBP runs
@@ -70,7 +73,8 @@ PROTECTED = "protected"  # an agent's first or one of its newest keyframes
 NOT_COVERED = "not_covered"  # the other kept keyframes do not cover it
 CONNECTOR = "connector"  # its removal would disconnect the kept keyframes
 COVERS_REMOVED = "covers_removed"  # a removed keyframe would lose its coverage
-REASONS = (PROTECTED, NOT_COVERED, CONNECTOR, COVERS_REMOVED)
+INERTIAL = "inertial"  # its removal would leave a longer IMU interval than the full BA takes
+REASONS = (PROTECTED, NOT_COVERED, CONNECTOR, COVERS_REMOVED, INERTIAL)
 
 CONSTRAINING_OBSERVERS = 2
 """Coverage (step 1) counts a map point only when at least this many keyframes observe it:
@@ -180,6 +184,22 @@ def backbone(
     kept = set(keys)
     removed: list[int] = []
     reasons: dict[int, str] = {}
+    chain: dict[int, tuple[list[int], int]] = {}  # key -> (its agent's keys in time, index)
+    stamp = {k: atlas.keyframe(k).timestamp for k in keys}
+    for agent in atlas.agents_in_map(map_id):
+        ak = sorted(atlas.keyframe_keys(map_id=map_id, agent_id=agent), key=stamp.__getitem__)
+        chain.update((k, (ak, i)) for i, k in enumerate(ak))
+
+    def keeps_interval(k: int) -> bool:
+        """Its agent's kept keyframes around it stay within ``max_interval_s``."""
+        if config.max_interval_s is None:
+            return True
+        ak, i = chain[k]
+        before = next((ak[j] for j in range(i - 1, -1, -1) if ak[j] in kept), None)
+        after = next((ak[j] for j in range(i + 1, len(ak)) if ak[j] in kept), None)
+        if before is None or after is None:
+            return True
+        return stamp[after] - stamp[before] <= config.max_interval_s
 
     def covered(r: int, without: int) -> bool:
         # r is removed (or about to be); ``without`` is about to be removed too.
@@ -210,6 +230,8 @@ def backbone(
             return NOT_COVERED
         if not keeps_connected(k):
             return CONNECTOR
+        if not keeps_interval(k):
+            return INERTIAL
         cov.count[cov.points[k]] -= 1  # tentatively remove k
         ok = all(covered(r, k) for r in removed if k in w_of[r])
         cov.count[cov.points[k]] += 1

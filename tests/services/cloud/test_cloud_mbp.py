@@ -14,6 +14,7 @@ from services.cloud.atlas import Atlas, make_key
 from services.cloud.config import MbpConfig
 from services.cloud.map_types import MapPointInput
 from services.cloud.mbp import (
+    INERTIAL,
     PROTECTED,
     REASONS,
     backbone,
@@ -216,3 +217,20 @@ def test_points_only_one_keyframe_sees_do_not_keep_it(chain):
     )
     after = backbone(atlas, 0, MbpConfig(), keep_recent=1)
     assert after.kept == before.kept and after.absorbers == before.absorbers
+
+
+def test_max_interval_keeps_the_imu_chain(dense):
+    """With ``max_interval_s`` the kept keyframes of an agent stay that close in time (the
+    full BA's IMU factors still bridge them); the keyframes kept for it say so."""
+    kfs, mps = dense  # 0.2 s apart
+
+    def gaps(bb) -> np.ndarray:
+        stamp = {make_key(0, k.keyframe_id): k.timestamp for k in kfs}
+        return np.diff(sorted(stamp[k] for k in bb.kept))
+
+    free = backbone(_atlas(kfs, mps), 0, MbpConfig(), keep_recent=1)
+    assert gaps(free).max() > 1.0
+    held = backbone(_atlas(kfs, mps), 0, MbpConfig(max_interval_s=0.7), keep_recent=1)
+    assert gaps(held).max() <= 0.7 + 1e-9
+    assert INERTIAL in held.reasons.values() and len(held.kept) > len(free.kept)
+    assert len(held.kept) <= 0.5 * len(kfs)  # it still prunes
