@@ -535,7 +535,8 @@ class CloudApp:
     def prune(self, map_id: int, final: bool = False) -> MbpReport:
         """MBP on ``map_id`` (then the whole atlas is saved). While running (not ``final``)
         each agent's ``mbp_settle_keyframes`` newest keyframes are kept, a keyframe goes only
-        at ``mbp_running_cover_ratio`` and map points go at ``mbp_running_min_observations``;
+        at ``mbp_running_cover_ratio`` and only while its agent's kept keyframes stay within
+        ``mbp_running_max_interval_s``, and map points go at ``mbp_running_min_observations``;
         the final pass (at shutdown) keeps ``mbp_keep_recent`` and ``domain.mbp``."""
         before = set(self.atlas.map_point_keys(map_id))
         cfg = self.config
@@ -551,9 +552,7 @@ class CloudApp:
                 if cfg.mbp_running_min_observations is None
                 else cfg.mbp_running_min_observations,
             )
-            ba = cfg.domain.full_ba
-            if cfg.mbp_running_keeps_imu and ba.enabled and ba.imu_factors:
-                mbp = replace(mbp, max_interval_s=ba.imu_max_interval_s)
+            mbp = replace(mbp, max_interval_s=cfg.mbp_running_max_interval_s)
         with self.stage_timer.span("stage.mbp"):
             report = self.fusion.prune(map_id, keep, mbp)
         self._changes += 1

@@ -304,8 +304,7 @@ class MbpConfig:
         ``services.cloud.retired.retired_pose``).
     max_interval_s: a keyframe stays when removing it would leave its agent's kept
         keyframes around it further apart in time than this, seconds (default None: no limit;
-        a pass while running sets the full BA's ``imu_max_interval_s``, see
-        ``CloudServiceConfig.mbp_running_keeps_imu``).
+        a pass while running has ``CloudServiceConfig.mbp_running_max_interval_s``).
     """
 
     enabled: bool = True
@@ -367,11 +366,12 @@ class CloudServiceConfig:
         again; culled, it was gone for them. On replays of recordings of seeds 0 and 1
         (session 22), culling at 2 was +7.6 / +15.5 % joint ATE against no pruning, keeping
         them (with coverage counted on the points two keyframes see) +3.8 / -0.8 %.
-    mbp_running_keeps_imu: with the full BA's IMU factors on, a pass while running keeps a
-        keyframe whose removal would leave its agent's kept keyframes around it further apart
-        than ``FullBAConfig.imu_max_interval_s`` (``MbpConfig.max_interval_s``): the full BAs
-        after it would bridge that interval with the weak relative-pose stand-in only, not
-        with the IMU (default True; the pass at shutdown, after the last full BA, does not).
+    mbp_running_max_interval_s: a pass while running keeps a keyframe whose removal would
+        leave its agent's kept keyframes around it further apart in time than this, seconds
+        (``MbpConfig.max_interval_s``; default 3.0, the full BA's ``imu_max_interval_s``:
+        the full BAs after the pass bridge a longer interval with the weak relative-pose
+        stand-in only, not with the IMU; None: no limit). The pass at shutdown, after the
+        last full BA, has none.
     mbp_after_full_ba: with full BA on, a pass while running waits for a full BA: the pose
         graph that finds MBP due schedules a full BA of the map at once, and the pass runs
         right after that is applied (default True). A pose graph moves the keyframes and each
@@ -450,7 +450,7 @@ class CloudServiceConfig:
     mbp_settle_keyframes: int = 30
     mbp_running_cover_ratio: float | None = 0.8
     mbp_running_min_observations: int | None = 1
-    mbp_running_keeps_imu: bool = True
+    mbp_running_max_interval_s: float | None = 3.0
     mbp_after_full_ba: bool = True
     word_group_level: int | None = 3
     mission: str | None = None

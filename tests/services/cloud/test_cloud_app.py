@@ -200,32 +200,28 @@ def test_mbp_while_running_keeps_the_points_left_with_one_observer(tmp_path, voc
         assert observers[case][:2].sum() == 0
 
 
-def test_mbp_while_running_keeps_the_full_bas_imu_intervals(tmp_path, vocab):
-    """A pass while running keeps each agent's kept keyframes within the full BA's
-    ``imu_max_interval_s`` (``mbp_running_keeps_imu``); the pass at shutdown does not."""
+def test_mbp_while_running_keeps_its_agents_keyframes_close_in_time(tmp_path, vocab):
+    """A pass while running keeps each agent's kept keyframes within
+    ``mbp_running_max_interval_s`` (the full BA's IMU intervals); the pass at shutdown and a
+    limit of None do not."""
     kfs, mps = _half_circle_session()  # 0.2 s apart
     gap = {}
-    for keeps in (True, False):
+    for limit in (0.5, None):
         for final in (False, True):
-            base = CloudServiceConfig()
-            ba = dataclasses.replace(base.domain.full_ba, imu_max_interval_s=0.5)
             cfg = dataclasses.replace(
-                base,
-                domain=dataclasses.replace(base.domain, full_ba=ba),
-                mbp_settle_keyframes=5,
-                mbp_running_keeps_imu=keeps,
+                CloudServiceConfig(), mbp_settle_keyframes=5, mbp_running_max_interval_s=limit
             )
-            app = _app(tmp_path / f"{keeps}-{final}", vocab, cfg)
+            app = _app(tmp_path / f"{limit}-{final}", vocab, cfg)
             for k in kfs:
                 app.fusion.add_keyframe(k, detect=False)
             for m in mps:
                 app.fusion.add_map_point(m)
             assert app.prune(0, final=final).removed_keyframes
             stamps = sorted(app.atlas.keyframe(k).timestamp for k in app.atlas.keyframe_keys())
-            gap[keeps, final] = float(np.max(np.diff(stamps)))
+            gap[limit, final] = float(np.max(np.diff(stamps)))
             app.close()
-    assert gap[True, False] <= 0.5 + 1e-9
-    assert gap[False, False] > 0.5 and gap[True, True] > 0.5
+    assert gap[0.5, False] <= 0.5 + 1e-9
+    assert gap[None, False] > 0.5 and gap[0.5, True] > 0.5
 
 
 def test_applied_optimisation_is_durable(tmp_path, vocab):
