@@ -18,7 +18,8 @@ keyframes and at shutdown) and:
   graph then schedules (``mbp_after_full_ba``);
 - one row per ``--variant``: the last of those (every N, last settle, after a full BA) with
   ``KEY=VALUE`` overrides: a ``CloudServiceConfig`` field, or ``full_ba.X`` / ``mbp.X`` /
-  ``optimization.X`` of its domain (values parsed as int, float, true/false, else string).
+  ``optimization.X`` of its domain (values parsed as int, float, true/false, none, else
+  string).
 
 A replay is open-loop: the recorded edge applied the corrections of the *live* cloud, and its
 later updates (map points re-observed on a revisit) are in its corrected frame. In recordings
@@ -66,6 +67,8 @@ def _value(text: str) -> Any:  # a field value of any type, checked by the datac
     low = text.lower()
     if low in ("true", "false"):
         return low == "true"
+    if low == "none":
+        return None
     for kind in (int, float):
         try:
             return kind(text)
