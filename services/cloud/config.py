@@ -342,8 +342,8 @@ class CloudServiceConfig:
         map's rounds are shorter than ``debounce_s``, which rules then).
     mbp_every_keyframes: MBP runs on a map (when ``domain.mbp.enabled``) after this many new
         keyframes since its last pass, right after an optimisation (0 = never while running;
-        default 0: live, every 40 kept 31-54 % of the keyframes at -0 / +12 / +14 % mean joint
-        ATE against runs without it on seeds 0 / 1 / 2, session 19,
+        default 0: live, every 40 kept 18-34 % of the keyframes at -24 / +11 / +14 % mean
+        joint ATE against runs without it on seeds 0 / 1 / 2, two runs each, session 22,
         benchmarks/results/mbp_live.md; replays, mbp_midrun.md) ...
     mbp_at_shutdown: ... and over every map at shutdown, after the last full BA, before the
         trajectories are written (default True): the persisted map is the pruned one.
@@ -355,8 +355,8 @@ class CloudServiceConfig:
     mbp_running_cover_ratio: a pass while running removes a keyframe only while the kept
         keyframes observe this fraction of its map points (``MbpConfig.cover_ratio``, which
         the pass at shutdown keeps; None: the same; default 0.8). What a pass while running
-        keeps must carry the later loops and full BAs. On replays of recordings of seeds 1 and
-        2 (benchmarks/results/mbp_midrun.md), against no pruning: 0.5 kept 54 / 31 % of the
+        keeps must carry the later loops and full BAs. On session 19's replays of recordings
+        of seeds 1 and 2 (before loops fused their points), against no pruning: 0.5 kept 54 / 31 % of the
         keyframes at +4.4 / +2.6 % joint ATE, 0.7 kept 55 / 34 % at +2.3 / -6.1 %, 0.8 kept
         57 / 34 % at +1.1 / -14 %.
     mbp_running_min_observations: a pass while running removes only the map points left with
