@@ -356,9 +356,9 @@ class CloudServiceConfig:
         keyframes observe this fraction of its map points (``MbpConfig.cover_ratio``, which
         the pass at shutdown keeps; None: the same; default 0.8). What a pass while running
         keeps must carry the later loops and full BAs. On session 19's replays of recordings
-        of seeds 1 and 2 (before loops fused their points), against no pruning: 0.5 kept 54 / 31 % of the
-        keyframes at +4.4 / +2.6 % joint ATE, 0.7 kept 55 / 34 % at +2.3 / -6.1 %, 0.8 kept
-        57 / 34 % at +1.1 / -14 %.
+        of seeds 1 and 2 (before loops fused their points), against no pruning: 0.5 kept 54 /
+        31 % of the keyframes at +4.4 / +2.6 % joint ATE, 0.7 kept 55 / 34 % at +2.3 / -6.1 %,
+        0.8 kept 57 / 34 % at +1.1 / -14 %.
     mbp_running_min_observations: a pass while running removes only the map points left with
         fewer observations (``MbpConfig.min_observations``, which the pass at shutdown keeps;
         None: the same; default 1: only those left with none). A point MBP leaves with one
