@@ -4,6 +4,9 @@ with the effects and handed back to the transport after a restart."""
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any, TypeVar
 
 import numpy as np
 import pytest
@@ -16,6 +19,7 @@ from services.cloud.app import CloudApp
 from services.cloud.atlas import make_key
 from services.cloud.config import CloudServiceConfig
 from services.cloud.map_fusion import MapFusion
+from services.cloud.mbp import MbpReport
 from services.cloud.persistence import CloudStore
 from services.cloud.simulation import (
     circle_poses,
@@ -25,6 +29,8 @@ from services.cloud.simulation import (
     make_world,
 )
 from services.cloud.uplink import UplinkError
+
+T = TypeVar("T")
 
 
 @pytest.fixture(scope="module")
@@ -131,22 +137,43 @@ def test_mbp_through_the_app_marks_pruned_items_and_is_durable(tmp_path, vocab):
         restarted.close()
 
 
-def test_mbp_while_running_keeps_the_unsettled_newest_keyframes(tmp_path, vocab):
-    """A pass while running never removes an agent's ``mbp_settle_keyframes`` newest
-    keyframes (still in the edge's reach); the final pass at shutdown may."""
-    kfs, mps = _half_circle_session()
-    newest = {make_key(0, k.keyframe_id) for k in kfs[-12:]}
-    removed = {}
-    for final in (False, True):
-        cfg = dataclasses.replace(CloudServiceConfig(), mbp_settle_keyframes=12)
-        app = _app(tmp_path / str(final), vocab, cfg)
+def _pruned(
+    path: Path,
+    vocab: Vocabulary,
+    session: tuple[list, list],
+    final: bool,
+    read: Callable[[CloudApp, MbpReport], T],
+    **settings: Any,
+) -> T:
+    """``read`` of an app fed ``session`` (keyframes, map points) under
+    ``CloudServiceConfig(**settings)`` after one MBP pass (at shutdown when ``final``)."""
+    app = _app(path, vocab, dataclasses.replace(CloudServiceConfig(), **settings))
+    try:
+        kfs, mps = session
         for k in kfs:
             app.fusion.add_keyframe(k, detect=False)
         for m in mps:
             app.fusion.add_map_point(m)
-        report = app.prune(0, final=final)
-        removed[final] = set(report.removed_keyframes)
+        return read(app, app.prune(0, final=final))
+    finally:
         app.close()
+
+
+def _removed(app: CloudApp, report: MbpReport) -> set[int]:
+    return set(report.removed_keyframes)
+
+
+def test_mbp_while_running_keeps_the_unsettled_newest_keyframes(tmp_path, vocab):
+    """A pass while running never removes an agent's ``mbp_settle_keyframes`` newest
+    keyframes (still in the edge's reach); the final pass at shutdown may."""
+    session = _half_circle_session()
+    newest = {make_key(0, k.keyframe_id) for k in session[0][-12:]}
+    removed = {
+        final: _pruned(
+            tmp_path / str(final), vocab, session, final, _removed, mbp_settle_keyframes=12
+        )
+        for final in (False, True)
+    }
     assert removed[False] and not removed[False] & newest
     assert removed[True] & newest  # at shutdown only mbp_keep_recent (5) are protected
 
@@ -154,20 +181,20 @@ def test_mbp_while_running_keeps_the_unsettled_newest_keyframes(tmp_path, vocab)
 def test_mbp_while_running_removes_only_at_its_own_cover_ratio(tmp_path, vocab):
     """``mbp_running_cover_ratio`` rules the passes while running, not the pass at shutdown:
     one above 1 (no keyframe can be covered that well) removes nothing while running."""
-    kfs, mps = _half_circle_session()
-    removed = {}
-    for ratio in (None, 1.01):
-        for final in (False, True):
-            cfg = dataclasses.replace(
-                CloudServiceConfig(), mbp_settle_keyframes=5, mbp_running_cover_ratio=ratio
-            )
-            app = _app(tmp_path / f"{ratio}-{final}", vocab, cfg)
-            for k in kfs:
-                app.fusion.add_keyframe(k, detect=False)
-            for m in mps:
-                app.fusion.add_map_point(m)
-            removed[ratio, final] = set(app.prune(0, final=final).removed_keyframes)
-            app.close()
+    session = _half_circle_session()
+    removed = {
+        (ratio, final): _pruned(
+            tmp_path / f"{ratio}-{final}",
+            vocab,
+            session,
+            final,
+            _removed,
+            mbp_settle_keyframes=5,
+            mbp_running_cover_ratio=ratio,
+        )
+        for ratio in (None, 1.01)
+        for final in (False, True)
+    }
     assert removed[None, False] and not removed[1.01, False]
     assert removed[1.01, True] == removed[None, True]
 
@@ -176,50 +203,56 @@ def test_mbp_while_running_keeps_the_points_left_with_one_observer(tmp_path, voc
     """A pass while running removes only the points left without an observer
     (``mbp_running_min_observations`` 1: a later keyframe or loop may see them again); one at 2
     and the pass at shutdown remove those left with one too."""
-    kfs, mps = _half_circle_session()
-    observers = {}
-    for running_min in (1, 2):
-        for final in (False, True):
-            cfg = dataclasses.replace(
-                CloudServiceConfig(),
-                mbp_settle_keyframes=5,
-                mbp_running_min_observations=running_min,
-            )
-            app = _app(tmp_path / f"{running_min}-{final}", vocab, cfg)
-            for k in kfs:
-                app.fusion.add_keyframe(k, detect=False)
-            for m in mps:
-                app.fusion.add_map_point(m)
-            assert app.prune(0, final=final).removed_keyframes
-            observers[running_min, final] = np.bincount(
-                [len(app.atlas.map_point_observations(m)) for m in app.atlas.map_point_keys()]
-            )
-            app.close()
-    assert observers[1, False][0] == 0 and observers[1, False][1] > 0
+
+    def observers(app: CloudApp, report: MbpReport) -> np.ndarray:
+        assert report.removed_keyframes
+        return np.bincount(
+            [len(app.atlas.map_point_observations(m)) for m in app.atlas.map_point_keys()]
+        )
+
+    session = _half_circle_session()
+    counts = {
+        (running_min, final): _pruned(
+            tmp_path / f"{running_min}-{final}",
+            vocab,
+            session,
+            final,
+            observers,
+            mbp_settle_keyframes=5,
+            mbp_running_min_observations=running_min,
+        )
+        for running_min in (1, 2)
+        for final in (False, True)
+    }
+    assert counts[1, False][0] == 0 and counts[1, False][1] > 0
     for case in ((2, False), (1, True), (2, True)):
-        assert observers[case][:2].sum() == 0
+        assert counts[case][:2].sum() == 0
 
 
 def test_mbp_while_running_keeps_its_agents_keyframes_close_in_time(tmp_path, vocab):
     """A pass while running keeps each agent's kept keyframes within
     ``mbp_running_max_interval_s`` (the full BA's IMU intervals); the pass at shutdown and a
     limit of None do not."""
-    kfs, mps = _half_circle_session()  # 0.2 s apart
-    gap = {}
-    for limit in (0.5, None):
-        for final in (False, True):
-            cfg = dataclasses.replace(
-                CloudServiceConfig(), mbp_settle_keyframes=5, mbp_running_max_interval_s=limit
-            )
-            app = _app(tmp_path / f"{limit}-{final}", vocab, cfg)
-            for k in kfs:
-                app.fusion.add_keyframe(k, detect=False)
-            for m in mps:
-                app.fusion.add_map_point(m)
-            assert app.prune(0, final=final).removed_keyframes
-            stamps = sorted(app.atlas.keyframe(k).timestamp for k in app.atlas.keyframe_keys())
-            gap[limit, final] = float(np.max(np.diff(stamps)))
-            app.close()
+
+    def widest_gap(app: CloudApp, report: MbpReport) -> float:
+        assert report.removed_keyframes
+        stamps = sorted(app.atlas.keyframe(k).timestamp for k in app.atlas.keyframe_keys())
+        return float(np.max(np.diff(stamps)))
+
+    session = _half_circle_session()  # 0.2 s apart
+    gap = {
+        (limit, final): _pruned(
+            tmp_path / f"{limit}-{final}",
+            vocab,
+            session,
+            final,
+            widest_gap,
+            mbp_settle_keyframes=5,
+            mbp_running_max_interval_s=limit,
+        )
+        for limit in (0.5, None)
+        for final in (False, True)
+    }
     assert gap[0.5, False] <= 0.5 + 1e-9
     assert gap[None, False] > 0.5 and gap[0.5, True] > 0.5
 
