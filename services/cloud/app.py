@@ -551,8 +551,8 @@ class CloudApp:
                 min_observations=mbp.min_observations
                 if cfg.mbp_running_min_observations is None
                 else cfg.mbp_running_min_observations,
+                max_interval_s=cfg.mbp_running_max_interval_s,
             )
-            mbp = replace(mbp, max_interval_s=cfg.mbp_running_max_interval_s)
         with self.stage_timer.span("stage.mbp"):
             report = self.fusion.prune(map_id, keep, mbp)
         self._changes += 1

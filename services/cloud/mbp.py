@@ -185,10 +185,12 @@ def backbone(
     removed: list[int] = []
     reasons: dict[int, str] = {}
     chain: dict[int, tuple[list[int], int]] = {}  # key -> (its agent's keys in time, index)
-    stamp = {k: atlas.keyframe(k).timestamp for k in keys}
-    for agent in atlas.agents_in_map(map_id):
-        ak = sorted(atlas.keyframe_keys(map_id=map_id, agent_id=agent), key=stamp.__getitem__)
-        chain.update((k, (ak, i)) for i, k in enumerate(ak))
+    stamp: dict[int, float] = {}
+    if config.max_interval_s is not None:  # (built only for the interval test)
+        stamp = {k: atlas.keyframe(k).timestamp for k in keys}
+        for agent in atlas.agents_in_map(map_id):
+            ak = sorted(atlas.keyframe_keys(map_id=map_id, agent_id=agent), key=stamp.__getitem__)
+            chain.update((k, (ak, i)) for i, k in enumerate(ak))
 
     def keeps_interval(k: int) -> bool:
         """Its agent's kept keyframes around it stay within ``max_interval_s``."""
