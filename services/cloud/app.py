@@ -48,7 +48,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from common.evaluation.trajectory import Trajectory
-from common.geometry import R_to_quat_wxyz, inverse_T
+from common.geometry import inverse_T
 from common.links import CodecTimer, WireFormat
 from common.links.edge_cloud import (
     AgentSensors,
@@ -76,6 +76,7 @@ from services.cloud.map_fusion import FusionEvents, MapFusion
 from services.cloud.map_source import AgentInfo, CloudView
 from services.cloud.mbp import MbpReport
 from services.cloud.mission import MissionClock
+from services.cloud.output import robot_trajectories
 from services.cloud.persistence import CloudStore
 from services.cloud.rebase import FrameRebase, rebased_keyframe
 from services.cloud.robot_sensors import RobotSensorBook
@@ -572,48 +573,14 @@ class CloudApp:
 
     # ------------------------------------------------------------------ outputs
     def trajectories(self, retired: bool = True) -> tuple[dict[str, Trajectory], dict[str, int]]:
-        """Keyframe trajectories ``T_map_body`` per robot name, and each robot's map id.
-
-        A robot whose edge started several maps for it contributes the keyframes of those
-        maps that ended in the same atlas map as its largest one (the others are in frames
-        the robot's trajectory cannot be expressed in; they are logged). ``retired``: also
-        the keyframes MBP removed, through their anchors (see ``Atlas.retire_keyframe``)."""
-        trajs: dict[str, Trajectory] = {}
-        maps: dict[str, int] = {}
-        by_name: dict[str, list[_Agent]] = {}
+        """Keyframe trajectories ``T_map_body`` per robot name, and each robot's map id
+        (:func:`services.cloud.output.robot_trajectories`; ``retired``: also the keyframes MBP
+        removed, through their anchors)."""
+        agents: dict[str, list[int]] = {}
         for a in self._agents.values():
             if a.agent_id in self.atlas.agents():
-                by_name.setdefault(a.name, []).append(a)
-        for name, agents in sorted(by_name.items()):
-            keys = {a.agent_id: self.atlas.keyframe_keys(agent_id=a.agent_id) for a in agents}
-            main = max(agents, key=lambda a: len(keys[a.agent_id])).agent_id
-            if not keys[main]:
-                continue
-            map_id = self.atlas.map_of_agent(main)
-            use = [
-                k
-                for a in agents
-                if self.atlas.map_of_agent(a.agent_id) == map_id
-                for k in keys[a.agent_id]
-            ]
-            if len(use) < sum(len(v) for v in keys.values()):
-                log.warning("robot %s: keyframes of unmerged maps left out of its trajectory", name)
-            poses = [(v.timestamp, v.T_map_body) for v in map(self.atlas.keyframe, use)]
-            if retired:
-                poses += [
-                    (t, T)
-                    for a in agents
-                    if self.atlas.map_of_agent(a.agent_id) == map_id
-                    for _, t, T in self.atlas.retired_poses(a.agent_id)
-                ]
-            poses.sort(key=lambda p: p[0])
-            ts = np.array([round(t * 1e9) for t, _ in poses], np.int64)
-            keep = np.concatenate([[True], np.diff(ts) > 0])
-            T = np.array([p[1] for p, k in zip(poses, keep, strict=True) if k])
-            q = np.array([R_to_quat_wxyz(t[:3, :3]) for t in T])
-            trajs[name] = Trajectory(ts[keep], T[:, :3, 3], q, name)
-            maps[name] = map_id
-        return trajs, maps
+                agents.setdefault(a.name, []).append(a.agent_id)
+        return robot_trajectories(self.atlas, agents, retired)
 
     def ground_truth(
         self,

@@ -19,18 +19,57 @@ from __future__ import annotations
 
 import json
 import logging
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
+
+import numpy as np
 
 from common.evaluation.errors import EvaluationError
 from common.evaluation.report import evaluate_in_frame, evaluate_run
 from common.evaluation.results import MAPS_FILE, write_result_trajectories
 from common.evaluation.trajectory import Trajectory
+from common.geometry import R_to_quat_wxyz
+from services.cloud.atlas import Atlas
 from services.cloud.mission import MISSION_FILE
 
 log = logging.getLogger(__name__)
 
-__all__ = ["MAPS_FILE", "OutputWriter"]
+__all__ = ["MAPS_FILE", "OutputWriter", "robot_trajectories"]
+
+
+def robot_trajectories(
+    atlas: Atlas, agents: Mapping[str, Sequence[int]], retired: bool = True
+) -> tuple[dict[str, Trajectory], dict[str, int]]:
+    """Keyframe trajectories ``T_map_body`` per robot name, and each robot's map id.
+
+    ``agents``: each robot's atlas agents (one per edge map the edge started for it). A robot
+    contributes the keyframes of those agents that ended in the same atlas map as its largest
+    one (the others are in frames its trajectory cannot be expressed in; they are logged).
+    ``retired``: also the keyframes MBP removed, through their anchors (see
+    ``Atlas.retire_keyframe``). Poses of equal stamps (ns) are written once."""
+    trajs: dict[str, Trajectory] = {}
+    maps: dict[str, int] = {}
+    for name, ids in sorted(agents.items()):
+        keys = {a: atlas.keyframe_keys(agent_id=a) for a in ids}
+        main = max(ids, key=lambda a: len(keys[a]))
+        if not keys[main]:
+            continue
+        map_id = atlas.map_of_agent(main)
+        same = [a for a in ids if atlas.map_of_agent(a) == map_id]
+        use = [k for a in same for k in keys[a]]
+        if len(use) < sum(len(v) for v in keys.values()):
+            log.warning("robot %s: keyframes of unmerged maps left out of its trajectory", name)
+        poses = [(v.timestamp, v.T_map_body) for v in map(atlas.keyframe, use)]
+        if retired:
+            poses += [(t, T) for a in same for _, t, T in atlas.retired_poses(a)]
+        poses.sort(key=lambda p: p[0])
+        ts = np.array([round(t * 1e9) for t, _ in poses], np.int64)
+        keep = np.concatenate([[True], np.diff(ts) > 0])
+        T_map_body = np.array([p[1] for p, k in zip(poses, keep, strict=True) if k])
+        q = np.array([R_to_quat_wxyz(T[:3, :3]) for T in T_map_body])
+        trajs[name] = Trajectory(ts[keep], T_map_body[:, :3, 3], q, name)
+        maps[name] = map_id
+    return trajs, maps
 
 
 class OutputWriter:
