@@ -2,13 +2,15 @@
 against consecutive-keyframe consistency alone, side by side on the same recordings.
 
 Run: ``.venv/bin/python benchmarks/bench_loop_recall.py --ab RECORDING:DATASET [...]
-[--early 0,1] [--live LABEL:RUN_DIR:DATASET ...]``; writes ``benchmarks/results/loop_recall.md``
-and ``loop_recall.png``.
+[--early 0,1] [--fuse 1,0] [--live LABEL:RUN_DIR:DATASET ...]``; writes
+``benchmarks/results/loop_recall.md`` and ``loop_recall.png``.
 
 **Replays.** Each recording (``recslam demo --no-mbp --record-uplink``) is replayed through the
 cloud service's own core (:func:`lab.table3.replay`, modelled schedule, solves taking no time:
-deterministic, whatever the machine's load) with the service's defaults (VI full BA,
-MBP at shutdown) and ``PlaceRecognitionConfig.early_candidates`` set to each ``--early`` value.
+deterministic, whatever the machine's load) with the service's defaults (VI full BA; no MBP
+at shutdown, so that the map at the end holds every keyframe for the linked recall, and MBP
+only runs after the last detection), ``PlaceRecognitionConfig.early_candidates`` set to each
+``--early`` value and ``MergeConfig.fuse_loop_points`` to each ``--fuse`` value.
 Detections are scored against the dataset's ground truth by :func:`lab.loop_scoring.
 score_loops` (TP within 0.3 m / 10 deg, revisit partner within 1 m / 30 deg; definitions in
 ``loop_detection.md``). Replays are open-loop (the recorded edge applied the live cloud's
@@ -49,12 +51,17 @@ log = logging.getLogger("bench_loop_recall")
 RESULTS = Path(__file__).resolve().parent / "results"
 
 
-def replay_row(recording: Path, dataset: Path, early: int, vocab: Vocabulary) -> dict[str, Any]:
-    """One replay of ``recording`` with ``early_candidates = early``, scored."""
+def replay_row(
+    recording: Path, dataset: Path, early: int, vocab: Vocabulary, fuse: bool = True
+) -> dict[str, Any]:
+    """One replay of ``recording`` with ``early_candidates = early`` and
+    ``MergeConfig.fuse_loop_points = fuse``, scored."""
     camera = find_camera(None, dataset)
-    cfg = service_config(mbp=True)
+    cfg = service_config(mbp=False)  # the map at the end with every keyframe (linked recall)
     pr = dataclasses.replace(cfg.domain.place_recognition, early_candidates=early)
-    cfg = dataclasses.replace(cfg, domain=dataclasses.replace(cfg.domain, place_recognition=pr))
+    merge = dataclasses.replace(cfg.domain.merge, fuse_loop_points=fuse)
+    domain = dataclasses.replace(cfg.domain, place_recognition=pr, merge=merge)
+    cfg = dataclasses.replace(cfg, domain=domain)
     with tempfile.TemporaryDirectory() as tmp:
         r = replay(
             read_schedule(recording, allow_truncated_tail=True),
@@ -62,10 +69,11 @@ def replay_row(recording: Path, dataset: Path, early: int, vocab: Vocabulary) ->
             vocab,
             cfg,
             Path(tmp) / "state",
-            f"early {early}",
+            f"early {early}, fuse {int(fuse)}",
             full_ba=True,
             latency_scale=0.0,
             schedule="modelled",
+            covisibility=True,
         )
     names = sorted(r.trajectories)
     refs, _ = load_groundtruth(names, dataset)
@@ -76,6 +84,7 @@ def replay_row(recording: Path, dataset: Path, early: int, vocab: Vocabulary) ->
         r.queries,
         r.info,
         gt,
+        final_covisible=r.covisible,
     )
     ate = joint_ate(refs, r.trajectories)
     stages = r.stages
@@ -87,6 +96,7 @@ def replay_row(recording: Path, dataset: Path, early: int, vocab: Vocabulary) ->
     return {
         "recording": recording.name,
         "early": early,
+        "fuse": int(fuse),
         "accepted": len(s.accepted),
         "tp": s.true_positives,
         "fp": s.false_positives,
@@ -95,6 +105,7 @@ def replay_row(recording: Path, dataset: Path, early: int, vocab: Vocabulary) ->
         "found": s.found,
         "recall": s.recall,
         "recall_unconnected": s.recall_unconnected,
+        "recall_linked": s.recall_linked,
         "rejected": len(s.rejected),
         "rejected_reasons": dict(s.rejected_reasons),
         "optimizations": r.optimizations,
@@ -119,20 +130,26 @@ def write(rows: list[dict], live: list[dict], out: Path, argv: str) -> None:
         "keyframes of its robot (ORB-SLAM2's rule, the cloud before this change); `early 1`: "
         "the best candidate that is not yet consistent is verified at once and accepted when "
         "2 of the query's 5 best covisible keyframes see the candidate's points where the "
-        "verified pose puts them (ORB-SLAM3), the default.",
+        "verified pose puts them (ORB-SLAM3), the default. `fuse 1`: a loop within one map "
+        "fuses its verified point pairs (`MergeConfig.fuse_loop_points`, the default since "
+        "session 22); the revisit's later keyframes then share map points with the first lap, "
+        "are no longer loop candidates and leave the `unconnected` recall's denominator.",
         "",
-        "## Replays (same recording, both settings)",
+        "## Replays (same recording, each setting)",
         "",
-        "| recording | early | accepted | TP | FP | precision | with revisit partner | found "
-        "| recall | recall, unconnected | rejected | pose graphs + full BAs | maps | joint ATE cm "
+        "| recording | early | fuse | accepted | TP | FP | precision | with revisit partner "
+        "| found | recall | recall, unconnected | recall, linked | rejected "
+        "| pose graphs + full BAs | maps | joint ATE cm "
         "| place recognition ms/KF | verification ms/KF |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         lines.append(
-            f"| `{r['recording']}` | {r['early']} | {r['accepted']} | {r['tp']} | {r['fp']} | "
+            f"| `{r['recording']}` | {r['early']} | {r.get('fuse', 0)} | {r['accepted']} | "
+            f"{r['tp']} | {r['fp']} | "
             f"{_f(r['precision'], '.3f')} | {r['with_partner']} | {r['found']} | "
             f"{_f(r['recall'], '.3f')} | {_f(r['recall_unconnected'], '.3f')} | "
+            f"{_f(r.get('recall_linked'), '.3f')} | "
             f"{r['rejected']} | {r['optimizations']} | {r['maps']} | "
             f"{_f(r['joint_cm'], '.2f')} | {_f(r['pr_ms'], '.1f')} | {_f(r['verify_ms'], '.1f')} |"
         )
@@ -140,7 +157,10 @@ def write(rows: list[dict], live: list[dict], out: Path, argv: str) -> None:
     for r in rows:
         if r["rejected_reasons"]:
             why = ", ".join(f"{k} {v}" for k, v in sorted(r["rejected_reasons"].items()))
-            lines.append(f"- `{r['recording']}`, early {r['early']}: rejected by {why}")
+            lines.append(
+                f"- `{r['recording']}`, early {r['early']}, fuse {r.get('fuse', 0)}: "
+                f"rejected by {why}"
+            )
     if live:
         lines += [
             "",
@@ -170,15 +190,18 @@ def write(rows: list[dict], live: list[dict], out: Path, argv: str) -> None:
 
 def plot(rows: list[dict], path: Path) -> None:
     recs = sorted({r["recording"] for r in rows})
-    earlies = sorted({r["early"] for r in rows})
-    fig, axes = plt.subplots(1, 2, figsize=(10, 3.8))
-    width = 0.8 / max(1, len(earlies))
-    for j, e in enumerate(earlies):
-        by = {r["recording"]: r for r in rows if r["early"] == e}
+    settings = sorted({(r["early"], r.get("fuse", 0)) for r in rows})
+    fig, axes = plt.subplots(1, 4, figsize=(17, 3.8))
+    width = 0.8 / max(1, len(settings))
+    for j, (e, f) in enumerate(settings):
+        by = {r["recording"]: r for r in rows if (r["early"], r.get("fuse", 0)) == (e, f)}
         xs = [i + j * width for i in range(len(recs))]
-        axes[0].bar(xs, [by[k]["recall"] or 0 for k in recs], width, label=f"early {e}")
-        axes[1].bar(xs, [by[k]["joint_cm"] or 0 for k in recs], width, label=f"early {e}")
-    titles = ("recall", "joint ATE, cm (replay)")
+        label = f"early {e}, fuse {f}"
+        axes[0].bar(xs, [by[k]["recall"] or 0 for k in recs], width, label=label)
+        axes[1].bar(xs, [by[k]["recall_unconnected"] or 0 for k in recs], width, label=label)
+        axes[2].bar(xs, [by[k]["recall_linked"] or 0 for k in recs], width, label=label)
+        axes[3].bar(xs, [by[k]["joint_cm"] or 0 for k in recs], width, label=label)
+    titles = ("recall", "recall, unconnected", "recall, linked", "joint ATE, cm (replay)")
     for ax, title in zip(axes, titles, strict=True):
         ax.set_xticks([i + 0.4 - width / 2 for i in range(len(recs))], recs, fontsize=7)
         ax.set_title(title)
@@ -192,6 +215,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--ab", action="append", default=[], metavar="RECORDING:DATASET")
     ap.add_argument("--early", default="0,1", help="early_candidates values (default 0,1)")
+    ap.add_argument("--fuse", default="1", help="fuse_loop_points values, 1 and/or 0 (default 1)")
     ap.add_argument("--live", action="append", default=[], metavar="LABEL:RUN_DIR:DATASET")
     ap.add_argument("--out", type=Path, default=RESULTS)
     args = ap.parse_args()
@@ -201,13 +225,18 @@ def main() -> None:
     for spec in args.ab:
         rec, data = spec.split(":")
         for e in (int(v) for v in args.early.split(",")):
-            print(f"replaying {rec} with early {e}", flush=True)
-            rows.append(replay_row(Path(rec), Path(data), e, vocab))
-            r = rows[-1]
-            print(
-                f"  recall {r['recall']:.3f}, precision {r['precision']}, joint {r['joint_cm']}",
-                flush=True,
-            )
+            for f in (v == "1" for v in args.fuse.split(",")):
+                print(f"replaying {rec} with early {e}, fuse {int(f)}", flush=True)
+                rows.append(replay_row(Path(rec), Path(data), e, vocab, f))
+                if len({Path(a.split(":")[0]).name for a in args.ab}) < len(args.ab):
+                    rows[-1]["recording"] = f"{Path(rec).parent.name}/{Path(rec).name}"
+                r = rows[-1]
+                print(
+                    f"  recall {r['recall']:.3f} (unconnected {r['recall_unconnected']}, "
+                    f"linked {r['recall_linked']}), "
+                    f"precision {r['precision']}, joint {r['joint_cm']}",
+                    flush=True,
+                )
     live = []
     for spec in args.live:
         label, run_dir, data = spec.split(":")

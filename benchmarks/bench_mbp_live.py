@@ -6,7 +6,8 @@ Run: ``.venv/bin/python benchmarks/bench_mbp_live.py --data DATASET [...] [--eve
 (:func:`lab.links.run_job`) and then the same with ``--mbp-every N`` (alternating, so that the
 load of the machine falls on both alike), each into its own folder under ``--root``
 (``--record``: with its uplink recorded beside it, for ``bench_mbp_midrun.py``);
-``--from-runs`` only reads the folders a run left there. Writes
+``--from-runs`` only reads the folders a run left there; ``--resume`` runs only the folders
+that hold no finished run yet (e.g. ``--repeats 4`` after a run with 2). Writes
 ``benchmarks/results/mbp_live.md`` and ``mbp_live.png``.
 
 A live run is the only faithful test of a configuration that changes the corrections sent to
@@ -107,6 +108,11 @@ def main() -> None:
         "--record", action="store_true", help="record each run's uplink (RUN/uplink.rec)"
     )
     ap.add_argument(
+        "--resume",
+        action="store_true",
+        help="skip the runs whose folder already holds a finished run (its report.json)",
+    )
+    ap.add_argument(
         "--only",
         choices=("none", "mbp"),
         help="run only this variant (the other's folders, e.g. linked from an earlier run of "
@@ -124,6 +130,9 @@ def main() -> None:
                         continue
                     out = folder(args.root, data, f"mbp{every}", k)
                     label = f"[{data.name} {name} #{k}]"
+                    if args.resume and (out / "report.json").is_file():
+                        log.info("%s already done in %s", label, out)
+                        continue
                     run_job(
                         data,
                         out,
@@ -150,7 +159,8 @@ def main() -> None:
         f"Command: `benchmarks/bench_mbp_live.py {' '.join('--data ' + str(d) for d in args.data)}"
         f" --every {args.every} --repeats {args.repeats} --root {args.root}"
         f"{' --from-runs' if args.from_runs else ''}"
-        f"{f' --only {args.only}' if args.only else ''}`; commit {commit}; "
+        f"{f' --only {args.only}' if args.only else ''}"
+        f"{' --resume' if args.resume else ''}`; commit {commit}; "
         f"{time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}; {platform.machine()}"
         f"{'' if args.from_runs else f', {time.perf_counter() - t0:.0f} s in all'}. Each run: "
         "`recslam demo --data DATASET --no-dashboard --rate realtime` with `--no-mbp` or "

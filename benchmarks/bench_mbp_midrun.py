@@ -1,8 +1,10 @@
 """MBP during operation (issue 17, item 2): keyframes kept and joint ATE, same recordings.
 
 Run: ``.venv/bin/python benchmarks/bench_mbp_midrun.py --ab RECORDING:DATASET [...] [--every 40]
-[--settle 30] [--variant LABEL:KEY=VALUE[,KEY=VALUE...] ...]``; writes
-``benchmarks/results/mbp_midrun.md`` and ``mbp_midrun.png``.
+[--settle 30] [--variant LABEL:KEY=VALUE[,KEY=VALUE...] ...] [--rows 'LABEL;LABEL']``; writes
+``benchmarks/results/mbp_midrun.md`` (one row per recording and run, then per run over the
+recordings: the change of joint ATE against no MBP on the same recording) and
+``mbp_midrun.png``.
 
 Each recording (``recslam demo --record-uplink``) is replayed through the cloud service's own
 core (:func:`lab.table3.replay`, modelled schedule, solves taking no time: the result does not
@@ -49,6 +51,8 @@ import tempfile
 import time
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 from common.evaluation.results import load_groundtruth
 from common.vocabulary import DEFAULT_VOCABULARY_PATH, Vocabulary
@@ -166,6 +170,32 @@ def run_one(rec: Path, data: Path, label: str, cfg: CloudServiceConfig, vocab: V
     }
 
 
+def summary(results: dict[str, list[dict]]) -> list[str]:
+    """Per row label over the recordings: the change of joint ATE against no MBP on the same
+    recording (mean, median, range, how many worse) and the keyframes kept."""
+    changes: dict[str, list[float]] = {}
+    kept: dict[str, list[float]] = {}
+    for rows in results.values():
+        base = rows[0]["joint_m"]
+        for r in rows[1:]:
+            if base and r["joint_m"] is not None:
+                changes.setdefault(r["label"], []).append(100 * (r["joint_m"] / base - 1))
+                kept.setdefault(r["label"], []).append(100 * r["keyframes"] / max(r["received"], 1))
+    if not changes:
+        return []
+    lines = [
+        "| run | recordings | change vs no MBP: mean | median | range | worse on | kept % |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for label, c in changes.items():
+        lines.append(
+            f"| {label} | {len(c)} | {np.mean(c):+.1f} % | {np.median(c):+.1f} % "
+            f"| {min(c):+.0f} .. {max(c):+.0f} % | {sum(x > 0 for x in c)} of {len(c)} "
+            f"| {min(kept[label]):.0f}-{max(kept[label]):.0f} |"
+        )
+    return lines
+
+
 def plot(results: dict[str, list[dict]], path: Path) -> None:
     import matplotlib
 
@@ -220,6 +250,13 @@ def main() -> None:
         metavar="LABEL:KEY=VALUE[,KEY=VALUE...]",
         help="one more row (module docstring); repeatable",
     )
+    ap.add_argument(
+        "--rows",
+        default="",
+        metavar="LABEL[;LABEL...]",
+        help="only these rows (labels as in the table, ';'-separated; 'no MBP' is always run, "
+        "as the base of the changes); default all",
+    )
     ap.add_argument("--jobs", type=int, default=1, help="replays run in parallel (processes)")
     ap.add_argument("--out", type=Path, default=RESULTS, help="folder of the md and png")
     args = ap.parse_args()
@@ -227,6 +264,12 @@ def main() -> None:
     log.setLevel(logging.INFO)
     settles = [int(s) for s in args.settle.split(",") if s]
     rows_of = variants(args.every, settles, args.variant)
+    if args.rows:
+        keep = {"no MBP", *filter(None, args.rows.split(";"))}
+        unknown = keep - {label for label, _ in rows_of}
+        if unknown:
+            ap.error(f"--rows: no row labelled {sorted(unknown)}")
+        rows_of = [(label, cfg) for label, cfg in rows_of if label in keep]
     jobs = []
     for spec in args.ab:
         rec_s, data_s = spec.split(":", 1)
@@ -248,6 +291,7 @@ def main() -> None:
         f"Command: `benchmarks/bench_mbp_midrun.py {' '.join('--ab ' + a for a in args.ab)} "
         f"--every {args.every} --settle {args.settle}"
         + "".join(f" --variant '{v}'" for v in args.variant)
+        + (f" --rows '{args.rows}'" if args.rows else "")
         + f"`; commit {commit}; "
         f"{time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}; {platform.machine()}, "
         f"{time.perf_counter() - t0:.0f} s in all ({args.jobs} at a time). Replays through the "
@@ -277,7 +321,7 @@ def main() -> None:
                 f"| {'–' if j is None else f'{100 * j:.2f}'} | {change} "
                 f"| {'–' if k is None else f'{100 * k:.2f}'} | {per} |"
             )
-    lines += ["", "![mbp_midrun.png](mbp_midrun.png)", ""]
+    lines += ["", *summary(results), "", "![mbp_midrun.png](mbp_midrun.png)", ""]
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "mbp_midrun.md").write_text("\n".join(lines))
     plot(results, args.out / "mbp_midrun.png")

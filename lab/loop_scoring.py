@@ -24,6 +24,11 @@ Definitions (:class:`LoopCriterion` holds the thresholds):
 - **Recall** = queries with a revisit partner for which a true-positive loop / merge was
   found / queries with a revisit partner. (A TP whose partner is not a "revisit partner" by
   these thresholds still counts as found when the query has one.)
+- **Linked recall** = queries with a revisit partner that were found, or that share at least
+  ``linked_min_shared`` map points with one of their revisit partners in the map the run
+  ended with (before the shutdown MBP pass): the two visits are joined by common points, as
+  a loop that fuses its point pairs (``MergeConfig.fuse_loop_points``) joins the keyframes
+  after it, which are then no loop candidates themselves.
 - A **rejected** candidate (verification keeps no pose for it) is a *true place* when the
   two keyframes' ground-truth cameras are within the revisit thresholds.
 """
@@ -55,7 +60,8 @@ class LoopCriterion:
     and optical axes this close make two keyframes a revisit (default 1 m, 30 deg).
     same_robot_min_gap_s: a robot's own keyframes count as revisits only this far apart in
     time (default 10 s). max_gt_gap_s: ground truth farther than this from a keyframe's stamp
-    is missing (default 0.02 s).
+    is missing (default 0.02 s). linked_min_shared: map points a query shares with a revisit
+    partner at the end for it to count as linked (default 15, ORB-SLAM's covisibility edge).
     """
 
     max_trans_err_m: float = 0.3
@@ -64,6 +70,7 @@ class LoopCriterion:
     revisit_angle_deg: float = 30.0
     same_robot_min_gap_s: float = 10.0
     max_gt_gap_s: float = 0.02
+    linked_min_shared: int = 15
 
 
 @dataclass(frozen=True)
@@ -226,6 +233,7 @@ class LoopScores:
     found: int = 0
     queries_with_unconnected_partner: int = 0
     found_unconnected: int = 0
+    linked: int = 0
     rejected_reasons: Counter[str] = field(default_factory=Counter)
 
     @property
@@ -252,6 +260,12 @@ class LoopScores:
         return self.found_unconnected / n if n else None
 
     @property
+    def recall_linked(self) -> float | None:
+        """Queries with a revisit partner that were found or share map points with a partner
+        at the end (module docstring) / queries with a revisit partner."""
+        return self.linked / self.queries_with_partner if self.queries_with_partner else None
+
+    @property
     def rejected_true(self) -> int:
         """Rejected candidates that are a true place (a ground-truth revisit by camera
         geometry: :func:`same_place`); verification keeps no pose for a rejected one."""
@@ -264,8 +278,11 @@ def score_loops(
     info: Mapping[int, KeyframeInfo],
     gt: GroundTruthPoses,
     criterion: LoopCriterion | None = None,
+    final_covisible: Mapping[int, Mapping[int, int]] | None = None,
 ) -> LoopScores:
-    """Precision and recall (module docstring) of a replay's detections."""
+    """Precision and recall (module docstring) of a replay's detections; the linked recall
+    counts found queries only unless ``final_covisible`` ({keyframe: {keyframe: shared map
+    points}} of the map at the end) is given."""
     crit = criterion or LoopCriterion()
     scores = LoopScores(crit)
     true_found: set[int] = set()
@@ -288,6 +305,10 @@ def score_loops(
             scores.queries_with_partner += 1
             found = q.query_key in true_found
             scores.found += found
+            shared = (final_covisible or {}).get(q.query_key, {})
+            scores.linked += found or any(
+                shared.get(p, 0) >= crit.linked_min_shared for p in partners
+            )
             if set(partners) - set(q.connected_keys.tolist()):
                 scores.queries_with_unconnected_partner += 1
                 scores.found_unconnected += found

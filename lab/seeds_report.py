@@ -10,7 +10,7 @@ import shutil
 from pathlib import Path
 from typing import Any
 
-from lab.seeds import fmt_cm
+from lab.seeds import SeedTargets, fmt_cm, summarize
 
 log = logging.getLogger(__name__)
 
@@ -75,6 +75,8 @@ def seeds_markdown(data: dict[str, Any], table: str = "seeds") -> str:
             f"{s.get('wrong_constraints', '–')} of {s.get('constraints', '–')}.",
             "",
         ]
+    if len(gens) > 1:
+        lines += [*_by_generator(runs, SeedTargets(**t)), ""]
     names = sorted({n for r in runs.values() for n in r["per_robot_m"]})
     head = " | ".join(f"{n} cm" for n in names)
     lines += [
@@ -117,10 +119,35 @@ def _wrong(r: dict[str, Any]) -> str:
     return f"{r['wrong_constraints']} / {r['constraints']}{worst}"
 
 
-def _order(name: str) -> tuple[int, str]:
-    """Runs by the first number in their name (``seed-10`` after ``seed-9``), then name."""
+def _by_generator(runs: dict[str, dict[str, Any]], targets: SeedTargets) -> list[str]:
+    """One row per generator setting: the summary of its runs (:func:`lab.seeds.summarize`)."""
+    groups: dict[str, dict[str, dict[str, Any]]] = {}
+    for name, r in runs.items():
+        text = generator_text((r.get("dataset") or {}).get("generator"))
+        groups.setdefault(text, {})[name] = r
+    lines = [
+        "| generator | runs | median joint ATE cm | worst joint ATE cm | worst robot cm "
+        "| one map | wrong constraints |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for text, group in sorted(groups.items()):
+        g = summarize(group, targets)
+        lines.append(
+            f"| {text} | {g['runs']} | {fmt_cm(g['median_joint_m'])} "
+            f"| {fmt_cm(g['worst_joint_m'])} | {fmt_cm(g['worst_robot_m'])} "
+            f"| {g['one_map']} of {g['runs']} "
+            f"| {g.get('wrong_constraints', '–')} of {g.get('constraints', '–')} |"
+        )
+    return lines
+
+
+def _order(name: str) -> tuple[str, int, str]:
+    """Runs by their generator tag, then seed (``seed-10`` after ``seed-9``), then name."""
+    m = re.search(r"^(.*?)seed-(\d+)$", name)
+    if m:
+        return (m.group(1), int(m.group(2)), name)
     digits = re.search(r"\d+", name)
-    return (int(digits.group()), name) if digits else (1 << 30, name)
+    return ("", int(digits.group()) if digits else 1 << 30, name)
 
 
 def seeds_plot(data: dict[str, Any], path: Path) -> None:

@@ -105,6 +105,9 @@ class ReplayResult:
     stages: dict[str, dict[str, float]] = field(default_factory=dict)
     """The app's stage and codec timings at the end (``CloudApp.stage_timer``,
     ``codec_timer``: ``{"stage.place_recognition": {"seconds": s, "messages": n}, ...}``)."""
+    covisible: dict[int, dict[int, int]] = field(default_factory=dict)
+    """Every keyframe of the atlas at the end: ``{other keyframe: map points both see}``
+    (the keyframes a shutdown MBP pass removed are missing)."""
 
 
 class _Observations:
@@ -161,6 +164,7 @@ def replay(
     solve_fn: Callable[[SolveRequest], SolveResult] = solve,
     latency_scale: float = 0.0,
     schedule: str = "modelled",
+    covisibility: bool = False,
 ) -> ReplayResult:
     """Feed ``records`` to a fresh CloudApp on ``state_dir`` (must be empty) through the
     service's core (module docstring); without ``full_ba`` the full bundle adjustment is
@@ -175,7 +179,8 @@ def replay(
     timer on the records' receive times (steps are ignored), each solve taking
     ``latency_scale`` times its wall time here (0: no time, its result applies before the
     next record; 1: records received meanwhile are handled first, as the service handles
-    messages while its optimizer process solves)."""
+    messages while its optimizer process solves). ``covisibility``: fill
+    :attr:`ReplayResult.covisible` from the atlas at the end."""
     if latency_scale < 0 or not math.isfinite(latency_scale):
         raise RecslamError(f"latency_scale must be finite and >= 0, got {latency_scale}")
     if schedule not in ("recorded", "modelled"):
@@ -262,6 +267,7 @@ def replay(
             backbone=backbone_breakdown(app),
             schedule=schedule,
             stages={**app.stage_timer.snapshot(), **app.codec_timer.snapshot()},
+            covisible={k: dict(a.covisible(k)) for k in a.keyframe_keys()} if covisibility else {},
         )
     finally:
         app.close()

@@ -85,3 +85,19 @@ def test_recall_unconnected_leaves_out_revisits_already_joined_by_shared_points(
     assert (s.queries_with_partner, s.found) == (3, 1)
     assert (s.queries_with_unconnected_partner, s.found_unconnected) == (2, 1)
     assert s.recall_unconnected == 0.5
+
+
+def test_recall_linked_counts_queries_sharing_points_with_a_partner_at_the_end():
+    gt, info, poses, _ = _gt()
+    T_true = inverse_T(poses[5]) @ poses[25]
+    dets = [Detection(25, 5, T_true, True, "loop", "ok", 120)]
+    held = np.arange(30, dtype=np.int64)
+    queries = [QueryEvent(k, held[held < k]) for k in (25, 26, 27, 28)]
+    # At the end 26 shares 40 points with its partner 6 (a loop fused them), 27 only 5 with
+    # 7 (under linked_min_shared), and 28 shares 40 with 20, which is no revisit partner.
+    covisible = {26: {6: 40, 25: 80}, 27: {7: 5}, 28: {20: 40}}
+    s = score_loops(dets, queries, info, gt, LoopCriterion(), final_covisible=covisible)
+    assert (s.queries_with_partner, s.found, s.linked) == (4, 1, 2)
+    assert s.recall == 0.25 and s.recall_linked == 0.5
+    # Without the map at the end, linked counts the found ones only.
+    assert score_loops(dets, queries, info, gt, LoopCriterion()).recall_linked == 0.25

@@ -221,3 +221,36 @@ def test_loop_constraints_checked_against_the_ground_truth(tmp_path: Path) -> No
     assert got["wrong_constraints"] == 1
     assert got["max_constraint_err_m"] == pytest.approx(0.5, abs=1e-6)
     assert constraint_check(tmp_path / "nothing", data)["constraints"] is None
+
+
+def test_hard_sweep_of_several_settings_summarises_each_and_sorts_by_setting(
+    tmp_path: Path,
+) -> None:
+    """Runs of two generator settings: one summary row per setting, and the runs sorted by
+    setting and seed (``figure8``'s own digit and seed 10 after seed 2 do not reorder them)."""
+    settings = {
+        "figure8_vicon": {"flight": "figure8", "world": "vicon"},
+        "inward_hall": {"flight": "inward", "world": "hall"},
+    }
+    cases = [("inward_hall", 10, 0.05), ("figure8_vicon", 2, 0.01), ("inward_hall", 2, 0.03)]
+    cases += [("figure8_vicon", 10, 0.02)]
+    out = tmp_path / "out"
+    out.mkdir()
+    for i, (tag, seed, joint) in enumerate(cases):
+        root = tmp_path / f"r{i}"  # each run on its own dataset folder
+        run = _run(root, f"{tag}-seed-{seed}", seed, joint, [0])
+        run.rename(out / run.name)
+        harder = settings[tag] | {"trajectory_files": [], "exposure_steps": False}
+        meta = {"robots": 2, "seconds": 30.0, "seed": seed, "harder": harder}
+        (root / "data" / f"seed-{seed}" / "dataset.json").write_text(json.dumps(meta))
+    run_seeds(SeedsConfig(seeds=(), out=out, from_runs=True, name="seeds_hard"))
+    md = (out / "seeds_hard.md").read_text()
+    assert "| flight figure8, world vicon | 2 | 1.5 | 2.0 | 1.7 | 2 of 2 |" in md
+    assert "| flight inward, world hall | 2 | 4.0 | 5.0 | 1.7 | 2 of 2 |" in md
+    rows = [line.split(" | ")[0][2:] for line in md.splitlines() if "-seed-" in line]
+    assert rows == [
+        "figure8_vicon-seed-2",
+        "figure8_vicon-seed-10",
+        "inward_hall-seed-2",
+        "inward_hall-seed-10",
+    ]
