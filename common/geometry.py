@@ -166,6 +166,34 @@ def orthonormalize_T(T: np.ndarray) -> np.ndarray:
     return out
 
 
+def yaw_alignment(p_src: np.ndarray, p_dst: np.ndarray, with_scale: bool = False) -> Sim3:
+    """Least-squares ``p_dst ≈ s R p_src + t`` for (N, 3) point sets with ``R`` a rotation
+    about z (gravity-aligned maps: yaw only) in closed form; ``s = 1`` without scale. The yaw
+    that maximises the correlation is the same with or without scale; then
+    ``s = Σ (R a)·b / Σ |a|²`` over the centred points. Raises DegenerateAlignmentError for
+    fewer than three pairs or points that coincide."""
+    x = np.asarray(p_src, dtype=np.float64)
+    y = np.asarray(p_dst, dtype=np.float64)
+    if x.shape != y.shape or x.ndim != 2 or x.shape[1] != 3 or x.shape[0] < 3:
+        raise DegenerateAlignmentError(
+            f"need >= 3 point pairs of equal (N, 3) shape, got {x.shape} / {y.shape}"
+        )
+    cx, cy = x.mean(0), y.mean(0)
+    a, b = x - cx, y - cy
+    yaw = np.arctan2(
+        np.sum(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]), np.sum(a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1])
+    )
+    c, sn = np.cos(yaw), np.sin(yaw)
+    R = np.array([[c, -sn, 0.0], [sn, c, 0.0], [0.0, 0.0, 1.0]])
+    scale = 1.0
+    if with_scale:
+        spread = float(np.sum(a * a))
+        if not spread > 1e-12:
+            raise DegenerateAlignmentError("degenerate alignment: the source points coincide")
+        scale = float(np.sum((a @ R.T) * b)) / spread
+    return R, cy - scale * (R @ cx), scale
+
+
 def umeyama_alignment(p_src: np.ndarray, p_dst: np.ndarray, with_scale: bool = False) -> Sim3:
     """Least-squares similarity ``p_dst ≈ s R p_src + t`` for (N, 3) point sets (Umeyama 1991,
     the closed form evo uses); ``s = 1`` without scale (Horn's / Kabsch's rigid solution).

@@ -185,6 +185,12 @@ class CloudApp:
                 self._agents[edge, name, edge_map] = a
             self._use_camera(aid, name)
         fusion.held_agents = frozenset(self._prior)
+        newest = {
+            a.name: a.agent_id for a in sorted(self._agents.values(), key=lambda a: a.agent_id)
+        }
+        fusion.superseded_agents = {
+            a.agent_id for a in self._agents.values() if newest[a.name] != a.agent_id
+        }
         self.mission = MissionClock(
             store.missions().get(store.mission, ""), self.atlas, self._prior, self._names()
         )
@@ -225,6 +231,10 @@ class CloudApp:
         next_id = max((x.agent_id for x in known), default=-1) + 1
         a = self._agents[edge_id, name, edge_map] = _Agent(next_id, name, edge_id, edge_map)
         log.info("new agent %d: robot %r, map %d of edge %r", next_id, name, edge_map, edge_id)
+        # The robot's earlier maps are fragments now (MapFusion.is_fragment).
+        self.fusion.superseded_agents.update(
+            x.agent_id for x in self._agents.values() if x.name == name and x is not a
+        )
         self._use_camera(next_id, name)
         return a, True
 

@@ -26,7 +26,7 @@ from collections.abc import Iterable, Iterator, Sequence
 
 import numpy as np
 
-from common.geometry import inverse_T
+from common.geometry import inverse_T, make_T
 from services.cloud.atlas_graph import CovisibilityGraph
 from services.cloud.atlas_records import (
     KeyframeRecord,
@@ -423,7 +423,9 @@ class Atlas:
         candidate_key: int = -1,
         fused_points: int = 0,
     ) -> MergeRecord:
-        """Re-express every keyframe and map point of ``source_map`` in ``target_map``'s frame."""
+        """Re-express every keyframe and map point of ``source_map`` in ``target_map``'s frame
+        (``T_target_source`` rigid or a similarity: positions and velocities scale, rotations
+        stay rotations)."""
         maps = self.maps()
         if target_map not in maps or source_map not in maps or target_map == source_map:
             raise AtlasError(f"cannot merge map {source_map} into {target_map} (maps: {maps})")
@@ -432,6 +434,10 @@ class Atlas:
         R = T[:3, :3] / scale
         # The points' new positions first: they follow their reference keyframes, which move
         # next, by the rigid part only (a Sim(3) also scales the points about the map origin).
+        q = self._kfs.get(query_key)
+        pivot = (
+            q.T_map_body[:3, 3].copy() if q is not None and q.map_id == source_map else np.zeros(3)
+        )
         moved = [m for m in self._mps.values() if m.map_id == source_map]
         P = map_positions(moved) @ T[:3, :3].T + T[:3, 3]
         for k in self._kfs.values():
@@ -447,10 +453,14 @@ class Atlas:
             self._unsaved.points.add(m.key)
             m.map_id = target_map
             m.p_map = p
+        # An agent's later keyframes land through a rigid T_map_agent: with a scale, the one
+        # that is exact at the query keyframe (the place the merge joined; anchored payloads
+        # land relative to their anchor anyway, services.cloud.rebase).
+        T_agent = make_T(R, T[:3, 3] + (scale - 1.0) * (R @ pivot))
         for a, mid in self._map_of_agent.items():
             if mid == source_map:
                 self._map_of_agent[a] = target_map
-                self._T_map_agent[a] = T @ self._T_map_agent[a]
+                self._T_map_agent[a] = T_agent @ self._T_map_agent[a]
         rec = MergeRecord(target_map, source_map, ro(T), query_key, candidate_key, fused_points)
         self._merges.append(rec)
         log.info("merged map %d into %d", source_map, target_map)

@@ -95,6 +95,9 @@ class MapFusion:
         # Agents whose keyframes and points stay where they are (a prior map, see
         # services.cloud.mission): held in every optimisation, never pruned.
         self.held_agents: frozenset[int] = frozenset()
+        # Agents whose robot has moved on to a newer map (the service marks them): a map of
+        # such agents only is a fragment (``is_fragment``), which may merge with a scale.
+        self.superseded_agents: set[int] = set()
         # Verification outcomes so far, by reason ("ok" or the rejection's first word).
         self.verification_counts: Counter[str] = Counter()
         # CPU time (this thread's) of the stages of a new keyframe (``stage.insert``,
@@ -145,6 +148,7 @@ class MapFusion:
                 )
                 if same_map and any(o.loop.key_b == key for o in events.outcomes):
                     continue
+                fragment = None if same_map else self._fragment_of(key, cand.candidate_key)
                 t0 = self.timer.clock()
                 res = verify_candidate(
                     self.atlas,
@@ -154,6 +158,9 @@ class MapFusion:
                     self.config.verification,
                     self.word_group,
                     early=cand.early(self.config.place_recognition),
+                    max_scale_change=0.0
+                    if fragment is None
+                    else self.config.merge.fragment_max_scale_change,
                 )
                 verify_s += self.timer.clock() - t0
                 events.verifications.append(res)
@@ -174,7 +181,7 @@ class MapFusion:
                 if not res.accepted:
                     continue
                 t0 = self.timer.clock()
-                outcome = apply_match(self.atlas, res, self.config.merge)
+                outcome = apply_match(self.atlas, res, self.config.merge, fragment)
                 merge_s += self.timer.clock() - t0
                 events.outcomes.append(outcome)
                 events.maps_to_optimize.add(self.atlas.map_id_of_keyframe(key))
@@ -185,6 +192,22 @@ class MapFusion:
         with self.timer.span("stage.database"):
             self.recognizer.add(self.atlas, key)
         return events
+
+    def is_fragment(self, map_id: int) -> bool:
+        """Whether every agent of ``map_id`` was superseded by a newer map of its robot (and
+        none is held): no edge sends that map's poses any more, so it may take a scale."""
+        agents = self.atlas.agents_in_map(map_id)
+        return bool(agents) and all(
+            a in self.superseded_agents and a not in self.held_agents for a in agents
+        )
+
+    def _fragment_of(self, key: int, candidate_key: int) -> int | None:
+        """The map of ``candidate_key`` or, else, of ``key`` that is a fragment, or None."""
+        for k in (candidate_key, key):
+            m = self.atlas.map_id_of_keyframe(k)
+            if self.is_fragment(m):
+                return m
+        return None
 
     def remove_keyframe(self, key: int) -> None:
         """Drop a keyframe the edge culled (atlas and keyframe database)."""

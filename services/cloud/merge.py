@@ -28,7 +28,13 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from common.errors import RecslamError
-from common.geometry import DegenerateAlignmentError, make_T, transform_points, umeyama_alignment
+from common.geometry import (
+    DegenerateAlignmentError,
+    make_T,
+    transform_points,
+    umeyama_alignment,
+    yaw_alignment,
+)
 from services.cloud.atlas import Atlas, LoopEdge, MergeRecord
 from services.cloud.config import AlignmentMode, MergeConfig
 from services.cloud.verification import VerificationResult, pair_hamming
@@ -53,29 +59,32 @@ def _rot_z(yaw: float) -> np.ndarray:
 def align_points(p_src: np.ndarray, p_tgt: np.ndarray, mode: AlignmentMode) -> np.ndarray:
     """Least-squares ``T_tgt_src (4, 4)`` with ``p_tgt ≈ T @ p_src`` for point pairs (N, 3).
 
-    YAW_TRANSLATION: rotation about z only (closed form); SE3 / SIM3: Umeyama (1991)."""
+    YAW_TRANSLATION(_SCALE): rotation about z only, with a scale for the latter (closed form,
+    :func:`common.geometry.yaw_alignment`); SE3 / SIM3: Umeyama (1991)."""
     src = np.asarray(p_src, dtype=np.float64).reshape(-1, 3)
     tgt = np.asarray(p_tgt, dtype=np.float64).reshape(-1, 3)
     if src.shape != tgt.shape or src.shape[0] < 3:
         raise MergeError(f"need >= 3 point pairs of equal count, got {src.shape} / {tgt.shape}")
-    if mode is not AlignmentMode.YAW_TRANSLATION:
-        try:
-            R, t, scale = umeyama_alignment(src, tgt, with_scale=mode is AlignmentMode.SIM3)
-        except DegenerateAlignmentError as exc:
-            raise MergeError(str(exc)) from exc
-        return make_T(scale * R, t)
-    cs, ct = src.mean(0), tgt.mean(0)
-    a, b = src - cs, tgt - ct
-    yaw = np.arctan2(
-        np.sum(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]), np.sum(a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1])
-    )
-    R = _rot_z(float(yaw))
-    return make_T(R, ct - R @ cs)
+    yaw_only = mode in (AlignmentMode.YAW_TRANSLATION, AlignmentMode.YAW_TRANSLATION_SCALE)
+    scaled = mode in (AlignmentMode.YAW_TRANSLATION_SCALE, AlignmentMode.SIM3)
+    try:
+        if yaw_only:
+            R, t, scale = yaw_alignment(src, tgt, with_scale=scaled)
+        else:
+            R, t, scale = umeyama_alignment(src, tgt, with_scale=scaled)
+    except DegenerateAlignmentError as exc:
+        raise MergeError(str(exc)) from exc
+    return make_T(scale * R, t)
+
+
+def scale_of(T: np.ndarray) -> float:
+    """The scale of a similarity ``T (4, 4)`` (1 for a rigid one)."""
+    return float(np.cbrt(np.linalg.det(np.asarray(T)[:3, :3])))
 
 
 def project_transform(T: np.ndarray, mode: AlignmentMode) -> np.ndarray:
     """Keep only the degrees of freedom of ``mode`` of a rigid ``T (4, 4)``."""
-    if mode is AlignmentMode.YAW_TRANSLATION:
+    if mode in (AlignmentMode.YAW_TRANSLATION, AlignmentMode.YAW_TRANSLATION_SCALE):
         return make_T(_rot_z(yaw_of(T[:3, :3])), T[:3, 3])
     return np.array(T, dtype=np.float64)
 
@@ -140,47 +149,100 @@ def fuse_duplicates(
     return fused
 
 
-def apply_match(atlas: Atlas, result: VerificationResult, config: MergeConfig) -> MatchOutcome:
+def apply_match(
+    atlas: Atlas,
+    result: VerificationResult,
+    config: MergeConfig,
+    fragment: int | None = None,
+) -> MatchOutcome:
     """Act on an accepted verification: merge the query's map into the candidate's map when
-    they differ, and record the loop constraint between the two keyframes."""
+    they differ, and record the loop constraint between the two keyframes.
+
+    ``fragment``: the query's or the candidate's map when it is a fragment (its robots moved on
+    to newer maps; ``MapFusion.is_fragment``). That map merges into the other one with a yaw,
+    a translation and a scale fitted to the point pairs (within
+    ``config.fragment_max_scale_change``; else as any merge), and the loop constraint's
+    translation, measured in the candidate map's units, follows that scale."""
     if not result.accepted:
         raise MergeError(f"refusing to act on a rejected match ({result.reason})")
     q_map = atlas.map_id_of_keyframe(result.query_key)
     c_map = atlas.map_id_of_keyframe(result.candidate_key)
     merge = None
     fused = 0
+    T_cbody_qbody = np.asarray(result.T_cbody_qbody, np.float64)
     if q_map != c_map:
         pairs = result.point_pairs
         pairs = pairs[
             [atlas.has_map_point(int(a)) and atlas.has_map_point(int(b)) for a, b in pairs]
         ]
-        T = None
-        if pairs.shape[0] >= config.min_3d_pairs:
-            try:
-                T, keep = robust_align(
-                    atlas.map_point_positions(pairs[:, 0]),
-                    atlas.map_point_positions(pairs[:, 1]),
-                    config.mode,
-                )
-                pairs = pairs[keep]
-            except MergeError as exc:  # degenerate pairs (e.g. collinear points)
-                log.warning(
-                    "merge of map %d into %d: %s; using the verified pose", q_map, c_map, exc
-                )
-        if T is None:
+        # The map that moves (``source``) and the point pairs as (source side, target side).
+        source, target = (c_map, q_map) if fragment == c_map else (q_map, c_map)
+        if source == c_map:
+            pairs = pairs[:, ::-1]
+        scaled = fragment == source and config.fragment_max_scale_change > 0
+        T = _fit(atlas, pairs, config, scaled, source, target)
+        if T is None:  # too few or degenerate pairs: the verified pose
+            source, target, pairs = q_map, c_map, result.point_pairs
             T = project_transform(result.T_cmap_qmap, config.mode)
-        src_points = atlas.map_point_keys(q_map)
-        atlas.merge_maps(c_map, q_map, T, result.query_key, result.candidate_key)
+        else:
+            T, keep = T
+            pairs = pairs[keep]
+        if source == c_map:
+            T_cbody_qbody = T_cbody_qbody.copy()
+            T_cbody_qbody[:3, 3] *= scale_of(T)
+            pairs = pairs[:, ::-1]  # back to (query side, candidate side)
+        src_points = atlas.map_point_keys(source)
+        atlas.merge_maps(target, source, T, result.query_key, result.candidate_key)
         fused = fuse_pairs(atlas, pairs)
         fused += fuse_duplicates(
-            atlas, c_map, src_points, config.fuse_distance_m, config.fuse_max_hamming
+            atlas, target, src_points, config.fuse_distance_m, config.fuse_max_hamming
         )
         merge = atlas.record_fused_points(fused)
-        log.info("merged map %d into %d, fused %d points", q_map, c_map, fused)
+        log.info(
+            "merged map %d into %d (scale %.4f), fused %d points",
+            source,
+            target,
+            scale_of(T),
+            fused,
+        )
     elif config.fuse_loop_points:
         fused = fuse_pairs(atlas, result.point_pairs)
-    loop = atlas.add_loop(result.candidate_key, result.query_key, result.T_cbody_qbody)
+    loop = atlas.add_loop(result.candidate_key, result.query_key, T_cbody_qbody)
     return MatchOutcome(loop, merge, fused)
+
+
+def _fit(
+    atlas: Atlas,
+    pairs: np.ndarray,
+    config: MergeConfig,
+    scaled: bool,
+    source: int,
+    target: int,
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """``(T_target_source, inlier mask)`` from the pairs (source point, target point) (K, 2):
+    ``config.mode``, or yaw + translation + scale when ``scaled`` (falling back to the mode
+    when the scale is off by more than ``config.fragment_max_scale_change``); None with fewer
+    than ``config.min_3d_pairs`` pairs or degenerate ones."""
+    if pairs.shape[0] < config.min_3d_pairs:
+        return None
+    p_s = atlas.map_point_positions(pairs[:, 0])
+    p_t = atlas.map_point_positions(pairs[:, 1])
+    try:
+        if scaled:
+            T, keep = robust_align(p_s, p_t, AlignmentMode.YAW_TRANSLATION_SCALE)
+            if abs(scale_of(T) - 1.0) <= config.fragment_max_scale_change:
+                return T, keep
+            log.warning(
+                "merge of fragment %d into %d: fitted scale %.3f beyond %.0f %%; no scale",
+                source,
+                target,
+                scale_of(T),
+                100 * config.fragment_max_scale_change,
+            )
+        return robust_align(p_s, p_t, config.mode)
+    except MergeError as exc:  # degenerate pairs (e.g. collinear points)
+        log.warning("merge of map %d into %d: %s; using the verified pose", source, target, exc)
+        return None
 
 
 def fuse_pairs(atlas: Atlas, pairs: np.ndarray) -> int:

@@ -24,7 +24,7 @@ from scipy.spatial import cKDTree
 
 from common.calibration import CameraCalibration
 from common.errors import RecslamError
-from common.geometry import inverse_T, transform_points
+from common.geometry import DegenerateAlignmentError, inverse_T, transform_points, yaw_alignment
 from services.cloud.atlas import Atlas
 from services.cloud.config import VerificationConfig
 from services.cloud.map_types import KeyframeView
@@ -171,6 +171,7 @@ def verify_candidate(
     config: VerificationConfig,
     word_group: np.ndarray | None = None,
     early: bool = False,
+    max_scale_change: float = 0.0,
 ) -> VerificationResult:
     """Verify ``candidate_key`` for ``query_key``; ``camera`` is the query keyframe's (its
     robot's: the query's keypoints are located against the candidate's map points).
@@ -178,7 +179,11 @@ def verify_candidate(
     word to the id of the vocabulary node whose members may match (e.g.
     ``Vocabulary.ancestor_at_level(np.arange(S), level)``); None = same word only.
     ``early``: the candidate was not yet consistent over consecutive queries; a match is then
-    accepted only when :func:`covisible_agreement` confirms it."""
+    accepted only when :func:`covisible_agreement` confirms it. ``max_scale_change``: the two
+    maps may differ in scale by this fraction (one of them a map fragment,
+    ``MergeConfig.fragment_max_scale_change``): when the point pairs do not agree through the
+    pose, they may agree after a yaw + translation + scale alignment within it (0: rigid
+    only)."""
     cfg = config
     Q = atlas.keyframe(query_key)
     C = atlas.keyframe(candidate_key)
@@ -243,6 +248,8 @@ def verify_candidate(
         p_q = transform_points(T_cmap_qmap, atlas.map_point_positions(point_pairs[:, 0]))
         dist = np.linalg.norm(p_q - atlas.map_point_positions(point_pairs[:, 1]), axis=1)
         agree = dist < cfg.agreement_distance_m
+        if agree.mean() < cfg.min_3d3d_agreement and max_scale_change > 0:
+            agree = _scaled_agreement(atlas, point_pairs, cfg, max_scale_change, agree)
         if agree.mean() < cfg.min_3d3d_agreement:
             return _reject(
                 query_key, candidate_key, f"3D agreement {agree.mean():.2f}", n_inl, ratio
@@ -266,6 +273,37 @@ def verify_candidate(
             reason = f"covisible agreement {agree}/{checked}"
             return _reject(query_key, candidate_key, reason, n_inl, ratio)
     return result
+
+
+def _scaled_agreement(
+    atlas: Atlas,
+    point_pairs: np.ndarray,
+    cfg: VerificationConfig,
+    max_scale_change: float,
+    rigid: np.ndarray,
+) -> np.ndarray:
+    """Agreement (K,) bool of the pairs (query map point, candidate-side point) after a
+    yaw + translation + scale alignment of the query's points onto the candidate's (closed
+    form, again on the pairs within ``max(3 × median, agreement distance / 2)`` of the first
+    fit); ``rigid`` (the agreement through the pose) when the fitted scale is off by more
+    than ``max_scale_change`` or the pairs are degenerate."""
+    p_q = atlas.map_point_positions(point_pairs[:, 0])
+    p_c = atlas.map_point_positions(point_pairs[:, 1])
+    try:
+        R, t, s = yaw_alignment(p_q, p_c, with_scale=True)
+        r = np.linalg.norm(s * p_q @ R.T + t - p_c, axis=1)
+        keep = r <= max(3.0 * float(np.median(r)), cfg.agreement_distance_m / 2)
+        if 3 <= keep.sum() < keep.size:
+            R, t, s = yaw_alignment(p_q[keep], p_c[keep], with_scale=True)
+    except DegenerateAlignmentError:
+        return rigid
+    if abs(s - 1.0) > max_scale_change:
+        return rigid
+    agree = np.linalg.norm(s * p_q @ R.T + t - p_c, axis=1) < cfg.agreement_distance_m
+    log.debug(
+        "3D agreement %.2f through the pose, %.2f at scale %.3f", rigid.mean(), agree.mean(), s
+    )
+    return agree
 
 
 class CandidateGroup:

@@ -60,6 +60,9 @@ def test_new_edge_map_of_a_robot_is_a_new_agent_and_survives_restart(tmp_path, v
     app.handle("edge-a", AgentStatus("robot", 8, "tracking", 10, 2, 0, {}), b"stream", seq)
     assert app.agents() == {0: ("robot", "edge-a", 7), 1: ("robot", "edge-a", 8)}
     assert app.atlas.maps() == [0, 1]
+    # The robot moved on to map 8: its map 7 is a fragment (it may merge with a scale).
+    assert app.fusion.superseded_agents == {0}
+    assert app.fusion.is_fragment(0) and not app.fusion.is_fragment(1)
     # Corrections: one per edge map, each naming its own map id.
     msgs = [c.message for m in app.atlas.maps() for c in app.corrections(m)]
     assert sorted((c.agent_id, c.map_id) for c in msgs) == [("robot", 7), ("robot", 8)]
@@ -75,6 +78,7 @@ def test_new_edge_map_of_a_robot_is_a_new_agent_and_survives_restart(tmp_path, v
     restarted = _app(tmp_path, vocab)
     try:
         assert restarted.agents() == app.agents()
+        assert restarted.fusion.superseded_agents == {0}
         assert restarted.atlas.keyframe_keys() == app.atlas.keyframe_keys()
         pos = restarted.positions.load("edge-a")
         assert pos is not None and (pos.stream_id, pos.last_delivered) == (b"stream", seq)
@@ -360,11 +364,13 @@ def test_one_robot_on_two_edges_is_two_agents_each_corrected_through_its_own_edg
     restarted = _app(tmp_path, vocab)
     try:
         assert restarted.agents() == app.agents()
+        assert restarted.fusion.superseded_agents == {0}
         # edge-b's next keyframe lands in its agent, not in edge-a's.
         msg, _ = encode_keyframe_update(kfs[0], "robot", vocab, edge_map_id=0)
         restarted.handle("edge-b", msg, b"b", 10)
         assert restarted.atlas.has_keyframe(make_key(1, kfs[0].keyframe_id))
         assert restarted.agents() == app.agents()
+        assert restarted.fusion.superseded_agents == {0}
     finally:
         restarted.close()
 

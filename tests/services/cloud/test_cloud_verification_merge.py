@@ -261,3 +261,17 @@ def test_a_loop_within_one_map_fuses_its_verified_point_pairs(world):
     assert out.fused_points >= 50 and atlas.n_map_points() == n_points - out.fused_points
     assert not any(atlas.has_map_point(a) for a in pairs[:, 0].tolist())
     assert first_lap_points_of_q(atlas) >= 50  # the two laps now share points
+
+
+def test_align_points_recovers_yaw_translation_and_scale():
+    rng = np.random.default_rng(3)
+    p = rng.normal(size=(50, 3))
+    T = yaw_T(-0.7, [0.5, -1.0, 0.3])
+    T[:3, :3] *= 0.93
+    q = p @ T[:3, :3].T + T[:3, 3]
+    mode = AlignmentMode.YAW_TRANSLATION_SCALE
+    np.testing.assert_allclose(align_points(p, q, mode), T, atol=1e-10)
+    rigid = align_points(p, q, AlignmentMode.YAW_TRANSLATION)
+    assert abs(np.linalg.det(rigid[:3, :3]) - 1.0) < 1e-12  # the 4-DoF fit stays rigid
+    with pytest.raises(MergeError, match="coincide"):
+        align_points(np.ones((5, 3)), q[:5], mode)
