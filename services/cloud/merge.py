@@ -180,12 +180,12 @@ def apply_match(
         if source == c_map:
             pairs = pairs[:, ::-1]
         scaled = fragment == source and config.fragment_max_scale_change > 0
-        T = _fit(atlas, pairs, config, scaled, source, target)
-        if T is None:  # too few or degenerate pairs: the verified pose
+        fit = _fit(atlas, pairs, config, scaled, source, target)
+        if fit is None:  # too few or degenerate pairs: the verified pose
             source, target, pairs = q_map, c_map, result.point_pairs
             T = project_transform(result.T_cmap_qmap, config.mode)
         else:
-            T, keep = T
+            T, keep = fit
             pairs = pairs[keep]
         if source == c_map:
             T_cbody_qbody = T_cbody_qbody.copy()
