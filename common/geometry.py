@@ -166,6 +166,11 @@ def orthonormalize_T(T: np.ndarray) -> np.ndarray:
     return out
 
 
+def similarity_scale(T: np.ndarray) -> float:
+    """The scale ``s`` of a similarity ``T (4, 4)`` with rotation block ``s R`` (1 if rigid)."""
+    return float(np.cbrt(np.linalg.det(np.asarray(T, dtype=np.float64)[:3, :3])))
+
+
 def yaw_alignment(p_src: np.ndarray, p_dst: np.ndarray, with_scale: bool = False) -> Sim3:
     """Least-squares ``p_dst ≈ s R p_src + t`` for (N, 3) point sets with ``R`` a rotation
     about z (gravity-aligned maps: yaw only) in closed form; ``s = 1`` without scale. The yaw

@@ -185,9 +185,9 @@ class CloudApp:
                 self._agents[edge, name, edge_map] = a
             self._use_camera(aid, name)
         fusion.held_agents = frozenset(self._prior)
-        newest = {
-            a.name: a.agent_id for a in sorted(self._agents.values(), key=lambda a: a.agent_id)
-        }
+        newest: dict[str, int] = {}  # each robot's newest agent; its older ones are superseded
+        for a in self._agents.values():
+            newest[a.name] = max(newest.get(a.name, a.agent_id), a.agent_id)
         fusion.superseded_agents = {
             a.agent_id for a in self._agents.values() if newest[a.name] != a.agent_id
         }

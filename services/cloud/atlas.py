@@ -26,7 +26,7 @@ from collections.abc import Iterable, Iterator, Sequence
 
 import numpy as np
 
-from common.geometry import inverse_T, make_T
+from common.geometry import inverse_T, make_T, similarity_scale
 from services.cloud.atlas_graph import CovisibilityGraph
 from services.cloud.atlas_records import (
     KeyframeRecord,
@@ -430,7 +430,7 @@ class Atlas:
         if target_map not in maps or source_map not in maps or target_map == source_map:
             raise AtlasError(f"cannot merge map {source_map} into {target_map} (maps: {maps})")
         T = np.asarray(T_target_source, dtype=np.float64)
-        scale = float(np.cbrt(np.linalg.det(T[:3, :3])))
+        scale = similarity_scale(T)
         R = T[:3, :3] / scale
         # The points' new positions first: they follow their reference keyframes, which move
         # next, by the rigid part only (a Sim(3) also scales the points about the map origin).

@@ -31,6 +31,7 @@ from common.errors import RecslamError
 from common.geometry import (
     DegenerateAlignmentError,
     make_T,
+    similarity_scale,
     transform_points,
     umeyama_alignment,
     yaw_alignment,
@@ -75,11 +76,6 @@ def align_points(p_src: np.ndarray, p_tgt: np.ndarray, mode: AlignmentMode) -> n
     except DegenerateAlignmentError as exc:
         raise MergeError(str(exc)) from exc
     return make_T(scale * R, t)
-
-
-def scale_of(T: np.ndarray) -> float:
-    """The scale of a similarity ``T (4, 4)`` (1 for a rigid one)."""
-    return float(np.cbrt(np.linalg.det(np.asarray(T)[:3, :3])))
 
 
 def project_transform(T: np.ndarray, mode: AlignmentMode) -> np.ndarray:
@@ -189,7 +185,7 @@ def apply_match(
             pairs = pairs[keep]
         if source == c_map:
             T_cbody_qbody = T_cbody_qbody.copy()
-            T_cbody_qbody[:3, 3] *= scale_of(T)
+            T_cbody_qbody[:3, 3] *= similarity_scale(T)
             pairs = pairs[:, ::-1]  # back to (query side, candidate side)
         src_points = atlas.map_point_keys(source)
         atlas.merge_maps(target, source, T, result.query_key, result.candidate_key)
@@ -202,7 +198,7 @@ def apply_match(
             "merged map %d into %d (scale %.4f), fused %d points",
             source,
             target,
-            scale_of(T),
+            similarity_scale(T),
             fused,
         )
     elif config.fuse_loop_points:
@@ -230,13 +226,13 @@ def _fit(
     try:
         if scaled:
             T, keep = robust_align(p_s, p_t, AlignmentMode.YAW_TRANSLATION_SCALE)
-            if abs(scale_of(T) - 1.0) <= config.fragment_max_scale_change:
+            if abs(similarity_scale(T) - 1.0) <= config.fragment_max_scale_change:
                 return T, keep
             log.warning(
                 "merge of fragment %d into %d: fitted scale %.3f beyond %.0f %%; no scale",
                 source,
                 target,
-                scale_of(T),
+                similarity_scale(T),
                 100 * config.fragment_max_scale_change,
             )
         return robust_align(p_s, p_t, config.mode)
