@@ -7,6 +7,8 @@ as EuRoC writes them unless a name says ``xyzw`` (TUM order).
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 
 from common.errors import RecslamError
@@ -164,6 +166,23 @@ def orthonormalize_T(T: np.ndarray) -> np.ndarray:
     out = np.array(T, dtype=np.float64)
     out[:3, :3] = nearest_rotation(out[:3, :3])
     return out
+
+
+def refit_inliers(
+    fit: Callable[[np.ndarray, np.ndarray], np.ndarray],
+    p_src: np.ndarray,
+    p_dst: np.ndarray,
+    min_residual: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """``fit(p_src, p_dst)`` -> ``T (4, 4)`` (``p_dst ≈ T p_src``, rigid or a similarity) on
+    the (N, 3) point pairs, then again on the pairs within ``max(3 × median, min_residual)`` of
+    the first fit. Returns ``(T, inlier mask (N,))``; the fit's own errors pass through."""
+    T = fit(p_src, p_dst)
+    r = np.linalg.norm(transform_points(T, p_src) - p_dst, axis=1)
+    keep = r <= max(3.0 * float(np.median(r)), min_residual)
+    if keep.sum() >= 3 and not keep.all():
+        T = fit(p_src[keep], p_dst[keep])
+    return T, keep
 
 
 def similarity_scale(T: np.ndarray) -> float:

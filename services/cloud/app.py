@@ -185,12 +185,7 @@ class CloudApp:
                 self._agents[edge, name, edge_map] = a
             self._use_camera(aid, name)
         fusion.held_agents = frozenset(self._prior)
-        newest: dict[str, int] = {}  # each robot's newest agent; its older ones are superseded
-        for a in self._agents.values():
-            newest[a.name] = max(newest.get(a.name, a.agent_id), a.agent_id)
-        fusion.superseded_agents = {
-            a.agent_id for a in self._agents.values() if newest[a.name] != a.agent_id
-        }
+        self._supersede()
         self.mission = MissionClock(
             store.missions().get(store.mission, ""), self.atlas, self._prior, self._names()
         )
@@ -231,12 +226,19 @@ class CloudApp:
         next_id = max((x.agent_id for x in known), default=-1) + 1
         a = self._agents[edge_id, name, edge_map] = _Agent(next_id, name, edge_id, edge_map)
         log.info("new agent %d: robot %r, map %d of edge %r", next_id, name, edge_map, edge_id)
-        # The robot's earlier maps are fragments now (MapFusion.is_fragment).
-        self.fusion.superseded_agents.update(
-            x.agent_id for x in self._agents.values() if x.name == name and x is not a
-        )
+        self._supersede()
         self._use_camera(next_id, name)
         return a, True
+
+    def _supersede(self) -> None:
+        """Mark every robot's agents but its newest superseded: the robot moved on from their
+        maps, which are fragments now (``MapFusion.is_fragment``)."""
+        newest: dict[str, int] = {}
+        for a in self._agents.values():
+            newest[a.name] = max(newest.get(a.name, a.agent_id), a.agent_id)
+        self.fusion.superseded_agents = {
+            a.agent_id for a in self._agents.values() if newest[a.name] != a.agent_id
+        }
 
     def _use_camera(self, agent_id: int, name: str) -> None:
         cam = self.sensors.camera(name)

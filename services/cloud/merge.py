@@ -31,8 +31,8 @@ from common.errors import RecslamError
 from common.geometry import (
     DegenerateAlignmentError,
     make_T,
+    refit_inliers,
     similarity_scale,
-    transform_points,
     umeyama_alignment,
     yaw_alignment,
 )
@@ -90,12 +90,7 @@ def robust_align(
 ) -> tuple[np.ndarray, np.ndarray]:
     """:func:`align_points`, then again on pairs within ``max(3 × median, min_residual)``.
     Returns ``(T_tgt_src, inlier mask (N,))``."""
-    T = align_points(p_src, p_tgt, mode)
-    r = np.linalg.norm(transform_points(T, p_src) - p_tgt, axis=1)
-    keep = r <= max(3.0 * float(np.median(r)), min_residual)
-    if keep.sum() >= 3 and not keep.all():
-        T = align_points(p_src[keep], p_tgt[keep], mode)
-    return T, keep
+    return refit_inliers(lambda a, b: align_points(a, b, mode), p_src, p_tgt, min_residual)
 
 
 @dataclass(frozen=True)

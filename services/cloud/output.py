@@ -28,7 +28,6 @@ from common.evaluation.errors import EvaluationError
 from common.evaluation.report import evaluate_in_frame, evaluate_run
 from common.evaluation.results import MAPS_FILE, write_result_trajectories
 from common.evaluation.trajectory import Trajectory
-from common.geometry import R_to_quat_wxyz
 from services.cloud.atlas import Atlas
 from services.cloud.mission import MISSION_FILE
 
@@ -66,8 +65,7 @@ def robot_trajectories(
         ts = np.array([round(t * 1e9) for t, _ in poses], np.int64)
         keep = np.concatenate([[True], np.diff(ts) > 0])
         T_map_body = np.array([p[1] for p, k in zip(poses, keep, strict=True) if k])
-        q = np.array([R_to_quat_wxyz(T[:3, :3]) for T in T_map_body])
-        trajs[name] = Trajectory(ts[keep], T_map_body[:, :3, 3], q, name)
+        trajs[name] = Trajectory.from_poses(ts[keep], T_map_body, name)
         maps[name] = map_id
     return trajs, maps
 

@@ -24,7 +24,15 @@ from scipy.spatial import cKDTree
 
 from common.calibration import CameraCalibration
 from common.errors import RecslamError
-from common.geometry import DegenerateAlignmentError, inverse_T, transform_points, yaw_alignment
+from common.geometry import (
+    DegenerateAlignmentError,
+    inverse_T,
+    make_T,
+    refit_inliers,
+    similarity_scale,
+    transform_points,
+    yaw_alignment,
+)
 from services.cloud.atlas import Atlas
 from services.cloud.config import VerificationConfig
 from services.cloud.map_types import KeyframeView
@@ -289,17 +297,19 @@ def _scaled_agreement(
     than ``max_scale_change`` or the pairs are degenerate."""
     p_q = atlas.map_point_positions(point_pairs[:, 0])
     p_c = atlas.map_point_positions(point_pairs[:, 1])
+
+    def fit(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        R, t, scale = yaw_alignment(a, b, with_scale=True)
+        return make_T(scale * R, t)
+
     try:
-        R, t, s = yaw_alignment(p_q, p_c, with_scale=True)
-        r = np.linalg.norm(s * p_q @ R.T + t - p_c, axis=1)
-        keep = r <= max(3.0 * float(np.median(r)), cfg.agreement_distance_m / 2)
-        if 3 <= keep.sum() < keep.size:
-            R, t, s = yaw_alignment(p_q[keep], p_c[keep], with_scale=True)
+        T, _ = refit_inliers(fit, p_q, p_c, cfg.agreement_distance_m / 2)
     except DegenerateAlignmentError:
         return rigid
+    s = similarity_scale(T)
     if abs(s - 1.0) > max_scale_change:
         return rigid
-    agree = np.linalg.norm(s * p_q @ R.T + t - p_c, axis=1) < cfg.agreement_distance_m
+    agree = np.linalg.norm(transform_points(T, p_q) - p_c, axis=1) < cfg.agreement_distance_m
     log.debug(
         "3D agreement %.2f through the pose, %.2f at scale %.3f", rigid.mean(), agree.mean(), s
     )

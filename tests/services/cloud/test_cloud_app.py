@@ -163,6 +163,31 @@ def _pruned(
         app.close()
 
 
+def _pruned_grid(
+    path: Path,
+    vocab: Vocabulary,
+    read: Callable[[CloudApp, MbpReport], T],
+    setting: str,
+    values: tuple[Any, ...],
+) -> dict[tuple[Any, bool], T]:
+    """:func:`_pruned` of the half-circle session (5 newest keyframes settling) for each of
+    ``values`` of ``setting``, while running and at shutdown: ``{(value, final): read}``."""
+    session = _half_circle_session()
+    return {
+        (v, final): _pruned(
+            path / f"{v}-{final}",
+            vocab,
+            session,
+            final,
+            read,
+            mbp_settle_keyframes=5,
+            **{setting: v},
+        )
+        for v in values
+        for final in (False, True)
+    }
+
+
 def _removed(app: CloudApp, report: MbpReport) -> set[int]:
     return set(report.removed_keyframes)
 
@@ -185,20 +210,7 @@ def test_mbp_while_running_keeps_the_unsettled_newest_keyframes(tmp_path, vocab)
 def test_mbp_while_running_removes_only_at_its_own_cover_ratio(tmp_path, vocab):
     """``mbp_running_cover_ratio`` rules the passes while running, not the pass at shutdown:
     one above 1 (no keyframe can be covered that well) removes nothing while running."""
-    session = _half_circle_session()
-    removed = {
-        (ratio, final): _pruned(
-            tmp_path / f"{ratio}-{final}",
-            vocab,
-            session,
-            final,
-            _removed,
-            mbp_settle_keyframes=5,
-            mbp_running_cover_ratio=ratio,
-        )
-        for ratio in (None, 1.01)
-        for final in (False, True)
-    }
+    removed = _pruned_grid(tmp_path, vocab, _removed, "mbp_running_cover_ratio", (None, 1.01))
     assert removed[None, False] and not removed[1.01, False]
     assert removed[1.01, True] == removed[None, True]
 
@@ -214,20 +226,7 @@ def test_mbp_while_running_keeps_the_points_left_with_one_observer(tmp_path, voc
             [len(app.atlas.map_point_observations(m)) for m in app.atlas.map_point_keys()]
         )
 
-    session = _half_circle_session()
-    counts = {
-        (running_min, final): _pruned(
-            tmp_path / f"{running_min}-{final}",
-            vocab,
-            session,
-            final,
-            observers,
-            mbp_settle_keyframes=5,
-            mbp_running_min_observations=running_min,
-        )
-        for running_min in (1, 2)
-        for final in (False, True)
-    }
+    counts = _pruned_grid(tmp_path, vocab, observers, "mbp_running_min_observations", (1, 2))
     assert counts[1, False][0] == 0 and counts[1, False][1] > 0
     for case in ((2, False), (1, True), (2, True)):
         assert counts[case][:2].sum() == 0
@@ -243,20 +242,8 @@ def test_mbp_while_running_keeps_its_agents_keyframes_close_in_time(tmp_path, vo
         stamps = sorted(app.atlas.keyframe(k).timestamp for k in app.atlas.keyframe_keys())
         return float(np.max(np.diff(stamps)))
 
-    session = _half_circle_session()  # 0.2 s apart
-    gap = {
-        (limit, final): _pruned(
-            tmp_path / f"{limit}-{final}",
-            vocab,
-            session,
-            final,
-            widest_gap,
-            mbp_settle_keyframes=5,
-            mbp_running_max_interval_s=limit,
-        )
-        for limit in (0.5, None)
-        for final in (False, True)
-    }
+    # The session's keyframes are 0.2 s apart.
+    gap = _pruned_grid(tmp_path, vocab, widest_gap, "mbp_running_max_interval_s", (0.5, None))
     assert gap[0.5, False] <= 0.5 + 1e-9
     assert gap[None, False] > 0.5 and gap[0.5, True] > 0.5
 
