@@ -343,3 +343,13 @@ class MapUpdate:
     keyframes: tuple[KeyframeSnapshot, ...]
     points: MapPointBatch
     removed_point_ids: tuple[int, ...]
+
+
+@dataclass
+class VioStats:
+    """Wall-clock durations [s] of the stages, for benchmarks (not used by the estimator)."""
+
+    track_s: list[float] = field(default_factory=list)
+    local_ba_s: list[float] = field(default_factory=list)
+    vi_init_s: list[float] = field(default_factory=list)
+    maps_started: int = 0

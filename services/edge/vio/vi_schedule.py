@@ -1,0 +1,108 @@
+"""When the VIO runs a map's visual-inertial initialisation, and what it keeps of it.
+
+:class:`ViInitSchedule` is a base of :class:`~services.edge.vio.manager.VioManager` (which sets
+the attributes declared here). At each new keyframe ``_maybe_vi_init`` decides: the first VI
+initialisation once the map spans ``vi_init.first_after_s`` with ``vi_init.min_keyframes``
+keyframes (a refused one is retried ``vi_init.retry_interval_s`` later), then a refinement at
+each map age of ``vi_init.refine_after_s``. :meth:`ViInitSchedule.run_vi_init` runs one
+(:mod:`services.edge.vio.vi_bootstrap`) over the longest tail of keyframes linked by IMU
+segments and keeps the reasons, the bias guess for new maps and the statistics.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+
+import gtsam
+import numpy as np
+
+from services.edge.vio.state import PinholeUndistorter, VioMap
+from services.edge.vio.types import LocalBAOptions, VioOptions, VioStats
+from services.edge.vio.vi_bootstrap import first_vi_init, refine_vi
+
+logger = logging.getLogger(__name__)
+
+
+class ViInitSchedule:
+    """The VI initialisation schedule of :class:`~services.edge.vio.manager.VioManager`."""
+
+    options: VioOptions
+    camera: PinholeUndistorter
+    imu_params: gtsam.PreintegrationCombinedParams
+    name: str
+    stats: VioStats
+    _last_T: np.ndarray | None
+    _last_init_reason: str
+    _bias_guess: tuple[np.ndarray, np.ndarray]  # (accel, gyro)
+    _full_ba_options: LocalBAOptions
+
+    def _maybe_vi_init(self, vmap: VioMap) -> None:
+        vopt = self.options.vi_init
+        kfs = vmap.keyframe_list()
+        age = (kfs[-1].timestamp_ns - kfs[0].timestamp_ns) * 1e-9
+        runs = vmap.vi_init_runs
+        if runs == 0:
+            last = vmap.last_vi_attempt_ns
+            waited = last is None or (kfs[-1].timestamp_ns - last) * 1e-9 >= vopt.retry_interval_s
+            due = age >= vopt.first_after_s and len(kfs) >= vopt.min_keyframes and waited
+            if due:
+                vmap.last_vi_attempt_ns = kfs[-1].timestamp_ns
+        else:
+            due = runs <= len(vopt.refine_after_s) and age >= vopt.refine_after_s[runs - 1]
+        if due:
+            self.run_vi_init(vmap)
+
+    def run_vi_init(self, vmap: VioMap) -> bool:
+        """VI initialisation, or a refinement of a VI-initialised map
+        (:mod:`services.edge.vio.vi_bootstrap`), over the longest tail of keyframes connected
+        by IMU segments; False if the first one was refused (it is retried later)."""
+        t0 = time.perf_counter()
+        kfs = vmap.keyframe_list()
+        start = 0
+        for i in range(1, len(kfs)):
+            if kfs[i].imu_from_previous is None or kfs[i].previous_id != kfs[i - 1].id:
+                start = i
+        kfs = kfs[start:]
+        ba_opt = self._full_ba_options
+        vmap.vi_init_runs += 1
+        if vmap.vi_init_runs > 1:
+            stats, T_fix = refine_vi(vmap, kfs, self.camera, self.imu_params, self.options, ba_opt)
+            if self._last_T is not None:
+                self._last_T = T_fix @ self._last_T
+            self.stats.vi_init_s.append(time.perf_counter() - t0)
+            logger.info(
+                "%s: VI refinement #%d of map %d: %s",
+                self.name,
+                vmap.vi_init_runs,
+                vmap.map_id,
+                stats,
+            )
+            return True
+        out = first_vi_init(
+            vmap, kfs, self.camera, self.imu_params, self.options, ba_opt, self._bias_guess[1]
+        )
+        self.stats.vi_init_s.append(time.perf_counter() - t0)
+        if out.reason:
+            self._last_init_reason = f"VI init rejected: {out.reason}"
+            logger.warning(
+                "%s: VI initialisation of map %d failed: %s", self.name, vmap.map_id, out.reason
+            )
+            vmap.vi_init_runs = 0  # retry at the next keyframe
+            return False
+        self._last_init_reason = ""
+        last = vmap.last_keyframe()
+        assert last is not None and out.scale is not None and out.scale_sigma_rel is not None
+        self._bias_guess = (last.bias_accel.copy(), last.bias_gyro.copy())
+        logger.info(
+            "%s: VI init #%d of map %d: scale %.4f (sigma %.1f %%), bg %s, ba %s, BA %s",
+            self.name,
+            vmap.vi_init_runs,
+            vmap.map_id,
+            out.scale,
+            100 * out.scale_sigma_rel,
+            np.round(last.bias_gyro, 4),
+            np.round(last.bias_accel, 3),
+            out.stats,
+        )
+        return True
