@@ -24,7 +24,7 @@ described there, once) and owns the lifecycle:
   written;
 - the dashboard's :class:`~services.cloud.map_source.CloudMapSource` is refreshed every
   ``publish_every_s``; trajectories (and the ATE report with ground truth) are written every
-  ``output_every_s`` and at :meth:`CloudServer.stop`;
+  ``output_every_s`` and at :meth:`CloudServer.stop` (:mod:`services.cloud.server_outputs`);
 - with ``record``, every applied uplink message is appended to a recording
   (:mod:`services.cloud.recording`) on the worker, right after it was applied.
 """
@@ -33,7 +33,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import dataclasses
 import functools
 import logging
 import math
@@ -49,8 +48,6 @@ from typing import Any, TypeVar
 
 from common.calibration import CameraCalibration
 from common.errors import RecslamError
-from common.evaluation.errors import EvaluationError
-from common.evaluation.results import load_groundtruth
 from common.evaluation.trajectory import Trajectory
 from common.links import CodecTimer
 from common.protocol import OutboxFullError, SessionConfig
@@ -73,10 +70,11 @@ from services.cloud.decode_pool import DecodePool, Predecoded
 from services.cloud.global_optimization import warm_up
 from services.cloud.load import BusyMeter
 from services.cloud.map_fusion import MapFusion
-from services.cloud.map_source import CloudMapSource, CloudView
+from services.cloud.map_source import CloudMapSource
 from services.cloud.output import OutputWriter
 from services.cloud.persistence import CloudStore, PersistenceError
 from services.cloud.recording import RecordingWriter
+from services.cloud.server_outputs import ServerOutputs
 from services.cloud.stats import CloudStats
 
 log = logging.getLogger(__name__)
@@ -109,7 +107,7 @@ def _applied(outcomes: Iterable[Outcome], map_id: int, kind: SolveKind) -> bool:
     return not any(o.map_id == map_id and o.kind is kind and not o.applied for o in outcomes)
 
 
-class CloudServer:
+class CloudServer(ServerOutputs):
     """The cloud service. ``await start(host, port)`` ... ``await stop()``.
 
     Args:
@@ -476,84 +474,7 @@ class CloudServer:
         for m in await self._on_worker(app.atlas.maps):
             await self.optimize_map(m)
 
-    # ------------------------------------------------------------------ dashboard, output
-    async def publish(self) -> int:
-        """Refresh the dashboard's map view now; returns its version."""
-        app = self._app
-        assert app is not None
-        counters = self._server.counters()
-        references = await self._load_references()
-        core, now = self._core, asyncio.get_running_loop().time()
-
-        def build() -> CloudView:
-            view = app.view(counters, references)
-            status = "" if core is None else core.status(now)
-            return dataclasses.replace(view, status=status) if status else view
-
-        return self.map_source.publish(await self._on_worker(build))
-
-    async def _load_references(self) -> dict[str, Trajectory] | None:
-        """Ground truth of the known robots, every ``gt_every_s`` (None in between)."""
-        source = self.output.groundtruth if self.output is not None else None
-        loop = asyncio.get_running_loop()
-        if source is None or loop.time() - self._gt_published < self.config.gt_every_s:
-            return None
-        self._gt_published = loop.time()
-        app = self._app
-        assert app is not None
-        agents = await self._on_worker(app.agents)
-        known = {n for n, _, _ in agents.values()}
-        names = known - set(self._references) - self._no_reference
-        single = Path(source).is_file() or (Path(source) / "mav0").is_dir()
-        if single and len(known) > 1:  # one sequence's ground truth: whose is it?
-            names = set()
-        for name in sorted(names):
-            try:
-                refs, _ = await loop.run_in_executor(
-                    self._io, load_groundtruth, [name], source, None
-                )
-            except EvaluationError as exc:
-                log.info("no ground truth for %s: %s", name, exc)
-                self._no_reference.add(name)
-            else:
-                self._references.update(refs)
-        return dict(self._references) if self._references else None
-
-    async def _publish_loop(self) -> None:
-        loop = asyncio.get_running_loop()
-        while True:
-            t0 = loop.time()
-            try:
-                await self.publish()
-            except asyncio.CancelledError:
-                raise
-            except Exception:
-                log.exception("map view refresh failed")
-            core = self._core  # (rests as long as the refresh took, and longer under load)
-            last = loop.time() - t0
-            every = self.config.publish_every_s if core is None else core.publish_every_s(last)
-            await asyncio.sleep(every)
-
-    async def write_output(self, evaluate: bool = True) -> list[Path]:
-        """Write trajectories (and the ATE report when ground truth is known)."""
-        app, out = self._app, self.output
-        if app is None or out is None:
-            return []
-        trajs, maps = await self._on_worker(app.trajectories)
-        mission = await self._on_worker(app.mission_report)
-        loop = asyncio.get_running_loop()
-        return await loop.run_in_executor(self._io, out.write, trajs, maps, evaluate, mission)
-
-    async def _output_loop(self) -> None:
-        while True:
-            await asyncio.sleep(self.config.output_every_s)
-            try:
-                await self.write_output(evaluate=True)
-            except asyncio.CancelledError:
-                raise
-            except Exception:
-                log.exception("writing outputs failed")
-
+    # ------------------------------------------------------------------ counters, state
     async def stats(self) -> CloudStats:
         """Counters now (after :meth:`stop`: as they were when the service stopped)."""
         app, core = self._app, self._core
