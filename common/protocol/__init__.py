@@ -1,4 +1,4 @@
-"""Wire protocol: sans-I/O framing, messages, session/reliability, auth, accounting.
+"""Wire protocol: sans-I/O framing, messages, session/reliability, handshake, auth, accounting.
 
 No sockets, clocks or asyncio in here; ``common.transport`` drives it over TCP.
 """
@@ -29,10 +29,11 @@ from common.protocol.events import (
     PeerRejected,
 )
 from common.protocol.framing import HEADER_SIZE, PROTOCOL_VERSION, FrameDecoder, encode_frame
+from common.protocol.handshake import State
 from common.protocol.link import Link, LinkLimits
 from common.protocol.link_state import InboundPosition, OutboundState
 from common.protocol.messages import SCHEMA_VERSION, Blob, Message, message
-from common.protocol.session import Session, State
+from common.protocol.session import Session
 from common.protocol.store import (
     DeliveryStore,
     FileDeliveryStore,

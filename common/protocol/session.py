@@ -5,18 +5,9 @@ Like h11/aioquic, a :class:`Session` never touches a socket or a clock: bytes go
 come from :meth:`Session.data_to_send`, and time enters only as the ``now`` argument
 (seconds, any monotonic origin) with :meth:`Session.get_timer` / :meth:`Session.handle_timer`.
 
-Handshake (client left, server right; every legal transition is in ``_TRANSITIONS``)::
-
-    HELLO_SENT     --Hello-->       AWAIT_HELLO -> CHALLENGE_SENT
-    AUTH_SENT      <--Challenge--   (server proved the client's credential)
-                   --Auth-->        AUTHENTICATED: event PeerAuthenticated; the caller
-                                    picks the peer's Link and calls attach() (or refuse())
-    ESTABLISHED    <==Welcome==     ESTABLISHED
-
-The credential is the one of the identity the client's Hello claims (``auth.py``); every
-frame after Auth (``==``) is sealed with keys derived from it and the transcript
-(``sealing.py``): a frame changed, injected, replayed or reordered on the way closes the
-connection before anything in it is used.
+Handshake: Hello, Challenge, Auth, then Welcome (drawn in :mod:`common.protocol.handshake`,
+which holds the states and the authentication steps); every legal transition is in
+``_TRANSITIONS``, and every frame after Auth is sealed (``sealing.py``).
 
 Reliability: application messages sit in the link's outbox until the peer's *application*
 delivered them (the receiver acks after ``mark_delivered``, never on arrival); acks are
@@ -32,15 +23,13 @@ The receiver bounds what it holds with a window (messages and bytes) that the se
 
 from __future__ import annotations
 
-import dataclasses
-import enum
 import logging
 from collections import deque
 from collections.abc import Callable
 
 from common.protocol import auth, sealing
 from common.protocol.accounting import TrafficCounters
-from common.protocol.config import MAX_NAME_LENGTH, SessionConfig
+from common.protocol.config import SessionConfig
 from common.protocol.errors import (
     AuthenticationError,
     LocalProtocolError,
@@ -54,7 +43,6 @@ from common.protocol.events import (
     Event,
     HandshakeComplete,
     MessageReceived,
-    PeerAuthenticated,
     PeerClosed,
     PeerRejected,
 )
@@ -65,6 +53,7 @@ from common.protocol.framing import (
     FrameDecoder,
     encode_frame,
 )
+from common.protocol.handshake import Handshake, State
 from common.protocol.link import Link
 from common.protocol.messages import (
     SCHEMA_VERSION,
@@ -88,17 +77,7 @@ logger = logging.getLogger(__name__)
 HANDSHAKE_MAX_FRAME = 4096  # bytes; handshake frames are < 300 B
 
 
-class State(enum.Enum):
-    HELLO_SENT = "hello-sent"
-    AUTH_SENT = "auth-sent"
-    AWAIT_HELLO = "await-hello"
-    CHALLENGE_SENT = "challenge-sent"
-    AUTHENTICATED = "authenticated"
-    ESTABLISHED = "established"
-    CLOSED = "closed"
-
-
-class Session:
+class Session(Handshake):
     """One connection's protocol state. See the module docstring.
 
     Args:
@@ -396,62 +375,7 @@ class Session:
             self._recovery.disarm()
         self._events.append(Acknowledged(ack))
 
-    # handshake handlers -----------------------------------------------------------
-    def _on_hello(self, msg: Hello, frame: Frame) -> None:
-        self._check_versions(msg.protocol_version, msg.schema_version)
-        _check_name("role", msg.role)
-        _check_name("agent_id", msg.agent_id)
-        if len(msg.nonce) != auth.NONCE_SIZE:
-            raise RemoteProtocolError(f"Hello nonce must be {auth.NONCE_SIZE} bytes")
-        self._hello, self._hello_payload = msg, frame.payload
-        self.peer_role, self.peer_agent_id = msg.role, msg.agent_id
-        key = self.config.keyring.credential(msg.role, msg.agent_id)
-        if key is None:
-            raise AuthenticationError(f"no credential for {msg.role} {msg.agent_id!r} here")
-        self._key = key
-        unsigned = Challenge(
-            PROTOCOL_VERSION,
-            SCHEMA_VERSION,
-            self.config.role,
-            self.config.agent_id,
-            self._nonce,
-            b"",
-        )
-        mac = auth.server_mac(key, frame.payload, encode_payload(unsigned))
-        challenge = dataclasses.replace(unsigned, mac=mac)
-        self._challenge_payload = encode_payload(challenge)
-        self._emit_payload(Challenge, self._challenge_payload)
-        self.state = State.CHALLENGE_SENT
-
-    def _on_challenge(self, msg: Challenge, frame: Frame) -> None:
-        self._check_versions(msg.protocol_version, msg.schema_version)
-        _check_name("role", msg.role)
-        _check_name("agent_id", msg.agent_id)
-        unsigned = encode_payload(dataclasses.replace(msg, mac=b""))
-        expected = auth.server_mac(self._key, self._hello_payload, unsigned)
-        if not auth.macs_equal(expected, msg.mac):
-            raise AuthenticationError(
-                f"server failed authentication: it does not hold the credential of "
-                f"{self.config.role} {self.config.agent_id!r} (wrong key or secret?)"
-            )
-        self.peer_role, self.peer_agent_id = msg.role, msg.agent_id
-        self._challenge_payload = frame.payload
-        self._emit(Auth(auth.client_mac(self._key, self._hello_payload, frame.payload)))
-        self._start_sealing()
-        self.state = State.AUTH_SENT
-
-    def _on_auth(self, msg: Auth, frame: Frame) -> None:
-        assert self._hello is not None
-        expected = auth.client_mac(self._key, self._hello_payload, self._challenge_payload)
-        if not auth.macs_equal(expected, msg.mac):
-            raise AuthenticationError(
-                f"client {self._hello.role} {self._hello.agent_id!r} failed authentication "
-                "(wrong credential or secret?)"
-            )
-        self._start_sealing()
-        self.state = State.AUTHENTICATED
-        self._events.append(PeerAuthenticated(self._hello.role, self._hello.agent_id))
-
+    # control frame handlers (Hello, Challenge, Auth: handshake.py) ---------------
     def _on_welcome(self, msg: Welcome, frame: Frame) -> None:
         self._resume(
             msg.out_stream_id,
@@ -495,12 +419,6 @@ class Session:
         self._inflight_bytes = 0
         self._peer_window = peer_window
         self._ack_sent = link.last_delivered
-
-    def _start_sealing(self) -> None:
-        """From the next frame on, both directions are sealed (if configured)."""
-        if self.config.seal_frames:
-            keys = (self._key, self._hello_payload, self._challenge_payload)
-            self._keys.start(*keys, client=self.client)
 
     def _establish(self) -> None:
         assert self.link is not None
@@ -594,27 +512,12 @@ class Session:
         self._count_tx(cls.__name__, len(frame), 0)
         self._out.append(frame)
 
-    def _check_versions(self, protocol_version: int, schema_version: int) -> None:
-        if protocol_version != PROTOCOL_VERSION or schema_version != SCHEMA_VERSION:
-            self._fail(
-                RemoteProtocolError(
-                    f"peer speaks protocol {protocol_version}/schema {schema_version}, "
-                    f"we speak {PROTOCOL_VERSION}/{SCHEMA_VERSION}"
-                ),
-                CloseCode.VERSION_MISMATCH,
-            )
-
     def _fail(self, exc: ProtocolError, code: CloseCode) -> None:
         if self.state is not State.CLOSED:
             self._emit(Close(int(code), str(exc)[:200]))
             self.state = State.CLOSED
             self.close_reason = str(exc)
         raise exc
-
-
-def _check_name(name: str, value: str) -> None:
-    if not 0 < len(value) <= MAX_NAME_LENGTH:
-        raise RemoteProtocolError(f"{name} must have 1..{MAX_NAME_LENGTH} characters")
 
 
 _TRANSITIONS: dict[tuple[bool, State, type[Message]], Callable[..., None]] = {
