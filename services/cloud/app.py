@@ -5,6 +5,8 @@
 :class:`~services.cloud.persistence.CloudStore`. The network service runs all of its methods
 on one worker thread (so the atlas has a single owner and the event loop never blocks on
 decoding, verification, SQLite or MBP); only the pure pose-graph solve runs elsewhere.
+Building the optimisations, applying them (the corrections) and MBP are the base class's,
+:class:`~services.cloud.app_optimization.AppOptimization`.
 
 Per message (:meth:`CloudApp.handle`): decode (``services.cloud.uplink``), apply to the
 atlas, then commit what changed *together with the edge link's delivered position* in one
@@ -43,13 +45,12 @@ import logging
 import threading
 import time
 from collections.abc import Mapping
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from common.evaluation.trajectory import Trajectory
-from common.geometry import inverse_T
-from common.links import CodecTimer, WireFormat
+from common.links import CodecTimer
 from common.links.edge_cloud import (
     AgentSensors,
     AgentStatus,
@@ -59,22 +60,18 @@ from common.links.edge_cloud import (
     KeyframeUpdateCoded,
     MapPointUpdate,
     MapPointUpdateCoded,
-    PoseCorrection,
-    PoseCorrectionCoded,
-    encode_pose_correction,
 )
 from common.map_view import GroundTruth
 from common.protocol.messages import Message
 from common.protocol.store import InboundPosition
 from common.vocabulary import Vocabulary
-from services.cloud.atlas import Atlas, AtlasSnapshot, KeyframeInput, make_key, split_key
+from services.cloud.app_optimization import AppOptimization
+from services.cloud.app_optimization import Correction as Correction  # re-exported (core, server)
+from services.cloud.atlas import Atlas, AtlasSnapshot, KeyframeInput, make_key
 from services.cloud.config import CloudServiceConfig
-from services.cloud.full_ba import FullBAProblem, FullBAResult
-from services.cloud.global_optimization import PoseGraphProblem, PoseGraphResult
 from services.cloud.ground_truth import references_in_maps
 from services.cloud.map_fusion import FusionEvents, MapFusion
 from services.cloud.map_source import AgentInfo, CloudView
-from services.cloud.mbp import MbpReport
 from services.cloud.mission import MissionClock
 from services.cloud.output import robot_trajectories
 from services.cloud.persistence import CloudStore
@@ -144,15 +141,7 @@ class _Agent:
     link_counters: dict[str, int] = field(default_factory=dict)
 
 
-@dataclass(frozen=True)
-class Correction:
-    """A pose correction to send: the edge serving the robot, and the message."""
-
-    edge_id: str
-    message: PoseCorrection | PoseCorrectionCoded
-
-
-class CloudApp:
+class CloudApp(AppOptimization):
     """Message handling, optimisation hand-off, MBP and outputs over one atlas.
 
     Not thread-safe: call everything from one thread (the service's worker).
@@ -475,113 +464,6 @@ class CloudApp:
             self.atlas, kf_keys, [*mp_keys, *touched], positions=position, agents=self._rows(a)
         )
         return Reaction()
-
-    # ------------------------------------------------------------------ optimisation
-    def optimization_problem(self, map_id: int) -> tuple[PoseGraphProblem, int] | None:
-        """The pose graph of ``map_id`` and a token of the atlas' merge state (None if the map
-        is gone or too small)."""
-        if map_id not in self.atlas.maps() or self.atlas.n_keyframes(map_id) < 2:
-            return None
-        with self.stage_timer.span("stage.pose_graph_build"):
-            return self.fusion.pose_graph(map_id), len(self.atlas.merges())
-
-    def full_ba_problem(self, map_id: int) -> tuple[FullBAProblem, int] | None:
-        """The full bundle adjustment of ``map_id`` and the merge-state token (None if the
-        map is gone, too small, or full BA is switched off)."""
-        if not self.config.domain.full_ba.enabled or map_id not in self.atlas.maps():
-            return None
-        if self.atlas.n_keyframes(map_id) < 2:
-            return None
-        with self.stage_timer.span("stage.full_ba_build"):
-            return self.fusion.full_ba_problem(map_id), len(self.atlas.merges())
-
-    def apply_optimization(
-        self, map_id: int, result: PoseGraphResult | FullBAResult, token: int
-    ) -> list[Correction] | None:
-        """Write an optimisation back (None if maps were merged meanwhile: then the poses are
-        in a stale frame and the caller should optimise again); returns the corrections."""
-        if token != len(self.atlas.merges()) or map_id not in self.atlas.maps():
-            return None
-        kind = "full_ba" if isinstance(result, FullBAResult) else "pose_graph"
-        with self.stage_timer.span(f"stage.{kind}_apply"):
-            n = self.fusion.apply_optimization(result)
-            self._changes += 1
-            self.store.commit_poses(self.atlas)  # what it changed (Atlas.unsaved)
-        log.info(
-            "map %d: applied optimisation of %d keyframes (error %.3g -> %.3g)",
-            map_id,
-            n,
-            result.initial_error,
-            result.final_error,
-        )
-        with self.stage_timer.span("stage.corrections"):
-            return self.corrections(map_id)
-
-    def corrections(self, map_id: int) -> list[Correction]:
-        """Current keyframe poses of every agent in ``map_id``, each in its own map frame."""
-        out = []
-        for a in self._agents.values():
-            if a.agent_id not in self.atlas.agents():
-                continue
-            keys = self.atlas.keyframe_keys(map_id=map_id, agent_id=a.agent_id)
-            if not keys:
-                continue
-            T_agent_map = inverse_T(self.atlas.T_map_agent(a.agent_id))
-            ids = np.array([split_key(k)[1] for k in keys], np.int64)
-            T = np.array([T_agent_map @ self.atlas.T_map_body(k) for k in keys])
-            coded = self.config.wire is WireFormat.CODED
-            msg = encode_pose_correction(a.name, a.edge_map, ids, T, coded)
-            out.append(Correction(a.edge_id, msg))
-        return out
-
-    def shed(self, overloaded: bool) -> None:
-        """Shed (or take up again) the app's optional work: the early loop candidates."""
-        self.fusion.recognizer.shed_early = overloaded
-
-    def prune_due(self, map_id: int) -> bool:
-        every = self.config.mbp_every_keyframes
-        if not self.config.domain.mbp.enabled or every <= 0 or map_id not in self.atlas.maps():
-            return False
-        n = self.atlas.n_keyframes(map_id)
-        return n - self._mbp_done.get(map_id, 0) >= every
-
-    def prune(self, map_id: int, final: bool = False) -> MbpReport:
-        """MBP on ``map_id`` (then the whole atlas is saved). While running (not ``final``)
-        each agent's ``mbp_settle_keyframes`` newest keyframes are kept, a keyframe goes only
-        at ``mbp_running_cover_ratio`` and only while its agent's kept keyframes stay within
-        ``mbp_running_max_interval_s``, and map points go at ``mbp_running_min_observations``;
-        the final pass (at shutdown) keeps ``mbp_keep_recent`` and ``domain.mbp``."""
-        before = set(self.atlas.map_point_keys(map_id))
-        cfg = self.config
-        keep, mbp = cfg.mbp_keep_recent, cfg.domain.mbp
-        if not final:
-            keep = max(keep, cfg.mbp_settle_keyframes)
-            mbp = replace(
-                mbp,
-                cover_ratio=mbp.cover_ratio
-                if cfg.mbp_running_cover_ratio is None
-                else cfg.mbp_running_cover_ratio,
-                min_observations=mbp.min_observations
-                if cfg.mbp_running_min_observations is None
-                else cfg.mbp_running_min_observations,
-                max_interval_s=cfg.mbp_running_max_interval_s,
-            )
-        with self.stage_timer.span("stage.mbp"):
-            report = self.fusion.prune(map_id, keep, mbp)
-        self._changes += 1
-        self._pruned_points |= before - set(self.atlas.map_point_keys(map_id))
-        self._pruned_keyframes.update(report.removed_keyframes)
-        self._mbp_done[map_id] = self.atlas.n_keyframes(map_id)
-        self.store.save_all(self.atlas)
-        log.info(
-            "MBP map %d: keyframes %d -> %d, map points %d -> %d",
-            map_id,
-            report.keyframes_before,
-            report.keyframes_after,
-            report.map_points_before,
-            report.map_points_after,
-        )
-        return report
 
     # ------------------------------------------------------------------ outputs
     def trajectories(self, retired: bool = True) -> tuple[dict[str, Trajectory], dict[str, int]]:
