@@ -48,6 +48,7 @@ from services.cloud.global_optimization import (
     PoseGraphResult,
     add_attitude_factors,
     apply_pose_graph,
+    gauge_prior_noise,
     held_indices,
     pose3,
     up_in_body,
@@ -303,6 +304,15 @@ def rms_px(problem: FullBAProblem, T: np.ndarray, p: np.ndarray, stride: int = 1
     return float(np.sqrt(np.mean(err2))) * problem.fx
 
 
+def gauge_tilt_sigma(problem: FullBAProblem, config: FullBAConfig) -> float:
+    """The roll / pitch sigma of the prior on the fixed keyframe: ``config.gauge_tilt_sigma_rad``
+    when the problem has IMU factors (gravity then fixes the map's tilt) and no prior-map
+    keyframes are held (they fix it), else 0 (all six degrees of freedom held)."""
+    imu = problem.imu is not None and problem.imu.n_pairs > 0
+    held = problem.held is not None and problem.held.size > 0
+    return config.gauge_tilt_sigma_rad if imu and config.imu_factors and not held else 0.0
+
+
 def solve_full_ba(
     problem: FullBAProblem,
     config: FullBAConfig,
@@ -327,8 +337,12 @@ def solve_full_ba(
     for j in range(n_pts):
         values.insert(L(j), np.asarray(problem.p_world[j], np.float64))
     prior = gtsam.noiseModel.Isotropic.Sigma(6, graph_config.prior_sigma)
+    tilt = gauge_tilt_sigma(problem, config)
     for i in held_indices(problem.fixed, problem.held):
-        graph.add(gtsam.PriorFactorPose3(X(i), pose3(problem.T_world_body[i]), prior))
+        noise = prior
+        if i == problem.fixed and tilt > 0:
+            noise = gauge_prior_noise(problem.T_world_body[i], graph_config.prior_sigma, tilt)
+        graph.add(gtsam.PriorFactorPose3(X(i), pose3(problem.T_world_body[i]), noise))
     if problem.held_points is not None and problem.held_points.size:
         point_prior = gtsam.noiseModel.Isotropic.Sigma(3, graph_config.prior_sigma)
         for j in np.asarray(problem.held_points, np.int64).tolist():

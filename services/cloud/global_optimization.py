@@ -178,6 +178,25 @@ def held_indices(fixed: int, held: np.ndarray | None) -> list[int]:
     return sorted({int(fixed), *extra})
 
 
+def gauge_prior_noise(
+    T_world_body: np.ndarray, sigma: float, tilt_sigma_rad: float
+) -> gtsam.noiseModel.Base:
+    """Noise of the prior that fixes a map's gauge at its first keyframe (pose ``T_world_body``
+    (4, 4)): ``sigma`` on all six degrees of freedom, or, with ``tilt_sigma_rad`` > 0, that on
+    position and yaw only and ``tilt_sigma_rad`` on roll and pitch (the map's tilt against
+    gravity, which a solve with IMU factors observes: the 4-DoF gauge of visual-inertial
+    estimation). The tangent of a ``Pose3`` is in its body frame, so the world-frame rotation
+    covariance ``diag(tilt², tilt², sigma²)`` is rotated into it."""
+    if tilt_sigma_rad <= 0:
+        return gtsam.noiseModel.Isotropic.Sigma(6, sigma)
+    R = np.asarray(T_world_body[:3, :3], np.float64)
+    cov = np.zeros((6, 6))
+    cov[:3, :3] = R.T @ np.diag([tilt_sigma_rad**2, tilt_sigma_rad**2, sigma**2]) @ R
+    cov[:3, :3] += np.eye(3) * sigma**2  # keeps the block positive definite
+    cov[3:, 3:] = np.eye(3) * sigma**2
+    return gtsam.noiseModel.Gaussian.Covariance(cov)
+
+
 def pose3(T: np.ndarray) -> gtsam.Pose3:
     return gtsam.Pose3(gtsam.Rot3(np.asarray(T[:3, :3])), np.asarray(T[:3, 3]))
 

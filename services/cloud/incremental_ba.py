@@ -52,12 +52,13 @@ from services.cloud.full_ba import (
     FullBAError,
     FullBAProblem,
     FullBAResult,
+    gauge_tilt_sigma,
     kernel,
     pose3,
     rms_px,
     solve_full_ba,
 )
-from services.cloud.global_optimization import held_indices
+from services.cloud.global_optimization import gauge_prior_noise, held_indices
 from services.cloud.inertial import preintegrated
 from services.cloud.map_types import split_key
 
@@ -254,11 +255,16 @@ def _diff(
             add(("hold", p), gtsam.PriorFactorPoint3(L(solver.point_slot[p]), xyz, tight))
     # Keyframe priors and attitude terms.
     prior = gtsam.noiseModel.Isotropic.Sigma(6, graph_config.prior_sigma)
+    tilt = gauge_tilt_sigma(problem, config)
     for i in held_indices(problem.fixed, problem.held):
-        tag: Tag = ("prior", keys[i])
+        free_tilt = i == problem.fixed and tilt > 0
+        tag: Tag = ("prior4" if free_tilt else "prior", keys[i])
         want.add(tag)
         if tag not in solver.factors:
-            add(tag, gtsam.PriorFactorPose3(sx[i], pose3(T0[i]), prior))
+            noise = prior
+            if free_tilt:
+                noise = gauge_prior_noise(T0[i], graph_config.prior_sigma, tilt)
+            add(tag, gtsam.PriorFactorPose3(sx[i], pose3(T0[i]), noise))
     if problem.up_body is not None and config.attitude_sigma_rad > 0:
         att_noise = gtsam.noiseModel.Isotropic.Sigma(2, config.attitude_sigma_rad)
         z = gtsam.Unit3(np.array([0.0, 0.0, 1.0]))

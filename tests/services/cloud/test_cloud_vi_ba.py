@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import pickle
+import uuid
 
 import numpy as np
 import pytest
@@ -12,6 +13,7 @@ import pytest
 from common.calibration import EUROC_IMU
 from common.codec.imu import ImuEncoder
 from common.codec.types import ImuChunk
+from common.geometry import make_T, so3_exp
 from common.links.edge_cloud import (
     KeyframeStates,
     KeyframeUpdateCoded,
@@ -29,6 +31,7 @@ from services.cloud.config import (
 )
 from services.cloud.core import CloudCore, SendCorrections, SolveRequest, solve
 from services.cloud.full_ba import FullBAProblem, build_full_ba, solve_full_ba
+from services.cloud.incremental_ba import forget, solve_full_ba_incremental
 from services.cloud.inertial import ImuStore, build_imu_terms
 from services.cloud.server import open_app
 from services.cloud.simulation import (
@@ -219,3 +222,54 @@ def test_the_service_core_runs_a_vi_full_ba_from_forwarded_imu(tmp_path, vocab):
         assert len(sends) == 1 and sends[0].corrections[0].edge_id == "edge"
     finally:
         app.close()
+
+
+def _tilted_circle(tilt_rad: float):
+    """A 60-keyframe visual-inertial map whose whole frame is tilted by ``tilt_rad`` about x
+    at its first keyframe (poses and points), as a map started from an edge's slightly wrong
+    gravity estimate: its IMU still measures gravity along the true vertical."""
+    atlas, store, truth = vi_circle_atlas(60, pose_noise=0.0)
+    keys = atlas.keyframe_keys()
+    p0 = atlas.T_map_body(keys[0])[:3, 3].copy()
+    R = so3_exp(np.array([tilt_rad, 0.0, 0.0]))
+    A = make_T(R, p0 - R @ p0)
+    atlas.set_keyframe_poses({k: A @ atlas.T_map_body(k) for k in keys})
+    pk = np.array(atlas.map_point_keys(), np.int64)
+    P = (atlas.map_point_positions(pk) - p0) @ R.T + p0
+    atlas.set_map_point_positions(dict(zip(pk.tolist(), P, strict=True)))
+    return atlas, store, truth
+
+
+def _tilt_deg(T_world_body: np.ndarray, truth: np.ndarray) -> float:
+    """Angle between the estimated and the true up direction in the first body frame."""
+    up_est, up_true = T_world_body[0, 2, :3], truth[0, 2, :3]  # rows: world z in body
+    return float(np.degrees(np.arccos(np.clip(up_est @ up_true, -1.0, 1.0))))
+
+
+@pytest.mark.parametrize("incremental", [False, True], ids=["batch", "isam2"])
+def test_a_free_gauge_tilt_lets_gravity_level_a_tilted_map(incremental):
+    tilt = np.radians(1.0)
+    cfg = dataclasses.replace(ON, incremental=incremental, incremental_min_keyframes=0)
+    out = {}
+    for name, sigma in (("held", 0.0), ("free", 0.05)):
+        atlas, store, truth = _tilted_circle(tilt)
+        c = dataclasses.replace(cfg, gauge_tilt_sigma_rad=sigma)
+        problem = build_full_ba(atlas, 0, default_camera(), c, GRAPH, store, _imu_of)
+        assert _tilt_deg(problem.T_world_body, truth.T_world_body) == pytest.approx(1.0, abs=1e-6)
+        if incremental:
+            session = uuid.uuid4().hex
+            try:
+                res = solve_full_ba_incremental(problem, c, GRAPH, session, 0)
+            finally:
+                forget(session)
+        else:
+            res = solve_full_ba(problem, c, GRAPH)
+        first = res.T_world_body[0]
+        out[name] = _tilt_deg(res.T_world_body, truth.T_world_body)
+        # The gauge's position and yaw stay where they were.
+        assert np.abs(first[:3, 3] - problem.T_world_body[0, :3, 3]).max() < 1e-4
+        fwd, fwd0 = first[:3, 0], problem.T_world_body[0, :3, 0]
+        yaw = np.arctan2(fwd[1], fwd[0]) - np.arctan2(fwd0[1], fwd0[0])
+        assert abs(yaw) < 1e-3
+    assert out["held"] == pytest.approx(1.0, abs=0.01)  # the prior holds the wrong tilt
+    assert out["free"] < 0.15, out  # gravity levels the map (0.085° here)
