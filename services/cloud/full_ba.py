@@ -339,10 +339,10 @@ def solve_full_ba(
     prior = gtsam.noiseModel.Isotropic.Sigma(6, graph_config.prior_sigma)
     tilt = gauge_tilt_sigma(problem, config)
     for i in held_indices(problem.fixed, problem.held):
-        noise = prior
+        held_noise: gtsam.noiseModel.Base = prior
         if i == problem.fixed and tilt > 0:
-            noise = gauge_prior_noise(problem.T_world_body[i], graph_config.prior_sigma, tilt)
-        graph.add(gtsam.PriorFactorPose3(X(i), pose3(problem.T_world_body[i]), noise))
+            held_noise = gauge_prior_noise(problem.T_world_body[i], graph_config.prior_sigma, tilt)
+        graph.add(gtsam.PriorFactorPose3(X(i), pose3(problem.T_world_body[i]), held_noise))
     if problem.held_points is not None and problem.held_points.size:
         point_prior = gtsam.noiseModel.Isotropic.Sigma(3, graph_config.prior_sigma)
         for j in np.asarray(problem.held_points, np.int64).tolist():

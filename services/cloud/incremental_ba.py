@@ -261,10 +261,10 @@ def _diff(
         tag: Tag = ("prior4" if free_tilt else "prior", keys[i])
         want.add(tag)
         if tag not in solver.factors:
-            noise = prior
+            held_noise: gtsam.noiseModel.Base = prior
             if free_tilt:
-                noise = gauge_prior_noise(T0[i], graph_config.prior_sigma, tilt)
-            add(tag, gtsam.PriorFactorPose3(sx[i], pose3(T0[i]), noise))
+                held_noise = gauge_prior_noise(T0[i], graph_config.prior_sigma, tilt)
+            add(tag, gtsam.PriorFactorPose3(sx[i], pose3(T0[i]), held_noise))
     if problem.up_body is not None and config.attitude_sigma_rad > 0:
         att_noise = gtsam.noiseModel.Isotropic.Sigma(2, config.attitude_sigma_rad)
         z = gtsam.Unit3(np.array([0.0, 0.0, 1.0]))
