@@ -35,7 +35,9 @@ configurations; still compare live (``bench_mbp_live.py``).
 
 Keyframes: the atlas at the end over the keyframes received. ATE: joint RMSE (SE(3)) of every
 keyframe received (a pruned one through the kept keyframe it is anchored to), as the cloud's
-report computes it; "kept" is the same over the kept keyframes only. Full BAs: how many ran
+report computes it; "kept" is the same over the kept keyframes only; "Sim(3)" the joint ATE
+after a similarity alignment and its scale (how much of a run's error is the whole map's
+scale). Full BAs: how many ran
 (shutdown included) and their solve time here, the price of the extra full BAs.
 """
 
@@ -54,6 +56,7 @@ from typing import Any
 
 import numpy as np
 
+from common.evaluation.metrics import AlignMode
 from common.evaluation.results import load_groundtruth
 from common.vocabulary import DEFAULT_VOCABULARY_PATH, Vocabulary
 from lab.links import git_commit
@@ -150,6 +153,7 @@ def run_one(rec: Path, data: Path, label: str, cfg: CloudServiceConfig, vocab: V
         )
     refs, _ = load_groundtruth(sorted(r.trajectories), data)
     ate = joint_ate(refs, r.trajectories)
+    sim = joint_ate(refs, r.trajectories, AlignMode.SIM3)
     kept = joint_ate(refs, r.kept_trajectories)
     return {
         "label": label,
@@ -162,6 +166,8 @@ def run_one(rec: Path, data: Path, label: str, cfg: CloudServiceConfig, vocab: V
         "full_bas": r.full_bas,
         "full_ba_s": timed.seconds.get(SolveKind.FULL_BA, 0.0),
         "joint_m": None if ate is None else ate.stats.rmse,
+        "sim3_m": None if sim is None else sim.stats.rmse,
+        "scale": None if sim is None else sim.transform.scale,
         "kept_m": None if kept is None else kept.stats.rmse,
         "per_robot_m": {}
         if ate is None
@@ -174,24 +180,32 @@ def summary(results: dict[str, list[dict]]) -> list[str]:
     """Per row label over the recordings: the change of joint ATE against no MBP on the same
     recording (mean, median, range, how many worse) and the keyframes kept."""
     changes: dict[str, list[float]] = {}
+    sim_changes: dict[str, list[float]] = {}
     kept: dict[str, list[float]] = {}
     for rows in results.values():
-        base = rows[0]["joint_m"]
+        base, base_sim = rows[0]["joint_m"], rows[0].get("sim3_m")
         for r in rows[1:]:
             if base and r["joint_m"] is not None:
                 changes.setdefault(r["label"], []).append(100 * (r["joint_m"] / base - 1))
                 kept.setdefault(r["label"], []).append(100 * r["keyframes"] / max(r["received"], 1))
+            if base_sim and r.get("sim3_m") is not None:
+                sim_changes.setdefault(r["label"], []).append(100 * (r["sim3_m"] / base_sim - 1))
     if not changes:
         return []
     lines = [
-        "| run | recordings | change vs no MBP: mean | median | range | worse on | kept % |",
-        "|---|---|---|---|---|---|---|",
+        "| run | recordings | change vs no MBP: mean | median | range | worse on | kept % "
+        "| Sim(3) change: mean | worse on |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for label, c in changes.items():
+        sc = sim_changes.get(label, [])
+        sim_cells = (
+            f"{np.mean(sc):+.1f} % | {sum(x > 0 for x in sc)} of {len(sc)}" if sc else "– | –"
+        )
         lines.append(
             f"| {label} | {len(c)} | {np.mean(c):+.1f} % | {np.median(c):+.1f} % "
             f"| {min(c):+.0f} .. {max(c):+.0f} % | {sum(x > 0 for x in c)} of {len(c)} "
-            f"| {min(kept[label]):.0f}-{max(kept[label]):.0f} |"
+            f"| {min(kept[label]):.0f}-{max(kept[label]):.0f} | {sim_cells} |"
         )
     return lines
 
@@ -300,8 +314,9 @@ def main() -> None:
         "keyframes only. Full BAs: count, and their solve time here.",
         "",
         "| recording | run | keyframes | kept % | map points | maps | loops | MBP passes "
-        "| full BAs | joint ATE cm | change vs no MBP | kept ATE cm | per robot cm |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "| full BAs | joint ATE cm | change vs no MBP | kept ATE cm | per robot cm "
+        "| joint Sim(3) cm | scale |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for rec, rows in results.items():
         base = rows[0]["joint_m"]
@@ -313,13 +328,16 @@ def main() -> None:
                 else f"{100 * (j / base - 1):+.1f} %"
             )
             per = ", ".join(f"{100 * v:.2f}" for v in r["per_robot_m"].values())
+            sim, scale = r.get("sim3_m"), r.get("scale")
             lines.append(
                 f"| `{rec}` | {r['label']} | {r['keyframes']} / {r['received']} "
                 f"| {100 * r['keyframes'] / max(r['received'], 1):.0f} | {r['map_points']} "
                 f"| {r['maps']} | {r['loops']} | {r['passes']} "
                 f"| {r['full_bas']} ({r['full_ba_s']:.0f} s) "
                 f"| {'–' if j is None else f'{100 * j:.2f}'} | {change} "
-                f"| {'–' if k is None else f'{100 * k:.2f}'} | {per} |"
+                f"| {'–' if k is None else f'{100 * k:.2f}'} | {per} "
+                f"| {'–' if sim is None else f'{100 * sim:.2f}'} "
+                f"| {'–' if scale is None else f'{scale:.4f}'} |"
             )
     lines += ["", *summary(results), "", "![mbp_midrun.png](mbp_midrun.png)", ""]
     args.out.mkdir(parents=True, exist_ok=True)

@@ -36,7 +36,7 @@ import numpy as np
 
 from common.calibration import CameraCalibration
 from common.errors import RecslamError
-from common.evaluation.metrics import AteConfig, JointAteResult, compute_joint_ate
+from common.evaluation.metrics import AlignMode, AteConfig, JointAteResult, compute_joint_ate
 from common.evaluation.results import load_groundtruth
 from common.evaluation.trajectory import Trajectory
 from common.links.edge_cloud import KeyframeUpdate, KeyframeUpdateCoded
@@ -461,13 +461,16 @@ def backbone_breakdown(app: CloudApp) -> dict[str, int]:
 
 
 def joint_ate(
-    references: dict[str, Trajectory], trajectories: dict[str, Trajectory]
+    references: dict[str, Trajectory],
+    trajectories: dict[str, Trajectory],
+    align: AlignMode = AlignMode.SE3,
 ) -> JointAteResult | None:
-    """Joint and per-robot ATE (SE(3), as the cloud's report) of a replay's trajectories."""
+    """Joint and per-robot ATE (SE(3) as the cloud's report, or ``align``) of a replay's
+    trajectories."""
     est = {n: t for n, t in trajectories.items() if n in references and len(t) >= 3}
     if not est:
         return None
-    return compute_joint_ate({n: references[n] for n in est}, est, AteConfig())
+    return compute_joint_ate({n: references[n] for n in est}, est, AteConfig(align=align))
 
 
 def common_keyframes(a: ReplayResult, b: ReplayResult) -> tuple[dict, dict]:
