@@ -64,7 +64,7 @@ def _vocabulary() -> Vocabulary:
     return Vocabulary.load(DEFAULT_VOCABULARY_PATH)
 
 
-def run_one(rec: Path, data: Path) -> dict:
+def run_one(rec: Path, data: Path, span: float) -> dict:
     """Replay ``rec`` without MBP; the final map's scale profile and its scale error."""
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(name)s: %(message)s")
     cfg = service_config(False)
@@ -90,8 +90,9 @@ def run_one(rec: Path, data: Path) -> dict:
     if problem.imu is None:
         raise RuntimeError(f"{rec}: the last full BA had no IMU factors")
     full_ba = dataclasses.replace(request.full_ba, incremental=False)
-    assumed = scale_profile(result.T_world_body, problem.fixed, problem.imu, full_ba)
-    calibrated = scale_profile(result.T_world_body, problem.fixed, problem.imu, nominal(full_ba))
+    T, fixed = result.T_world_body, problem.fixed
+    assumed = scale_profile(T, fixed, problem.imu, full_ba, span=span)
+    calibrated = scale_profile(T, fixed, problem.imu, nominal(full_ba), span=span)
     refs, _ = load_groundtruth(sorted(r.trajectories), data)
     se3 = joint_ate(refs, r.trajectories)
     sim = joint_ate(refs, r.trajectories, AlignMode.SIM3)
@@ -174,9 +175,9 @@ def plot(rows: list[dict], path: Path) -> None:
     plt.close(fig)
 
 
-def _job(spec: str) -> dict:
+def _job(spec: str, span: float) -> dict:
     rec, data = spec.split(":", 1)
-    return run_one(Path(rec), Path(data))
+    return run_one(Path(rec), Path(data), span)
 
 
 def main() -> None:
@@ -184,6 +185,7 @@ def main() -> None:
     ap.add_argument(
         "--ab", action="append", required=True, metavar="RECORDING:DATASET", help="repeatable"
     )
+    ap.add_argument("--span", type=float, default=0.01, help="scales swept: 1 ± SPAN")
     ap.add_argument("--jobs", type=int, default=1, help="replays run in parallel (processes)")
     ap.add_argument("--out", type=Path, default=RESULTS, help="folder of the md and png")
     args = ap.parse_args()
@@ -191,12 +193,13 @@ def main() -> None:
     log.setLevel(logging.INFO)
     t0 = time.perf_counter()
     with concurrent.futures.ProcessPoolExecutor(args.jobs) as pool:
-        rows = list(pool.map(_job, args.ab))
+        rows = list(pool.map(functools.partial(_job, span=args.span), args.ab))
     lines = [
         "# How firmly the IMU fixes each map's scale",
         "",
         f"Command: `benchmarks/bench_scale_observability.py "
-        f"{' '.join('--ab ' + a for a in args.ab)} --jobs {args.jobs}`; commit {git_commit()}; "
+        f"{' '.join('--ab ' + a for a in args.ab)} --span {args.span:g} --jobs {args.jobs}`; "
+        f"commit {git_commit()}; "
         f"{time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}; {platform.machine()}, "
         f"{time.perf_counter() - t0:.0f} s in all. Replays without MBP through the service's "
         "core (deterministic); the final map's last full BA swept over its scale with the "
