@@ -66,7 +66,6 @@ from common.protocol.messages import Message
 from common.protocol.store import InboundPosition
 from common.vocabulary import Vocabulary
 from services.cloud.app_optimization import AppOptimization
-from services.cloud.app_optimization import Correction as Correction  # re-exported (core, server)
 from services.cloud.atlas import Atlas, AtlasSnapshot, KeyframeInput, make_key
 from services.cloud.config import CloudServiceConfig
 from services.cloud.ground_truth import references_in_maps

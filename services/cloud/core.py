@@ -72,7 +72,8 @@ from dataclasses import dataclass
 
 from common.errors import RecslamError
 from common.protocol.messages import Message
-from services.cloud.app import CloudApp, Correction, Reaction
+from services.cloud.app import CloudApp, Reaction
+from services.cloud.app_optimization import Correction
 from services.cloud.config import FullBAConfig, GlobalOptimizationConfig
 from services.cloud.full_ba import FullBAProblem, FullBAResult, solve_full_ba
 from services.cloud.global_optimization import (

@@ -54,7 +54,8 @@ from common.protocol import OutboxFullError, SessionConfig
 from common.protocol.errors import LocalProtocolError, RejectedMessageError
 from common.transport import Delivery, Server, TransportConfig
 from common.vocabulary import Vocabulary
-from services.cloud.app import CloudApp, Correction, PositionStore
+from services.cloud.app import CloudApp, PositionStore
+from services.cloud.app_optimization import Correction
 from services.cloud.child_process import child_process_init
 from services.cloud.config import CloudServiceConfig
 from services.cloud.core import (
