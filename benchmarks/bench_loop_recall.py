@@ -29,7 +29,6 @@ import dataclasses
 import logging
 import platform
 import sys
-import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -43,8 +42,7 @@ from common.vocabulary import DEFAULT_VOCABULARY_PATH, Vocabulary
 from lab.links import git_commit
 from lab.loop_scoring import GroundTruthPoses, LoopCriterion, score_loops
 from lab.seeds import constraint_check, read_report
-from lab.table3 import joint_ate, replay, service_config
-from services.cloud.recording import read_schedule
+from lab.table3 import joint_ate, replay_recording, service_config
 from services.cloud.runner import find_camera
 
 log = logging.getLogger("bench_loop_recall")
@@ -62,19 +60,8 @@ def replay_row(
     merge = dataclasses.replace(cfg.domain.merge, fuse_loop_points=fuse)
     domain = dataclasses.replace(cfg.domain, place_recognition=pr, merge=merge)
     cfg = dataclasses.replace(cfg, domain=domain)
-    with tempfile.TemporaryDirectory() as tmp:
-        r = replay(
-            read_schedule(recording, allow_truncated_tail=True),
-            camera,
-            vocab,
-            cfg,
-            Path(tmp) / "state",
-            f"early {early}, fuse {int(fuse)}",
-            full_ba=True,
-            latency_scale=0.0,
-            schedule="modelled",
-            covisibility=True,
-        )
+    label = f"early {early}, fuse {int(fuse)}"
+    r = replay_recording(recording, camera, vocab, cfg, label, full_ba=True, covisibility=True)
     names = sorted(r.trajectories)
     refs, _ = load_groundtruth(names, dataset)
     crit = LoopCriterion()

@@ -49,7 +49,6 @@ import dataclasses
 import functools
 import logging
 import platform
-import tempfile
 import time
 from pathlib import Path
 from typing import Any
@@ -60,10 +59,9 @@ from common.evaluation.metrics import AlignMode
 from common.evaluation.results import load_groundtruth
 from common.vocabulary import DEFAULT_VOCABULARY_PATH, Vocabulary
 from lab.links import git_commit
-from lab.table3 import ReplayResult, joint_ate, replay, service_config
+from lab.table3 import ReplayResult, joint_ate, replay_recording, service_config
 from services.cloud.config import CloudServiceConfig
 from services.cloud.core import SolveKind, SolveRequest, SolveResult, solve
-from services.cloud.recording import read_schedule
 from services.cloud.runner import find_camera
 
 log = logging.getLogger("bench_mbp_midrun")
@@ -138,19 +136,7 @@ class _TimedSolve:
 def run_one(rec: Path, data: Path, label: str, cfg: CloudServiceConfig, vocab: Vocabulary) -> dict:
     camera = find_camera(None, data)
     timed = _TimedSolve()
-    with tempfile.TemporaryDirectory() as tmp:
-        r: ReplayResult = replay(
-            read_schedule(rec, allow_truncated_tail=True),
-            camera,
-            vocab,
-            cfg,
-            Path(tmp) / "state",
-            label,
-            full_ba=True,
-            solve_fn=timed,
-            schedule="modelled",
-            latency_scale=0.0,
-        )
+    r: ReplayResult = replay_recording(rec, camera, vocab, cfg, label, full_ba=True, solve_fn=timed)
     refs, _ = load_groundtruth(sorted(r.trajectories), data)
     ate = joint_ate(refs, r.trajectories)
     sim = joint_ate(refs, r.trajectories, AlignMode.SIM3)

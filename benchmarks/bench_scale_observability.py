@@ -25,7 +25,6 @@ import dataclasses
 import functools
 import logging
 import platform
-import tempfile
 import time
 from pathlib import Path
 
@@ -36,10 +35,9 @@ from common.evaluation.results import load_groundtruth
 from common.vocabulary import DEFAULT_VOCABULARY_PATH, Vocabulary
 from lab.links import git_commit
 from lab.scale_observability import nominal, scale_profile
-from lab.table3 import joint_ate, replay, service_config
+from lab.table3 import joint_ate, replay_recording, service_config
 from services.cloud.core import SolveKind, SolveRequest, SolveResult, solve
 from services.cloud.full_ba import FullBAProblem, FullBAResult
-from services.cloud.recording import read_schedule
 from services.cloud.runner import find_camera
 
 log = logging.getLogger("bench_scale_observability")
@@ -69,19 +67,8 @@ def run_one(rec: Path, data: Path, span: float) -> dict:
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(name)s: %(message)s")
     cfg = service_config(False)
     capture = _LastFullBA()
-    with tempfile.TemporaryDirectory() as tmp:
-        r = replay(
-            read_schedule(rec, allow_truncated_tail=True),
-            find_camera(None, data),
-            _vocabulary(),
-            cfg,
-            Path(tmp) / "state",
-            "no MBP",
-            full_ba=True,
-            solve_fn=capture,
-            schedule="modelled",
-            latency_scale=0.0,
-        )
+    camera = find_camera(None, data)
+    r = replay_recording(rec, camera, _vocabulary(), cfg, "no MBP", full_ba=True, solve_fn=capture)
     if capture.last is None:
         raise RuntimeError(f"{rec}: the replay ran no full BA")
     request, result = capture.last

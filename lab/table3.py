@@ -273,6 +273,29 @@ def replay(
         app.close()
 
 
+def replay_recording(
+    recording: Path,
+    camera: CameraCalibration,
+    vocab: Vocabulary,
+    config: CloudServiceConfig,
+    label: str = "",
+    **options: Any,
+) -> ReplayResult:
+    """:func:`replay` of the recording file ``recording`` (a truncated tail allowed, as a run
+    that was cut leaves it) on a fresh, temporary state directory; ``options`` are
+    :func:`replay`'s (``full_ba``, ``solve_fn``, ``schedule`` ...)."""
+    with tempfile.TemporaryDirectory() as tmp:
+        return replay(
+            read_schedule(recording, allow_truncated_tail=True),
+            camera,
+            vocab,
+            config,
+            Path(tmp) / "state",
+            label,
+            **options,
+        )
+
+
 def _solve_logged(
     solve_fn: Callable[[SolveRequest], SolveResult], request: SolveRequest
 ) -> SolveResult | None:

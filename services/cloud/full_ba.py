@@ -310,7 +310,7 @@ def gauge_tilt_sigma(problem: FullBAProblem, config: FullBAConfig) -> float:
     keyframes are held (they fix it), else 0 (all six degrees of freedom held)."""
     imu = problem.imu is not None and problem.imu.n_pairs > 0
     held = problem.held is not None and problem.held.size > 0
-    return config.gauge_tilt_sigma_rad if imu and config.imu_factors and not held else 0.0
+    return config.gauge_tilt_sigma_rad if imu and not held else 0.0
 
 
 def solve_full_ba(
