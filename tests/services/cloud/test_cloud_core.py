@@ -382,3 +382,36 @@ def test_overload_busy_zero_never_sheds(feed):
     assert not f.core.load(1.0, 0.0) and not f.core.overloaded
     with pytest.raises(ValueError, match="overload_clear"):
         _config(overload_busy=0.5, overload_clear=0.6)
+
+
+def test_a_full_ba_cut_short_by_the_stop_still_runs_at_shutdown(feed):
+    # The service stops while a quiet full BA is out: the round is cancelled, its result never
+    # comes back, and the shutdown must still run a full BA of that map (it had changes).
+    f = feed(_config(full_ba=True, full_ba_quiet_s=1.0))
+    core = f.core
+    f.keyframe("r0", 0.0)
+    f.keyframe("r0", 0.4)
+    assert core.changed_since_full_ba(0) > 0
+    [quiet] = _requests(core.on_timer(2.0))
+    assert quiet.kind is SolveKind.FULL_BA and core.changed_since_full_ba(0) == 0
+    core.cancel(2.5)
+    assert not core.busy and core.changed_since_full_ba(0) > 0  # owed again
+    out = run_inline(core, core.shutdown(3.0), 3.0)
+    assert [(o.kind, o.applied) for o in out if isinstance(o, Outcome)] == [
+        (SolveKind.FULL_BA, True)
+    ]
+    assert core.full_bas == 1
+
+
+def test_a_failed_full_ba_solve_is_owed_to_the_next_occasion(feed):
+    f = feed(_config(full_ba=True, full_ba_quiet_s=1.0))
+    core = f.core
+    f.keyframe("r0", 0.0)
+    f.keyframe("r0", 0.4)
+    owed = core.changed_since_full_ba(0)
+    [quiet] = _requests(core.on_timer(2.0))
+    assert core.failed(quiet, 2.5) == [] and not core.busy
+    assert core.changed_since_full_ba(0) == owed
+    out = run_inline(core, core.shutdown(3.0), 3.0)
+    assert [o.kind for o in out if isinstance(o, Outcome)] == [SolveKind.FULL_BA]
+    assert core.full_bas == 1
