@@ -374,8 +374,8 @@ class CloudServiceConfig:
         keyframes since its last pass, right after an optimisation (0 = never while running;
         default 0: live, every 40 kept 18-34 % of the keyframes at -31 / -50 / +17 % mean
         joint ATE against runs without it on seeds 0 / 1 / 2, six runs each (ten on seed 2),
-        sessions 24-25, benchmarks/results/mbp_live.md; replays of six recordings -0.7 % mean, both of seed 2
-        worse, all of it the map's scale, mbp_midrun.md) ...
+        sessions 24-25, benchmarks/results/mbp_live.md; replays of six recordings -0.7 %
+        mean, both of seed 2 worse, all of it the map's scale, mbp_midrun.md) ...
     mbp_at_shutdown: ... and over every map at shutdown, after the last full BA, before the
         trajectories are written (default True): the persisted map is the pruned one.
     mbp_keep_recent: each agent's newest keyframes MBP never removes (default 5) ...
