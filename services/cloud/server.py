@@ -20,8 +20,10 @@ described there, once) and owns the lifecycle:
   holds the GIL for most of a solve, so a thread would starve the event loop: measured in
   ``benchmarks/results/cloud_service.md``; ``optimizer_process=False`` uses a thread), and
   the corrected poses go to the edges as ``PoseCorrection`` in each robot's own map frame;
-- at :meth:`CloudServer.stop`: the core's shutdown sequence, then the trajectories are
-  written;
+- at :meth:`CloudServer.stop`: a solve in flight is waited for and applied (the optimizer
+  process would finish it anyway, and the shutdown's own solve would queue behind it), the
+  rest of its round is handed back to the core (:meth:`CloudCore.cancel`), then the core's
+  shutdown sequence runs and the trajectories are written;
 - the dashboard's :class:`~services.cloud.map_source.CloudMapSource` is refreshed every
   ``publish_every_s``; trajectories (and the ATE report with ground truth) are written every
   ``output_every_s`` and at :meth:`CloudServer.stop` (:mod:`services.cloud.server_outputs`);
@@ -168,6 +170,9 @@ class CloudServer(ServerOutputs):
         self._armed: float | None = math.nan  # the deadline the timer sleeps on (nan: none yet)
         self._round_lock = asyncio.Lock()  # one round of the core at a time
         self._tasks: list[asyncio.Task[None]] = []
+        self._stopping = False  # the timer's round ends after its solve in flight
+        self._solving: SolveRequest | None = None  # the solve the optimizer runs now
+        self._solves_abandoned = 0  # solves whose result was not waited for
         self._corrections = 0
         self._queued = 0  # messages handed to the worker and not applied yet
         self._queued_max = 0
@@ -238,8 +243,21 @@ class CloudServer(ServerOutputs):
         return self.address
 
     async def stop(self, write_output: bool = True) -> None:
-        """Close the edges' connections, write the outputs, close the state directory."""
+        """Close the edges' connections, write the outputs, close the state directory. A
+        solve in flight is waited for and applied first; the rest of its round, and the
+        shutdown's full BA and MBP, run after."""
         await self._server.close()
+        self._stopping = True
+        self._wake.set()
+        optimizing = [t for t in self._tasks if t.get_name() == "cloud-optimize"]
+        if self._solving is not None:
+            log.info(
+                "stop: waiting for the %s of map %d in flight",
+                self._solving.kind.value,
+                self._solving.map_id,
+            )
+        for t in optimizing:  # the timer's loop ends after its solve in flight
+            await t
         for t in self._tasks:
             t.cancel()
         for t in self._tasks:
@@ -249,7 +267,7 @@ class CloudServer(ServerOutputs):
         if self._app is not None and self._core is not None:
             loop = asyncio.get_running_loop()
             core = self._core
-            async with self._round_lock:  # a round cut short by the cancel: reschedule it
+            async with self._round_lock:  # the rest of a round cut short: reschedule it
 
                 def cancel(now: float) -> list[Action]:
                     core.cancel(now)
@@ -325,10 +343,15 @@ class CloudServer(ServerOutputs):
                 core.app.decoders.forget()
         if self._recorder is not None:
             self._recorder.write(d.peer, d.stream_id, d.seq, d.message, t_recv, now)
-        busy = self._busy.share(time.monotonic())  # (up to the message before this one)
+        self._measure_load(core, now)  # (up to the message before this one)
+        return core.next_deadline()
+
+    def _measure_load(self, core: CloudCore, now: float) -> None:
+        """Tell the core how busy the worker was lately (worker thread), recorded when that
+        changed whether it is overloaded."""
+        busy = self._busy.share(time.monotonic())
         if core.load(busy, now) and self._recorder is not None:
             self._recorder.write_step("load", now, (busy,))
-        return core.next_deadline()
 
     def _step(
         self, name: str, call: Callable[[float], list[Action]], args: tuple[object, ...], now: float
@@ -348,28 +371,46 @@ class CloudServer(ServerOutputs):
     # ------------------------------------------------------------------ optimisation
     async def _optimize_loop(self) -> None:
         """The core's single timer: sleep until its deadline (or until a message moved it),
-        then run the round that is due."""
+        then run the round that is due. While the cloud is overloaded it also wakes every
+        tenth of ``overload_window_s`` to measure the load again: the load falls while no
+        message comes, and an overload measured only on messages would outlast the burst
+        that caused it (no quiet full BA after the last message)."""
         core = self._core
         assert core is not None
         loop = asyncio.get_running_loop()
-        while True:
+        recheck_s = self.config.overload_window_s / 10
+
+        def schedule() -> tuple[float | None, bool]:
+            return core.next_deadline(), core.overloaded
+
+        while not self._stopping:
             self._armed = math.nan  # a message handled meanwhile wakes the loop
             self._wake.clear()
-            deadline = await self._on_worker(core.next_deadline)
+            deadline, overloaded = await self._on_worker(schedule)
             self._armed = deadline
             left = None if deadline is None else deadline - loop.time()
             if left is None or left > 0:
+                if overloaded:
+                    left = recheck_s if left is None else min(left, recheck_s)
                 with contextlib.suppress(TimeoutError):
                     await asyncio.wait_for(self._wake.wait(), left)
+                if overloaded:
+                    await self._on_worker(self._measure_load, core, loop.time())
                 continue
-            await self._round("timer", core.on_timer)
+            await self._round("timer", core.on_timer, interruptible=True)
 
     async def _round(
-        self, name: str, start: Callable[..., list[Action]], *args: Any
+        self,
+        name: str,
+        start: Callable[..., list[Action]],
+        *args: Any,
+        interruptible: bool = False,
     ) -> list[Outcome]:
         """Start a round of the core (``start(*args, now)`` on the worker, recorded as the step
         ``name``) and run it to its end: solves in the optimizer, corrections to the edges. One
-        round at a time. Returns the outcomes of its solves."""
+        round at a time. Returns the outcomes of its solves. An ``interruptible`` round (the
+        timer's) starts no new solve once the service is stopping: the core still counts it
+        as running until :meth:`stop` cancels the rest."""
         core = self._core
         assert core is not None
         loop = asyncio.get_running_loop()
@@ -387,9 +428,13 @@ class CloudServer(ServerOutputs):
                 elif isinstance(action, SendCorrections):
                     self._send(action.corrections)
                 elif isinstance(action, SolveRequest):
+                    if interruptible and self._stopping:
+                        break
+                    self._solving = action
                     try:
                         result = await self._solve(action)
                     except asyncio.CancelledError:
+                        self._solves_abandoned += 1
                         raise
                     except Exception:
                         log.exception("%s of map %d failed", action.kind.value, action.map_id)
@@ -408,6 +453,8 @@ class CloudServer(ServerOutputs):
                             (action.kind.value, action.map_id),
                             loop.time(),
                         )
+                    finally:
+                        self._solving = None
                     pending.extend(more)
         return outcomes
 
@@ -514,6 +561,7 @@ class CloudServer(ServerOutputs):
                     "full_bas_deferred": core.full_bas_deferred,
                 },
                 stages.snapshot(),
+                solves_abandoned=self._solves_abandoned,
             )
 
         return await self._on_worker(collect)
@@ -523,6 +571,13 @@ class CloudServer(ServerOutputs):
         app = self._app
         assert app is not None
         return await self._on_worker(fn, app)
+
+    @property
+    def solving(self) -> tuple[SolveKind, int] | None:
+        """The solve the optimizer runs (or whose result is being applied) now: its kind and
+        map, or None."""
+        s = self._solving
+        return None if s is None else (s.kind, s.map_id)
 
     @property
     def transport(self) -> Server:

@@ -37,3 +37,6 @@ class CloudStats:
     worker, all of it); wall time in ``wall.<Type>`` (the same, with the waits: SQLite's
     fsync), ``wait.worker`` (received -> applied) and ``solve.<kind>`` (in the optimizer,
     waited for on the event loop)."""
+    solves_abandoned: int = 0
+    """Solves whose result the service did not wait for (cancelled: only a stop that was
+    itself cut short abandons one; a stop waits for the solve in flight)."""

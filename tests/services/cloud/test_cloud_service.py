@@ -20,6 +20,7 @@ from common.protocol.arrays import pack_array
 from common.transport import Client, Delivery, TransportConfig, run
 from common.vocabulary import Vocabulary
 from services.cloud.config import CloudServiceConfig
+from services.cloud.core import SolveKind
 from services.cloud.map_source import CloudMapSource
 from services.cloud.merge import yaw_of
 from services.cloud.server import CloudServer
@@ -105,13 +106,16 @@ async def _until(predicate, timeout: float = 180.0) -> None:
     await asyncio.wait_for(loop(), timeout)
 
 
-def _cloud(tmp_path, vocab, decode_workers: int = 0, **kw) -> CloudServer:
+def _cloud(
+    tmp_path, vocab, decode_workers: int = 0, full_ba_quiet_s: float = 0.0, **kw
+) -> CloudServer:
     cfg = CloudServiceConfig(
         debounce_s=0.2,
         output_every_s=0,
         publish_every_s=0.2,
         gt_every_s=0,
         decode_workers=decode_workers,
+        full_ba_quiet_s=full_ba_quiet_s,
     )
     session = SessionConfig("cloud", "cloud", SECRET, **kw.pop("session", {}))
     return CloudServer(
@@ -215,6 +219,37 @@ def test_two_edges_merge_send_corrections_and_write_trajectories(tmp_path, vocab
         assert maps["joint_frame"] is True
         report = json.loads((tmp_path / "results" / "eval" / "ate.json").read_text())
         assert report["joint"]["stats_m"]["rmse"] < 0.05
+
+    run(main())
+
+
+def test_a_stop_waits_for_the_full_ba_in_flight_and_applies_it(tmp_path, vocab, scenario):
+    """After a burst that overloaded the worker, the load is measured again without messages,
+    so the quiet full BA runs; a stop that arrives while it is in the optimizer waits for it
+    and applies it (before, the stop abandoned the solve, and the shutdown's own full BA queued
+    behind the abandoned one in the optimizer process)."""
+
+    async def main():
+        cloud = _cloud(tmp_path, vocab, full_ba_quiet_s=0.05)
+        _, port = await cloud.start()
+        a = await Edge("edge-a", port).start()
+        try:
+            await a.send_all(scenario["r0"]["messages"])
+            await a.client.flush()
+
+            async def full_ba_in_flight() -> None:
+                while (s := cloud.solving) is None or s[0] is not SolveKind.FULL_BA:
+                    await asyncio.sleep(0.002)
+
+            await asyncio.wait_for(full_ba_in_flight(), 120.0)
+        finally:
+            await a.client.close()
+            await cloud.stop(write_output=False)
+        stats = await cloud.stats()
+        assert stats.solves_abandoned == 0
+        # The one in flight, applied; the shutdown's is not needed: nothing changed since.
+        assert stats.full_ba_passes == 1
+        assert stats.overload["overloaded"] == 0
 
     run(main())
 
