@@ -42,9 +42,9 @@ The schedule:
 - **Overload** (:meth:`CloudCore.load`: the runner reports the share of recent wall time its
   worker was busy): from ``overload_busy`` until it falls to ``overload_clear`` the cloud
   sheds what only refines the map: no full BA is started (a due one waits, and so does the
-  MBP pass that waits for it; both run at the first pose graph after the load fell, and at
-  shutdown), no quiet full BA, and place recognition verifies only consistent candidates
-  (``CloudApp.shed``), and the dashboard's map view is refreshed less often
+  MBP pass that waits for it; once the load fell, their maps get a pose graph scheduled and
+  they follow it), no quiet full BA, and place recognition verifies only consistent
+  candidates (``CloudApp.shed``), and the dashboard's map view is refreshed less often
   (:meth:`CloudCore.publish_every_s`). Messages, pose graphs and corrections go on: the
   edges' queues stay bounded as long as those alone fit the cloud's CPU.
 - **Shutdown** (:meth:`CloudCore.shutdown`): with full BA on and ``full_ba_at_shutdown_s`` > 0,
@@ -262,6 +262,7 @@ class CloudCore:
             self.overloaded_s += self._spell_s(now)
             self._overloaded_since = None
             log.info("load %.2f: no longer overloaded; full BA and early candidates resume", busy)
+            self._resume_deferred(now)
         else:
             if not cfg.overload_busy or busy < cfg.overload_busy:
                 return False
@@ -275,6 +276,21 @@ class CloudCore:
             )
         self.app.shed(self.overloaded)
         return True
+
+    def _resume_deferred(self, now: float) -> None:
+        """The maps whose full BA (or MBP pass) the overload deferred get a pose graph, and
+        the full BA follows it (else they would wait for their map's next keyframe)."""
+        if not self.config.domain.full_ba.enabled:
+            return
+        every, after = self.config.full_ba_every_keyframes, self.config.mbp_after_full_ba
+        due = [
+            m
+            for m in self.app.atlas.maps()
+            if self._since_full.get(m, 0) >= every or (after and self.app.prune_due(m))
+        ]
+        if due:
+            self._dirty.update(due)
+            self._trigger(now)
 
     def publish_every_s(self, last_s: float = 0.0) -> float:
         """How long until the dashboard's map view is refreshed again (0: never), given

@@ -365,6 +365,23 @@ def test_overloaded_the_due_full_ba_waits_and_runs_at_the_first_pose_graph_after
     assert kinds == [SolveKind.POSE_GRAPH, SolveKind.FULL_BA] and core.full_bas == 1
 
 
+def test_a_full_ba_deferred_by_the_overload_runs_once_it_falls_without_a_new_keyframe(feed):
+    f = feed(_config(full_ba=True, optimize_every_keyframes=3, full_ba_every_keyframes=3))
+    core = f.core
+    core.load(0.95, 0.0)
+    for i in range(3):
+        f.keyframe("r0", 0.1 * i)
+    out = run_inline(core, core.on_timer(1.0), 1.0)
+    assert [o.kind for o in out if isinstance(o, Outcome)] == [SolveKind.POSE_GRAPH]
+    assert core.full_bas_deferred == 1 and core.next_deadline() is None  # nothing scheduled
+    assert core.load(0.5, 4.0) and not core.overloaded  # the last keyframe came long ago
+    assert core.next_deadline() == pytest.approx(4.5)  # debounced like any trigger
+    out = run_inline(core, core.on_timer(4.5), 4.5)
+    kinds = [o.kind for o in out if isinstance(o, Outcome)]
+    assert kinds == [SolveKind.POSE_GRAPH, SolveKind.FULL_BA] and core.full_bas == 1
+    assert core.changed_since_full_ba(0) == 0 and core.next_deadline() is None
+
+
 def test_overloaded_no_quiet_full_ba_but_shutdown_runs_it(feed):
     f = feed(_config(full_ba=True, full_ba_quiet_s=1.0))
     core = f.core
