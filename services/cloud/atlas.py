@@ -39,6 +39,7 @@ from services.cloud.atlas_records import (
 )
 from services.cloud.map_types import (
     LOCAL_BITS,
+    AliasSnapshot,
     AtlasError,
     AtlasSnapshot,
     AtlasState,
@@ -335,6 +336,7 @@ class Atlas(AtlasQueries):
                 k.mp_keys[idx] = -1
                 self._link(keep, k, idx)
         self._alias[drop_key] = keep_key
+        self._alias_log.append((drop_key, keep_key))
 
     def set_keyframe_poses(self, poses: dict[int, np.ndarray]) -> None:
         """Replace keyframe poses (map frame); each map point follows its reference keyframe
@@ -470,7 +472,7 @@ class Atlas(AtlasQueries):
             merges=tuple(self._merges),
             loops=tuple(self._loops),
             removed_keyframes=frozenset(self._removed_kfs),
-            aliases=dict(self._alias),
+            aliases=AliasSnapshot(self._alias_log, len(self._alias_log)),
             retired=self._retired.records(),
         )
 
@@ -503,6 +505,7 @@ class Atlas(AtlasQueries):
         atlas._loops = [e for e in state.loops if e.key_a in atlas._kfs and e.key_b in atlas._kfs]
         atlas._removed_kfs = set(state.removed_keyframes)
         atlas._alias = dict(state.aliases)
+        atlas._alias_log = list(atlas._alias.items())
         atlas._retired = RetiredKeyframes.of_live(state.retired, atlas._kfs)
         atlas._unsaved = Unsaved()  # as stored
         return atlas

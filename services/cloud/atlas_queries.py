@@ -54,6 +54,7 @@ class AtlasQueries:
         # sit at the map's origin for verification, BA and the map view until it came).
         self._announced: dict[int, dict[int, int]] = {}
         self._alias: dict[int, int] = {}  # fused map point -> surviving map point
+        self._alias_log: list[tuple[int, int]] = []  # its assignments, in order
         self._unsaved = Unsaved()  # what changed since the store last wrote it
 
     # ------------------------------------------------------------------ agents and maps

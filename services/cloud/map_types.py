@@ -4,7 +4,7 @@ snapshots and records of merges and loops. Keys: ``key = agent_id << 32 | local_
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -226,6 +226,42 @@ class MapPointView:
     ref_kf: int
 
 
+class AliasSnapshot(Mapping[int, int]):
+    """The fused map points' aliases (dropped key -> surviving key) as they were when the
+    snapshot was taken: the first ``n`` assignments of the atlas' append-only ``log``
+    (a later assignment of a key overrides an earlier one). Taking one costs nothing, so
+    that a store can write only the assignments since its last snapshot
+    (:meth:`since`), not a copy of every alias per transaction (tens of thousands once
+    loops fuse their points). The dict behind the lookups is built on first use."""
+
+    def __init__(self, log: list[tuple[int, int]], n: int) -> None:
+        self.log, self.n = log, n
+        self._dict: dict[int, int] | None = None
+
+    def _mapping(self) -> dict[int, int]:
+        if self._dict is None:
+            self._dict = dict(self.log[: self.n])
+        return self._dict
+
+    def __getitem__(self, key: int) -> int:
+        return self._mapping()[key]
+
+    def __iter__(self) -> Iterator[int]:
+        return iter(self._mapping())
+
+    def __len__(self) -> int:
+        return len(self._mapping())
+
+    def since(self, earlier: Mapping[int, int]) -> list[tuple[int, int]] | None:
+        """The assignments made after ``earlier`` (a snapshot of the same log), in order;
+        None when ``earlier`` is not one (then compare the mappings)."""
+        if not isinstance(earlier, AliasSnapshot) or earlier.log is not self.log:
+            return None
+        if earlier.n > self.n:
+            return None
+        return self.log[earlier.n : self.n]
+
+
 @dataclass(frozen=True, eq=False)
 class AtlasState:
     """Everything besides keyframes and map points needed to rebuild an atlas."""
@@ -235,7 +271,7 @@ class AtlasState:
     merges: tuple[MergeRecord, ...]
     loops: tuple[LoopEdge, ...]
     removed_keyframes: frozenset[int]
-    aliases: dict[int, int]
+    aliases: Mapping[int, int]
     retired: tuple[RetiredKeyframe, ...] = ()
 
 

@@ -21,7 +21,7 @@ import sqlite3
 import numpy as np
 
 from common.errors import RecslamError
-from services.cloud.map_types import AtlasState
+from services.cloud.map_types import AliasSnapshot, AtlasState
 
 DB_NAME = "cloud.sqlite"
 SCHEMA_VERSION = 9
@@ -176,12 +176,11 @@ def write_state(
             for i, e in enumerate(st.loops[old_loops:], start=old_loops)
         ],
     )
-    if last is not None and last.aliases.items() <= st.aliases.items():
-        new = [(k, v) for k, v in st.aliases.items() if k not in last.aliases]
-    else:
+    new = _new_aliases(st, last)
+    if new is None:
         db.execute("DELETE FROM aliases")
         new = list(st.aliases.items())
-    db.executemany("INSERT INTO aliases VALUES (?, ?)", new)
+    db.executemany("INSERT OR REPLACE INTO aliases VALUES (?, ?)", new)
     if not removals:
         return
     db.executemany(
@@ -204,6 +203,20 @@ def write_state(
             for r in st.retired
         ],
     )
+
+
+def _new_aliases(st: AtlasState, last: AtlasState | None) -> list[tuple[int, int]] | None:
+    """The aliases ``st`` assigned since ``last`` (None: rewrite them all): from the atlas'
+    log when both are snapshots of it (no pass over every alias), else by comparing."""
+    if last is None:
+        return None
+    if isinstance(st.aliases, AliasSnapshot):
+        new = st.aliases.since(last.aliases)
+        if new is not None:
+            return new
+    if last.aliases.items() <= st.aliases.items():
+        return [(k, v) for k, v in st.aliases.items() if k not in last.aliases]
+    return None
 
 
 def _same_agents(st: AtlasState, last: AtlasState) -> bool:

@@ -179,7 +179,7 @@ def _stored(path):
     return (
         kfs,
         mps,
-        (st.map_of_agent, len(st.merges), len(st.loops), st.removed_keyframes),
+        (st.map_of_agent, len(st.merges), len(st.loops), st.removed_keyframes, dict(st.aliases)),
         positions,
     )
 
@@ -222,8 +222,11 @@ def test_incremental_saves_store_what_a_whole_save_stores(tmp_path):
     moved = {key: yaw_T(0.01, [0.01, 0.0, 0.0]) @ atlas.T_map_body(key) for key in k[:5]}
     atlas.set_keyframe_poses(moved)  # an optimisation: poses and the points that follow them
     store.commit_poses(atlas, k[:2], [])  # written in part
+    atlas.fuse_map_points(atlas.map_point_keys()[2], atlas.map_point_keys()[3])
+    store.commit(atlas)  # the aliases since the last write: from the atlas' log
+    atlas.fuse_map_points(atlas.map_point_keys()[2], atlas.map_point_keys()[4])
     store.save_all(atlas)
-    check("optimised poses")
+    check("optimised poses, more fused points")
     atlas.set_map_point_positions({atlas.map_point_keys()[5]: np.array([1.0, 2.0, 3.0])})
     atlas.remove_keyframe(atlas.keyframe_keys(agent_id=0)[3])
     atlas.retire_keyframe(k[7], k[6])
@@ -243,8 +246,10 @@ def test_incremental_saves_store_what_a_whole_save_stores(tmp_path):
     atlas = store.load()  # as stored: its changes from here on are the unsaved ones
     atlas.remove_map_point(atlas.map_point_keys()[7])
     atlas.add_keyframe(k1[-1])
+    atlas.fuse_map_points(atlas.map_point_keys()[8], atlas.map_point_keys()[9])
     store.save_all(atlas)
     check("after a restart")
+    assert len(atlas.state().aliases) == 4
     store.close()
 
 
