@@ -55,12 +55,9 @@ The schedule:
 
 A failure of one map's step (build, solve, apply, MBP) is logged and the round goes on with
 the next step, as the service always did. A full BA that began and was not applied (its solve
-or apply failed, or :meth:`CloudCore.cancel` abandoned its round: the service stopping while a
-quiet full BA was out) gives its map back the changes it had taken, so the shutdown's full BA
-still runs on that map (before, the shutdown skipped it as unchanged and the map kept its
-state before that full BA: in 5 of 104 live runs here, among them the worst run of two seed
-sweeps, 0.8 and 1.2 cm). Call everything from one thread: the core is as thread-unsafe as the
-app it drives.
+or apply failed, or :meth:`CloudCore.cancel` abandoned its round) gives its map back the
+changes it had taken, so the shutdown's full BA still runs on that map. Call everything from
+one thread: the core is as thread-unsafe as the app it drives.
 """
 
 from __future__ import annotations
@@ -277,17 +274,22 @@ class CloudCore:
         self.app.shed(self.overloaded)
         return True
 
+    def _pass_waits_for_full_ba(self, map_id: int) -> bool:
+        """An MBP pass is due on the map and runs after its full BA."""
+        cfg = self.config
+        return cfg.domain.full_ba.enabled and cfg.mbp_after_full_ba and self.app.prune_due(map_id)
+
+    def _full_ba_due(self, map_id: int, pass_waits: bool) -> bool:
+        """The map's full BA is due after its pose graph: it changed enough since its last
+        one, or an MBP pass waits for it (``pass_waits``)."""
+        enough = self._since_full.get(map_id, 0) >= self.config.full_ba_every_keyframes
+        return self.config.domain.full_ba.enabled and (enough or pass_waits)
+
     def _resume_deferred(self, now: float) -> None:
         """The maps whose full BA (or MBP pass) the overload deferred get a pose graph, and
         the full BA follows it (else they would wait for their map's next keyframe)."""
-        if not self.config.domain.full_ba.enabled:
-            return
-        every, after = self.config.full_ba_every_keyframes, self.config.mbp_after_full_ba
-        due = [
-            m
-            for m in self.app.atlas.maps()
-            if self._since_full.get(m, 0) >= every or (after and self.app.prune_due(m))
-        ]
+        maps = self.app.atlas.maps()
+        due = [m for m in maps if self._full_ba_due(m, self._pass_waits_for_full_ba(m))]
         if due:
             self._dirty.update(due)
             self._trigger(now)
@@ -460,16 +462,14 @@ class CloudCore:
                 return actions + self._advance(now)
             self.optimizations += 1
             actions.insert(0, SendCorrections(tuple(corrections)))
-            full_on = self.config.domain.full_ba.enabled
-            due = self._since_full.get(m, 0) >= self.config.full_ba_every_keyframes
-            if full_on and self.config.mbp_after_full_ba and self.app.prune_due(m):
-                due = True  # the pass follows the full BA
-            else:
+            waits = self._pass_waits_for_full_ba(m)
+            if not waits:
                 self._prune_if_due(m)
-            if due and full_on and self.overloaded:
+            due = self._full_ba_due(m, waits)
+            if due and self.overloaded:
                 self.full_bas_deferred += 1  # (and the pass that waits for it)
                 log.info("full BA of map %d deferred: the cloud is overloaded", m)
-            elif due and full_on:
+            elif due:
                 self._steps.appendleft(_FullBA(m, "after its pose graph"))
         elif corrections is None:
             log.info("map %d merged during its full BA; rescheduling", m)

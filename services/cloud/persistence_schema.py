@@ -206,17 +206,12 @@ def write_state(
 
 
 def _new_aliases(st: AtlasState, last: AtlasState | None) -> list[tuple[int, int]] | None:
-    """The aliases ``st`` assigned since ``last`` (None: rewrite them all): from the atlas'
-    log when both are snapshots of it (no pass over every alias), else by comparing."""
-    if last is None:
+    """The aliases ``st`` assigned since ``last``, from the atlas' log (no pass over every
+    alias); None when ``last`` is not an earlier snapshot of the same atlas (rewrite them
+    all: a store's ``last`` is the state it wrote or loaded, see ``CloudStore``)."""
+    if last is None or not isinstance(st.aliases, AliasSnapshot):
         return None
-    if isinstance(st.aliases, AliasSnapshot):
-        new = st.aliases.since(last.aliases)
-        if new is not None:
-            return new
-    if last.aliases.items() <= st.aliases.items():
-        return [(k, v) for k, v in st.aliases.items() if k not in last.aliases]
-    return None
+    return st.aliases.since(last.aliases)
 
 
 def _same_agents(st: AtlasState, last: AtlasState) -> bool:

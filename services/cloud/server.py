@@ -235,6 +235,7 @@ class CloudServer(ServerOutputs):
             app.atlas.maps(),
         )
         self.address = await self._server.start(host, port)
+        # the core's timer first: stop waits for it, and cancels the others
         self._tasks = [asyncio.create_task(self._optimize_loop(), name="cloud-optimize")]
         if self.config.publish_every_s > 0:  # 0: no dashboard reads the map view
             self._tasks.append(asyncio.create_task(self._publish_loop(), name="cloud-publish"))
@@ -249,15 +250,14 @@ class CloudServer(ServerOutputs):
         await self._server.close()
         self._stopping = True
         self._wake.set()
-        optimizing = [t for t in self._tasks if t.get_name() == "cloud-optimize"]
         if self._solving is not None:
             log.info(
                 "stop: waiting for the %s of map %d in flight",
                 self._solving.kind.value,
                 self._solving.map_id,
             )
-        for t in optimizing:  # the timer's loop ends after its solve in flight
-            await t
+        if self._tasks:  # the timer's loop (the first task) ends after its solve in flight
+            await self._tasks[0]
         for t in self._tasks:
             t.cancel()
         for t in self._tasks:
