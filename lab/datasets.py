@@ -36,3 +36,21 @@ def euroc_micro_path() -> Path:
 def euroc_micro_present(path: Path) -> bool:
     """True if ``path`` looks like the excerpt (an EuRoC ASL folder with ``mav0/cam0``)."""
     return (path / "mav0" / "cam0").is_dir()
+
+
+_FLIGHTS = Path("datasets") / "euroc-V2-flights"
+EUROC_V2_FLIGHTS = ("V2_01", "V2_02", "V2_03")
+"""The real flights of one room (IMU and ground truth, no images) in the shared folder."""
+
+
+def euroc_v2_path() -> Path:
+    """The folder of the real V2 flights (``V2_0k/mav0/{imu0, state_groundtruth_estimate0}``):
+    beside the repository if there, else in ``/work/shared``. It may not exist."""
+    beside = REPO_ROOT.parent / "shared" / _FLIGHTS
+    return beside if (beside / "V2_01" / "mav0").is_dir() else Path("/work/shared") / _FLIGHTS
+
+
+def euroc_v2_files(flight: str) -> tuple[Path, Path]:
+    """(ground truth csv, IMU csv) of real flight ``flight`` (e.g. ``"V2_01"``)."""
+    mav0 = euroc_v2_path() / flight / "mav0"
+    return mav0 / "state_groundtruth_estimate0" / "data.csv", mav0 / "imu0" / "data.csv"

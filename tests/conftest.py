@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from lab.datasets import EUROC_MICRO_ENV, euroc_micro_path, euroc_micro_present
+from lab.datasets import EUROC_MICRO_ENV, euroc_micro_path, euroc_micro_present, euroc_v2_path
 
 
 def _in_ci() -> bool:
@@ -31,6 +31,18 @@ def euroc_micro() -> Path:
         f"real EuRoC excerpt not found at {path} (no mav0/cam0 there); "
         f"set {EUROC_MICRO_ENV} to the folder of euroc-micro-V1_01"
     )
+    if _in_ci():
+        pytest.fail(f"{reason}. CI=true: a missing dataset fails instead of skipping")
+    pytest.skip(reason)
+
+
+@pytest.fixture(scope="session")
+def euroc_v2() -> Path:
+    """Folder of the real V2 flights (IMU + ground truth); skip (fail under CI) if absent."""
+    path = euroc_v2_path()
+    if (path / "V2_01" / "mav0" / "imu0" / "data.csv").is_file():
+        return path
+    reason = f"real EuRoC V2 flights not found at {path}"
     if _in_ci():
         pytest.fail(f"{reason}. CI=true: a missing dataset fails instead of skipping")
     pytest.skip(reason)

@@ -425,21 +425,26 @@ class EurocSequence:
         return ImuBatch(ts[a:b], self.gyro[a:b], self.accel[a:b])
 
     def frames(
-        self, start: int = 0, stop: int | None = None, cam: int = 0, load_images: bool = True
+        self,
+        start: int = 0,
+        stop: int | None = None,
+        cam: int = 0,
+        load_images: bool = True,
+        imu_lead_ns: int = 0,
     ) -> Iterator[EurocFrame]:
         """Yield frames ``start..stop-1`` of camera ``cam`` with their IMU batches.
 
-        Frame ``i`` carries the IMU samples in ``(t[i-1], t[i]]``, whatever ``start`` is, so
-        batches tile the IMU timeline; frame 0 carries every sample up to ``t[0]`` (all of the
-        pre-roll of real recordings: drop what you do not need). Samples after the last
-        frame are never yielded.
+        Frame ``i`` carries the IMU samples after frame ``i - 1``'s up to the first sample at
+        or after ``t[i] + imu_lead_ns`` (:func:`frames_with_imu`), whatever ``start`` is, so
+        batches tile the IMU timeline; frame 0 carries every sample before (all of the
+        pre-roll of real recordings: drop what you do not need).
         """
         ts = self.stream(cam).timestamps_ns
         stop = len(ts) if stop is None else stop
         if not 0 <= start <= stop <= len(ts):
             raise IndexError(f"frames({start}, {stop}) outside 0..{len(ts)}")
         images = (self.load_image(i, cam) if load_images else None for i in range(start, stop))
-        return frames_with_imu(ts, self._imu, start, stop, images)
+        return frames_with_imu(ts, self._imu, start, stop, images, imu_lead_ns)
 
     def summary(self) -> dict[str, Any]:
         """Plain facts for CLI display: frames, durations [s], rates [Hz], cameras, ground truth."""
@@ -479,11 +484,23 @@ def frames_with_imu(
     start: int,
     stop: int,
     images: Iterable[np.ndarray | None],
+    imu_lead_ns: int = 0,
 ) -> Iterator[EurocFrame]:
     """Frames ``start..stop-1`` (``images`` gives theirs, in order) with their IMU batches:
-    frame ``i`` carries the samples in ``(t[i-1], t[i]]``, frame 0 every sample up to ``t[0]``.
-    One rule for every sequence source (folder or bag)."""
-    ends = np.searchsorted(imu.timestamps_ns, timestamps_ns, side="right")
+    frame ``i`` carries the samples after frame ``i - 1``'s up to and including the first one
+    at or after ``t[i] + imu_lead_ns`` (frame 0 every sample up to there). One rule for every
+    sequence source (folder or bag).
+
+    The sample after the frame is what lets the edge interpolate the IMU at the frame's time
+    (ORB-SLAM3 and OpenVINS wait for it too): with a camera not triggered by the IMU (EuRoC's
+    is, the generator's recorded IMUs and most robots' are not) a batch that ended before the
+    frame left the interval between keyframes uncovered, and no keyframe had IMU to its
+    predecessor. ``imu_lead_ns``: how far past the frame (on the IMU clock: the camera-IMU
+    time offset ``t_imu - t_cam``, when the IMU runs ahead) the batch must reach."""
+    ts = imu.timestamps_ns
+    ends = np.minimum(
+        np.searchsorted(ts, timestamps_ns + int(imu_lead_ns), side="left") + 1, len(ts)
+    )
     try:
         for i, image in zip(range(start, stop), images, strict=True):
             a = 0 if i == 0 else int(ends[i - 1])

@@ -289,7 +289,11 @@ class BagSequence:
                 yield image
 
     def frames(
-        self, start: int = 0, stop: int | None = None, load_images: bool = True
+        self,
+        start: int = 0,
+        stop: int | None = None,
+        load_images: bool = True,
+        imu_lead_ns: int = 0,
     ) -> Iterator[EurocFrame]:
         """Frames ``start..stop-1`` with their IMU batches (as ``EurocSequence.frames``)."""
         ts = self.frame_timestamps_ns
@@ -299,7 +303,7 @@ class BagSequence:
         images: Iterator[np.ndarray | None] = (
             self.images(start, stop) if load_images else iter([None] * (stop - start))
         )
-        return frames_with_imu(ts, self._imu, start, stop, images)
+        return frames_with_imu(ts, self._imu, start, stop, images, imu_lead_ns)
 
     def summary(self) -> dict[str, Any]:
         """The facts ``EurocSequence.summary`` gives, for a bag."""

@@ -6,7 +6,9 @@ textured room for every robot and writes ``DIR/robotK/mav0`` (EuRoC layout), ``d
 each robot its own camera preset (default all ``euroc``). Harder worlds (issue 17):
 ``--flight figure8+aggressive`` (families ring, figure8, lawnmower, inward, vertical; modifiers
 +hover, +aggressive), ``--world hall`` (vicon, room-random, hall), ``--trajectory FILE[,FILE]``
-(fly recorded TUM / EuRoC ground truths, one per robot), ``--exposure-steps`` and
+(fly recorded TUM / EuRoC ground truths, one per robot) with ``--imu FILE[,FILE]`` (the IMU
+recorded on each flight instead of a simulated one), ``--time-offset-ms MS`` (an
+unsynchronised camera and IMU), ``--exposure-steps`` and
 ``--motion-blur-ms MS``; ``dataset.json`` records them. ``recslam dataset info PATH`` prints
 the facts of a dataset folder (several ``*/mav0`` sequences), of a single EuRoC-layout sequence
 (EuRoC, TUM-VI), or of a ROS bag (``.bag`` file or ROS 2 bag folder: topics, message types,
@@ -85,6 +87,22 @@ def register(sub: argparse._SubParsersAction) -> None:
         "quintic smoothing splines, recentred in the world",
     )
     s.add_argument(
+        "--imu",
+        default="",
+        metavar="FILE[,FILE...]",
+        help="fly the IMU recorded on each --trajectory flight instead of a simulated one, one "
+        "EuRoC imu0/data.csv per trajectory file, on the ground truth's clock (real biases, "
+        "vibration and timing); dataset.json says so",
+    )
+    s.add_argument(
+        "--time-offset-ms",
+        type=float,
+        default=0.0,
+        metavar="MS",
+        help="an unsynchronised camera and IMU: the IMU clock runs MS ahead of the camera's "
+        "(t_imu = t_cam + MS, as OpenVINS' calib_camimu_dt); default 0",
+    )
+    s.add_argument(
         "--exposure-steps",
         action="store_true",
         help="auto-exposure steps: the gain jumps every 1.5-4 s by x0.5-2 (within 0.4-2)",
@@ -130,6 +148,8 @@ def run_synth(args: argparse.Namespace) -> int:
             flight=args.flight,
             world=args.world,
             trajectory_files=files,
+            imu_files=tuple(f.strip() for f in args.imu.split(",") if f.strip()),
+            time_offset_ms=args.time_offset_ms,
             effects=EffectsConfig(
                 exposure_steps=args.exposure_steps, motion_blur_ms=args.motion_blur_ms
             ),
@@ -235,7 +255,10 @@ def describe_harder(h: dict) -> str:
         flight = "recorded flights " + ", ".join(h["trajectory_files"])
     steps = "exposure steps" if h["exposure_steps"] else "no exposure steps"
     blur = f"motion blur {h['motion_blur_ms']:g} ms" if h["motion_blur_ms"] else "no motion blur"
-    return f"{flight}, world {h['world']}, {steps}, {blur}"
+    imu = "recorded IMU " + ", ".join(h["imu_files"]) if h.get("imu_files") else "simulated IMU"
+    if h.get("time_offset_ms"):
+        imu += f", IMU clock {h['time_offset_ms']:g} ms ahead of the camera's"
+    return f"{flight}, world {h['world']}, {steps}, {blur}, {imu}"
 
 
 def _bag_info(path: Path, as_json: bool) -> int:

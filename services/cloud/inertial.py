@@ -33,7 +33,13 @@ import gtsam
 import numpy as np
 
 from common.calibration import ImuCalibration
-from common.imu import ImuBuffer, ImuDataError, ImuSegment
+from common.imu import (
+    ImuBuffer,
+    ImuDataError,
+    ImuSegment,
+    measured_noise_density,
+    with_measured_noise,
+)
 from common.preintegration import make_bias, make_preintegration_params, preintegrate
 from services.cloud.atlas import Atlas
 from services.cloud.config import FullBAConfig
@@ -142,6 +148,12 @@ def build_imu_terms(
             continue
         ak.sort(key=lambda k: atlas.keyframe(k).timestamp)
         calib = imu_of(agent)
+        if config.imu_noise_from_data:
+            recent = slice(-config.imu_noise_window_samples, None)
+            measured = measured_noise_density(
+                buf.timestamps_ns[recent], buf.gyro[recent], buf.accel[recent]
+            )
+            calib = with_measured_noise(calib, *measured)
         n_before = len(pi)
         for a, b in itertools.pairwise(ak):
             t0, t1 = _ns(atlas.keyframe(a).timestamp), _ns(atlas.keyframe(b).timestamp)

@@ -105,3 +105,51 @@ def test_consecutive_segments_concatenate_to_the_whole(a: int, b: int, c: int) -
     # The signal is linear: both integrate to the same total.
     np.testing.assert_allclose((dt[:, None] * g).sum(0), (dt2[:, None] * g2).sum(0), atol=1e-15)
     np.testing.assert_allclose((dt[:, None] * a_).sum(0), (dt2[:, None] * a2).sum(0), atol=1e-15)
+
+
+def test_batches_of_an_unsynchronised_imu_reach_past_each_frame() -> None:
+    """A camera not triggered by the IMU: every frame's batch ends at the first sample at or
+    after the frame (so the buffer covers the frame and keyframe intervals get their IMU);
+    the batches still tile the timeline, and a lead reaches that much further."""
+    from common.data.euroc import ImuBatch, frames_with_imu
+
+    rng = np.random.default_rng(3)
+    imu_t = np.cumsum(rng.integers(4_900_000, 5_100_000, 2000)).astype(np.int64)
+    frames = imu_t[5] + 3_333_333 + 50_000_000 * np.arange(30, dtype=np.int64)
+    imu = ImuBatch(imu_t, rng.normal(size=(2000, 3)), rng.normal(size=(2000, 3)))
+    for lead in (0, 15_000_000):
+        batches = list(frames_with_imu(frames, imu, 0, len(frames), [None] * 30, lead))
+        joined = np.concatenate([b.imu.timestamps_ns for b in batches])
+        np.testing.assert_array_equal(joined, imu_t[: len(joined)])
+        buf = ImuBuffer()
+        for f, b in zip(frames, batches, strict=True):
+            buf.append(b.imu.timestamps_ns, b.imu.gyro, b.imu.accel)
+            assert b.imu.timestamps_ns[-1] >= f + lead
+            assert b.imu.timestamps_ns[-2] < f + lead  # one sample past it, not more
+            assert buf.segment(int(frames[0]) + lead, int(f) + lead) is not None or f == frames[0]
+    # On synchronised stamps (EuRoC's) the batches are as before: (t[i-1], t[i]].
+    sync = imu_t[10 + 10 * np.arange(30)]
+    batches = list(frames_with_imu(sync, imu, 0, 30, [None] * 30))
+    for i, b in enumerate(batches[1:], start=1):
+        assert b.imu.timestamps_ns[0] > sync[i - 1] and b.imu.timestamps_ns[-1] == sync[i]
+
+
+def test_measured_noise_finds_white_noise_under_motion_and_keeps_clean_calibrations() -> None:
+    from common.calibration import EUROC_IMU
+    from common.imu import measured_noise_density, with_measured_noise
+
+    rng = np.random.default_rng(7)
+    t = np.arange(4000) * 5_000_000
+    s = t * 1e-9
+    motion = np.stack([np.sin(2 * s), np.cos(3 * s), 0.5 * np.sin(s)], axis=1)  # smooth motion
+    for gyro_nd, accel_nd in ((1.7e-4, 2e-3), (5e-3, 0.1)):
+        gyro = motion + rng.normal(0, gyro_nd / np.sqrt(0.005), (4000, 3))
+        accel = 9.81 + 2 * motion + rng.normal(0, accel_nd / np.sqrt(0.005), (4000, 3))
+        g, a = measured_noise_density(t, gyro, accel)
+        assert g == pytest.approx(gyro_nd, rel=0.1) and a == pytest.approx(accel_nd, rel=0.1)
+    # Datasheet-clean: the calibration stays; 30x / 50x: raised, random walks alike.
+    assert with_measured_noise(EUROC_IMU, 1.1 * 1.6968e-4, 2.1e-3) is EUROC_IMU
+    raised = with_measured_noise(EUROC_IMU, 30 * 1.6968e-4, 50 * 2e-3)
+    assert raised.gyro_noise_density == pytest.approx(30 * 1.6968e-4)
+    assert raised.accel_random_walk == pytest.approx(50 * EUROC_IMU.accel_random_walk)
+    assert np.isnan(measured_noise_density(t[:10], gyro[:10], accel[:10])[0])

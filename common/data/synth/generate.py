@@ -43,6 +43,7 @@ from common.data.synth.flights import FlightConfig, make_flights, parse_flight
 from common.data.synth.imu_sim import ImuNoiseConfig, simulate_imu
 from common.data.synth.plots import contact_sheet, plot_top_view
 from common.data.synth.recorded import RecordedFlight, recorded_flights
+from common.data.synth.recorded_imu import RecordedImu, check_covers, read_recorded_imu
 from common.data.synth.render import EffectsConfig, RenderConfig, Renderer
 from common.data.synth.textures import TextureConfig, build_atlas
 from common.data.synth.trajectory import (
@@ -59,7 +60,15 @@ logger = logging.getLogger(__name__)
 
 GENERATOR_VERSION = "recslam-synth-1"
 
-HARDER_KEYS = ("flight", "world", "trajectory_files", "effects", "flights")
+HARDER_KEYS = (
+    "flight",
+    "world",
+    "trajectory_files",
+    "effects",
+    "flights",
+    "imu_files",
+    "time_offset_ms",
+)
 """SynthConfig fields that dataset.json's ``config`` holds only when an issue-17 option is
 used (:meth:`SynthConfig.harder`), so the default dataset's ``dataset.json`` stays byte for
 byte what it was."""
@@ -101,6 +110,10 @@ class SynthConfig:
     recorded ground truth per robot to fly instead of a family
     (:mod:`~common.data.synth.recorded`); ``effects``: exposure steps and motion blur;
     ``flights``: limits and style of the families (``trajectory`` is the ring's).
+    Real sensors (issue 46): ``imu_files``: one recorded IMU per trajectory file, flown
+    instead of the simulated IMU (:mod:`~common.data.synth.recorded_imu`);
+    ``time_offset_ms``: the IMU clock runs this far ahead of the camera's
+    (``t_imu = t_cam + offset``), an unsynchronised sensor.
     ``scene_seed``: the room's appearance (textures, posters, ``room-random``'s furniture)
     derives from it instead of ``seed`` (None: from ``seed``): datasets of one scene seed and
     different seeds are different flights through one room, e.g. two missions, one starting
@@ -127,6 +140,8 @@ class SynthConfig:
     effects: EffectsConfig = field(default_factory=EffectsConfig)
     flights: FlightConfig = field(default_factory=FlightConfig)
     scene_seed: int | None = None
+    imu_files: tuple[str, ...] = ()
+    time_offset_ms: float = 0.0
 
     @property
     def room_seed(self) -> int:
@@ -172,6 +187,17 @@ class SynthConfig:
                 )
             if self.flight != "ring":
                 raise SynthError(f"flight {self.flight!r} and trajectory files exclude each other")
+        object.__setattr__(self, "imu_files", tuple(str(f) for f in self.imu_files))
+        if self.imu_files and len(self.imu_files) != len(self.trajectory_files):
+            raise SynthError(
+                f"{len(self.imu_files)} IMU files for {len(self.trajectory_files)} trajectory "
+                "files: a recorded IMU flies along the ground truth recorded with it, one each"
+            )
+        if abs(self.time_offset_ms) >= 1e3 / self.camera_rate_hz * 4:
+            raise SynthError(
+                f"time offset {self.time_offset_ms} ms: more than four camera frames; "
+                "a camera-IMU offset is a few to a few tens of ms"
+            )
         frame_ms = 1e3 / self.camera_rate_hz
         if not 0 <= self.effects.motion_blur_ms < frame_ms:
             raise SynthError(
@@ -188,6 +214,8 @@ class SynthConfig:
             "trajectory_files": list(self.trajectory_files),
             "exposure_steps": self.effects.exposure_steps,
             "motion_blur_ms": float(self.effects.motion_blur_ms),
+            "imu_files": list(self.imu_files),
+            "time_offset_ms": float(self.time_offset_ms),
         }
 
     def camera(self, robot: int) -> CameraPreset:
@@ -259,24 +287,37 @@ def robot_timestamps(config: SynthConfig, robot: int) -> tuple[np.ndarray, np.nd
 
 
 def _write_robot(
-    out: Path, k: int, config: SynthConfig, traj: Motion, renderer: Renderer, bar
+    out: Path,
+    k: int,
+    config: SynthConfig,
+    traj: Motion,
+    renderer: Renderer,
+    bar,
+    recorded: RecordedImu | None = None,
 ) -> tuple[RobotSummary, list[np.ndarray], dict[str, Any]]:
-    """Simulate, render and write robot ``k``; returns its summary and sample frames."""
+    """Simulate (or take the ``recorded`` IMU), render and write robot ``k``; returns its
+    summary and sample frames."""
     name = f"robot{k}"
     ts, cam_idx, t0 = robot_timestamps(config, k)
     t = (ts - t0) * 1e-9
     imu_calib = imu_calibration(config)
-    imu = simulate_imu(
-        traj, ts, t0, imu_calib, config.imu_noise, np.random.default_rng([config.seed, 202, k])
-    )
+    if recorded is None:
+        imu = simulate_imu(
+            traj, ts, t0, imu_calib, config.imu_noise, np.random.default_rng([config.seed, 202, k])
+        )
+        imu_ts = ts + round(config.time_offset_ms * 1e6)
+        gyro, accel, bias_g, bias_a = imu.gyro, imu.accel, imu.bias_gyro, imu.bias_accel
+    else:
+        imu_ts, gyro, accel = recorded.window(config.seconds, t0, config.time_offset_ms)
+        bias_g, bias_a = recorded.biases_at(t)
     st = traj.evaluate(t)
     gt = EurocGroundTruth(
         timestamps_ns=ts,
         p_world_body=st.p_world_body,
         q_world_body_wxyz=continuous_quaternions(R_to_quat_wxyz(st.R_world_body)),
         v_world_body=st.v_world_body,
-        bias_gyro=imu.bias_gyro,
-        bias_accel=imu.bias_accel,
+        bias_gyro=bias_g,
+        bias_accel=bias_a,
     )
     preset = config.camera(k)
     T_world_cam = st.T_world_cam(preset.T_body_cam)
@@ -306,20 +347,22 @@ def _write_robot(
             if j in sample_at:
                 samples.append(img)
             bar.update(1)
-        w.write_imu(imu_calib, ts, imu.gyro, imu.accel)
+        w.write_imu(imu_calib, imu_ts, gyro, accel)
         w.write_groundtruth(gt)
     steps = np.linalg.norm(np.diff(st.p_world_body, axis=0), axis=1)
     summary = RobotSummary(
         name=name,
         path=str(out / name),
         frames=len(cam_idx),
-        imu_samples=len(ts),
+        imu_samples=len(imu_ts),
         first_timestamp_ns=int(ts[0]),
         path_length_m=float(steps.sum()),
         max_speed_mps=float(np.linalg.norm(st.v_world_body, axis=1).max()),
         max_rate_radps=float(np.linalg.norm(st.omega_body, axis=1).max()),
     )
     extra: dict[str, Any] = {}
+    if recorded is not None:
+        extra["imu"] = recorded.describe()
     if config.effects.exposure_steps:
         extra["exposure_steps"] = {"t_s": steps_t.tolist(), "gain": steps_gain.tolist()}
     return summary, samples, extra
@@ -365,7 +408,10 @@ def dataset_settings(folder: Path) -> dict[str, Any] | None:
             "cameras": tuple(info.get("config", {}).get("cameras", ())),
         }
         | harder
-        | {"trajectory_files": tuple(harder["trajectory_files"])}
+        | {
+            "trajectory_files": tuple(harder["trajectory_files"]),
+            "imu_files": tuple(harder["imu_files"]),
+        }
     )
 
 
@@ -410,6 +456,11 @@ def generate_dataset(out: Path, config: SynthConfig = SynthConfig()) -> DatasetS
                     config.flights,
                 )
             ]
+        recorded_imus: list[RecordedImu | None] = [None] * config.robots
+        for k, f in enumerate(config.imu_files):
+            rec_imu = read_recorded_imu(f, config.trajectory_files[k])
+            check_covers(rec_imu, config.seconds)
+            recorded_imus[k] = rec_imu
     except TrajectoryError as e:
         raise SynthError(str(e)) from None
     frames_per_robot = len(robot_timestamps(config, 0)[1])
@@ -423,7 +474,7 @@ def generate_dataset(out: Path, config: SynthConfig = SynthConfig()) -> DatasetS
     ) as bar:
         for k, traj in enumerate(trajectories):
             renderer = renderers[config.camera(k).name]
-            s, frames, extra = _write_robot(out, k, config, traj, renderer, bar)
+            s, frames, extra = _write_robot(out, k, config, traj, renderer, bar, recorded_imus[k])
             summaries.append(s)
             samples.append(frames)
             extras.append(extra)

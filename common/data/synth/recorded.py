@@ -162,6 +162,45 @@ class RecordedFlight:
         }
 
 
+def _clearest_offset(
+    scene: Scene,
+    recs: list[Recording],
+    seconds: float,
+    centred: np.ndarray,
+    limits: TrajectoryConfig,
+    reach_m: float = 1.0,
+    step_m: float = 0.1,
+) -> np.ndarray:
+    """``centred`` when the flights keep ``limits.min_clearance_m`` (plus 5 cm for the
+    smoothing) there, else the shift within ``reach_m`` of it (grid of ``step_m``, the
+    room's floor and ceiling bounding z) that keeps the largest clearance from walls and
+    furniture: a room of the right size whose table sits under one flight's low pass still
+    takes the flights, moved aside, as a real team would fly around it."""
+    samples = []
+    for rec in recs:
+        sel = rec.t <= seconds + 1e-6
+        sel[sel] = np.arange(int(sel.sum())) % 10 == 0  # 20 Hz of a 200 Hz ground truth
+        R = quat_wxyz_to_R(rec.q_wxyz[sel])
+        samples += [rec.p[sel], rec.p[sel] + R @ T_IMU_CAM[:3, 3]]
+    pts = np.concatenate(samples)
+
+    def clearance(offsets: np.ndarray) -> np.ndarray:
+        return np.array([scene.clearance(pts + o).min() for o in offsets])
+
+    want = limits.min_clearance_m + 0.05
+    if clearance(centred[None])[0] >= want:
+        return centred
+    g = np.arange(-reach_m, reach_m + 1e-9, step_m)
+    dz = np.arange(-0.3, 0.3 + 1e-9, step_m)
+    grid = np.stack(np.meshgrid(g, g, dz, indexing="ij"), axis=-1).reshape(-1, 3) + centred
+    grid = grid[np.argsort(np.linalg.norm(grid - centred, axis=1), kind="stable")]
+    # A coarse pass on the poses every second, then the best few on all of them.
+    every, pts = pts, pts[::20]
+    best = grid[np.argsort(-clearance(grid), kind="stable")[:20]]
+    pts = every
+    return best[int(np.argmax(clearance(best)))]
+
+
 def recorded_flights(
     scene: Scene,
     region: Region,
@@ -195,7 +234,7 @@ def recorded_flights(
     # Per axis: the flight region's centre where the flights fit it, else the room's.
     fits = need + 0.25 <= r_hi - r_lo  # 0.25 m: the camera sits off the body, splines overshoot
     target = np.where(fits, (r_lo + r_hi) / 2.0, (room_lo + room_hi) / 2.0)
-    offset = target - (lo + hi) / 2.0
+    offset = _clearest_offset(scene, recs, seconds, target - (lo + hi) / 2.0, limits)
     flights = [RecordedFlight.fit(rec, offset) for rec in recs]
     for f in flights:
         why = check_trajectory(scene, f, seconds, limits)
@@ -203,6 +242,7 @@ def recorded_flights(
             raise TrajectoryError(
                 f"--trajectory {f.source}: recentred by {np.round(offset, 2).tolist()} m, the "
                 f"flight does not fit the {world} world: {why}"
+                + ("" if world == "hall" else "; the hall world fits it (--world hall)")
             )
         logger.info("recorded flight %s (%s) shifted by %s m", f.source, f.format, offset)
     return flights

@@ -59,9 +59,13 @@ def first_vi_init(
     options: VioOptions,
     ba_options: LocalBAOptions,
     gyro_bias_guess: np.ndarray,
+    noise_measured: bool = False,
 ) -> ViInitOutcome:
     """The first VI initialisation over ``kfs`` (keyframes connected by IMU segments, oldest
-    first); the map changes only when it is applied (``reason == ""``)."""
+    first); the map changes only when it is applied (``reason == ""``). ``noise_measured``:
+    the IMU is weighted by the noise it shows (``VioOptions.noise_from_data``), so its
+    whitened residuals are judged by ``vi_init.max_cost_per_residual_measured_noise``. A
+    refusal's reason gives the numbers (keyframes, span, scale and biases found)."""
     vopt = options.vi_init
     t_last = kfs[-1].timestamp_ns
     kfs = [k for k in kfs if (t_last - k.timestamp_ns) * 1e-9 <= vopt.max_span_s]
@@ -77,15 +81,23 @@ def first_vi_init(
         vopt.visual_position_sigma_rel * median_depth(vmap, camera),
         np.radians(vopt.visual_rotation_sigma_deg),
     )
-    if res is not None and res.cost_per_residual > vopt.max_cost_per_residual:
+    limit = (
+        vopt.max_cost_per_residual_measured_noise if noise_measured else vopt.max_cost_per_residual
+    )
+    span = (kfs[-1].timestamp_ns - kfs[0].timestamp_ns) * 1e-9
+    if res is not None and res.cost_per_residual > limit:
         reason = (
-            f"IMU and visual poses disagree (cost/residual {res.cost_per_residual:.2f} "
-            f"> {vopt.max_cost_per_residual})"
+            f"IMU and visual poses disagree (cost/residual {res.cost_per_residual:.2f} > "
+            f"{limit}; {len(sub)} keyframes over {span:.1f} s, scale {res.scale:.3g} "
+            f"± {100 * res.scale_sigma_rel:.0f} %, gyro bias {np.round(res.bias_gyro, 3)} "
+            f"rad/s, accel bias {np.round(res.bias_accel, 2)} m/s²)"
         )
         res = None
     if res is None or not (vopt.min_scale <= res.scale <= vopt.max_scale):
         return ViInitOutcome(
-            reason or f"scale {res.scale if res else float('nan'):.3g} out of range"
+            reason
+            or f"scale {res.scale if res else float('nan'):.3g} out of range "
+            f"({len(sub)} keyframes over {span:.1f} s)"
         )
     vmap.transform(make_T(res.R_world_v, np.zeros(3)), res.scale)
     # Velocities at every keyframe: interpolated from the subsampled solution.
