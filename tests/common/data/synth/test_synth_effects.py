@@ -103,6 +103,8 @@ def test_generated_dataset_with_steps_and_blur(tmp_path: Path) -> None:
         "trajectory_files": [],
         "exposure_steps": True,
         "motion_blur_ms": 4.0,
+        "imu_files": [],
+        "time_offset_ms": 0.0,
     }
     assert meta["config"]["effects"]["step_every_s"] == [0.4, 0.7]
     assert meta["room"]["name"] == "room-random"
