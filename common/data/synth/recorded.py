@@ -184,21 +184,19 @@ def _clearest_offset(
         samples += [rec.p[sel], rec.p[sel] + R @ T_IMU_CAM[:3, 3]]
     pts = np.concatenate(samples)
 
-    def clearance(offsets: np.ndarray) -> np.ndarray:
-        return np.array([scene.clearance(pts + o).min() for o in offsets])
+    def clearance(offsets: np.ndarray, p: np.ndarray) -> np.ndarray:
+        return np.array([scene.clearance(p + o).min() for o in offsets])
 
     want = limits.min_clearance_m + 0.05
-    if clearance(centred[None])[0] >= want:
+    if clearance(centred[None], pts)[0] >= want:
         return centred
     g = np.arange(-reach_m, reach_m + 1e-9, step_m)
     dz = np.arange(-0.3, 0.3 + 1e-9, step_m)
     grid = np.stack(np.meshgrid(g, g, dz, indexing="ij"), axis=-1).reshape(-1, 3) + centred
     grid = grid[np.argsort(np.linalg.norm(grid - centred, axis=1), kind="stable")]
     # A coarse pass on the poses every second, then the best few on all of them.
-    every, pts = pts, pts[::20]
-    best = grid[np.argsort(-clearance(grid), kind="stable")[:20]]
-    pts = every
-    return best[int(np.argmax(clearance(best)))]
+    best = grid[np.argsort(-clearance(grid, pts[::20]), kind="stable")[:20]]
+    return best[int(np.argmax(clearance(best, pts)))]
 
 
 def recorded_flights(

@@ -137,21 +137,24 @@ class VioManager(ViInitSchedule):
             for old, new in zip(self._recent_imu, (timestamps_ns, gyro, accel), strict=True)
         )
 
-    def measure_imu_noise(self) -> tuple[float, float]:
-        """The white-noise densities (gyro rad/s/√Hz, accel m/s²/√Hz) the newest samples show
-        (:func:`common.imu.measured_noise_density`), and the preintegration noise set from
-        them where they exceed the calibration (``VioOptions.noise_from_data``): run at each VI
+    def measure_imu_noise(self) -> bool:
+        """Measure the white-noise densities (gyro rad/s/√Hz, accel m/s²/√Hz) the newest samples
+        show (:func:`common.imu.measured_noise_density`, kept in ``stats``) and set the
+        preintegration noise from them where they exceed the calibration
+        (``VioOptions.noise_from_data``); True when the IMU is now weighted by measured noise.
+        Run at each VI
         initialisation and refinement, so the IMU is weighted as the sensor behaves in flight,
         not as its datasheet says (a real ADIS16448 on a MAV: 25-33x gyro, 40-60x accel)."""
         gyro_nd, accel_nd = measured_noise_density(*self._recent_imu)
-        if self.options.noise_from_data:
-            calib = with_measured_noise(self.imu_calibration, gyro_nd, accel_nd)
-            self.imu_params = make_preintegration_params(
-                calib, self.options.gravity_mps2, self.options.integration_sigma
-            )
-            self.stats.imu_noise_used = (calib.gyro_noise_density, calib.accel_noise_density)
         self.stats.imu_noise_measured = (gyro_nd, accel_nd)
-        return gyro_nd, accel_nd
+        if not self.options.noise_from_data:
+            return False
+        calib = with_measured_noise(self.imu_calibration, gyro_nd, accel_nd)
+        self.imu_params = make_preintegration_params(
+            calib, self.options.gravity_mps2, self.options.integration_sigma
+        )
+        self.stats.imu_noise_used = (calib.gyro_noise_density, calib.accel_noise_density)
+        return calib is not self.imu_calibration
 
     def feed_frame(self, obs: FrameObservation) -> FrameResult:
         """Process one frame (feed its IMU samples first) and return its estimate."""

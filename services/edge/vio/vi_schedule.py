@@ -17,7 +17,6 @@ import time
 import gtsam
 import numpy as np
 
-from common.calibration import ImuCalibration
 from services.edge.vio.state import PinholeUndistorter, VioMap
 from services.edge.vio.types import LocalBAOptions, VioOptions, VioStats
 from services.edge.vio.vi_bootstrap import first_vi_init, refine_vi
@@ -37,9 +36,8 @@ class ViInitSchedule:
     _last_init_reason: str
     _bias_guess: tuple[np.ndarray, np.ndarray]  # (accel, gyro)
     _full_ba_options: LocalBAOptions
-    imu_calibration: ImuCalibration
 
-    def measure_imu_noise(self) -> tuple[float, float]:  # VioManager's
+    def measure_imu_noise(self) -> bool:  # VioManager's
         raise NotImplementedError
 
     def _maybe_vi_init(self, vmap: VioMap) -> None:
@@ -63,7 +61,7 @@ class ViInitSchedule:
         (:mod:`services.edge.vio.vi_bootstrap`), over the longest tail of keyframes connected
         by IMU segments; False if the first one was refused (it is retried later)."""
         t0 = time.perf_counter()
-        self.measure_imu_noise()
+        noise_measured = self.measure_imu_noise()
         kfs = vmap.keyframe_list()
         start = 0
         for i in range(1, len(kfs)):
@@ -85,11 +83,6 @@ class ViInitSchedule:
                 stats,
             )
             return True
-        calib = self.imu_calibration
-        measured = self.stats.imu_noise_used != (
-            calib.gyro_noise_density,
-            calib.accel_noise_density,
-        )
         out = first_vi_init(
             vmap,
             kfs,
@@ -98,7 +91,7 @@ class ViInitSchedule:
             self.options,
             ba_opt,
             self._bias_guess[1],
-            noise_measured=measured and self.options.noise_from_data,
+            noise_measured=noise_measured,
         )
         self.stats.vi_init_s.append(time.perf_counter() - t0)
         if out.reason:
