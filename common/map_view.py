@@ -196,8 +196,9 @@ class MapDelta:
 @dataclass(frozen=True)
 class AgentRecord:
     """One agent's status: frames seen, keyframes in the map, ``last_seen`` (source clock, s),
-    the map it belongs to, its live ATE RMSE in metres when the source knows it, and which
-    robot it is (``name``) on which edge (``edge``; "" when the source does not say)."""
+    the map it belongs to, its live ATE RMSE in metres when the source knows it, which robot
+    it is (``name``) on which edge (``edge``; "" when the source does not say), and the
+    edge's ``detail`` (why a robot is not tracking, the camera-IMU offset)."""
 
     agent_id: int
     status: AgentState
@@ -208,6 +209,7 @@ class AgentRecord:
     ate_rmse_m: float | None = None
     name: str = ""
     edge: str = ""
+    detail: str = ""  # why it is in its state, with numbers ("" when the source does not say)
 
 
 class Direction(enum.Enum):

@@ -89,7 +89,10 @@ def agents_markdown(stats: StatsSnapshot, ate_m: dict[int, float | None]) -> str
         )
     if not stats.agents:
         rows.append("| – | | no agents yet | | | | |")
-    return "\n".join(rows) + "\n"
+    # Why a robot is where it is (a refused VI initialisation's numbers, its camera-IMU
+    # offset): a line each under the table, not a column (they run long).
+    why = [f"- **robot {a.agent_id}**: {a.detail}" for a in stats.agents if a.detail]
+    return "\n".join(rows) + "\n" + ("\n" + "\n".join(why) + "\n" if why else "")
 
 
 @dataclass(frozen=True)

@@ -20,7 +20,7 @@ import dataclasses
 import logging
 import math
 import os
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -430,7 +430,7 @@ class EurocSequence:
         stop: int | None = None,
         cam: int = 0,
         load_images: bool = True,
-        imu_lead_ns: int = 0,
+        imu_lead_ns: int | Callable[[], int] = 0,
     ) -> Iterator[EurocFrame]:
         """Yield frames ``start..stop-1`` of camera ``cam`` with their IMU batches.
 
@@ -484,7 +484,7 @@ def frames_with_imu(
     start: int,
     stop: int,
     images: Iterable[np.ndarray | None],
-    imu_lead_ns: int = 0,
+    imu_lead_ns: int | Callable[[], int] = 0,
 ) -> Iterator[EurocFrame]:
     """Frames ``start..stop-1`` (``images`` gives theirs, in order) with their IMU batches:
     frame ``i`` carries the samples after frame ``i - 1``'s up to and including the first one
@@ -496,15 +496,20 @@ def frames_with_imu(
     is, the generator's recorded IMUs and most robots' are not) a batch that ended before the
     frame left the interval between keyframes uncovered, and no keyframe had IMU to its
     predecessor. ``imu_lead_ns``: how far past the frame (on the IMU clock: the camera-IMU
-    time offset ``t_imu - t_cam``, when the IMU runs ahead) the batch must reach."""
+    time offset ``t_imu - t_cam``, when the IMU runs ahead) the batch must reach; a callable is
+    asked at each frame (a robot learning the offset from its edge)."""
     ts = imu.timestamps_ns
-    ends = np.minimum(
-        np.searchsorted(ts, timestamps_ns + int(imu_lead_ns), side="left") + 1, len(ts)
-    )
+
+    def end(i: int) -> int:
+        lead = imu_lead_ns() if callable(imu_lead_ns) else imu_lead_ns
+        return min(
+            int(np.searchsorted(ts, int(timestamps_ns[i]) + int(lead), side="left")) + 1, len(ts)
+        )
+
     try:
+        b = 0 if start == 0 else end(start - 1)
         for i, image in zip(range(start, stop), images, strict=True):
-            a = 0 if i == 0 else int(ends[i - 1])
-            b = int(ends[i])
+            a, b = b, max(b, end(i))  # a lead that grows never re-sends, one that shrinks waits
             yield EurocFrame(
                 index=i,
                 timestamp_ns=int(timestamps_ns[i]),

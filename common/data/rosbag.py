@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -293,7 +293,7 @@ class BagSequence:
         start: int = 0,
         stop: int | None = None,
         load_images: bool = True,
-        imu_lead_ns: int = 0,
+        imu_lead_ns: int | Callable[[], int] = 0,
     ) -> Iterator[EurocFrame]:
         """Frames ``start..stop-1`` with their IMU batches (as ``EurocSequence.frames``)."""
         ts = self.frame_timestamps_ns

@@ -9,7 +9,7 @@ before it starts.
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -38,7 +38,13 @@ class SequenceSource(Protocol):
 
     def __len__(self) -> int: ...
 
-    def frames(self, start: int = 0, stop: int | None = None) -> Iterator[EurocFrame]: ...
+    def frames(
+        self,
+        start: int = 0,
+        stop: int | None = None,
+        *,
+        imu_lead_ns: int | Callable[[], int] = 0,
+    ) -> Iterator[EurocFrame]: ...
 
     def summary(self) -> dict[str, Any]: ...
 

@@ -136,6 +136,8 @@ class AgentStatus(Message):
 
     ``state``: "initializing" | "tracking" | "lost" | "finished". ``link_counters``: the
     robot->edge link's byte counters by direction and message type (``"rx.RobotFrame"`` ...).
+    ``detail``: why the state is what it is, with numbers (a refused VI initialisation's
+    keyframes, span, scale and biases), and the camera-IMU time offset in use; may be empty.
     """
 
     agent_id: str
@@ -145,6 +147,7 @@ class AgentStatus(Message):
     keyframes: int
     timestamp_ns: int
     link_counters: dict[str, int]
+    detail: str = ""
 
 
 @message(0x0408)

@@ -103,6 +103,18 @@ class InertialFeedback(Message):
     p_world: bytes
 
 
+@message(0x0303)
+class CameraImuOffset(Message):
+    """The camera-IMU time offset the edge's VIO estimated for this robot (sent when it
+    moves): at one instant the IMU clock reads ``t_imu = t_cam + offset_ns``; ``sigma_ns`` is
+    the estimate's standard deviation. The robot reads its frame times on the IMU clock from
+    then on: each frame's IMU batch reaches ``t + offset`` and its IMU-assisted prediction
+    integrates between the frames' IMU-clock times."""
+
+    offset_ns: int
+    sigma_ns: int
+
+
 # ------------------------------------------------------------------- edge -> robot, coded
 FEEDBACK_VERSION = 2
 """Version byte of the sealed ``InertialFeedbackCoded.landmarks`` payload."""

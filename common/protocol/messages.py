@@ -33,13 +33,14 @@ import msgpack
 
 from common.protocol.errors import LocalProtocolError, ProtocolError, RemoteProtocolError
 
-SCHEMA_VERSION = 4
+SCHEMA_VERSION = 5
 """2: the coded link messages (0x0302, 0x0405-0x0407, 0x0502) exist; a schema-1 peer would not
 know them, so it is refused at the handshake with a clear reason. 3: a robot's stream starts
 with its sensors (``RobotSensors`` 0x0203, forwarded as ``AgentSensors`` 0x0408); a schema-2
 robot would send none, and a schema-2 edge or cloud would not know them. 4: the edge's coded
 keyframe states and map points name the frame they are in (``FrameAnchor``, body version 2); a
-schema-3 cloud would refuse each of them."""
+schema-3 cloud would refuse each of them. 5: the edge tells a robot its camera-IMU time offset
+(``CameraImuOffset`` 0x0303) and ``AgentStatus`` carries a ``detail``."""
 CONTROL_MAX_TYPE_ID = 0x00FF
 
 _Converter = Callable[[Any, str], Any]

@@ -138,6 +138,7 @@ class _Agent:
     frames: int = 0
     last_seen: float = 0.0
     link_counters: dict[str, int] = field(default_factory=dict)
+    detail: str = ""
 
 
 class CloudApp(AppOptimization):
@@ -287,6 +288,7 @@ class CloudApp(AppOptimization):
             a, changed = self._agent(message.agent_id, edge_id, message.map_id)
             a.status, a.frames = message.state, message.frames
             a.link_counters = dict(message.link_counters)
+            a.detail = message.detail
             # Its position is saved too: a stale position would make the edge's replay
             # start at messages it no longer holds.
             agents = self._rows(a) if changed else None
@@ -512,6 +514,7 @@ class CloudApp(AppOptimization):
                 if a.agent_id in self.atlas.agents()
                 else a.agent_id,
                 link_counters=dict(a.link_counters),
+                detail=a.detail,
             )
             for a in sorted(
                 [*self._agents.values(), *self._prior.values()], key=lambda x: x.agent_id

@@ -59,6 +59,7 @@ class AgentInfo:
     last_seen: float
     map_id: int
     link_counters: Mapping[str, int] = field(default_factory=dict)
+    detail: str = ""  # the edge's why, with numbers (refused VI init, camera-IMU offset)
 
 
 @dataclass(frozen=True, eq=False)
@@ -274,6 +275,7 @@ class CloudMapSource:
                     a.map_id,
                     name=a.name,
                     edge=a.edge_id,
+                    detail=a.detail,
                 )
             )
         for edge, snap in view.edge_counters.items():

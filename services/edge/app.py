@@ -351,6 +351,8 @@ class EdgeApp:
                 "keyframes_uplinked": s.vio_keyframes,
                 "state": s.state,
                 "reason": s.reason,
+                "time_offset_ms": s.time_offset_ns * 1e-6,
+                "time_offset_sigma_ms": s.time_offset_sigma_ms,
                 "map_id": s.map_id,
                 "failures": list(s.failures),
                 "feedback_sent": s.feedback_sent,

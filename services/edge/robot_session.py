@@ -55,7 +55,7 @@ from common.links.edge_cloud import (
     pack_keyframe_update,
     pack_map_point_update,
 )
-from common.links.robot_edge import Anchors, RobotFrame
+from common.links.robot_edge import Anchors, CameraImuOffset, RobotFrame
 from common.protocol.arrays import pack_array
 from common.protocol.messages import Message
 from common.vocabulary import Vocabulary
@@ -154,6 +154,11 @@ class RobotSession:
         self.failures: list[str] = []
         self.state = "initializing"
         self.reason = ""
+        # The VIO's camera-IMU offset (t_imu = t_cam + offset): the IMU the cloud gets is
+        # re-stamped on the camera clock with it; the robot is told when it moves.
+        self.time_offset_ns = 0
+        self.time_offset_sigma_ms = float("nan")
+        self._offset_told = 0  # a robot starts at 0
         self.map_id = 0
         self.last_timestamp_ns = 0
         self.finished = False
@@ -262,16 +267,18 @@ class RobotSession:
         return WorkItem(msg.frame_index, imu.timestamps_ns, imu.gyro, imu.accel, obs)
 
     def _imu_window(self, t0_ns: int | None, t1_ns: int) -> tuple[np.ndarray, np.ndarray]:
-        """IMU samples with t0 < t <= t1 (all up to t1 if None): ``t_ns`` (M,) int64 and
-        ``[gyro, accel]`` (M, 6)."""
+        """IMU samples between camera times t0 < t <= t1 (all up to t1 if None), read on the
+        IMU clock at ``t + time offset`` and stamped on the camera clock: ``t_ns`` (M,) int64
+        and ``[gyro, accel]`` (M, 6)."""
         if not self._imu_chunks:
             return np.zeros(0, np.int64), np.zeros((0, 6))
+        td = self.time_offset_ns
         t = np.concatenate([c[0] for c in self._imu_chunks])
         v = np.concatenate([c[1] for c in self._imu_chunks])
-        keep = t <= t1_ns
+        keep = t <= t1_ns + td
         if t0_ns is not None:
-            keep &= t > t0_ns
-        return t[keep], v[keep]
+            keep &= t > t0_ns + td
+        return t[keep] - td, v[keep]
 
     def _imu_between(self, t0_ns: int | None, t1_ns: int) -> np.ndarray:
         """IMU rows "<f8 (M,7)" [t_s, gyro, accel] of :meth:`_imu_window` (the raw wire)."""
@@ -293,6 +300,13 @@ class RobotSession:
             self.reason = r.reason
             self.map_id = r.map_id
             self.frame_s.append(res.frame_s)
+            self.time_offset_ns = res.time_offset_ns
+            self.time_offset_sigma_ms = res.time_offset_sigma_ms
+            if not replaying and self._offset_told != res.time_offset_ns:
+                sigma = res.time_offset_sigma_ms
+                sigma_ns = int(sigma * 1e6) if np.isfinite(sigma) else -1
+                out.robot.append(CameraImuOffset(res.time_offset_ns, sigma_ns))
+                self._offset_told = res.time_offset_ns
         self.track_s.extend(res.track_s)
         self.local_ba_s.extend(res.local_ba_s)
         for map_id, deltas in res.point_moves:  # before this frame's (corrected) points
@@ -594,4 +608,15 @@ class RobotSession:
             keyframes=int(self.vio_keyframes),
             timestamp_ns=int(self.last_timestamp_ns),
             link_counters={k: int(v) for k, v in link_counters.items()},
+            detail=self.detail(),
         )
+
+    def detail(self) -> str:
+        """Why the robot is in its state (the VIO's reason, with numbers) and the camera-IMU
+        time offset in use, for the status and the dashboard."""
+        parts = [self.reason] if self.reason else []
+        if np.isfinite(self.time_offset_sigma_ms) or self.time_offset_ns:
+            sigma = self.time_offset_sigma_ms
+            spread = f" ± {sigma:.1f}" if np.isfinite(sigma) else ""
+            parts.append(f"camera-IMU offset {self.time_offset_ns * 1e-6:+.1f}{spread} ms")
+        return "; ".join(parts)

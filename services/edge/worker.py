@@ -91,6 +91,8 @@ class WorkResult:
     point_moves: tuple[tuple[int, dict[int, np.ndarray]], ...] = ()
     live_track_ids: np.ndarray | None = None  # (L,) int64 stream numbers with a map point
     live_p_world: np.ndarray | None = None  # (L, 3) m, their map points
+    time_offset_ns: int = 0  # the VIO's camera-IMU offset in use (t_imu = t_cam + offset)
+    time_offset_sigma_ms: float = float("nan")  # of its last estimate
 
 
 @dataclass(frozen=True)
@@ -206,6 +208,8 @@ class VioRunner:
             point_moves=tuple((m + base, d) for m, d in self.vio.pop_point_moves()),
             live_track_ids=live_ids,
             live_p_world=live_p,
+            time_offset_ns=self.vio.time_offset_ns,
+            time_offset_sigma_ms=self.vio.stats.time_offset_sigma_ms,
         )
 
 

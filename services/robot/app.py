@@ -43,6 +43,7 @@ from common.errors import RecslamError
 from common.links import CodecTimer
 from common.links.robot_edge import (
     Anchors,
+    CameraImuOffset,
     FeedbackContent,
     InertialFeedback,
     InertialFeedbackCoded,
@@ -126,6 +127,8 @@ class RobotApp:
         self.anchor_frames = anchor_frames
         self._anchors: OrderedDict[int, Anchors] = OrderedDict()  # guarded by _lock
         self.feedback_points_unanchored = 0  # coded points of frames no longer kept
+        self.time_offset_ns = 0  # the edge's camera-IMU offset estimate (t_imu = t_cam + it)
+        self._offset_pending: int | None = None  # guarded by _pending_lock
         self._pending_lock = threading.Lock()  # guards _pending (loop vs worker thread)
         self._lock = threading.Lock()  # held while the front end is in use
 
@@ -174,10 +177,13 @@ class RobotApp:
     async def on_message(self, delivery: Delivery) -> None:
         """Handler for the edge's messages (never raises: a refused message is not retried)."""
         msg = delivery.message
-        if isinstance(msg, InertialFeedback | InertialFeedbackCoded):
-            self.feedback_received += 1
+        if isinstance(msg, InertialFeedback | InertialFeedbackCoded | CameraImuOffset):
             with self._pending_lock:
-                self._pending.append(msg)
+                if isinstance(msg, CameraImuOffset):
+                    self._offset_pending = msg.offset_ns
+                else:
+                    self.feedback_received += 1
+                    self._pending.append(msg)
             if self._lock.acquire(blocking=False):  # no frame in progress: apply now
                 try:
                     self._apply_pending_locked()
@@ -185,6 +191,13 @@ class RobotApp:
                     self._lock.release()
         else:
             logger.warning("robot ignores %s from %s", type(msg).__name__, delivery.peer)
+
+    def set_time_offset(self, offset_ns: int) -> None:
+        """Use this camera-IMU time offset (``t_imu = t_cam + offset``, ns) from the next frame
+        (a robot carries its offset to the next edge at a handover)."""
+        with self._pending_lock:
+            self._offset_pending = int(offset_ns)
+        self.apply_pending()
 
     def apply_pending(self) -> None:
         """Apply feedback that arrived during the last frame (e.g. after the sequence end)."""
@@ -194,6 +207,12 @@ class RobotApp:
     def _apply_pending_locked(self) -> None:
         with self._pending_lock:
             msgs, self._pending = self._pending, []
+            offset, self._offset_pending = self._offset_pending, None
+        if offset is not None and offset != self.time_offset_ns:
+            # Before the states: they are about camera times read with the new offset.
+            self.front_end.set_time_offset(offset)
+            self.time_offset_ns = offset
+            logger.info("camera-IMU time offset from the edge: %+.2f ms", offset * 1e-6)
         for msg in msgs:
             self._apply_locked(msg)
 

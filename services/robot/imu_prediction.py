@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
@@ -224,6 +224,7 @@ class MotionPredictor:
         self._base: InertialState | None = None
         self._at_prev: InertialState | None = None
         self._landmarks: dict[int, np.ndarray] = {}
+        self.time_offset_ns = 0  # t_imu = t_cam + offset: frame times read on the IMU clock
 
     @property
     def initialised(self) -> bool:
@@ -237,14 +238,25 @@ class MotionPredictor:
         except ImuDataError as exc:
             raise ImuPredictionError(str(exc)) from exc
 
+    def set_time_offset(self, offset_ns: int) -> None:
+        """The camera-IMU time offset (``t_imu = t_cam + offset``, ns, the edge's estimate):
+        frame times and the edge's states are read on the IMU clock from now on."""
+        delta = int(offset_ns) - self.time_offset_ns
+        self.time_offset_ns = int(offset_ns)
+        if self._base is not None and delta:
+            self._base = replace(self._base, timestamp_ns=self._base.timestamp_ns + delta)
+        self._at_prev = None
+
     def set_inertial_state(
         self,
         state: InertialState,
         track_ids: np.ndarray | None = None,
         p_world: np.ndarray | None = None,
     ) -> None:
-        """Apply the edge's state; optionally 3D points (M, 3) [m, world] of tracks (M,), which
-        replace the previous set (``None`` keeps it: points live in the world frame)."""
+        """Apply the edge's state (at a camera time); optionally 3D points (M, 3) [m, world] of
+        tracks (M,), which replace the previous set (``None`` keeps it: points live in the
+        world frame)."""
+        state = replace(state, timestamp_ns=state.timestamp_ns + self.time_offset_ns)
         if len(self.buffer) and state.timestamp_ns < self.buffer.timestamps_ns[0]:
             raise ImuPredictionError(
                 f"inertial state at {state.timestamp_ns} ns is older than the IMU buffer "
@@ -289,21 +301,25 @@ class MotionPredictor:
         return np.array(sorted(self._landmarks), dtype=np.int64)
 
     def state_at(self, t_ns: int) -> InertialState | None:
-        """The edge's state propagated to ``t_ns`` (None before VI initialisation)."""
+        """The edge's state propagated to camera time ``t_ns`` (None before VI
+        initialisation); its ``timestamp_ns`` is on the IMU clock."""
         if self._base is None:
             return None
+        t_ns = int(t_ns) + self.time_offset_ns
         start = self._base
         if self._at_prev is not None and self._at_prev.timestamp_ns <= t_ns:
             start = self._at_prev
         return propagate(start, self.buffer, t_ns)
 
     def predict_motion(self, t_prev_ns: int, t_cur_ns: int) -> MotionPrediction:
-        """Camera motion from ``t_prev`` to ``t_cur`` (IMU samples must be buffered)."""
-        if self._base is None or self._base.timestamp_ns > t_prev_ns:
+        """Camera motion from camera time ``t_prev`` to ``t_cur`` (IMU samples must be
+        buffered)."""
+        td = self.time_offset_ns
+        if self._base is None or self._base.timestamp_ns > t_prev_ns + td:
             # Before VI init; or the edge's state is newer than the previous frame (it cannot be
             # propagated backwards): rotation from the gyro, with the best bias known.
             bias = self.static_bias.bias if self._base is None else self._base.bias_gyro
-            R_imu0_imu1 = gyro_rotation(self.buffer, t_prev_ns, t_cur_ns, bias)
+            R_imu0_imu1 = gyro_rotation(self.buffer, t_prev_ns + td, t_cur_ns + td, bias)
             R_cam0_cam1 = self.R_imu_cam.T @ R_imu0_imu1 @ self.R_imu_cam
             return MotionPrediction(R_cam0_cam1.T, None, "gyro")
         prev = self.state_at(t_prev_ns)

@@ -353,7 +353,9 @@ class RobotService:
                 if i > 0:
                     if self._stop.is_set():
                         break
+                    offset = self.app.time_offset_ns
                     self.app = self._new_app()
+                    self.app.set_time_offset(offset)
                     self.apps.append(self.app)
                     logger.info(
                         "robot %s: handover at frame %d to the edge at %s:%d",
@@ -441,7 +443,11 @@ class RobotService:
     async def _play(self, executor: ThreadPoolExecutor, first: int, end: int) -> None:
         assert self.client is not None and self.client.peer is not None  # run() started it
         loop = asyncio.get_running_loop()
-        frames = self.sequence.frames(first, end)
+        # Each frame's IMU reaches t + the camera-IMU offset the edge found (its VIO reads the
+        # frame there on the IMU clock); asked at each frame, the offset may arrive any time.
+        frames = self.sequence.frames(
+            first, end, imu_lead_ns=lambda: max(0, self.app.time_offset_ns)
+        )
         t0_wall: float | None = None
         t0_ns = 0
         blocked = False

@@ -176,6 +176,10 @@ class FrontEnd:
         """Apply the edge's inertial estimate (and 3D points (M, 3) of tracks (M,), if any)."""
         self.predictor.set_inertial_state(state, track_ids, p_world)
 
+    def set_time_offset(self, offset_ns: int) -> None:
+        """The camera-IMU time offset the edge estimated (``t_imu = t_cam + offset``, ns)."""
+        self.predictor.set_time_offset(offset_ns)
+
     def update_landmarks(
         self,
         track_ids: np.ndarray,
@@ -309,8 +313,9 @@ class FrontEnd:
             return
         flow = float(np.median(np.linalg.norm(cur - prev, axis=1)))
         if flow < cfg.max_median_flow_px:
+            td = self.predictor.time_offset_ns
             self.predictor.static_bias.add_standstill(
-                self.predictor.buffer, self._prev_t, timestamp_ns
+                self.predictor.buffer, self._prev_t + td, timestamp_ns + td
             )
 
     def _predict(self, timestamp_ns: int) -> tuple[np.ndarray, str, int, BackPrediction | None]:

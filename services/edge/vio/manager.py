@@ -33,6 +33,7 @@ from services.edge.vio.local_mapping import (
 )
 from services.edge.vio.mono_init import two_view_geometry
 from services.edge.vio.state import Keyframe, MapPoint, PinholeUndistorter, VioMap
+from services.edge.vio.time_offset import TimeOffsetTracker
 from services.edge.vio.tracking import ImuPrior, track_frame
 from services.edge.vio.types import (
     FrameObservation,
@@ -83,15 +84,17 @@ class VioManager(ViInitSchedule):
         self.imu_params = make_preintegration_params(
             imu, self.options.gravity_mps2, self.options.integration_sigma
         )
-        # The newest samples (about 10 s at 200 Hz) the IMU's real noise is measured on.
-        self._recent_imu: tuple[np.ndarray, np.ndarray, np.ndarray] = (
-            np.zeros(0, np.int64),
-            np.zeros((0, 3)),
-            np.zeros((0, 3)),
-        )
         self.name = robot_name
         self.stats = VioStats()
-        self._imu = ImuBuffer()
+        # The newest imu_history_s of samples, on the IMU's clock: preintegration, the noise
+        # measurement, the time offset estimate and re-slicing keyframes after it moves.
+        self._imu = ImuBuffer(horizon_s=self.options.imu_history_s)
+        self._time_offset = TimeOffsetTracker(
+            self.options.time_offset,
+            self.options.time_offset_ns,
+            enabled=self.options.estimate_time_offset,
+        )
+        self.stats.time_offset_ms = self.options.time_offset_ns * 1e-6
         self._map: VioMap | None = None
         self._next_map_id = 0
         self._next_kf_id = 0
@@ -131,11 +134,11 @@ class VioManager(ViInitSchedule):
             self._imu.append(timestamps_ns, gyro, accel)
         except ImuDataError as exc:
             raise VioError(f"feed_imu: {exc}") from exc
-        keep = self.options.noise_window_samples
-        self._recent_imu = tuple(  # type: ignore[assignment]
-            np.concatenate([old, np.asarray(new)])[-keep:]
-            for old, new in zip(self._recent_imu, (timestamps_ns, gyro, accel), strict=True)
-        )
+
+    @property
+    def time_offset_ns(self) -> int:
+        """The camera-IMU time offset in use: ``t_imu = t_cam + offset`` [ns]."""
+        return self._time_offset.offset_ns
 
     def measure_imu_noise(self) -> bool:
         """Measure the white-noise densities (gyro rad/s/√Hz, accel m/s²/√Hz) the newest samples
@@ -145,7 +148,11 @@ class VioManager(ViInitSchedule):
         Run at each VI
         initialisation and refinement, so the IMU is weighted as the sensor behaves in flight,
         not as its datasheet says (a real ADIS16448 on a MAV: 25-33x gyro, 40-60x accel)."""
-        gyro_nd, accel_nd = measured_noise_density(*self._recent_imu)
+        keep = self.options.noise_window_samples
+        buf = self._imu
+        gyro_nd, accel_nd = measured_noise_density(
+            buf.timestamps_ns[-keep:], buf.gyro[-keep:], buf.accel[-keep:]
+        )
         self.stats.imu_noise_measured = (gyro_nd, accel_nd)
         if not self.options.noise_from_data:
             return False
@@ -182,7 +189,6 @@ class VioManager(ViInitSchedule):
         else:
             result = self._track(frame)
         self._last_t = obs.timestamp_ns
-        self._trim_imu()
         return result
 
     def get_state(self) -> VioState | None:
@@ -280,16 +286,38 @@ class VioManager(ViInitSchedule):
             removed_point_ids=tuple(removed),
         )
 
-    def _trim_imu(self) -> None:
-        keep = []
-        if self._map is not None and (last := self._map.last_keyframe()) is not None:
-            keep.append(last.timestamp_ns)
-        if self._ref is not None:
-            keep.append(self._ref.obs.timestamp_ns)
-        if self._last_t is not None:
-            keep.append(self._last_t)
-        if keep:
-            self._imu.drop_before(min(keep) - 1)
+    def _segment(self, t0_ns: int, t1_ns: int):
+        """The IMU between two camera times (read at ``t + time offset`` on the IMU clock), or
+        None if the buffer does not reach. The newest sample is held for up to
+        ``time_offset.max_offset_ms`` past it: until the robot batches by the offset, a frame's
+        IMU ends at the frame, not at ``t + offset``."""
+        td = self._time_offset.offset_ns
+        a, b = t0_ns + td, t1_ns + td
+        seg = self._imu.segment(a, b)
+        last = self._imu.last_timestamp_ns
+        hold = int(self.options.time_offset.max_offset_ms * 1e6)
+        if seg is None and self._imu.covers(a, a) and last is not None and last >= b - hold:
+            seg = self._imu.held_segment(a, b) if b > a else None
+        return seg
+
+    def update_time_offset(self, vmap: VioMap, force: bool = False) -> bool:
+        """Estimate the camera-IMU time offset when due (``force``: now); when it moved,
+        re-slice the IMU of the map's keyframes the buffer still holds. True if it moved."""
+        bias = self._last_bias[1] if self._last_bias is not None else self._bias_guess[1]
+        buf = self._imu
+        new = self._time_offset.update(buf.timestamps_ns, buf.gyro, bias, force)
+        if (est := self._time_offset.last) is not None:
+            self.stats.time_offset_sigma_ms = est.sigma_ms
+        if new is None:
+            return False
+        self.stats.time_offset_ms = new * 1e-6
+        self.stats.time_offset_updates += 1
+        for kf in vmap.keyframe_list():
+            if kf.previous_id is not None and kf.previous_id in vmap.keyframes:
+                seg = self._segment(vmap.keyframes[kf.previous_id].timestamp_ns, kf.timestamp_ns)
+                if seg is not None:
+                    kf.imu_from_previous = seg
+        return True
 
     def _result(self, frame: _Frame, T, status, n_inl, is_kf, reason="") -> FrameResult:
         T = np.eye(4) if T is None else np.array(T)
@@ -298,7 +326,7 @@ class VioManager(ViInitSchedule):
     def _new_keyframe(self, frame: _Frame, T_world_body: np.ndarray, previous: Keyframe | None):
         seg = None
         if previous is not None:
-            seg = self._imu.segment(previous.timestamp_ns, frame.obs.timestamp_ns)
+            seg = self._segment(previous.timestamp_ns, frame.obs.timestamp_ns)
         kf = Keyframe(
             id=self._next_kf_id,
             timestamp_ns=frame.obs.timestamp_ns,
@@ -425,7 +453,7 @@ class VioManager(ViInitSchedule):
         last_kf = vmap.last_keyframe()
         assert last_kf is not None and self._last_T is not None
         if vmap.vi_initialized:
-            seg = self._imu.segment(last_kf.timestamp_ns, t)
+            seg = self._segment(last_kf.timestamp_ns, t)
             if seg is not None:
                 pim = preintegrate(self.imu_params, seg, last_kf.bias_accel, last_kf.bias_gyro)
                 T, v = predict_state(
@@ -441,7 +469,7 @@ class VioManager(ViInitSchedule):
         if self._prev_T is not None:
             T_pred = self._last_T @ (inverse_T(self._prev_T) @ self._last_T)
         if self._last_t is not None:
-            seg = self._imu.segment(self._last_t, t)
+            seg = self._segment(self._last_t, t)
             if seg is not None:
                 T_pred[:3, :3] = self._last_T[:3, :3] @ integrate_gyro(seg, self._bias_guess[1])
         return T_pred, None, None
@@ -485,6 +513,8 @@ class VioManager(ViInitSchedule):
             self._start_new_map(frame, reason)
             return self._result(frame, None, TrackingStatus.LOST, 0, False, f"lost: {reason}")
         self._prev_T, self._last_T = self._last_T, res.T_world_body
+        R_visual = res.T_world_body if res.R_world_body_visual is None else res.R_world_body_visual
+        self._time_offset.add_frame(frame.obs.timestamp_ns, R_visual, vmap.map_id)
         if res.v_world is not None:
             assert res.bias_accel is not None and res.bias_gyro is not None  # set with v_world
             self._last_v = res.v_world
@@ -537,6 +567,7 @@ class VioManager(ViInitSchedule):
         if mopt.match_by_projection:
             match_by_projection(vmap, kf, self.camera, mopt)
         n_new = triangulate_new_points(vmap, kf, self.camera, mopt)
+        self.update_time_offset(vmap)
         self._keyframes_since_ba += 1
         if (
             not frame.obs.is_keyframe

@@ -59,6 +59,7 @@ class SimOptions:
     motion_amplitude_m: tuple[float, float, float] = (1.2, 0.9, 0.3)
     motion_freq_rad_s: tuple[float, float, float] = (0.6, 0.8, 1.1)
     yaw_rate_rad_s: float = 0.15
+    attitude_swing: float = 1.0  # scales the yaw, pitch and roll oscillations (a MAV: ~4)
     bias_gyro: tuple[float, float, float] = (0.003, -0.002, 0.004)
     bias_accel: tuple[float, float, float] = (0.02, -0.015, 0.03)
     seed: int = 0
@@ -114,12 +115,13 @@ def trajectory(t: np.ndarray, o: SimOptions):
     p = np.array([0.0, 0.0, 1.5]) + A * np.sin(arg)
     v = A * w * np.cos(arg)
     acc = -A * w**2 * np.sin(arg)
-    yaw = o.yaw_rate_rad_s * t + 0.6 * np.sin(0.35 * t)
-    dyaw = o.yaw_rate_rad_s + 0.6 * 0.35 * np.cos(0.35 * t)
-    pitch = 0.08 * np.sin(1.7 * t)
-    dpitch = 0.08 * 1.7 * np.cos(1.7 * t)
-    roll = 0.1 * np.sin(1.3 * t)
-    droll = 0.1 * 1.3 * np.cos(1.3 * t)
+    k = o.attitude_swing
+    yaw = o.yaw_rate_rad_s * t + k * 0.6 * np.sin(0.35 * t)
+    dyaw = o.yaw_rate_rad_s + k * 0.6 * 0.35 * np.cos(0.35 * t)
+    pitch = k * 0.08 * np.sin(1.7 * t)
+    dpitch = k * 0.08 * 1.7 * np.cos(1.7 * t)
+    roll = k * 0.1 * np.sin(1.3 * t)
+    droll = k * 0.1 * 1.3 * np.cos(1.3 * t)
     Rz, Ry, Rx = _rot(2, yaw), _rot(1, pitch), _rot(0, roll)
     R = Rz @ Ry @ Rx @ _R0
     ez, ey, ex = np.eye(3)[2], np.eye(3)[1], np.eye(3)[0]

@@ -40,7 +40,7 @@ class ImuPrior:
 @dataclass(frozen=True, eq=False)
 class TrackResult:
     """``T_world_body`` (4, 4); ``v_world`` (3,) and biases only when an IMU prior was used;
-    ``inlier_ids`` track ids agreeing with the pose."""
+    ``inlier_ids`` track ids agreeing with the pose; ``R_world_body_visual`` below."""
 
     T_world_body: np.ndarray
     v_world: np.ndarray | None
@@ -48,6 +48,10 @@ class TrackResult:
     bias_gyro: np.ndarray | None
     inlier_ids: np.ndarray
     used_ransac: bool
+    # (3, 3) the rotation the reprojections alone give (Gauss-Newton from ``T_world_body`` on
+    # the inliers without the IMU): what the camera-IMU time offset is measured on, since the
+    # IMU prior pulls ``T_world_body`` towards the gyro at the offset in use.
+    R_world_body_visual: np.ndarray | None = None
 
 
 def _chi2(T_world_body, T_body_cam, P, xy, sigma) -> np.ndarray:
@@ -192,6 +196,22 @@ def _optimise(
     return T, np.asarray(values.atVector(V(0)), float), values.atConstantBias(B(0))
 
 
+def _visual_rotation(
+    T: np.ndarray, P: np.ndarray, xy: np.ndarray, sigma: np.ndarray, camera, c2: float
+) -> np.ndarray:
+    """The rotation (3, 3) of the pose that the reprojections of ``P`` (M, 3) at ``xy`` (M, 2)
+    alone give, by two Gauss-Newton steps from ``T`` (4, 4)."""
+    for _ in range(2):
+        A, b, _ = _visual_system(T, camera.T_body_cam, P, xy, sigma, c2)
+        assert A is not None and b is not None
+        xi = np.linalg.lstsq(A, b, rcond=None)[0]
+        step = np.eye(4)
+        step[:3, :3] = so3_exp(xi[:3])
+        step[:3, 3] = xi[3:]
+        T = T @ step
+    return T[:3, :3]
+
+
 def track_frame(
     P_world: np.ndarray,
     xy: np.ndarray,
@@ -239,6 +259,10 @@ def track_frame(
     n = int(inl.sum())
     if n < options.min_inliers:
         return None, f"{n} inliers after refinement (< {options.min_inliers})"
+    R_visual = T[:3, :3]
+    if prior is not None:
+        c2 = float(options.chi2_threshold)
+        R_visual = _visual_rotation(T, P_world[inl], xy[inl], sigma[inl], camera, c2)
     return (
         TrackResult(
             T_world_body=T,
@@ -247,6 +271,7 @@ def track_frame(
             bias_gyro=None if bias is None else np.asarray(bias.gyroscope(), float),
             inlier_ids=ids[inl],
             used_ransac=used_ransac,
+            R_world_body_visual=R_visual,
         ),
         "",
     )

@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from common.errors import RecslamError
+from services.edge.vio.time_offset import TimeOffsetOptions
 
 
 class VioError(RecslamError):
@@ -170,6 +171,12 @@ class VioOptions:
     # vibration (VINS-Fusion's EuRoC file raises the datasheet ~50x by hand; this measures it).
     noise_from_data: bool = True
     noise_window_samples: int = 2000
+    imu_history_s: float = 65.0  # IMU kept for the noise, the time offset and re-slicing
+    # Camera-IMU time offset (t_imu = t_cam + offset, ns): the calibration's, and whether the
+    # VIO estimates it online from its frames' rotations and the gyro (time_offset.py).
+    time_offset_ns: int = 0
+    estimate_time_offset: bool = True
+    time_offset: TimeOffsetOptions = field(default_factory=TimeOffsetOptions)
     mono_init: MonoInitOptions = field(default_factory=MonoInitOptions)
     vi_init: ViInitOptions = field(default_factory=ViInitOptions)
     tracking: TrackingOptions = field(default_factory=TrackingOptions)
@@ -359,7 +366,8 @@ class MapUpdate:
 class VioStats:
     """Wall-clock durations [s] of the stages, for benchmarks (not used by the estimator);
     the IMU white-noise densities (gyro rad/s/√Hz, accel m/s²/√Hz) measured on the newest
-    samples and those the preintegration uses (NaN before the first VI initialisation)."""
+    samples and those the preintegration uses (NaN before the first VI initialisation); the
+    camera-IMU time offset in use [ms], its last estimate's sigma and how often it moved."""
 
     track_s: list[float] = field(default_factory=list)
     local_ba_s: list[float] = field(default_factory=list)
@@ -367,3 +375,6 @@ class VioStats:
     maps_started: int = 0
     imu_noise_measured: tuple[float, float] = (float("nan"), float("nan"))
     imu_noise_used: tuple[float, float] = (float("nan"), float("nan"))
+    time_offset_ms: float = 0.0  # the offset in use (t_imu = t_cam + offset)
+    time_offset_sigma_ms: float = float("nan")  # of the last estimate (NaN: none yet)
+    time_offset_updates: int = 0

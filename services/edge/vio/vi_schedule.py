@@ -40,6 +40,9 @@ class ViInitSchedule:
     def measure_imu_noise(self) -> bool:  # VioManager's
         raise NotImplementedError
 
+    def update_time_offset(self, vmap: VioMap, force: bool = False) -> bool:  # VioManager's
+        raise NotImplementedError
+
     def _maybe_vi_init(self, vmap: VioMap) -> None:
         vopt = self.options.vi_init
         kfs = vmap.keyframe_list()
@@ -51,6 +54,7 @@ class ViInitSchedule:
             due = age >= vopt.first_after_s and len(kfs) >= vopt.min_keyframes and waited
             if due:
                 vmap.last_vi_attempt_ns = kfs[-1].timestamp_ns
+                self.update_time_offset(vmap, force=True)  # before the IMU is first used
         else:
             due = runs <= len(vopt.refine_after_s) and age >= vopt.refine_after_s[runs - 1]
         if due:
