@@ -440,7 +440,14 @@ def generate_dataset(out: Path, config: SynthConfig = SynthConfig()) -> DatasetS
         if config.trajectory_files:
             files = config.trajectory_files
             trajectories = [
-                *recorded_flights(scene, world.region, files, config.seconds, world.name)
+                *recorded_flights(
+                    scene,
+                    world.region,
+                    files,
+                    config.seconds,
+                    world.name,
+                    recorded_imu=bool(config.imu_files),
+                )
             ]
         else:
             spec = parse_flight(config.flight)

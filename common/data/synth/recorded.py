@@ -10,11 +10,12 @@ Smoothing (the method): each position coordinate and each quaternion component (
 continuous first) is fitted by a quintic smoothing spline (FITPACK ``UnivariateSpline``,
 ``k = 5``) with smoothing factor ``s = N * sigma^2`` (``sigma_p`` = 5 mm, ``sigma_q`` = 0.002),
 so the fit stays within about sigma of the samples while recorder noise is not differentiated
-into the IMU. Position, velocity and acceleration are the spline and its derivatives (C4);
-the attitude is the normalised quaternion spline and the body rate
-``omega = 2 Im(q* dq/dt)`` of that normalised curve, so the IMU derived from the smoothed
-motion integrates back to the smoothed ground truth (which is what the dataset's ground truth
-then holds).
+into the IMU. Flown with the IMU recorded on the flight (``--imu``), nothing is differentiated
+and the images must show the measured motion: ``sigma_p`` = 0.5 mm, ``sigma_q`` = 0.0002.
+Position, velocity and acceleration are the spline and its derivatives (C4); the attitude is
+the normalised quaternion spline and the body rate ``omega = 2 Im(q* dq/dt)`` of that
+normalised curve, so the IMU derived from the smoothed motion integrates back to the smoothed
+ground truth (which is what the dataset's ground truth then holds).
 
 Placement: all files of one dataset share one shift (so recordings made in one frame keep
 their overlap): the centre of their positions' bounding box goes to the centre of the world's
@@ -50,10 +51,24 @@ logger = logging.getLogger(__name__)
 
 SIGMA_P_M = 0.005
 SIGMA_Q = 0.002
-SMOOTHING = (
-    f"quintic smoothing spline per coordinate and quaternion component (FITPACK, k=5, "
-    f"s=N*sigma^2, sigma_p={SIGMA_P_M} m, sigma_q={SIGMA_Q})"
-)
+# With the IMU recorded on the flight the images must show the motion that IMU measured: the
+# smoothing above takes out real motion (V2_01: the accelerometer's 0.5 s velocity changes
+# are 16 % larger than the 5 mm spline's; the gyro disagrees with the 0.002 attitude spline
+# by 10.5 mrad rms per frame pair, with the recording itself by 1-2.4 mrad). Smooth at the
+# recorder's own noise instead (Vicon: sub-millimetre, ~0.5 mrad): 0.5 mm, 0.0002.
+SIGMA_P_RECORDED_IMU_M = 0.0005
+SIGMA_Q_RECORDED_IMU = 0.0002
+
+
+def smoothing(sigma_p: float, sigma_q: float) -> str:
+    """The smoothing's description in ``dataset.json``."""
+    return (
+        f"quintic smoothing spline per coordinate and quaternion component (FITPACK, k=5, "
+        f"s=N*sigma^2, sigma_p={sigma_p} m, sigma_q={sigma_q})"
+    )
+
+
+SMOOTHING = smoothing(SIGMA_P_M, SIGMA_Q)
 
 RECORDED_LIMITS = TrajectoryConfig(max_speed=4.0, max_rate=6.0)
 """Limits a recorded flight is checked against: the clearance of the default flights, and
@@ -125,13 +140,21 @@ class RecordedFlight:
     _pos: tuple[UnivariateSpline, ...] = field(repr=False)
     _quat: tuple[UnivariateSpline, ...] = field(repr=False)
     T_imu_cam: tuple[tuple[float, ...], ...] = tuple(map(tuple, T_IMU_CAM))
+    smoothing: str = SMOOTHING
 
     @classmethod
-    def fit(cls, rec: Recording, offset: np.ndarray) -> RecordedFlight:
-        pos = tuple(_fit(rec.t, rec.p[:, i], SIGMA_P_M) for i in range(3))
-        quat = tuple(_fit(rec.t, rec.q_wxyz[:, i], SIGMA_Q) for i in range(4))
+    def fit(
+        cls,
+        rec: Recording,
+        offset: np.ndarray,
+        sigma_p: float = SIGMA_P_M,
+        sigma_q: float = SIGMA_Q,
+    ) -> RecordedFlight:
+        pos = tuple(_fit(rec.t, rec.p[:, i], sigma_p) for i in range(3))
+        quat = tuple(_fit(rec.t, rec.q_wxyz[:, i], sigma_q) for i in range(4))
         off = (float(offset[0]), float(offset[1]), float(offset[2]))
-        return cls(rec.source, rec.format, float(rec.t[-1]), off, pos, quat)
+        how = smoothing(sigma_p, sigma_q)
+        return cls(rec.source, rec.format, float(rec.t[-1]), off, pos, quat, smoothing=how)
 
     def evaluate(self, t: np.ndarray) -> TrajectoryState:
         """State of the smoothed flight at ``t`` (K,) [s] (time 0 = the file's first pose)."""
@@ -158,7 +181,7 @@ class RecordedFlight:
             "format": self.format,
             "duration_s": self.duration_s,
             "offset": list(self.offset),
-            "smoothing": SMOOTHING,
+            "smoothing": self.smoothing,
         }
 
 
@@ -206,9 +229,12 @@ def recorded_flights(
     seconds: float,
     world: str,
     limits: TrajectoryConfig = RECORDED_LIMITS,
+    recorded_imu: bool = False,
 ) -> list[RecordedFlight]:
-    """The recordings in ``files`` (one per robot), smoothed, shifted into ``region`` by one
-    common offset and checked over ``[0, seconds]``; TrajectoryError says why one cannot fly."""
+    """The recordings in ``files`` (one per robot), smoothed (at the recorder's noise with
+    ``recorded_imu``: the images then show the motion the recorded IMU measured), shifted into
+    ``region`` by one common offset and checked over ``[0, seconds]``; TrajectoryError says
+    why one cannot fly."""
     recs = [read_recording(f) for f in files]
     for rec in recs:
         if rec.t[-1] < seconds - 1e-6:
@@ -233,7 +259,10 @@ def recorded_flights(
     fits = need + 0.25 <= r_hi - r_lo  # 0.25 m: the camera sits off the body, splines overshoot
     target = np.where(fits, (r_lo + r_hi) / 2.0, (room_lo + room_hi) / 2.0)
     offset = _clearest_offset(scene, recs, seconds, target - (lo + hi) / 2.0, limits)
-    flights = [RecordedFlight.fit(rec, offset) for rec in recs]
+    sigmas = (
+        (SIGMA_P_RECORDED_IMU_M, SIGMA_Q_RECORDED_IMU) if recorded_imu else (SIGMA_P_M, SIGMA_Q)
+    )
+    flights = [RecordedFlight.fit(rec, offset, *sigmas) for rec in recs]
     for f in flights:
         why = check_trajectory(scene, f, seconds, limits)
         if why is not None:

@@ -39,7 +39,9 @@ class TimeOffsetOptions:
     ``baselines``: the frame gaps compared; ``max_pair_s``: the longest pair interval [s];
     ``huber_rad``: the residual [rad] beyond which a pair counts linearly (a tracking glitch
     must not pull the offset); ``min_pairs``: fewer pairs is no estimate;
-    ``max_sigma_ms``: a wider estimate is reported but not confident. Online
+    ``max_sigma_ms``: a wider estimate, or one over frames spanning less than ``min_span_s``
+    (too few stretches for the jackknife to see the errors that last), is reported but not
+    confident. Online
     (:class:`TimeOffsetTracker`): the newest ``window_s`` of tracked frames, every ``every_s``
     of frame time until a confident estimate, then every ``confident_every_s`` within
     ``track_range_ms`` of it; a change below ``min_change_ms`` is not applied."""
@@ -57,6 +59,7 @@ class TimeOffsetOptions:
     track_range_ms: float = 10.0
     min_change_ms: float = 0.3
     jackknife_blocks: int = 8
+    min_span_s: float = 5.0
 
 
 @dataclass(frozen=True)
@@ -181,7 +184,9 @@ def estimate_time_offset(
     pairs = _pairs(t, o.baselines, o.max_pair_s)
     if len(pairs) < o.min_pairs:
         return f"{len(pairs)} frame pairs inside the IMU's span (< {o.min_pairs})"
-    track = _GyroTrack(s, np.asarray(gyro, np.float64) - np.asarray(bias_gyro, np.float64))
+    gyro = np.asarray(gyro, np.float64)
+    bias = np.asarray(bias_gyro, np.float64).copy()
+    track = _GyroTrack(s, gyro - bias)
     a, b = pairs[:, 0], pairs[:, 1]
     dR_vis_inv = (Rv[a].inv() * Rv[b]).inv()
     dt = (t[b] - t[a])[:, None]
@@ -204,8 +209,14 @@ def estimate_time_offset(
 
     step = o.grid_step_ms * 1e-3
     grid = centre + np.arange(-span, span + 0.5 * step, step)
-    costs = np.array([cost(x) for x in grid])
-    best = float(grid[int(np.argmin(costs))])
+    best = float(grid[int(np.argmin([cost(x) for x in grid]))])
+    # The bias model (r ≈ r0 - δb dt) is first order: over a long pair that turns far, a large
+    # residual bias (the VIO's is 0 before its initialisation; a real MAV's ~0.08 rad/s) no
+    # longer adds up along one axis. Integrate again with the bias found and search near.
+    bias += residuals(best)[1]
+    track = _GyroTrack(s, gyro - bias)
+    near = best + step * np.arange(-3, 4)
+    best = float(near[int(np.argmin([cost(x) for x in near]))])
     fine = best + np.linspace(-step, step, 9)
     fine_costs = np.array([cost(x) for x in fine])
     a2, a1, _ = np.polyfit(fine - best, fine_costs, 2)
@@ -220,8 +231,12 @@ def estimate_time_offset(
         sigma_ms=float(sigma * 1e3),
         pairs=len(pairs),
         rms_rad=float(np.sqrt(np.mean(e[inl] ** 2))) if inl.any() else float("nan"),
-        bias_gyro=np.asarray(bias_gyro, np.float64) + db,
-        confident=bool(sigma * 1e3 <= o.max_sigma_ms and abs(offset - centre) < span - step),
+        bias_gyro=bias + db,
+        confident=bool(
+            sigma * 1e3 <= o.max_sigma_ms
+            and abs(offset - centre) < span - step
+            and t[-1] - t[0] >= o.min_span_s
+        ),
     )
     logger.debug("time offset: %s", est)
     return est

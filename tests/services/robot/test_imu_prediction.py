@@ -288,3 +288,39 @@ def test_state_newer_than_previous_frame_falls_back_to_gyro_with_its_bias() -> N
     motion = predictor.predict_motion(t0, t1)
     assert motion.source == "gyro"
     np.testing.assert_allclose(motion.R_cur_prev, np.eye(3), atol=1e-12)
+
+
+@pytest.mark.parametrize("with_state", [False, True])
+def test_a_time_offset_reads_frame_times_on_the_imu_clock(with_state: bool) -> None:
+    """An IMU stamped 15 ms late with the edge's offset applied predicts as the synchronised
+    one does (gyro before VI init, propagated states after); without it, it does not."""
+    rng = np.random.default_rng(5)
+    ts = np.arange(0, 2_000_000_000, 5_000_000, dtype=np.int64)
+    gyro = np.cumsum(rng.normal(0, 0.3, (len(ts), 3)), axis=0) * 0.2  # a turning body
+    accel = np.tile([0.0, 0.0, 9.81], (len(ts), 1)) + rng.normal(0, 0.5, (len(ts), 3))
+    t0, t1 = 1_000_000_000, 1_050_000_000
+    state = InertialState(t0 - 50_000_000, np.eye(3), np.zeros(3), np.zeros(3))
+    predictions = []
+    for late, offset in ((0, 0), (15_000_000, 15_000_000), (15_000_000, 0)):
+        predictor = MotionPredictor(EUROC_CAM, EUROC_IMU)
+        predictor.add_imu(ts + late, gyro, accel)
+        predictor.set_time_offset(offset)
+        if with_state:
+            predictor.set_inertial_state(state)
+        predictions.append(predictor.predict_motion(t0, t1))
+    sync, told, blind = predictions
+    assert sync.source == ("preintegration" if with_state else "gyro")
+    np.testing.assert_allclose(told.R_cur_prev, sync.R_cur_prev, atol=1e-12)
+    if with_state:
+        assert sync.T_cam_world is not None and told.T_cam_world is not None
+        np.testing.assert_allclose(told.T_cam_world, sync.T_cam_world, atol=1e-12)
+    assert np.abs(blind.R_cur_prev - sync.R_cur_prev).max() > 1e-4
+    if not with_state:
+        return
+    # An offset that arrives after the state moves the state's time with it.
+    predictor = MotionPredictor(EUROC_CAM, EUROC_IMU)
+    predictor.add_imu(ts + 15_000_000, gyro, accel)
+    predictor.set_inertial_state(state)
+    predictor.set_time_offset(15_000_000)
+    late = predictor.predict_motion(t0, t1)
+    np.testing.assert_allclose(late.R_cur_prev, predictions[0].R_cur_prev, atol=1e-12)

@@ -177,3 +177,39 @@ def test_coded_feedback_resets_updates_and_forgets(euroc_micro):
     app.process(fr.timestamp_ns, fr.image, fr.imu)  # ended tracks' points are dropped
     deliver(app, coded(app, fr.timestamp_ns, [], map_id=1, reset=False))
     assert set(landmarks()) <= set(app.frame_coder.track_ids.tolist())
+
+
+def test_the_edges_time_offset_reaches_the_robots_batches_and_prediction(euroc_micro):
+    """The edge tells the robot its camera-IMU offset once per change; the robot reads its
+    frame times on the IMU clock from then on (its batches reach ``t + offset``), and the IMU
+    the edge sends on to the cloud is re-stamped on the camera clock."""
+    from common.links.robot_edge import CameraImuOffset
+    from services.edge.vio.types import FrameResult, TrackingStatus
+    from services.edge.worker import WorkResult
+
+    seq = EurocSequence(euroc_micro)
+    vocab = Vocabulary.load()
+    app = RobotApp(FrontEndConfig(), seq.cam0, seq.imu, vocab)
+    session = RobotSession("r", seq.cam0, vocab)
+    frames = seq.frames(0, 6, imu_lead_ns=lambda: max(0, app.time_offset_ns))
+    for _ in range(3):
+        fr = next(frames)
+        session.decode(app.process(fr.timestamp_ns, fr.image, fr.imu))
+    res = FrameResult(fr.timestamp_ns, np.eye(4), TrackingStatus.INITIALIZING, 0, 0, False)
+    told = session.on_result(WorkResult(2, res, None, (), time_offset_ns=15_000_000))
+    again = session.on_result(WorkResult(2, res, None, (), time_offset_ns=15_000_000))
+    offsets = [m for m in told.robot if isinstance(m, CameraImuOffset)]
+    assert [m.offset_ns for m in offsets] == [15_000_000]
+    assert not [m for m in again.robot if isinstance(m, CameraImuOffset)]
+    assert "camera-IMU offset +15.0 ms" in session.detail()
+    deliver(app, offsets[0])
+    assert app.time_offset_ns == 15_000_000
+    assert app.front_end.predictor.time_offset_ns == 15_000_000
+    for fr in frames:
+        assert fr.imu.timestamps_ns[-1] >= fr.timestamp_ns + 15_000_000  # reaches t + offset
+        session.decode(app.process(fr.timestamp_ns, fr.image, fr.imu))
+    t_a, t_b = seq.frame_timestamps_ns[3], seq.frame_timestamps_ns[5]
+    t, _ = session._imu_window(int(t_a), int(t_b))
+    imu_t = seq.imu_timestamps_ns
+    expected = imu_t[(imu_t > t_a + 15_000_000) & (imu_t <= t_b + 15_000_000)] - 15_000_000
+    np.testing.assert_array_equal(t, expected)
