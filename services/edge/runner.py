@@ -74,6 +74,9 @@ class EdgeRunConfig:
         stats_out: JSON counters file rewritten every second and at exit (None: none).
         stop_flush_timeout_s: at SIGINT/SIGTERM, longest flush of the cloud uplink (s).
         give_up_after_s: exit after this long without a session with the cloud (0 = never).
+        time_offset_ms: the robots' camera-IMU time offset (``t_imu = t_cam + offset``, ms,
+            Kalibr's ``timeshift_cam_imu``), held fixed; None: each robot's VIO estimates it
+            online from 0.
     """
 
     listen: tuple[str, int] = ("0.0.0.0", 7000)
@@ -88,6 +91,7 @@ class EdgeRunConfig:
     wire: WireFormat = WireFormat.CODED
     stats_out: Path | None = None
     stop_flush_timeout_s: float = 10.0
+    time_offset_ms: float | None = None
     give_up_after_s: float = 0.0
 
 
@@ -145,6 +149,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "exit (default: none)",
     )
     p.add_argument(
+        "--time-offset-ms",
+        type=_time_offset,
+        default=None,
+        metavar="MS|auto",
+        help="the robots' camera-IMU time offset, t_imu = t_cam + MS (Kalibr's "
+        "timeshift_cam_imu), held fixed; auto (default): each robot's VIO estimates it online "
+        "and tells the robot",
+    )
+    p.add_argument(
         "--stop-flush-timeout",
         type=float,
         default=10.0,
@@ -171,7 +184,22 @@ def config_from_args(args: argparse.Namespace) -> EdgeRunConfig:
         stats_out=args.stats_out,
         stop_flush_timeout_s=args.stop_flush_timeout,
         give_up_after_s=args.give_up_after,
+        time_offset_ms=args.time_offset_ms,
     )
+
+
+def _time_offset(text: str) -> float | None:
+    """``--time-offset-ms``: a number of milliseconds (within ±50: the VIO's search range), or
+    ``auto`` (None)."""
+    if text.strip().lower() == "auto":
+        return None
+    try:
+        ms = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected milliseconds or auto, got {text!r}") from None
+    if not abs(ms) <= 50.0:
+        raise argparse.ArgumentTypeError(f"{ms} ms is beyond ±50 ms: check the calibration's sign")
+    return ms
 
 
 def write_stats(path: Path, edge: EdgeServer) -> None:
@@ -235,6 +263,7 @@ def _server(config: EdgeRunConfig, secret: Keyring, vocab: Vocabulary) -> EdgeSe
     from services.edge.app import EdgeConfig
     from services.edge.robot_session import SessionOptions
     from services.edge.server import EdgeServer, EdgeServiceConfig
+    from services.edge.vio.types import VioOptions
 
     cloud_host, cloud_port = config.cloud if config.cloud is not None else (None, 0)
     service = EdgeServiceConfig(
@@ -244,7 +273,11 @@ def _server(config: EdgeRunConfig, secret: Keyring, vocab: Vocabulary) -> EdgeSe
         stop_flush_timeout_s=config.stop_flush_timeout_s,
         give_up_after_s=config.give_up_after_s,
     )
-    app = EdgeConfig(worker=config.worker, session=SessionOptions(wire=config.wire))
+    vio = VioOptions(
+        time_offset_ns=round((config.time_offset_ms or 0.0) * 1e6),
+        estimate_time_offset=config.time_offset_ms is None,
+    )
+    app = EdgeConfig(worker=config.worker, session=SessionOptions(wire=config.wire), vio=vio)
     return EdgeServer(secret, vocab, app, service, state_dir=config.state_dir, tls=config.tls)
 
 

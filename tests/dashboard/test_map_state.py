@@ -170,6 +170,25 @@ def test_edges_show_their_robots_and_link_rates():
     assert "r1 @ b" in agents_markdown(stats, {})
 
 
+def test_agents_say_why_with_the_edges_numbers():
+    """A robot that cannot initialise says why under the agents table, with the numbers the
+    edge sent (the VI initialisation's refusal, the camera-IMU offset); one that says
+    nothing adds no line."""
+    from common.map_view import AgentRecord, AgentState, MapCounts, StatsSnapshot
+
+    why = (
+        "visual-only map (arbitrary scale); VI initialisation pending (VI init rejected: "
+        "4 keyframes (< 10) over 1.2 s); camera-IMU offset +14.9 ± 0.4 ms"
+    )
+    agents = (
+        AgentRecord(0, AgentState.INITIALISING, 30, 1, 9.0, 0, name="r0", detail=why),
+        AgentRecord(1, AgentState.TRACKING, 30, 5, 9.0, 1, name="r1"),
+    )
+    text = agents_markdown(StatsSnapshot(10.0, agents, MapCounts(0, 0, 0, 0, 0, 0), ()), {})
+    assert f"- **robot 0**: {why}" in text
+    assert "**robot 1**" not in text
+
+
 def test_counts_say_the_sources_status_when_it_has_one():
     from common.map_view import MapCounts, StatsSnapshot
 

@@ -52,12 +52,16 @@ def test_cloud_options_build_one_config_both_ways(tmp_path) -> None:
 def test_edge_options_build_one_config_both_ways(tmp_path) -> None:
     argv = ["--listen", "127.0.0.1:7001", "--cloud", "cloud:7100", "--worker", "thread"]
     argv += ["--agent-id", "edge-2", "--wire", "raw", "--state-dir", str(tmp_path)]
-    cli, main = _both("edge", argv)
+    cli, main = _both("edge", [*argv, "--time-offset-ms", "-7.5"])
     config = edge_config(cli)
     assert config == edge_config(main)
     assert config.cloud == ("cloud", 7100) and config.worker == "thread"
+    assert config.time_offset_ms == -7.5  # held fixed
     defaults, _ = _both("edge", [])
     assert edge_config(defaults) == EdgeRunConfig()
+    assert EdgeRunConfig().time_offset_ms is None  # auto: estimated online
+    auto, _ = _both("edge", ["--time-offset-ms", "auto"])
+    assert edge_config(auto).time_offset_ms is None
 
 
 def test_robot_options_build_one_config_both_ways(tmp_path, monkeypatch) -> None:
@@ -87,6 +91,7 @@ def test_service_entry_points_do_not_load_the_cli_or_lab() -> None:
     [
         ("cloud", ["--state-dir", "{tmp}/state", "--dashboard-port", "0"], "no shared secret"),
         ("edge", [], "no shared secret"),
+        ("edge", ["--time-offset-ms", "120"], "beyond ±50 ms"),
         ("robot", ["--dataset", "{tmp}/none", "--edge", "h:1", "--agent-id", "r"], "does not"),
     ],
 )
