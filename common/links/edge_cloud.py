@@ -138,6 +138,9 @@ class AgentStatus(Message):
     robot->edge link's byte counters by direction and message type (``"rx.RobotFrame"`` ...).
     ``detail``: why the state is what it is, with numbers (a refused VI initialisation's
     keyframes, span, scale and biases), and the camera-IMU time offset in use; may be empty.
+    ``time_offset_ns``: the robot's camera-IMU time offset (``t_imu = t_cam + offset``): the
+    IMU samples the keyframe messages carry are stamped on the IMU clock, and the cloud reads
+    the IMU between two keyframes at their times plus this offset.
     """
 
     agent_id: str
@@ -148,6 +151,7 @@ class AgentStatus(Message):
     timestamp_ns: int
     link_counters: dict[str, int]
     detail: str = ""
+    time_offset_ns: int = 0
 
 
 @message(0x0408)

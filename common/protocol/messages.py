@@ -40,7 +40,8 @@ with its sensors (``RobotSensors`` 0x0203, forwarded as ``AgentSensors`` 0x0408)
 robot would send none, and a schema-2 edge or cloud would not know them. 4: the edge's coded
 keyframe states and map points name the frame they are in (``FrameAnchor``, body version 2); a
 schema-3 cloud would refuse each of them. 5: the edge tells a robot its camera-IMU time offset
-(``CameraImuOffset`` 0x0303) and ``AgentStatus`` carries a ``detail``."""
+(``CameraImuOffset`` 0x0303) and ``AgentStatus`` carries a ``detail`` and the offset the cloud
+reads the robot's IMU with (``time_offset_ns``)."""
 CONTROL_MAX_TYPE_ID = 0x00FF
 
 _Converter = Callable[[Any, str], Any]

@@ -289,6 +289,9 @@ class CloudApp(AppOptimization):
             a.status, a.frames = message.state, message.frames
             a.link_counters = dict(message.link_counters)
             a.detail = message.detail
+            for other in self._agents.values():  # every map of that robot on that edge
+                if other.name == a.name and other.edge_id == a.edge_id:
+                    self.fusion.imu.set_time_offset(other.agent_id, message.time_offset_ns)
             # Its position is saved too: a stale position would make the edge's replay
             # start at messages it no longer holds.
             agents = self._rows(a) if changed else None

@@ -51,10 +51,20 @@ ImuOf = Callable[[int], ImuCalibration]
 
 
 class ImuStore:
-    """Every IMU sample the edges forwarded, per atlas agent (timestamps ns, IMU frame)."""
+    """Every IMU sample the edges forwarded, per atlas agent (timestamps ns on the IMU's
+    clock, IMU frame), and each agent's camera-IMU time offset."""
 
     def __init__(self) -> None:
         self._buffers: dict[int, ImuBuffer] = {}
+        self._offsets: dict[int, int] = {}
+
+    def set_time_offset(self, agent_id: int, offset_ns: int) -> None:
+        """``agent_id``'s camera-IMU time offset (``t_imu = t_cam + offset``, ns; the edge's
+        estimate): its IMU between two keyframes is read at their times plus it."""
+        self._offsets[agent_id] = int(offset_ns)
+
+    def time_offset_ns(self, agent_id: int) -> int:
+        return self._offsets.get(agent_id, 0)
 
     def add(
         self, agent_id: int, timestamps_ns: np.ndarray, gyro: np.ndarray, accel: np.ndarray
@@ -159,7 +169,8 @@ def build_imu_terms(
             t0, t1 = _ns(atlas.keyframe(a).timestamp), _ns(atlas.keyframe(b).timestamp)
             seg = None
             if 0 < (t1 - t0) * 1e-9 <= config.imu_max_interval_s:
-                seg = buf.segment(t0, t1)
+                td = store.time_offset_ns(agent)
+                seg = buf.segment(t0 + td, t1 + td)
             if seg is None:
                 skipped += 1
                 continue

@@ -154,8 +154,8 @@ class RobotSession:
         self.failures: list[str] = []
         self.state = "initializing"
         self.reason = ""
-        # The VIO's camera-IMU offset (t_imu = t_cam + offset): the IMU the cloud gets is
-        # re-stamped on the camera clock with it; the robot is told when it moves.
+        # The VIO's camera-IMU offset (t_imu = t_cam + offset): the robot is told when it
+        # moves, the cloud with each status (it reads the IMU of keyframes at t + offset).
         self.time_offset_ns = 0
         self.time_offset_sigma_ms = float("nan")
         self._offset_told = 0  # a robot starts at 0
@@ -268,8 +268,10 @@ class RobotSession:
 
     def _imu_window(self, t0_ns: int | None, t1_ns: int) -> tuple[np.ndarray, np.ndarray]:
         """IMU samples between camera times t0 < t <= t1 (all up to t1 if None), read on the
-        IMU clock at ``t + time offset`` and stamped on the camera clock: ``t_ns`` (M,) int64
-        and ``[gyro, accel]`` (M, 6)."""
+        IMU clock at ``t + time offset``: ``t_ns`` (M,) int64 IMU-clock stamps (as the robot
+        sent them; the cloud reads them at its keyframes' times plus the offset the status
+        reports, so an offset found late still applies to the keyframes sent before it) and
+        ``[gyro, accel]`` (M, 6)."""
         if not self._imu_chunks:
             return np.zeros(0, np.int64), np.zeros((0, 6))
         td = self.time_offset_ns
@@ -278,7 +280,7 @@ class RobotSession:
         keep = t <= t1_ns + td
         if t0_ns is not None:
             keep &= t > t0_ns + td
-        return t[keep] - td, v[keep]
+        return t[keep], v[keep]
 
     def _imu_between(self, t0_ns: int | None, t1_ns: int) -> np.ndarray:
         """IMU rows "<f8 (M,7)" [t_s, gyro, accel] of :meth:`_imu_window` (the raw wire)."""
@@ -609,6 +611,7 @@ class RobotSession:
             timestamp_ns=int(self.last_timestamp_ns),
             link_counters={k: int(v) for k, v in link_counters.items()},
             detail=self.detail(),
+            time_offset_ns=int(self.time_offset_ns),
         )
 
     def detail(self) -> str:

@@ -58,9 +58,12 @@ def test_new_edge_map_of_a_robot_is_a_new_agent_and_survives_restart(tmp_path, v
             app.handle("edge-a", msg, b"stream", seq)
     seq += 1
     why = "camera-IMU offset +14.9 ± 0.4 ms"
-    app.handle("edge-a", AgentStatus("robot", 8, "tracking", 10, 2, 0, {}, why), b"stream", seq)
+    status = AgentStatus("robot", 8, "tracking", 10, 2, 0, {}, why, 14_900_000)
+    app.handle("edge-a", status, b"stream", seq)
     assert app.agents() == {0: ("robot", "edge-a", 7), 1: ("robot", "edge-a", 8)}
     assert [a.detail for a in app.view().agents if a.edge_id == "edge-a"][-1] == why
+    # The robot's IMU is read at keyframe times plus its offset, in both of its maps.
+    assert app.fusion.imu.time_offset_ns(0) == app.fusion.imu.time_offset_ns(1) == 14_900_000
     assert app.atlas.maps() == [0, 1]
     # The robot moved on to map 8: its map 7 is a fragment (it may merge with a scale).
     assert app.fusion.superseded_agents == {0}

@@ -91,6 +91,30 @@ def test_imu_terms_pair_consecutive_keyframes_over_their_timestamps():
     assert np.diff(terms.offsets)[k] == 101
 
 
+def test_an_agents_time_offset_reads_its_imu_at_keyframe_times_plus_the_offset():
+    """An IMU on a clock 15 ms ahead, read with the agent's offset, gives the synchronised
+    terms; read without it, the same samples give other ones."""
+    atlas, sync, _ = vi_circle_atlas(30, n_landmarks=300, pose_noise=0.0)
+    buf = sync.buffer(0)
+    assert buf is not None
+    late = ImuStore()
+    late.add(0, buf.timestamps_ns + 15_000_000, buf.gyro, buf.accel)
+    keys = atlas.keyframe_keys()
+    blind = build_imu_terms(atlas, 0, keys, late, _imu_of, ON)
+    late.set_time_offset(0, 15_000_000)
+    told = build_imu_terms(atlas, 0, keys, late, _imu_of, ON)
+    want = build_imu_terms(atlas, 0, keys, sync, _imu_of, ON)
+    assert told.n_pairs == want.n_pairs == 29
+    np.testing.assert_array_equal(told.gyro, want.gyro)
+    np.testing.assert_array_equal(told.timestamps_ns - 15_000_000, want.timestamps_ns)
+    # Blind, the first interval is not covered (it starts before the first sample) and the
+    # others read the accelerometer 15 ms early.
+    assert blind.n_pairs == 28
+    k = want.pair_i.tolist().index(5)
+    j = blind.pair_i.tolist().index(5)
+    assert np.abs(blind.segment(j).accel - want.segment(k).accel).max() > 1e-3
+
+
 def test_imu_gaps_and_long_intervals_get_no_factor_and_break_the_chain():
     atlas, full, _ = vi_circle_atlas(30, n_landmarks=300, pose_noise=0.0)
     buf = full.buffer(0)

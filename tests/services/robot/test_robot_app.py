@@ -182,7 +182,7 @@ def test_coded_feedback_resets_updates_and_forgets(euroc_micro):
 def test_the_edges_time_offset_reaches_the_robots_batches_and_prediction(euroc_micro):
     """The edge tells the robot its camera-IMU offset once per change; the robot reads its
     frame times on the IMU clock from then on (its batches reach ``t + offset``), and the IMU
-    the edge sends on to the cloud is re-stamped on the camera clock."""
+    the edge sends on to the cloud is read at ``t + offset`` (the status tells the cloud)."""
     from common.links.robot_edge import CameraImuOffset
     from services.edge.vio.types import FrameResult, TrackingStatus
     from services.edge.worker import WorkResult
@@ -211,5 +211,6 @@ def test_the_edges_time_offset_reaches_the_robots_batches_and_prediction(euroc_m
     t_a, t_b = seq.frame_timestamps_ns[3], seq.frame_timestamps_ns[5]
     t, _ = session._imu_window(int(t_a), int(t_b))
     imu_t = seq.imu_timestamps_ns
-    expected = imu_t[(imu_t > t_a + 15_000_000) & (imu_t <= t_b + 15_000_000)] - 15_000_000
-    np.testing.assert_array_equal(t, expected)
+    expected = imu_t[(imu_t > t_a + 15_000_000) & (imu_t <= t_b + 15_000_000)]
+    np.testing.assert_array_equal(t, expected)  # the IMU clock's stamps, read at t + offset
+    assert session.status({}).time_offset_ns == 15_000_000  # the cloud reads them with it
