@@ -7,7 +7,8 @@ an ``ISAM2`` whose factor graph mirrors the last problem it was given, and each 
 :class:`~services.cloud.full_ba.FullBAProblem` of that map is applied as a difference:
 
 - every term of the problem has a tag — ``("obs", keyframe, point)``, ``("edge", a, b,
-  robust)``, ``("imu", a, b)``, ``("bias", keyframe)`` (a chain's first bias),
+  robust)``, ``("imu", a, b, t)`` (``t`` where its samples start: the keyframe's time plus
+  the robot's camera-IMU offset), ``("bias", keyframe)`` (a chain's first bias),
   ``("att", keyframe)``, ``("prior", keyframe)``, ``("point", point)`` (a weak prior that keeps
   a point seen by one keyframe solvable), ``("hold", point)``; tags of the new problem that the
   graph lacks are added, tags it has that the problem lacks are removed (a keyframe the edge
@@ -310,7 +311,10 @@ def _diff(
         fresh: dict[int, np.ndarray] = {}
         for m in range(terms.n_pairs):
             i, j = int(terms.pair_i[m]), int(terms.pair_j[m])
-            tag = ("imu", keys[i], keys[j])
+            # The tag names where the samples were read (the first knot: the keyframe's time
+            # plus the robot's camera-IMU offset): an offset that moves replaces the term.
+            start = int(terms.timestamps_ns[int(terms.offsets[m])])
+            tag = ("imu", keys[i], keys[j], start)
             want.add(tag)
             if tag in solver.factors:
                 continue

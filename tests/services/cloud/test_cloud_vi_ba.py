@@ -115,6 +115,37 @@ def test_an_agents_time_offset_reads_its_imu_at_keyframe_times_plus_the_offset()
     assert np.abs(blind.segment(j).accel - want.segment(k).accel).max() > 1e-3
 
 
+def test_the_incremental_graph_replaces_imu_terms_when_the_offset_moves():
+    """iSAM2 keeps the terms it has: an IMU term read at the old offset must be replaced when
+    the robot's offset moves (its tag names where its samples start), so the graph solves the
+    same problem as a batch solve of the corrected terms."""
+    from services.cloud.incremental_ba import _SOLVERS
+
+    atlas, sync, _ = vi_circle_atlas(30, n_landmarks=300, pose_noise=0.0)
+    buf = sync.buffer(0)
+    assert buf is not None
+    late = ImuStore()
+    late.add(0, buf.timestamps_ns + 15_000_000, buf.gyro, buf.accel)
+    cfg = dataclasses.replace(ON, incremental=True, incremental_min_keyframes=0)
+    session = uuid.uuid4().hex
+    try:
+        blind = build_full_ba(atlas, 0, default_camera(), cfg, GRAPH, late, _imu_of)
+        solve_full_ba_incremental(blind, cfg, GRAPH, session, 0)
+        late.set_time_offset(0, 15_000_000)
+        told = build_full_ba(atlas, 0, default_camera(), cfg, GRAPH, late, _imu_of)
+        res = solve_full_ba_incremental(told, cfg, GRAPH, session, 0)
+        imu_tags = [t for t in _SOLVERS[(session, 0)].factors if t[0] == "imu"]
+    finally:
+        forget(session)
+    kf_ns = {k: round(atlas.keyframe(k).timestamp * 1e9) for k in atlas.keyframe_keys()}
+    assert len(imu_tags) == 29  # one per pair: the blind ones are gone
+    assert all(t[3] == kf_ns[t[1]] + 15_000_000 for t in imu_tags)
+    batch = solve_full_ba(
+        build_full_ba(atlas, 0, default_camera(), ON, GRAPH, sync, _imu_of), ON, GRAPH
+    )
+    np.testing.assert_allclose(res.T_world_body[:, :3, 3], batch.T_world_body[:, :3, 3], atol=2e-3)
+
+
 def test_imu_gaps_and_long_intervals_get_no_factor_and_break_the_chain():
     atlas, full, _ = vi_circle_atlas(30, n_landmarks=300, pose_noise=0.0)
     buf = full.buffer(0)
