@@ -43,8 +43,11 @@ class TimeOffsetOptions:
     (too few stretches for the jackknife to see the errors that last), is reported but not
     confident. Online
     (:class:`TimeOffsetTracker`): the newest ``window_s`` of tracked frames, every ``every_s``
-    of frame time until a confident estimate, then every ``confident_every_s`` within
-    ``track_range_ms`` of it; a change below ``min_change_ms`` is not applied."""
+    of frame time until a confident estimate (each unconfident one waits ``backoff`` times
+    longer for the next, up to ``max_every_s``: a flight that hardly turns must not pay an
+    estimate every few seconds for its whole life), then every ``confident_every_s`` within
+    ``track_range_ms`` of it; a change below ``min_change_ms`` is not applied; a forced
+    estimate (before a VI initialisation) runs at most once per ``every_s``."""
 
     max_offset_ms: float = 50.0
     grid_step_ms: float = 1.0
@@ -55,6 +58,8 @@ class TimeOffsetOptions:
     max_sigma_ms: float = 1.0
     window_s: float = 60.0
     every_s: float = 3.0
+    backoff: float = 1.5
+    max_every_s: float = 30.0
     confident_every_s: float = 10.0
     track_range_ms: float = 10.0
     min_change_ms: float = 0.3
@@ -258,10 +263,13 @@ class TimeOffsetTracker:
         self.last: TimeOffsetEstimate | None = None
         self.confident = False
         self.updates = 0
+        self.runs = 0  # estimates made
         self._map_id: int | None = None
         self._t: list[int] = []
         self._R: list[np.ndarray] = []
         self._next_ns: int | None = None
+        self._last_ns: int | None = None
+        self._every_s = options.every_s
 
     def add_frame(self, t_cam_ns: int, R_world_body: np.ndarray, map_id: int) -> None:
         """A frame tracked in map ``map_id`` at camera time ``t_cam_ns``, rotation (3, 3)."""
@@ -283,11 +291,14 @@ class TimeOffsetTracker:
         if not self.enabled or len(self._t) < 3:
             return None
         now = self._t[-1]
-        if not force and self._next_ns is not None and now < self._next_ns:
-            return None
         o = self.options
-        every = o.confident_every_s if self.confident else o.every_s
-        self._next_ns = now + int(every * 1e9)
+        if self._next_ns is not None and now < self._next_ns:
+            assert self._last_ns is not None
+            if not force or now - self._last_ns < o.every_s * 1e9:
+                return None
+        every = o.confident_every_s if self.confident else self._every_s
+        self._next_ns, self._last_ns = now + int(every * 1e9), now
+        self.runs += 1
         est = estimate_time_offset(
             np.array(self._t),
             np.stack(self._R),
@@ -303,6 +314,7 @@ class TimeOffsetTracker:
             return None
         self.last = est
         if not est.confident:
+            self._every_s = min(self._every_s * o.backoff, o.max_every_s)
             return None
         self.confident = True
         if abs(est.offset_ns - self.offset_ns) < o.min_change_ms * 1e6:

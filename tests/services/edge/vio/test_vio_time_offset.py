@@ -102,6 +102,19 @@ def test_the_tracker_moves_the_offset_only_on_confident_estimates_of_its_map() -
     assert off.update(t_imu, gyro, np.zeros(3), force=True) is None and off.offset_ns == 5_000_000
 
 
+def test_a_flight_that_never_gives_a_confident_offset_is_asked_less_and_less() -> None:
+    """Each unconfident estimate waits longer for the next (up to 30 s); a forced one (before
+    a VI initialisation, retried every half second) runs at most once per 3 s."""
+    t_cam, R, t_imu, gyro = _mav(15.0, seconds=60.0, rate_scale=0.002)
+    for force, at_most in ((False, 8), (True, 20)):  # without the backoff: 20, and 1200
+        tracker = TimeOffsetTracker(TimeOffsetOptions())
+        for t, r in zip(t_cam, R, strict=True):
+            tracker.add_frame(int(t), r, map_id=0)
+            assert tracker.update(t_imu, gyro, np.zeros(3), force=force) is None
+        assert not tracker.confident and tracker.offset_ns == 0
+        assert 3 <= tracker.runs <= at_most, (force, tracker.runs)
+
+
 def _run(seq, shift_ns: int, options: VioOptions):
     """Feed ``seq`` with its IMU stamped ``shift_ns`` later, each frame's batch reaching the
     first sample at or after ``t + shift`` (a robot that batches by the offset)."""
