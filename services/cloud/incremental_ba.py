@@ -313,8 +313,8 @@ def _diff(
             i, j = int(terms.pair_i[m]), int(terms.pair_j[m])
             # The tag names where the samples were read (the first knot: the keyframe's time
             # plus the robot's camera-IMU offset): an offset that moves replaces the term.
-            start = int(terms.timestamps_ns[int(terms.offsets[m])])
-            tag = ("imu", keys[i], keys[j], start)
+            first_ns = int(terms.timestamps_ns[int(terms.offsets[m])])
+            tag = ("imu", keys[i], keys[j], first_ns)
             want.add(tag)
             if tag in solver.factors:
                 continue

@@ -18,7 +18,13 @@ import numpy as np
 
 from common.calibration import CameraCalibration, ImuCalibration
 from common.geometry import inverse_T, make_T, orthonormalize_T
-from common.imu import ImuBuffer, ImuDataError, measured_noise_density, with_measured_noise
+from common.imu import (
+    ImuBuffer,
+    ImuDataError,
+    ImuSegment,
+    measured_noise_density,
+    with_measured_noise,
+)
 from common.preintegration import (
     integrate_gyro,
     make_preintegration_params,
@@ -286,7 +292,7 @@ class VioManager(ViInitSchedule):
             removed_point_ids=tuple(removed),
         )
 
-    def _segment(self, t0_ns: int, t1_ns: int):
+    def _segment(self, t0_ns: int, t1_ns: int) -> ImuSegment | None:
         """The IMU between two camera times (read at ``t + time offset`` on the IMU clock), or
         None if the buffer does not reach. The newest sample is held for up to
         ``time_offset.max_offset_ms`` past it: until the robot batches by the offset, a frame's
