@@ -7,8 +7,7 @@ an ``ISAM2`` whose factor graph mirrors the last problem it was given, and each 
 :class:`~services.cloud.full_ba.FullBAProblem` of that map is applied as a difference:
 
 - every term of the problem has a tag — ``("obs", keyframe, point)``, ``("edge", a, b,
-  robust)``, ``("imu", a, b, t)`` (``t`` where its samples start: the keyframe's time plus
-  the robot's camera-IMU offset), ``("bias", keyframe)`` (a chain's first bias),
+  robust)``, ``("imu", a, b)``, ``("bias", keyframe)`` (a chain's first bias),
   ``("att", keyframe)``, ``("prior", keyframe)``, ``("point", point)`` (a weak prior that keeps
   a point seen by one keyframe solvable), ``("hold", point)``; tags of the new problem that the
   graph lacks are added, tags it has that the problem lacks are removed (a keyframe the edge
@@ -27,11 +26,13 @@ an ``ISAM2`` whose factor graph mirrors the last problem it was given, and each 
   pending step is largest) and leaves the others for a later one.
 
 The graph is built again from a batch solve (and seeded with its result) when there is none
-for the map yet, when the map's agents (a merge), its held keyframe or its prior-map
-keyframes changed, and after iSAM2 fails (an indeterminant system); the optimiser process
-dying loses every graph, which costs one batch solve per map. A graph is the same function of
-the problem as the batch graph, except for decisions taken once at insertion (outlier loops,
-the stand-in terms' measurements) and the linearisation points.
+for the map yet, when the map's agents (a merge), its held keyframe, its prior-map
+keyframes or a robot's camera-IMU time offset changed (every IMU term of that robot is then
+read anew: a batch solve relinearises them all, where the graph would have kept the terms
+read at the old offset), and after iSAM2 fails (an indeterminant system); the optimiser
+process dying loses every graph, which costs one batch solve per map. A graph is the same
+function of the problem as the batch graph, except for decisions taken once at insertion
+(outlier loops, the stand-in terms' measurements) and the linearisation points.
 """
 
 from __future__ import annotations
@@ -116,6 +117,7 @@ def _fingerprint(problem: FullBAProblem) -> tuple[Hashable, ...]:
         tuple(int(keys[i]) for i in held),
         tuple(int(problem.point_keys[j]) for j in held_pts),
         agents,
+        problem.imu.agent_offsets if problem.imu is not None else (),
     )
 
 
@@ -311,10 +313,7 @@ def _diff(
         fresh: dict[int, np.ndarray] = {}
         for m in range(terms.n_pairs):
             i, j = int(terms.pair_i[m]), int(terms.pair_j[m])
-            # The tag names where the samples were read (the first knot: the keyframe's time
-            # plus the robot's camera-IMU offset): an offset that moves replaces the term.
-            first_ns = int(terms.timestamps_ns[int(terms.offsets[m])])
-            tag = ("imu", keys[i], keys[j], first_ns)
+            tag = ("imu", keys[i], keys[j])
             want.add(tag)
             if tag in solver.factors:
                 continue

@@ -100,7 +100,8 @@ class ImuTerms:
     rad/s and accel (S, 3) m/s²; noise (K, 4) the
     robot's gyro noise density, gyro random walk, accel noise density, accel random walk;
     bias_gyro, bias_accel (N, 3) the forwarded biases of every keyframe; first (A,) the first
-    keyframe of each agent's chain (where the bias prior sits)."""
+    keyframe of each agent's chain (where the bias prior sits); agent_offsets: (agent, its
+    camera-IMU time offset in ns) of the agents read, the offset the samples were read at."""
 
     pair_i: np.ndarray
     pair_j: np.ndarray
@@ -112,6 +113,7 @@ class ImuTerms:
     bias_gyro: np.ndarray
     bias_accel: np.ndarray
     first: np.ndarray
+    agent_offsets: tuple[tuple[int, int], ...] = ()
 
     @property
     def n_pairs(self) -> int:
@@ -150,6 +152,7 @@ def build_imu_terms(
     accels: list[np.ndarray] = []
     noise: list[tuple[float, float, float, float]] = []
     first: list[int] = []
+    agent_offsets: list[tuple[int, int]] = []
     skipped = 0
     for agent in atlas.agents_in_map(map_id):
         buf = store.buffer(agent)
@@ -165,11 +168,12 @@ def build_imu_terms(
             )
             calib = with_measured_noise(calib, *measured)
         n_before = len(pi)
+        td = store.time_offset_ns(agent)
+        agent_offsets.append((agent, td))
         for a, b in itertools.pairwise(ak):
             t0, t1 = _ns(atlas.keyframe(a).timestamp), _ns(atlas.keyframe(b).timestamp)
             seg = None
             if 0 < (t1 - t0) * 1e-9 <= config.imu_max_interval_s:
-                td = store.time_offset_ns(agent)
                 seg = buf.segment(t0 + td, t1 + td)
             if seg is None:
                 skipped += 1
@@ -207,6 +211,7 @@ def build_imu_terms(
         bias_gyro=np.array([v.bias_gyro for v in views], np.float64).reshape(-1, 3),
         bias_accel=np.array([v.bias_accel for v in views], np.float64).reshape(-1, 3),
         first=np.array(first, np.int64),
+        agent_offsets=tuple(agent_offsets),
     )
 
 

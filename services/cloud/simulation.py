@@ -470,6 +470,7 @@ def problem_prefix(problem: FullBAProblem, n: int) -> FullBAProblem:
             bias_gyro=imu.bias_gyro[:n],
             bias_accel=imu.bias_accel[:n],
             first=imu.first[imu.first < n],
+            agent_offsets=imu.agent_offsets,
         )
     return dataclasses.replace(
         problem,
