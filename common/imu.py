@@ -131,6 +131,11 @@ class ImuBuffer:
         if i > 0:
             self._t, self._gyro, self._accel = self._t[i:], self._gyro[i:], self._accel[i:]
 
+    def noise_density(self, samples: int) -> tuple[float, float]:
+        """:func:`measured_noise_density` of the newest ``samples`` samples held."""
+        keep = slice(-samples, None)
+        return measured_noise_density(self._t[keep], self._gyro[keep], self._accel[keep])
+
     def covers(self, t0_ns: int, t1_ns: int) -> bool:
         """The samples held span ``[t0, t1]``."""
         return bool(len(self._t) >= 2 and self._t[0] <= t0_ns and self._t[-1] >= t1_ns)

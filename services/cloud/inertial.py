@@ -33,13 +33,7 @@ import gtsam
 import numpy as np
 
 from common.calibration import ImuCalibration
-from common.imu import (
-    ImuBuffer,
-    ImuDataError,
-    ImuSegment,
-    measured_noise_density,
-    with_measured_noise,
-)
+from common.imu import ImuBuffer, ImuDataError, ImuSegment, with_measured_noise
 from common.preintegration import make_bias, make_preintegration_params, preintegrate
 from services.cloud.atlas import Atlas
 from services.cloud.config import FullBAConfig
@@ -162,10 +156,7 @@ def build_imu_terms(
         ak.sort(key=lambda k: atlas.keyframe(k).timestamp)
         calib = imu_of(agent)
         if config.imu_noise_from_data:
-            recent = slice(-config.imu_noise_window_samples, None)
-            measured = measured_noise_density(
-                buf.timestamps_ns[recent], buf.gyro[recent], buf.accel[recent]
-            )
+            measured = buf.noise_density(config.imu_noise_window_samples)
             calib = with_measured_noise(calib, *measured)
         n_before = len(pi)
         td = store.time_offset_ns(agent)

@@ -189,16 +189,21 @@ def config_from_args(args: argparse.Namespace) -> EdgeRunConfig:
 
 
 def _time_offset(text: str) -> float | None:
-    """``--time-offset-ms``: a number of milliseconds (within ±50: the VIO's search range), or
+    """``--time-offset-ms``: a number of milliseconds (within the VIO's search range), or
     ``auto`` (None)."""
+    from services.edge.vio.time_offset import TimeOffsetOptions
+
     if text.strip().lower() == "auto":
         return None
     try:
         ms = float(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected milliseconds or auto, got {text!r}") from None
-    if not abs(ms) <= 50.0:
-        raise argparse.ArgumentTypeError(f"{ms} ms is beyond ±50 ms: check the calibration's sign")
+    limit = TimeOffsetOptions().max_offset_ms
+    if not abs(ms) <= limit:
+        raise argparse.ArgumentTypeError(
+            f"{ms} ms is beyond ±{limit:g} ms: check the calibration's sign"
+        )
     return ms
 
 

@@ -177,20 +177,21 @@ class RobotApp:
     async def on_message(self, delivery: Delivery) -> None:
         """Handler for the edge's messages (never raises: a refused message is not retried)."""
         msg = delivery.message
-        if isinstance(msg, InertialFeedback | InertialFeedbackCoded | CameraImuOffset):
+        if isinstance(msg, CameraImuOffset):
             with self._pending_lock:
-                if isinstance(msg, CameraImuOffset):
-                    self._offset_pending = msg.offset_ns
-                else:
-                    self.feedback_received += 1
-                    self._pending.append(msg)
-            if self._lock.acquire(blocking=False):  # no frame in progress: apply now
-                try:
-                    self._apply_pending_locked()
-                finally:
-                    self._lock.release()
+                self._offset_pending = msg.offset_ns
+        elif isinstance(msg, InertialFeedback | InertialFeedbackCoded):
+            self.feedback_received += 1
+            with self._pending_lock:
+                self._pending.append(msg)
         else:
             logger.warning("robot ignores %s from %s", type(msg).__name__, delivery.peer)
+            return
+        if self._lock.acquire(blocking=False):  # no frame in progress: apply now
+            try:
+                self._apply_pending_locked()
+            finally:
+                self._lock.release()
 
     def set_time_offset(self, offset_ns: int) -> None:
         """Use this camera-IMU time offset (``t_imu = t_cam + offset``, ns) from the next frame

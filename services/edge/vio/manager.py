@@ -18,13 +18,7 @@ import numpy as np
 
 from common.calibration import CameraCalibration, ImuCalibration
 from common.geometry import inverse_T, make_T, orthonormalize_T
-from common.imu import (
-    ImuBuffer,
-    ImuDataError,
-    ImuSegment,
-    measured_noise_density,
-    with_measured_noise,
-)
+from common.imu import ImuBuffer, ImuDataError, ImuSegment, with_measured_noise
 from common.preintegration import (
     integrate_gyro,
     make_preintegration_params,
@@ -154,11 +148,7 @@ class VioManager(ViInitSchedule):
         Run at each VI
         initialisation and refinement, so the IMU is weighted as the sensor behaves in flight,
         not as its datasheet says (a real ADIS16448 on a MAV: 25-33x gyro, 40-60x accel)."""
-        keep = self.options.noise_window_samples
-        buf = self._imu
-        gyro_nd, accel_nd = measured_noise_density(
-            buf.timestamps_ns[-keep:], buf.gyro[-keep:], buf.accel[-keep:]
-        )
+        gyro_nd, accel_nd = self._imu.noise_density(self.options.noise_window_samples)
         self.stats.imu_noise_measured = (gyro_nd, accel_nd)
         if not self.options.noise_from_data:
             return False
@@ -317,7 +307,6 @@ class VioManager(ViInitSchedule):
         if new is None:
             return False
         self.stats.time_offset_ms = new * 1e-6
-        self.stats.time_offset_updates += 1
         for kf in vmap.keyframe_list():
             if kf.previous_id is not None and kf.previous_id in vmap.keyframes:
                 seg = self._segment(vmap.keyframes[kf.previous_id].timestamp_ns, kf.timestamp_ns)

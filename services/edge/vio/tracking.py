@@ -19,7 +19,7 @@ import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import B, V, X
 
-from common.geometry import inverse_T, so3_exp
+from common.geometry import inverse_T, make_T, so3_exp
 from common.preintegration import make_bias
 from services.edge.vio.state import Keyframe, PinholeUndistorter, project
 from services.edge.vio.types import TrackingOptions
@@ -205,10 +205,7 @@ def _visual_rotation(
         A, b, _ = _visual_system(T, camera.T_body_cam, P, xy, sigma, c2)
         assert A is not None and b is not None
         xi = np.linalg.lstsq(A, b, rcond=None)[0]
-        step = np.eye(4)
-        step[:3, :3] = so3_exp(xi[:3])
-        step[:3, 3] = xi[3:]
-        T = T @ step
+        T = T @ make_T(so3_exp(xi[:3]), xi[3:])
     return T[:3, :3]
 
 

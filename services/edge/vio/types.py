@@ -367,7 +367,7 @@ class VioStats:
     """Wall-clock durations [s] of the stages, for benchmarks (not used by the estimator);
     the IMU white-noise densities (gyro rad/s/√Hz, accel m/s²/√Hz) measured on the newest
     samples and those the preintegration uses (NaN before the first VI initialisation); the
-    camera-IMU time offset in use [ms], its last estimate's sigma and how often it moved."""
+    camera-IMU time offset in use [ms] and its last estimate's sigma."""
 
     track_s: list[float] = field(default_factory=list)
     local_ba_s: list[float] = field(default_factory=list)
@@ -377,4 +377,3 @@ class VioStats:
     imu_noise_used: tuple[float, float] = (float("nan"), float("nan"))
     time_offset_ms: float = 0.0  # the offset in use (t_imu = t_cam + offset)
     time_offset_sigma_ms: float = float("nan")  # of the last estimate (NaN: none yet)
-    time_offset_updates: int = 0
