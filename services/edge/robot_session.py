@@ -177,6 +177,9 @@ class RobotSession:
         self._kf_features: OrderedDict[int, KeyframeFeatures] = OrderedDict()
         self._imu_chunks: list[tuple[np.ndarray, np.ndarray]] = []  # (t_ns (K,), (K, 6))
         self._kf_time: dict[tuple[int, int], int] = {}
+        # (map id, keyframe id) -> where its IMU ended (IMU clock): the next keyframe's starts
+        # there, so a moved time offset neither skips nor repeats samples
+        self._kf_imu_end: dict[tuple[int, int], int] = {}
         self._sent_kfs: set[tuple[int, int]] = set()
         # The VIO's own keyframes (no robot features) stay on the edge: uplinked keyframes
         # chain to the previous uplinked keyframe of their map, observations skip the others.
@@ -266,25 +269,37 @@ class RobotSession:
         self.last_timestamp_ns = msg.timestamp_ns
         return WorkItem(msg.frame_index, imu.timestamps_ns, imu.gyro, imu.accel, obs)
 
-    def _imu_window(self, t0_ns: int | None, t1_ns: int) -> tuple[np.ndarray, np.ndarray]:
-        """IMU samples between camera times t0 < t <= t1 (all up to t1 if None), read on the
-        IMU clock at ``t + time offset``: ``t_ns`` (M,) int64 IMU-clock stamps (as the robot
-        sent them; the cloud reads them at its keyframes' times plus the offset the status
-        reports, so an offset found late still applies to the keyframes sent before it) and
-        ``[gyro, accel]`` (M, 6)."""
+    def _imu_window(
+        self, prev: tuple[int, int] | None, key: tuple[int, int], t1_ns: int
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """IMU samples of keyframe ``key`` at camera time ``t1_ns``: from where the IMU of
+        its predecessor ``prev`` ended (everything held if None) up to ``t1 + time offset``
+        on the IMU clock: ``t_ns`` (M,) int64 IMU-clock stamps (as the robot sent them; the
+        cloud reads them at its keyframes' times plus the offset the status reports, so an
+        offset found late still applies to the keyframes sent before it) and
+        ``[gyro, accel]`` (M, 6). A keyframe's window starts where its predecessor's ended,
+        so a moved offset neither skips nor repeats samples."""
+        end = t1_ns + self.time_offset_ns
+        start = None
+        if prev is not None:
+            start = self._kf_imu_end.get(prev)
+            if start is None and prev in self._kf_time:
+                start = self._kf_time[prev] + self.time_offset_ns
+        self._kf_imu_end[key] = end if start is None else max(start, end)
         if not self._imu_chunks:
             return np.zeros(0, np.int64), np.zeros((0, 6))
-        td = self.time_offset_ns
         t = np.concatenate([c[0] for c in self._imu_chunks])
         v = np.concatenate([c[1] for c in self._imu_chunks])
-        keep = t <= t1_ns + td
-        if t0_ns is not None:
-            keep &= t > t0_ns + td
+        keep = t <= end
+        if start is not None:
+            keep &= t > start
         return t[keep], v[keep]
 
-    def _imu_between(self, t0_ns: int | None, t1_ns: int) -> np.ndarray:
+    def _imu_between(
+        self, prev: tuple[int, int] | None, key: tuple[int, int], t1_ns: int
+    ) -> np.ndarray:
         """IMU rows "<f8 (M,7)" [t_s, gyro, accel] of :meth:`_imu_window` (the raw wire)."""
-        t, v = self._imu_window(t0_ns, t1_ns)
+        t, v = self._imu_window(prev, key, t1_ns)
         return np.concatenate([t[:, None] * 1e-9, v], axis=1)
 
     # ------------------------------------------------------------------ outputs
@@ -404,7 +419,6 @@ class RobotSession:
         for kf, state, feats, point_ids in fresh:  # after the points: what they may name
             t0 = time.perf_counter()
             prev = self._up_prev[(upd.map_id, kf.keyframe_id)]
-            t_prev = None if prev is None else self._kf_time.get((upd.map_id, prev))
             kf_msgs.append(
                 KeyframeUpdateCoded(
                     agent_id=self.agent_id,
@@ -415,7 +429,11 @@ class RobotSession:
                     state=encode_states(_states([(kf.keyframe_id, *state)], anchor)),
                     features=encode_standalone_keyframe(self.vocabulary, feats, self.codec),
                     map_point_ids=encode_point_ids(book.carried(point_ids, kf.keyframe_id)),
-                    imu=self._imu_coded(t_prev, kf.timestamp_ns),
+                    imu=self._imu_coded(
+                        None if prev is None else (upd.map_id, prev),
+                        (upd.map_id, kf.keyframe_id),
+                        kf.timestamp_ns,
+                    ),
                 )
             )
             timer.add("encode.KeyframeUpdateCoded", time.perf_counter() - t0)
@@ -499,9 +517,9 @@ class RobotSession:
             or np.abs(new[3] - last[3]).max() > o.bias_resend
         )
 
-    def _imu_coded(self, t0_ns: int | None, t1_ns: int) -> bytes:
+    def _imu_coded(self, prev: tuple[int, int] | None, key: tuple[int, int], t1_ns: int) -> bytes:
         """:meth:`_imu_window` coded by a fresh ``ImuEncoder`` (the coded wire)."""
-        t, v = self._imu_window(t0_ns, t1_ns)
+        t, v = self._imu_window(prev, key, t1_ns)
         if not len(t):
             return b""
         return ImuEncoder().encode(ImuChunk(t, v[:, :3], v[:, 3:]))
@@ -548,8 +566,8 @@ class RobotSession:
                         self.agent_id,
                         kf.keyframe_id,
                     )
-                t0 = None if prev is None else self._kf_time.get((upd.map_id, prev))
-                imu = self._imu_between(t0, kf.timestamp_ns)
+                prev_key = None if prev is None else (upd.map_id, int(prev))
+                imu = self._imu_between(prev_key, key, kf.timestamp_ns)
                 self._sent_kfs.add(key)
                 self.vio_keyframes += 1
             msgs.append(

@@ -246,3 +246,24 @@ def test_a_frame_that_fails_to_decode_leaves_the_decoders_as_they_were() -> None
         item = session.decode(msg)
         assert item.obs.timestamp_ns == msg.timestamp_ns
     assert session.frames == 6
+
+
+def test_keyframe_imu_windows_neither_skip_nor_repeat_samples_when_the_offset_moves() -> None:
+    """Keyframes at 0.5 s steps, the offset found late (0 -> 15 ms) and then refined down
+    (-> 14 ms): each keyframe's IMU starts where its predecessor's ended, so the uplinked
+    samples are every sample up to the last keyframe's time plus the offset, once each."""
+    session = RobotSession("r", simulate(SimOptions(duration_s=1.0)).camera, Vocabulary.load())
+    t = np.arange(0, 3_000_000_000, 5_000_000, dtype=np.int64)  # 200 Hz IMU clock
+    session._imu_chunks = [(t, np.zeros((len(t), 6)))]
+    sent = []
+    prev = None
+    for k, offset_ms in enumerate([0.0, 0.0, 15.0, 15.0, 14.0]):
+        session.time_offset_ns = int(offset_ms * 1e6)
+        key = (0, k)
+        stamps, _ = session._imu_window(prev, key, 500_000_000 * (k + 1))
+        sent.append(stamps)
+        prev = key
+    everything = np.concatenate(sent)
+    assert np.array_equal(everything, t[t <= 2_500_000_000 + 14_000_000])
+    assert sent[2][0] == 1_000_000_000 + 5_000_000  # right after keyframe 1's end, no 15 ms gap
+    assert sent[4][-1] == 2_510_000_000  # the last sample at or before 2.5 s + 14 ms
