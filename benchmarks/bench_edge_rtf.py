@@ -168,7 +168,8 @@ async def run_case(frames_by_robot: dict, camera, imu, vocab, worker: str) -> di
 
 async def record_robot(dataset: Path, name: str) -> list:
     """The RobotFrames the real robot sends for ``dataset`` (no edge feedback)."""
-    from services.robot.server import Rate, RobotService, RobotServiceConfig
+    from services.robot.server import RobotService
+    from services.robot.service_config import Rate, RobotServiceConfig
 
     frames: list = []
 

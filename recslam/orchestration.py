@@ -272,6 +272,10 @@ class Job:
             c.rate,
             "--key-file",
             str(self.keys_dir / f"robot-{name}.keys"),
+            "--pose-out",
+            str(self.run_dir / "results" / "poses" / f"{name}.tum"),
+            "--stats-out",
+            str(self.run_dir / "stats" / f"robot-{name}.json"),
         )
         for robot, frame, edge in sorted(c.moves, key=lambda m: m[1]):
             if robot == name:

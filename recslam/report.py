@@ -103,6 +103,7 @@ def collect(run_dir: Path, facts: RunFacts) -> dict[str, Any]:
         frame_bytes = link.get("rx", {}).get("by_type", {}).get("RobotFrame", {}).get("bytes", 0)
         decoded = r.get("frames_decoded", 0)
         agent = ate.get("agents", {}).get(name, {})
+        poses = _load(run_dir / "stats" / f"robot-{name}.json").get("poses", {})
         robots[name] = {
             "frames_sent": sent,
             "frames_decoded": decoded,
@@ -116,6 +117,8 @@ def collect(run_dir: Path, facts: RunFacts) -> dict[str, Any]:
             "ate_under_joint_rmse_m": agent.get("under_joint", {}).get("stats_m", {}).get("rmse"),
             "keyframes_matched": agent.get("n_matched"),
             "edges": edge.get("edge_of", {}).get(name, []),
+            "poses_received": poses.get("received"),
+            "pose_latency_s": {k: poses.get(f"{k}_s") for k in ("median", "p95", "max")},
         }
     sites = {
         name: {
@@ -234,6 +237,25 @@ def render_markdown(data: dict[str, Any]) -> str:
             f"{link['reverse_kbit_s']:.1f} | "
             f"{link['duplicates_dropped']} |"
         )
+    if any(r.get("poses_received") is not None for r in data["robots"].values()):
+        lines += [
+            "",
+            "## Each robot's pose, back on the robot",
+            "",
+            "The edge's pose of every frame it processed, received by the robot "
+            "(`run/results/poses/<robot>.tum`); latency from taking the frame to its pose on "
+            "the robot, s.",
+            "",
+            "| robot | poses received / frames sent | latency median | p95 | max |",
+            "|---|---|---|---|---|",
+        ]
+        for name, r in data["robots"].items():
+            lat = r.get("pose_latency_s") or {}
+            lines.append(
+                f"| {name} | {_fmt(r.get('poses_received'), 'd')} / {r['frames_sent']} "
+                f"| {_fmt(lat.get('median'), '.2f')} | {_fmt(lat.get('p95'), '.2f')} "
+                f"| {_fmt(lat.get('max'), '.2f')} |"
+            )
     if len(data.get("sites", {})) > 1:
         lines += [
             "",

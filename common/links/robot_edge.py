@@ -115,6 +115,52 @@ class CameraImuOffset(Message):
     sigma_ns: int
 
 
+POSE_STATUSES = ("tracking", "initializing", "lost")
+"""``FramePose.status``: the VIO's state at that frame (``services.edge.vio.TrackingStatus``)."""
+
+
+@message(0x0304)
+class FramePose(Message):
+    """The robot's pose at one of its frames, as the edge's VIO found it: sent for every
+    frame the VIO finished, so that the robot (and whoever it serves) has its own pose.
+
+    ``timestamp_ns``: the frame's camera time; ``map_id``: the edge's map it is in;
+    ``status``: one of :data:`POSE_STATUSES`; ``pose``: 28 bytes, 7 little-endian float32, the
+    unit quaternion (w, x, y, z), w >= 0, of ``R_map_body`` and ``p_map_body`` m
+    (:func:`encode_pose`), in the frame of the robot's own map as the cloud's corrections
+    have moved it; ``b""`` while the VIO has no metric pose (initialising, lost)."""
+
+    timestamp_ns: int
+    map_id: int
+    status: str
+    pose: bytes
+
+
+def encode_pose(T_map_body: np.ndarray) -> bytes:
+    """:attr:`FramePose.pose` of a (4, 4) pose (ValueError if it is not finite in float32)."""
+    if not np.isfinite(np.asarray(T_map_body, np.float64)).all():
+        raise ValueError("a pose must be finite (and fit float32)")
+    out = _pack_state_pose(T_map_body)
+    if not np.isfinite(np.frombuffer(out, "<f4")).all():
+        raise ValueError("a pose must be finite (and fit float32)")
+    return out
+
+
+def decode_pose(msg: FramePose) -> np.ndarray | None:
+    """``T_map_body`` (4, 4) of a :class:`FramePose`, None if it carries none;
+    RemoteProtocolError naming the field if the message is malformed."""
+    if msg.status not in POSE_STATUSES:
+        raise RemoteProtocolError(f"FramePose.status {msg.status!r} is not one of {POSE_STATUSES}")
+    if not msg.pose:
+        return None
+    if len(msg.pose) != 28:
+        raise RemoteProtocolError(f"FramePose.pose has {len(msg.pose)} bytes, expected 28")
+    T = _state_T(msg.pose)
+    if not np.isfinite(T).all():
+        raise RemoteProtocolError("FramePose.pose is not finite")
+    return T
+
+
 # ------------------------------------------------------------------- edge -> robot, coded
 FEEDBACK_VERSION = 2
 """Version byte of the sealed ``InertialFeedbackCoded.landmarks`` payload."""

@@ -30,9 +30,7 @@ from common.calibration import CameraCalibration
 from common.codec import (
     CodecConfig,
     FeatureDecoder,
-    ImuChunk,
     ImuDecoder,
-    ImuEncoder,
     KeyframeFeatures,
     encode_standalone_keyframe,
 )
@@ -55,13 +53,25 @@ from common.links.edge_cloud import (
     pack_keyframe_update,
     pack_map_point_update,
 )
-from common.links.robot_edge import Anchors, CameraImuOffset, RobotFrame
+from common.links.robot_edge import (
+    Anchors,
+    CameraImuOffset,
+    FramePose,
+    RobotFrame,
+    encode_pose,
+)
 from common.protocol.arrays import pack_array
 from common.protocol.messages import Message
 from common.vocabulary import Vocabulary
 from services.edge.feedback import FeedbackPolicy, FeedbackSender
+from services.edge.imu_uplink import ImuUplink
 from services.edge.point_uplink import Selection, SentPoints, one_point_each
-from services.edge.vio.types import FrameObservation, KeyframeSnapshot, MapUpdate
+from services.edge.vio.types import (
+    FrameObservation,
+    KeyframeSnapshot,
+    MapUpdate,
+    TrackingStatus,
+)
 from services.edge.worker import WorkItem, WorkResult
 
 logger = logging.getLogger(__name__)
@@ -163,6 +173,7 @@ class RobotSession:
         self.last_timestamp_ns = 0
         self.finished = False
         self.feedback_sent = 0
+        self.poses_sent = 0
         self.codec_timer = CodecTimer()  # encode time of this robot's messages
         self.feedback = FeedbackSender(
             self.options.feedback, self.options.wire, self.codec_timer, camera
@@ -170,16 +181,14 @@ class RobotSession:
         # frame index -> the frame's tracks and keypoints, until its VIO result (feedback
         # points are sent along these rays)
         self._anchors: OrderedDict[int, Anchors] = OrderedDict()
+        self._frame_times: OrderedDict[int, int] = OrderedDict()  # frame index -> its time (ns)
         self.frame_s: list[float] = []
         self.track_s: list[float] = []
         self.local_ba_s: list[float] = []
         self._reset_stream()
         self._kf_features: OrderedDict[int, KeyframeFeatures] = OrderedDict()
-        self._imu_chunks: list[tuple[np.ndarray, np.ndarray]] = []  # (t_ns (K,), (K, 6))
+        self.imu_uplink = ImuUplink(self.options.imu_history_s)  # the keyframes' IMU
         self._kf_time: dict[tuple[int, int], int] = {}
-        # (map id, keyframe id) -> where its IMU ended (IMU clock): the next keyframe's starts
-        # there, so a moved time offset neither skips nor repeats samples
-        self._kf_imu_end: dict[tuple[int, int], int] = {}
         self._sent_kfs: set[tuple[int, int]] = set()
         # The VIO's own keyframes (no robot features) stay on the edge: uplinked keyframes
         # chain to the previous uplinked keyframe of their map, observations skip the others.
@@ -248,8 +257,11 @@ class RobotSession:
             levels = feats.keypoints[:, 2].astype(np.uint8)
             desc = None
         self._anchors[msg.frame_index] = Anchors(self.numbers, uv)
+        self._frame_times[msg.frame_index] = msg.timestamp_ns
         while len(self._anchors) > _ANCHOR_FRAMES:
             self._anchors.popitem(last=False)
+        while len(self._frame_times) > _ANCHOR_FRAMES:
+            self._frame_times.popitem(last=False)
         obs = FrameObservation(
             timestamp_ns=msg.timestamp_ns,
             track_ids=self.numbers,
@@ -258,49 +270,17 @@ class RobotSession:
             is_keyframe=isinstance(feats, KeyframeFeatures),
             descriptors=desc,
         )
-        if len(imu):
-            self._imu_chunks.append(
-                (imu.timestamps_ns, np.concatenate([imu.gyro, imu.accel], axis=1))
-            )
-            horizon = int(imu.timestamps_ns[-1]) - int(self.options.imu_history_s * 1e9)
-            while self._imu_chunks and self._imu_chunks[0][0][-1] < horizon:
-                self._imu_chunks.pop(0)
+        self.imu_uplink.add(imu.timestamps_ns, imu.gyro, imu.accel)
         self.frames += 1
         self.last_timestamp_ns = msg.timestamp_ns
         return WorkItem(msg.frame_index, imu.timestamps_ns, imu.gyro, imu.accel, obs)
 
-    def _imu_window(
-        self, prev: tuple[int, int] | None, key: tuple[int, int], t1_ns: int
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """IMU samples of keyframe ``key`` at camera time ``t1_ns``: from where the IMU of
-        its predecessor ``prev`` ended (everything held if None) up to ``t1 + time offset``
-        on the IMU clock: ``t_ns`` (M,) int64 IMU-clock stamps (as the robot sent them; the
-        cloud reads them at its keyframes' times plus the offset the status reports, so an
-        offset found late still applies to the keyframes sent before it) and
-        ``[gyro, accel]`` (M, 6). A keyframe's window starts where its predecessor's ended,
-        so a moved offset neither skips nor repeats samples."""
-        end = t1_ns + self.time_offset_ns
-        start = None
-        if prev is not None:
-            start = self._kf_imu_end.get(prev)
-            if start is None and prev in self._kf_time:
-                start = self._kf_time[prev] + self.time_offset_ns
-        self._kf_imu_end[key] = end if start is None else max(start, end)
-        if not self._imu_chunks:
-            return np.zeros(0, np.int64), np.zeros((0, 6))
-        t = np.concatenate([c[0] for c in self._imu_chunks])
-        v = np.concatenate([c[1] for c in self._imu_chunks])
-        keep = t <= end
-        if start is not None:
-            keep &= t > start
-        return t[keep], v[keep]
-
-    def _imu_between(
-        self, prev: tuple[int, int] | None, key: tuple[int, int], t1_ns: int
-    ) -> np.ndarray:
-        """IMU rows "<f8 (M,7)" [t_s, gyro, accel] of :meth:`_imu_window` (the raw wire)."""
-        t, v = self._imu_window(prev, key, t1_ns)
-        return np.concatenate([t[:, None] * 1e-9, v], axis=1)
+    def _imu_args(
+        self, prev: tuple[int, int] | None, key: tuple[int, int], t_ns: int
+    ) -> tuple[tuple[int, int] | None, int | None, tuple[int, int], int, int]:
+        """:class:`ImuUplink` arguments of keyframe ``key`` (at ``t_ns``) after ``prev``."""
+        prev_time = None if prev is None else self._kf_time.get(prev)
+        return prev, prev_time, key, t_ns, self.time_offset_ns
 
     # ------------------------------------------------------------------ outputs
     def on_result(self, res: WorkResult, *, replaying: bool = False) -> Outputs:
@@ -324,6 +304,8 @@ class RobotSession:
                 sigma_ns = int(sigma * 1e6) if np.isfinite(sigma) else -1
                 out.robot.append(CameraImuOffset(res.time_offset_ns, sigma_ns))
                 self._offset_told = res.time_offset_ns
+        if not replaying:
+            out.robot.append(self._frame_pose(res))
         self.track_s.extend(res.track_s)
         self.local_ba_s.extend(res.local_ba_s)
         for map_id, deltas in res.point_moves:  # before this frame's (corrected) points
@@ -339,8 +321,21 @@ class RobotSession:
                 out.robot.append(fb)
         while self._anchors and next(iter(self._anchors)) <= res.frame_index:
             self._anchors.popitem(last=False)  # results come in frame order
+        while self._frame_times and next(iter(self._frame_times)) <= res.frame_index:
+            self._frame_times.popitem(last=False)
         out.status_due = self.processed % self.options.status_every_frames == 0
         return out
+
+    def _frame_pose(self, res: WorkResult) -> FramePose:
+        """The robot's pose at this frame (none while the VIO has no metric pose)."""
+        self.poses_sent += 1
+        r = res.result
+        if r is None:  # the VIO failed on this frame and starts over
+            t_ns = self._frame_times.get(res.frame_index, self.last_timestamp_ns)
+            return FramePose(t_ns, int(self.map_id), "lost", b"")
+        metric = r.status is TrackingStatus.TRACKING
+        pose = encode_pose(r.T_world_body) if metric else b""
+        return FramePose(r.timestamp_ns, int(r.map_id), r.status.value, pose)
 
     def _feedback(self, res: WorkResult) -> Message | None:
         assert res.state is not None
@@ -429,10 +424,12 @@ class RobotSession:
                     state=encode_states(_states([(kf.keyframe_id, *state)], anchor)),
                     features=encode_standalone_keyframe(self.vocabulary, feats, self.codec),
                     map_point_ids=encode_point_ids(book.carried(point_ids, kf.keyframe_id)),
-                    imu=self._imu_coded(
-                        None if prev is None else (upd.map_id, prev),
-                        (upd.map_id, kf.keyframe_id),
-                        kf.timestamp_ns,
+                    imu=self.imu_uplink.coded(
+                        *self._imu_args(
+                            None if prev is None else (upd.map_id, prev),
+                            (upd.map_id, kf.keyframe_id),
+                            kf.timestamp_ns,
+                        )
                     ),
                 )
             )
@@ -517,13 +514,6 @@ class RobotSession:
             or np.abs(new[3] - last[3]).max() > o.bias_resend
         )
 
-    def _imu_coded(self, prev: tuple[int, int] | None, key: tuple[int, int], t1_ns: int) -> bytes:
-        """:meth:`_imu_window` coded by a fresh ``ImuEncoder`` (the coded wire)."""
-        t, v = self._imu_window(prev, key, t1_ns)
-        if not len(t):
-            return b""
-        return ImuEncoder().encode(ImuChunk(t, v[:, :3], v[:, 3:]))
-
     def _culls(self, upd: MapUpdate) -> list[Message]:
         book = self._sent_points.get(upd.map_id)
         removed = np.zeros(0, np.int64)
@@ -567,7 +557,7 @@ class RobotSession:
                         kf.keyframe_id,
                     )
                 prev_key = None if prev is None else (upd.map_id, int(prev))
-                imu = self._imu_between(prev_key, key, kf.timestamp_ns)
+                imu = self.imu_uplink.raw(*self._imu_args(prev_key, key, kf.timestamp_ns))
                 self._sent_kfs.add(key)
                 self.vio_keyframes += 1
             msgs.append(

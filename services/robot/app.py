@@ -23,6 +23,9 @@ live in the world frame, and the next update builds on them. A refused message (
 decode, not a rotation, too old) is logged and counted, never retried. Messages that arrive
 while a frame is tracked wait, all of them, in order.
 
+The edge's :class:`FramePose` (the robot's pose at each frame) goes to ``pose_sink`` as it
+arrives (``services.robot.poses``), nothing else is done with it here.
+
 With ``record=True`` every frame's :class:`UsedFrame` (what the pipeline used and what was
 coded) is kept in memory, for tests that compare it with what the edge decoded.
 """
@@ -33,6 +36,7 @@ import logging
 import threading
 import time
 from collections import OrderedDict
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -45,6 +49,7 @@ from common.links.robot_edge import (
     Anchors,
     CameraImuOffset,
     FeedbackContent,
+    FramePose,
     InertialFeedback,
     InertialFeedbackCoded,
     RobotFrame,
@@ -131,6 +136,8 @@ class RobotApp:
         self._offset_pending: int | None = None  # guarded by _pending_lock
         self._pending_lock = threading.Lock()  # guards _pending (loop vs worker thread)
         self._lock = threading.Lock()  # held while the front end is in use
+        # Where the edge's FramePose messages go (on the event loop), e.g. a PoseTrack
+        self.pose_sink: Callable[[FramePose], None] | None = None
 
     # ------------------------------------------------------------------ worker thread
     def process(self, timestamp_ns: int, image: np.ndarray, imu: ImuSamples) -> RobotFrame:
@@ -177,6 +184,10 @@ class RobotApp:
     async def on_message(self, delivery: Delivery) -> None:
         """Handler for the edge's messages (never raises: a refused message is not retried)."""
         msg = delivery.message
+        if isinstance(msg, FramePose):
+            if self.pose_sink is not None:
+                self.pose_sink(msg)
+            return
         if isinstance(msg, CameraImuOffset):
             with self._pending_lock:
                 self._offset_pending = msg.offset_ns

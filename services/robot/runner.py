@@ -28,7 +28,7 @@ from typing import TYPE_CHECKING
 from common.entry import add_give_up_argument, add_security_arguments
 
 if TYPE_CHECKING:
-    from services.robot.server import RobotServiceConfig
+    from services.robot.service_config import RobotServiceConfig
 
 ENV_DEFAULTS = {
     "dataset": "RECSLAM_DATASET",
@@ -113,6 +113,30 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="from sequence frame FRAME on, end the session with the current edge (after it "
         "took everything) and continue with the edge at HOST:PORT (repeat, in frame order)",
     )
+    p.add_argument(
+        "--pose-out",
+        type=Path,
+        default=None,
+        metavar="FILE.tum",
+        help="write the robot's pose at every frame, as the edge sends it back, to this TUM "
+        "file as it arrives (the robot's own map frame; default: none)",
+    )
+    p.add_argument(
+        "--pose-wait",
+        type=float,
+        default=0.0,
+        metavar="S",
+        help="after the last frame, wait up to S seconds for the edge's poses of the frames it "
+        "is still working on (default 0: stop once the edge took the frames)",
+    )
+    p.add_argument(
+        "--stats-out",
+        type=Path,
+        default=None,
+        metavar="FILE.json",
+        help="write the run's counters and the pose latency (camera frame -> its pose back on "
+        "the robot: median, p95, max) to this JSON file at the end (default: none)",
+    )
     add_give_up_argument(p, "edge")
 
 
@@ -121,7 +145,7 @@ def config_from_args(args: argparse.Namespace) -> RobotServiceConfig:
     CredentialsError on a bad address or secret)."""
     from common.entry import tls_from_args
     from common.protocol.credentials import load_keys, parse_address
-    from services.robot.server import (
+    from services.robot.service_config import (
         DEV_SECRET,
         Handover,
         Rate,
@@ -168,6 +192,9 @@ def config_from_args(args: argparse.Namespace) -> RobotServiceConfig:
         flush_timeout_s=args.flush_timeout,
         stop_flush_timeout_s=args.stop_flush_timeout,
         give_up_after_s=args.give_up_after,
+        pose_out=args.pose_out,
+        pose_wait_s=args.pose_wait,
+        stats_out=args.stats_out,
     )
 
 

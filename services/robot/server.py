@@ -50,8 +50,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import dataclasses
-import enum
-import itertools
+import json
 import logging
 import math
 import signal
@@ -60,173 +59,26 @@ from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, TextIO
 
 from common.data.euroc import EurocFrame
-from common.data.sources import SequenceSource, open_source
-from common.errors import RecslamError
-from common.links.robot_edge import RobotFrame, sensors_message
+from common.links.robot_edge import FramePose, RobotFrame, sensors_message
 from common.links.sensors import Sensors
 from common.protocol import PeerRejectedError, PeerUnreachableError, SessionConfig
-from common.protocol.auth import MIN_SECRET_SIZE, Keyring, as_keyring
+from common.protocol.auth import as_keyring
 from common.protocol.messages import Message
 from common.transport import Client, TransportConfig
-from common.transport.tls import TlsFiles
-from common.vocabulary import DEFAULT_VOCABULARY_PATH, Vocabulary
+from common.vocabulary import Vocabulary
 from services.robot.app import RobotApp
-from services.robot.config import FrontEndConfig
+from services.robot.poses import PoseTrack, tum_line
+from services.robot.service_config import (
+    Rate,
+    RobotConfigError,
+    RobotServiceConfig,
+    open_sequence,
+)
 
 logger = logging.getLogger(__name__)
-
-DEV_SECRET = b"recslam-development-secret-do-not-deploy"
-
-
-class RobotConfigError(RecslamError):
-    """The robot service was configured wrongly (dataset, address, secret, options)."""
-
-
-class Rate(enum.Enum):
-    """Playback pace."""
-
-    REALTIME = "realtime"
-    """Frames are handed to the front end at their camera timestamps."""
-    MAX = "max"
-    """As fast as the front end runs."""
-
-
-@dataclass(frozen=True)
-class Handover:
-    """From sequence frame ``frame`` on, the robot plays to the edge at ``host:port``."""
-
-    frame: int
-    host: str
-    port: int
-
-
-@dataclass(frozen=True)
-class RobotServiceConfig:
-    """Everything the robot service needs (built once, handed down).
-
-    Attributes:
-        dataset: EuRoC-layout sequence folder (``mav0`` inside or the folder itself), or None
-            with ``bag``.
-        edge_host, edge_port: the edge's address.
-        agent_id: this robot's id on the link (unique per edge).
-        secret: the robot's keys (a Keyring from its ``--key-file``: its credential only), or
-            the operator secret (>= 16 bytes); see :func:`common.protocol.credentials.load_keys`.
-        tls: TLS towards the edge (its CA bundle; none: plain TCP, frames sealed anyway).
-        rate: playback pace (realtime default).
-        start_frame: first frame played (0).
-        max_frames: frames played at most (None = to the end).
-        backlog_s: outage the outbox absorbs at the camera rate before back-pressure (1800 s).
-        max_backlog_bytes: byte bound of the outbox (256 MiB).
-        flush_timeout_s: longest wait for the edge to take the rest at the end (None = wait).
-        stop_flush_timeout_s: longest wait, after a first SIGINT/SIGTERM, for the edge to take
-            the backlog (10 s; within compose's stop_grace_period).
-        give_up_after_s: stop (exit code 4, one line saying why) when there has been no
-            session with the edge for this long (s): unreachable, timing out, or closing the
-            connection before the handshake; 0 = keep trying for ever (default). A refused
-            credential stops the robot at once either way (exit code 3).
-        heartbeat_interval_s, idle_timeout_s: protocol liveness (2 s, 10 s).
-        front_end: front-end options.
-        vocabulary: ORB vocabulary file (the repository's default).
-        record: keep what the pipeline used per frame in memory (tests).
-        bag: a ROS 1 ``.bag`` file or ROS 2 bag folder instead of ``dataset``.
-        calibration: calibration file or folder (Kalibr camchain.yaml, EuRoC sensor.yaml);
-            overrides the folder's, required with ``bag``.
-        image_topic, imu_topic: the bag's topics (default: the calibration's ``rostopic``).
-        handovers: moves to other edges (sites), in increasing frame order, each after
-            ``start_frame`` (see the module docstring; default none).
-    """
-
-    dataset: Path | None
-    edge_host: str
-    edge_port: int
-    agent_id: str
-    secret: bytes | Keyring = field(repr=False)
-    rate: Rate = Rate.REALTIME
-    start_frame: int = 0
-    max_frames: int | None = None
-    backlog_s: float = 1800.0
-    max_backlog_bytes: int = 256 * 1024 * 1024
-    flush_timeout_s: float | None = None
-    stop_flush_timeout_s: float = 10.0
-    give_up_after_s: float = 0.0
-    heartbeat_interval_s: float = 2.0
-    idle_timeout_s: float = 10.0
-    front_end: FrontEndConfig = field(default_factory=FrontEndConfig)
-    vocabulary: Path = DEFAULT_VOCABULARY_PATH
-    record: bool = False
-    bag: Path | None = None
-    calibration: Path | None = None
-    image_topic: str | None = None
-    imu_topic: str | None = None
-    tls: TlsFiles = field(default_factory=TlsFiles)
-    handovers: tuple[Handover, ...] = ()
-
-    def __post_init__(self) -> None:
-        if self.dataset is None and self.bag is None:
-            raise RobotConfigError("a recording is required: --dataset FOLDER or --bag PATH")
-        if self.dataset is not None and self.bag is not None:
-            raise RobotConfigError("give --dataset (a sequence folder) or --bag, not both")
-        if self.bag is not None and self.calibration is None:
-            raise RobotConfigError(
-                f"--bag {self.bag} needs --calibration FILE: a bag holds no calibration "
-                "(Kalibr camchain.yaml, EuRoC cam0/sensor.yaml, or a folder holding them)"
-            )
-        if self.bag is None and (self.image_topic or self.imu_topic):
-            raise RobotConfigError("--image-topic and --imu-topic apply to --bag only")
-        if not isinstance(self.rate, Rate):
-            raise RobotConfigError(f"rate must be one of {[r.value for r in Rate]}")
-        if not self.edge_host:
-            raise RobotConfigError("edge host is empty")
-        if not 0 < int(self.edge_port) < 65536:
-            raise RobotConfigError(f"edge port {self.edge_port} outside 1..65535")
-        if not self.agent_id or len(self.agent_id) > 64:
-            raise RobotConfigError("agent id must be 1..64 characters")
-        if isinstance(self.secret, Keyring):
-            if self.secret.credential("robot", self.agent_id) is None:
-                raise RobotConfigError(f"the keys hold no credential for robot {self.agent_id!r}")
-        elif not isinstance(self.secret, bytes) or len(self.secret) < MIN_SECRET_SIZE:
-            raise RobotConfigError(f"shared secret must be at least {MIN_SECRET_SIZE} bytes")
-        if self.start_frame < 0 or (self.max_frames is not None and self.max_frames < 0):
-            raise RobotConfigError("start_frame and max_frames must be >= 0")
-        if self.backlog_s <= 0 or self.max_backlog_bytes <= 0:
-            raise RobotConfigError("backlog_s and max_backlog_bytes must be positive")
-        if self.flush_timeout_s is not None and self.flush_timeout_s <= 0:
-            raise RobotConfigError("flush_timeout_s must be positive (or None to wait)")
-        if not self.stop_flush_timeout_s > 0:
-            raise RobotConfigError(
-                f"stop_flush_timeout_s must be positive, got {self.stop_flush_timeout_s}"
-            )
-        if self.idle_timeout_s <= self.heartbeat_interval_s:
-            raise RobotConfigError("idle_timeout_s must exceed heartbeat_interval_s")
-        if not self.give_up_after_s >= 0:
-            raise RobotConfigError(
-                f"give_up_after_s must be >= 0 (0 = never), got {self.give_up_after_s}"
-            )
-        frames = [self.start_frame, *(h.frame for h in self.handovers)]
-        if any(b <= a for a, b in itertools.pairwise(frames)):
-            raise RobotConfigError(
-                f"handover frames must increase and follow the start frame, got {frames}"
-            )
-        for h in self.handovers:
-            if not h.host or not 0 < int(h.port) < 65536:
-                raise RobotConfigError(f"handover at frame {h.frame}: bad edge {h.host}:{h.port}")
-
-
-def open_sequence(config: RobotServiceConfig) -> SequenceSource:
-    """Open the dataset folder or bag with its calibration and check the first image against
-    it (a RecslamError names the missing or malformed file, field or topic)."""
-    if config.dataset is not None and not Path(config.dataset).exists():
-        raise RobotConfigError(f"{config.dataset}: dataset folder does not exist")
-    if config.bag is not None and not Path(config.bag).exists():
-        raise RobotConfigError(f"{config.bag}: bag does not exist")
-    if config.calibration is not None and not Path(config.calibration).exists():
-        raise RobotConfigError(f"{config.calibration}: calibration does not exist")
-    return open_source(
-        config.dataset, config.bag, config.calibration, config.image_topic, config.imu_topic
-    )
 
 
 @dataclass(frozen=True)
@@ -243,6 +95,7 @@ class RobotRunResult:
     feedback_applied: int
     counters: dict[str, Any]
     sessions: tuple[dict[str, Any], ...] = ()
+    poses: dict[str, float | int] = field(default_factory=dict)
 
 
 class RobotService:
@@ -262,6 +115,8 @@ class RobotService:
             )
         self._stop_index = stop
         self._vocabulary = Vocabulary.load(config.vocabulary)
+        self.poses = PoseTrack()  # the edge's pose of each frame, over every edge session
+        self._pose_file: TextIO | None = None
         self.app = self._new_app()
         self.apps = [self.app]  # one per edge session (a handover starts a fresh one)
         self.client: Client | None = None
@@ -271,13 +126,23 @@ class RobotService:
         self._give_up: asyncio.TimerHandle | None = None
 
     def _new_app(self) -> RobotApp:
-        return RobotApp(
+        app = RobotApp(
             self.config.front_end,
             self.sequence.cam0,
             self.sequence.imu,
             self._vocabulary,
             record=self.config.record,
         )
+        app.pose_sink = self._on_pose
+        return app
+
+    def _on_pose(self, msg: FramePose) -> None:
+        """The edge's pose of one frame (event loop): latency, and the TUM line if asked."""
+        pose = self.poses.on_pose(msg, time.monotonic())
+        if pose is not None and self._pose_file is not None:
+            line = tum_line(pose)
+            if line is not None:
+                self._pose_file.write(line + "\n")
 
     def segments(self) -> list[tuple[int, int, str, int]]:
         """``(first frame, end frame, edge host, edge port)`` of each edge session, in order
@@ -348,6 +213,10 @@ class RobotService:
         executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix=f"robot-{cfg.agent_id}")
         sessions: list[dict[str, Any]] = []
         flushed = True
+        if cfg.pose_out is not None:
+            cfg.pose_out.parent.mkdir(parents=True, exist_ok=True)
+            self._pose_file = cfg.pose_out.open("w", buffering=1, encoding="utf-8")
+            self._pose_file.write("# timestamp tx ty tz qx qy qz qw\n")
         try:
             for i, (first, end, host, port) in enumerate(self.segments()):
                 if i > 0:
@@ -373,6 +242,9 @@ class RobotService:
             if self._give_up is not None:
                 self._give_up.cancel()
             executor.shutdown(wait=True)
+            if self._pose_file is not None:
+                self._pose_file.close()
+                self._pose_file = None
         wall = time.monotonic() - t_start
         frames = sum(a.frames for a in self.apps)
         keyframes = sum(a.keyframes for a in self.apps)
@@ -386,7 +258,19 @@ class RobotService:
             sum(c["tx"]["bytes"] for c in sessions),
             flushed,
         )
-        return RobotRunResult(
+        poses = self.poses.summary()
+        logger.info(
+            "robot %s: %d of %d frames' poses back from the edge (%d with a metric pose), "
+            "latency median %.3f s, p95 %.3f s, max %.3f s",
+            cfg.agent_id,
+            poses["received"],
+            frames,
+            poses["with_pose"],
+            poses["median_s"],
+            poses["p95_s"],
+            poses["max_s"],
+        )
+        result = RobotRunResult(
             frames=frames,
             keyframes=keyframes,
             interrupted=self._signals > 0,
@@ -395,7 +279,11 @@ class RobotService:
             feedback_applied=sum(a.feedback_applied for a in self.apps),
             counters=sessions[-1] if sessions else {},
             sessions=tuple(sessions),
+            poses=poses,
         )
+        if cfg.stats_out is not None:
+            write_run_stats(cfg.stats_out, result)
+        return result
 
     async def _session(
         self, executor: ThreadPoolExecutor, first: int, end: int, host: str, port: int
@@ -434,6 +322,8 @@ class RobotService:
             )
             await self._play(executor, first, end)
             flushed = await self._send(self.app.end_message()) and await self._flush()
+            if flushed and self.config.pose_wait_s > 0:
+                await self._wait_poses(self.config.pose_wait_s)
             self.app.apply_pending()
         finally:
             counters = self.client.counters()
@@ -465,6 +355,7 @@ class RobotService:
                     if self._stop.is_set():
                         break
             assert frame.image is not None
+            self.poses.captured(frame.timestamp_ns, time.monotonic())
             msg: RobotFrame = await loop.run_in_executor(
                 executor, self.app.process, frame.timestamp_ns, frame.image, frame.imu
             )
@@ -485,6 +376,14 @@ class RobotService:
                 break
         # a bag's reader lives in the worker thread (SQLite): close it there
         await loop.run_in_executor(executor, _close_frames, frames)
+
+    async def _wait_poses(self, timeout_s: float) -> None:
+        """After the last frame: until the edge's pose of every frame sent is back, the stop
+        is requested, or ``timeout_s`` passed (the rest is counted as not received)."""
+        deadline = time.monotonic() + timeout_s
+        while self.poses.pending and time.monotonic() < deadline and not self._stop.is_set():
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self._stop.wait(), 0.05)
 
     async def _send(self, msg: Message) -> bool:
         """Queue ``msg`` (waiting while the backlog is full); False if a second signal
@@ -532,6 +431,18 @@ class RobotService:
             return False
         flush.result()  # re-raise a flush error (the edge refused the robot)
         return True
+
+
+def write_run_stats(path: Path, result: RobotRunResult) -> None:
+    """The run's outcome as JSON (``recslam robot --stats-out``): frames, keyframes, whether
+    the edge took everything, wall time, the poses back from the edge and their latency, and
+    each edge session's link counters."""
+    stats = dataclasses.asdict(result)
+    stats["time"] = time.time()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    tmp.write_text(json.dumps(stats, default=str), encoding="utf-8")
+    tmp.replace(path)
 
 
 def _next_frame(frames: Iterator[EurocFrame]) -> EurocFrame | None:

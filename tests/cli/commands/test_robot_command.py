@@ -10,7 +10,8 @@ import pytest
 from common.errors import RecslamError
 from common.protocol.credentials import CredentialsError, load_secret, parse_address
 from recslam.commands import robot
-from services.robot.server import DEV_SECRET, Rate, RobotConfigError, RobotService
+from services.robot.server import RobotService
+from services.robot.service_config import DEV_SECRET, Rate, RobotConfigError
 
 
 def parse(argv: list[str]) -> argparse.Namespace:
@@ -122,7 +123,7 @@ def test_environment_supplies_missing_arguments(monkeypatch, tmp_path):
 
 
 def test_handovers_parse_in_frame_order_and_a_malformed_one_is_named(tmp_path, monkeypatch):
-    from services.robot.server import Handover
+    from services.robot.service_config import Handover
 
     monkeypatch.setenv("RECSLAM_SECRET", "0123456789abcdef-robot")
     base = ["--dataset", str(tmp_path), "--edge", "a:7000", "--agent-id", "r1"]

@@ -28,7 +28,8 @@ from common.vocabulary import Vocabulary
 from recslam.cli import main as recslam_main
 from services.robot.app import RobotApp
 from services.robot.config import FrontEndConfig
-from services.robot.server import Rate, RobotService, RobotServiceConfig
+from services.robot.server import RobotService
+from services.robot.service_config import Rate, RobotServiceConfig
 
 FRAMES = 8
 IMAGE_TOPIC, IMU_TOPIC = "/cam0/image_raw", "/imu0"

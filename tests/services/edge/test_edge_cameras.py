@@ -21,7 +21,8 @@ from common.transport import Delivery, Server, TransportConfig
 from common.vocabulary import Vocabulary
 from services.edge.app import EdgeConfig
 from services.edge.server import EdgeServer, EdgeServiceConfig
-from services.robot.server import Rate, RobotService, RobotServiceConfig
+from services.robot.server import RobotService
+from services.robot.service_config import Rate, RobotServiceConfig
 
 SECRET = b"edge-cameras-test-secret-0123"
 FAST = TransportConfig(reconnect_initial_delay=0.02, reconnect_max_delay=0.3)

@@ -104,7 +104,8 @@ def test_excerpt_robot_to_edge_to_real_cloud(tmp_path, vocab, euroc_micro) -> No
     and the VIO says why it has not initialised (too little motion)."""
     from services.cloud.config import CloudServiceConfig
     from services.cloud.server import CloudServer
-    from services.robot.server import Rate, RobotService, RobotServiceConfig
+    from services.robot.server import RobotService
+    from services.robot.service_config import Rate, RobotServiceConfig
 
     camera = read_camera_yaml(euroc_micro / "mav0/cam0/sensor.yaml")
 
@@ -408,7 +409,8 @@ def test_synthetic_robot_initialises_and_receives_feedback(tmp_path) -> None:
     the default VI initialisation) in real time into the edge: the VIO initialises, the edge
     sends InertialFeedback and the robot applies it. Slowest test here (~70 s: rendering)."""
     from common.data.synth import SynthConfig, generate_dataset
-    from services.robot.server import Rate, RobotService, RobotServiceConfig
+    from services.robot.server import RobotService
+    from services.robot.service_config import Rate, RobotServiceConfig
 
     generate_dataset(
         tmp_path / "synth",

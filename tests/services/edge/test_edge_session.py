@@ -12,14 +12,17 @@ from common.links import WireFormat
 from common.links.edge_cloud import KeyframeUpdate, MapPointUpdate
 from common.links.robot_edge import (
     Anchors,
+    FramePose,
     InertialFeedback,
     InertialFeedbackCoded,
     decode_feedback,
+    decode_pose,
 )
 from common.protocol.arrays import unpack_array
 from common.protocol.messages import encode_payload
 from common.vocabulary import Vocabulary
 from services.edge.feedback import FeedbackPolicy, FeedbackSender
+from services.edge.imu_uplink import ImuUplink
 from services.edge.robot_session import RobotSession, SessionOptions
 from services.edge.sim_robot import code_sequence
 from services.edge.vio.simulation import SimOptions, simulate
@@ -219,7 +222,7 @@ def test_coded_feedback_keeps_its_points_when_the_vio_runs_far_behind() -> None:
     runner = VioRunner(WorkerSpec("r", seq.camera, seq.imu))
     fbs = []
     for item in items:
-        fbs += session.on_result(runner.step(item)).robot
+        fbs += [m for m in session.on_result(runner.step(item)).robot if type(m) is not FramePose]
     assert fbs and all(isinstance(m, InertialFeedbackCoded) for m in fbs)
     assert fbs[0].reset and fbs[0].landmarks, "the first feedback carries no points"
     with_points = sum(bool(m.landmarks) for m in fbs)
@@ -252,18 +255,37 @@ def test_keyframe_imu_windows_neither_skip_nor_repeat_samples_when_the_offset_mo
     """Keyframes at 0.5 s steps, the offset found late (0 -> 15 ms) and then refined down
     (-> 14 ms): each keyframe's IMU starts where its predecessor's ended, so the uplinked
     samples are every sample up to the last keyframe's time plus the offset, once each."""
-    session = RobotSession("r", simulate(SimOptions(duration_s=1.0)).camera, Vocabulary.load())
+    uplink = ImuUplink(history_s=65.0)
     t = np.arange(0, 3_000_000_000, 5_000_000, dtype=np.int64)  # 200 Hz IMU clock
-    session._imu_chunks = [(t, np.zeros((len(t), 6)))]
+    uplink.add(t, np.zeros((len(t), 3)), np.ones((len(t), 3)))
     sent = []
-    prev = None
+    prev, prev_t = None, None
     for k, offset_ms in enumerate([0.0, 0.0, 15.0, 15.0, 14.0]):
-        session.time_offset_ns = int(offset_ms * 1e6)
-        key = (0, k)
-        stamps, _ = session._imu_window(prev, key, 500_000_000 * (k + 1))
+        t_kf = 500_000_000 * (k + 1)
+        stamps, values = uplink.window(prev, prev_t, (0, k), t_kf, int(offset_ms * 1e6))
+        assert values.shape == (len(stamps), 6) and np.all(values[:, 3:] == 1.0)
         sent.append(stamps)
-        prev = key
+        prev, prev_t = (0, k), t_kf
     everything = np.concatenate(sent)
     assert np.array_equal(everything, t[t <= 2_500_000_000 + 14_000_000])
     assert sent[2][0] == 1_000_000_000 + 5_000_000  # right after keyframe 1's end, no 15 ms gap
     assert sent[4][-1] == 2_510_000_000  # the last sample at or before 2.5 s + 14 ms
+    # A keyframe whose predecessor's window is unknown (a restart) starts at its time.
+    stamps, _ = uplink.window((0, 99), 2_000_000_000, (0, 100), 2_100_000_000, 0)
+    assert stamps[0] == 2_005_000_000 and stamps[-1] == 2_100_000_000
+
+
+def test_every_processed_frame_sends_the_robot_its_pose(run) -> None:
+    """One FramePose per frame, in frame order: a metric pose (the VIO's) once it tracks,
+    none while it initialises."""
+    _, _, _, _, results, robot_msgs, _ = run
+    poses = [m for m in robot_msgs if isinstance(m, FramePose)]
+    assert [p.timestamp_ns for p in poses] == [r.result.timestamp_ns for r in results]
+    for p, r in zip(poses, results, strict=True):
+        assert p.status == r.result.status.value and p.map_id == r.result.map_id
+        T = decode_pose(p)
+        if r.result.status.value == "tracking":
+            assert T is not None and np.allclose(T, r.result.T_world_body, atol=1e-5)
+        else:
+            assert T is None
+    assert sum(p.status == "tracking" for p in poses) >= len(poses) // 3  # VI init ~2 s of 5

@@ -209,7 +209,7 @@ def test_the_edges_time_offset_reaches_the_robots_batches_and_prediction(euroc_m
         assert fr.imu.timestamps_ns[-1] >= fr.timestamp_ns + 15_000_000  # reaches t + offset
         session.decode(app.process(fr.timestamp_ns, fr.image, fr.imu))
     t_a, t_b = seq.frame_timestamps_ns[3], seq.frame_timestamps_ns[5]
-    t, _ = session._imu_window(int(t_a), int(t_b))
+    t, _ = session.imu_uplink.window((0, 0), int(t_a), (0, 1), int(t_b), session.time_offset_ns)
     imu_t = seq.imu_timestamps_ns
     expected = imu_t[(imu_t > t_a + 15_000_000) & (imu_t <= t_b + 15_000_000)]
     np.testing.assert_array_equal(t, expected)  # the IMU clock's stamps, read at t + offset

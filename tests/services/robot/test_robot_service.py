@@ -28,7 +28,8 @@ from common.transport import Delivery, Server, TransportConfig, run
 from common.vocabulary import Vocabulary
 from services.robot.app import UsedFrame
 from services.robot.coding import next_stream_numbers
-from services.robot.server import Rate, RobotService, RobotServiceConfig
+from services.robot.server import RobotService
+from services.robot.service_config import Rate, RobotServiceConfig
 
 ROOT = Path(__file__).resolve().parents[3]
 SECRET = b"robot-service-test-secret"
@@ -337,7 +338,7 @@ def test_robot_process_runs_to_the_end_and_stops_on_sigterm(vocabulary, tmp_path
 
 
 def test_config_dataclass_rejects_nonsense(tmp_path):
-    from services.robot.server import RobotConfigError
+    from services.robot.service_config import RobotConfigError
 
     ok = robot_config(tmp_path, 7000)
     for change, what in [
@@ -412,7 +413,7 @@ def test_handover_to_a_second_edge_sends_each_frame_exactly_once(vocabulary, eur
     starting with its sensors, frame indices from 0 and a fresh front end (a keyframe first).
     Each sequence frame reaches exactly one edge, decoded."""
     from common.links.robot_edge import RobotSensors
-    from services.robot.server import Handover
+    from services.robot.service_config import Handover
 
     seq = EurocSequence(euroc_micro)
     at = 25
@@ -455,7 +456,7 @@ def test_handover_to_a_second_edge_sends_each_frame_exactly_once(vocabulary, eur
 
 
 def test_handover_frames_must_increase(tmp_path):
-    from services.robot.server import Handover, RobotConfigError
+    from services.robot.service_config import Handover, RobotConfigError
 
     with pytest.raises(RobotConfigError, match="handover frames must increase"):
         robot_config(tmp_path, 7000, handovers=(Handover(10, "h", 1), Handover(5, "h", 2)))

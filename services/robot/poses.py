@@ -1,0 +1,114 @@
+"""The robot's own pose as the edge sends it back: latency, the live TUM file (sans-I/O core).
+
+The edge sends a :class:`~common.links.robot_edge.FramePose` for every frame its VIO
+finished. :class:`PoseTrack` matches each with the moment the robot captured that frame
+(:meth:`PoseTrack.captured`, on the same monotonic clock), so the latency it keeps is what a
+user of the pose feels: camera frame taken -> its pose on the robot, through the uplink, the
+edge's queue and VIO, and the downlink. :func:`tum_line` renders a pose as a TUM line
+(``recslam robot --pose-out FILE.tum``: the robot's own map frame, as the cloud's corrections
+moved it; frames without a metric pose are not written).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections import OrderedDict
+from dataclasses import dataclass
+
+import numpy as np
+
+from common.geometry import R_to_quat_wxyz
+from common.links.robot_edge import FramePose, decode_pose
+from common.protocol.errors import RemoteProtocolError
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True, eq=False)
+class ReceivedPose:
+    """One pose from the edge: the frame's camera time (ns), the edge map, the VIO's status
+    (``FramePose.status``), ``T_map_body`` (4, 4) or None without a metric pose, and the
+    latency [s] from the frame's capture to now (None if the capture is not known here)."""
+
+    timestamp_ns: int
+    map_id: int
+    status: str
+    T_map_body: np.ndarray | None
+    latency_s: float | None
+
+
+class PoseTrack:
+    """Capture times in, poses out, with their latencies (one robot, all its edge sessions).
+
+    ``keep``: capture times remembered (the oldest are forgotten: a pose that comes later
+    than that many frames has no latency)."""
+
+    def __init__(self, keep: int = 20_000) -> None:
+        self.keep = keep
+        self.latest: ReceivedPose | None = None
+        self.received = 0  # FramePose messages taken
+        self.with_pose = 0  # ... that carried a metric pose
+        self.rejected = 0  # malformed ones (logged, not retried)
+        self.latencies_s: list[float] = []
+        self._captured: OrderedDict[int, float] = OrderedDict()
+
+    @property
+    def pending(self) -> int:
+        """Frames captured whose pose has not come back (of the ``keep`` newest)."""
+        return len(self._captured)
+
+    def captured(self, timestamp_ns: int, now_s: float) -> None:
+        """The frame at camera time ``timestamp_ns`` was taken at ``now_s`` (monotonic s)."""
+        self._captured[int(timestamp_ns)] = now_s
+        while len(self._captured) > self.keep:
+            self._captured.popitem(last=False)
+
+    def on_pose(self, msg: FramePose, now_s: float) -> ReceivedPose | None:
+        """The edge's pose of one frame, received at ``now_s``; None (logged, counted) if the
+        message is malformed."""
+        try:
+            T = decode_pose(msg)
+        except RemoteProtocolError as exc:
+            self.rejected += 1
+            logger.warning("pose of frame %d refused: %s", msg.timestamp_ns, exc)
+            return None
+        t_cap = self._captured.pop(int(msg.timestamp_ns), None)
+        latency = None if t_cap is None else now_s - t_cap
+        pose = ReceivedPose(int(msg.timestamp_ns), int(msg.map_id), msg.status, T, latency)
+        self.received += 1
+        self.with_pose += T is not None
+        if latency is not None:
+            self.latencies_s.append(latency)
+        self.latest = pose
+        return pose
+
+    def summary(self) -> dict[str, float | int]:
+        """Counts and the latency's median, 95th percentile and maximum [s] (NaN if none)."""
+        lat = np.asarray(self.latencies_s, np.float64)
+        stats = {"median_s": np.nan, "p95_s": np.nan, "max_s": np.nan}
+        if lat.size:
+            stats = {
+                "median_s": float(np.median(lat)),
+                "p95_s": float(np.percentile(lat, 95)),
+                "max_s": float(lat.max()),
+            }
+        return {
+            "received": self.received,
+            "with_pose": self.with_pose,
+            "rejected": self.rejected,
+            **stats,
+        }
+
+
+def tum_line(pose: ReceivedPose) -> str | None:
+    """``t tx ty tz qx qy qz qw`` (TUM: seconds, position m, Hamilton quaternion xyzw) of a
+    pose, None without a metric pose."""
+    T = pose.T_map_body
+    if T is None:
+        return None
+    w, x, y, z = R_to_quat_wxyz(T[:3, :3])
+    p = T[:3, 3]
+    return (
+        f"{pose.timestamp_ns // 1_000_000_000}.{pose.timestamp_ns % 1_000_000_000:09d} "
+        f"{p[0]:.6f} {p[1]:.6f} {p[2]:.6f} {x:.9f} {y:.9f} {z:.9f} {w:.9f}"
+    )
