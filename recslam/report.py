@@ -68,6 +68,7 @@ def collect(run_dir: Path, facts: RunFacts) -> dict[str, Any]:
     edge = merge_edge_stats(per_edge) if per_edge else {}
     cloud = _load(run_dir / "stats" / "cloud.json")
     ate = _load(run_dir / "results" / "eval" / "ate.json")
+    frame_ate = _load(run_dir / "results" / "frames" / "eval" / "ate.json")
     maps = _load(run_dir / "results" / "cloud_maps.json")
     mission = _load(run_dir / "results" / "mission.json")
     prior_frame = _load(run_dir / "results" / "eval" / "ate_prior_frame.json")
@@ -103,6 +104,7 @@ def collect(run_dir: Path, facts: RunFacts) -> dict[str, Any]:
         frame_bytes = link.get("rx", {}).get("by_type", {}).get("RobotFrame", {}).get("bytes", 0)
         decoded = r.get("frames_decoded", 0)
         agent = ate.get("agents", {}).get(name, {})
+        frames = frame_ate.get("agents", {}).get(name, {})
         poses = _load(run_dir / "stats" / f"robot-{name}.json").get("poses", {})
         robots[name] = {
             "frames_sent": sent,
@@ -116,6 +118,8 @@ def collect(run_dir: Path, facts: RunFacts) -> dict[str, Any]:
             "ate_rmse_m": agent.get("individual", {}).get("stats_m", {}).get("rmse"),
             "ate_under_joint_rmse_m": agent.get("under_joint", {}).get("stats_m", {}).get("rmse"),
             "keyframes_matched": agent.get("n_matched"),
+            "frame_ate_rmse_m": frames.get("individual", {}).get("stats_m", {}).get("rmse"),
+            "frames_matched": frames.get("n_matched"),
             "edges": edge.get("edge_of", {}).get(name, []),
             "poses_received": poses.get("received"),
             "pose_latency_s": {k: poses.get(f"{k}_s") for k in ("median", "p95", "max")},
@@ -142,6 +146,7 @@ def collect(run_dir: Path, facts: RunFacts) -> dict[str, Any]:
         "robots": robots,
         "ate": {
             "joint_rmse_m": joint.get("stats_m", {}).get("rmse"),
+            "frames_joint_rmse_m": frame_ate.get("joint", {}).get("stats_m", {}).get("rmse"),
             "joint_frame": maps.get("joint_frame"),
             "note": maps.get("note"),
             "align": ate.get("align"),
@@ -210,6 +215,14 @@ def render_markdown(data: dict[str, Any]) -> str:
         "",
         f"Joint ATE RMSE: {_fmt(a['joint_rmse_m'])} m"
         + ("" if a["joint_frame"] else f" — {a['note']}"),
+        "",
+        f"Every frame (the edge's frame poses placed on the final keyframes, "
+        f"`run/results/frames/`): joint ATE RMSE {_fmt(a.get('frames_joint_rmse_m'))} m; "
+        + ", ".join(
+            f"{n} {_fmt(r.get('frame_ate_rmse_m'))} m ({r.get('frames_matched') or 0} poses)"
+            for n, r in data["robots"].items()
+        )
+        + ".",
         "",
         "## Map",
         "",

@@ -24,6 +24,7 @@ from common.links.body import (
 )
 from common.links.sensors import Sensors, decode_sensors, encode_sensors
 from common.protocol.arrays import pack_array, unpack_array
+from common.protocol.errors import RemoteProtocolError
 from common.protocol.messages import Message, message
 
 
@@ -172,6 +173,58 @@ def agent_sensors_message(agent_id: str, sensors: Sensors) -> AgentSensors:
 def read_agent_sensors(msg: AgentSensors) -> Sensors:
     """The sensors of ``msg``; SensorsDecodeError (RemoteProtocolError) if damaged/invalid."""
     return decode_sensors(msg.sensors, f"AgentSensors({msg.agent_id!r}).sensors")
+
+
+@message(0x0409)
+class FramePoses(Message):
+    """Where robot ``agent_id``'s frames were, relative to its uplinked keyframes, so that the
+    cloud can write a trajectory of every frame (the VIO's motion since a keyframe, placed on
+    the cloud's corrected pose of that keyframe).
+
+    ``timestamps_ns`` "<i8 (N)": the frames' camera times; ``keyframe_timestamps_ns`` "<i8
+    (N)": each one's reference keyframe (an uplinked keyframe of edge map ``map_id``), by its
+    time; ``poses`` "<f4 (N, 7)": ``T_kf_frame`` of each, the unit quaternion (w, x, y, z) of
+    its rotation then its translation [m]."""
+
+    agent_id: str
+    map_id: int
+    timestamps_ns: bytes
+    keyframe_timestamps_ns: bytes
+    poses: bytes
+
+
+def pack_frame_poses(
+    agent_id: str, map_id: int, t_ns: np.ndarray, t_kf_ns: np.ndarray, T_kf_frame: np.ndarray
+) -> FramePoses:
+    """A :class:`FramePoses` of frames (N,) at ``t_ns`` relative to the keyframes at
+    ``t_kf_ns`` (N,), ``T_kf_frame`` (N, 4, 4)."""
+    T = np.asarray(T_kf_frame, np.float64).reshape(-1, 4, 4)
+    rows = np.concatenate([R_to_quat_wxyz(T[:, :3, :3]).reshape(-1, 4), T[:, :3, 3]], axis=1)
+    return FramePoses(
+        agent_id,
+        int(map_id),
+        pack_array(np.asarray(t_ns, np.int64), "<i8"),
+        pack_array(np.asarray(t_kf_ns, np.int64), "<i8"),
+        pack_array(rows, "<f4"),
+    )
+
+
+def read_frame_poses(msg: FramePoses) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(t_ns (N,), t_kf_ns (N,), T_kf_frame (N, 4, 4))`` of a :class:`FramePoses`;
+    RemoteProtocolError naming the field when the arrays disagree or are not finite."""
+    t = unpack_array(msg.timestamps_ns, "<i8", (), "FramePoses.timestamps_ns")
+    t_kf = unpack_array(msg.keyframe_timestamps_ns, "<i8", (), "FramePoses.keyframe_timestamps_ns")
+    rows = unpack_array(msg.poses, "<f4", (7,), "FramePoses.poses").astype(np.float64)
+    if not len(t) == len(t_kf) == len(rows):
+        raise RemoteProtocolError(
+            f"FramePoses: {len(t)} frames, {len(t_kf)} keyframe times, {len(rows)} poses"
+        )
+    if not np.isfinite(rows).all() or np.any(np.linalg.norm(rows[:, :4], axis=1) < 0.5):
+        raise RemoteProtocolError("FramePoses.poses: not finite unit quaternions and positions")
+    T = np.tile(np.eye(4), (len(rows), 1, 1))
+    T[:, :3, :3] = quat_wxyz_to_R(rows[:, :4])
+    T[:, :3, 3] = rows[:, 4:]
+    return t.astype(np.int64), t_kf.astype(np.int64), T
 
 
 # ------------------------------------------------------------------------- cloud -> edge

@@ -55,19 +55,23 @@ from common.links.edge_cloud import (
     AgentSensors,
     AgentStatus,
     CullEvent,
+    FramePoses,
     KeyframePoses,
     KeyframeUpdate,
     KeyframeUpdateCoded,
     MapPointUpdate,
     MapPointUpdateCoded,
+    read_frame_poses,
 )
 from common.map_view import GroundTruth
+from common.protocol.errors import RemoteProtocolError
 from common.protocol.messages import Message
 from common.protocol.store import InboundPosition
 from common.vocabulary import Vocabulary
 from services.cloud.app_optimization import AppOptimization
 from services.cloud.atlas import Atlas, AtlasSnapshot, KeyframeInput, make_key
 from services.cloud.config import CloudServiceConfig
+from services.cloud.frame_trajectories import FrameTrack
 from services.cloud.ground_truth import references_in_maps
 from services.cloud.map_fusion import FusionEvents, MapFusion
 from services.cloud.map_source import AgentInfo, CloudView
@@ -187,6 +191,7 @@ class CloudApp(AppOptimization):
         self.rejected = 0
         self.rebase = FrameRebase()  # the edge's payloads placed through their anchors
         self.codec_timer = CodecTimer()
+        self.frames = FrameTrack()  # the robots' frames relative to their keyframes
         self.decoders = KeyframeDecoders(vocabulary)  # one feature decoder per codec config
         # CPU time of the worker's stages (``stage.*``: map fusion's per keyframe, the
         # commits, building and applying optimisations, MBP), for ``--stats-out``.
@@ -284,6 +289,14 @@ class CloudApp(AppOptimization):
             reaction = self._cull(edge_id, message, position)
         elif isinstance(message, AgentSensors):
             reaction = self._sensors(edge_id, message, position)
+        elif isinstance(message, FramePoses):
+            try:
+                t, t_kf, T = read_frame_poses(message)
+            except RemoteProtocolError as exc:
+                raise UplinkError(str(exc)) from exc
+            self.frames.add(message.agent_id, t, t_kf, T)
+            self.store.commit(self.atlas, positions=position)
+            reaction = Reaction()
         elif isinstance(message, AgentStatus):
             a, changed = self._agent(message.agent_id, edge_id, message.map_id)
             a.status, a.frames = message.state, message.frames
@@ -479,6 +492,11 @@ class CloudApp(AppOptimization):
             if a.agent_id in self.atlas.agents():
                 agents.setdefault(a.name, []).append(a.agent_id)
         return robot_trajectories(self.atlas, agents, retired)
+
+    def frame_trajectories(self, keyframes: Mapping[str, Trajectory]) -> dict[str, Trajectory]:
+        """Every frame's trajectory per robot, placed on ``keyframes`` (:meth:`trajectories`;
+        :class:`services.cloud.frame_trajectories.FrameTrack`)."""
+        return self.frames.trajectories(keyframes)
 
     def ground_truth(
         self,

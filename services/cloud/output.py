@@ -3,6 +3,9 @@
 Layout (``common.evaluation.results``)::
 
     RESULT_DIR/trajectories/<robot>.tum   T_map_body of each robot's keyframes, TUM format
+    RESULT_DIR/frames/trajectories/<robot>.tum, frames/eval/ate.json
+                                          every frame's T_map_body (the edges' frame poses
+                                          on the final keyframes) and its ATE
     RESULT_DIR/cloud_maps.json            which map each robot is in, and whether all share one
     RESULT_DIR/eval/ate.json, ate.md, *.png   with ground truth (``common.evaluation.report``)
     RESULT_DIR/mission.json               the mission and its merges into a prior map
@@ -25,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from common.evaluation.errors import EvaluationError
-from common.evaluation.report import evaluate_in_frame, evaluate_run
+from common.evaluation.report import EvalConfig, evaluate_in_frame, evaluate_run
 from common.evaluation.results import MAPS_FILE, write_result_trajectories
 from common.evaluation.trajectory import Trajectory
 from services.cloud.atlas import Atlas
@@ -33,7 +36,11 @@ from services.cloud.mission import MISSION_FILE
 
 log = logging.getLogger(__name__)
 
-__all__ = ["MAPS_FILE", "OutputWriter", "robot_trajectories"]
+__all__ = ["FRAMES_DIR", "MAPS_FILE", "OutputWriter", "robot_trajectories"]
+
+FRAMES_DIR = "frames"
+"""``RESULT_DIR/frames/``: every frame's trajectory (``trajectories/<robot>.tum``) and its
+``eval/ate.json`` (:mod:`services.cloud.frame_trajectories`)."""
 
 
 def robot_trajectories(
@@ -91,9 +98,11 @@ class OutputWriter:
         map_of_robot: Mapping[str, int],
         evaluate: bool = True,
         mission: Mapping[str, object] | None = None,
+        frames: Mapping[str, Trajectory] | None = None,
     ) -> list[Path]:
         """Write the trajectories (and the report, and ``mission``: the cloud's
-        ``CloudApp.mission_report``); returns the files written."""
+        ``CloudApp.mission_report``; ``frames``: every frame's trajectory per robot, written
+        and measured in ``RESULT_DIR/frames``); returns the files written."""
         if not trajectories:
             return []
         self.results_dir.mkdir(parents=True, exist_ok=True)
@@ -119,6 +128,20 @@ class OutputWriter:
         files.append(self.results_dir / MAPS_FILE)
         if not joint:
             log.warning("trajectories: %s (%s)", note, dict(map_of_robot))
+        if frames:
+            frames_dir = self.results_dir / FRAMES_DIR
+            folder = write_result_trajectories(frames_dir, frames)
+            files += [folder / f"{name}.tum" for name in frames]
+            (frames_dir / MAPS_FILE).write_text(json.dumps(info, indent=2) + "\n")
+            if evaluate and self.groundtruth is not None:
+                try:
+                    files.extend(
+                        evaluate_run(
+                            frames_dir, self.groundtruth, config=EvalConfig(plots=False)
+                        ).files
+                    )
+                except EvaluationError as exc:
+                    log.warning("per-frame ATE report not written: %s", exc)
         if evaluate and self.groundtruth is not None:
             try:
                 report = evaluate_run(self.results_dir, self.groundtruth)

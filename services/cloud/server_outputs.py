@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import asyncio
 import dataclasses
+import functools
 import logging
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
@@ -115,9 +116,11 @@ class ServerOutputs:
         if app is None or out is None:
             return []
         trajs, maps = await self._on_worker(app.trajectories)
+        frames = await self._on_worker(functools.partial(app.frame_trajectories, trajs))
         mission = await self._on_worker(app.mission_report)
         loop = asyncio.get_running_loop()
-        return await loop.run_in_executor(self._io, out.write, trajs, maps, evaluate, mission)
+        write = functools.partial(out.write, frames=frames)
+        return await loop.run_in_executor(self._io, write, trajs, maps, evaluate, mission)
 
     async def _output_loop(self) -> None:
         while True:

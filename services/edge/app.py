@@ -206,7 +206,7 @@ class EdgeApp:
                     await self._finish(rb, *pending)
                     pending = None
                 s.finished = True
-                for m in s.release_points():  # the points still settling
+                for m in [*s.release_points(), *s.release_frame_poses()]:  # the rest
                     await self.sink.to_cloud(m)
                 await self.sink.to_cloud(s.status(self.sink.link_counters(s.agent_id)))
                 rb.ended.set()

@@ -56,18 +56,18 @@ from common.links.edge_cloud import (
 from common.links.robot_edge import (
     Anchors,
     CameraImuOffset,
-    FramePose,
     RobotFrame,
-    encode_pose,
 )
 from common.protocol.arrays import pack_array
 from common.protocol.messages import Message
 from common.vocabulary import Vocabulary
 from services.edge.feedback import FeedbackPolicy, FeedbackSender
+from services.edge.frame_poses import FramePoseBatcher, frame_pose
 from services.edge.imu_uplink import ImuUplink
 from services.edge.point_uplink import Selection, SentPoints, one_point_each
 from services.edge.vio.types import (
     FrameObservation,
+    FrameResult,
     KeyframeSnapshot,
     MapUpdate,
     TrackingStatus,
@@ -100,6 +100,10 @@ class SessionOptions:
     point_resend_m: float = 0.01
     wire: WireFormat = WireFormat.CODED
     """Encoding of the messages to the robot and to the cloud (``raw``: the schema-1 baseline)."""
+    frame_poses_every: int = 20
+    """Coded wire only: the tracked frames' poses relative to the newest uplinked keyframe go
+    to the cloud (``FramePoses``, 44 B a frame) in batches of this many frames (and when the
+    map changes, and at the end), so that it writes a trajectory of every frame."""
     pose_resend_m: float = 1e-3
     """Coded wire only: a keyframe the cloud has gets a new state (``KeyframePoses``) when its
     position moved more than this (m) since last sent, its rotation more than
@@ -182,6 +186,7 @@ class RobotSession:
         # points are sent along these rays)
         self._anchors: OrderedDict[int, Anchors] = OrderedDict()
         self._frame_times: OrderedDict[int, int] = OrderedDict()  # frame index -> its time (ns)
+        self.frame_poses = FramePoseBatcher(agent_id, self.options.frame_poses_every)
         self.frame_s: list[float] = []
         self.track_s: list[float] = []
         self.local_ba_s: list[float] = []
@@ -305,7 +310,9 @@ class RobotSession:
                 out.robot.append(CameraImuOffset(res.time_offset_ns, sigma_ns))
                 self._offset_told = res.time_offset_ns
         if not replaying:
-            out.robot.append(self._frame_pose(res))
+            self.poses_sent += 1
+            t_ns = self._frame_times.get(res.frame_index, self.last_timestamp_ns)
+            out.robot.append(frame_pose(res.result, t_ns, self.map_id))
         self.track_s.extend(res.track_s)
         self.local_ba_s.extend(res.local_ba_s)
         for map_id, deltas in res.point_moves:  # before this frame's (corrected) points
@@ -315,6 +322,8 @@ class RobotSession:
             self._follow_correction(map_id, deltas)
         for upd in res.updates:
             out.cloud.extend(self._uplink(upd))
+        if res.result is not None and not replaying:
+            out.cloud.extend(self._frame_relative(res.result))
         if res.state is not None and not replaying:
             fb = self._feedback(res)
             if fb is not None:
@@ -326,16 +335,22 @@ class RobotSession:
         out.status_due = self.processed % self.options.status_every_frames == 0
         return out
 
-    def _frame_pose(self, res: WorkResult) -> FramePose:
-        """The robot's pose at this frame (none while the VIO has no metric pose)."""
-        self.poses_sent += 1
-        r = res.result
-        if r is None:  # the VIO failed on this frame and starts over
-            t_ns = self._frame_times.get(res.frame_index, self.last_timestamp_ns)
-            return FramePose(t_ns, int(self.map_id), "lost", b"")
-        metric = r.status is TrackingStatus.TRACKING
-        pose = encode_pose(r.T_world_body) if metric else b""
-        return FramePose(r.timestamp_ns, int(r.map_id), r.status.value, pose)
+    def _frame_relative(self, r: FrameResult) -> list[Message]:
+        """A tracked frame's pose relative to the newest keyframe the cloud has (coded wire),
+        batched (:class:`FramePoseBatcher`)."""
+        if r.status is not TrackingStatus.TRACKING or self.options.wire is not WireFormat.CODED:
+            return []
+        kf = self._last_up.get(r.map_id)
+        if kf is None or (sent := self._sent_state.get((r.map_id, kf))) is None:
+            return []
+        rel = inverse_T(sent[0]) @ r.T_world_body
+        return list(
+            self.frame_poses.add(r.map_id, r.timestamp_ns, self._kf_time[(r.map_id, kf)], rel)
+        )
+
+    def release_frame_poses(self) -> list[Message]:
+        """The frames' relative poses not sent yet (at the robot's end)."""
+        return list(self.frame_poses.release())
 
     def _feedback(self, res: WorkResult) -> Message | None:
         assert res.state is not None

@@ -10,12 +10,22 @@ Every message is read back with the cloud's own decoders.
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
+import pytest
 
 from common.calibration import CameraCalibration
 from common.codec import KeyframeFeatures
-from common.geometry import so3_exp
-from common.links.edge_cloud import KeyframePoses, KeyframeUpdateCoded, MapPointUpdateCoded
+from common.geometry import make_T, so3_exp
+from common.links.edge_cloud import (
+    KeyframePoses,
+    KeyframeUpdateCoded,
+    MapPointUpdateCoded,
+    pack_frame_poses,
+    read_frame_poses,
+)
+from common.protocol.errors import RemoteProtocolError
 from common.protocol.messages import Message
 from common.vocabulary import Vocabulary
 from services.cloud.uplink import (
@@ -24,7 +34,14 @@ from services.cloud.uplink import (
     decode_map_point_update,
 )
 from services.edge.robot_session import RobotSession, SessionOptions
-from services.edge.vio.types import KeyframeSnapshot, MapPointBatch, MapPointSnapshot, MapUpdate
+from services.edge.vio.types import (
+    FrameResult,
+    KeyframeSnapshot,
+    MapPointBatch,
+    MapPointSnapshot,
+    MapUpdate,
+    TrackingStatus,
+)
 
 VOCAB = Vocabulary.load()
 
@@ -130,3 +147,41 @@ def test_messages_are_anchored_on_the_newest_keyframe_the_cloud_has_where_it_is_
     msgs = _step(s, (kf(1, at(0.15)),), ())
     assert anchors(msgs) == {(3, 0.33)}
     assert max(s._agreed[0]) == 3 and s._agreed[0][1][0, 3] == 0.15
+
+
+def test_tracked_frames_go_up_relative_to_the_newest_keyframe_the_cloud_has() -> None:
+    """After keyframe 0 is uplinked, tracked frames go as FramePoses (every
+    ``frame_poses_every``, and the rest at the robot's end), each relative to keyframe 0's
+    sent pose: the cloud's keyframe pose times the relative pose is the VIO's frame pose."""
+    s = _session()
+    T_kf = make_T(so3_exp(np.array([0.0, 0.0, 0.3])), np.array([1.0, 2.0, 0.5]))
+    _step(s, (_kf(T_kf, [5, -1, 3]),), ())
+    frames = [
+        make_T(so3_exp(np.array([0.0, 0.01 * k, 0.3])), np.array([1.0 + 0.05 * k, 2.0, 0.5]))
+        for k in range(25)
+    ]
+    sent = []
+    for k, T in enumerate(frames):
+        r = FrameResult(1050 + 50 * k, T, TrackingStatus.TRACKING, 0, 100, False)
+        sent += s._frame_relative(r)
+    s._frame_relative(FrameResult(9999, np.eye(4), TrackingStatus.INITIALIZING, 0, 0, False))
+    assert len(sent) == 1  # 20 frames a batch
+    sent += s.release_frame_poses()
+    assert len(sent) == 2 and s.release_frame_poses() == []
+    t, t_kf, rel = (np.concatenate(x) for x in zip(*map(read_frame_poses, sent), strict=True))
+    assert t.tolist() == [1050 + 50 * k for k in range(25)] and set(t_kf.tolist()) == {1000}
+    placed = T_kf @ rel
+    assert np.abs(placed - np.array(frames)).max() < 1e-5  # float32
+
+
+def test_frame_poses_refuse_arrays_that_disagree() -> None:
+    msg = pack_frame_poses(
+        "r", 0, np.arange(3), np.zeros(3, np.int64), np.tile(np.eye(4), (3, 1, 1))
+    )
+    with pytest.raises(RemoteProtocolError, match="3 frames, 2 keyframe times"):
+        read_frame_poses(
+            dataclasses.replace(msg, keyframe_timestamps_ns=msg.keyframe_timestamps_ns[:16])
+        )
+    bad = np.zeros((3, 7), "<f4").tobytes()  # zero quaternions
+    with pytest.raises(RemoteProtocolError, match="unit quaternions"):
+        read_frame_poses(dataclasses.replace(msg, poses=bad))

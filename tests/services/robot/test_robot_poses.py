@@ -5,6 +5,8 @@ back, the tracked ones close to the ground truth)."""
 from __future__ import annotations
 
 import asyncio
+import dataclasses
+import json
 from pathlib import Path
 
 import numpy as np
@@ -18,8 +20,10 @@ from common.links.robot_edge import FramePose, decode_pose, encode_pose
 from common.protocol import SessionConfig
 from common.protocol.errors import RemoteProtocolError
 from common.protocol.messages import decode_payload, encode_payload
-from common.transport import Delivery, Server, TransportConfig
+from common.transport import TransportConfig
 from common.vocabulary import Vocabulary
+from services.cloud.config import CloudServiceConfig
+from services.cloud.server import CloudServer
 from services.edge.app import EdgeConfig
 from services.edge.server import EdgeServer, EdgeServiceConfig
 from services.robot.poses import PoseTrack, tum_line
@@ -74,25 +78,13 @@ def test_pose_track_measures_capture_to_pose_latency_and_writes_tum() -> None:
     assert tum_line(lost) is None
 
 
-class _CloudSink:
-    def __init__(self) -> None:
-        self.server: Server | None = None
-
-    async def __call__(self, d: Delivery) -> None:
-        pass
-
-    async def start(self) -> int:
-        cfg = SessionConfig("cloud", "cloud", SECRET, heartbeat_interval=0.2, idle_timeout=2.0)
-        self.server = Server(cfg, self, transport=FAST)
-        return (await self.server.start("127.0.0.1", 0))[1]
-
-
 def test_every_frame_gets_its_pose_back_and_the_tracked_ones_follow_the_truth(
     tmp_path: Path,
 ) -> None:
-    """A 6 s rendered flight through a real edge (VIO in a thread): the robot waits for the
-    poses of the frames still in flight at the end, so every frame's pose comes back; the
-    tracked ones (after VI initialisation) are metric and within a few cm of the truth."""
+    """A 6 s rendered flight through a real edge (VIO in a thread) and the real cloud: the
+    robot waits for the poses of the frames still in flight at the end, so every frame's pose
+    comes back; the tracked ones (after VI initialisation) are metric and within a few cm of
+    the truth; the cloud writes (and measures) the trajectory of every frame."""
     data = tmp_path / "data"
     generate_dataset(
         data, SynthConfig(robots=1, seconds=6.0, seed=3, contact_sheet=False, progress=False)
@@ -100,10 +92,20 @@ def test_every_frame_gets_its_pose_back_and_the_tracked_ones_follow_the_truth(
     seq_dir = data / "robot0"
     pose_file = tmp_path / "poses.tum"
     stats_file = tmp_path / "robot.json"
+    results = tmp_path / "results"
 
     async def main():
-        cloud = _CloudSink()
-        cport = await cloud.start()
+        cloud = CloudServer(
+            SessionConfig("cloud", "cloud", SECRET, heartbeat_interval=0.2, idle_timeout=2.0),
+            tmp_path / "cloud",
+            None,
+            Vocabulary.load(),
+            dataclasses.replace(CloudServiceConfig(), optimizer_process=False, output_every_s=0),
+            results_dir=results,
+            groundtruth=data,
+            transport=TransportConfig(accept_roles=("edge",)),
+        )
+        _, cport = await cloud.start()
         service = EdgeServiceConfig(
             agent_id="edge-1",
             cloud_host="127.0.0.1",
@@ -131,11 +133,11 @@ def test_every_frame_gets_its_pose_back_and_the_tracked_ones_follow_the_truth(
                 transport=FAST,
             )
             result = await robot.run()
+            await asyncio.wait_for(edge.flush(), 120)
             counters = edge.stats()
         finally:
             await edge.stop()
-            assert cloud.server is not None
-            await cloud.server.close()
+            await cloud.stop()
         return result, robot, counters
 
     result, robot, counters = asyncio.run(main())
@@ -155,3 +157,10 @@ def test_every_frame_gets_its_pose_back_and_the_tracked_ones_follow_the_truth(
     err = compute_ate(refs["robot0"], read_tum(pose_file), AteConfig())
     assert err.stats.rmse < 0.05, err.stats
     assert stats_file.is_file() and '"received":' in stats_file.read_text()
+    # The cloud's trajectory of every frame (the edge's frame poses on its final keyframes):
+    # many more poses than keyframes, as accurate.
+    per_frame = read_tum(results / "frames" / "trajectories" / "robot0.tum")
+    keyframes = read_tum(results / "trajectories" / "robot0.tum")
+    assert len(per_frame) >= 0.8 * result.poses["with_pose"] > 3 * len(keyframes)
+    report = json.loads((results / "frames" / "eval" / "ate.json").read_text())
+    assert report["agents"]["robot0"]["individual"]["stats_m"]["rmse"] < 0.05
