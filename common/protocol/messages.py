@@ -42,7 +42,8 @@ keyframe states and map points name the frame they are in (``FrameAnchor``, body
 schema-3 cloud would refuse each of them. 5: the edge tells a robot its camera-IMU time offset
 (``CameraImuOffset`` 0x0303) and ``AgentStatus`` carries a ``detail`` and the offset the cloud
 reads the robot's IMU with (``time_offset_ns``). 6: the edge sends a robot its pose at every
-frame (``FramePose`` 0x0304); a schema-5 robot would not know it."""
+frame (``FramePose`` 0x0304) and the cloud the frames' poses relative to their keyframes
+(``FramePoses`` 0x0409); a schema-5 robot or cloud would not know them."""
 CONTROL_MAX_TYPE_ID = 0x00FF
 
 _Converter = Callable[[Any, str], Any]
