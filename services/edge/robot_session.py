@@ -264,7 +264,9 @@ class RobotSession:
                 self._imu_chunks.pop(0)
         self.frames += 1
         self.last_timestamp_ns = msg.timestamp_ns
-        return WorkItem(msg.frame_index, imu.timestamps_ns, imu.gyro, imu.accel, obs)
+        return WorkItem(
+            msg.frame_index, imu.timestamps_ns, imu.gyro, imu.accel, obs, new_stream=restart
+        )
 
     def _imu_window(self, t0_ns: int | None, t1_ns: int) -> tuple[np.ndarray, np.ndarray]:
         """IMU samples between camera times t0 < t <= t1 (all up to t1 if None), read on the
