@@ -24,8 +24,10 @@
 #     `make compose-test` (scripts/compose_check.py: a trajectory per robot, one map, every
 #     frame decoded exactly once at the edge, joint ATE <= $MAX_JOINT_ATE m), the tasks' exit
 #     codes (`docker events`: the killed one 137 and restarted, every other 0), the restart
-#     (the edge: "replaying N journaled messages" from its volume) and no traceback in any
-#     log; then `docker stack rm` and the stack's volumes removed;
+#     (the edge: "replaying N journaled messages" from its volume; the robot, which keeps no
+#     journal, plays its sequence again from frame 0: the edge starts a new VIO map for that
+#     stream, which the cloud merges) and no traceback in any log; then `docker stack rm` and
+#     the stack's volumes removed;
 #  9. a table of the phases; leaves the swarm it created and stops the daemon it started (also
 #     on failure: trap). Images stay, so a second run reuses them.
 #
@@ -320,8 +322,13 @@ run_phase() {
             failed=1
         fi
     fi
-    if [ "$victim" = robot2 ]; then
-        say "       the edge saw robot1 again: $(grep -o 'robot robot1 restarted its stream.*' "$out/edge.log" | head -1 | cut -c1-100)"
+    if [ "$victim" = robot2 ]; then # it plays its sequence again from frame 0: a new stream
+        if grep -q "robot $agent restarted its stream: a new VIO" "$out/edge.log"; then
+            say "  ok   the edge took $agent's new stream: $(grep -o "robot $agent restarted its stream: a new VIO.*" "$out/edge.log" | head -1)"
+        else
+            say "  FAIL the edge did not start a new VIO map for $agent's new stream"
+            failed=1
+        fi
     fi
     if grep -l Traceback "$out"/*.log >/dev/null 2>&1; then
         say "  FAIL a traceback in the services' logs: $(grep -l Traceback "$out"/*.log | tr '\n' ' ')"
