@@ -144,6 +144,18 @@ tasks() {
 # The running container of service NAME.
 container_of() { docker ps -q --filter "label=com.docker.swarm.service.name=${STACK}_$1" | head -1; }
 
+# Scale service NAME to 0 (SIGTERM, then SIGKILL after its stop_grace_period) and wait until
+# its container has exited (the CLI's convergence can come first); prints the seconds taken.
+stop_service() {
+    local ts
+    ts=$(date +%s.%N)
+    docker service scale --detach=true "${STACK}_$1=0" >>"$2/stop.log" 2>&1 ||
+        die "scaling $1 to 0: $(tail -3 "$2/stop.log")"
+    for _ in $(seq 300); do [ -z "$(container_of "$1")" ] && break; sleep 0.5; done
+    [ -z "$(container_of "$1")" ] || die "$1 still running 150 s after it was scaled to 0"
+    python3 -c "print(f'{$(date +%s.%N) - $ts:.1f}')"
+}
+
 # -------------------------------------------------------------------------------------------
 begin "daemon"
 if docker info >/dev/null 2>&1; then
@@ -290,14 +302,10 @@ run_phase() {
     for _ in $(seq 240); do python3 scripts/compose_check.py drained "$(dirname "$edge_stats")" && break; sleep 0.5; done
     python3 scripts/compose_check.py drained "$(dirname "$edge_stats")" || say "edge not drained after 120 s; stopping anyway"
     sleep 3 # let the edge's last uplink reach the cloud
-    docker service scale --detach=false "${STACK}_edge=0" >>"$out/stop.log" 2>&1 ||
-        die "scaling the edge to 0: $(tail -3 "$out/stop.log")"
-    local ts shutdown
-    ts=$(date +%s.%N)
-    docker service scale --detach=false "${STACK}_cloud=0" >>"$out/stop.log" 2>&1 ||
-        die "scaling the cloud to 0: $(tail -3 "$out/stop.log")"
-    shutdown=$(python3 -c "print(f'{$(date +%s.%N) - $ts:.1f}')")
-    say "edge drained and stopped; cloud stopped in $shutdown s after SIGTERM (stop_grace_period 120 s)"
+    local edge_stop shutdown
+    edge_stop=$(stop_service edge "$out")
+    shutdown=$(stop_service cloud "$out")
+    say "edge drained and stopped in $edge_stop s; cloud stopped in $shutdown s after SIGTERM (stop_grace_period 120 s)"
     sleep 2 # the last log lines and events
     stop_watchers
 
