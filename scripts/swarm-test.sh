@@ -145,14 +145,20 @@ tasks() {
 container_of() { docker ps -q --filter "label=com.docker.swarm.service.name=${STACK}_$1" | head -1; }
 
 # Scale service NAME to 0 (SIGTERM, then SIGKILL after its stop_grace_period) and wait until
-# its container has exited (the CLI's convergence can come first); prints the seconds taken.
+# its container has exited (the CLI's convergence can come first); prints the seconds taken,
+# or says why not on stderr and returns 1.
 stop_service() {
     local ts
     ts=$(date +%s.%N)
-    docker service scale --detach=true "${STACK}_$1=0" >>"$2/stop.log" 2>&1 ||
-        die "scaling $1 to 0: $(tail -3 "$2/stop.log")"
+    if ! docker service scale --detach=true "${STACK}_$1=0" >>"$2/stop.log" 2>&1; then
+        echo "scaling $1 to 0 failed: $(tail -3 "$2/stop.log")" >&2
+        return 1
+    fi
     for _ in $(seq 300); do [ -z "$(container_of "$1")" ] && break; sleep 0.5; done
-    [ -z "$(container_of "$1")" ] || die "$1 still running 150 s after it was scaled to 0"
+    if [ -n "$(container_of "$1")" ]; then
+        echo "$1 still running 150 s after it was scaled to 0" >&2
+        return 1
+    fi
     python3 -c "print(f'{$(date +%s.%N) - $ts:.1f}')"
 }
 
@@ -303,8 +309,8 @@ run_phase() {
     python3 scripts/compose_check.py drained "$(dirname "$edge_stats")" || say "edge not drained after 120 s; stopping anyway"
     sleep 3 # let the edge's last uplink reach the cloud
     local edge_stop shutdown
-    edge_stop=$(stop_service edge "$out")
-    shutdown=$(stop_service cloud "$out")
+    edge_stop=$(stop_service edge "$out") || die "the edge did not stop"
+    shutdown=$(stop_service cloud "$out") || die "the cloud did not stop"
     say "edge drained and stopped in $edge_stop s; cloud stopped in $shutdown s after SIGTERM (stop_grace_period 120 s)"
     sleep 2 # the last log lines and events
     stop_watchers
