@@ -226,28 +226,6 @@ def test_coded_feedback_keeps_its_points_when_the_vio_runs_far_behind() -> None:
     assert with_points >= len(fbs) // 2, (with_points, len(fbs))
 
 
-def test_a_frame_that_fails_to_decode_leaves_the_decoders_as_they_were() -> None:
-    """All or nothing: frame 1 with a corrupted feature part (its IMU part decodes first) is
-    refused, and the intact frame 1 then decodes, as do the frames after it."""
-    from common.codec.errors import CodecError
-
-    vocab = Vocabulary.load()
-    seq = simulate(SimOptions(duration_s=1.0, seed=5))
-    frames = code_sequence(seq, vocab)
-    session = RobotSession("r", seq.camera, vocab, RAW)
-    session.decode(frames[0])
-    bad = bytearray(frames[1].features)
-    bad[len(bad) // 2] ^= 0xFF
-    with pytest.raises(CodecError):
-        session.decode(dataclasses.replace(frames[1], features=bytes(bad)))
-    with pytest.raises(CodecError):  # a frame-0 copy that fails does not reset the stream
-        session.decode(dataclasses.replace(frames[0], imu=frames[0].imu[:-1]))
-    for msg in frames[1:6]:
-        item = session.decode(msg)
-        assert item.obs.timestamp_ns == msg.timestamp_ns
-    assert session.frames == 6
-
-
 def test_a_restarted_robot_stream_starts_a_new_vio_map_without_a_failure() -> None:
     """A robot whose process was restarted (a swarm task killed and started again) sends its
     frame 0 again: the edge decodes it with fresh decoders and the VIO starts the next
@@ -269,3 +247,25 @@ def test_a_restarted_robot_stream_starts_a_new_vio_map_without_a_failure() -> No
     second_maps = {r.result.map_id for r in second if r.result is not None}
     assert first_maps and max(first_maps) < MAP_ID_STRIDE, first_maps
     assert second_maps and min(second_maps) >= MAP_ID_STRIDE, second_maps
+
+
+def test_a_frame_that_fails_to_decode_leaves_the_decoders_as_they_were() -> None:
+    """All or nothing: frame 1 with a corrupted feature part (its IMU part decodes first) is
+    refused, and the intact frame 1 then decodes, as do the frames after it."""
+    from common.codec.errors import CodecError
+
+    vocab = Vocabulary.load()
+    seq = simulate(SimOptions(duration_s=1.0, seed=5))
+    frames = code_sequence(seq, vocab)
+    session = RobotSession("r", seq.camera, vocab, RAW)
+    session.decode(frames[0])
+    bad = bytearray(frames[1].features)
+    bad[len(bad) // 2] ^= 0xFF
+    with pytest.raises(CodecError):
+        session.decode(dataclasses.replace(frames[1], features=bytes(bad)))
+    with pytest.raises(CodecError):  # a frame-0 copy that fails does not reset the stream
+        session.decode(dataclasses.replace(frames[0], imu=frames[0].imu[:-1]))
+    for msg in frames[1:6]:
+        item = session.decode(msg)
+        assert item.obs.timestamp_ns == msg.timestamp_ns
+    assert session.frames == 6
