@@ -281,7 +281,7 @@ run_phase() {
             local id
             id=$(container_of "$victim")
             [ -n "$id" ] || die "no running container of $victim to kill"
-            docker kill "$id" >/dev/null
+            docker kill "$id" >/dev/null || die "docker kill of $victim's container ${id:0:12} failed"
             killed=$(($(date +%s) - tu))
             say "killed $victim's container ${id:0:12} (SIGKILL) $killed s after deploy, the edge having decoded $(decoded "$edge_stats" "$agent") frames of $agent"
         fi
