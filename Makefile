@@ -8,7 +8,7 @@ SEED   ?= 0
 ROBOTS ?= 3
 SECONDS ?= 60
 
-.PHONY: setup demo test lint typecheck bench clean compose-test
+.PHONY: setup demo test lint typecheck bench clean compose-test swarm-test
 
 $(STAMP): pyproject.toml requirements.lock
 	@$(PYTHON) -c 'import sys; assert sys.version_info[:2] == (3, 11), "recslam needs Python 3.11, found " + sys.version' 
@@ -49,6 +49,13 @@ docker/secret.env:
 ## short synthetic dataset and checks the cloud's outputs (scripts/compose-test.sh).
 compose-test:
 	bash scripts/compose-test.sh
+
+## The Docker Swarm stack on a one-node swarm here (not part of `make test`; root, a few GB of
+## disk): starts a daemon if none runs, builds the image, `docker swarm init`, deploys
+## docker-compose.swarm.yml on the host network, kills the edge's and a robot's task mid-run
+## and checks the cloud's outputs each time (scripts/swarm-test.sh).
+swarm-test:
+	bash scripts/swarm-test.sh
 
 bench: $(STAMP)
 	@for b in benchmarks/bench_*.py; do echo "== $$b"; $(BIN)/python $$b || exit 1; done

@@ -3,15 +3,17 @@
 ``python3 scripts/compose_check.py drained RESULTS`` exits 0 once the edge processed every
 frame it decoded and queues nothing (``edge-stats.json``), 1 otherwise: the test polls it.
 
-``python3 scripts/compose_check.py outputs RESULTS DATASET ROBOT...`` checks the cloud's
-result folder ``RESULTS`` (``./out/compose``) after the stack stopped:
+``python3 scripts/compose_check.py outputs RESULTS DATASET ROBOT... [--max-joint-ate M]``
+checks the cloud's result folder ``RESULTS`` (``./out/compose``) after the stack stopped:
 
 - ``trajectories/<robot>.tum`` for every robot, with at least 2 poses;
 - ``eval/ate.md`` and ``eval/ate.json``; the joint row only when ``cloud_maps.json`` says all
   robots share one map, else the "Maps did not merge" line;
 - every frame of each robot's sequence (``DATASET/<robot>/mav0/cam0/data.csv``) decoded
   exactly once at the edge (``edge-stats.json``: ``frames_decoded`` equal to the frame count;
-  a duplicate would count twice, a loss once less).
+  a duplicate would count twice, a loss once less);
+- with ``--max-joint-ate M``: one map, and its joint ATE RMSE (``eval/ate.json``) at most M
+  metres (swarm-test.sh).
 
 It prints one line per check and a summary; exit code 0 when every check passed. Standard
 library only: it runs with the host's python3, outside the image.
@@ -56,7 +58,9 @@ def _frames_in(dataset: Path, robot: str) -> int:
     return len(lines)
 
 
-def check_outputs(results: Path, dataset: Path, robots: list[str]) -> list[tuple[bool, str]]:
+def check_outputs(
+    results: Path, dataset: Path, robots: list[str], max_joint_ate: float | None = None
+) -> list[tuple[bool, str]]:
     """(passed, line) for every check of the module docstring."""
     out: list[tuple[bool, str]] = []
     for robot in robots:
@@ -80,11 +84,21 @@ def check_outputs(results: Path, dataset: Path, robots: list[str]) -> list[tuple
         out.append((said and not has_joint, "eval/ate.md: maps did not merge, no joint row"))
     ate_json = results / "eval" / "ate.json"
     if ate_json.is_file():
-        agents = _load(ate_json).get("agents", {})
+        ate = _load(ate_json)
+        agents = ate.get("agents", {})
         per = ", ".join(
             f"{a} {agents[a]['individual']['stats_m']['rmse']:.4f} m" for a in sorted(agents)
         )
         out.append((set(agents) == set(robots), f"eval/ate.json: per-robot ATE RMSE {per}"))
+        if max_joint_ate is not None:
+            joint = float(ate.get("joint", {}).get("stats_m", {}).get("rmse", "nan"))
+            one_map = bool(ate.get("joint_frame")) and joint_frame
+            out.append(
+                (
+                    one_map and joint <= max_joint_ate,
+                    f"joint ATE {joint:.4f} m <= {max_joint_ate} m, one map {one_map}",
+                )
+            )
     else:
         out.append((False, "eval/ate.json: missing"))
     edge = _load(results / "edge-stats.json").get("robots", {})
@@ -116,9 +130,13 @@ def main(argv: list[str]) -> int:
         return 0
     if len(argv) == 2 and argv[0] == "drained":
         return 0 if drained(Path(argv[1])) else 1
+    max_joint_ate = None
+    if len(argv) >= 2 and argv[-2] == "--max-joint-ate":
+        max_joint_ate = float(argv[-1])
+        argv = argv[:-2]
     if len(argv) >= 4 and argv[0] == "outputs":
         try:
-            checks = check_outputs(Path(argv[1]), Path(argv[2]), argv[3:])
+            checks = check_outputs(Path(argv[1]), Path(argv[2]), argv[3:], max_joint_ate)
         except (OSError, ValueError, KeyError) as exc:
             sys.stderr.write(f"compose_check: cannot read the outputs: {exc}\n")
             return 1
@@ -127,7 +145,10 @@ def main(argv: list[str]) -> int:
         failed = sum(not ok for ok, _ in checks)
         sys.stdout.write(f"  {len(checks) - failed}/{len(checks)} checks passed\n")
         return 1 if failed else 0
-    sys.stderr.write("usage: compose_check.py drained RESULTS | outputs RESULTS DATASET ROBOT...\n")
+    sys.stderr.write(
+        "usage: compose_check.py drained RESULTS"
+        " | outputs RESULTS DATASET ROBOT... [--max-joint-ate M]\n"
+    )
     return 2
 
 

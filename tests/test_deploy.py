@@ -8,6 +8,7 @@ model validation runs here when the ``kubernetes`` package is installed.)"""
 from __future__ import annotations
 
 import importlib.util
+import re
 import shutil
 import subprocess
 from pathlib import Path
@@ -241,6 +242,19 @@ def _swarm() -> dict[str, Any]:
     return yaml.safe_load(SWARM.read_text())
 
 
+def _expand(value: Any, env: dict[str, str] | None = None) -> Any:
+    """``${NAME:-default}`` in the stack file's strings (lists, dicts) as `docker stack deploy`
+    interpolates them, from ``env`` (default: none set)."""
+    env = env or {}
+    if isinstance(value, str):
+        return re.sub(r"\$\{(\w+):-([^}]*)\}", lambda m: env.get(m[1]) or m[2], value)
+    if isinstance(value, list):
+        return [_expand(v, env) for v in value]
+    if isinstance(value, dict):
+        return {k: _expand(v, env) for k, v in value.items()}
+    return value
+
+
 def test_swarm_stack_runs_the_compose_services_with_real_commands(monkeypatch) -> None:
     swarm, compose = _swarm(), yaml.safe_load(COMPOSE.read_text())
     assert set(swarm["services"]) == set(compose["services"]) - {"dataset"}
@@ -249,8 +263,7 @@ def test_swarm_stack_runs_the_compose_services_with_real_commands(monkeypatch) -
     parser = build_parser()
     for name, service in swarm["services"].items():
         assert service["image"] == "${RECSLAM_IMAGE:-recslam:latest}"
-        command = [c.replace("${GIVE_UP_AFTER:-120}", "120") for c in service["command"]]
-        command = [c.replace("${GROUNDTRUTH:-synth}", "synth") for c in command]
+        command = _expand(service["command"])
         assert command[:2] == ["recslam", "-v"]
         assert callable(parser.parse_args(command[1:]).func), name
         # swarm ignores depends_on and restart: its own restart policy, a few attempts
@@ -260,13 +273,50 @@ def test_swarm_stack_runs_the_compose_services_with_real_commands(monkeypatch) -
         assert service["deploy"]["placement"]["constraints"], name
         if command[2] != "cloud":
             assert "--give-up-after" in command
-    edge = swarm["services"]["edge"]["command"]
-    cloud = swarm["services"]["cloud"]["command"]
+    edge = _expand(swarm["services"]["edge"]["command"])
+    cloud = _expand(swarm["services"]["cloud"]["command"])
     assert _flag(edge, "--cloud") == f"cloud:{_port(_flag(cloud, '--listen'))}"
     for robot in ("robot1", "robot2", "robot3"):
-        env = swarm["services"][robot]["environment"]
+        env = _expand(swarm["services"][robot]["environment"])
         assert env["EDGE"] == f"edge:{_port(_flag(edge, '--listen'))}"
         assert env["SEQUENCE"] == compose["services"][robot]["environment"]["SEQUENCE"]
+        # one label per robot, so that one node may carry several (as in make swarm-test)
+        (where,) = swarm["services"][robot]["deploy"]["placement"]["constraints"]
+        assert where == f"node.labels.recslam.robot.{env['AGENT_ID']} == true"
+
+
+@pytest.mark.parametrize("network", ["", "host"])
+def test_swarm_stack_runs_on_the_overlay_or_the_hosts_network(network: str) -> None:
+    """By default the overlay "recslam" and service names; RECSLAM_SWARM_NETWORK=host (as
+    scripts/swarm-test.sh deploys it) the node's own network, addresses and ports from the
+    environment, the healthchecks and published ports on the same ports."""
+    env = {"RECSLAM_SWARM_NETWORK": network}
+    if network:
+        env |= {"LISTEN_HOST": "127.0.0.1", "CLOUD_HOST": "127.0.0.1", "EDGE_HOST": "127.0.0.1"}
+        env |= {"CLOUD_PORT": "4100", "EDGE_PORT": "4000", "DASHBOARD_PORT": "4080"}
+    swarm = _expand(_swarm(), env)
+    services = swarm["services"]
+    (net,) = {n for s in services.values() for n in s["networks"]}
+    cloud, edge = services["cloud"], services["edge"]
+    cloud_at, edge_at = _flag(cloud["command"], "--listen"), _flag(edge["command"], "--listen")
+    if network:
+        assert net == "host" and swarm["networks"]["host"] == {"external": True, "name": "host"}
+        assert cloud_at == "127.0.0.1:4100" and edge_at == "127.0.0.1:4000"
+        assert _flag(edge["command"], "--cloud") == "127.0.0.1:4100"
+    else:
+        assert net == "recslam" and swarm["networks"]["recslam"]["driver"] == "overlay"
+        assert cloud_at == "0.0.0.0:7100" and edge_at == "0.0.0.0:7000"
+        assert _flag(edge["command"], "--cloud") == "cloud:7100"
+    for name, service in services.items():
+        if name.startswith("robot"):
+            assert service["environment"]["EDGE"].endswith(f":{_port(edge_at)}")
+    for service, port in ((cloud, _port(cloud_at)), (edge, _port(edge_at))):
+        assert f"('127.0.0.1', {port})" in service["healthcheck"]["test"][-1]
+    dashboard = int(_flag(cloud["command"], "--dashboard-port"))
+    assert [(int(p["target"]), int(p["published"])) for p in cloud["ports"]] == [(dashboard,) * 2]
+    assert [(int(p["target"]), int(p["published"])) for p in edge["ports"]] == [
+        (_port(edge_at),) * 2
+    ]
 
 
 def test_swarm_services_get_only_their_own_key_file_as_a_secret(tmp_path) -> None:
@@ -301,14 +351,17 @@ def test_docker_stack_config_accepts_the_swarm_file(tmp_path) -> None:
     )
     if help_text.returncode != 0:
         pytest.skip("this docker CLI has no `docker stack config`")
-    out = subprocess.run(
-        [docker, "stack", "config", "-c", str(SWARM)],
-        capture_output=True,
-        text=True,
-        timeout=60,
-        cwd=tmp_path,
-    )
-    assert out.returncode == 0, out.stderr
-    rendered = yaml.safe_load(out.stdout)
-    assert rendered["services"]["cloud"]["stop_grace_period"] in ("2m0s", "120s")
-    assert set(rendered["secrets"]) == set(_swarm()["secrets"])
+    for network in ("", "host"):
+        out = subprocess.run(
+            [docker, "stack", "config", "-c", str(SWARM)],
+            capture_output=True,
+            text=True,
+            timeout=60,
+            cwd=tmp_path,
+            env={"PATH": "/usr/bin:/bin", "RECSLAM_SWARM_NETWORK": network},
+        )
+        assert out.returncode == 0, out.stderr
+        rendered = yaml.safe_load(out.stdout)
+        assert rendered["services"]["cloud"]["stop_grace_period"] in ("2m0s", "120s")
+        assert set(rendered["secrets"]) == set(_swarm()["secrets"])
+        assert list(rendered["services"]["edge"]["networks"]) == [network or "recslam"]

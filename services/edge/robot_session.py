@@ -278,7 +278,9 @@ class RobotSession:
         self.imu_uplink.add(imu.timestamps_ns, imu.gyro, imu.accel)
         self.frames += 1
         self.last_timestamp_ns = msg.timestamp_ns
-        return WorkItem(msg.frame_index, imu.timestamps_ns, imu.gyro, imu.accel, obs)
+        return WorkItem(
+            msg.frame_index, imu.timestamps_ns, imu.gyro, imu.accel, obs, new_stream=restart
+        )
 
     def _imu_args(
         self, prev: tuple[int, int] | None, key: tuple[int, int], t_ns: int

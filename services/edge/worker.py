@@ -62,7 +62,9 @@ class EdgeWorkerError(RecslamError):
 class WorkItem:
     """One decoded frame for the VIO: IMU since the previous frame (``imu_t_ns`` (K,) int64,
     ``gyro``/``accel`` (K, 3) rad/s, m/s²) and the observation. ``corrections`` are pose
-    corrections to apply first: (map_id, {keyframe id: (4, 4) T_world_body})."""
+    corrections to apply first: (map_id, {keyframe id: (4, 4) T_world_body}). ``new_stream``:
+    the robot restarted its stream (its frame 0 again, e.g. its process was restarted): the
+    VIO starts a new map (the next generation) with this frame."""
 
     frame_index: int
     imu_t_ns: np.ndarray
@@ -70,6 +72,7 @@ class WorkItem:
     accel: np.ndarray
     obs: FrameObservation | None
     corrections: tuple[tuple[int, dict[int, np.ndarray]], ...] = ()
+    new_stream: bool = False
 
 
 @dataclass(frozen=True, eq=False)
@@ -131,6 +134,15 @@ class VioRunner:
     def step(self, item: WorkItem) -> WorkResult:
         import time
 
+        if item.new_stream:  # its time starts again: a new map, as after a failure
+            self.generation += 1
+            self.vio = self._new_vio()
+            logger.info(
+                "robot %s restarted its stream: a new VIO (generation %d, map ids from %d)",
+                self.spec.agent_id,
+                self.generation,
+                self.base,
+            )
         n_ba = len(self.vio.stats.local_ba_s)
         n_track = len(self.vio.stats.track_s)
         applied = 0

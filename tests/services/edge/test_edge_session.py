@@ -229,6 +229,29 @@ def test_coded_feedback_keeps_its_points_when_the_vio_runs_far_behind() -> None:
     assert with_points >= len(fbs) // 2, (with_points, len(fbs))
 
 
+def test_a_restarted_robot_stream_starts_a_new_vio_map_without_a_failure() -> None:
+    """A robot whose process was restarted (a swarm task killed and started again) sends its
+    frame 0 again: the edge decodes it with fresh decoders and the VIO starts the next
+    generation (a new map, new map ids) instead of failing on a timestamp that goes back."""
+    from services.edge.worker import MAP_ID_STRIDE
+
+    vocab = Vocabulary.load()
+    seq = simulate(SimOptions(duration_s=3.0, seed=5))
+    frames = code_sequence(seq, vocab)[:40]
+    session = RobotSession("r", seq.camera, vocab)
+    runner = VioRunner(WorkerSpec("r", seq.camera, seq.imu))
+    first = [runner.step(session.decode(m)) for m in frames]
+    items = [session.decode(m) for m in frames]  # the same sequence from its start
+    assert [item.new_stream for item in items] == [True] + [False] * (len(items) - 1)
+    second = [runner.step(item) for item in items]
+    assert not [r.failed for r in first + second if r.failed]
+    assert runner.generation == 1
+    first_maps = {r.result.map_id for r in first if r.result is not None}
+    second_maps = {r.result.map_id for r in second if r.result is not None}
+    assert first_maps and max(first_maps) < MAP_ID_STRIDE, first_maps
+    assert second_maps and min(second_maps) >= MAP_ID_STRIDE, second_maps
+
+
 def test_a_frame_that_fails_to_decode_leaves_the_decoders_as_they_were() -> None:
     """All or nothing: frame 1 with a corrupted feature part (its IMU part decodes first) is
     refused, and the intact frame 1 then decodes, as do the frames after it."""
