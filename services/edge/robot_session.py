@@ -247,6 +247,9 @@ class RobotSession:
         if restart:
             logger.warning("robot %s restarted its stream: fresh decoders", self.agent_id)
             self._reset_stream((features, imu_decoder))
+            # its clock starts again too: the IMU and frame times of the old stream go
+            self.imu_uplink = ImuUplink(self.options.imu_history_s)
+            self._frame_times.clear()
         self.numbers, self.next_number = next_stream_numbers(self.numbers, self.next_number, feats)
         if isinstance(feats, KeyframeFeatures):
             kp = feats.keypoints

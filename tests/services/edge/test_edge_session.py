@@ -241,7 +241,12 @@ def test_a_restarted_robot_stream_starts_a_new_vio_map_without_a_failure() -> No
     session = RobotSession("r", seq.camera, vocab)
     runner = VioRunner(WorkerSpec("r", seq.camera, seq.imu))
     first = [runner.step(session.decode(m)) for m in frames]
-    items = [session.decode(m) for m in frames]  # the same sequence from its start
+    held = len(session.imu_uplink.window(None, None, (0, 999), frames[-1].timestamp_ns, 0)[0])
+    items = [session.decode(m) for m in frames[:1]]  # the same sequence from its start
+    # its clock went back: only the new stream's IMU is held for its keyframes
+    again = session.imu_uplink.window(None, None, (0, 1000), frames[-1].timestamp_ns, 0)[0]
+    assert 0 < len(again) < held and np.all(np.diff(again) > 0)
+    items += [session.decode(m) for m in frames[1:]]
     assert [item.new_stream for item in items] == [True] + [False] * (len(items) - 1)
     second = [runner.step(item) for item in items]
     assert not [r.failed for r in first + second if r.failed]
