@@ -72,6 +72,13 @@ def first_motion_s(seq: EurocSequence) -> float:
     return float(t[moving[0]]) if len(moving) else float("nan")
 
 
+def scene_of(dataset: Path) -> str:
+    """ "scene seed N, W world" of a generated dataset (dataset.json)."""
+    cfg = json.loads((dataset / "dataset.json").read_text()).get("config", {})
+    seed = cfg.get("scene_seed", cfg.get("seed", 0))
+    return f"scene seed {seed}, {cfg.get('world', 'vicon')} world"
+
+
 def true_offset_ms(dataset: Path) -> float:
     """The camera-IMU offset a generated dataset was rendered with (dataset.json)."""
     meta = json.loads((dataset / "dataset.json").read_text())
@@ -231,8 +238,8 @@ def main() -> None:
         "",
         f"`benchmarks/bench_real_imu.py --real {args.real} --sim {args.sim}{late_args} "
         f"--seconds {args.seconds:g}`; commit {commit}, Python {platform.python_version()}. "
-        "Images rendered along EuRoC V2_01 / V2_02 / V2_03 (robot0 / 1 / 2, scene seed 0, "
-        "vicon world); `real`: the ADIS16448 IMU recorded on each flight "
+        "Images rendered along EuRoC V2_01 / V2_02 / V2_03 (robot0 / 1 / 2, "
+        f"{scene_of(args.real)}); `real`: the ADIS16448 IMU recorded on each flight "
         "(`recslam dataset synth --trajectory GT,... --imu IMU,...`), `generator`: the "
         "simulated IMU on the same images. One run each (the VIO is deterministic on cached "
         "inputs).",
