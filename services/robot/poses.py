@@ -12,7 +12,7 @@ moved it; frames without a metric pose are not written).
 from __future__ import annotations
 
 import logging
-from collections import OrderedDict
+from collections import OrderedDict, deque
 from dataclasses import dataclass
 
 import numpy as np
@@ -41,15 +41,16 @@ class PoseTrack:
     """Capture times in, poses out, with their latencies (one robot, all its edge sessions).
 
     ``keep``: capture times remembered (the oldest are forgotten: a pose that comes later
-    than that many frames has no latency)."""
+    than that many frames has no latency); ``window``: the latencies the summary is over (the
+    newest; a robot that runs for hours keeps a bounded history)."""
 
-    def __init__(self, keep: int = 20_000) -> None:
+    def __init__(self, keep: int = 20_000, window: int = 100_000) -> None:
         self.keep = keep
         self.latest: ReceivedPose | None = None
         self.received = 0  # FramePose messages taken
         self.with_pose = 0  # ... that carried a metric pose
         self.rejected = 0  # malformed ones (logged, not retried)
-        self.latencies_s: list[float] = []
+        self.latencies_s: deque[float] = deque(maxlen=window)
         self._captured: OrderedDict[int, float] = OrderedDict()
 
     @property
