@@ -15,6 +15,12 @@ every message (``Client.flush``). An edge that refuses the robot (e.g. a differe
 under an agent id it already knows) closes the link with its reason: the run then stops with
 :class:`~common.protocol.errors.PeerRejectedError`.
 
+The robot's own pose: the edge sends a ``FramePose`` for every frame its VIO finished;
+:class:`~services.robot.poses.PoseTrack` matches it with the moment the frame was taken (the
+latency), ``pose_out`` gets a TUM line per metric pose as it arrives, ``stats_out`` the run's
+counters and the latency at the end, and ``pose_wait_s`` lets the robot wait after its last
+frame for the poses of the frames still queued at the edge.
+
 Backlog while the edge is away: the client keeps reconnecting with backoff and queues in its
 outbox, which is sized for ``backlog_s`` seconds of frames at the camera rate (default 30
 minutes: ``max_outbox_messages = ceil(backlog_s * rate)``) and at most
