@@ -185,7 +185,6 @@ class RobotSession:
         # frame index -> the frame's tracks and keypoints, until its VIO result (feedback
         # points are sent along these rays)
         self._anchors: OrderedDict[int, Anchors] = OrderedDict()
-        self._frame_times: OrderedDict[int, int] = OrderedDict()  # frame index -> its time (ns)
         self.frame_poses = FramePoseBatcher(agent_id, self.options.frame_poses_every)
         self.frame_s: list[float] = []
         self.track_s: list[float] = []
@@ -247,9 +246,8 @@ class RobotSession:
         if restart:
             logger.warning("robot %s restarted its stream: fresh decoders", self.agent_id)
             self._reset_stream((features, imu_decoder))
-            # its clock starts again too: the IMU and frame times of the old stream go
+            # its clock starts again too: the IMU of the old stream goes
             self.imu_uplink = ImuUplink(self.options.imu_history_s)
-            self._frame_times.clear()
         self.numbers, self.next_number = next_stream_numbers(self.numbers, self.next_number, feats)
         if isinstance(feats, KeyframeFeatures):
             kp = feats.keypoints
@@ -265,11 +263,8 @@ class RobotSession:
             levels = feats.keypoints[:, 2].astype(np.uint8)
             desc = None
         self._anchors[msg.frame_index] = Anchors(self.numbers, uv)
-        self._frame_times[msg.frame_index] = msg.timestamp_ns
         while len(self._anchors) > _ANCHOR_FRAMES:
             self._anchors.popitem(last=False)
-        while len(self._frame_times) > _ANCHOR_FRAMES:
-            self._frame_times.popitem(last=False)
         obs = FrameObservation(
             timestamp_ns=msg.timestamp_ns,
             track_ids=self.numbers,
@@ -316,8 +311,7 @@ class RobotSession:
                 self._offset_told = res.time_offset_ns
         if not replaying:
             self.poses_sent += 1
-            t_ns = self._frame_times.get(res.frame_index, self.last_timestamp_ns)
-            out.robot.append(frame_pose(res.result, t_ns, self.map_id))
+            out.robot.append(frame_pose(res.result, res.timestamp_ns, self.map_id))
         self.track_s.extend(res.track_s)
         self.local_ba_s.extend(res.local_ba_s)
         for map_id, deltas in res.point_moves:  # before this frame's (corrected) points
@@ -335,8 +329,6 @@ class RobotSession:
                 out.robot.append(fb)
         while self._anchors and next(iter(self._anchors)) <= res.frame_index:
             self._anchors.popitem(last=False)  # results come in frame order
-        while self._frame_times and next(iter(self._frame_times)) <= res.frame_index:
-            self._frame_times.popitem(last=False)
         out.status_due = self.processed % self.options.status_every_frames == 0
         return out
 

@@ -96,6 +96,7 @@ class WorkResult:
     live_p_world: np.ndarray | None = None  # (L, 3) m, their map points
     time_offset_ns: int = 0  # the VIO's camera-IMU offset in use (t_imu = t_cam + offset)
     time_offset_sigma_ms: float = float("nan")  # of its last estimate
+    timestamp_ns: int = 0  # the frame's camera time (also when the VIO failed on it)
 
 
 @dataclass(frozen=True)
@@ -154,6 +155,7 @@ class VioRunner:
                 self.vio.feed_imu(item.imu_t_ns, item.gyro, item.accel)
             if item.obs is None:
                 return WorkResult(item.frame_index, None, None, (), generation=self.generation)
+            t_ns = item.obs.timestamp_ns
             t0 = time.perf_counter()
             result = self.vio.feed_frame(item.obs)
             frame_s = time.perf_counter() - t0
@@ -174,6 +176,7 @@ class VioRunner:
                 (),
                 failed=f"{type(exc).__name__}: {exc}",
                 generation=self.generation,
+                timestamp_ns=item.obs.timestamp_ns if item.obs is not None else 0,
             )
         live_ids, live_p = None, None
         vmap = self.vio.current_map
@@ -222,6 +225,7 @@ class VioRunner:
             live_p_world=live_p,
             time_offset_ns=self.vio.time_offset_ns,
             time_offset_sigma_ms=self.vio.stats.time_offset_sigma_ms,
+            timestamp_ns=t_ns,
         )
 
 
@@ -360,6 +364,7 @@ class ProcessWorker:
                     (),
                     failed=f"VIO process died (exit {code})",
                     generation=self.generation,
+                    timestamp_ns=item.obs.timestamp_ns if item.obs is not None else 0,
                 )
             self.generation = out.generation
             return out
