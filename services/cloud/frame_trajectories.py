@@ -57,18 +57,23 @@ class FrameTrack:
                 continue
             t_kf = kf_traj.timestamps_ns
             T_kf = kf_traj.T_world_body
-            stamps, poses = list(t_kf.tolist()), list(T_kf)
-            for t, (tk, rel) in rows.items():
-                i = int(np.searchsorted(t_kf, tk))
-                near = [j for j in (i - 1, i) if 0 <= j < len(t_kf)]
-                j = min(near, key=lambda j: abs(int(t_kf[j]) - tk))
-                if abs(int(t_kf[j]) - tk) > MATCH_NS:
-                    continue
-                if np.min(np.abs(t_kf - t)) <= MATCH_NS:
-                    continue  # the keyframe itself is there
-                stamps.append(t)
-                poses.append(T_kf[j] @ rel)
-            order = np.argsort(np.array(stamps, np.int64), kind="stable")
-            ts = np.array(stamps, np.int64)[order]
-            out[robot] = Trajectory.from_poses(ts, np.array(poses)[order], robot)
+            t = np.fromiter(rows, np.int64, len(rows))
+            ref = np.array([tk for tk, _ in rows.values()], np.int64)
+            rel = np.array([T for _, T in rows.values()])
+            j, near = _nearest(t_kf, ref)  # each frame's keyframe in the trajectory
+            keep = near & ~_nearest(t_kf, t)[1]  # (a frame at a keyframe's time: the keyframe)
+            stamps = np.concatenate([t_kf, t[keep]])
+            poses = np.concatenate([T_kf, T_kf[j[keep]] @ rel[keep]])
+            order = np.argsort(stamps, kind="stable")
+            out[robot] = Trajectory.from_poses(stamps[order], poses[order], robot)
         return out
+
+
+def _nearest(sorted_ns: np.ndarray, query_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For each query stamp (Q,): the index of the nearest of ``sorted_ns`` (N,), N >= 1, and
+    whether it is within :data:`MATCH_NS`."""
+    i = np.searchsorted(sorted_ns, query_ns)
+    lo = np.clip(i - 1, 0, len(sorted_ns) - 1)
+    hi = np.clip(i, 0, len(sorted_ns) - 1)
+    j = np.where(np.abs(sorted_ns[lo] - query_ns) <= np.abs(sorted_ns[hi] - query_ns), lo, hi)
+    return j, np.abs(sorted_ns[j] - query_ns) <= MATCH_NS
