@@ -49,7 +49,8 @@ IMAGE=recslam:latest
 t0=$(date +%s)
 repo="$(git -C "$(dirname "$0")/.." rev-parse --show-toplevel)"
 work="$(mktemp -d /tmp/recslam-swarm-test.XXXXXX)"
-started_dockerd=""
+# shellcheck source=scripts/docker-lib.sh
+. "$repo/scripts/docker-lib.sh" # start/stop the daemon, the base image, the clone, free_port
 started_swarm=""
 deployed=""
 watchers=() # the `docker events` and `docker service logs --follow` of the current phase
@@ -102,12 +103,7 @@ cleanup() {
         say "leaving the swarm this test created"
         docker swarm leave --force >>"$work/swarm.log" 2>&1 || say "swarm leave failed: $(tail -1 "$work/swarm.log")"
     fi
-    if [ -n "$started_dockerd" ]; then
-        say "stopping the Docker daemon this test started (pid $started_dockerd)"
-        kill -TERM "$started_dockerd" 2>/dev/null
-        for _ in $(seq 60); do kill -0 "$started_dockerd" 2>/dev/null || break; sleep 0.5; done
-        kill -0 "$started_dockerd" 2>/dev/null && say "dockerd $started_dockerd still running after 30 s"
-    fi
+    stop_started_dockerd
     if [ "${KEEP:-0}" = "1" ] || [ $rc -ne 0 ]; then
         say "kept $work (logs: $work/*.log, $work/*/)"
     else
@@ -118,8 +114,6 @@ cleanup() {
     exit $rc
 }
 trap cleanup EXIT
-
-free_port() { python3 -c 'import socket; s = socket.socket(); s.bind(("127.0.0.1", 0)); print(s.getsockname()[1])'; }
 
 # The edge's count of frames decoded for AGENT (0 before its stats exist).
 decoded() {
@@ -164,37 +158,14 @@ stop_service() {
 
 # -------------------------------------------------------------------------------------------
 begin "daemon"
-if docker info >/dev/null 2>&1; then
-    say "using the running Docker daemon"
-else
-    [ "$(id -u)" = 0 ] || die "no Docker daemon answers and this is not root: cannot start one"
-    command -v dockerd >/dev/null || die "dockerd not found (Debian: apt-get install docker.io)"
-    say "starting dockerd --iptables=false --ip-masq=false --bridge=none (log $work/dockerd.log)"
-    setsid dockerd --iptables=false --ip-masq=false --bridge=none >"$work/dockerd.log" 2>&1 &
-    started_dockerd=$!
-    for _ in $(seq 60); do docker info >/dev/null 2>&1 && break; sleep 0.5; done
-    docker info >/dev/null 2>&1 || die "dockerd did not answer within 30 s: $(tail -3 "$work/dockerd.log")"
-fi
+start_dockerd_if_none
 say "engine $(docker version -f '{{.Server.Version}}'), CLI $(docker version -f '{{.Client.Version}}')"
 
 begin "base image"
-if docker image inspect python:3.11-slim >/dev/null 2>&1; then
-    say "base image python:3.11-slim present"
-elif timeout 60 docker pull python:3.11-slim >"$work/pull.log" 2>&1; then
-    say "pulled python:3.11-slim"
-else
-    say "Docker Hub unreachable ($(tail -1 "$work/pull.log")): making python:3.11-slim from Debian packages"
-    "$repo/scripts/make-base-image.sh" python:3.11-slim
-fi
+ensure_base_image
 
 begin "clone"
-git clone -q "$repo" "$work/recslam"
-cd "$work/recslam"
-say "fresh clone of $(git rev-parse --short HEAD) in $work/recslam"
-if ls "$CA_DIR"/*.crt >/dev/null 2>&1; then
-    cp "$CA_DIR"/*.crt docker/ca-certificates/
-    say "CA certificates for the build: $(cd "$CA_DIR" && echo *.crt)"
-fi
+fresh_clone
 
 begin "build"
 tb=$(date +%s)
