@@ -77,6 +77,9 @@ class EdgeRunConfig:
         time_offset_ms: the robots' camera-IMU time offset (``t_imu = t_cam + offset``, ms,
             Kalibr's ``timeshift_cam_imu``), held fixed; None: each robot's VIO estimates it
             online from 0.
+        offset_wait_s: while the offset is estimated (``time_offset_ms`` None), each map's
+            first VI initialisation waits up to this long (s of map time) for a confident
+            estimate (0: it does not wait).
     """
 
     listen: tuple[str, int] = ("0.0.0.0", 7000)
@@ -92,6 +95,7 @@ class EdgeRunConfig:
     stats_out: Path | None = None
     stop_flush_timeout_s: float = 10.0
     time_offset_ms: float | None = None
+    offset_wait_s: float = 0.0
     give_up_after_s: float = 0.0
 
 
@@ -158,6 +162,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "and tells the robot",
     )
     p.add_argument(
+        "--offset-wait",
+        type=float,
+        default=0.0,
+        metavar="S",
+        help="with --time-offset-ms auto, each map's first VI initialisation waits up to S "
+        "seconds for a confident offset estimate instead of initialising on IMU segments that "
+        "may be out of step with the images (default 0: no wait; ~6 suits a sensor known to "
+        "be unsynchronised)",
+    )
+    p.add_argument(
         "--stop-flush-timeout",
         type=float,
         default=10.0,
@@ -185,6 +199,7 @@ def config_from_args(args: argparse.Namespace) -> EdgeRunConfig:
         stop_flush_timeout_s=args.stop_flush_timeout,
         give_up_after_s=args.give_up_after,
         time_offset_ms=args.time_offset_ms,
+        offset_wait_s=args.offset_wait,
     )
 
 
@@ -268,7 +283,7 @@ def _server(config: EdgeRunConfig, secret: Keyring, vocab: Vocabulary) -> EdgeSe
     from services.edge.app import EdgeConfig
     from services.edge.robot_session import SessionOptions
     from services.edge.server import EdgeServer, EdgeServiceConfig
-    from services.edge.vio.types import VioOptions
+    from services.edge.vio.types import ViInitOptions, VioOptions
 
     cloud_host, cloud_port = config.cloud if config.cloud is not None else (None, 0)
     service = EdgeServiceConfig(
@@ -281,6 +296,7 @@ def _server(config: EdgeRunConfig, secret: Keyring, vocab: Vocabulary) -> EdgeSe
     vio = VioOptions(
         time_offset_ns=round((config.time_offset_ms or 0.0) * 1e6),
         estimate_time_offset=config.time_offset_ms is None,
+        vi_init=ViInitOptions(wait_for_time_offset_s=config.offset_wait_s),
     )
     app = EdgeConfig(worker=config.worker, session=SessionOptions(wire=config.wire), vio=vio)
     return EdgeServer(secret, vocab, app, service, state_dir=config.state_dir, tls=config.tls)

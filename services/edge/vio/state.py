@@ -118,6 +118,7 @@ class VioMap:
         self.vi_initialized = False
         self.vi_init_runs = 0
         self.last_vi_attempt_ns: int | None = None
+        self.vi_time_offset_ns = 0  # camera-IMU offset of its last VI initialisation / refinement
         self.banned_tracks: set[int] = set()
         self.track_point: dict[int, int] = {}  # robot track id -> map point id
         self._dirty_keyframes: set[int] = set()

@@ -3,10 +3,13 @@
 :class:`ViInitSchedule` is a base of :class:`~services.edge.vio.manager.VioManager` (which sets
 the attributes declared here). At each new keyframe ``_maybe_vi_init`` decides: the first VI
 initialisation once the map spans ``vi_init.first_after_s`` with ``vi_init.min_keyframes``
-keyframes (a refused one is retried ``vi_init.retry_interval_s`` later), then a refinement at
-each map age of ``vi_init.refine_after_s``. :meth:`ViInitSchedule.run_vi_init` runs one
-(:mod:`services.edge.vio.vi_bootstrap`) over the longest tail of keyframes linked by IMU
-segments and keeps the reasons, the bias guess for new maps and the statistics.
+keyframes (a refused one is retried ``vi_init.retry_interval_s`` later; while the camera-IMU
+offset is estimated and not yet confident, up to ``vi_init.wait_for_time_offset_s`` later),
+then a refinement at each map age of ``vi_init.refine_after_s``, and at once when the offset
+moved by ``vi_init.refine_on_offset_change_ms`` since the last one.
+:meth:`ViInitSchedule.run_vi_init` runs one (:mod:`services.edge.vio.vi_bootstrap`) over the
+longest tail of keyframes linked by IMU segments and keeps the reasons, the bias guess for new
+maps and the statistics.
 """
 
 from __future__ import annotations
@@ -18,6 +21,7 @@ import gtsam
 import numpy as np
 
 from services.edge.vio.state import PinholeUndistorter, VioMap
+from services.edge.vio.time_offset import TimeOffsetTracker
 from services.edge.vio.types import LocalBAOptions, VioOptions, VioStats
 from services.edge.vio.vi_bootstrap import first_vi_init, refine_vi
 
@@ -36,6 +40,7 @@ class ViInitSchedule:
     _last_init_reason: str
     _bias_guess: tuple[np.ndarray, np.ndarray]  # (accel, gyro)
     _full_ba_options: LocalBAOptions
+    _time_offset: TimeOffsetTracker
 
     def measure_imu_noise(self) -> bool:  # VioManager's
         raise NotImplementedError
@@ -53,9 +58,28 @@ class ViInitSchedule:
             waited = last is None or (kfs[-1].timestamp_ns - last) * 1e-9 >= vopt.retry_interval_s
             due = age >= vopt.first_after_s and len(kfs) >= vopt.min_keyframes and waited
             if due:
-                vmap.last_vi_attempt_ns = kfs[-1].timestamp_ns
                 self.update_time_offset(vmap, force=True)  # before the IMU is first used
+                offset = self._time_offset
+                waiting = age < vopt.first_after_s + vopt.wait_for_time_offset_s
+                if offset.enabled and not offset.confident and waiting:
+                    last = f" (last estimate {offset.last})" if offset.last is not None else ""
+                    self._last_init_reason = f"VI init waits for the camera-IMU offset{last}"
+                    return
+                vmap.last_vi_attempt_ns = kfs[-1].timestamp_ns
         else:
+            moved_ms = abs(self._time_offset.offset_ns - vmap.vi_time_offset_ns) * 1e-6
+            limit = vopt.refine_on_offset_change_ms
+            if limit > 0 and moved_ms >= limit:
+                logger.info(
+                    "%s: map %d: time offset moved %.1f ms since its VI init: refined now",
+                    self.name,
+                    vmap.map_id,
+                    moved_ms,
+                )
+                runs = vmap.vi_init_runs
+                self.run_vi_init(vmap)
+                vmap.vi_init_runs = runs  # an extra run: the schedule stays as it was
+                return
             due = runs <= len(vopt.refine_after_s) and age >= vopt.refine_after_s[runs - 1]
         if due:
             self.run_vi_init(vmap)
@@ -74,6 +98,7 @@ class ViInitSchedule:
         kfs = kfs[start:]
         ba_opt = self._full_ba_options
         vmap.vi_init_runs += 1
+        vmap.vi_time_offset_ns = self._time_offset.offset_ns
         if vmap.vi_init_runs > 1:
             stats, T_fix = refine_vi(vmap, kfs, self.camera, self.imu_params, self.options, ba_opt)
             if self._last_T is not None:
