@@ -13,7 +13,7 @@ robots to finish, lets the edge and cloud drain, stops them (SIGTERM: the cloud 
 trajectories and ATE report) and writes the report folder::
 
     OUT/report.md, report.json, trajectories_*.png, ate_over_time.png
-    OUT/run/  logs/, stats/, state/, results/ (see recslam.orchestration)
+    OUT/run/  logs/, stats/, state/, results/ (see lab.run.orchestration)
 
 With --resume-map PREV (the --out folder of an earlier demo), the cloud starts from a copy of
 PREV's saved map (PREV/run/state/cloud, left as it is) as a new mission: the robots relocalise
@@ -245,8 +245,8 @@ def build_dataset(args: argparse.Namespace) -> None:
 def run(args: argparse.Namespace) -> int:
     import shutil
 
-    from recslam.orchestration import JobConfig, progress_line, run_and_report
-    from recslam.sites import parse_move, parse_restart, parse_sites
+    from lab.run.orchestration import JobConfig, progress_line, run_and_report
+    from lab.run.sites import parse_move, parse_restart, parse_sites
 
     start = time.perf_counter()
     prior = None

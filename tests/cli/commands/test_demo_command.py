@@ -55,8 +55,8 @@ def test_resume_map_without_a_saved_map_is_refused(tmp_path, capsys) -> None:
 def test_a_new_mission_reaches_the_cloud_and_the_report(tmp_path) -> None:
     """The cloud of a resumed map runs the named mission; the report shows its merges and
     its ATE in the prior mission's frame."""
-    from recslam.orchestration import Job, JobConfig
-    from recslam.report import RunFacts, collect, render_markdown
+    from lab.run.orchestration import Job, JobConfig
+    from lab.run.report import RunFacts, collect, render_markdown
 
     (tmp_path / "data" / "robot0" / "mav0").mkdir(parents=True)
     prior = tmp_path / "m1" / "ate.json"
