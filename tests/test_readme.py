@@ -26,6 +26,8 @@ TOP_FOLDERS = ("benchmarks", "common", "dashboard", "deploy", "docker", "docs", 
 TOP_FOLDERS += ("recslam", "scripts", "services", "tests")
 ALLOWED_MISSING = frozenset({"docs/robot.md"})
 """Paths the README may name before they exist: another change is writing them."""
+OUTPUTS = ("out/", "data/")
+"""Folders the commands write (``out/demo/report.md``): not in the repository."""
 
 
 def readme() -> str:
@@ -68,6 +70,11 @@ def named_paths(text: str) -> list[str]:
             if word.split("/", 1)[0] in TOP_FOLDERS and "/" in word and "<" not in word:
                 out.append(word)
     return out
+
+
+def mentioned_files(text: str) -> list[str]:
+    """Every file name the README mentions, linked or not (``DESIGN.md``, ``docs/x.md``)."""
+    return re.findall(r"(?<![\w/.-])[\w/.-]+\.(?:md|png|py|yml|toml|lock)\b", text)
 
 
 def test_quick_start_has_two_commands() -> None:
@@ -151,11 +158,25 @@ def test_every_path_it_links_or_names_exists(target: str) -> None:
     assert target in ALLOWED_MISSING or (ROOT / target).exists(), target
 
 
+def test_every_file_it_mentions_exists() -> None:
+    text = readme()
+    linked = {Path(t).name for t in links(text)}
+    missing = [
+        name
+        for name in mentioned_files(text)
+        if not name.startswith(OUTPUTS)
+        and name not in ALLOWED_MISSING | linked
+        and not (ROOT / name).exists()
+    ]
+    assert missing == [], "the README mentions files that are not in the repository"
+
+
 def test_the_checks_can_fail() -> None:
     bad = "## Status\n| a | b |\n|---|---|\n| " + "x" * 200 + " | [f](missing.md) |\n"
     assert [len(c) for c in table_cells(bad)] == [1, 1, 200, 15]
     assert links(bad) == ["missing.md"]
     assert links("[a](https://x.org) [b](#top) ![c](docs/c.png#s)") == ["docs/c.png"]
+    assert mentioned_files("see DESIGN.md and (docs/a.md), not x.mdx") == ["DESIGN.md", "docs/a.md"]
     assert named_paths("`lab/run/x.py`, `out/demo/`, `services/<tier>/`, `make test`") == [
         "lab/run/x.py"
     ]
