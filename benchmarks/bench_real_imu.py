@@ -283,7 +283,7 @@ def main() -> None:
 
 
 def live_row(name: str, path: Path) -> str:
-    """One table row from a ``recslam demo`` report.json (as :mod:`recslam.report` writes)."""
+    """One table row from a ``recslam demo`` report.json (as :mod:`lab.run.report` writes)."""
     if not path.exists():
         return f"| {name} | not run ({path} missing) | | | |"
     rep = json.loads(path.read_text())

@@ -21,8 +21,8 @@ import numpy as np
 
 from common.codec import FeatureDecoder, FeatureEncoder, KeyframeFeatures
 from common.vocabulary import Vocabulary, VocabularyTrainingConfig
+from common.vocabulary_training import collect_descriptors
 from lab.datasets import euroc_micro_path
-from recslam.commands.vocab import collect_descriptors
 
 log = logging.getLogger("bench_vocabulary")
 RESULTS = Path(__file__).resolve().parent / "results" / "vocabulary.md"

@@ -1,9 +1,13 @@
 """Experiments over the whole system: they drive the code the services run
-(``recslam.orchestration`` starts the very services ``recslam demo`` starts) and turn the
-runs into tables and plots. Services never import this package.
+(:mod:`lab.run` starts the very services ``recslam demo`` starts) and turn the runs into
+tables and plots. Services never import this package, and it never imports the command line
+(``recslam``).
 
+- :mod:`lab.run`: whole runs as processes (orchestration, sites, the run report).
 - :mod:`lab.links`: ``recslam experiment links``, the bit budget of every link, raw vs coded
-  wire (tables and plot in :mod:`lab.links_report`).
+  wire (tables and plot in :mod:`lab.links_report`; :mod:`lab.links_run` drives the two).
+  :mod:`lab.seeds` and :mod:`lab.scale` follow the same split (``*_report``, ``*_run``), so
+  that each report imports what it reads and nothing imports back.
 - :mod:`lab.table3`: ``recslam experiment table3``, the paper's Table 3 (MBP) from replays of
   a recorded uplink through the cloud's own core (tables and plot in
   :mod:`lab.table3_report`; loop-detection precision / recall in :mod:`lab.loop_scoring`).

@@ -3,7 +3,7 @@
     recslam experiment bandwidth --data data/synth --budgets unlimited,500,200,100,50
 
 For each budget (kbit/s per robot link, each direction) the cloud, the edge and the robots run
-as separate processes (``recslam.orchestration``), shaped by one of two shapers (``--shaper``):
+as separate processes (``lab.run.orchestration``), shaped by one of two shapers (``--shaper``):
 
 - ``tbf``: kernel shaping of real TCP. Every robot runs in a network namespace of its own,
   linked to a hub namespace (where the edge and the cloud run) by a veth pair with a ``tbf``
@@ -223,7 +223,7 @@ def run_budget(
     """One run at ``kbit_s`` (None = unlimited) shaped by ``shaper``; returns its table row."""
     import shutil
 
-    from recslam.orchestration import JobConfig
+    from lab.run.orchestration import JobConfig
 
     if out.exists():
         shutil.rmtree(out)
@@ -252,7 +252,7 @@ def run_budget(
 def _run_job(config: Any, timeout: float) -> tuple[float, dict[str, int], dict[str, int]]:
     """Start the job of ``config``, wait for the robots and the edge, stop it: the streaming
     time, the exit codes and the frames per robot."""
-    from recslam.orchestration import Job, robot_frames
+    from lab.run.orchestration import Job, robot_frames
 
     with Job(config) as job:
         job.start()
@@ -273,7 +273,7 @@ def _row(
     codes: dict[str, int],
     frames: dict[str, int],
 ) -> dict[str, Any]:
-    from recslam.report import RunFacts, write_report
+    from lab.run.report import RunFacts, write_report
 
     facts = RunFacts(stream_s, wall_s, codes, frames)
     report = write_report(out / "run", out, facts)

@@ -2,7 +2,7 @@
 
 For each dataset, each run index and each wire format (``common.links.WireFormat``: the edge's
 ``--wire``; robots and cloud accept both) the whole job runs as ``recslam demo --no-dashboard``
-does it (``recslam.orchestration.run_and_report``) into ``OUT/<dataset>/<wire>/run<k>/``
+does it (``lab.run.orchestration.run_and_report``) into ``OUT/<dataset>/<wire>/run<k>/``
 (``report.json`` etc., the run folder in ``run/``). From each run this module reads
 (:func:`read_run`):
 
@@ -31,7 +31,6 @@ import json
 import logging
 import shutil
 import subprocess
-import time
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import asdict, dataclass, field
 from functools import partial
@@ -421,7 +420,7 @@ def run_job(
     with ``--no-mbp`` / ``--mbp-every`` as ``mbp`` / ``mbp_every`` say, and the cloud's uplink
     recorded to ``record_uplink``) into ``report_dir`` (replaced); its ``report.json``;
     progress every 30 s in the log."""
-    from recslam.orchestration import JobConfig, progress_line, run_and_report
+    from lab.run.orchestration import JobConfig, progress_line, run_and_report
 
     if report_dir.exists():
         shutil.rmtree(report_dir)
@@ -498,49 +497,3 @@ def build_data(
         "errors": list(errors),
         "datasets": datasets,
     }
-
-
-def run_links(config: LinksConfig) -> tuple[dict[str, Any], list[Path]]:
-    """Run (or, with ``from_runs``, find) every run, then write the tables; returns the data
-    and the files written."""
-    from lab.links_report import write_links
-
-    errors: list[str] = []
-    if config.from_runs:
-        folders = find_runs(config.out, config.wires)
-        if not folders:
-            raise LinksError(f"--from-runs: no finished run under {config.out}/*/<wire>/run*/")
-        paths = None
-    else:
-        if config.runs < 1:
-            raise LinksError("--runs must be at least 1")
-        paths = dataset_names(config.datasets)
-        for path in paths.values():
-            if not path.is_dir():
-                raise LinksError(f"--data {path}: no such dataset folder (recslam dataset synth)")
-        folders = {name: {w.value: [] for w in config.wires} for name in paths}
-        todo = [(n, k, w) for n in paths for k in range(1, config.runs + 1) for w in config.wires]
-        t_all = time.perf_counter()
-        for i, (name, k, wire) in enumerate(todo, 1):
-            label = f"[{i}/{len(todo)} {name} {wire.value} run{k}]"
-            report_dir = run_folder(config.out, name, wire, k)
-            log.info("%s starting (a run takes ~5 min here)", label)
-            t = time.perf_counter()
-            try:
-                report = run_one(paths[name], report_dir, wire, config, label)
-            except RecslamError as exc:
-                log.error("%s failed: %s", label, exc)
-                errors.append(f"{name} {wire.value} run{k}: {exc}")
-                continue
-            folders[name][wire.value].append(report_dir)
-            log.info(
-                "%s done in %.0f s: joint ATE %s m, failed services %s",
-                label,
-                time.perf_counter() - t,
-                report["ate"]["joint_rmse_m"],
-                report["failed"] or "none",
-            )
-        log.info("all %d runs done in %.0f s", len(todo), time.perf_counter() - t_all)
-    data = build_data(folders, config, paths, errors)
-    files = write_links(data, config.out, config.results)
-    return data, files

@@ -17,7 +17,7 @@ after an error; it first deletes namespaces of this prefix left by a process tha
 runs. Needs root and iproute2 (``ip``, ``tc``); :func:`check_available` says why not.
 
 The services run inside with ``ip netns exec NS``: :meth:`Star.placement` gives
-``recslam.orchestration`` the argv prefixes and addresses.
+``lab.run.orchestration`` the argv prefixes and addresses.
 """
 
 from __future__ import annotations
@@ -39,7 +39,7 @@ from common.netem import (
     shaping_unavailable,
     veth_link,
 )
-from recslam.orchestration import Placement
+from lab.run.orchestration import Placement
 
 log = logging.getLogger(__name__)
 

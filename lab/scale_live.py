@@ -126,7 +126,7 @@ def _read_json(path: Path) -> dict[str, Any]:
 def start_cloud(work: Path, edges: Sequence[str], config: LiveConfig) -> tuple[Any, int, Path]:
     """Issue the keys and start ``recslam cloud`` on a free loopback port; (process, port,
     keys folder) once it listens."""
-    from recslam.orchestration import free_port
+    from lab.run.orchestration import free_port
 
     keys = work / "keys"
     issue_keys(keys, list(edges), [])

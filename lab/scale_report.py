@@ -1,5 +1,5 @@
 """Reporting of ``recslam experiment scale``: ``scale.md``, ``scale.png`` and ``scale.json`` of
-:func:`lab.scale.run_scale`'s rows (the replays themselves are in :mod:`lab.scale` and
+:func:`lab.scale_run.run_scale`'s rows (the replays themselves are in :mod:`lab.scale` and
 :mod:`lab.scale_live`)."""
 
 from __future__ import annotations

@@ -4,10 +4,10 @@ For each seed, the project's synthetic dataset of that seed (built once under ``
 reused after) runs through the whole job as ``recslam demo --no-dashboard`` runs it (cloud,
 edge and robots as processes, :func:`lab.links.run_job`), and the run's report gives joint and
 per-robot ATE, the maps at the end, merges, loops, lost frames and failed services.
-:func:`write_seeds` turns the runs into ``seeds.md`` (one row per seed, the median and worst
-against issue 17's targets) and ``seeds.png``. With ``from_runs`` the runs already under
-``out`` are read instead (a sweep resumed, or runs made by hand, each ``out/<name>/report.json``
-next to the ``dataset.json`` it names).
+:func:`lab.seeds_report.write_seeds` turns the runs into ``seeds.md`` (one row per seed, the
+median and worst against issue 17's targets) and ``seeds.png``; :mod:`lab.seeds_run` runs the
+sweep. With ``from_runs`` the runs already under ``out`` are read instead (a sweep resumed, or
+runs made by hand, each ``out/<name>/report.json`` next to the ``dataset.json`` it names).
 
 Harder worlds (issue 17, :class:`GeneratorOptions`): ``--flight``, ``--world``,
 ``--exposure-steps`` and ``--motion-blur-ms`` are passed to the generator; the datasets and
@@ -18,11 +18,9 @@ states the generator settings of its runs, so they never mix with the default sw
 
 from __future__ import annotations
 
-import datetime
 import json
 import logging
 import math
-import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -31,8 +29,6 @@ from typing import Any
 import numpy as np
 
 from common.errors import RecslamError
-from common.links import WireFormat
-from lab.links import git_commit, run_job
 from lab.loop_scoring import LoopCriterion
 
 log = logging.getLogger(__name__)
@@ -269,64 +265,6 @@ def find_runs(out: Path) -> dict[str, Path]:
     return {p.parent.name: p.parent for p in sorted(Path(out).glob("*/report.json"))}
 
 
-def run_seeds(config: SeedsConfig) -> tuple[dict[str, Any], list[Path]]:
-    """Build the datasets and run every seed (or, with ``from_runs``, read the runs under
-    ``out``); write the tables. Returns the data and the files written."""
-    errors: list[str] = []
-    if config.from_runs:
-        folders = find_runs(config.out)
-        if not folders:
-            raise SeedsError(f"--from-runs: no run report under {config.out}/*/report.json")
-    else:
-        if not config.seeds:
-            raise SeedsError("no seeds to run")
-        folders = {}
-        t_all = time.perf_counter()
-        for i, seed in enumerate(config.seeds, 1):
-            label = f"[{i}/{len(config.seeds)} seed {seed}]"
-            run_name = config.generator.folder(seed)
-            dataset = config.data_root / run_name
-            t = time.perf_counter()
-            if ensure_dataset(dataset, config.robots, config.seconds, seed, config.generator):
-                log.info("%s dataset built in %.0f s: %s", label, time.perf_counter() - t, dataset)
-            report_dir = config.out / run_name
-            log.info("%s running the whole job (a 60 s run takes ~4 min here)", label)
-            try:
-                report = run_job(
-                    dataset, report_dir, WireFormat.CODED, config.rate, config.timeout_s, label
-                )
-            except RecslamError as exc:
-                log.error("%s failed: %s", label, exc)
-                errors.append(f"seed {seed}: {exc}")
-                continue
-            folders[run_name] = report_dir
-            log.info(
-                "%s done in %.0f s: joint ATE %s m",
-                label,
-                time.perf_counter() - t,
-                report["ate"]["joint_rmse_m"],
-            )
-        log.info("%d runs done in %.0f s", len(config.seeds), time.perf_counter() - t_all)
-    runs = {name: read_report(f) for name, f in folders.items()}
-    for name, f in folders.items():
-        played = _dataset_folder(f)
-        runs[name]["dataset"] = _dataset_of(played)
-        runs[name].update(scale_check(f, played))
-        runs[name].update(constraint_check(f, played))
-    data = {
-        "command": config.command,
-        "commit": git_commit(),
-        "date": datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M UTC"),
-        "targets": config.targets.__dict__,
-        "errors": errors,
-        "runs": runs,
-        "summary": summarize(runs, config.targets) if runs else None,
-    }
-    from lab.seeds_report import write_seeds
-
-    return data, write_seeds(data, config.out, config.results, config.table_name)
-
-
 def scale_check(report_dir: Path, data: Path | None) -> dict[str, float | None]:
     """Joint ATE after a Sim(3) alignment and its scale, of the trajectories the cloud wrote
     (``run/results/trajectories/*.tum``) against the ground truth of the dataset ``data`` it
@@ -397,7 +335,7 @@ def constraint_check(
     }
 
 
-def _dataset_folder(report_dir: Path) -> Path | None:
+def dataset_folder(report_dir: Path) -> Path | None:
     """The dataset folder a run played, from the command line its first robot's log starts
     with (``--dataset FOLDER/robotK``)."""
     for log_file in sorted((report_dir / "run" / "logs").glob("robot*.log")):
@@ -411,7 +349,7 @@ def _dataset_folder(report_dir: Path) -> Path | None:
     return None
 
 
-def _dataset_of(folder: Path | None) -> dict[str, Any] | None:
+def dataset_of(folder: Path | None) -> dict[str, Any] | None:
     """Robots, seconds and seed of the synthetic dataset in ``folder``, and its issue-17
     generator settings where they are not the defaults; None if not synthetic (or not
     found)."""

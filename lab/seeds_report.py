@@ -1,5 +1,5 @@
 """Reporting of ``recslam experiment seeds``: ``seeds.md``, ``seeds.json`` and ``seeds.png`` from
-:func:`lab.seeds.run_seeds`'s data."""
+:func:`lab.seeds_run.run_seeds`'s data."""
 
 from __future__ import annotations
 

@@ -7,7 +7,7 @@
 #  2. makes the base image python:3.11-slim from Debian's packages (scripts/make-base-image.sh)
 #     when it is not there and Docker Hub cannot be reached;
 #  3. clones the committed HEAD into a temporary folder (a fresh clone: no datasets, no
-#     ./out, no docker/secret.env) and follows the README there: `make docker/secret.env`,
+#     ./out, no docker/secret.env) and follows docs/usage.md there: `make docker/secret.env`,
 #     `docker compose build`, `docker compose --profile synth run --rm dataset` (a short set:
 #     $ROBOTS robots x $SECONDS_PER_ROBOT s), `docker compose up -d`;
 #  4. waits for the robots to exit, for the edge to drain, stops the stack (the cloud last,
@@ -79,7 +79,7 @@ say "compose: ${compose[*]} ($("${compose[@]}" version --short 2>/dev/null || ec
 # 2. The base image.
 ensure_base_image
 
-# 3. A fresh clone, the README's commands.
+# 3. A fresh clone, the commands of docs/usage.md ("Deployment and experiments").
 fresh_clone
 make -s docker/secret.env PYTHON=python3
 CLOUD_PORT=$(free_port) EDGE_PORT=$(free_port) DASHBOARD_PORT=$(free_port)

@@ -25,8 +25,9 @@ from common.camera import camera_model
 from common.codec.entropy import BitReader, BitWriter, best_scale_index, signed_cost
 from common.codec.errors import CodecError
 from common.geometry import R_to_quat_wxyz, quat_wxyz_to_R
-from common.links import WireFormat, body
+from common.links import body
 from common.links.sensors import Sensors, decode_sensors, encode_sensors
+from common.links.wire import WireFormat
 from common.protocol.arrays import pack_array, unpack_array
 from common.protocol.errors import RemoteProtocolError
 from common.protocol.messages import Message, message

@@ -13,7 +13,7 @@ robots to finish, lets the edge and cloud drain, stops them (SIGTERM: the cloud 
 trajectories and ATE report) and writes the report folder::
 
     OUT/report.md, report.json, trajectories_*.png, ate_over_time.png
-    OUT/run/  logs/, stats/, state/, results/ (see recslam.orchestration)
+    OUT/run/  logs/, stats/, state/, results/ (see lab.run.orchestration)
 
 With --resume-map PREV (the --out folder of an earlier demo), the cloud starts from a copy of
 PREV's saved map (PREV/run/state/cloud, left as it is) as a new mission: the robots relocalise
@@ -32,6 +32,8 @@ import time
 from pathlib import Path
 
 from common.links import WireFormat
+from services.cloud import runner as cloud
+from services.edge import runner as edge
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -113,49 +115,16 @@ def register(sub: argparse._SubParsersAction) -> None:
         metavar="NAME",
         help="the new mission's name with --resume-map (default: the --out folder's name)",
     )
-    p.add_argument("--dashboard-port", type=int, default=8080, help="dashboard port (default 8080)")
+    cloud.add_dashboard_argument(p)
     p.add_argument("--no-dashboard", action="store_true", help="do not serve the dashboard")
     p.add_argument(
         "--rate", choices=("realtime", "max"), default="realtime", help="robots' playback rate"
     )
     p.add_argument("--timeout", type=float, default=1800.0, help="give up after this many seconds")
-    p.add_argument(
-        "--mbp",
-        action=argparse.BooleanOptionalAction,
-        default=True,
-        help="map backbone profiling at the cloud (default on: one pass at shutdown, after the "
-        "last full BA; it removes ~40 %% of the keyframes and keeps every pose, see "
-        "benchmarks/results/table3.md)",
-    )
-    p.add_argument(
-        "--mbp-every",
-        type=int,
-        default=0,
-        metavar="N",
-        help="also prune every N new keyframes while running (recslam cloud --mbp-every)",
-    )
-    p.add_argument(
-        "--early-loop-candidates",
-        type=int,
-        default=None,
-        metavar="N",
-        help="recslam cloud --early-loop-candidates (default: the cloud's)",
-    )
-    p.add_argument(
-        "--record-uplink",
-        type=Path,
-        default=None,
-        metavar="FILE",
-        help="the cloud records every applied uplink message here (for 'recslam experiment "
-        "table3'; default: off)",
-    )
-    p.add_argument(
-        "--wire",
-        choices=[w.value for w in WireFormat],
-        default=WireFormat.CODED.value,
-        help="how the edge encodes its messages to the robots and the cloud: coded (default) "
-        "or raw (the float64 schema-1 baseline of 'recslam experiment links')",
-    )
+    # The cloud's and the edge's own options, passed on to the services this demo starts.
+    cloud.add_map_arguments(p)
+    cloud.add_record_argument(p, "--record-uplink")
+    edge.add_wire_argument(p)
     p.set_defaults(func=run)
 
 
@@ -245,8 +214,8 @@ def build_dataset(args: argparse.Namespace) -> None:
 def run(args: argparse.Namespace) -> int:
     import shutil
 
-    from recslam.orchestration import JobConfig, progress_line, run_and_report
-    from recslam.sites import parse_move, parse_restart, parse_sites
+    from lab.run.orchestration import JobConfig, progress_line, run_and_report
+    from lab.run.sites import parse_move, parse_restart, parse_sites
 
     start = time.perf_counter()
     prior = None

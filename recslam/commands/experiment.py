@@ -341,8 +341,8 @@ def seeds_config(args: argparse.Namespace, argv: list[str] | None = None):
 
 
 def run_seeds(args: argparse.Namespace) -> int:
-    """``recslam experiment seeds`` (logic in :mod:`lab.seeds`)."""
-    from lab.seeds import run_seeds as seeds
+    """``recslam experiment seeds`` (logic in :mod:`lab.seeds_run`)."""
+    from lab.seeds_run import run_seeds as seeds
 
     logging.getLogger("lab").setLevel(logging.INFO)  # progress: one line per run step
     config = seeds_config(args)
@@ -350,8 +350,8 @@ def run_seeds(args: argparse.Namespace) -> int:
 
 
 def run_links(args: argparse.Namespace) -> int:
-    """``recslam experiment links`` (logic in :mod:`lab.links`)."""
-    from lab.links import run_links as links
+    """``recslam experiment links`` (logic in :mod:`lab.links_run`)."""
+    from lab.links_run import run_links as links
 
     logging.getLogger("lab").setLevel(logging.INFO)  # progress: one line per run step
     return _printed(args.out / "links.md", *links(links_config(args)))
@@ -394,8 +394,8 @@ def scale_config(args: argparse.Namespace, argv: list[str] | None = None):
 
 
 def run_scale(args: argparse.Namespace) -> int:
-    """``recslam experiment scale`` (logic in :mod:`lab.scale`)."""
-    from lab.scale import run_scale as scale
+    """``recslam experiment scale`` (logic in :mod:`lab.scale_run`)."""
+    from lab.scale_run import run_scale as scale
 
     logging.getLogger("lab").setLevel(logging.INFO)  # progress: one line per team
     config, live = scale_config(args)

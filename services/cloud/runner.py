@@ -133,6 +133,62 @@ def _share(text: str) -> float:
     return value
 
 
+def add_dashboard_argument(p: argparse.ArgumentParser) -> None:
+    """``--dashboard-port``: the cloud's, and ``recslam demo``'s for the cloud it starts."""
+    p.add_argument(
+        "--dashboard-port",
+        type=int,
+        default=8080,
+        metavar="PORT",
+        help="viser dashboard port, 0 disables it (default 8080)",
+    )
+
+
+def add_map_arguments(p: argparse.ArgumentParser) -> None:
+    """The options of the cloud's map work that ``recslam demo`` passes on to its cloud:
+    ``--mbp``, ``--mbp-every``, ``--early-loop-candidates`` (one definition, one help)."""
+    p.add_argument(
+        "--mbp",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="map backbone profiling on/off (default on: one pass over every map at shutdown, "
+        "after the last full BA; pruning while running cost accuracy, see "
+        "benchmarks/results/table3.md)",
+    )
+    p.add_argument(
+        "--mbp-every",
+        type=int,
+        default=0,
+        metavar="N",
+        help="with --mbp, also prune a map every N new keyframes while running, right after a "
+        "full BA of it (with --full-ba), keeping each robot's 30 newest (default 0: only at "
+        "shutdown; see benchmarks/results/mbp_midrun.md)",
+    )
+    p.add_argument(
+        "--early-loop-candidates",
+        type=int,
+        default=1,
+        choices=range(11),
+        metavar="N",
+        help="verify the N best place-recognition candidates of a keyframe at once and accept "
+        "one when the keyframe's covisible keyframes agree with it (ORB-SLAM3), besides those "
+        "consistent over 3 keyframes (default 1; 0: only those; "
+        "benchmarks/results/loop_recall.md)",
+    )
+
+
+def add_record_argument(p: argparse.ArgumentParser, flag: str = "--record") -> None:
+    """The uplink recording; ``recslam demo`` offers it as ``--record-uplink``."""
+    p.add_argument(
+        flag,
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help="append every applied uplink message to this recording (replayed by "
+        "'recslam experiment table3'; default: off)",
+    )
+
+
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """The cloud's options (their defaults are :class:`CloudRunConfig`'s)."""
     p.add_argument(
@@ -167,13 +223,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "reported under its alignment (eval/ate_prior_frame.json)",
     )
     p.add_argument(
-        "--dashboard-port",
-        type=int,
-        default=8080,
-        metavar="PORT",
-        help="viser dashboard port, 0 disables it (default 8080)",
-    )
-    p.add_argument(
         "--results",
         type=Path,
         default=None,
@@ -187,6 +236,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         metavar="DATASET",
         help="ground truth for the ATE report (dataset folder or file)",
     )
+    add_dashboard_argument(p)
     add_security_arguments(p)
     p.add_argument(
         "--dashboard-host",
@@ -215,34 +265,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         metavar="NPZ",
         help="vocabulary file (default: common/assets/orb_vocabulary.npz)",
     )
-    p.add_argument(
-        "--mbp",
-        action=argparse.BooleanOptionalAction,
-        default=True,
-        help="map backbone profiling on/off (default on: one pass over every map at shutdown, "
-        "after the last full BA; pruning while running cost accuracy, see "
-        "benchmarks/results/table3.md)",
-    )
-    p.add_argument(
-        "--mbp-every",
-        type=int,
-        default=0,
-        metavar="N",
-        help="with --mbp, also prune a map every N new keyframes while running, right after a "
-        "full BA of it (with --full-ba), keeping each robot's 30 newest (default 0: only at "
-        "shutdown; see benchmarks/results/mbp_midrun.md)",
-    )
-    p.add_argument(
-        "--early-loop-candidates",
-        type=int,
-        default=1,
-        choices=range(11),
-        metavar="N",
-        help="verify the N best place-recognition candidates of a keyframe at once and accept "
-        "one when the keyframe's covisible keyframes agree with it (ORB-SLAM3), besides those "
-        "consistent over 3 keyframes (default 1; 0: only those; "
-        "benchmarks/results/loop_recall.md)",
-    )
+    add_map_arguments(p)
     p.add_argument(
         "--optimizer-nice",
         type=int,
@@ -312,14 +335,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="rewrite service counters and per-edge traffic counters as JSON here every "
         "second and at exit (default: none)",
     )
-    p.add_argument(
-        "--record",
-        type=Path,
-        default=None,
-        metavar="FILE",
-        help="append every applied uplink message to this recording (replayed by "
-        "'recslam experiment table3'; default: off)",
-    )
+    add_record_argument(p)
 
 
 def config_from_args(args: argparse.Namespace) -> CloudRunConfig:

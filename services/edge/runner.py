@@ -99,6 +99,17 @@ class EdgeRunConfig:
     give_up_after_s: float = 0.0
 
 
+def add_wire_argument(p: argparse.ArgumentParser) -> None:
+    """``--wire``: the edge's, and ``recslam demo``'s for the edge it starts."""
+    p.add_argument(
+        "--wire",
+        choices=[w.value for w in WireFormat],
+        default=WireFormat.CODED.value,
+        help="encoding of the messages to the robots and the cloud: coded (default) or raw "
+        "(the float64 schema-1 baseline; robots and cloud accept both)",
+    )
+
+
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """The edge's options (their defaults are :class:`EdgeRunConfig`'s)."""
     p.add_argument(
@@ -137,13 +148,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         metavar="NPZ",
         help="vocabulary file (default: common/assets/orb_vocabulary.npz)",
     )
-    p.add_argument(
-        "--wire",
-        choices=[w.value for w in WireFormat],
-        default=WireFormat.CODED.value,
-        help="encoding of the messages to the robots and the cloud: coded (default) or raw "
-        "(the float64 schema-1 baseline; robots and cloud accept both)",
-    )
+    add_wire_argument(p)
     p.add_argument(
         "--stats-out",
         type=Path,

@@ -20,8 +20,8 @@ import pytest
 
 from common.data.synth import SynthConfig, generate_dataset
 from common.links.sensors import decode_sensors
-from recslam.orchestration import Job, JobConfig, robot_frames
-from recslam.report import RunFacts, write_report
+from lab.run.orchestration import Job, JobConfig, robot_frames
+from lab.run.report import RunFacts, write_report
 from services.cloud.map_types import split_key
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(400)]

@@ -108,7 +108,7 @@ def test_shapers_resolve_and_a_bad_one_is_named(monkeypatch) -> None:
 def test_a_star_places_robots_in_their_namespaces_and_the_edge_in_the_hub(tmp_path) -> None:
     """What the tbf shaper hands the orchestration: argv prefixes and the addresses."""
     from lab.netns import Leaf, Star
-    from recslam.orchestration import Job, JobConfig
+    from lab.run.orchestration import Job, JobConfig
 
     for name in ("robot0", "robot1"):
         (tmp_path / "data" / name / "mav0").mkdir(parents=True)

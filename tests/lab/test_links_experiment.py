@@ -1,6 +1,6 @@
 """``recslam experiment links``: argument parsing, the numbers read from run folders, the
 tables, the verdict and the files (no run of the services: the run folders are written here,
-their reports by ``recslam.report.write_report`` itself from fake counters)."""
+their reports by ``lab.run.report.write_report`` itself from fake counters)."""
 
 from __future__ import annotations
 
@@ -25,14 +25,14 @@ from lab.links import (
     parse_wires,
     read_run,
     run_folder,
-    run_links,
     summarize,
     verdict,
 )
 from lab.links_report import family_label, fmt, render_markdown, verdict_line, write_links
+from lab.links_run import run_links
+from lab.run.report import RunFacts, write_report
 from recslam.commands import experiment
 from recslam.commands.edge import codec_cpu
-from recslam.report import RunFacts, write_report
 
 CAMERA_FRAMES = 1200  # 60 s at 20 Hz: 1 kbit/s at camera rate = 7500 bytes
 
@@ -204,8 +204,8 @@ def test_option_parsers() -> None:
 
 
 def test_edge_and_demo_take_the_wire_and_the_job_passes_it(tmp_path: Path) -> None:
+    from lab.run.orchestration import Job, JobConfig
     from recslam.cli import build_parser
-    from recslam.orchestration import Job, JobConfig
 
     parser = build_parser()
     assert parser.parse_args(["edge", "--wire", "raw"]).wire == "raw"

@@ -15,8 +15,8 @@ from lab.seeds import (
     ensure_dataset,
     parse_seeds,
     read_report,
-    run_seeds,
 )
+from lab.seeds_run import run_seeds
 from recslam.commands import experiment
 
 

@@ -61,8 +61,8 @@ def test_replay_with_and_without_mbp(recording, vocab, tmp_path):
 def test_record_options_parse_and_reach_the_cloud_command(tmp_path):
     import argparse
 
+    from lab.run.orchestration import Job, JobConfig
     from recslam.commands import cloud, demo, experiment
-    from recslam.orchestration import Job, JobConfig
 
     parser = argparse.ArgumentParser()
     sub = parser.add_subparsers()

@@ -55,8 +55,8 @@ def test_resume_map_without_a_saved_map_is_refused(tmp_path, capsys) -> None:
 def test_a_new_mission_reaches_the_cloud_and_the_report(tmp_path) -> None:
     """The cloud of a resumed map runs the named mission; the report shows its merges and
     its ATE in the prior mission's frame."""
-    from recslam.orchestration import Job, JobConfig
-    from recslam.report import RunFacts, collect, render_markdown
+    from lab.run.orchestration import Job, JobConfig
+    from lab.run.report import RunFacts, collect, render_markdown
 
     (tmp_path / "data" / "robot0" / "mav0").mkdir(parents=True)
     prior = tmp_path / "m1" / "ate.json"
@@ -80,3 +80,34 @@ def test_a_new_mission_reaches_the_cloud_and_the_report(tmp_path) -> None:
     assert data["mission"]["merge_delay_s"] == {"robot0": 3.25, "robot1": None}
     text = render_markdown(data)
     assert "robot0 3.2 s, robot1 not merged" in text and "0.012 m" in text
+
+
+def _actions(parser) -> dict:
+    import argparse
+
+    parser_action = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    return {
+        name: {flag: a for a in sub._actions for flag in a.option_strings}
+        for name, sub in parser_action.choices.items()
+    }
+
+
+def test_demo_reuses_the_services_options() -> None:
+    """The options ``recslam demo`` passes on to its cloud and edge are the services' own:
+    the same default, choices and help (one definition, issue 50)."""
+    from recslam.cli import build_parser
+
+    actions = _actions(build_parser())
+    demo = actions["demo"]
+    shared = {
+        "--dashboard-port": ("cloud", "--dashboard-port"),
+        "--mbp": ("cloud", "--mbp"),
+        "--mbp-every": ("cloud", "--mbp-every"),
+        "--early-loop-candidates": ("cloud", "--early-loop-candidates"),
+        "--record-uplink": ("cloud", "--record"),
+        "--wire": ("edge", "--wire"),
+    }
+    for flag, (service, theirs) in shared.items():
+        mine, other = demo[flag], actions[service][theirs]
+        for field in ("default", "choices", "help", "type", "metavar"):
+            assert getattr(mine, field) == getattr(other, field), (flag, field)

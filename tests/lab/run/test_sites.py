@@ -8,9 +8,9 @@ from pathlib import Path
 
 import pytest
 
-from recslam.orchestration import Job, JobConfig, OrchestrationError, progress_line
-from recslam.report import RunFacts, collect
-from recslam.sites import (
+from lab.run.orchestration import Job, JobConfig, OrchestrationError, progress_line
+from lab.run.report import RunFacts, collect
+from lab.run.sites import (
     SitesError,
     assign_sites,
     merge_edge_stats,

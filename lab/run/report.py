@@ -1,6 +1,6 @@
 """The run report: ``REPORT_DIR/report.md``, ``report.json`` and PNGs from one run folder.
 
-Inputs (see ``recslam.orchestration``): the cloud's result folder (``results/eval/ate.json``
+Inputs (see ``lab.run.orchestration``): the cloud's result folder (``results/eval/ate.json``
 and its plots, ``results/cloud_maps.json``), the last edge and cloud counters
 (``stats/{edge,cloud}.json``, with several edges one ``stats/edge-<name>.json`` each: a
 robot's counters are summed over the edges that served it, its links are shown per edge, and
@@ -25,7 +25,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from recslam.sites import SINGLE_EDGE, merge_edge_stats
+from lab.run.sites import SINGLE_EDGE, merge_edge_stats
 
 log = logging.getLogger(__name__)
 

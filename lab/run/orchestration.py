@@ -41,7 +41,7 @@ from typing import Any
 from common.errors import RecslamError
 from common.links import WireFormat
 from common.protocol.credentials import issue_keys
-from recslam.sites import SINGLE_EDGE, assign_sites, edge_stats_name, merge_edge_stats
+from lab.run.sites import SINGLE_EDGE, assign_sites, edge_stats_name, merge_edge_stats
 
 log = logging.getLogger(__name__)
 
@@ -526,10 +526,10 @@ def run_and_report(
 
     Starts the cloud, the edge and the robots, waits for the robots (at most ``timeout_s``),
     lets the edge and the cloud drain, stops them and writes ``report_dir/report.{md,json}``
-    from ``config.run_dir`` (``recslam.report``). ``progress(sample, elapsed_s)`` sees every
+    from ``config.run_dir`` (``lab.run.report``). ``progress(sample, elapsed_s)`` sees every
     sample (about one a second), ``say`` the few milestone lines. Returns the report data.
     """
-    from recslam.report import RunFacts, write_report
+    from lab.run.report import RunFacts, write_report
 
     t0 = time.perf_counter()
 

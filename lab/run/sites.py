@@ -1,6 +1,6 @@
 """Sites: which robots each edge of a run serves, and counters over several edges.
 
-Pure helpers of :mod:`recslam.orchestration` and :mod:`recslam.report` (no processes, no
+Pure helpers of :mod:`lab.run.orchestration` and :mod:`lab.run.report` (no processes, no
 files): the ``--sites`` / ``--move`` syntax of ``recslam demo``, the round-robin assignment
 of ``--edges N``, and one edge-shaped view of several edges' counters.
 """
@@ -24,7 +24,7 @@ SINGLE_EDGE = "edge"
 
 def edge_stats_name(edge: str) -> str:
     """The stats file stem of edge ``edge``: ``edge`` for the single edge, ``edge-<name>``
-    for a site (``recslam.report`` reads every ``stats/edge*.json``)."""
+    for a site (``lab.run.report`` reads every ``stats/edge*.json``)."""
     return "edge" if edge == SINGLE_EDGE else f"edge-{edge}"
 
 
