@@ -99,6 +99,8 @@ class JobConfig:
             default).
         wire: how the edge encodes what it sends to the robots and the cloud (``recslam edge
             --wire``; default coded; robots and cloud accept both).
+        time_offset_ms: ``recslam edge --time-offset-ms`` (None: auto, estimated online).
+        offset_wait_s: ``recslam edge --offset-wait`` (default 0).
         placement: where each process runs (default: all on loopback here), e.g. the robots
             in network namespaces of their own (``lab.netns``).
         edges: number of edges (sites), robots round-robin (default 1: one edge ``edge``).
@@ -127,6 +129,8 @@ class JobConfig:
     mbp_every: int = 0
     early_loop_candidates: int | None = None
     wire: WireFormat = WireFormat.CODED
+    time_offset_ms: float | None = None
+    offset_wait_s: float = 0.0
     placement: Placement = field(default_factory=Placement)
     edges: int = 1
     sites: Mapping[str, tuple[str, ...]] | None = None
@@ -250,6 +254,10 @@ class Job:
             c.wire.value,
             "--stats-out",
             str(self.run_dir / "stats" / f"{edge_stats_name(name)}.json"),
+            "--time-offset-ms",
+            "auto" if c.time_offset_ms is None else f"{c.time_offset_ms:g}",
+            "--offset-wait",
+            f"{c.offset_wait_s:g}",
         )
 
     def _edge_address(self, robot: str, edge: str) -> str:

@@ -125,6 +125,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     cloud.add_map_arguments(p)
     cloud.add_record_argument(p, "--record-uplink")
     edge.add_wire_argument(p)
+    edge.add_time_offset_arguments(p)
     p.set_defaults(func=run)
 
 
@@ -250,6 +251,8 @@ def run(args: argparse.Namespace) -> int:
         mbp_every=args.mbp_every,
         early_loop_candidates=args.early_loop_candidates,
         wire=WireFormat(args.wire),
+        time_offset_ms=args.time_offset_ms,
+        offset_wait_s=args.offset_wait,
         edges=args.edges,
         sites=parse_sites(args.sites) if args.sites else None,
         moves=tuple(parse_move(m) for m in args.move),

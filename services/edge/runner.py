@@ -110,6 +110,29 @@ def add_wire_argument(p: argparse.ArgumentParser) -> None:
     )
 
 
+def add_time_offset_arguments(p: argparse.ArgumentParser) -> None:
+    """``--time-offset-ms`` and ``--offset-wait`` (also the demo's, passed to its edges)."""
+    p.add_argument(
+        "--time-offset-ms",
+        type=_time_offset,
+        default=None,
+        metavar="MS|auto",
+        help="the robots' camera-IMU time offset, t_imu = t_cam + MS (Kalibr's "
+        "timeshift_cam_imu), held fixed; auto (default): each robot's VIO estimates it online "
+        "and tells the robot",
+    )
+    p.add_argument(
+        "--offset-wait",
+        type=float,
+        default=0.0,
+        metavar="S",
+        help="with --time-offset-ms auto, each map's first VI initialisation waits up to S "
+        "seconds for a confident offset estimate instead of initialising on IMU segments that "
+        "may be out of step with the images (default 0: no wait; ~6 suits a sensor known to "
+        "be unsynchronised)",
+    )
+
+
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """The edge's options (their defaults are :class:`EdgeRunConfig`'s)."""
     p.add_argument(
@@ -157,25 +180,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="rewrite service and per-link traffic counters as JSON here every second and at "
         "exit (default: none)",
     )
-    p.add_argument(
-        "--time-offset-ms",
-        type=_time_offset,
-        default=None,
-        metavar="MS|auto",
-        help="the robots' camera-IMU time offset, t_imu = t_cam + MS (Kalibr's "
-        "timeshift_cam_imu), held fixed; auto (default): each robot's VIO estimates it online "
-        "and tells the robot",
-    )
-    p.add_argument(
-        "--offset-wait",
-        type=float,
-        default=0.0,
-        metavar="S",
-        help="with --time-offset-ms auto, each map's first VI initialisation waits up to S "
-        "seconds for a confident offset estimate instead of initialising on IMU segments that "
-        "may be out of step with the images (default 0: no wait; ~6 suits a sensor known to "
-        "be unsynchronised)",
-    )
+    add_time_offset_arguments(p)
     p.add_argument(
         "--stop-flush-timeout",
         type=float,
