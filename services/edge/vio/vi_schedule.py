@@ -62,8 +62,8 @@ class ViInitSchedule:
                 offset = self._time_offset
                 waiting = age < vopt.first_after_s + vopt.wait_for_time_offset_s
                 if offset.enabled and not offset.confident and waiting:
-                    last = f" (last estimate {offset.last})" if offset.last is not None else ""
-                    self._last_init_reason = f"VI init waits for the camera-IMU offset{last}"
+                    est = f" (last estimate {offset.last})" if offset.last is not None else ""
+                    self._last_init_reason = f"VI init waits for the camera-IMU offset{est}"
                     return
                 vmap.last_vi_attempt_ns = kfs[-1].timestamp_ns
         else:
