@@ -23,6 +23,7 @@ from common.links.body import (
     seal,
 )
 from common.links.sensors import Sensors, decode_sensors, encode_sensors
+from common.links.wire import pack_finite_pose, unpack_sent_pose
 from common.protocol.arrays import pack_array, unpack_array
 from common.protocol.errors import RemoteProtocolError
 from common.protocol.messages import Message, message
@@ -240,6 +241,31 @@ class PoseCorrection(Message):
     map_id: int
     keyframe_ids: bytes
     T_world_body: bytes
+
+
+@message(0x0503)
+class MapPlacement(Message):
+    """Where robot ``agent_id``'s own map ``map_id`` (the edge's map id) sits in the cloud's
+    global map ``global_map`` (the atlas map it is part of): ``pose`` (28 bytes,
+    :func:`~common.links.wire.pack_pose`) is ``T_global_map``. Sent with every correction of
+    that robot; the edge forwards it to the robot (``robot_edge.MapPlacement``)."""
+
+    agent_id: str
+    map_id: int
+    global_map: int
+    pose: bytes
+
+
+def encode_map_placement(
+    agent_id: str, map_id: int, global_map: int, T_global_map: np.ndarray
+) -> MapPlacement:
+    """A :class:`MapPlacement` (ValueError if the transform is not finite in float32)."""
+    return MapPlacement(agent_id, int(map_id), int(global_map), pack_finite_pose(T_global_map))
+
+
+def decode_map_placement(msg: MapPlacement) -> np.ndarray:
+    """``T_global_map`` (4, 4) of a :class:`MapPlacement`; RemoteProtocolError if malformed."""
+    return unpack_sent_pose(msg.pose, f"MapPlacement.pose of {msg.agent_id}")
 
 
 # ------------------------------------------------------------------ coded (schema 2) messages

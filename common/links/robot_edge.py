@@ -24,10 +24,15 @@ from common.calibration import CameraCalibration
 from common.camera import camera_model
 from common.codec.entropy import BitReader, BitWriter, best_scale_index, signed_cost
 from common.codec.errors import CodecError
-from common.geometry import R_to_quat_wxyz, quat_wxyz_to_R
 from common.links import body
 from common.links.sensors import Sensors, decode_sensors, encode_sensors
-from common.links.wire import WireFormat
+from common.links.wire import (
+    WireFormat,
+    pack_finite_pose,
+    pack_pose,
+    unpack_pose,
+    unpack_sent_pose,
+)
 from common.protocol.arrays import pack_array, unpack_array
 from common.protocol.errors import RemoteProtocolError
 from common.protocol.messages import Message, message
@@ -139,12 +144,7 @@ class FramePose(Message):
 
 def encode_pose(T_map_body: np.ndarray) -> bytes:
     """:attr:`FramePose.pose` of a (4, 4) pose (ValueError if it is not finite in float32)."""
-    if not np.isfinite(np.asarray(T_map_body, np.float64)).all():
-        raise ValueError("a pose must be finite (and fit float32)")
-    out = _pack_state_pose(T_map_body)
-    if not np.isfinite(np.frombuffer(out, "<f4")).all():
-        raise ValueError("a pose must be finite (and fit float32)")
-    return out
+    return pack_finite_pose(T_map_body)
 
 
 def decode_pose(msg: FramePose) -> np.ndarray | None:
@@ -154,12 +154,26 @@ def decode_pose(msg: FramePose) -> np.ndarray | None:
         raise RemoteProtocolError(f"FramePose.status {msg.status!r} is not one of {POSE_STATUSES}")
     if not msg.pose:
         return None
-    if len(msg.pose) != 28:
-        raise RemoteProtocolError(f"FramePose.pose has {len(msg.pose)} bytes, expected 28")
-    T = _state_T(msg.pose)
-    if not np.isfinite(T).all():
-        raise RemoteProtocolError("FramePose.pose is not finite")
-    return T
+    return unpack_sent_pose(msg.pose, "FramePose.pose")
+
+
+@message(0x0305)
+class MapPlacement(Message):
+    """Where the robot's map ``map_id`` sits in the cloud's global map ``global_map``: ``pose``
+    (:func:`~common.links.wire.pack_pose`, 28 bytes) is ``T_global_map``, so that a
+    :class:`FramePose` ``T_map_body`` of that map gives ``T_global_body = T_global_map
+    T_map_body`` (ROS' ``map -> odom`` over ``odom -> base_link``). The edge forwards the
+    cloud's placement (``edge_cloud.MapPlacement``) when it changes; a robot whose map was
+    never placed has only its own map frame."""
+
+    map_id: int
+    global_map: int
+    pose: bytes
+
+
+def decode_map_placement(msg: MapPlacement) -> np.ndarray:
+    """``T_global_map`` (4, 4) of a :class:`MapPlacement`; RemoteProtocolError if malformed."""
+    return unpack_sent_pose(msg.pose, "MapPlacement.pose")
 
 
 # ------------------------------------------------------------------- edge -> robot, coded
@@ -338,7 +352,7 @@ def points_sendable(
     uv = np.asarray(keypoints_px, np.float64).reshape(-1, 2)
     ok = np.isfinite(p).all(axis=1) & np.isfinite(uv).all(axis=1)
     z = np.full(len(p), np.nan)
-    z[ok] = _depth(p[ok], _pack_state_pose(T_world_body), camera)
+    z[ok] = _depth(p[ok], pack_pose(T_world_body), camera)
     with np.errstate(invalid="ignore"):
         return ok & (z >= MIN_DEPTH_M * (1 + DEPTH_STEP)) & (z <= MAX_DEPTH_M / (1 + DEPTH_STEP))
 
@@ -351,7 +365,7 @@ def coded_points(
 ) -> np.ndarray:
     """The points (M, 3) [m] the robot decodes for the sendable points ``p_world`` (M, 3) with
     keypoints (M, 2) [px] at pose ``T_world_body`` (4, 4): what the edge remembers as sent."""
-    pose = _pack_state_pose(T_world_body)
+    pose = pack_pose(T_world_body)
     q = _depth_index(np.asarray(p_world, np.float64).reshape(-1, 3), pose, camera)
     return _anchored(pose, np.asarray(keypoints_px, np.float64).reshape(-1, 2), q, camera)
 
@@ -406,36 +420,18 @@ class FeedbackDecodeError(RemoteProtocolError):
     """A feedback message from the edge that does not decode (names the field at fault)."""
 
 
-def _pack_state_pose(T_world_body: np.ndarray) -> bytes:
-    T = np.asarray(T_world_body, np.float64)
-    if T.shape != (4, 4):
-        raise ValueError(f"T_world_body must be (4, 4), got {T.shape}")
-    q = R_to_quat_wxyz(T[:3, :3])
-    return np.concatenate([q, T[:3, 3]]).astype("<f4").tobytes()
-
-
 def _pack_state(c: FeedbackContent) -> bytes:
     vecs = (c.velocity_world, c.bias_gyro, c.bias_accel, c.gravity_world)
     vec = np.concatenate([np.asarray(v, np.float64).reshape(3) for v in vecs])
-    out = _pack_state_pose(c.T_world_body) + vec.astype("<f4").tobytes()
+    out = pack_pose(c.T_world_body) + vec.astype("<f4").tobytes()
     if not np.isfinite(np.frombuffer(out, "<f4")).all():
         raise ValueError("feedback state must be finite (and fit float32)")
     return out
 
 
-def _state_T(pose: bytes) -> np.ndarray:
-    """``T_world_body`` (4, 4) of the first 28 bytes of a packed state (quaternion, position),
-    exactly as both ends compute it."""
-    s = np.frombuffer(pose[:28], "<f4").astype(np.float64)
-    T = np.eye(4)
-    T[:3, :3] = quat_wxyz_to_R(s[:4])
-    T[:3, 3] = s[4:7]
-    return T
-
-
 def _depth(p_world: np.ndarray, pose: bytes, camera: CameraCalibration) -> np.ndarray:
     """Camera-frame depths (M,) [m] of points (M, 3) seen from the packed pose."""
-    T_wc = _state_T(pose) @ camera.T_body_cam
+    T_wc = unpack_pose(pose) @ camera.T_body_cam
     return (p_world - T_wc[:3, 3]) @ T_wc[:3, 2]
 
 
@@ -452,7 +448,7 @@ def _anchored(pose: bytes, uv: np.ndarray, q: np.ndarray, camera: CameraCalibrat
     xy = camera_model(camera).pixels_to_normalized(uv)
     z = np.exp(np.asarray(q, np.float64) * _LOG_STEP)
     p_cam = np.concatenate([xy * z[:, None], z[:, None]], axis=1)
-    T_wc = _state_T(pose) @ camera.T_body_cam
+    T_wc = unpack_pose(pose) @ camera.T_body_cam
     return p_cam @ T_wc[:3, :3].T + T_wc[:3, 3]
 
 
@@ -563,7 +559,7 @@ def _decode_coded(
     return FeedbackContent(
         timestamp_ns=msg.timestamp_ns,
         map_id=msg.map_id,
-        T_world_body=_state_T(msg.state),
+        T_world_body=unpack_pose(msg.state),
         velocity_world=s[7:10],
         bias_gyro=s[10:13],
         bias_accel=s[13:16],

@@ -9,6 +9,15 @@ import enum
 import time
 from collections.abc import Callable, Iterable, Iterator
 
+import numpy as np
+
+from common.geometry import R_to_quat_wxyz, quat_wxyz_to_R
+from common.protocol.errors import RemoteProtocolError
+
+POSE_BYTES = 28
+"""Size of a packed pose: 7 little-endian float32, the unit quaternion (w, x, y, z) and the
+position [m]."""
+
 
 class WireFormat(enum.Enum):
     """How a service encodes the messages it sends (receivers accept both)."""
@@ -78,3 +87,46 @@ def codec_cpu(owners: Iterable[object]) -> dict[str, dict[str, float]] | None:
             acc["seconds"] += float(entry["seconds"])
             acc["messages"] += int(entry["messages"])
     return dict(sorted(out.items()))
+
+
+def pack_pose(T: np.ndarray) -> bytes:
+    """A (4, 4) rigid transform as :data:`POSE_BYTES` bytes (no finiteness check: callers
+    that send a pose alone use :func:`pack_finite_pose`)."""
+    T = np.asarray(T, np.float64)
+    if T.shape != (4, 4):
+        raise ValueError(f"a pose must be (4, 4), got {T.shape}")
+    q = R_to_quat_wxyz(T[:3, :3])
+    return np.concatenate([q, T[:3, 3]]).astype("<f4").tobytes()
+
+
+def pack_finite_pose(T: np.ndarray) -> bytes:
+    """:func:`pack_pose`, ValueError unless every value is finite in float32."""
+    if not np.isfinite(np.asarray(T, np.float64)).all():
+        raise ValueError("a pose must be finite (and fit float32)")
+    out = pack_pose(T)
+    if not np.isfinite(np.frombuffer(out, "<f4")).all():
+        raise ValueError("a pose must be finite (and fit float32)")
+    return out
+
+
+def unpack_pose(data: bytes) -> np.ndarray:
+    """The (4, 4) transform of the first :data:`POSE_BYTES` bytes of ``data``, exactly as both
+    ends compute it (no checks: see :func:`unpack_sent_pose`)."""
+    s = np.frombuffer(data[:POSE_BYTES], "<f4").astype(np.float64)
+    T = np.eye(4)
+    T[:3, :3] = quat_wxyz_to_R(s[:4])
+    T[:3, 3] = s[4:7]
+    return T
+
+
+def unpack_sent_pose(data: bytes, what: str) -> np.ndarray:
+    """:func:`unpack_pose` of a pose a peer sent: RemoteProtocolError naming ``what`` if it is
+    not :data:`POSE_BYTES` bytes of finite values."""
+    if len(data) != POSE_BYTES:
+        raise RemoteProtocolError(f"{what} has {len(data)} bytes, expected {POSE_BYTES}")
+    if not np.isfinite(np.frombuffer(data, "<f4")).all():
+        raise RemoteProtocolError(f"{what} is not finite")
+    T = unpack_pose(data)
+    if not np.isfinite(T).all():
+        raise RemoteProtocolError(f"{what} is not finite")
+    return T

@@ -282,6 +282,8 @@ class Job:
             str(self.keys_dir / f"robot-{name}.keys"),
             "--pose-out",
             str(self.run_dir / "results" / "poses" / f"{name}.tum"),
+            "--global-pose-out",
+            str(self.run_dir / "results" / "poses_global" / f"{name}.tum"),
             "--stats-out",
             str(self.run_dir / "stats" / f"robot-{name}.json"),
         )

@@ -122,6 +122,7 @@ def collect(run_dir: Path, facts: RunFacts) -> dict[str, Any]:
             "frames_matched": frames.get("n_matched"),
             "edges": edge.get("edge_of", {}).get(name, []),
             "poses_received": poses.get("received"),
+            "poses_global": poses.get("with_global"),
             "pose_latency_s": {k: poses.get(f"{k}_s") for k in ("median", "p95", "max")},
         }
     sites = {
@@ -256,17 +257,20 @@ def render_markdown(data: dict[str, Any]) -> str:
             "## Each robot's pose, back on the robot",
             "",
             "The edge's pose of every frame it processed, received by the robot "
-            "(`run/results/poses/<robot>.tum`); latency from taking the frame to its pose on "
-            "the robot, s.",
+            "(`run/results/poses/<robot>.tum`; those of maps the cloud has placed also in its "
+            "global map, `run/results/poses_global/`); latency from taking the frame to its "
+            "pose on the robot, s.",
             "",
-            "| robot | poses received / frames sent | latency median | p95 | max |",
-            "|---|---|---|---|---|",
+            "| robot | poses received / frames sent | in the global map | latency median | p95 "
+            "| max |",
+            "|---|---|---|---|---|---|",
         ]
         for name, r in data["robots"].items():
             lat = r.get("pose_latency_s") or {}
             lines.append(
                 f"| {name} | {_fmt(r.get('poses_received'), 'd')} / {r['frames_sent']} "
-                f"| {_fmt(lat.get('median'), '.2f')} | {_fmt(lat.get('p95'), '.2f')} "
+                f"| {_fmt(r.get('poses_global'), 'd')} | {_fmt(lat.get('median'), '.2f')} "
+                f"| {_fmt(lat.get('p95'), '.2f')} "
                 f"| {_fmt(lat.get('max'), '.2f')} |"
             )
     if len(data.get("sites", {})) > 1:

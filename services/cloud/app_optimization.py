@@ -20,7 +20,13 @@ import numpy as np
 
 from common.geometry import inverse_T
 from common.links import CodecTimer, WireFormat
-from common.links.edge_cloud import PoseCorrection, PoseCorrectionCoded, encode_pose_correction
+from common.links.edge_cloud import (
+    MapPlacement,
+    PoseCorrection,
+    PoseCorrectionCoded,
+    encode_map_placement,
+    encode_pose_correction,
+)
 from services.cloud.atlas import Atlas, split_key
 from services.cloud.config import CloudServiceConfig
 from services.cloud.full_ba import FullBAProblem, FullBAResult
@@ -37,10 +43,12 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class Correction:
-    """A pose correction to send: the edge serving the robot, and the message."""
+    """A pose correction to send: the edge serving the robot, the message, and where that
+    robot's map sits in the global map (sent after it)."""
 
     edge_id: str
     message: PoseCorrection | PoseCorrectionCoded
+    placement: MapPlacement | None = None
 
 
 class AppOptimization:
@@ -102,7 +110,8 @@ class AppOptimization:
             return self.corrections(map_id)
 
     def corrections(self, map_id: int) -> list[Correction]:
-        """Current keyframe poses of every agent in ``map_id``, each in its own map frame."""
+        """Current keyframe poses of every agent in ``map_id``, each in its own map frame, each
+        with the placement of that frame in ``map_id`` (:class:`MapPlacement`)."""
         out = []
         for a in self._agents.values():
             if a.agent_id not in self.atlas.agents():
@@ -115,7 +124,9 @@ class AppOptimization:
             T = np.array([T_agent_map @ self.atlas.T_map_body(k) for k in keys])
             coded = self.config.wire is WireFormat.CODED
             msg = encode_pose_correction(a.name, a.edge_map, ids, T, coded)
-            out.append(Correction(a.edge_id, msg))
+            T_global_map = self.atlas.T_map_agent(a.agent_id)
+            place = encode_map_placement(a.name, a.edge_map, map_id, T_global_map)
+            out.append(Correction(a.edge_id, msg, place))
         return out
 
     def shed(self, overloaded: bool) -> None:

@@ -473,8 +473,11 @@ class CloudServer(ServerOutputs):
     def _send(self, corrections: Iterable[Correction]) -> None:
         for c in corrections:
             try:
-                self._server.peer(c.edge_id).send_nowait(c.message)
+                peer = self._server.peer(c.edge_id)
+                peer.send_nowait(c.message)
                 self._corrections += 1
+                if c.placement is not None:
+                    peer.send_nowait(c.placement)
             except LocalProtocolError:
                 log.info(
                     "edge %s not connected; correction of %s dropped (next one follows)",

@@ -24,7 +24,9 @@ draining it:
   decoding on a loaded machine once held the loop for 12 s, longer than the peers' idle
   timeout, and every robot timed out (#20). The loop only moves messages, so heartbeats and
   acks keep flowing however busy the codecs are;
-- ``PoseCorrection`` from the cloud is attached to that robot's next frame;
+- ``PoseCorrection`` from the cloud is attached to that robot's next frame; the
+  ``MapPlacement`` that comes with it (where the robot's map sits in the global map) goes on
+  to the robot when it changed;
 - on start, :meth:`EdgeApp.replay` re-decodes each journal and fast-forwards the VIO over it
   (no robot feedback during replay). The re-run is a new map (map ids of this run's
   generations, :data:`~services.edge.worker.GENERATIONS_PER_RUN`): the VIO is not
@@ -48,11 +50,14 @@ import numpy as np
 
 from common.codec.errors import CodecError
 from common.links.edge_cloud import (
+    MapPlacement,
     PoseCorrection,
     PoseCorrectionCoded,
     agent_sensors_message,
+    decode_map_placement,
     decode_pose_correction,
 )
+from common.links.robot_edge import MapPlacement as RobotMapPlacement
 from common.links.robot_edge import RobotFrame, RobotSensors, RobotSequenceEnd, read_sensors
 from common.links.sensors import Sensors
 from common.protocol.errors import RejectedMessageError, RemoteProtocolError
@@ -112,6 +117,7 @@ class _Robot:
     space: asyncio.Event
     codec: ThreadPoolExecutor  # decode and on_result, one at a time (they share state)
     corrections: list[tuple[int, dict[int, np.ndarray]]] = field(default_factory=list)
+    placement: tuple[int, int, bytes] | None = None  # the last one the robot was sent
     task: asyncio.Task[None] | None = None
     idle: asyncio.Event = field(default_factory=asyncio.Event)
     ended: asyncio.Event = field(default_factory=asyncio.Event)
@@ -296,14 +302,18 @@ class EdgeApp:
             )
 
     async def on_cloud_message(self, d: Delivery) -> None:
-        """Handler of the cloud link: pose corrections for a robot's map."""
+        """Handler of the cloud link: pose corrections for a robot's map, and where that map
+        sits in the global map (forwarded to the robot when it changed)."""
         m = d.message
-        if not isinstance(m, PoseCorrection | PoseCorrectionCoded):
+        if not isinstance(m, PoseCorrection | PoseCorrectionCoded | MapPlacement):
             logger.warning("cloud sent an unexpected %s; ignored", type(m).__name__)
             return
         rb = self.robots.get(m.agent_id)
         if rb is None:
-            logger.warning("pose correction for unknown robot %s; ignored", m.agent_id)
+            logger.warning("%s for unknown robot %s; ignored", type(m).__name__, m.agent_id)
+            return
+        if isinstance(m, MapPlacement):
+            self._forward_placement(rb, m)
             return
         try:
             ids, T = decode_pose_correction(m)
@@ -312,6 +322,19 @@ class EdgeApp:
             return
         poses = {int(k): np.array(t) for k, t in zip(ids, T, strict=True)}
         rb.corrections.append((m.map_id, poses))
+
+    def _forward_placement(self, rb: _Robot, m: MapPlacement) -> None:
+        try:
+            decode_map_placement(m)
+        except RemoteProtocolError as exc:
+            logger.warning("map placement for %s refused: %s", m.agent_id, exc)
+            return
+        key = (m.map_id, m.global_map, m.pose)
+        if rb.placement == key:
+            return
+        msg = RobotMapPlacement(m.map_id, m.global_map, m.pose)
+        if self.sink.to_robot(m.agent_id, msg):
+            rb.placement = key
 
     # ------------------------------------------------------------------ restart
     async def replay(self) -> int:

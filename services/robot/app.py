@@ -23,8 +23,9 @@ live in the world frame, and the next update builds on them. A refused message (
 decode, not a rotation, too old) is logged and counted, never retried. Messages that arrive
 while a frame is tracked wait, all of them, in order.
 
-The edge's :class:`FramePose` (the robot's pose at each frame) goes to ``pose_sink`` as it
-arrives (``services.robot.poses``), nothing else is done with it here.
+The edge's :class:`FramePose` (the robot's pose at each frame) and :class:`MapPlacement` (where
+its map sits in the global map) go to ``pose_sink`` as they arrive (``services.robot.poses``),
+nothing else is done with them here.
 
 With ``record=True`` every frame's :class:`UsedFrame` (what the pipeline used and what was
 coded) is kept in memory, for tests that compare it with what the edge decoded.
@@ -52,6 +53,7 @@ from common.links.robot_edge import (
     FramePose,
     InertialFeedback,
     InertialFeedbackCoded,
+    MapPlacement,
     RobotFrame,
     RobotSequenceEnd,
     decode_feedback,
@@ -137,7 +139,7 @@ class RobotApp:
         self._pending_lock = threading.Lock()  # guards _pending (loop vs worker thread)
         self._lock = threading.Lock()  # held while the front end is in use
         # Where the edge's FramePose messages go (on the event loop), e.g. a PoseTrack
-        self.pose_sink: Callable[[FramePose], None] | None = None
+        self.pose_sink: Callable[[FramePose | MapPlacement], None] | None = None
 
     # ------------------------------------------------------------------ worker thread
     def process(self, timestamp_ns: int, image: np.ndarray, imu: ImuSamples) -> RobotFrame:
@@ -184,7 +186,7 @@ class RobotApp:
     async def on_message(self, delivery: Delivery) -> None:
         """Handler for the edge's messages (never raises: a refused message is not retried)."""
         msg = delivery.message
-        if isinstance(msg, FramePose):
+        if isinstance(msg, FramePose | MapPlacement):
             if self.pose_sink is not None:
                 self.pose_sink(msg)
             return

@@ -7,6 +7,13 @@ user of the pose feels: camera frame taken -> its pose on the robot, through the
 edge's queue and VIO, and the downlink. :func:`tum_line` renders a pose as a TUM line
 (``recslam robot --pose-out FILE.tum``: the robot's own map frame, as the cloud's corrections
 moved it; frames without a metric pose are not written).
+
+The cloud also says where the robot's map sits in its global map
+(:class:`~common.links.robot_edge.MapPlacement`, ``T_global_map``, forwarded by the edge when it
+changes; ROS' ``map -> odom``): :meth:`PoseTrack.on_placement` keeps the latest per map, and
+each pose of a placed map also gets ``T_global_body = T_global_map T_map_body``
+(``--global-pose-out``). The own-map pose is continuous; the global one jumps when a merge or
+an optimisation moves the map.
 """
 
 from __future__ import annotations
@@ -18,7 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from common.geometry import R_to_quat_wxyz
-from common.links.robot_edge import FramePose, decode_pose
+from common.links.robot_edge import FramePose, MapPlacement, decode_map_placement, decode_pose
 from common.protocol.errors import RemoteProtocolError
 
 logger = logging.getLogger(__name__)
@@ -28,13 +35,17 @@ logger = logging.getLogger(__name__)
 class ReceivedPose:
     """One pose from the edge: the frame's camera time (ns), the edge map, the VIO's status
     (``FramePose.status``), ``T_map_body`` (4, 4) or None without a metric pose, and the
-    latency [s] from the frame's capture to now (None if the capture is not known here)."""
+    latency [s] from the frame's capture to now (None if the capture is not known here); the
+    global map its map is placed in and ``T_global_body`` (4, 4) (None until the cloud placed
+    the map, or without a metric pose)."""
 
     timestamp_ns: int
     map_id: int
     status: str
     T_map_body: np.ndarray | None
     latency_s: float | None
+    global_map: int | None = None
+    T_global_body: np.ndarray | None = None
 
 
 class PoseTrack:
@@ -50,6 +61,8 @@ class PoseTrack:
         self.received = 0  # FramePose messages taken
         self.with_pose = 0  # ... that carried a metric pose
         self.rejected = 0  # malformed ones (logged, not retried)
+        self.with_global = 0  # metric poses placed in the global map
+        self.placements: dict[int, tuple[int, np.ndarray]] = {}  # map -> (global map, T)
         self.latencies_s: deque[float] = deque(maxlen=window)
         self._captured: OrderedDict[int, float] = OrderedDict()
 
@@ -75,13 +88,32 @@ class PoseTrack:
             return None
         t_cap = self._captured.pop(int(msg.timestamp_ns), None)
         latency = None if t_cap is None else now_s - t_cap
-        pose = ReceivedPose(int(msg.timestamp_ns), int(msg.map_id), msg.status, T, latency)
+        placed = self.placements.get(int(msg.map_id))
+        global_map = T_global = None
+        if placed is not None and T is not None:
+            global_map, T_global = placed[0], placed[1] @ T
+        pose = ReceivedPose(
+            int(msg.timestamp_ns), int(msg.map_id), msg.status, T, latency, global_map, T_global
+        )
         self.received += 1
         self.with_pose += T is not None
+        self.with_global += T_global is not None
         if latency is not None:
             self.latencies_s.append(latency)
         self.latest = pose
         return pose
+
+    def on_placement(self, msg: MapPlacement) -> bool:
+        """Where the robot's map ``msg.map_id`` now sits in the global map; False (logged,
+        counted) if the message is malformed."""
+        try:
+            T_global_map = decode_map_placement(msg)
+        except RemoteProtocolError as exc:
+            self.rejected += 1
+            logger.warning("placement of map %d refused: %s", msg.map_id, exc)
+            return False
+        self.placements[int(msg.map_id)] = (int(msg.global_map), T_global_map)
+        return True
 
     def summary(self) -> dict[str, float | int]:
         """Counts and the latency's median, 95th percentile and maximum [s] (NaN if none)."""
@@ -96,15 +128,16 @@ class PoseTrack:
         return {
             "received": self.received,
             "with_pose": self.with_pose,
+            "with_global": self.with_global,
             "rejected": self.rejected,
             **stats,
         }
 
 
-def tum_line(pose: ReceivedPose) -> str | None:
+def tum_line(pose: ReceivedPose, global_frame: bool = False) -> str | None:
     """``t tx ty tz qx qy qz qw`` (TUM: seconds, position m, Hamilton quaternion xyzw) of a
-    pose, None without a metric pose."""
-    T = pose.T_map_body
+    pose in its own map (or, ``global_frame``, the global map), None without one."""
+    T = pose.T_global_body if global_frame else pose.T_map_body
     if T is None:
         return None
     w, x, y, z = R_to_quat_wxyz(T[:3, :3])

@@ -122,6 +122,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "file as it arrives (the robot's own map frame; default: none)",
     )
     p.add_argument(
+        "--global-pose-out",
+        type=Path,
+        default=None,
+        metavar="FILE.tum",
+        help="also write each pose in the cloud's global map (the robot's map placed where the "
+        "cloud merged it; frames before the first placement are not written; default: none)",
+    )
+    p.add_argument(
         "--pose-wait",
         type=float,
         default=0.0,
@@ -193,6 +201,7 @@ def config_from_args(args: argparse.Namespace) -> RobotServiceConfig:
         stop_flush_timeout_s=args.stop_flush_timeout,
         give_up_after_s=args.give_up_after,
         pose_out=args.pose_out,
+        global_pose_out=args.global_pose_out,
         pose_wait_s=args.pose_wait,
         stats_out=args.stats_out,
     )

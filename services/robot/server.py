@@ -17,7 +17,8 @@ under an agent id it already knows) closes the link with its reason: the run the
 
 The robot's own pose: the edge sends a ``FramePose`` for every frame its VIO finished;
 :class:`~services.robot.poses.PoseTrack` matches it with the moment the frame was taken (the
-latency), ``pose_out`` gets a TUM line per metric pose as it arrives, ``stats_out`` the run's
+latency), ``pose_out`` gets a TUM line per metric pose as it arrives (``global_pose_out``: in
+the cloud's global map, once the edge forwarded where the robot's map sits), ``stats_out`` the run's
 counters and the latency at the end, and ``pose_wait_s`` lets the robot wait after its last
 frame for the poses of the frames still queued at the edge.
 
@@ -68,7 +69,7 @@ from pathlib import Path
 from typing import Any, TextIO
 
 from common.data.euroc import EurocFrame
-from common.links.robot_edge import FramePose, RobotFrame, sensors_message
+from common.links.robot_edge import FramePose, MapPlacement, RobotFrame, sensors_message
 from common.links.sensors import Sensors
 from common.protocol import PeerRejectedError, PeerUnreachableError, SessionConfig
 from common.protocol.auth import as_keyring
@@ -123,6 +124,7 @@ class RobotService:
         self._vocabulary = Vocabulary.load(config.vocabulary)
         self.poses = PoseTrack()  # the edge's pose of each frame, over every edge session
         self._pose_file: TextIO | None = None
+        self._global_pose_file: TextIO | None = None
         self.app = self._new_app()
         self.apps = [self.app]  # one per edge session (a handover starts a fresh one)
         self.client: Client | None = None
@@ -142,13 +144,18 @@ class RobotService:
         app.pose_sink = self._on_pose
         return app
 
-    def _on_pose(self, msg: FramePose) -> None:
-        """The edge's pose of one frame (event loop): latency, and the TUM line if asked."""
+    def _on_pose(self, msg: FramePose | MapPlacement) -> None:
+        """The edge's pose of one frame (event loop): latency, and the TUM lines if asked; or
+        the placement of the robot's map in the global map."""
+        if isinstance(msg, MapPlacement):
+            self.poses.on_placement(msg)
+            return
         pose = self.poses.on_pose(msg, time.monotonic())
-        if pose is not None and self._pose_file is not None:
-            line = tum_line(pose)
-            if line is not None:
-                self._pose_file.write(line + "\n")
+        if pose is None:
+            return
+        for file, global_frame in ((self._pose_file, False), (self._global_pose_file, True)):
+            if file is not None and (line := tum_line(pose, global_frame)) is not None:
+                file.write(line + "\n")
 
     def segments(self) -> list[tuple[int, int, str, int]]:
         """``(first frame, end frame, edge host, edge port)`` of each edge session, in order
@@ -219,10 +226,8 @@ class RobotService:
         executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix=f"robot-{cfg.agent_id}")
         sessions: list[dict[str, Any]] = []
         flushed = True
-        if cfg.pose_out is not None:
-            cfg.pose_out.parent.mkdir(parents=True, exist_ok=True)
-            self._pose_file = cfg.pose_out.open("w", buffering=1, encoding="utf-8")
-            self._pose_file.write("# timestamp tx ty tz qx qy qz qw\n")
+        self._pose_file = _tum_file(cfg.pose_out)
+        self._global_pose_file = _tum_file(cfg.global_pose_out)
         try:
             for i, (first, end, host, port) in enumerate(self.segments()):
                 if i > 0:
@@ -248,9 +253,10 @@ class RobotService:
             if self._give_up is not None:
                 self._give_up.cancel()
             executor.shutdown(wait=True)
-            if self._pose_file is not None:
-                self._pose_file.close()
-                self._pose_file = None
+            for file in (self._pose_file, self._global_pose_file):
+                if file is not None:
+                    file.close()
+            self._pose_file = self._global_pose_file = None
         wall = time.monotonic() - t_start
         frames = sum(a.frames for a in self.apps)
         keyframes = sum(a.keyframes for a in self.apps)
@@ -437,6 +443,16 @@ class RobotService:
             return False
         flush.result()  # re-raise a flush error (the edge refused the robot)
         return True
+
+
+def _tum_file(path: Path | None) -> TextIO | None:
+    """A TUM file opened for line-buffered writing, with its header (None: no file)."""
+    if path is None:
+        return None
+    path.parent.mkdir(parents=True, exist_ok=True)
+    file = path.open("w", buffering=1, encoding="utf-8")
+    file.write("# timestamp tx ty tz qx qy qz qw\n")
+    return file
 
 
 def write_run_stats(path: Path, result: RobotRunResult) -> None:

@@ -75,6 +75,8 @@ class RobotServiceConfig:
         image_topic, imu_topic: the bag's topics (default: the calibration's ``rostopic``).
         pose_out: write the edge's pose of every frame here as it arrives (TUM, the robot's own
             map frame; ``recslam robot --pose-out``), or None.
+        global_pose_out: the same in the cloud's global map, for the frames whose map the cloud
+            has placed (``--global-pose-out``), or None.
         pose_wait_s: after the last frame, wait up to this long (s) for the edge's poses of the
             frames it has not finished yet (0: do not wait).
         stats_out: write the run's counters and the pose latency here (JSON) at the end, or None.
@@ -107,6 +109,7 @@ class RobotServiceConfig:
     tls: TlsFiles = field(default_factory=TlsFiles)
     handovers: tuple[Handover, ...] = ()
     pose_out: Path | None = None
+    global_pose_out: Path | None = None
     pose_wait_s: float = 0.0
     stats_out: Path | None = None
 

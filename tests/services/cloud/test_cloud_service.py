@@ -14,7 +14,13 @@ import pytest
 from common.evaluation.trajectory import Trajectory
 from common.evaluation.tum import read_tum, write_tum
 from common.geometry import R_to_quat_wxyz, inverse_T, transform_points
-from common.links.edge_cloud import PoseCorrection, PoseCorrectionCoded, decode_pose_correction
+from common.links.edge_cloud import (
+    MapPlacement,
+    PoseCorrection,
+    PoseCorrectionCoded,
+    decode_map_placement,
+    decode_pose_correction,
+)
 from common.protocol import SessionConfig
 from common.protocol.arrays import pack_array
 from common.transport import Client, Delivery, TransportConfig, run
@@ -76,6 +82,7 @@ class Edge:
 
     def __init__(self, name: str, port: int, **session_kw) -> None:
         self.corrections: list[PoseCorrection | PoseCorrectionCoded] = []
+        self.placements: list[MapPlacement] = []
         self.client = Client(
             SessionConfig("edge", name, SECRET, **session_kw),
             self._on,
@@ -86,6 +93,9 @@ class Edge:
         )
 
     async def _on(self, d: Delivery) -> None:
+        if isinstance(d.message, MapPlacement):
+            self.placements.append(d.message)
+            return
         assert isinstance(d.message, PoseCorrectionCoded)  # the coded wire is the default
         self.corrections.append(d.message)
 
@@ -184,6 +194,17 @@ def test_two_edges_merge_send_corrections_and_write_trajectories(tmp_path, vocab
                 # In the robot's OWN map frame: its truth expressed in that frame.
                 p_true = transform_points(sc["T_agent_world"], sc["truth"][ids, :3, 3])
                 assert np.max(np.linalg.norm(T[:, :3, 3] - p_true, axis=1)) < 0.05
+            # Each robot's map placed in the merged map: both give one world frame.
+            T_global_world = []
+            for edge, name in ((a, "r0"), (b, "r1")):
+                place = edge.placements[-1]
+                assert place.agent_id == name and place.map_id == 7
+                T_global_map = decode_map_placement(place)
+                T_global_world.append(T_global_map @ scenario[name]["T_agent_world"])
+            assert a.placements[-1].global_map == b.placements[-1].global_map
+            assert np.linalg.norm(T_global_world[0][:3, 3] - T_global_world[1][:3, 3]) < 0.05
+            yaw_gap = yaw_of(T_global_world[0][:3, :3]) - yaw_of(T_global_world[1][:3, :3])
+            assert abs(np.degrees(yaw_gap)) < 0.5
 
             # Dashboard view: a full snapshot, then an empty incremental one.
             v = await cloud.publish()

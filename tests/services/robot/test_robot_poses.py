@@ -16,7 +16,13 @@ from common.data.euroc import EurocSequence
 from common.data.synth import SynthConfig, generate_dataset
 from common.evaluation import AteConfig, compute_ate, load_groundtruth, read_tum
 from common.geometry import make_T, so3_exp
-from common.links.robot_edge import FramePose, decode_pose, encode_pose
+from common.links.robot_edge import (
+    FramePose,
+    MapPlacement,
+    decode_map_placement,
+    decode_pose,
+    encode_pose,
+)
 from common.protocol import SessionConfig
 from common.protocol.errors import RemoteProtocolError
 from common.protocol.messages import decode_payload, encode_payload
@@ -76,6 +82,29 @@ def test_pose_track_measures_capture_to_pose_latency_and_writes_tum() -> None:
         "0.000000000 1.000000000"
     )
     assert tum_line(lost) is None
+
+
+def test_a_placed_map_gives_global_poses_and_a_bad_placement_is_refused() -> None:
+    track = PoseTrack()
+    T_map_body = make_T(so3_exp(np.array([0.0, 0.0, 0.4])), np.array([1.0, 0.0, 0.5]))
+    before = track.on_pose(FramePose(1_000, 7, "tracking", encode_pose(T_map_body)), 1.0)
+    assert before is not None and before.T_global_body is None and tum_line(before, True) is None
+    T_global_map = make_T(so3_exp(np.array([0.0, 0.0, -1.1])), np.array([-4.0, 2.5, 0.0]))
+    place = MapPlacement(7, 2, encode_pose(T_global_map))
+    back = decode_payload(MapPlacement.TYPE_ID, encode_payload(place))
+    assert isinstance(back, MapPlacement) and track.on_placement(back)
+    after = track.on_pose(FramePose(2_000, 7, "tracking", encode_pose(T_map_body)), 2.0)
+    assert after is not None and after.global_map == 2 and after.T_global_body is not None
+    np.testing.assert_allclose(after.T_global_body, T_global_map @ T_map_body, atol=1e-5)
+    assert after.T_map_body is not None
+    np.testing.assert_allclose(after.T_map_body, T_map_body, atol=1e-6)  # own frame unchanged
+    other = track.on_pose(FramePose(3_000, 8, "tracking", encode_pose(T_map_body)), 3.0)
+    assert other is not None and other.T_global_body is None  # map 8 was never placed
+    assert not track.on_placement(MapPlacement(8, 2, bytes(20)))
+    with pytest.raises(RemoteProtocolError, match=r"MapPlacement\.pose has 20 bytes"):
+        decode_map_placement(MapPlacement(8, 2, bytes(20)))
+    s = track.summary()
+    assert (s["received"], s["with_global"], s["rejected"]) == (3, 1, 1)
 
 
 def test_every_frame_gets_its_pose_back_and_the_tracked_ones_follow_the_truth(
