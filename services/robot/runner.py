@@ -127,7 +127,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         default=None,
         metavar="FILE.tum",
         help="also write each pose in the cloud's global map (the robot's map placed where the "
-        "cloud merged it; frames before the first placement are not written; default: none)",
+        "cloud merged it; frames before the first placement are not written; a '# global map "
+        "N' comment line precedes the poses of each global map; default: none)",
     )
     p.add_argument(
         "--pose-wait",

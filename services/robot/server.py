@@ -125,6 +125,7 @@ class RobotService:
         self.poses = PoseTrack()  # the edge's pose of each frame, over every edge session
         self._pose_file: TextIO | None = None
         self._global_pose_file: TextIO | None = None
+        self._global_map_written: int | None = None  # "# global map N" before its poses
         self.app = self._new_app()
         self.apps = [self.app]  # one per edge session (a handover starts a fresh one)
         self.client: Client | None = None
@@ -153,9 +154,13 @@ class RobotService:
         pose = self.poses.on_pose(msg, time.monotonic())
         if pose is None:
             return
-        for file, global_frame in ((self._pose_file, False), (self._global_pose_file, True)):
-            if file is not None and (line := tum_line(pose, global_frame)) is not None:
-                file.write(line + "\n")
+        if self._pose_file is not None and (line := tum_line(pose)) is not None:
+            self._pose_file.write(line + "\n")
+        if self._global_pose_file is not None and (line := tum_line(pose, True)) is not None:
+            if pose.global_map != self._global_map_written:  # a merge moved it to another map
+                self._global_pose_file.write(f"# global map {pose.global_map}\n")
+                self._global_map_written = pose.global_map
+            self._global_pose_file.write(line + "\n")
 
     def segments(self) -> list[tuple[int, int, str, int]]:
         """``(first frame, end frame, edge host, edge port)`` of each edge session, in order

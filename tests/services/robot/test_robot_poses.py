@@ -120,6 +120,7 @@ def test_every_frame_gets_its_pose_back_and_the_tracked_ones_follow_the_truth(
     )
     seq_dir = data / "robot0"
     pose_file = tmp_path / "poses.tum"
+    global_file = tmp_path / "poses_global.tum"
     stats_file = tmp_path / "robot.json"
     results = tmp_path / "results"
 
@@ -156,6 +157,7 @@ def test_every_frame_gets_its_pose_back_and_the_tracked_ones_follow_the_truth(
                     heartbeat_interval_s=0.2,
                     idle_timeout_s=2.0,
                     pose_out=pose_file,
+                    global_pose_out=global_file,
                     pose_wait_s=120.0,
                     stats_out=stats_file,
                 ),
