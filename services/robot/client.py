@@ -64,7 +64,7 @@ from services.robot.poses import ReceivedPose
 logger = logging.getLogger(__name__)
 
 
-class RobotClientClosed(RecslamError):
+class RobotClosedError(RecslamError):
     """The robot was closed (or its loop failed): it takes no more input."""
 
 
@@ -194,11 +194,11 @@ class RobotClient:
 
     def _submit(self, event: Event) -> None:
         if self._closed or self._engine is None or not self._loop.is_running():
-            raise RobotClientClosed(f"robot {self.config.agent_id} is closed")
+            raise RobotClosedError(f"robot {self.config.agent_id} is closed")
         with contextlib.suppress(RuntimeError):  # the loop closed in between
             self._engine.submit(event)
             return
-        raise RobotClientClosed(f"robot {self.config.agent_id} is closed")
+        raise RobotClosedError(f"robot {self.config.agent_id} is closed")
 
     # ------------------------------------------------------------------ robot thread
     def _run(self) -> None:
