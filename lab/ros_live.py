@@ -126,7 +126,9 @@ class Player:
                     time.sleep(delay)
             out = bytearray()
             for t, g, a in zip(fr.imu.timestamps_ns, fr.imu.gyro, fr.imu.accel, strict=True):
-                out += wire.imu(int(t), tuple(map(float, g)), tuple(map(float, a)))
+                gx, gy, gz = (float(v) for v in g)
+                ax, ay, az = (float(v) for v in a)
+                out += wire.imu(int(t), (gx, gy, gz), (ax, ay, az))
             assert fr.image is not None
             h, w = fr.image.shape
             out += wire.image(fr.timestamp_ns, h, w, w, "mono8", fr.image.tobytes())

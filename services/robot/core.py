@@ -411,16 +411,16 @@ class RobotCore:
                 )
             order[i] = True
             last = t
-        if not order.any():
+        if last is None or not order.any():
             return
         self._imu_last = last
         self._imu.append((ts[order], gyro[order], accel[order]))
         if self._cut_last is None:  # before the first frame: keep a bounded pre-roll
-            floor = int(last) - int(self.config.imu_keep_s * 1e9)
+            floor = last - int(self.config.imu_keep_s * 1e9)
             if int(self._imu[0][0][0]) < floor:
-                t, g, a = self._imu_arrays()
-                k = t >= floor
-                self._imu = [(t[k], g[k], a[k])]
+                stamps, g, a = self._imu_arrays()
+                k = stamps >= floor
+                self._imu = [(stamps[k], g[k], a[k])]
 
     def _imu_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         if not self._imu:
