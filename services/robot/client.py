@@ -12,7 +12,8 @@ calls only hand a value to the robot's loop and return at once.
   size (or raw bytes with a ROS encoding: :meth:`RobotClient.add_raw_image`). The image is
   copied: the driver may reuse its buffer.
 - :meth:`RobotClient.poses`: an iterator of :class:`~services.robot.poses.ReceivedPose` as
-  they arrive (``on_pose``: the same as a callback, called on the robot's thread).
+  they arrive (``on_pose``: the same as a callback, called on the robot's thread; keep it
+  short, it holds the robot's loop).
 - :meth:`RobotClient.stats`: the core's counters (input, frames, faults, pose latency) and
   the link's.
 - :meth:`RobotClient.close`: the end of the input; waits for the edge to take the rest.
@@ -106,6 +107,8 @@ class RobotClientConfig:
 
 
 _END = object()
+POSE_QUEUE = 10_000
+"""Poses kept for :meth:`RobotClient.poses` when nobody reads them (the oldest go first)."""
 
 
 class RobotClient:
@@ -119,7 +122,7 @@ class RobotClient:
     ) -> None:
         self.config = config
         self._on_pose = on_pose
-        self._poses: queue.Queue[Any] = queue.Queue(maxsize=10_000)
+        self._poses: queue.Queue[Any] = queue.Queue(maxsize=POSE_QUEUE)
         self._closed = False
         self._engine: RobotEngine | None = None
         self._client: Client | None = None
@@ -165,7 +168,7 @@ class RobotClient:
             except queue.Empty:
                 return
             if item is _END:
-                self._poses.put(_END)  # for any other reader
+                self._put(_END)  # for any other reader
                 return
             yield item
 
@@ -173,17 +176,25 @@ class RobotClient:
         """The core's counters and the link's (after :meth:`close`: the final ones)."""
         if self._closed or not self._loop.is_running():
             return dict(self._result)
+        if threading.current_thread() is self._thread:  # from on_pose: already on the loop
+            assert self._engine is not None and self._client is not None
+            return {**self._engine.stats(), "link": self._client.counters()}
         fut = asyncio.run_coroutine_threadsafe(self._stats(), self._loop)
         return fut.result(timeout=10.0)
 
     def close(self) -> dict[str, Any]:
         """End of input: the images queued are tracked, the sequence end is sent, and the
-        edge is given ``close_timeout_s`` to take the rest; returns the final stats."""
+        edge is given ``close_timeout_s`` to take the rest; returns the final stats
+        (RobotClosedError if the robot failed, e.g. the edge refused it)."""
         if not self._closed:
             self._closed = True
             if self._finished is not None and self._loop.is_running():
                 self._loop.call_soon_threadsafe(self._finished.set)
             self._thread.join()
+        if self._failure is not None:
+            raise RobotClosedError(
+                f"robot {self.config.agent_id} failed: {self._failure}"
+            ) from self._failure
         return dict(self._result)
 
     def __enter__(self) -> RobotClient:
@@ -210,12 +221,21 @@ class RobotClient:
             logger.error("robot %s stopped: %s", self.config.agent_id, exc)
         finally:
             self._ready.set()
-            self._poses.put(_END)
+            self._put(_END)
             self._loop.close()
 
+    def _put(self, item: object) -> None:
+        """Queue for :meth:`poses`; when full, the oldest pose makes room."""
+        while True:
+            try:
+                self._poses.put_nowait(item)
+                return
+            except queue.Full:
+                with contextlib.suppress(queue.Empty):
+                    self._poses.get_nowait()
+
     def _pose(self, pose: ReceivedPose) -> None:
-        with contextlib.suppress(queue.Full):
-            self._poses.put_nowait(pose)
+        self._put(pose)
         if self._on_pose is not None:
             try:
                 self._on_pose(pose)

@@ -247,6 +247,8 @@ def ros1_config_from_args(args: argparse.Namespace) -> Ros1RunConfig:
             "--source ros1 needs --calibration (Kalibr camchain.yaml, EuRoC sensor.yaml, or a "
             "folder holding them): topics carry no calibration"
         )
+    if args.max_pending_images < 1:
+        raise RobotConfigError(f"--max-pending-images must be >= 1, got {args.max_pending_images}")
     calibration = load_calibration(args.calibration)
     image_topic = args.image_topic or calibration.image_topic
     imu_topic = args.imu_topic or calibration.imu_topic
