@@ -92,10 +92,10 @@ def run(mode: str, data: Path, robots: list[str], out: Path) -> dict[str, Any]:
     published: dict[str, int] = {}
     master = RosMaster(out / "ros") if mode == "ros1" else None
     t0 = time.monotonic()
+    procs: dict[str, subprocess.Popen] = {}
     try:
         if master is not None:
             env.update(master.env)
-        procs = {}
         for r in robots:
             common = ["--edge", f"127.0.0.1:{eport}", "--agent-id", r]
             common += ["--stats-out", str(out / f"{r}.json"), "--pose-out", str(out / f"{r}.tum")]
@@ -118,17 +118,19 @@ def run(mode: str, data: Path, robots: list[str], out: Path) -> dict[str, Any]:
                 )
                 for r in robots
             }
-            threads = [threading.Thread(target=p.play) for p in players.values()]
+            threads = [threading.Thread(target=pl.play) for pl in players.values()]
             for t in threads:
                 t.start()
             for t in threads:
                 t.join()
-            for r, p in players.items():
-                p.wait_odometry(timeout_s=60.0)
-                odometry[r], published[r] = len(p.odometry), len(p.published)
-                p.close()
+            for r, player in players.items():
+                # a CPU-bound robot may still be tracking its queue: until no Odometry came
+                # for 30 s (or 15 minutes passed)
+                player.wait_odometry(timeout_s=900.0, settle_s=30.0)
+                odometry[r], published[r] = len(player.odometry), len(player.published)
+                player.close()
             for p in procs.values():
-                stop(p)
+                stop(p, 900.0)
         else:
             for p in procs.values():
                 p.wait()
@@ -136,11 +138,23 @@ def run(mode: str, data: Path, robots: list[str], out: Path) -> dict[str, Any]:
         stop(edge)
         stop(cloud, 300.0)
     finally:
-        for p in (edge, cloud):
+        for p in (edge, cloud, *procs.values()):
             if p.poll() is None:
                 p.kill()
         if master is not None:
             master.close()
+    (out / "player.json").write_text(
+        json.dumps({"odometry": odometry, "published": published, "wall_s": wall})
+    )
+    return evaluate(mode + (f":{pending}" if pending else ""), data, robots, out)
+
+
+def evaluate(mode: str, data: Path, robots: list[str], out: Path) -> dict[str, Any]:
+    """A finished run's numbers from its folder (``--reuse`` evaluates without running)."""
+    mode, _, pending = mode.partition(":")
+    player = out / "player.json"
+    seen = json.loads(player.read_text()) if player.exists() else {}
+    odometry, published = seen.get("odometry", {}), seen.get("published", {})
     est = read_result_trajectories(out / "results")
     refs, _ = load_groundtruth(sorted(est), data)
     ate = compute_joint_ate(refs, est, AteConfig(align=AlignMode.SE3))
@@ -157,13 +171,14 @@ def run(mode: str, data: Path, robots: list[str], out: Path) -> dict[str, Any]:
             "median_s": float(poses["median_s"]),
             "p95_s": float(poses["p95_s"]),
             "dropped": int(s.get("faults", {}).get("dropped_backpressure", 0)),
+            "wall_s": float(s.get("wall_s", float("nan"))),
         }
     label = mode if mode == "folder" else f"ros1, queue {pending or 2}"
     load = os.getloadavg()[1]  # 5-minute load average: the 2 cores are shared
     return {
         "mode": label,
         "joint_ate_m": float(ate.stats.rmse),
-        "wall_s": wall,
+        "wall_s": float(seen.get("wall_s", float("nan"))),
         "load5": load,
         "robots": per,
     }
@@ -179,8 +194,8 @@ def write(results: list[dict[str, Any]], path: Path, command: str, commit: str) 
         "",
         "| run | joint ATE [cm] | load (5 min) | robot | frames played | tracked+sent | dropped "
         "| % frames with a metric pose | odometry seen | % frames with odometry "
-        "| latency median / p95 [s] |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
+        "| latency median / p95 [s] | robot wall [s] |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for res in results:
         for r, s in res["robots"].items():
@@ -190,7 +205,7 @@ def write(results: list[dict[str, Any]], path: Path, command: str, commit: str) 
                 f"| {res['mode']} | {100 * res['joint_ate_m']:.2f} | {res['load5']:.1f} | {r} | "
                 f"{s['published']} | {s['frames']} | {s['dropped']} | "
                 f"{100.0 * s['with_pose'] / n:.1f} | {'—' if odo is None else odo} | {pct} | "
-                f"{s['median_s']:.3f} / {s['p95_s']:.3f} |"
+                f"{s['median_s']:.3f} / {s['p95_s']:.3f} | {s['wall_s']:.0f} |"
             )
     path.write_text("\n".join(lines) + "\n")
     fig, ax = plt.subplots(figsize=(7, 3.5))
@@ -217,6 +232,9 @@ def main() -> None:
     ap.add_argument("--work", type=Path, default=Path("out/bench_ros_live"))
     ap.add_argument("--out", type=Path, default=RESULTS / "ros_live.md")
     ap.add_argument(
+        "--reuse", action="store_true", help="evaluate runs already in --work instead of redoing"
+    )
+    ap.add_argument(
         "--modes",
         default="folder,ros1:1000,ros1:2",
         help="runs: folder, ros1:N (live, at most N images waiting: 2 is the default robot, "
@@ -231,7 +249,11 @@ def main() -> None:
         )
     robots = [f"robot{k}" for k in range(args.robots)]
     modes = args.modes.split(",")
-    results = [run(m, args.data, robots, args.work / m.replace(":", "-")) for m in modes]
+    results = []
+    for m in modes:
+        work = args.work / m.replace(":", "-")
+        done = args.reuse and (work / f"{robots[-1]}.json").exists()
+        results.append((evaluate if done else run)(m, args.data, robots, work))
     commit = subprocess.run(
         ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True
     ).stdout.strip()

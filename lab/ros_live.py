@@ -75,7 +75,19 @@ class RosMaster:
             raise RuntimeError(f"roscore did not listen on {self.port} within {timeout_s} s")
         time.sleep(0.5)  # the master answers before rosout is up
 
+    def _descendants(self) -> list[int]:
+        """roscore's children (rosmaster, rosout), which sit in process groups of their own."""
+        found, todo = [], [self.proc.pid]
+        while todo:
+            pid = todo.pop()
+            with contextlib.suppress(OSError):
+                kids = Path(f"/proc/{pid}/task/{pid}/children").read_text().split()
+                found += [int(k) for k in kids]
+                todo += [int(k) for k in kids]
+        return found
+
     def close(self) -> None:
+        children = self._descendants()
         if self.proc.poll() is None:
             with contextlib.suppress(ProcessLookupError):
                 os.killpg(self.proc.pid, signal.SIGINT)
@@ -85,8 +97,11 @@ class RosMaster:
                 with contextlib.suppress(ProcessLookupError):
                     os.killpg(self.proc.pid, signal.SIGKILL)
                 self.proc.wait()
-        with contextlib.suppress(ProcessLookupError):  # rosout & co. left behind
-            os.killpg(self.proc.pid, signal.SIGKILL)
+        for pid in children:  # rosmaster and rosout, if roslaunch left them behind
+            with contextlib.suppress(OSError):  # gone (and the pid not reused for another)
+                cmd = Path(f"/proc/{pid}/cmdline").read_bytes()
+                if f"{self.env['ROS_HOME']}".encode() in cmd or f"{self.port}".encode() in cmd:
+                    os.kill(pid, signal.SIGKILL)
         self._log.close()
 
     def __enter__(self) -> RosMaster:
