@@ -395,11 +395,10 @@ class RobotService:
                 c = self.client.counters()
                 logger.warning(
                     "robot %s: backlog full (%d messages, %d B): waiting for the edge; "
-                    "frames are delayed, and images beyond %d waiting are dropped",
+                    "frames are delayed, not dropped",
                     self.config.agent_id,
                     c["outbox_messages"],
                     c["outbox_bytes"],
-                    self.engine.core.config.max_pending_images if self.engine else 0,
                 )
             self._backlog_full = True
         else:
