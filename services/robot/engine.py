@@ -99,10 +99,18 @@ class RobotEngine:
         self.handle(EdgeInput(delivery.message))
 
     async def room(self) -> None:
-        """Until a new image would not drop an older one (a playback that must not drop)."""
+        """Until a new image would not drop an older one (a playback that must not drop);
+        re-raises the worker's error (e.g. the edge refused the robot)."""
         while not self.core.has_room() and not self._stopped:
+            if self._task.done():
+                self._task.result()
+                return
             self._room.clear()
-            await self._room.wait()
+            room = asyncio.ensure_future(self._room.wait())
+            try:
+                await asyncio.wait({self._task, room}, return_when=asyncio.FIRST_COMPLETED)
+            finally:
+                room.cancel()
 
     async def drain(self) -> None:
         """End of input: until every image taken is tracked and its message sent (or a send
