@@ -17,7 +17,10 @@ $(STAMP): pyproject.toml requirements.lock
 	$(BIN)/python -m pip install --quiet -c requirements.lock -e '.[test]'
 	@touch $(STAMP)
 
+## ROS 1 from Debian (roscore, rospy, the messages) for `recslam robot --source ros1` and its
+## live test; skipped (with a line saying so) when not root or without apt-get.
 setup: $(STAMP)
+	@sh scripts/install-ros.sh
 
 ## The main job: build the embedded synthetic dataset (if missing) and summarise it.
 demo: $(STAMP)
@@ -26,6 +29,7 @@ demo: $(STAMP)
 ## The test suite (what CI runs): lint, format check, type check, then pytest.
 test: $(STAMP)
 	@bash scripts/install-browser.sh
+	@sh scripts/install-ros.sh
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
 	$(BIN)/python -m mypy

@@ -308,3 +308,17 @@ def test_cycles_hidden_in_functions_are_found(tmp_path: Path, monkeypatch) -> No
         ["benchmarks.bench_a", "benchmarks.bench_b"],
         ["lab.report", "lab.run"],
     ]
+
+
+ROS_MODULES = ("rospy", "tf2_ros", "geometry_msgs", "nav_msgs", "sensor_msgs", "rclpy")
+ROS_FENCE = "services.robot.ros1.bridge"
+"""The one module that imports ROS (it runs under Debian's python3; see services/robot/ros1)."""
+
+
+def test_ros_is_fenced_into_the_bridge() -> None:
+    importers = set()
+    for package in (*PACKAGES, *CLI_AND_LAB, "tests", "benchmarks"):
+        for path in sorted((ROOT / package).rglob("*.py")):
+            if any(m.split(".")[0] in ROS_MODULES for m in _imported(path)):
+                importers.add(_module_name(path))
+    assert importers == {ROS_FENCE}

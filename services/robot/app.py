@@ -1,10 +1,11 @@
 """The robot's application logic: frames in, coded messages out, edge feedback applied.
 
-No sockets and no bytes on the wire here (``services.robot.server`` does the lifecycle and
-the transport). :meth:`RobotApp.process` is CPU work (tracking, ORB, coding) meant to run in
-one worker thread; :meth:`RobotApp.on_message` runs on the event loop. Feedback from the
-edge is applied to the front end between frames, never while one is being tracked: what
-arrives while a frame is in progress waits and is applied before the next frame.
+No sockets, no threads, no locks and no bytes on the wire here: the robot's core
+(:mod:`services.robot.core`) decides what is tracked and when feedback is applied, and its
+runner (:mod:`services.robot.engine`) calls this object from one worker thread at a time.
+:meth:`RobotApp.process` is CPU work (tracking, ORB, coding); :meth:`RobotApp.receive` queues
+the edge's feedback, which is applied to the front end between frames, never while one is
+being tracked (:meth:`RobotApp.apply_pending`, and before every frame).
 
 Inertial feedback: the edge sends :class:`InertialFeedback` (raw) or
 :class:`InertialFeedbackCoded`; both decode into one ``FeedbackContent``
@@ -23,9 +24,8 @@ live in the world frame, and the next update builds on them. A refused message (
 decode, not a rotation, too old) is logged and counted, never retried. Messages that arrive
 while a frame is tracked wait, all of them, in order.
 
-The edge's :class:`FramePose` (the robot's pose at each frame) and :class:`MapPlacement` (where
-its map sits in the global map) go to ``pose_sink`` as they arrive (``services.robot.poses``),
-nothing else is done with them here.
+The edge's :class:`FramePose` (the robot's pose at each frame) is not for this object: the
+core hands it to the pose consumers (``services.robot.poses``).
 
 With ``record=True`` every frame's :class:`UsedFrame` (what the pipeline used and what was
 coded) is kept in memory, for tests that compare it with what the edge decoded.
@@ -34,10 +34,8 @@ coded) is kept in memory, for tests that compare it with what the edge decoded.
 from __future__ import annotations
 
 import logging
-import threading
 import time
 from collections import OrderedDict
-from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -50,15 +48,13 @@ from common.links.robot_edge import (
     Anchors,
     CameraImuOffset,
     FeedbackContent,
-    FramePose,
     InertialFeedback,
     InertialFeedbackCoded,
-    MapPlacement,
     RobotFrame,
     RobotSequenceEnd,
     decode_feedback,
 )
-from common.transport import Delivery
+from common.protocol.messages import Message
 from common.vocabulary import Vocabulary
 from services.robot.coding import (
     CodedFrame,
@@ -132,44 +128,38 @@ class RobotApp:
         self._map_id: int | None = None
         self._pending: list[InertialFeedback | InertialFeedbackCoded] = []
         self.anchor_frames = anchor_frames
-        self._anchors: OrderedDict[int, Anchors] = OrderedDict()  # guarded by _lock
+        self._anchors: OrderedDict[int, Anchors] = OrderedDict()
         self.feedback_points_unanchored = 0  # coded points of frames no longer kept
         self.time_offset_ns = 0  # the edge's camera-IMU offset estimate (t_imu = t_cam + it)
-        self._offset_pending: int | None = None  # guarded by _pending_lock
-        self._pending_lock = threading.Lock()  # guards _pending (loop vs worker thread)
-        self._lock = threading.Lock()  # held while the front end is in use
-        # Where the edge's FramePose messages go (on the event loop), e.g. a PoseTrack
-        self.pose_sink: Callable[[FramePose | MapPlacement], None] | None = None
+        self._offset_pending: int | None = None
 
-    # ------------------------------------------------------------------ worker thread
     def process(self, timestamp_ns: int, image: np.ndarray, imu: ImuSamples) -> RobotFrame:
         """Track and code one frame (CPU work, one thread at a time) -> the message to send.
 
         ``image`` uint8 (H, W); ``imu`` the samples since the previous frame (IMU frame).
         """
-        with self._lock:
-            self._apply_pending_locked()
-            ts, gyro, accel = imu.timestamps_ns, imu.gyro, imu.accel
-            if self.frames == 0 and len(ts):
-                keep = ts > int(timestamp_ns) - int(self.preroll_imu_s * 1e9)
-                ts, gyro, accel = ts[keep], gyro[keep], accel[keep]
-            chunk = imu_used(ts, gyro, accel)
-            tracked = self.front_end.process(image, timestamp_ns, chunk)
-            coded = self.frame_coder.encode(tracked)
-            self._keep_anchors(int(timestamp_ns), tracked, coded)
-            imu_payload = self.imu_coder.encode(chunk)
-            if self.record:
-                self.recorded.append(UsedFrame(tracked, coded, chunk, imu_payload))
-            msg = RobotFrame(
-                frame_index=self.frames,
-                timestamp_ns=int(timestamp_ns),
-                keyframe=tracked.is_keyframe,
-                features=coded.payload,
-                imu=imu_payload,
-            )
-            self.frames += 1
-            self.keyframes += int(tracked.is_keyframe)
-            return msg
+        self.apply_pending()
+        ts, gyro, accel = imu.timestamps_ns, imu.gyro, imu.accel
+        if self.frames == 0 and len(ts):
+            keep = ts > int(timestamp_ns) - int(self.preroll_imu_s * 1e9)
+            ts, gyro, accel = ts[keep], gyro[keep], accel[keep]
+        chunk = imu_used(ts, gyro, accel)
+        tracked = self.front_end.process(image, timestamp_ns, chunk)
+        coded = self.frame_coder.encode(tracked)
+        self._keep_anchors(int(timestamp_ns), tracked, coded)
+        imu_payload = self.imu_coder.encode(chunk)
+        if self.record:
+            self.recorded.append(UsedFrame(tracked, coded, chunk, imu_payload))
+        msg = RobotFrame(
+            frame_index=self.frames,
+            timestamp_ns=int(timestamp_ns),
+            keyframe=tracked.is_keyframe,
+            features=coded.payload,
+            imu=imu_payload,
+        )
+        self.frames += 1
+        self.keyframes += int(tracked.is_keyframe)
+        return msg
 
     def _keep_anchors(self, timestamp_ns: int, tracked: TrackedFrame, coded: CodedFrame) -> None:
         """Keep the frame's stream numbers and keypoints (codec order, the edge's decoding)."""
@@ -182,55 +172,40 @@ class RobotApp:
     def end_message(self) -> RobotSequenceEnd:
         return RobotSequenceEnd(frames=self.frames)
 
-    # ------------------------------------------------------------------ event loop
-    async def on_message(self, delivery: Delivery) -> None:
-        """Handler for the edge's messages (never raises: a refused message is not retried)."""
-        msg = delivery.message
-        if isinstance(msg, FramePose | MapPlacement):
-            if self.pose_sink is not None:
-                self.pose_sink(msg)
-            return
+    def receive(self, msg: Message) -> bool:
+        """Queue one of the edge's messages for the front end (applied by
+        :meth:`apply_pending`, or before the next frame); False (logged) if it is not for the
+        front end."""
         if isinstance(msg, CameraImuOffset):
-            with self._pending_lock:
-                self._offset_pending = msg.offset_ns
+            self._offset_pending = msg.offset_ns
         elif isinstance(msg, InertialFeedback | InertialFeedbackCoded):
             self.feedback_received += 1
-            with self._pending_lock:
-                self._pending.append(msg)
+            self._pending.append(msg)
         else:
-            logger.warning("robot ignores %s from %s", type(msg).__name__, delivery.peer)
-            return
-        if self._lock.acquire(blocking=False):  # no frame in progress: apply now
-            try:
-                self._apply_pending_locked()
-            finally:
-                self._lock.release()
+            logger.warning("robot front end ignores %s", type(msg).__name__)
+            return False
+        return True
 
     def set_time_offset(self, offset_ns: int) -> None:
         """Use this camera-IMU time offset (``t_imu = t_cam + offset``, ns) from the next frame
         (a robot carries its offset to the next edge at a handover)."""
-        with self._pending_lock:
-            self._offset_pending = int(offset_ns)
+        self._offset_pending = int(offset_ns)
         self.apply_pending()
 
     def apply_pending(self) -> None:
-        """Apply feedback that arrived during the last frame (e.g. after the sequence end)."""
-        with self._lock:
-            self._apply_pending_locked()
-
-    def _apply_pending_locked(self) -> None:
-        with self._pending_lock:
-            msgs, self._pending = self._pending, []
-            offset, self._offset_pending = self._offset_pending, None
+        """Apply the feedback queued by :meth:`receive`, in arrival order (never raises: a
+        refused message is logged and counted, not retried)."""
+        msgs, self._pending = self._pending, []
+        offset, self._offset_pending = self._offset_pending, None
         if offset is not None and offset != self.time_offset_ns:
             # Before the states: they are about camera times read with the new offset.
             self.front_end.set_time_offset(offset)
             self.time_offset_ns = offset
             logger.info("camera-IMU time offset from the edge: %+.2f ms", offset * 1e-6)
         for msg in msgs:
-            self._apply_locked(msg)
+            self._apply(msg)
 
-    def _apply_locked(self, msg: InertialFeedback | InertialFeedbackCoded) -> None:
+    def _apply(self, msg: InertialFeedback | InertialFeedbackCoded) -> None:
         try:
             t0 = time.perf_counter()
             content = decode_feedback(msg, self.camera, self._anchors.get(msg.timestamp_ns))

@@ -37,7 +37,9 @@ class ReceivedPose:
     (``FramePose.status``), ``T_map_body`` (4, 4) or None without a metric pose, and the
     latency [s] from the frame's capture to now (None if the capture is not known here); the
     global map its map is placed in and ``T_global_body`` (4, 4) (None until the cloud placed
-    the map, or without a metric pose)."""
+    the map, or without a metric pose); and what the robot's input did to that frame
+    (``flags``, see :data:`services.robot.core.FLAGS`: e.g. ``"imu_gap"`` when its IMU interval
+    had a hole; empty when the input was clean)."""
 
     timestamp_ns: int
     map_id: int
@@ -46,6 +48,7 @@ class ReceivedPose:
     latency_s: float | None
     global_map: int | None = None
     T_global_body: np.ndarray | None = None
+    flags: frozenset[str] = frozenset()
 
 
 class PoseTrack:
@@ -76,6 +79,10 @@ class PoseTrack:
         self._captured[int(timestamp_ns)] = now_s
         while len(self._captured) > self.keep:
             self._captured.popitem(last=False)
+
+    def forget(self, timestamp_ns: int) -> None:
+        """The frame at ``timestamp_ns`` will not be sent (dropped): no pose will come back."""
+        self._captured.pop(int(timestamp_ns), None)
 
     def on_pose(self, msg: FramePose, now_s: float) -> ReceivedPose | None:
         """The edge's pose of one frame, received at ``now_s``; None (logged, counted) if the

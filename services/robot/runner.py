@@ -28,6 +28,7 @@ from typing import TYPE_CHECKING
 from common.entry import add_give_up_argument, add_security_arguments
 
 if TYPE_CHECKING:
+    from services.robot.ros1.source import Ros1RunConfig
     from services.robot.service_config import RobotServiceConfig
 
 ENV_DEFAULTS = {
@@ -61,8 +62,31 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="Kalibr camchain.yaml (imu.yaml beside it), EuRoC cam0/sensor.yaml, or a folder "
         "holding them; overrides the dataset folder's own",
     )
-    p.add_argument("--image-topic", default=None, help="the bag's camera topic (Image)")
-    p.add_argument("--imu-topic", default=None, help="the bag's IMU topic (Imu)")
+    p.add_argument(
+        "--source",
+        choices=("folder", "bag", "ros1"),
+        default=None,
+        help="where the frames come from: folder (--dataset, default), bag (--bag), or ros1: "
+        "live ROS 1 topics (--image-topic, --imu-topic, --calibration; publishes "
+        "nav_msgs/Odometry on --odom-topic and TF --map-frame -> --base-frame)",
+    )
+    p.add_argument(
+        "--image-topic", default=None, help="the bag's or ROS's camera topic (sensor_msgs/Image)"
+    )
+    p.add_argument("--imu-topic", default=None, help="the bag's or ROS's IMU topic (Imu)")
+    p.add_argument(
+        "--max-pending-images",
+        type=int,
+        default=2,
+        metavar="N",
+        help="ros1: images waiting for tracking before the oldest is dropped (default 2: "
+        "fresh poses; more: fewer drops when the CPU falls behind, later poses)",
+    )
+    p.add_argument("--odom-topic", default="odom", help="ros1: Odometry topic (default odom)")
+    p.add_argument("--map-frame", default="map", help="ros1: TF parent frame (default map)")
+    p.add_argument(
+        "--base-frame", default="base_link", help="ros1: TF child frame (default base_link)"
+    )
     p.add_argument(
         "--edge",
         metavar="HOST:PORT",
@@ -149,9 +173,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     add_give_up_argument(p, "edge")
 
 
-def config_from_args(args: argparse.Namespace) -> RobotServiceConfig:
-    """RobotServiceConfig from parsed arguments (RobotConfigError on bad values,
-    CredentialsError on a bad address or secret)."""
+def config_from_args(args: argparse.Namespace) -> RobotServiceConfig | Ros1RunConfig:
+    """RobotServiceConfig (a folder or a bag) or Ros1RunConfig (``--source ros1``) from parsed
+    arguments (RobotConfigError on bad values, CredentialsError on a bad address or secret)."""
+    if args.source == "ros1":
+        return ros1_config_from_args(args)
+    if args.source == "bag" and args.bag is None:
+        from services.robot.service_config import RobotConfigError
+
+        raise RobotConfigError("--source bag needs --bag PATH")
     from common.entry import tls_from_args
     from common.protocol.credentials import load_keys, parse_address
     from services.robot.service_config import (
@@ -208,8 +238,69 @@ def config_from_args(args: argparse.Namespace) -> RobotServiceConfig:
     )
 
 
-def serve(config: RobotServiceConfig) -> int:
-    """Play the sequence on a fresh event loop (see the module docstring for the exit code)."""
+def ros1_config_from_args(args: argparse.Namespace) -> Ros1RunConfig:
+    """The live ROS 1 robot's config: the calibration file (required), the topics, the edge."""
+    from common.data.calibration_files import load_calibration
+    from common.entry import tls_from_args
+    from common.links.sensors import Sensors
+    from common.protocol.credentials import load_keys, parse_address
+    from services.robot.client import RobotClientConfig
+    from services.robot.core import LiveInputConfig
+    from services.robot.ros1.process import Ros1Config
+    from services.robot.ros1.source import Ros1RunConfig
+    from services.robot.service_config import DEV_SECRET, RobotConfigError
+
+    if args.bag is not None:
+        raise RobotConfigError("--source ros1 reads live topics: --bag does not apply")
+    if args.calibration is None:
+        raise RobotConfigError(
+            "--source ros1 needs --calibration (Kalibr camchain.yaml, EuRoC sensor.yaml, or a "
+            "folder holding them): topics carry no calibration"
+        )
+    if args.max_pending_images < 1:
+        raise RobotConfigError(f"--max-pending-images must be >= 1, got {args.max_pending_images}")
+    calibration = load_calibration(args.calibration)
+    image_topic = args.image_topic or calibration.image_topic
+    imu_topic = args.imu_topic or calibration.imu_topic
+    if not image_topic or not imu_topic:
+        raise RobotConfigError("--source ros1 needs --image-topic and --imu-topic")
+    host, port = parse_address(args.edge)
+    robot = RobotClientConfig(
+        sensors=Sensors(calibration.cam0, calibration.imu),
+        edge_host=host,
+        edge_port=port,
+        agent_id=args.agent_id,
+        secret=load_keys(
+            args.key_file,
+            args.secret_file,
+            dev_default=DEV_SECRET,
+            identity=("robot", args.agent_id),
+        ),
+        tls=tls_from_args(args),
+        time_shift_ns=round(calibration.timeshift_cam_imu_s * 1e9),
+        backlog_s=60.0 * args.backlog_minutes,
+        close_timeout_s=args.flush_timeout if args.flush_timeout is not None else 30.0,
+        live=LiveInputConfig(max_pending_images=args.max_pending_images),
+    )
+    ros = Ros1Config(
+        image_topic=image_topic,
+        imu_topic=imu_topic,
+        odom_topic=args.odom_topic,
+        map_frame=args.map_frame,
+        base_frame=args.base_frame,
+    )
+    return Ros1RunConfig(robot, ros, pose_out=args.pose_out, stats_out=args.stats_out)
+
+
+def serve(config: RobotServiceConfig | Ros1RunConfig) -> int:
+    """Play the sequence on a fresh event loop, or run live from ROS (see the module docstring
+    for the exit code)."""
+    from services.robot.ros1.source import Ros1RunConfig
+
+    if isinstance(config, Ros1RunConfig):
+        from services.robot.ros1.source import serve as serve_ros1
+
+        return serve_ros1(config)
     from common.transport import run
     from services.robot.server import serve as serve_async
 

@@ -3,11 +3,14 @@
 :class:`RobotService` plays an EuRoC-layout sequence (real download, TUM-VI, synthetic robot
 folder) or a ROS bag (:mod:`common.data.sources`) frame by frame, after announcing its sensors
 (``RobotSensors``, the stream's first message: the sequence's camera and IMU calibrations):
-the image is read, tracked and coded in one worker thread (``run_in_executor``: OpenCV
-releases the GIL, so heartbeats and acks keep flowing on the event loop), the
-:class:`~common.protocol.messages.RobotFrame` goes to the protocol
-:class:`~common.transport.Client`, and the edge's ``InertialFeedback`` is applied by
-:class:`~services.robot.app.RobotApp`. ``rate=realtime`` paces frames at their camera
+each frame's IMU and image go through the same robot core as a live driver's
+(:class:`~services.robot.engine.RobotEngine` over :class:`~services.robot.core.RobotCore`),
+which tracks and codes them in one worker thread (OpenCV releases the GIL, so heartbeats and
+acks keep flowing on the event loop); the :class:`~common.protocol.messages.RobotFrame` goes
+to the protocol :class:`~common.transport.Client`, and the edge's ``InertialFeedback`` is
+applied by :class:`~services.robot.app.RobotApp` between frames. A recording waits for the
+core's room instead of letting it drop images, so the coded bytes are the same as a frame-by-
+frame loop's. ``rate=realtime`` paces frames at their camera
 timestamps (when the front end falls behind, frames are processed late, never skipped),
 ``rate=max`` plays as fast as the front end runs. At the end a
 ``RobotSequenceEnd`` is sent and the service waits until the edge's application has taken
@@ -69,7 +72,7 @@ from pathlib import Path
 from typing import Any, TextIO
 
 from common.data.euroc import EurocFrame
-from common.links.robot_edge import FramePose, MapPlacement, RobotFrame, sensors_message
+from common.links.robot_edge import RobotFrame, sensors_message
 from common.links.sensors import Sensors
 from common.protocol import PeerRejectedError, PeerUnreachableError, SessionConfig
 from common.protocol.auth import as_keyring
@@ -77,7 +80,9 @@ from common.protocol.messages import Message
 from common.transport import Client, TransportConfig
 from common.vocabulary import Vocabulary
 from services.robot.app import RobotApp
-from services.robot.poses import PoseTrack, tum_line
+from services.robot.core import ImageInput, ImuInput, RobotCore
+from services.robot.engine import RobotEngine
+from services.robot.poses import PoseTrack, ReceivedPose, tum_line
 from services.robot.service_config import (
     Rate,
     RobotConfigError,
@@ -129,6 +134,8 @@ class RobotService:
         self.app = self._new_app()
         self.apps = [self.app]  # one per edge session (a handover starts a fresh one)
         self.client: Client | None = None
+        self.engine: RobotEngine | None = None  # the current edge session's
+        self._backlog_full = False
         self._stop = asyncio.Event()
         self._abort = asyncio.Event()
         self._signals = 0
@@ -142,22 +149,15 @@ class RobotService:
             self._vocabulary,
             record=self.config.record,
         )
-        app.pose_sink = self._on_pose
         return app
 
-    def _on_pose(self, msg: FramePose | MapPlacement) -> None:
-        """The edge's pose of one frame (event loop): latency, and the TUM lines if asked; or
-        the placement of the robot's map in the global map."""
-        if isinstance(msg, MapPlacement):
-            self.poses.on_placement(msg)
-            return
-        pose = self.poses.on_pose(msg, time.monotonic())
-        if pose is None:
-            return
+    def _on_pose(self, pose: ReceivedPose) -> None:
+        """The edge's pose of one frame (event loop): the TUM lines if asked (the global file
+        names each global map before its poses: a merge moves the robot's map into another)."""
         if self._pose_file is not None and (line := tum_line(pose)) is not None:
             self._pose_file.write(line + "\n")
         if self._global_pose_file is not None and (line := tum_line(pose, True)) is not None:
-            if pose.global_map != self._global_map_written:  # a merge moved it to another map
+            if pose.global_map != self._global_map_written:
                 self._global_pose_file.write(f"# global map {pose.global_map}\n")
                 self._global_map_written = pose.global_map
             self._global_pose_file.write(line + "\n")
@@ -312,9 +312,12 @@ class RobotService:
         transport = dataclasses.replace(
             self.transport or TransportConfig(), give_up_after=cfg.give_up_after_s
         )
+        core = RobotCore(self.sequence.cam0.width, self.sequence.cam0.height, poses=self.poses)
+        core.offset_ns = self.app.time_offset_ns  # carried over a handover
+        self.engine = RobotEngine(core, self.app, executor, self._send_frame, self._on_pose)
         self.client = Client(
             self.session_config(),
-            self.app.on_message,
+            self.engine.on_delivery,
             host,
             port,
             transport=transport,
@@ -322,7 +325,11 @@ class RobotService:
             ssl=cfg.tls.client_context(),
             server_hostname=host,
         )
-        await self.client.start()
+        try:
+            await self.client.start()
+        except BaseException:
+            await self.engine.close()
+            raise
         try:
             # The stream's first message: this robot's calibrations (the edge builds its
             # decoders and VIO from them).
@@ -337,62 +344,72 @@ class RobotService:
                 port,
                 cfg.rate.value,
             )
-            await self._play(executor, first, end)
+            await self._play(self.engine, executor, first, end)
             flushed = await self._send(self.app.end_message()) and await self._flush()
             if flushed and self.config.pose_wait_s > 0:
                 await self._wait_poses(self.config.pose_wait_s)
-            self.app.apply_pending()
+            await self.engine.close()
+            await asyncio.get_running_loop().run_in_executor(executor, self.app.apply_pending)
         finally:
+            await self.engine.close()
             counters = self.client.counters()
             await self.client.close()
         return flushed, counters
 
-    async def _play(self, executor: ThreadPoolExecutor, first: int, end: int) -> None:
-        assert self.client is not None and self.client.peer is not None  # run() started it
+    async def _play(
+        self, engine: RobotEngine, executor: ThreadPoolExecutor, first: int, end: int
+    ) -> None:
+        """Feed frames ``first..end-1`` (their IMU, then the image) to the robot's core, at
+        their camera times with ``rate=realtime``, never faster than it tracks (a recording
+        waits for room: no frame is dropped), and until every one is tracked and sent."""
         loop = asyncio.get_running_loop()
         # Each frame's IMU reaches t + the camera-IMU offset the edge found (its VIO reads the
         # frame there on the IMU clock); asked at each frame, the offset may arrive any time.
-        frames = self.sequence.frames(
-            first, end, imu_lead_ns=lambda: max(0, self.app.time_offset_ns)
-        )
+        frames = self.sequence.frames(first, end, imu_lead_ns=lambda: engine.core.imu_lead_ns)
         t0_wall: float | None = None
         t0_ns = 0
-        blocked = False
-        while not self._stop.is_set():
-            frame = await loop.run_in_executor(executor, _next_frame, frames)
-            if frame is None:
-                break
-            if self.config.rate is Rate.REALTIME:
-                if t0_wall is None:
-                    t0_wall, t0_ns = loop.time(), frame.timestamp_ns
-                due = t0_wall + (frame.timestamp_ns - t0_ns) * 1e-9
-                if due > loop.time():
-                    with contextlib.suppress(TimeoutError):
-                        await asyncio.wait_for(self._stop.wait(), due - loop.time())
-                    if self._stop.is_set():
-                        break
-            assert frame.image is not None
-            self.poses.captured(frame.timestamp_ns, time.monotonic())
-            msg: RobotFrame = await loop.run_in_executor(
-                executor, self.app.process, frame.timestamp_ns, frame.image, frame.imu
-            )
-            if not self.client.peer.link.has_room(len(msg.features) + len(msg.imu) + 64):
-                if not blocked:
-                    c = self.client.counters()
-                    logger.warning(
-                        "robot %s: backlog full (%d messages, %d B): waiting for the edge; "
-                        "frames are delayed, not dropped",
-                        self.config.agent_id,
-                        c["outbox_messages"],
-                        c["outbox_bytes"],
-                    )
-                blocked = True
-            else:
-                blocked = False
-            if not await self._send(msg):
-                break
-        # a bag's reader lives in the worker thread (SQLite): close it there
-        await loop.run_in_executor(executor, _close_frames, frames)
+        try:
+            while not self._stop.is_set():
+                frame = await loop.run_in_executor(executor, _next_frame, frames)
+                if frame is None:
+                    break
+                if self.config.rate is Rate.REALTIME:
+                    if t0_wall is None:
+                        t0_wall, t0_ns = loop.time(), frame.timestamp_ns
+                    due = t0_wall + (frame.timestamp_ns - t0_ns) * 1e-9
+                    if due > loop.time():
+                        with contextlib.suppress(TimeoutError):
+                            await asyncio.wait_for(self._stop.wait(), due - loop.time())
+                        if self._stop.is_set():
+                            break
+                await engine.room()
+                assert frame.image is not None
+                imu = frame.imu
+                engine.handle(ImuInput(imu.timestamps_ns, imu.gyro, imu.accel))
+                engine.handle(ImageInput(frame.timestamp_ns, frame.image))
+            await engine.drain()
+        finally:
+            # a bag's reader lives in the worker thread (SQLite): close it there
+            await loop.run_in_executor(executor, _close_frames, frames)
+
+    async def _send_frame(self, msg: Message) -> bool:
+        """The engine's send: a frame, with a warning when the backlog is full."""
+        assert self.client is not None and self.client.peer is not None  # run() started it
+        size = len(msg.features) + len(msg.imu) + 64 if isinstance(msg, RobotFrame) else 64
+        if not self.client.peer.link.has_room(size):
+            if not self._backlog_full:
+                c = self.client.counters()
+                logger.warning(
+                    "robot %s: backlog full (%d messages, %d B): waiting for the edge; "
+                    "frames are delayed, not dropped",
+                    self.config.agent_id,
+                    c["outbox_messages"],
+                    c["outbox_bytes"],
+                )
+            self._backlog_full = True
+        else:
+            self._backlog_full = False
+        return await self._send(msg)
 
     async def _wait_poses(self, timeout_s: float) -> None:
         """After the last frame: until the edge's pose of every frame sent is back, the stop

@@ -134,3 +134,22 @@ def test_handovers_parse_in_frame_order_and_a_malformed_one_is_named(tmp_path, m
         robot.build_config(parse([*base, "--handover", "b:7001"]))
     with pytest.raises(RobotConfigError, match="must increase"):
         robot.build_config(parse([*base, "--handover", "9=b:1", "--handover", "3=c:2"]))
+
+
+def test_the_ros1_source_needs_a_calibration_and_builds_a_live_config(euroc_micro, monkeypatch):
+    from services.robot.ros1.source import Ros1RunConfig
+
+    monkeypatch.delenv("RECSLAM_SECRET", raising=False)
+    base = ["--source", "ros1", "--edge", "h:7000", "--agent-id", "r1"]
+    topics = ["--image-topic", "/cam0/image_raw", "--imu-topic", "/imu0"]
+    with pytest.raises(RobotConfigError, match="needs --calibration"):
+        robot.build_config(parse([*base, *topics]))
+    args = parse([*base, *topics, "--calibration", str(euroc_micro), "--max-pending-images", "5"])
+    cfg = robot.build_config(args)
+    assert isinstance(cfg, Ros1RunConfig)
+    assert (cfg.ros.image_topic, cfg.ros.imu_topic, cfg.ros.odom_topic) == (
+        "/cam0/image_raw",
+        "/imu0",
+        "odom",
+    )
+    assert cfg.robot.sensors.camera.width == 752 and cfg.robot.live.max_pending_images == 5

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import asyncio
 import dataclasses
 
 import numpy as np
@@ -18,7 +17,6 @@ from common.links.robot_edge import (
 )
 from common.protocol.arrays import pack_array
 from common.protocol.messages import Blob
-from common.transport import Delivery
 from common.vocabulary import Vocabulary
 from services.edge.robot_session import RobotSession
 from services.robot.app import RobotApp, content_to_state
@@ -42,7 +40,9 @@ def feedback(ts: int, map_id: int = 0, n_points: int = 0, **over) -> InertialFee
 
 
 def deliver(app: RobotApp, msg) -> None:
-    asyncio.run(app.on_message(Delivery("edge", "edge", msg, 1, b"s" * 16)))
+    """The edge's message reaches the front end while no frame is tracked."""
+    app.receive(msg)
+    app.apply_pending()
 
 
 def test_feedback_conversion_and_refusals(euroc_micro):
@@ -151,9 +151,8 @@ def test_coded_feedback_resets_updates_and_forgets(euroc_micro):
     deliver(app, coded(app, t, s[[2, 5]], [3.0, 5.0], reset=False, forget=[s[9]]))
     assert landmarks() == {tid[int(s[0])]: 2.0, tid[int(s[2])]: 3.0, tid[int(s[5])]: 5.0}
     # messages that arrive during a frame wait, all of them, and are applied in order
-    with app._lock:
-        deliver(app, coded(app, t, s[[1]], reset=False))
-        deliver(app, coded(app, t, [], reset=False, forget=[s[0]]))
+    app.receive(coded(app, t, s[[1]], reset=False))
+    app.receive(coded(app, t, [], reset=False, forget=[s[0]]))
     assert app.feedback_applied == 2
     app.apply_pending()
     assert app.feedback_applied == 4 and sorted(landmarks()) == sorted(
