@@ -34,7 +34,7 @@ from pathlib import Path
 from typing import Any
 
 from common.errors import RecslamError
-from common.links.edge_cloud import PoseCorrection, PoseCorrectionCoded
+from common.links.edge_cloud import MapPlacement, PoseCorrection, PoseCorrectionCoded
 from common.protocol import SessionConfig
 from common.protocol.credentials import issue_keys, load_keys
 from common.transport import Client, Delivery
@@ -202,7 +202,9 @@ async def play(
         m = d.message
         if isinstance(m, PoseCorrection | PoseCorrectionCoded):
             corrections.append(received(loop.time() - t0, m))
-        else:
+        elif not isinstance(m, MapPlacement):  # placements come with corrections: not timed
+            rejected.append(f"{d.peer}: unexpected {type(m).__name__}")
+
             rejected.append(f"{d.peer}: unexpected {type(m).__name__}")
 
     clients: dict[str, Client] = {}
