@@ -85,6 +85,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--odom-topic", default="odom", help="ros1: Odometry topic (default odom)")
     p.add_argument("--map-frame", default="map", help="ros1: TF parent frame (default map)")
     p.add_argument(
+        "--global-frame",
+        default="world",
+        help="ros1: TF parent of --map-frame once the cloud has placed the robot's map in its "
+        "global map (the frame all merged robots share; default world)",
+    )
+    p.add_argument(
         "--base-frame", default="base_link", help="ros1: TF child frame (default base_link)"
     )
     p.add_argument(
@@ -287,6 +293,7 @@ def ros1_config_from_args(args: argparse.Namespace) -> Ros1RunConfig:
         imu_topic=imu_topic,
         odom_topic=args.odom_topic,
         map_frame=args.map_frame,
+        global_frame=args.global_frame,
         base_frame=args.base_frame,
     )
     return Ros1RunConfig(robot, ros, pose_out=args.pose_out, stats_out=args.stats_out)

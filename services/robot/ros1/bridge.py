@@ -8,7 +8,8 @@ connects to the Unix socket at ``PATH`` and speaks :mod:`services.robot.ros1.wir
   (``sensor_msgs/Imu``) and forwards every message with its header stamp; for every pose the
   robot sends back it publishes ``nav_msgs/Odometry`` on ``--odom-topic`` (``header.frame_id``
   = ``--map-frame``, ``child_frame_id`` = ``--base-frame``, stamped with the camera time of
-  the frame) and the TF ``map -> base_link`` alike.
+  the frame) and the TF ``map -> base_link`` alike; once the cloud has placed the robot's map
+  in its global map, the (latched) TF ``--global-frame -> --map-frame`` of that placement.
 - ``player``: publishes the IMU and images the socket brings on those topics (with their
   stamps) and reports the stamp of every Odometry message it sees on ``--odom-topic``.
 
@@ -72,10 +73,22 @@ def run_robot(args: argparse.Namespace, link: Link) -> None:
 
     odom = rospy.Publisher(args.odom_topic, Odometry, queue_size=100)
     tf = tf2_ros.TransformBroadcaster()
+    placement_tf = tf2_ros.StaticTransformBroadcaster()  # latched: changes only with the cloud
     rospy.Subscriber(args.image_topic, Image, on_image, queue_size=20, buff_size=1 << 25)
     rospy.Subscriber(args.imu_topic, Imu, on_imu, queue_size=2000)
     link.send(wire.frame(wire.READY, b""))
     for kind, payload in link.frames():
+        if kind == wire.PLACEMENT:
+            _global_map, _map_id, p, q = wire.read_placement(payload)
+            place = TransformStamped()
+            place.header.stamp = rospy.Time.now()
+            place.header.frame_id = args.global_frame
+            place.child_frame_id = args.map_frame
+            tr, rot = place.transform.translation, place.transform.rotation
+            tr.x, tr.y, tr.z = p
+            rot.x, rot.y, rot.z, rot.w = q
+            placement_tf.sendTransform(place)
+            continue
         if kind != wire.POSE:
             continue
         t, _map_id, _status, p, q = wire.read_pose(payload)
@@ -134,6 +147,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--imu-topic", required=True)
     p.add_argument("--odom-topic", default="odom")
     p.add_argument("--map-frame", default="map")
+    p.add_argument("--global-frame", default="world")
     p.add_argument("--base-frame", default="base_link")
     p.add_argument("--node-name", default="recslam_robot")
     args = p.parse_args(argv)

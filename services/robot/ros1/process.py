@@ -42,6 +42,8 @@ class Ros1Config:
         imu_topic: ``sensor_msgs/Imu`` topic (gyro and accelerometer, IMU frame).
         odom_topic: ``nav_msgs/Odometry`` topic of the pose (``odom``).
         map_frame, base_frame: TF frames of the pose (``map -> base_link``).
+        global_frame: TF parent of ``map_frame`` once the cloud has placed the robot's map in
+            its global map (``world -> map``, from that placement; re-sent when it moves).
         python: the interpreter that imports rospy (Debian's ``/usr/bin/python3``).
         node_name: the bridge's node name (anonymous: a suffix is added).
         connect_timeout_s: longest wait for the bridge to reach the master (30 s).
@@ -52,6 +54,7 @@ class Ros1Config:
     odom_topic: str = "odom"
     map_frame: str = "map"
     base_frame: str = "base_link"
+    global_frame: str = "world"
     python: Path = ROS_PYTHON
     node_name: str = "recslam_robot"
     connect_timeout_s: float = 30.0
@@ -101,6 +104,8 @@ class BridgeProcess:
             config.map_frame,
             "--base-frame",
             config.base_frame,
+            "--global-frame",
+            config.global_frame,
             "--node-name",
             config.node_name,
         ]

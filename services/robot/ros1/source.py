@@ -20,6 +20,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TextIO
 
+import numpy as np
+
 from common.geometry import R_to_quat_wxyz
 from services.robot.client import RobotClient, RobotClientConfig, RobotClosedError
 from services.robot.poses import ReceivedPose, tum_line
@@ -50,6 +52,30 @@ def pose_frame(pose: ReceivedPose) -> bytes | None:
     return wire.pose(pose.timestamp_ns, pose.map_id, pose.status, p, (x, y, z, w))
 
 
+def placement_of(pose: ReceivedPose) -> tuple[int, int, np.ndarray] | None:
+    """``(global map, map id, T_global_map (4, 4))`` of a pose placed in the global map (None if
+    it is not): ``T_global_map = T_global_body T_map_body^-1``."""
+    if pose.T_global_body is None or pose.T_map_body is None or pose.global_map is None:
+        return None
+    return pose.global_map, pose.map_id, pose.T_global_body @ np.linalg.inv(pose.T_map_body)
+
+
+def placement_frame(global_map: int, map_id: int, T_global_map: np.ndarray) -> bytes:
+    """The bridge's PLACEMENT frame (the TF from the global map to the robot's map)."""
+    w, x, y, z = (float(v) for v in R_to_quat_wxyz(T_global_map[:3, :3]))
+    p = tuple(float(v) for v in T_global_map[:3, 3])
+    return wire.placement(global_map, map_id, p, (x, y, z, w))
+
+
+def placement_moved(
+    last: tuple[int, int, np.ndarray] | None, new: tuple[int, int, np.ndarray]
+) -> bool:
+    """Whether ``new`` is worth a TF update: another map, or moved by 1 mm / ~0.01°."""
+    if last is None or last[:2] != new[:2]:
+        return True
+    return not np.allclose(last[2], new[2], atol=1e-4)
+
+
 def serve(config: Ros1RunConfig) -> int:
     """Run until SIGINT/SIGTERM or until the bridge ends; exit code 0 (1 if the robot failed)."""
     check_ros(config.ros.python)
@@ -61,12 +87,17 @@ def serve(config: Ros1RunConfig) -> int:
         pose_file.write("# timestamp tx ty tz qx qy qz qw\n")
     counts = {"imu": 0, "images": 0, "odometry": 0}
     with BridgeProcess("robot", config.ros) as bridge:
+        placed: list[tuple[int, int, np.ndarray] | None] = [None]  # the last one sent
 
         def on_pose(pose: ReceivedPose) -> None:
             data = pose_frame(pose)
             if data is None:
                 return
+            where = placement_of(pose)
             with contextlib.suppress(OSError):
+                if where is not None and placement_moved(placed[0], where):
+                    bridge.send(placement_frame(*where))  # TF global frame -> map frame
+                    placed[0] = where
                 bridge.send(data)
                 counts["odometry"] += 1
             if pose_file is not None:

@@ -7,7 +7,10 @@ A frame is ``<kind: u8><length: u32 LE><payload>``; the payloads (little-endian)
 - ``POSE``: ``t_ns: i64``, ``map_id: i32``, status (u8, index in :data:`STATUSES`), position
   x y z [m] and quaternion x y z w (7 float64) of ``T_map_body``;
 - ``ODOM``: ``t_ns: i64`` of an Odometry message a player's subscriber saw (tests, benchmarks);
-- ``READY``: empty, the bridge is connected to the master and its topics.
+- ``READY``: empty, the bridge is connected to the master and its topics;
+- ``PLACEMENT``: ``global_map: i32``, ``map_id: i32``, position x y z [m] and quaternion
+  x y z w (7 float64) of ``T_global_map``: where the robot's map sits in the cloud's global
+  map (sent when it changes).
 
 :class:`FrameReader` is sans-I/O: bytes in, ``(kind, payload)`` out.
 """
@@ -17,8 +20,8 @@ from __future__ import annotations
 import struct
 from collections.abc import Iterator
 
-IMU, IMAGE, POSE, ODOM, READY = 1, 2, 3, 4, 5
-KINDS = (IMU, IMAGE, POSE, ODOM, READY)
+IMU, IMAGE, POSE, ODOM, READY, PLACEMENT = 1, 2, 3, 4, 5, 6
+KINDS = (IMU, IMAGE, POSE, ODOM, READY, PLACEMENT)
 STATUSES = ("tracking", "initializing", "lost")
 MAX_FRAME = 64 * 1024 * 1024
 """Largest payload (a 4K colour image is 25 MB)."""
@@ -28,6 +31,7 @@ _IMU = struct.Struct("<q6d")
 _IMAGE = struct.Struct("<qIIIB")
 _POSE = struct.Struct("<qiB7d")
 _ODOM = struct.Struct("<q")
+_PLACEMENT = struct.Struct("<ii7d")
 
 
 class WireError(ValueError):
@@ -51,6 +55,18 @@ def pose(
     t_ns: int, map_id: int, status: str, p: tuple[float, ...], q_xyzw: tuple[float, ...]
 ) -> bytes:
     return frame(POSE, _POSE.pack(int(t_ns), map_id, STATUSES.index(status), *p, *q_xyzw))
+
+
+def placement(
+    global_map: int, map_id: int, p: tuple[float, ...], q_xyzw: tuple[float, ...]
+) -> bytes:
+    return frame(PLACEMENT, _PLACEMENT.pack(int(global_map), int(map_id), *p, *q_xyzw))
+
+
+def read_placement(payload: bytes) -> tuple[int, int, tuple[float, ...], tuple[float, ...]]:
+    """``(global_map, map_id, position, quaternion xyzw)`` of ``T_global_map``."""
+    g, m, *v = _PLACEMENT.unpack(payload)
+    return g, m, tuple(v[:3]), tuple(v[3:])
 
 
 def odom(t_ns: int) -> bytes:

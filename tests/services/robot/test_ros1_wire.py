@@ -8,7 +8,12 @@ import pytest
 from common.geometry import make_T, so3_exp
 from services.robot.poses import ReceivedPose
 from services.robot.ros1 import wire
-from services.robot.ros1.source import pose_frame
+from services.robot.ros1.source import (
+    placement_frame,
+    placement_moved,
+    placement_of,
+    pose_frame,
+)
 
 
 def test_frames_round_trip_through_any_split_of_the_stream() -> None:
@@ -39,6 +44,26 @@ def test_a_pose_frame_carries_position_and_unit_quaternion_and_no_pose_sends_not
     assert p == pytest.approx((1.0, 2.0, 3.0))
     assert q == pytest.approx((0.0, 0.0, np.sqrt(0.5), np.sqrt(0.5)))  # x y z w, yaw 90°
     assert pose_frame(ReceivedPose(12, 2, "initializing", None, 0.1)) is None
+
+
+def test_a_placed_pose_gives_the_global_to_map_transform_once_until_it_moves() -> None:
+    T_map_body = make_T(so3_exp(np.array([0.1, 0.0, 0.5])), np.array([1.0, -2.0, 0.5]))
+    T_global_map = make_T(so3_exp(np.array([0.0, 0.0, np.pi / 2])), np.array([4.0, 0.0, 0.0]))
+    pose = ReceivedPose(11, 3, "tracking", T_map_body, 0.1, 0, T_global_map @ T_map_body)
+    where = placement_of(pose)
+    assert where is not None and where[:2] == (0, 3)
+    np.testing.assert_allclose(where[2], T_global_map, atol=1e-12)
+    ((kind, payload),) = list(_read(placement_frame(*where)))
+    global_map, map_id, p, q = wire.read_placement(payload)
+    assert (kind, global_map, map_id) == (wire.PLACEMENT, 0, 3)
+    assert p == pytest.approx((4.0, 0.0, 0.0))
+    assert q == pytest.approx((0.0, 0.0, np.sqrt(0.5), np.sqrt(0.5)))
+    assert placement_of(ReceivedPose(12, 3, "tracking", T_map_body, 0.1)) is None  # not placed
+    # Sent again only for another map, another global map, or a move beyond 1e-4.
+    assert placement_moved(None, where)
+    assert not placement_moved(where, (0, 3, T_global_map + 1e-6))
+    assert placement_moved(where, (0, 3, T_global_map + 1e-3))
+    assert placement_moved(where, (1, 3, T_global_map))
 
 
 def test_a_stream_that_is_not_the_bridges_is_refused() -> None:
