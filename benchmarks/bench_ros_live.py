@@ -24,7 +24,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import signal
 import subprocess
 import sys
 import threading
@@ -44,28 +43,11 @@ from common.evaluation import (
     load_groundtruth,
     read_result_trajectories,
 )
-from lab.ros_live import Player, RosMaster, free_port
+from lab.ros_live import Player, RosMaster, free_port, start_recslam, stop_process
 from services.robot.ros1.process import Ros1Config
 
 RESULTS = Path(__file__).resolve().parent / "results"
 SECRET = "bench-ros-live-secret-0123456789abcdef"
-
-
-def recslam(args: list[str], env: dict[str, str], log: Path) -> subprocess.Popen:
-    with log.open("w") as out:
-        return subprocess.Popen(
-            [sys.executable, "-m", "recslam", *args], env=env, stdout=out, stderr=subprocess.STDOUT
-        )
-
-
-def stop(proc: subprocess.Popen, timeout: float = 120.0) -> int:
-    if proc.poll() is None:
-        proc.send_signal(signal.SIGINT)
-        try:
-            return proc.wait(timeout)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-    return proc.wait()
 
 
 def run(mode: str, data: Path, robots: list[str], out: Path) -> dict[str, Any]:
@@ -76,13 +58,13 @@ def run(mode: str, data: Path, robots: list[str], out: Path) -> dict[str, Any]:
     env = {**os.environ, "RECSLAM_SECRET": SECRET, "PYTHONPATH": os.getcwd()}
     cport, eport = free_port(), free_port()
     state = ["--state-dir", str(out / "state")]
-    cloud = recslam(
+    cloud = start_recslam(
         ["cloud", "--listen", f"127.0.0.1:{cport}", "--results", str(out / "results"), *state],
         env,
         out / "cloud.log",
     )
     time.sleep(3.0)
-    edge = recslam(
+    edge = start_recslam(
         ["edge", "--listen", f"127.0.0.1:{eport}", "--cloud", f"127.0.0.1:{cport}"],
         env,
         out / "edge.log",
@@ -107,7 +89,7 @@ def run(mode: str, data: Path, robots: list[str], out: Path) -> dict[str, Any]:
                 args += ["--image-topic", f"/{r}/cam0/image_raw", "--imu-topic", f"/{r}/imu0"]
                 args += ["--odom-topic", f"/{r}/odom", "--base-frame", f"{r}/base_link", *common]
                 args += ["--max-pending-images", pending or "2"]
-            procs[r] = recslam(args, env, out / f"{r}.log")
+            procs[r] = start_recslam(args, env, out / f"{r}.log")
         if master is not None:
             time.sleep(5.0)  # the robots' bridges subscribe
             players = {
@@ -130,13 +112,13 @@ def run(mode: str, data: Path, robots: list[str], out: Path) -> dict[str, Any]:
                 odometry[r], published[r] = len(player.odometry), len(player.published)
                 player.close()
             for p in procs.values():
-                stop(p, 900.0)
+                stop_process(p, 900.0)
         else:
             for p in procs.values():
                 p.wait()
         wall = time.monotonic() - t0
-        stop(edge)
-        stop(cloud, 300.0)
+        stop_process(edge, 120.0)
+        stop_process(cloud, 300.0)
     finally:
         for p in (edge, cloud, *procs.values()):
             if p.poll() is None:

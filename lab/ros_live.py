@@ -17,6 +17,7 @@ import shutil
 import signal
 import socket
 import subprocess
+import sys
 import threading
 import time
 from pathlib import Path
@@ -26,6 +27,25 @@ from services.robot.ros1 import wire
 from services.robot.ros1.process import BridgeProcess, Ros1Config
 
 logger = logging.getLogger(__name__)
+
+
+def start_recslam(args: list[str], env: dict[str, str], log: Path) -> subprocess.Popen:
+    """``python -m recslam ARGS`` with ``env``, its output in ``log``."""
+    with log.open("w") as out:
+        return subprocess.Popen(
+            [sys.executable, "-m", "recslam", *args], env=env, stdout=out, stderr=subprocess.STDOUT
+        )
+
+
+def stop_process(proc: subprocess.Popen, timeout: float) -> int:
+    """SIGINT, then SIGKILL after ``timeout`` s; its exit code."""
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGINT)
+        try:
+            return proc.wait(timeout)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+    return proc.wait()
 
 
 def free_port() -> int:

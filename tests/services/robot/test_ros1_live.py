@@ -10,9 +10,6 @@ from __future__ import annotations
 import json
 import os
 import shutil
-import signal
-import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -48,80 +45,61 @@ def _ros_installed() -> None:
     pytest.skip(reason)
 
 
-def _recslam(*args: str, env: dict[str, str], log: Path) -> subprocess.Popen:
-    with log.open("w") as out:
-        return subprocess.Popen(
-            [sys.executable, "-m", "recslam", *args], env=env, stdout=out, stderr=subprocess.STDOUT
-        )
-
-
-def _stop(proc: subprocess.Popen, timeout: float = 60.0) -> int:
-    if proc.poll() is None:
-        proc.send_signal(signal.SIGINT)
-        try:
-            return proc.wait(timeout)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-    return proc.wait()
-
-
 def _live_run(tmp_path: Path, folder: Path, name: str) -> tuple[dict, dict, int, dict]:
     """Play ``folder`` through roscore to a live robot; (player odometry, robot stats, robot
     exit code, published frames)."""
-    from lab.ros_live import Player, RosMaster, free_port
+    from lab.ros_live import Player, RosMaster, free_port, start_recslam, stop_process
 
     with RosMaster(tmp_path / f"ros-{name}") as master:
         env = {**master.env, "RECSLAM_SECRET": SECRET, "PYTHONPATH": os.getcwd()}
         port = free_port()
-        edge = _recslam(
-            "edge",
-            "--listen",
-            f"127.0.0.1:{port}",
-            "--worker",
-            "thread",
-            env=env,
-            log=tmp_path / f"edge-{name}.log",
+        edge = start_recslam(
+            ["edge", "--listen", f"127.0.0.1:{port}", "--worker", "thread"],
+            env,
+            tmp_path / f"edge-{name}.log",
         )
         robot = None
         try:
             topics = Ros1Config(f"/{name}/cam0/image_raw", f"/{name}/imu0", f"/{name}/odom")
             stats = tmp_path / f"robot-{name}.json"
-            robot = _recslam(
-                "robot",
-                "--source",
-                "ros1",
-                "--calibration",
-                str(folder),
-                "--image-topic",
-                topics.image_topic,
-                "--imu-topic",
-                topics.imu_topic,
-                "--odom-topic",
-                topics.odom_topic,
-                "--edge",
-                f"127.0.0.1:{port}",
-                "--agent-id",
-                name,
-                "--stats-out",
-                str(stats),
-                # a shared 2-core test machine may track slower than 20 Hz for a while: queue
-                # the frames instead of dropping them (the default drops the oldest)
-                "--max-pending-images",
-                "1000",
-                env=env,
-                log=tmp_path / f"robot-{name}.log",
+            robot = start_recslam(
+                [
+                    "robot",
+                    "--source",
+                    "ros1",
+                    "--calibration",
+                    str(folder),
+                    "--image-topic",
+                    topics.image_topic,
+                    "--imu-topic",
+                    topics.imu_topic,
+                    "--odom-topic",
+                    topics.odom_topic,
+                    "--edge",
+                    f"127.0.0.1:{port}",
+                    "--agent-id",
+                    name,
+                    "--stats-out",
+                    str(stats),
+                    # a shared 2-core test machine may track slower than 20 Hz for a while: queue
+                    # the frames instead of dropping them (the default drops the oldest)
+                    "--max-pending-images",
+                    "1000",
+                ],
+                env,
+                tmp_path / f"robot-{name}.log",
             )
             with Player(folder, topics, env) as player:
                 time.sleep(2.0)  # the robot's bridge subscribes
                 player.play(realtime=True)
                 player.wait_odometry(timeout_s=60.0)
                 odometry, published = dict(player.odometry), dict(player.published)
-            code = _stop(robot)
+            code = stop_process(robot, 60.0)
             robot_stats = json.loads(stats.read_text())
         finally:
             if robot is not None and robot.poll() is None:
                 robot.kill()
-            _stop(edge, 30.0)
+            stop_process(edge, 30.0)
     return odometry, robot_stats, code, published
 
 
