@@ -25,7 +25,6 @@ import argparse
 import json
 import logging
 import platform
-import subprocess
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -34,6 +33,7 @@ import numpy as np
 
 from common.data.euroc import EurocSequence
 from common.evaluation import AlignMode, AteConfig, Trajectory, compute_ate
+from lab.links import git_commit
 from lab.vio_replay import decode_sequence, load_decoded, save_decoded, score
 from services.edge.vio.manager import VioManager
 from services.edge.vio.types import TrackingStatus, ViInitOptions, VioOptions
@@ -265,9 +265,7 @@ def offset_variants(args: argparse.Namespace) -> None:
             row = run(dataset, robot, args.seconds, args.cache, "real", given is None, options)
             rows.append((name, row))
             print(f"{name} {robot}: {row} ({time.perf_counter() - t:.0f} s)", flush=True)
-    commit = subprocess.run(
-        ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, check=False
-    ).stdout.strip()
+    commit = git_commit()
     robots = args.robots.split(",")
     mean_from = {
         n: float(np.mean([r.ate_from_m for m, r in rows if m == n])) for n, *_ in OFFSET_VARIANTS
@@ -372,9 +370,7 @@ def main() -> None:
             t = time.perf_counter()
             rows.append(run(dataset, robot, args.seconds, args.cache, imu, estimate))
             print(f"{imu} {robot}: {rows[-1]} ({time.perf_counter() - t:.0f} s)", flush=True)
-    commit = subprocess.run(
-        ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, check=False
-    ).stdout.strip()
+    commit = git_commit()
     late_args = "".join(
         f" --{k} {v}" for k, v in (("real15", args.real15), ("sim15", args.sim15)) if v
     )

@@ -43,6 +43,7 @@ from common.evaluation import (
     load_groundtruth,
     read_result_trajectories,
 )
+from lab.links import git_commit
 from lab.ros_live import Player, RosMaster, free_port, start_recslam, stop_process
 from services.robot.ros1.process import Ros1Config
 
@@ -236,9 +237,7 @@ def main() -> None:
         work = args.work / m.replace(":", "-")
         done = args.reuse and (work / f"{robots[-1]}.json").exists()
         results.append((evaluate if done else run)(m, args.data, robots, work))
-    commit = subprocess.run(
-        ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True
-    ).stdout.strip()
+    commit = git_commit()
     command = "python benchmarks/bench_ros_live.py " + " ".join(sys.argv[1:])
     args.out.parent.mkdir(parents=True, exist_ok=True)
     write(results, args.out, command.strip(), commit)

@@ -21,6 +21,8 @@ from __future__ import annotations
 import logging
 from collections import OrderedDict, deque
 from dataclasses import dataclass
+from pathlib import Path
+from typing import TextIO
 
 import numpy as np
 
@@ -139,6 +141,16 @@ class PoseTrack:
             "rejected": self.rejected,
             **stats,
         }
+
+
+def open_tum(path: Path | None) -> TextIO | None:
+    """A TUM file opened for line-buffered writing, with its header (None: no file)."""
+    if path is None:
+        return None
+    path.parent.mkdir(parents=True, exist_ok=True)
+    file = path.open("w", buffering=1, encoding="utf-8")
+    file.write("# timestamp tx ty tz qx qy qz qw\n")
+    return file
 
 
 def tum_line(pose: ReceivedPose, global_frame: bool = False) -> str | None:

@@ -82,7 +82,7 @@ from common.vocabulary import Vocabulary
 from services.robot.app import RobotApp
 from services.robot.core import ImageInput, ImuInput, RobotCore
 from services.robot.engine import RobotEngine
-from services.robot.poses import PoseTrack, ReceivedPose, tum_line
+from services.robot.poses import PoseTrack, ReceivedPose, open_tum, tum_line
 from services.robot.service_config import (
     Rate,
     RobotConfigError,
@@ -231,8 +231,8 @@ class RobotService:
         executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix=f"robot-{cfg.agent_id}")
         sessions: list[dict[str, Any]] = []
         flushed = True
-        self._pose_file = _tum_file(cfg.pose_out)
-        self._global_pose_file = _tum_file(cfg.global_pose_out)
+        self._pose_file = open_tum(cfg.pose_out)
+        self._global_pose_file = open_tum(cfg.global_pose_out)
         try:
             for i, (first, end, host, port) in enumerate(self.segments()):
                 if i > 0:
@@ -465,16 +465,6 @@ class RobotService:
             return False
         flush.result()  # re-raise a flush error (the edge refused the robot)
         return True
-
-
-def _tum_file(path: Path | None) -> TextIO | None:
-    """A TUM file opened for line-buffered writing, with its header (None: no file)."""
-    if path is None:
-        return None
-    path.parent.mkdir(parents=True, exist_ok=True)
-    file = path.open("w", buffering=1, encoding="utf-8")
-    file.write("# timestamp tx ty tz qx qy qz qw\n")
-    return file
 
 
 def write_run_stats(path: Path, result: RobotRunResult) -> None:

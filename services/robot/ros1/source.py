@@ -18,13 +18,13 @@ import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, TextIO
+from typing import Any
 
 import numpy as np
 
 from common.geometry import R_to_quat_wxyz
 from services.robot.client import RobotClient, RobotClientConfig, RobotClosedError
-from services.robot.poses import ReceivedPose, tum_line
+from services.robot.poses import ReceivedPose, open_tum, tum_line
 from services.robot.ros1 import wire
 from services.robot.ros1.process import BridgeProcess, Ros1Config, check_ros
 
@@ -80,11 +80,7 @@ def serve(config: Ros1RunConfig) -> int:
     """Run until SIGINT/SIGTERM or until the bridge ends; exit code 0 (1 if the robot failed)."""
     check_ros(config.ros.python)
     stop = threading.Event()
-    pose_file: TextIO | None = None
-    if config.pose_out is not None:
-        config.pose_out.parent.mkdir(parents=True, exist_ok=True)
-        pose_file = config.pose_out.open("w", buffering=1, encoding="utf-8")
-        pose_file.write("# timestamp tx ty tz qx qy qz qw\n")
+    pose_file = open_tum(config.pose_out)
     counts = {"imu": 0, "images": 0, "odometry": 0}
     with BridgeProcess("robot", config.ros) as bridge:
         placed: list[tuple[int, int, np.ndarray] | None] = [None]  # the last one sent
