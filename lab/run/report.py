@@ -61,6 +61,18 @@ def _kbps(nbytes: int, seconds: float) -> float:
     return 8.0 * nbytes / 1000.0 / seconds if seconds > 0 else 0.0
 
 
+def _link(c: dict[str, Any], secs: float, camera_s: float) -> dict[str, Any]:
+    """One link's row of the report from its transport counters (received side)."""
+    return {
+        "kbit_s": _kbps(c["rx"]["bytes"], secs),
+        "kbit_s_camera": _kbps(c["rx"]["bytes"], camera_s),
+        "by_type_kbit_s": {t: _kbps(e["bytes"], secs) for t, e in c["rx"]["by_type"].items()},
+        "reverse_kbit_s": _kbps(c["tx"]["bytes"], secs),
+        "duplicates_dropped": c.get("duplicates_dropped", 0),
+        "retransmitted_messages": c.get("retransmitted_messages", 0),
+    }
+
+
 def collect(run_dir: Path, facts: RunFacts) -> dict[str, Any]:
     """Everything the report shows, as plain data (this is ``report.json``)."""
     run_dir = Path(run_dir)
@@ -79,23 +91,9 @@ def collect(run_dir: Path, facts: RunFacts) -> dict[str, Any]:
     for edge_name, robot, c in sorted(
         (e, r, c) for e, st in per_edge.items() for r, c in st.get("links", {}).items()
     ):
-        links[f"{robot}->{edge_name}"] = {
-            "kbit_s": _kbps(c["rx"]["bytes"], secs),
-            "kbit_s_camera": _kbps(c["rx"]["bytes"], camera_s),
-            "by_type_kbit_s": {t: _kbps(e["bytes"], secs) for t, e in c["rx"]["by_type"].items()},
-            "reverse_kbit_s": _kbps(c["tx"]["bytes"], secs),
-            "duplicates_dropped": c.get("duplicates_dropped", 0),
-            "retransmitted_messages": c.get("retransmitted_messages", 0),
-        }
+        links[f"{robot}->{edge_name}"] = _link(c, secs, camera_s)
     for edge_id, c in sorted(cloud.get("links", {}).items()):
-        links[f"{edge_id}->cloud"] = {
-            "kbit_s": _kbps(c["rx"]["bytes"], secs),
-            "kbit_s_camera": _kbps(c["rx"]["bytes"], camera_s),
-            "by_type_kbit_s": {t: _kbps(e["bytes"], secs) for t, e in c["rx"]["by_type"].items()},
-            "reverse_kbit_s": _kbps(c["tx"]["bytes"], secs),
-            "duplicates_dropped": c.get("duplicates_dropped", 0),
-            "retransmitted_messages": c.get("retransmitted_messages", 0),
-        }
+        links[f"{edge_id}->cloud"] = _link(c, secs, camera_s)
 
     robots: dict[str, Any] = {}
     for name, sent in sorted(facts.frames_sent.items()):

@@ -28,6 +28,7 @@ from typing import TYPE_CHECKING
 from common.entry import add_give_up_argument, add_security_arguments
 
 if TYPE_CHECKING:
+    from common.protocol.auth import Keyring
     from services.robot.ros1.source import Ros1RunConfig
     from services.robot.service_config import RobotServiceConfig
 
@@ -189,9 +190,8 @@ def config_from_args(args: argparse.Namespace) -> RobotServiceConfig | Ros1RunCo
 
         raise RobotConfigError("--source bag needs --bag PATH")
     from common.entry import tls_from_args
-    from common.protocol.credentials import load_keys, parse_address
+    from common.protocol.credentials import parse_address
     from services.robot.service_config import (
-        DEV_SECRET,
         Handover,
         Rate,
         RobotConfigError,
@@ -223,12 +223,7 @@ def config_from_args(args: argparse.Namespace) -> RobotServiceConfig | Ros1RunCo
         edge_host=host,
         edge_port=port,
         agent_id=args.agent_id,
-        secret=load_keys(
-            args.key_file,
-            args.secret_file,
-            dev_default=DEV_SECRET,
-            identity=("robot", args.agent_id),
-        ),
+        secret=_robot_keys(args),
         tls=tls_from_args(args),
         rate=Rate(args.rate),
         start_frame=args.start,
@@ -244,17 +239,27 @@ def config_from_args(args: argparse.Namespace) -> RobotServiceConfig | Ros1RunCo
     )
 
 
+def _robot_keys(args: argparse.Namespace) -> Keyring:
+    """The robot's credentials from ``--key-file`` / ``--secret-file`` (the dev secret without)."""
+    from common.protocol.credentials import load_keys
+    from services.robot.service_config import DEV_SECRET
+
+    return load_keys(
+        args.key_file, args.secret_file, dev_default=DEV_SECRET, identity=("robot", args.agent_id)
+    )
+
+
 def ros1_config_from_args(args: argparse.Namespace) -> Ros1RunConfig:
     """The live ROS 1 robot's config: the calibration file (required), the topics, the edge."""
     from common.data.calibration_files import load_calibration
     from common.entry import tls_from_args
     from common.links.sensors import Sensors
-    from common.protocol.credentials import load_keys, parse_address
+    from common.protocol.credentials import parse_address
     from services.robot.client import RobotClientConfig
     from services.robot.core import LiveInputConfig
     from services.robot.ros1.process import Ros1Config
     from services.robot.ros1.source import Ros1RunConfig
-    from services.robot.service_config import DEV_SECRET, RobotConfigError
+    from services.robot.service_config import RobotConfigError
 
     if args.bag is not None:
         raise RobotConfigError("--source ros1 reads live topics: --bag does not apply")
@@ -276,12 +281,7 @@ def ros1_config_from_args(args: argparse.Namespace) -> Ros1RunConfig:
         edge_host=host,
         edge_port=port,
         agent_id=args.agent_id,
-        secret=load_keys(
-            args.key_file,
-            args.secret_file,
-            dev_default=DEV_SECRET,
-            identity=("robot", args.agent_id),
-        ),
+        secret=_robot_keys(args),
         tls=tls_from_args(args),
         time_shift_ns=round(calibration.timeshift_cam_imu_s * 1e9),
         backlog_s=60.0 * args.backlog_minutes,
