@@ -64,6 +64,7 @@ class Link:
         # sending side
         self.outbox: OrderedDict[int, OutboxEntry] = OrderedDict()
         self.outbox_bytes = 0
+        self.acked_bytes = 0  # payload bytes acknowledged so far (rate estimates)
         if outbound is None:
             self.out_stream_id = secrets.token_bytes(STREAM_ID_SIZE)
             self.next_seq = 1
@@ -132,6 +133,7 @@ class Link:
                 break
             entry = self.outbox.pop(seq)
             self.outbox_bytes -= len(entry.payload)
+            self.acked_bytes += len(entry.payload)
             removed.append((seq, len(entry.payload)))
         return removed
 

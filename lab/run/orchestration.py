@@ -113,6 +113,8 @@ class JobConfig:
         mission: the cloud serves this named mission (``recslam cloud --mission``; None: the
             state directory's current one), e.g. in a saved map copied to ``state/cloud``.
         prior_frame: the earlier mission's ``eval/ate.json`` (``recslam cloud --prior-frame``).
+        robot_args: more arguments for every robot (e.g. ``--uplink-budget 50 --live``).
+        edge_args: more arguments for every edge (e.g. ``--max-vio-lag 0.5``).
     """
 
     dataset: Path
@@ -138,6 +140,8 @@ class JobConfig:
     edge_restarts: tuple[tuple[str, float], ...] = ()
     mission: str | None = None
     prior_frame: Path | None = None
+    robot_args: tuple[str, ...] = ()
+    edge_args: tuple[str, ...] = ()
 
 
 @dataclass
@@ -258,6 +262,7 @@ class Job:
             "auto" if c.time_offset_ms is None else f"{c.time_offset_ms:g}",
             "--offset-wait",
             f"{c.offset_wait_s:g}",
+            *c.edge_args,
         )
 
     def _edge_address(self, robot: str, edge: str) -> str:
@@ -292,7 +297,7 @@ class Job:
                 argv += ["--handover", f"{frame}={self._edge_address(name, edge)}"]
         if c.max_frames is not None:
             argv += ["--max-frames", str(c.max_frames)]
-        return argv
+        return argv + list(c.robot_args)
 
     # ------------------------------------------------------------------ processes
     def launch(self, name: str, argv: list[str]) -> Service:

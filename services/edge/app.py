@@ -86,11 +86,17 @@ class EdgeConfig:
     worker: "process" (one spawned VIO process per robot, default) or "thread".
     max_queued_frames: decoded frames waiting for a robot's VIO before the handler waits
         (200 = 10 s at 20 Hz).
+    max_vio_lag_s: fresh before complete at the edge (``recslam edge --max-vio-lag``): a
+        non-keyframe whose camera time is more than this behind the robot's newest decoded
+        frame is not given to the VIO (its IMU goes with the next frame, which the VIO
+        integrates across the gap; counted per robot as ``frames_skipped_stale``); keyframes
+        always go. 0 (default): every frame, however late (the lossless recorder).
     vio: the VIO's options; session: feedback / status / uplink options.
     """
 
     worker: str = "process"
     max_queued_frames: int = 200
+    max_vio_lag_s: float = 0.0
     vio: VioOptions = field(default_factory=VioOptions)
     session: SessionOptions = field(default_factory=SessionOptions)
 
@@ -122,6 +128,9 @@ class _Robot:
     idle: asyncio.Event = field(default_factory=asyncio.Event)
     ended: asyncio.Event = field(default_factory=asyncio.Event)
     expected_frames: int | None = None
+    newest_ns: int = 0  # camera time of the newest frame decoded
+    skipped_stale: int = 0  # non-keyframes not given to the VIO (EdgeConfig.max_vio_lag_s)
+    carry: list[WorkItem] = field(default_factory=list)  # their IMU, for the next frame
 
 
 class EdgeApp:
@@ -219,6 +228,13 @@ class EdgeApp:
                 if rb.queue.empty():
                     rb.idle.set()
                 continue
+            if self._stale(rb, item, replaying):
+                rb.carry.append(item)
+                rb.skipped_stale += 1
+                continue
+            if rb.carry:
+                item = _with_imu_of(rb.carry, item)
+                rb.carry.clear()
             if rb.corrections:
                 item = dataclasses.replace(item, corrections=tuple(rb.corrections))
                 rb.corrections.clear()
@@ -230,6 +246,15 @@ class EdgeApp:
                     step.cancel()
                     raise
             pending = (step, replaying)
+
+    def _stale(self, rb: _Robot, item: WorkItem, replaying: bool) -> bool:
+        """A non-keyframe too far behind the robot's newest frame for the VIO to spend time
+        on (``EdgeConfig.max_vio_lag_s``; never while replaying, never a keyframe)."""
+        lag = self.config.max_vio_lag_s
+        obs = item.obs
+        if replaying or lag <= 0 or obs is None or obs.is_keyframe or item.new_stream:
+            return False
+        return rb.newest_ns - obs.timestamp_ns > lag * 1e9
 
     async def _finish(self, rb: _Robot, step: asyncio.Future, replaying: bool) -> None:
         """Turn one worker result into feedback and uplink messages."""
@@ -253,6 +278,8 @@ class EdgeApp:
                 rb.space.clear()
                 await rb.space.wait()
         rb.idle.clear()
+        if item is not None and item.obs is not None:
+            rb.newest_ns = max(rb.newest_ns, item.obs.timestamp_ns)
         rb.queue.put_nowait((item, replaying))
 
     # ------------------------------------------------------------------ messages
@@ -370,6 +397,7 @@ class EdgeApp:
             out[name] = {
                 "frames_decoded": s.frames,
                 "frames_processed": s.processed,
+                "frames_skipped_stale": rb.skipped_stale,
                 "keyframes_decoded": s.keyframes,
                 "keyframes_uplinked": s.vio_keyframes,
                 "state": s.state,
@@ -413,3 +441,14 @@ class EdgeApp:
                     await rb.task
             await rb.worker.close()
             rb.codec.shutdown(wait=False)
+
+
+def _with_imu_of(skipped: list[WorkItem], item: WorkItem) -> WorkItem:
+    """``item`` with the IMU of the frames ``skipped`` before it, in time order."""
+    parts = [*skipped, item]
+    return dataclasses.replace(
+        item,
+        imu_t_ns=np.concatenate([p.imu_t_ns for p in parts]),
+        gyro=np.concatenate([p.gyro for p in parts]),
+        accel=np.concatenate([p.accel for p in parts]),
+    )

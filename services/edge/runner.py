@@ -80,6 +80,8 @@ class EdgeRunConfig:
         offset_wait_s: while the offset is estimated (``time_offset_ms`` None), each map's
             first VI initialisation waits up to this long (s of map time) for a confident
             estimate (0: it does not wait).
+        max_vio_lag_s: a robot's non-keyframes more than this behind its newest frame are
+            not given to its VIO (``EdgeConfig.max_vio_lag_s``; 0: every frame).
     """
 
     listen: tuple[str, int] = ("0.0.0.0", 7000)
@@ -97,6 +99,7 @@ class EdgeRunConfig:
     time_offset_ms: float | None = None
     offset_wait_s: float = 0.0
     give_up_after_s: float = 0.0
+    max_vio_lag_s: float = 0.0
 
 
 def add_wire_argument(p: argparse.ArgumentParser) -> None:
@@ -107,6 +110,19 @@ def add_wire_argument(p: argparse.ArgumentParser) -> None:
         default=WireFormat.CODED.value,
         help="encoding of the messages to the robots and the cloud: coded (default) or raw "
         "(the float64 schema-1 baseline; robots and cloud accept both)",
+    )
+
+
+def add_vio_lag_argument(p: argparse.ArgumentParser) -> None:
+    """``--max-vio-lag`` (also the demo's, passed to its edges)."""
+    p.add_argument(
+        "--max-vio-lag",
+        type=float,
+        default=0.0,
+        metavar="S",
+        help="fresh before complete: a robot's non-keyframes more than S seconds behind its "
+        "newest frame are not given to its VIO (their IMU goes with the next frame; keyframes "
+        "always go; default 0: every frame, however late)",
     )
 
 
@@ -181,6 +197,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "exit (default: none)",
     )
     add_time_offset_arguments(p)
+    add_vio_lag_argument(p)
     p.add_argument(
         "--stop-flush-timeout",
         type=float,
@@ -210,6 +227,7 @@ def config_from_args(args: argparse.Namespace) -> EdgeRunConfig:
         give_up_after_s=args.give_up_after,
         time_offset_ms=args.time_offset_ms,
         offset_wait_s=args.offset_wait,
+        max_vio_lag_s=args.max_vio_lag,
     )
 
 
@@ -308,7 +326,12 @@ def _server(config: EdgeRunConfig, secret: Keyring, vocab: Vocabulary) -> EdgeSe
         estimate_time_offset=config.time_offset_ms is None,
         vi_init=ViInitOptions(wait_for_time_offset_s=config.offset_wait_s),
     )
-    app = EdgeConfig(worker=config.worker, session=SessionOptions(wire=config.wire), vio=vio)
+    app = EdgeConfig(
+        worker=config.worker,
+        session=SessionOptions(wire=config.wire),
+        vio=vio,
+        max_vio_lag_s=config.max_vio_lag_s,
+    )
     return EdgeServer(secret, vocab, app, service, state_dir=config.state_dir, tls=config.tls)
 
 

@@ -119,7 +119,9 @@ class RobotApp:
         self.record = record
         self.recorded: list[UsedFrame] = []
         self.preroll_imu_s = preroll_imu_s
-        self.frames = 0
+        self.frames = 0  # frames sent (coded)
+        self.skipped = 0  # non-keyframes tracked but left out (process(send=False))
+        self._carry: list[ImuChunk] = []  # IMU of the frames left out since the last sent
         self.keyframes = 0
         self.feedback_received = 0
         self.feedback_applied = 0
@@ -138,13 +140,35 @@ class RobotApp:
 
         ``image`` uint8 (H, W); ``imu`` the samples since the previous frame (IMU frame).
         """
+        msg = self.process_if(timestamp_ns, image, imu, send=True)
+        assert msg is not None  # (send=True always codes)
+        return msg
+
+    def process_if(
+        self, timestamp_ns: int, image: np.ndarray, imu: ImuSamples, send: bool
+    ) -> RobotFrame | None:
+        """:meth:`process`, except that with ``send=False`` the frame is tracked but, unless
+        the front end makes it a keyframe, not coded (None: the uplink budget left it out);
+        its IMU then goes with the next frame sent, so the edge integrates across the gap."""
         self.apply_pending()
         ts, gyro, accel = imu.timestamps_ns, imu.gyro, imu.accel
-        if self.frames == 0 and len(ts):
+        if self.frames == 0 and not self._carry and len(ts):
             keep = ts > int(timestamp_ns) - int(self.preroll_imu_s * 1e9)
             ts, gyro, accel = ts[keep], gyro[keep], accel[keep]
         chunk = imu_used(ts, gyro, accel)
         tracked = self.front_end.process(image, timestamp_ns, chunk)
+        if not send and not tracked.is_keyframe:
+            self._carry.append(chunk)
+            self.skipped += 1
+            return None
+        if self._carry:
+            parts = [*self._carry, chunk]
+            self._carry = []
+            chunk = ImuChunk(
+                np.concatenate([c.timestamps_ns for c in parts]),
+                np.concatenate([c.gyro for c in parts]),
+                np.concatenate([c.accel for c in parts]),
+            )
         coded = self.frame_coder.encode(tracked)
         self._keep_anchors(int(timestamp_ns), tracked, coded)
         imu_payload = self.imu_coder.encode(chunk)

@@ -59,8 +59,9 @@ from services.robot.core import (
     LiveInputConfig,
     RobotCore,
 )
-from services.robot.engine import RobotEngine
+from services.robot.engine import RobotEngine, link_load
 from services.robot.poses import ReceivedPose
+from services.robot.uplink_budget import UplinkBudget, UplinkBudgetConfig
 
 logger = logging.getLogger(__name__)
 
@@ -87,6 +88,7 @@ class RobotClientConfig:
         camera_rate_hz: the camera's rate, to size the outbox (20 Hz).
         backlog_s: edge outage the outbox absorbs before back-pressure (1800 s).
         close_timeout_s: longest wait at :meth:`RobotClient.close` for the edge (30 s).
+        uplink: the uplink budget: which non-keyframes go (default none: every frame).
     """
 
     sensors: Sensors
@@ -102,6 +104,7 @@ class RobotClientConfig:
     camera_rate_hz: float = 20.0
     backlog_s: float = 1800.0
     close_timeout_s: float = 30.0
+    uplink: UplinkBudgetConfig = field(default_factory=UplinkBudgetConfig)
     heartbeat_interval_s: float = 2.0
     idle_timeout_s: float = 10.0
 
@@ -256,7 +259,7 @@ class RobotClient:
         self._finished = asyncio.Event()
         cam = cfg.sensors.camera
         app = RobotApp(cfg.front_end, cam, cfg.sensors.imu, Vocabulary.load(cfg.vocabulary))
-        core = RobotCore(cam.width, cam.height, cfg.live)
+        core = RobotCore(cam.width, cam.height, cfg.live, uplink=UplinkBudget(cfg.uplink))
         session = SessionConfig(
             role="robot",
             agent_id=cfg.agent_id,
@@ -267,7 +270,9 @@ class RobotClient:
         )
         executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="robot-worker")
         try:
-            engine = RobotEngine(core, app, executor, self._send, self._pose)
+            engine = RobotEngine(
+                core, app, executor, self._send, self._pose, lambda: link_load(self._client)
+            )
             self._client = Client(
                 session,
                 engine.on_delivery,

@@ -170,7 +170,11 @@ class CodedFrame:
 class FrameCoder:
     """Robot side of the feature codec for one front end (stateful, frame by frame).
 
-    ``encode(frame)`` must see every :class:`TrackedFrame` of the front end in order.
+    ``encode(frame)`` sees the front end's :class:`TrackedFrame` in order; non-keyframes may
+    be left out (the uplink's rate control and fresh-before-complete rule: see
+    :mod:`services.robot.uplink_budget`). The next coded frame is then coded against the last
+    coded one: its survivors are the tracks it shares with that frame, and a track born in a
+    skipped frame is a new track of it (both ends number the stream from what was sent).
     ``links=False`` codes every keyframe on its own (no continuation links, so no inter
     coding of descriptors either): the all-frames intra baseline of the paper's [55].
     """
@@ -185,6 +189,7 @@ class FrameCoder:
         """Stream track numbers of the active tracks (codec order)."""
         self.next_stream_id = 0
         self._frames = 0
+        self._last_index: int | None = None  # the front end's index of the last coded frame
 
     def encode(self, frame: TrackedFrame) -> CodedFrame:
         """Code one frame; raises :class:`CodingMismatchError` if the models disagree."""
@@ -202,6 +207,7 @@ class FrameCoder:
         )
         self.track_ids = ids
         self._frames += 1
+        self._last_index = frame.frame_index
         ids.setflags(write=False)
         return CodedFrame(
             payload,
@@ -270,23 +276,26 @@ class FrameCoder:
 
     def _non_keyframe(self, frame: TrackedFrame) -> tuple[NonKeyframeFeatures, np.ndarray]:
         self._check_unique(frame)
-        n_prev_tracker = len(frame.survived_mask_vs_previous)
-        if n_prev_tracker != len(self.track_ids):
-            raise CodingMismatchError(
-                f"frame {frame.frame_index}: tracker had {n_prev_tracker} tracks, the codec "
-                f"{len(self.track_ids)} (a frame was skipped?)"
-            )
-        n_surv = int(frame.survived_mask_vs_previous.sum())
         rows_in_prev = self._positions(frame.track_ids)
-        if np.any(rows_in_prev[:n_surv] < 0) or np.any(rows_in_prev[n_surv:] >= 0):
-            raise CodingMismatchError(
-                f"frame {frame.frame_index}: survivors and new tracks do not match the ids"
-            )
+        surv = np.flatnonzero(rows_in_prev >= 0)
+        if self._last_index is not None and frame.frame_index == self._last_index + 1:
+            # The previous frame was coded: the tracker's own survivors must be the codec's.
+            n_prev_tracker = len(frame.survived_mask_vs_previous)
+            if n_prev_tracker != len(self.track_ids):
+                raise CodingMismatchError(
+                    f"frame {frame.frame_index}: tracker had {n_prev_tracker} tracks, the codec "
+                    f"{len(self.track_ids)}"
+                )
+            n_surv = int(frame.survived_mask_vs_previous.sum())
+            if not np.array_equal(surv, np.arange(n_surv)):
+                raise CodingMismatchError(
+                    f"frame {frame.frame_index}: survivors and new tracks do not match the ids"
+                )
         survived = np.zeros(len(self.track_ids), bool)
-        survived[rows_in_prev[:n_surv]] = True
+        survived[rows_in_prev[surv]] = True
         # Survivors in the codec's previous order, then new tracks in the tracker's order.
-        surv_rows = np.argsort(rows_in_prev[:n_surv], kind="stable")
-        rows = np.concatenate([surv_rows, np.arange(n_surv, len(frame))]).astype(np.int64)
+        surv_rows = surv[np.argsort(rows_in_prev[surv], kind="stable")]
+        rows = np.concatenate([surv_rows, np.flatnonzero(rows_in_prev < 0)]).astype(np.int64)
         kp = np.concatenate(
             [frame.keypoints[rows], frame.levels[rows, None].astype(np.float64)], axis=1
         )

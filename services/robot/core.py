@@ -64,6 +64,7 @@ from common.links.robot_edge import (
 )
 from common.protocol.messages import Message
 from services.robot.poses import PoseTrack, ReceivedPose
+from services.robot.uplink_budget import UplinkBudget
 
 logger = logging.getLogger(__name__)
 
@@ -167,24 +168,39 @@ class EndOfInput:
 
 @dataclass(frozen=True, eq=False)
 class FrameDone:
-    """The worker finished a :class:`TrackFrame`: the message to send."""
+    """The worker finished a :class:`TrackFrame`: the message to send, or None (the uplink
+    budget left the non-keyframe at ``timestamp_ns`` out, for ``left_out``)."""
 
-    message: RobotFrame
+    message: RobotFrame | None
+    timestamp_ns: int = 0
+    left_out: str = ""
 
 
-Event = ImuInput | ImageInput | EdgeInput | EndOfInput | FrameDone
+@dataclass(frozen=True)
+class LinkLoad:
+    """The link to the edge at the moment: bytes waiting unacknowledged, and the bytes
+    acknowledged so far (a running total)."""
+
+    outbox_bytes: int
+    acked_bytes: int
+
+
+Event = ImuInput | ImageInput | EdgeInput | EndOfInput | FrameDone | LinkLoad
 
 
 # ----------------------------------------------------------------------------- work out
 @dataclass(frozen=True, eq=False)
 class TrackFrame:
     """Apply ``feedback`` (in order), then track and code the image with its IMU
-    (``RobotApp.receive`` each, then ``RobotApp.process``); answer with :class:`FrameDone`."""
+    (``RobotApp.receive`` each, then ``RobotApp.process``); answer with :class:`FrameDone`.
+    ``hold_back``: unless the tracker makes it a keyframe, the frame is left out for this
+    reason (:mod:`services.robot.uplink_budget`; ``""``: it goes)."""
 
     timestamp_ns: int
     image: np.ndarray
     imu: ImuBatch
     feedback: tuple[Message, ...] = ()
+    hold_back: str = ""
 
 
 @dataclass(frozen=True, eq=False)
@@ -236,9 +252,12 @@ class RobotCore:
         height: int,
         config: LiveInputConfig | None = None,
         poses: PoseTrack | None = None,
+        uplink: UplinkBudget | None = None,
     ) -> None:
         self.width, self.height = int(width), int(height)
         self.config = config or LiveInputConfig()
+        self.uplink = uplink if uplink is not None else UplinkBudget()
+        self.frames_left_out = 0
         self.poses = poses if poses is not None else PoseTrack()
         self.offset_ns = 0  # the edge's camera-IMU offset (t_imu = t_cam + it)
         self.counts: dict[str, int] = dict.fromkeys(FAULTS, 0)
@@ -269,8 +288,18 @@ class RobotCore:
         elif isinstance(event, EndOfInput):
             self.ended = True
         elif isinstance(event, FrameDone):
+            msg = event.message
+            if msg is None:  # fresh before complete: no pose will come for it
+                self.frames_left_out += 1
+                self.uplink.left(event.left_out)
+                self.poses.forget(event.timestamp_ns)
+                self._flags.pop(event.timestamp_ns, None)
+                return []
             self.frames_sent += 1
-            return [Send(event.message)]
+            self.uplink.on_sent(now, len(msg.features) + len(msg.imu), msg.keyframe)
+            return [Send(msg)]
+        elif isinstance(event, LinkLoad):
+            self.uplink.on_link(now, event.outbox_bytes, event.acked_bytes)
         return []
 
     def has_room(self) -> bool:
@@ -313,7 +342,8 @@ class RobotCore:
                         del self._flags[next(iter(self._flags))]
                 feedback, self._feedback = tuple(self._feedback), []
                 self.frames_tracked += 1
-                return TrackFrame(head.timestamp_ns, head.image, batch, feedback)
+                hold = self.uplink.hold_back(now)
+                return TrackFrame(head.timestamp_ns, head.image, batch, feedback, hold)
         if self._feedback:
             feedback, self._feedback = tuple(self._feedback), []
             return ApplyFeedback(feedback)
@@ -353,6 +383,8 @@ class RobotCore:
             "imu_in": self.imu_in,
             "frames_tracked": self.frames_tracked,
             "frames_sent": self.frames_sent,
+            "frames_left_out": self.frames_left_out,
+            "uplink": self.uplink.stats(),
             "pending_images": len(self._pending),
             "faults": dict(self.counts),
             "poses": self.poses.summary(),

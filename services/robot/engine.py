@@ -25,7 +25,7 @@ from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 from common.protocol.messages import Message
-from common.transport import Delivery
+from common.transport import Client, Delivery
 from services.robot.app import RobotApp
 from services.robot.core import (
     Action,
@@ -35,6 +35,7 @@ from services.robot.core import (
     Event,
     FrameDone,
     Job,
+    LinkLoad,
     PoseOut,
     RobotCore,
     Send,
@@ -48,6 +49,15 @@ SendFn = Callable[[Message], Awaitable[bool]]
 """Queue a message to the edge, waiting while the link is full; False: give up (abort)."""
 
 
+def link_load(client: Client | None) -> tuple[int, int]:
+    """A client's link to the edge: (bytes unacknowledged, bytes acknowledged so far);
+    (0, 0) before it started."""
+    if client is None or client.peer is None:
+        return 0, 0
+    link = client.peer.link
+    return link.outbox_bytes, link.acked_bytes
+
+
 def run_job(app: RobotApp, job: Job) -> FrameDone | None:
     """Do one job of the core on the worker thread."""
     for msg in job.feedback:
@@ -55,7 +65,8 @@ def run_job(app: RobotApp, job: Job) -> FrameDone | None:
     if isinstance(job, ApplyFeedback):
         app.apply_pending()
         return None
-    return FrameDone(app.process(job.timestamp_ns, job.image, job.imu))
+    frame = app.process_if(job.timestamp_ns, job.image, job.imu, send=not job.hold_back)
+    return FrameDone(frame, job.timestamp_ns, job.hold_back)
 
 
 class RobotEngine:
@@ -68,8 +79,10 @@ class RobotEngine:
         executor: ThreadPoolExecutor,
         send: SendFn,
         on_pose: Callable[[ReceivedPose], None] | None = None,
+        link_load: Callable[[], tuple[int, int]] | None = None,
     ) -> None:
         self.core = core
+        self.link_load = link_load  # (bytes unacknowledged, bytes acknowledged so far)
         self.app = app
         self.executor = executor
         self.send = send
@@ -169,6 +182,9 @@ class RobotEngine:
 
     async def _work(self) -> None:
         while not self._closing:
+            if self.link_load is not None:
+                outbox, acked = self.link_load()
+                self.core.handle(LinkLoad(outbox, acked), time.monotonic())
             job = self.core.next_job(time.monotonic())
             self._after()
             if job is None:

@@ -26,6 +26,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from common.entry import add_give_up_argument, add_security_arguments
+from services.robot.uplink_budget import UplinkBudgetConfig
 
 if TYPE_CHECKING:
     from common.protocol.auth import Keyring
@@ -177,7 +178,33 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="write the run's counters and the pose latency (camera frame -> its pose back on "
         "the robot: median, p95, max) to this JSON file at the end (default: none)",
     )
+    p.add_argument(
+        "--uplink-budget",
+        default=None,
+        metavar="KBPS|auto",
+        help="the link's rate to the edge in kbit/s, or 'auto' (estimated from the link's "
+        "acknowledgements): keyframes and the IMU always go, non-keyframes at the rate the "
+        "budget leaves (20/10/5 Hz) and only when the link's backlog drains within 0.5 s "
+        "(fresh before complete); default: none, every frame goes",
+    )
+    p.add_argument(
+        "--live",
+        action="store_true",
+        help="play the folder as a live driver would: at the camera's pace, an image that "
+        "comes while tracking is behind drops the oldest waiting one (default: wait, so no "
+        "frame is dropped)",
+    )
     add_give_up_argument(p, "edge")
+
+
+def uplink_from_args(args: argparse.Namespace) -> UplinkBudgetConfig:
+    """``--uplink-budget`` (RobotConfigError when it is not kbit/s, auto or unlimited)."""
+    from services.robot.service_config import RobotConfigError
+
+    try:
+        return UplinkBudgetConfig.parse(args.uplink_budget)
+    except ValueError as exc:
+        raise RobotConfigError(f"--uplink-budget: {exc}") from None
 
 
 def config_from_args(args: argparse.Namespace) -> RobotServiceConfig | Ros1RunConfig:
@@ -236,6 +263,8 @@ def config_from_args(args: argparse.Namespace) -> RobotServiceConfig | Ros1RunCo
         global_pose_out=args.global_pose_out,
         pose_wait_s=args.pose_wait,
         stats_out=args.stats_out,
+        uplink=uplink_from_args(args),
+        live=args.live,
     )
 
 
@@ -287,6 +316,7 @@ def ros1_config_from_args(args: argparse.Namespace) -> Ros1RunConfig:
         backlog_s=60.0 * args.backlog_minutes,
         close_timeout_s=args.flush_timeout if args.flush_timeout is not None else 30.0,
         live=LiveInputConfig(max_pending_images=args.max_pending_images),
+        uplink=uplink_from_args(args),
     )
     ros = Ros1Config(
         image_topic=image_topic,

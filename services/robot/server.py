@@ -81,7 +81,7 @@ from common.transport import Client, TransportConfig
 from common.vocabulary import Vocabulary
 from services.robot.app import RobotApp
 from services.robot.core import ImageInput, ImuInput, RobotCore
-from services.robot.engine import RobotEngine
+from services.robot.engine import RobotEngine, link_load
 from services.robot.poses import PoseTrack, ReceivedPose, open_tum, tum_line
 from services.robot.service_config import (
     Rate,
@@ -89,6 +89,7 @@ from services.robot.service_config import (
     RobotServiceConfig,
     open_sequence,
 )
+from services.robot.uplink_budget import UplinkBudget
 
 logger = logging.getLogger(__name__)
 
@@ -312,9 +313,21 @@ class RobotService:
         transport = dataclasses.replace(
             self.transport or TransportConfig(), give_up_after=cfg.give_up_after_s
         )
-        core = RobotCore(self.sequence.cam0.width, self.sequence.cam0.height, poses=self.poses)
+        core = RobotCore(
+            self.sequence.cam0.width,
+            self.sequence.cam0.height,
+            poses=self.poses,
+            uplink=UplinkBudget(cfg.uplink),
+        )
         core.offset_ns = self.app.time_offset_ns  # carried over a handover
-        self.engine = RobotEngine(core, self.app, executor, self._send_frame, self._on_pose)
+        self.engine = RobotEngine(
+            core,
+            self.app,
+            executor,
+            self._send_frame,
+            self._on_pose,
+            lambda: link_load(self.client),
+        )
         self.client = Client(
             self.session_config(),
             self.engine.on_delivery,
@@ -382,7 +395,8 @@ class RobotService:
                             await asyncio.wait_for(self._stop.wait(), due - loop.time())
                         if self._stop.is_set():
                             break
-                await engine.room()
+                if not self.config.live:
+                    await engine.room()
                 assert frame.image is not None
                 imu = frame.imu
                 engine.handle(ImuInput(imu.timestamps_ns, imu.gyro, imu.accel))

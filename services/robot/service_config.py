@@ -15,6 +15,7 @@ from common.protocol.auth import MIN_SECRET_SIZE, Keyring
 from common.transport.tls import TlsFiles
 from common.vocabulary import DEFAULT_VOCABULARY_PATH
 from services.robot.config import FrontEndConfig
+from services.robot.uplink_budget import UplinkBudgetConfig
 
 DEV_SECRET = b"recslam-development-secret-do-not-deploy"
 
@@ -82,6 +83,11 @@ class RobotServiceConfig:
         stats_out: write the run's counters and the pose latency here (JSON) at the end, or None.
         handovers: moves to other edges (sites), in increasing frame order, each after
             ``start_frame`` (see the module docstring; default none).
+        uplink: the uplink budget (``--uplink-budget``): which non-keyframes go
+            (:mod:`services.robot.uplink_budget`; default none: every frame goes).
+        live: play the recording as a live driver would (``--live``, realtime pace only): an
+            image that comes while tracking is behind drops the oldest waiting one, instead
+            of the playback waiting for room (the coded bytes then depend on the CPU).
     """
 
     dataset: Path | None
@@ -112,8 +118,12 @@ class RobotServiceConfig:
     global_pose_out: Path | None = None
     pose_wait_s: float = 0.0
     stats_out: Path | None = None
+    uplink: UplinkBudgetConfig = field(default_factory=UplinkBudgetConfig)
+    live: bool = False
 
     def __post_init__(self) -> None:
+        if self.live and self.rate is not Rate.REALTIME:
+            raise RobotConfigError("--live plays at the camera's pace: it needs --rate realtime")
         if self.dataset is None and self.bag is None:
             raise RobotConfigError("a recording is required: --dataset FOLDER or --bag PATH")
         if self.dataset is not None and self.bag is not None:

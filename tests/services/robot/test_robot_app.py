@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import itertools
 
 import numpy as np
 
@@ -213,3 +214,36 @@ def test_the_edges_time_offset_reaches_the_robots_batches_and_prediction(euroc_m
     expected = imu_t[(imu_t > t_a + 15_000_000) & (imu_t <= t_b + 15_000_000)]
     np.testing.assert_array_equal(t, expected)  # the IMU clock's stamps, read at t + offset
     assert session.status({}).time_offset_ns == 15_000_000  # the cloud reads them with it
+
+
+def test_left_out_non_keyframes_keep_the_stream_decodable_and_the_imu_whole(euroc_micro):
+    """The uplink's rate control leaves non-keyframes out after tracking them: the edge still
+    decodes every frame sent (coded against the last one sent, the same stream numbers at both
+    ends) and receives every IMU sample, the left-out frames' with the next frame sent."""
+    seq = EurocSequence(euroc_micro)
+    vocab = Vocabulary.load()
+    app = RobotApp(FrontEndConfig(), seq.cam0, seq.imu, vocab)
+    session = RobotSession("r", seq.cam0, vocab)
+    imu_in: list[int] = []
+    imu_out: list[int] = []
+    sent = 0
+    numbers: list[set[int]] = []
+    for k, fr in enumerate(seq.frames(0, 25)):  # (the last one is sent)
+        if k:  # (the first frame's pre-roll is cut to a second on both ends)
+            imu_in += fr.imu.timestamps_ns.tolist()
+        msg = app.process_if(fr.timestamp_ns, fr.image, fr.imu, send=k % 3 == 0)
+        if msg is None:
+            continue
+        sent += 1
+        item = session.decode(msg)
+        if k:
+            imu_out += item.imu_t_ns.tolist()
+        mine = app._anchors[fr.timestamp_ns]
+        assert np.array_equal(mine.numbers, item.obs.track_ids)
+        assert np.array_equal(mine.keypoints_px, item.obs.keypoints_px)
+        numbers.append(set(item.obs.track_ids.tolist()))
+    assert app.skipped > 0 and sent + app.skipped == 25 and app.frames == sent
+    assert imu_out == imu_in  # nothing lost, nothing twice, in order
+    # A track that lived through a gap keeps its number: the edge's VIO sees one feature.
+    assert session.frames == sent
+    assert all(len(a & b) > 100 for a, b in itertools.pairwise(numbers))

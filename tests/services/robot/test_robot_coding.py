@@ -113,8 +113,13 @@ def test_mismatches_are_detected(seq, vocabulary):
         FrameCoder(vocabulary, cc).encode(dataclasses.replace(kf, keypoints=moved))
     coder = FrameCoder(vocabulary, cc)
     coder.encode(kf)
-    with pytest.raises(CodingMismatchError, match="skipped"):
-        coder.encode(out[2][0])  # frame 1 never coded
+    f1 = out[1][0]
+    lost = f1.survived_mask_vs_previous.copy()
+    lost[np.flatnonzero(lost)[0]] = False  # the tracker says a track ended that goes on
+    with pytest.raises(CodingMismatchError, match="do not match"):
+        coder.encode(dataclasses.replace(f1, survived_mask_vs_previous=lost))
+    # A frame left out (the uplink budget): the next is coded against the last coded one.
+    assert len(coder.encode(out[2][0]).stream_ids) == len(out[2][0])
     dup = kf.track_ids.copy()
     dup[1] = dup[0]
     with pytest.raises(CodingMismatchError, match="duplicate"):

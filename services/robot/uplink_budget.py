@@ -1,0 +1,196 @@
+"""The robot's uplink budget: which non-keyframes go to the edge (sans-I/O rate control).
+
+The link carries two classes of data (the issue's "fresh before complete"):
+
+- **complete**: keyframes, the sensor description and every IMU sample go exactly once and in
+  order, whatever the budget (the transport's reliable stream);
+- **fresh**: non-keyframes are latest-wins. One is coded and handed to the link only if (a)
+  the non-keyframe rate the budget affords has come round again and (b) what already waits
+  in the link drains within ``max_delay_s`` at the link's rate; otherwise it is left out
+  before coding (the tracker still tracks it; its IMU goes with the next frame sent, so the
+  edge's VIO integrates across the gap). A non-keyframe is therefore never queued behind
+  seconds of backlog: like ROS "keep last" QoS with a depth of one, or a QUIC datagram beside
+  a stream, but on the one ordered, lossless stream the paper asks for (what is sent stays
+  bit-exact; only the subset is chosen). Frames left out are counted by reason.
+
+The non-keyframe rate is the highest of ``rates_hz`` whose bytes fit in what the budget leaves
+after the keyframes (both measured over the last ``window_s`` of what was sent), with
+``headroom`` to spare: at 50 kbit/s and ~20 kB keyframes every two seconds nothing is left
+and the rate is the lowest; the backlog rule then drops what would still be late.
+
+The link's rate is the budget the user gives (``--uplink-budget KBPS``), or, with ``auto``,
+estimated from the transport's acknowledgements the way a delay-based congestion controller
+(BBR's delivery rate) does: bytes acknowledged per second over the intervals in which the
+link had a backlog (an idle link says nothing about its capacity), the highest of the last
+``window_s``; before the first estimate every frame goes.
+
+No clock, no sockets here: ``now`` (monotonic s) and the link's load
+(:meth:`UplinkBudget.on_link`) come in, decisions go out.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections import deque
+from dataclasses import dataclass
+from typing import Any
+
+logger = logging.getLogger(__name__)
+
+REASONS = ("rate", "backlog")
+"""Why a non-keyframe was left out: the budget's non-keyframe rate, or the link's backlog."""
+
+
+@dataclass(frozen=True)
+class UplinkBudgetConfig:
+    """The robot's uplink budget (``recslam robot --uplink-budget``).
+
+    Attributes:
+        budget_kbps: the link's rate [kbit/s]; None: no budget (every frame is sent, in order,
+            as fast as the link takes it: the lossless recorder, today's default).
+        auto: estimate the rate from the link's acknowledgements instead (``budget_kbps``
+            is then ignored).
+        max_delay_s: a non-keyframe is left out when the backlog ahead of it would take
+            longer than this to drain at the link's rate (0.5 s: a pose a second after the
+            camera at most, with the edge's work and the way back).
+        rates_hz: the non-keyframe rates to choose from, highest first (the camera's 20 Hz,
+            then 10 and 5: the VIO bridges a 0.2 s gap with the IMU alone).
+        headroom: share of the rate the frames are planned to fill (0.8: the transport's
+            framing, acks and the edge's poses on the way back share the link).
+        window_s: the sizes and the acknowledgement rate are measured over this long (10 s:
+            several keyframes).
+    """
+
+    budget_kbps: float | None = None
+    auto: bool = False
+    max_delay_s: float = 0.5
+    rates_hz: tuple[float, ...] = (20.0, 10.0, 5.0)
+    headroom: float = 0.8
+    window_s: float = 10.0
+
+    def __post_init__(self) -> None:
+        if self.budget_kbps is not None and not self.budget_kbps > 0:
+            raise ValueError(f"budget_kbps must be positive, got {self.budget_kbps}")
+        if not self.max_delay_s > 0 or not self.window_s > 0:
+            raise ValueError("max_delay_s and window_s must be positive")
+        if not self.rates_hz or any(not r > 0 for r in self.rates_hz):
+            raise ValueError(f"rates_hz must be positive rates, got {self.rates_hz}")
+        if not 0 < self.headroom <= 1:
+            raise ValueError(f"headroom must be in (0, 1], got {self.headroom}")
+
+    @property
+    def active(self) -> bool:
+        """A budget applies (given or estimated)."""
+        return self.auto or self.budget_kbps is not None
+
+    @staticmethod
+    def parse(text: str | None) -> UplinkBudgetConfig:
+        """``None``/``"unlimited"``: no budget; ``"auto"``: estimated; else kbit/s."""
+        if text is None or text in ("", "unlimited", "none"):
+            return UplinkBudgetConfig()
+        if text == "auto":
+            return UplinkBudgetConfig(auto=True)
+        try:
+            kbps = float(text)
+        except ValueError:
+            msg = f"uplink budget {text!r}: give kbit/s, 'auto' or 'unlimited'"
+            raise ValueError(msg) from None
+        return UplinkBudgetConfig(budget_kbps=kbps)
+
+
+class UplinkBudget:
+    """Decides, frame by frame, whether a non-keyframe goes (see the module docstring)."""
+
+    def __init__(self, config: UplinkBudgetConfig | None = None) -> None:
+        self.config = config or UplinkBudgetConfig()
+        self.left_out: dict[str, int] = dict.fromkeys(REASONS, 0)
+        self.sent_keyframes = self.sent_non_keyframes = 0
+        self._sent: deque[tuple[float, int, bool]] = deque()  # (now, bytes, keyframe)
+        self._last_nkf: float | None = None  # when the last non-keyframe went [s]
+        self._outbox = 0  # bytes waiting in the link (unacknowledged)
+        self._acked: tuple[float, int] | None = None  # last sample (now, acked bytes total)
+        self._rates: deque[tuple[float, float]] = deque()  # (now, B/s) delivery samples
+        self.rate_hz = self.config.rates_hz[0]
+
+    # ------------------------------------------------------------------ in
+    def on_link(self, now: float, outbox_bytes: int, acked_bytes: int) -> None:
+        """The link's load at ``now``: bytes waiting (sent or not, unacknowledged) and the
+        bytes acknowledged so far (a running total)."""
+        prev, prev_outbox = self._acked, self._outbox
+        self._outbox = int(outbox_bytes)
+        self._acked = (now, int(acked_bytes))
+        if prev is None:
+            return
+        dt, db = now - prev[0], int(acked_bytes) - prev[1]
+        # Only a link that had a backlog all along measures its capacity (BBR's
+        # "not application-limited"): short intervals are too noisy, and over long ones the
+        # link may have idled in between.
+        if 0.2 <= dt <= 2.0 and prev_outbox > 0 and self._outbox > 0 and db > 0:
+            self._rates.append((now, db / dt))
+        elif dt < 0.2:
+            self._acked = prev  # keep the older sample: measure over a longer interval
+        while self._rates and self._rates[0][0] < now - self.config.window_s:
+            self._rates.popleft()
+
+    def on_sent(self, now: float, nbytes: int, keyframe: bool) -> None:
+        """A frame of ``nbytes`` was handed to the link."""
+        self._sent.append((now, int(nbytes), bool(keyframe)))
+        if keyframe:
+            self.sent_keyframes += 1
+        else:
+            self.sent_non_keyframes += 1
+            self._last_nkf = now
+        while self._sent and self._sent[0][0] < now - self.config.window_s:
+            self._sent.popleft()
+
+    # ------------------------------------------------------------------ out
+    def rate_Bps(self) -> float | None:
+        """The link's rate [B/s] the decisions use (None: no budget, or none measured yet)."""
+        cfg = self.config
+        if cfg.auto:
+            return max((r for _, r in self._rates), default=None)
+        return None if cfg.budget_kbps is None else cfg.budget_kbps * 1000.0 / 8.0
+
+    def hold_back(self, now: float) -> str:
+        """Why the next frame, unless the tracker makes it a keyframe, is left out (one of
+        :data:`REASONS`), or ``""``: it goes. :meth:`left` counts it once it is known."""
+        rate = self.rate_Bps()
+        if rate is None:
+            return ""
+        if self._outbox / rate > self.config.max_delay_s:
+            return "backlog"
+        self.rate_hz = self._choose_rate(rate)
+        if self._last_nkf is not None and now - self._last_nkf < 0.9 / self.rate_hz:
+            return "rate"
+        return ""
+
+    def left(self, reason: str) -> None:
+        """A non-keyframe was left out for ``reason``."""
+        self.left_out[reason] += 1
+
+    def _choose_rate(self, rate: float) -> float:
+        """The highest non-keyframe rate whose bytes fit beside the keyframes'."""
+        cfg = self.config
+        kf = [b for _, b, k in self._sent if k]
+        nkf = [b for _, b, k in self._sent if not k]
+        if not nkf:
+            return cfg.rates_hz[0]
+        span = min(cfg.window_s, max(1.0, self._sent[-1][0] - self._sent[0][0]))
+        left = rate * cfg.headroom - sum(kf) / span
+        size = sum(nkf) / len(nkf)
+        for hz in cfg.rates_hz:
+            if hz * size <= left:
+                return hz
+        return cfg.rates_hz[-1]
+
+    def stats(self) -> dict[str, Any]:
+        rate = self.rate_Bps()
+        return {
+            "budget_kbps": self.config.budget_kbps,
+            "auto": self.config.auto,
+            "rate_kbps": None if rate is None else round(rate * 8e-3, 1),
+            "non_keyframe_hz": self.rate_hz,
+            "left_out": dict(self.left_out),
+            "sent_keyframes": self.sent_keyframes,
+            "sent_non_keyframes": self.sent_non_keyframes,
+        }

@@ -1,0 +1,81 @@
+"""The robot's uplink budget (sans-I/O): which non-keyframes go, and why the others do not."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from common.links.robot_edge import RobotFrame
+from services.robot.core import FrameDone, ImageInput, LinkLoad, RobotCore
+from services.robot.uplink_budget import UplinkBudget, UplinkBudgetConfig
+
+
+def test_without_a_budget_every_frame_goes():
+    b = UplinkBudget()
+    b.on_link(0.0, 10**9, 0)  # however full the link
+    assert b.hold_back(0.0) == "" and b.rate_Bps() is None
+
+
+def test_a_backlog_that_would_not_drain_in_time_leaves_non_keyframes_out():
+    b = UplinkBudget(UplinkBudgetConfig(budget_kbps=50.0))  # 6250 B/s
+    b.on_link(0.0, 4000, 0)  # 0.64 s of backlog > 0.5 s
+    assert b.hold_back(0.0) == "backlog"
+    b.on_link(0.1, 3000, 1000)  # 0.48 s: goes
+    assert b.hold_back(0.1) == ""
+
+
+def test_the_non_keyframe_rate_is_what_the_keyframes_leave():
+    b = UplinkBudget(UplinkBudgetConfig(budget_kbps=500.0))  # 62.5 kB/s
+    for k in range(40):  # 20 Hz of 1 kB non-keyframes, a 10 kB keyframe a second
+        b.on_sent(k * 0.05, 10_000 if k % 20 == 0 else 1000, keyframe=k % 20 == 0)
+    assert b.hold_back(2.0) == "" and b.rate_hz == 20.0  # 10 + 20 kB/s fit in 50
+    tight = UplinkBudget(UplinkBudgetConfig(budget_kbps=240.0))  # 30 kB/s, 24 planned
+    for k in range(40):  # (the last non-keyframe at 1.95 s)
+        tight.on_sent(k * 0.05, 10_000 if k % 20 == 0 else 1000, keyframe=k % 20 == 0)
+    assert tight.hold_back(2.0) == "rate" and tight.rate_hz == 10.0  # 10 + 10 kB/s fit
+    assert tight.hold_back(2.06) == ""  # 0.11 s after the last: 10 Hz
+    starved = UplinkBudget(UplinkBudgetConfig(budget_kbps=50.0))
+    for k in range(40):
+        starved.on_sent(k * 0.05, 20_000 if k % 20 == 0 else 1000, keyframe=k % 20 == 0)
+    starved.hold_back(2.0)
+    assert starved.rate_hz == 5.0  # nothing left beside the keyframes: the lowest rate
+
+
+def test_auto_measures_the_rate_only_while_the_link_has_a_backlog():
+    b = UplinkBudget(UplinkBudgetConfig(auto=True))
+    assert b.rate_Bps() is None and b.hold_back(0.0) == ""  # nothing measured yet: all go
+    b.on_link(0.0, 0, 0)
+    b.on_link(1.0, 0, 50_000)  # idle link at the end: says nothing of its capacity
+    assert b.rate_Bps() is None
+    b.on_link(2.0, 20_000, 50_000)
+    b.on_link(3.0, 15_000, 56_250)  # 6250 B/s acknowledged with a backlog throughout
+    assert b.rate_Bps() == pytest.approx(6250.0)
+    assert b.hold_back(3.0) == "backlog"  # 15 kB at 6.25 kB/s: 2.4 s
+    b.on_link(20.0, 100, 70_000)  # the samples age out of the window
+    assert b.rate_Bps() is None
+
+
+def test_parse_names_what_is_wrong():
+    assert UplinkBudgetConfig.parse(None) == UplinkBudgetConfig()
+    assert UplinkBudgetConfig.parse("unlimited") == UplinkBudgetConfig()
+    assert UplinkBudgetConfig.parse("auto").auto
+    assert UplinkBudgetConfig.parse("50").budget_kbps == 50.0
+    with pytest.raises(ValueError, match="kbit/s"):
+        UplinkBudgetConfig.parse("fast")
+    with pytest.raises(ValueError, match="positive"):
+        UplinkBudgetConfig.parse("-5")
+
+
+def test_the_core_counts_a_frame_left_out_and_expects_no_pose_for_it():
+    core = RobotCore(8, 6, uplink=UplinkBudget(UplinkBudgetConfig(budget_kbps=50.0)))
+    core.handle(LinkLoad(10_000, 0), 0.0)
+    core.handle(ImageInput(1_000, np.zeros((6, 8), np.uint8)), 0.0)
+    job = core.next_job(1.0)  # (no IMU: tracked after the wait)
+    assert job is not None and job.hold_back == "backlog"
+    assert core.handle(FrameDone(None, 1_000, job.hold_back), 1.1) == []
+    assert core.frames_left_out == 1 and core.uplink.left_out["backlog"] == 1
+    assert core.poses.pending == 0  # no pose is owed for it
+    sent = RobotFrame(1, 2_000, True, b"x" * 100, b"y" * 10)
+    assert len(core.handle(FrameDone(sent, 2_000), 1.2)) == 1
+    assert core.uplink.sent_keyframes == 1
+    assert core.stats()["uplink"]["left_out"] == {"rate": 0, "backlog": 1}
