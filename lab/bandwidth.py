@@ -219,8 +219,11 @@ def run_budget(
     out: Path,
     timeout: float,
     shaper: str = "proxy",
+    robot_args: tuple[str, ...] = (),
+    edge_args: tuple[str, ...] = (),
 ) -> dict[str, Any]:
-    """One run at ``kbit_s`` (None = unlimited) shaped by ``shaper``; returns its table row."""
+    """One run at ``kbit_s`` (None = unlimited) shaped by ``shaper``; returns its table row.
+    ``robot_args`` / ``edge_args``: more arguments for every robot / edge."""
     import shutil
 
     from lab.run.orchestration import JobConfig
@@ -234,14 +237,24 @@ def run_budget(
         names = robots or tuple(sorted(p.parent.name for p in data.glob("*/mav0")))
         with star(names, None if kbit_s is None else Tbf(kbit_s)) as topology:
             config = JobConfig(
-                dataset=data, run_dir=out / "run", robots=robots, placement=topology.placement()
+                dataset=data,
+                run_dir=out / "run",
+                robots=robots,
+                placement=topology.placement(),
+                robot_args=robot_args,
+                edge_args=edge_args,
             )
             stream_s, codes, frames = _run_job(config, timeout)
     else:
         links = ThrottledLinks(kbit_s)
         try:
             config = JobConfig(
-                dataset=data, run_dir=out / "run", robots=robots, robot_links=links.link
+                dataset=data,
+                run_dir=out / "run",
+                robots=robots,
+                robot_links=links.link,
+                robot_args=robot_args,
+                edge_args=edge_args,
             )
             stream_s, codes, frames = _run_job(config, timeout)
         finally:
@@ -295,7 +308,40 @@ def _row(
     }
     row.update(timing(out / "run" / "stats" / "samples.jsonl", frames))
     row["peak_kbit_s"] = peak_rate(out / "run" / "stats" / "samples.jsonl")
+    row.update(freshness(report))
     return row
+
+
+def freshness(report: dict[str, Any]) -> dict[str, Any]:
+    """What the fresh-before-complete rules did and what the robots felt, from a run's report:
+    frames left out by the uplink budget, dropped by a live robot behind its camera, skipped by
+    a late VIO; the pose latency at the robot (the worst robot's median, p95 and max [s]);
+    per-frame joint ATE, maps, both directions' rates."""
+    rs = report["robots"].values()
+    lat = [r["pose_latency_s"] for r in rs if r.get("pose_latency_s", {}).get("p95") is not None]
+
+    def worst(key: str) -> float | None:
+        vals = [x[key] for x in lat if x.get(key) == x.get(key)]  # (NaN: no pose)
+        return max(vals) if vals else None
+
+    links = report["links"]
+    up = [v for k, v in links.items() if not k.endswith("->cloud")]
+    return {
+        "frames_in": sum(r.get("frames_in") or 0 for r in rs),
+        "left_out": sum(r.get("frames_left_out") or 0 for r in rs),
+        "dropped_live": sum(r.get("frames_dropped_live") or 0 for r in rs),
+        "skipped_stale": sum(r.get("frames_skipped_stale") or 0 for r in rs),
+        "poses_received": sum(r.get("poses_received") or 0 for r in rs),
+        "latency_median_s": worst("median"),
+        "latency_p95_s": worst("p95"),
+        "latency_max_s": worst("max"),
+        "frames_ate_joint_m": report["ate"].get("frames_joint_rmse_m"),
+        "maps": report["map"].get("maps"),
+        "down_kbit_s": (sum(v.get("reverse_kbit_s") or 0 for v in up) / len(up) if up else None),
+        "to_cloud_kbit_s": sum(
+            v.get("kbit_s") or 0 for k, v in links.items() if k.endswith("->cloud")
+        ),
+    }
 
 
 def _f(x: Any, spec: str) -> str:

@@ -103,11 +103,22 @@ def collect(run_dir: Path, facts: RunFacts) -> dict[str, Any]:
         decoded = r.get("frames_decoded", 0)
         agent = ate.get("agents", {}).get(name, {})
         frames = frame_ate.get("agents", {}).get(name, {})
-        poses = _load(run_dir / "stats" / f"robot-{name}.json").get("poses", {})
+        robot = _load(run_dir / "stats" / f"robot-{name}.json")
+        poses = robot.get("poses", {})
+        cores = robot.get("cores", [])
+        # Frames coded and sent (the uplink budget may leave non-keyframes out); the
+        # dataset's count when the robot wrote no stats.
+        sent = robot.get("frames", sent)
         robots[name] = {
+            "frames_in": facts.frames_sent[name],
             "frames_sent": sent,
             "frames_decoded": decoded,
             "frames_lost": sent - decoded,
+            "frames_left_out": sum(c.get("frames_left_out", 0) for c in cores),
+            "frames_dropped_live": sum(
+                c.get("faults", {}).get("dropped_backpressure", 0) for c in cores
+            ),
+            "frames_skipped_stale": r.get("frames_skipped_stale", 0),
             "keyframes_decoded": r.get("keyframes_decoded"),
             "keyframes_uplinked": r.get("keyframes_uplinked"),
             "vio_state": r.get("state"),

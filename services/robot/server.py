@@ -109,6 +109,7 @@ class RobotRunResult:
     counters: dict[str, Any]
     sessions: tuple[dict[str, Any], ...] = ()
     poses: dict[str, float | int] = field(default_factory=dict)
+    cores: tuple[dict[str, Any], ...] = ()  # each session's core counters (RobotCore.stats)
 
 
 class RobotService:
@@ -134,6 +135,7 @@ class RobotService:
         self._global_map_written: int | None = None  # "# global map N" before its poses
         self.app = self._new_app()
         self.apps = [self.app]  # one per edge session (a handover starts a fresh one)
+        self.cores: list[dict[str, Any]] = []  # each finished session's core counters
         self.client: Client | None = None
         self.engine: RobotEngine | None = None  # the current edge session's
         self._backlog_full = False
@@ -298,6 +300,7 @@ class RobotService:
             counters=sessions[-1] if sessions else {},
             sessions=tuple(sessions),
             poses=poses,
+            cores=tuple(self.cores),
         )
         if cfg.stats_out is not None:
             write_run_stats(cfg.stats_out, result)
@@ -365,6 +368,7 @@ class RobotService:
             await asyncio.get_running_loop().run_in_executor(executor, self.app.apply_pending)
         finally:
             await self.engine.close()
+            self.cores.append(self.engine.stats())
             counters = self.client.counters()
             await self.client.close()
         return flushed, counters

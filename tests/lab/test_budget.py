@@ -1,0 +1,55 @@
+"""The rate–accuracy–latency experiment's rows, table and plot (the runs are benchmarks)."""
+
+from __future__ import annotations
+
+import pytest
+
+from common.errors import RecslamError
+from lab.budget import Row, parse_rows, plot, table
+
+
+def test_rows_name_what_each_run_passes_to_the_services():
+    rows = parse_rows("unlimited, unlimited/fresh,50,50/fresh,25/auto")
+    assert [r.name for r in rows] == ["unlimited", "unlimited/fresh", "50", "50/fresh", "25/auto"]
+    assert rows[0].robot_args() == () and rows[0].edge_args() == ()
+    assert rows[1].robot_args() == ("--live",)  # no budget on an unlimited link
+    assert rows[3].robot_args() == ("--live", "--uplink-budget", "50")
+    assert rows[3].edge_args() == ("--max-vio-lag", "0.5")
+    assert rows[4].robot_args() == ("--live", "--uplink-budget", "auto")
+    for bad, why in (("50/fast", "mode"), ("fast", "kbit/s"), ("-5", "positive"), ("", "no rows")):
+        with pytest.raises(RecslamError, match=why):
+            parse_rows(bad)
+
+
+def test_table_counts_lost_frames_and_the_plot_is_written(tmp_path):
+    base = dict(
+        achieved_kbit_s=48.0,
+        down_kbit_s=20.0,
+        to_cloud_kbit_s=300.0,
+        frames_in=1201,
+        frames_sent=400,
+        frames_decoded=400,
+        left_out=801,
+        dropped_live=0,
+        skipped_stale=3,
+        poses_received=390,
+        latency_median_s=0.3,
+        latency_p95_s=0.9,
+        latency_max_s=2.0,
+        keyframes=50,
+        maps=1,
+        ate_joint_m=0.004,
+        frames_ate_joint_m=0.006,
+        ate_own_mean_m=0.003,
+        stream_s=70.0,
+    )
+    results = [
+        {**base, "row": Row(50.0, "fresh").name},
+        {**base, "row": "50", "frames_decoded": 399},
+    ]
+    text = table(results)
+    assert "| 50/fresh | 48.0 | 20.0 | 300.0 | 1201 / 400 / 400 | 0 | 801 |" in text
+    assert "| 50 | 48.0 |" in text and "/ 400 / 399 | 1 |" in text
+    assert "0.30 / 0.90 / 2.00" in text and "| 0.40 | 0.60 |" in text
+    plot(results, tmp_path / "b.png")
+    assert (tmp_path / "b.png").stat().st_size > 10_000
