@@ -67,6 +67,7 @@ from services.robot.coding import (
 from services.robot.config import FrontEndConfig
 from services.robot.imu_prediction import InertialState
 from services.robot.tracker import FrontEnd, ImuSamples, TrackedFrame
+from services.robot.uplink_budget import KeyframePlan
 
 logger = logging.getLogger(__name__)
 
@@ -123,6 +124,7 @@ class RobotApp:
         self.skipped = 0  # non-keyframes tracked but left out (process(send=False))
         self._carry: list[ImuChunk] = []  # IMU of the frames left out since the last sent
         self.keyframes = 0
+        self.keyframe_plan: KeyframePlan | None = None  # the uplink budget's, in force
         self.feedback_received = 0
         self.feedback_applied = 0
         self.feedback_rejected = 0
@@ -134,6 +136,18 @@ class RobotApp:
         self.feedback_points_unanchored = 0  # coded points of frames no longer kept
         self.time_offset_ns = 0  # the edge's camera-IMU offset estimate (t_imu = t_cam + it)
         self._offset_pending: int | None = None
+
+    def set_keyframe_plan(self, plan: KeyframePlan | None) -> None:
+        """Keyframes within the uplink budget from the next frame on (None: as configured)."""
+        if plan != self.keyframe_plan:
+            self.front_end.set_keyframe_plan(plan)
+            self.keyframe_plan = plan
+            if plan is not None:
+                logger.info(
+                    "uplink budget: keyframes of at most %d features, at least %.1f s apart",
+                    plan.n_features,
+                    plan.min_interval_s,
+                )
 
     def process(self, timestamp_ns: int, image: np.ndarray, imu: ImuSamples) -> RobotFrame:
         """Track and code one frame (CPU work, one thread at a time) -> the message to send.

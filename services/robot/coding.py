@@ -129,6 +129,14 @@ class CodecGridOrbExtractor:
         self.config = inner.config
         self.codec_config = config
 
+    @property
+    def n_features(self) -> int:
+        return self.inner.n_features
+
+    @n_features.setter
+    def n_features(self, n: int) -> None:
+        self.inner.n_features = n
+
     def extract(self, image: np.ndarray, mask: np.ndarray | None = None) -> OrbFeatures:
         return snap_orb_features(self.inner.extract(image, mask), self.codec_config)
 

@@ -64,7 +64,7 @@ from common.links.robot_edge import (
 )
 from common.protocol.messages import Message
 from services.robot.poses import PoseTrack, ReceivedPose
-from services.robot.uplink_budget import UplinkBudget
+from services.robot.uplink_budget import KeyframePlan, UplinkBudget
 
 logger = logging.getLogger(__name__)
 
@@ -194,13 +194,15 @@ class TrackFrame:
     """Apply ``feedback`` (in order), then track and code the image with its IMU
     (``RobotApp.receive`` each, then ``RobotApp.process``); answer with :class:`FrameDone`.
     ``hold_back``: unless the tracker makes it a keyframe, the frame is left out for this
-    reason (:mod:`services.robot.uplink_budget`; ``""``: it goes)."""
+    reason (:mod:`services.robot.uplink_budget`; ``""``: it goes); ``plan``: the keyframes the
+    budget affords (``RobotApp.set_keyframe_plan``; None: the configured ones)."""
 
     timestamp_ns: int
     image: np.ndarray
     imu: ImuBatch
     feedback: tuple[Message, ...] = ()
     hold_back: str = ""
+    plan: KeyframePlan | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -343,7 +345,8 @@ class RobotCore:
                 feedback, self._feedback = tuple(self._feedback), []
                 self.frames_tracked += 1
                 hold = self.uplink.hold_back(now)
-                return TrackFrame(head.timestamp_ns, head.image, batch, feedback, hold)
+                plan = self.uplink.keyframe_plan()
+                return TrackFrame(head.timestamp_ns, head.image, batch, feedback, hold, plan)
         if self._feedback:
             feedback, self._feedback = tuple(self._feedback), []
             return ApplyFeedback(feedback)

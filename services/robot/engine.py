@@ -65,6 +65,7 @@ def run_job(app: RobotApp, job: Job) -> FrameDone | None:
     if isinstance(job, ApplyFeedback):
         app.apply_pending()
         return None
+    app.set_keyframe_plan(job.plan)
     frame = app.process_if(job.timestamp_ns, job.image, job.imu, send=not job.hold_back)
     return FrameDone(frame, job.timestamp_ns, job.hold_back)
 

@@ -85,6 +85,7 @@ class OrbExtractor:
         if config.n_features <= 0 or config.n_levels <= 0 or config.scale_factor <= 1.0:
             raise OrbExtractorError(f"invalid ORB configuration {config}")
         self.config = config
+        self.n_features = config.n_features  # features kept (lowered by an uplink budget)
         self._orb = cv2.ORB.create(
             nfeatures=int(config.n_features * config.oversample),
             scaleFactor=config.scale_factor,
@@ -105,7 +106,9 @@ class OrbExtractor:
         if kps:
             pts = np.array([k.pt for k in kps], dtype=np.float64)
             resp = np.array([k.response for k in kps], dtype=np.float32)
-            keep = select_grid(pts, resp, image.shape, cfg.n_features, cfg.grid_cols, cfg.grid_rows)
+            keep = select_grid(
+                pts, resp, image.shape, self.n_features, cfg.grid_cols, cfg.grid_rows
+            )
             kps = [kps[i] for i in keep]
             kps, desc = self._orb.compute(image, kps)
         if not kps or desc is None:

@@ -24,6 +24,7 @@ Output contract (:class:`TrackedFrame`), relied on by the feature codec:
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from dataclasses import dataclass
@@ -46,6 +47,7 @@ from services.robot.optical_flow import (
     track_points,
 )
 from services.robot.orb_extractor import OrbExtractor, OrbFeatures
+from services.robot.uplink_budget import KeyframePlan
 
 logger = logging.getLogger(__name__)
 
@@ -139,6 +141,7 @@ class FrontEnd:
         self, config: FrontEndConfig, camera: CameraCalibration, imu: ImuCalibration
     ) -> None:
         self.config = config
+        self.base_config = config  # (set_keyframe_plan works from it)
         self.camera = camera
         self.predictor = MotionPredictor(
             camera, imu, config.imu_buffer_s, config.static_bias.min_static_frames
@@ -216,6 +219,29 @@ class FrontEnd:
             raise FrontEndError(
                 f"frame timestamps must increase: {timestamp_ns} ns after {self._prev_t} ns"
             )
+
+    def set_keyframe_plan(self, plan: KeyframePlan | None) -> None:
+        """Keyframes within an uplink budget (:mod:`services.robot.uplink_budget`): at most
+        ``plan.n_features`` ORB features, at least ``plan.min_interval_s`` apart (unless
+        tracking is lost), at most twice that; the tracked floor scales with the features.
+        None: the configured rules again."""
+        base = self.base_config
+        if plan is None:
+            self.config = base
+        else:
+            n = min(base.orb.n_features, plan.n_features)
+            kf = base.keyframe
+            min_s = max(kf.min_interval_s, plan.min_interval_s)
+            keyframe = dataclasses.replace(
+                kf,
+                min_interval_s=min_s,
+                max_interval_s=max(kf.max_interval_s, 2.0 * min_s),
+                min_tracked=min(kf.min_tracked, round(kf.min_tracked * n / base.orb.n_features)),
+            )
+            self.config = dataclasses.replace(
+                base, orb=dataclasses.replace(base.orb, n_features=n), keyframe=keyframe
+            )
+        self.orb.n_features = self.config.orb.n_features
 
     def process(
         self, image: np.ndarray, timestamp_ns: int, imu: ImuSamples | None = None

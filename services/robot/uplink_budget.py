@@ -42,6 +42,15 @@ REASONS = ("rate", "backlog")
 
 
 @dataclass(frozen=True)
+class KeyframePlan:
+    """Keyframes that fit the budget: at most ``n_features`` features, at least
+    ``min_interval_s`` apart (``FrontEnd.set_keyframe_plan`` applies it)."""
+
+    n_features: int
+    min_interval_s: float
+
+
+@dataclass(frozen=True)
 class UplinkBudgetConfig:
     """The robot's uplink budget (``recslam robot --uplink-budget``).
 
@@ -59,6 +68,14 @@ class UplinkBudgetConfig:
             framing, acks and the edge's poses on the way back share the link).
         window_s: the sizes and the acknowledgement rate are measured over this long (10 s:
             several keyframes).
+        keyframe_share: share of the planned rate for keyframes (0.6; the rest carries the
+            non-keyframes and the IMU).
+        bytes_per_feature: a keyframe's coded bytes per feature (21: ~170 bits, keypoint
+            ~20 b + ORB descriptor ~150 b under the context model, ``codec.md``).
+        min_features, keyframe_period_s: a keyframe plan keeps the features that
+            ``keyframe_period_s`` of the keyframes' share pays for, at least ``min_features``
+            (300: fewer cost the edge's VIO its robustness), and spaces keyframes so that they
+            fit (at 50 kbit/s: 300 features about every 2 s).
     """
 
     budget_kbps: float | None = None
@@ -67,6 +84,10 @@ class UplinkBudgetConfig:
     rates_hz: tuple[float, ...] = (20.0, 10.0, 5.0)
     headroom: float = 0.8
     window_s: float = 10.0
+    keyframe_share: float = 0.6
+    bytes_per_feature: float = 21.0
+    min_features: int = 300
+    keyframe_period_s: float = 1.5
 
     def __post_init__(self) -> None:
         if self.budget_kbps is not None and not self.budget_kbps > 0:
@@ -150,6 +171,20 @@ class UplinkBudget:
         if cfg.auto:
             return max((r for _, r in self._rates), default=None)
         return None if cfg.budget_kbps is None else cfg.budget_kbps * 1000.0 / 8.0
+
+    def keyframe_plan(self, max_features: int = 1000) -> KeyframePlan | None:
+        """The keyframes the budget affords (None: no budget, or no rate measured yet):
+        features for ``keyframe_period_s`` of the keyframes' share (between ``min_features``
+        and ``max_features``), and the interval at which such keyframes fit."""
+        rate = self.rate_Bps()
+        if rate is None:
+            return None
+        cfg = self.config
+        share = cfg.keyframe_share * cfg.headroom * rate  # B/s for keyframes
+        n = 50 * round(share * cfg.keyframe_period_s / cfg.bytes_per_feature / 50)
+        n = max(cfg.min_features, min(max_features, n))
+        # (in steps of 50 features and 0.1 s: an estimated rate moves a little all the time)
+        return KeyframePlan(n, round(n * cfg.bytes_per_feature / share, 1))
 
     def hold_back(self, now: float) -> str:
         """Why the next frame, unless the tracker makes it a keyframe, is left out (one of

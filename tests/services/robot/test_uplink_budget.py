@@ -79,3 +79,30 @@ def test_the_core_counts_a_frame_left_out_and_expects_no_pose_for_it():
     assert len(core.handle(FrameDone(sent, 2_000), 1.2)) == 1
     assert core.uplink.sent_keyframes == 1
     assert core.stats()["uplink"]["left_out"] == {"rate": 0, "backlog": 1}
+
+
+def test_keyframes_are_planned_to_fit_the_budget(euroc_micro):
+    """At 50 kbit/s a 1000-feature keyframe (~21 kB) takes 3.4 s: the plan keeps 300 features
+    about 2 s apart; at 1 Mbit/s the configured keyframes fit; without a budget, no plan. The
+    front end applies it (and goes back to its configuration)."""
+    from common.data.euroc import EurocSequence
+    from services.robot.config import FrontEndConfig
+    from services.robot.tracker import FrontEnd
+
+    assert UplinkBudget().keyframe_plan() is None
+    slow = UplinkBudget(UplinkBudgetConfig(budget_kbps=50.0)).keyframe_plan()
+    assert slow is not None and slow.n_features == 300
+    assert slow.n_features * 21 / slow.min_interval_s <= 0.6 * 0.8 * 6250 * 1.05
+    assert 1.5 < slow.min_interval_s < 3.0
+    fast = UplinkBudget(UplinkBudgetConfig(budget_kbps=1000.0)).keyframe_plan()
+    assert fast is not None and fast.n_features == 1000 and fast.min_interval_s < 0.5
+    seq = EurocSequence(euroc_micro)
+    fe = FrontEnd(FrontEndConfig(), seq.cam0, seq.imu)
+    fe.set_keyframe_plan(slow)
+    assert fe.orb.n_features == 300 and fe.config.keyframe.min_interval_s == slow.min_interval_s
+    assert fe.config.keyframe.max_interval_s == 2 * slow.min_interval_s
+    assert fe.config.keyframe.min_tracked == 45  # 150 of 1000 features -> of 300
+    first = fe.process(next(seq.frames(0, 1)).image, next(seq.frames(0, 1)).timestamp_ns)
+    assert first.is_keyframe and 250 <= len(first) <= 300
+    fe.set_keyframe_plan(None)
+    assert fe.orb.n_features == 1000 and fe.config == FrontEndConfig()
