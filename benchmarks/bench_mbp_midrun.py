@@ -30,7 +30,7 @@ placed them through the robot's one map-from-edge transform, so a configuration 
 corrections differ from the live run's received them in a frame that no longer fit its own
 keyframes, and a replay was faithful only for the configuration the recording was made with.
 In newer recordings each message lands through the replaying cloud's own pose of its anchor
-(``services.cloud.rebase``): a rigid fix per message, close to faithful for other
+(``services.cloud.fusion.rebase``): a rigid fix per message, close to faithful for other
 configurations; still compare live (``bench_mbp_live.py``).
 
 Keyframes: the atlas at the end over the keyframes received. ATE: joint RMSE (SE(3)) of every

@@ -53,9 +53,9 @@ from lab.loop_scoring import (
 from services.cloud.app import CloudApp, Reaction
 from services.cloud.config import CloudConfig, CloudServiceConfig, MbpConfig
 from services.cloud.core import Action, CloudCore, SolveRequest, SolveResult, solve
-from services.cloud.mbp import REASONS, backbone
-from services.cloud.recording import Record, Step, has_schedule, read_schedule
+from services.cloud.optimization.mbp import REASONS, backbone
 from services.cloud.server import open_app
+from services.cloud.store.recording import Record, Step, has_schedule, read_schedule
 
 log = logging.getLogger(__name__)
 
@@ -172,7 +172,7 @@ def replay(
     each of the core's requests (default: :func:`services.cloud.core.solve`).
 
     ``schedule``: ``recorded`` drives the core through the steps the service recorded
-    (``records`` from :func:`services.cloud.recording.read_schedule` of a version-2
+    (``records`` from :func:`services.cloud.store.recording.read_schedule` of a version-2
     recording; each message at the ``now`` the service gave it): the service's own run, solve
     for solve, as long as this configuration schedules as the service's did (else
     ReplayDivergedError names the first step that does not fit). ``modelled``: the core's own
@@ -463,8 +463,8 @@ class _RecordedSteps:
 
 def backbone_breakdown(app: CloudApp) -> dict[str, int]:
     """Why the final atlas' keyframes would be kept by one more MBP pass, summed over maps (a
-    diagnostic of :func:`services.cloud.mbp.backbone` with MBP's settings, even when the
-    replay ran without MBP): ``kept_by_one_more_pass`` and its partition by reason
+    diagnostic of :func:`services.cloud.optimization.mbp.backbone` with MBP's settings, even when
+    the replay ran without MBP): ``kept_by_one_more_pass`` and its partition by reason
     (``protected``: each agent's first and ``mbp_keep_recent`` newest; ``not_covered``: the
     other keyframes see too little of it; ``covers_removed``: a removed keyframe would lose
     its coverage; ``connector``: the kept keyframes would fall apart), and

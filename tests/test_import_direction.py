@@ -237,10 +237,10 @@ def test_known_exceptions_are_still_needed() -> None:
     ("source", "target", "broken"),
     [
         ("services.edge.__main__", "recslam.commands.edge", True),
-        ("common.links", "services.cloud.uplink", True),
+        ("common.links", "services.cloud.fusion.uplink", True),
         ("services.edge.app", "services.cloud.config", True),
         ("services.edge.app", "lab.links", True),
-        ("dashboard.viewer", "services.cloud.map_source", True),
+        ("dashboard.viewer", "services.cloud.store.map_source", True),
         ("services.cloud.server", "dashboard.viewer", True),
         ("services.cloud.runner", "dashboard.viewer", False),
         ("services.edge.app", "services.edge.vio", False),

@@ -340,7 +340,7 @@ class FrameAnchor:
     """The frame of a payload's poses and positions, named by a keyframe the cloud has:
     ``T_world_body`` (4, 4) is the edge's pose of ``keyframe_id`` in it. A message may be in
     the frame before a correction the edge has not applied yet; the cloud places it through
-    its own pose of the anchor (``services.cloud.rebase``; COVINS' ``pos_ref`` idea)."""
+    its own pose of the anchor (``services.cloud.fusion.rebase``; COVINS' ``pos_ref`` idea)."""
 
     keyframe_id: int
     T_world_body: np.ndarray

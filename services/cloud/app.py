@@ -1,14 +1,14 @@
 """The cloud's application: reacts to the edges' messages with the map-fusion blocks.
 
 :class:`CloudApp` is synchronous and owns every mutable piece of the cloud: the
-:class:`~services.cloud.map_fusion.MapFusion` (atlas, keyframe database) and the
-:class:`~services.cloud.persistence.CloudStore`. The network service runs all of its methods
+:class:`~services.cloud.fusion.map_fusion.MapFusion` (atlas, keyframe database) and the
+:class:`~services.cloud.store.persistence.CloudStore`. The network service runs all of its methods
 on one worker thread (so the atlas has a single owner and the event loop never blocks on
 decoding, verification, SQLite or MBP); only the pure pose-graph solve runs elsewhere.
 Building the optimisations, applying them (the corrections) and MBP are the base class's,
 :class:`~services.cloud.app_optimization.AppOptimization`.
 
-Per message (:meth:`CloudApp.handle`): decode (``services.cloud.uplink``), apply to the
+Per message (:meth:`CloudApp.handle`): decode (``services.cloud.fusion.uplink``), apply to the
 atlas, then commit what changed *together with the edge link's delivered position* in one
 SQLite transaction. The transport acknowledges after the handler returns, so an
 acknowledged keyframe is durable, and a restarted cloud tells the edge where to resume:
@@ -24,13 +24,13 @@ any other, and merging across edges is the same as within one. The table of agen
 name, edge, edge map) is persisted with the keyframes. Corrections go back per atlas agent,
 to the edge that serves it, in that edge map's frame.
 
-Missions (:mod:`services.cloud.mission`): the agents of earlier missions in the state
+Missions (:mod:`services.cloud.store.mission`): the agents of earlier missions in the state
 directory are the read-only *prior map* (:attr:`CloudApp._prior`, by atlas agent id, apart
 from the current mission's ``(robot, edge map)`` keys); new robots relocalise against it and
 their maps merge into it.
 
 Each robot's sensors (``AgentSensors``, sent by its edge before the robot's first keyframe)
-are persisted by robot name (``services.cloud.robot_sensors``; robot names are unique in a
+are persisted by robot name (``services.cloud.fusion.robot_sensors``; robot names are unique in a
 team, so a robot seen on a second edge keeps the sensors it first announced, and other
 sensors from another edge are logged and ignored): every atlas agent of that robot, on any
 edge, projects with its camera (``MapFusion.cameras``) and its keyframes decode with its image
@@ -69,18 +69,12 @@ from common.protocol.messages import Message
 from common.protocol.store import InboundPosition
 from common.vocabulary import Vocabulary
 from services.cloud.app_optimization import AppOptimization
-from services.cloud.atlas import Atlas, AtlasSnapshot, KeyframeInput, make_key
+from services.cloud.atlas.atlas import Atlas, AtlasSnapshot, KeyframeInput, make_key
 from services.cloud.config import CloudServiceConfig
-from services.cloud.frame_trajectories import FrameTrack
-from services.cloud.ground_truth import references_in_maps
-from services.cloud.map_fusion import FusionEvents, MapFusion
-from services.cloud.map_source import AgentInfo, CloudView
-from services.cloud.mission import MissionClock
-from services.cloud.output import robot_trajectories
-from services.cloud.persistence import CloudStore
-from services.cloud.rebase import FrameRebase, rebased_keyframe
-from services.cloud.robot_sensors import RobotSensorBook
-from services.cloud.uplink import (
+from services.cloud.fusion.map_fusion import FusionEvents, MapFusion
+from services.cloud.fusion.rebase import FrameRebase, rebased_keyframe
+from services.cloud.fusion.robot_sensors import RobotSensorBook
+from services.cloud.fusion.uplink import (
     DecodedKeyframe,
     KeyframeDecoders,
     UplinkError,
@@ -89,6 +83,12 @@ from services.cloud.uplink import (
     decode_keyframe_update,
     decode_map_point_update,
 )
+from services.cloud.store.frame_trajectories import FrameTrack
+from services.cloud.store.ground_truth import references_in_maps
+from services.cloud.store.map_source import AgentInfo, CloudView
+from services.cloud.store.mission import MissionClock
+from services.cloud.store.output import robot_trajectories
+from services.cloud.store.persistence import CloudStore
 
 log = logging.getLogger(__name__)
 
@@ -485,7 +485,7 @@ class CloudApp(AppOptimization):
     # ------------------------------------------------------------------ outputs
     def trajectories(self, retired: bool = True) -> tuple[dict[str, Trajectory], dict[str, int]]:
         """Keyframe trajectories ``T_map_body`` per robot name, and each robot's map id
-        (:func:`services.cloud.output.robot_trajectories`; ``retired``: also the keyframes MBP
+        (:func:`services.cloud.store.output.robot_trajectories`; ``retired``: also the keyframes MBP
         removed, through their anchors)."""
         agents: dict[str, list[int]] = {}
         for a in self._agents.values():
@@ -495,7 +495,7 @@ class CloudApp(AppOptimization):
 
     def frame_trajectories(self, keyframes: Mapping[str, Trajectory]) -> dict[str, Trajectory]:
         """Every frame's trajectory per robot, placed on ``keyframes`` (:meth:`trajectories`;
-        :class:`services.cloud.frame_trajectories.FrameTrack`)."""
+        :class:`services.cloud.store.frame_trajectories.FrameTrack`)."""
         return self.frames.trajectories(keyframes)
 
     def ground_truth(
@@ -505,7 +505,7 @@ class CloudApp(AppOptimization):
         max_dt_ns: int = 20_000_000,
     ) -> tuple[GroundTruth, ...]:
         """Each robot's reference trajectory in its map's frame, for the dashboard
-        (:func:`services.cloud.ground_truth.references_in_maps`)."""
+        (:func:`services.cloud.store.ground_truth.references_in_maps`)."""
         agents: dict[str, list[int]] = {}
         for a in self._agents.values():
             agents.setdefault(a.name, []).append(a.agent_id)

@@ -27,13 +27,13 @@ from common.links.edge_cloud import (
     encode_map_placement,
     encode_pose_correction,
 )
-from services.cloud.atlas import Atlas, split_key
+from services.cloud.atlas.atlas import Atlas, split_key
 from services.cloud.config import CloudServiceConfig
-from services.cloud.full_ba import FullBAProblem, FullBAResult
-from services.cloud.global_optimization import PoseGraphProblem, PoseGraphResult
-from services.cloud.map_fusion import MapFusion
-from services.cloud.mbp import MbpReport
-from services.cloud.persistence import CloudStore
+from services.cloud.fusion.map_fusion import MapFusion
+from services.cloud.optimization.full_ba import FullBAProblem, FullBAResult
+from services.cloud.optimization.global_optimization import PoseGraphProblem, PoseGraphResult
+from services.cloud.optimization.mbp import MbpReport
+from services.cloud.store.persistence import CloudStore
 
 if TYPE_CHECKING:
     from services.cloud.app import AgentKey, _Agent

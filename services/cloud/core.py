@@ -77,13 +77,13 @@ from common.protocol.messages import Message
 from services.cloud.app import CloudApp, Reaction
 from services.cloud.app_optimization import Correction
 from services.cloud.config import FullBAConfig, GlobalOptimizationConfig
-from services.cloud.full_ba import FullBAProblem, FullBAResult, solve_full_ba
-from services.cloud.global_optimization import (
+from services.cloud.optimization.full_ba import FullBAProblem, FullBAResult, solve_full_ba
+from services.cloud.optimization.global_optimization import (
     PoseGraphProblem,
     PoseGraphResult,
     optimize_pose_graph,
 )
-from services.cloud.incremental_ba import solve_full_ba_incremental
+from services.cloud.optimization.incremental_ba import solve_full_ba_incremental
 
 log = logging.getLogger(__name__)
 

@@ -22,7 +22,7 @@ from common.links.edge_cloud import (
 )
 from common.protocol.arrays import pack_array
 from common.vocabulary import Vocabulary
-from services.cloud.atlas import KeyframeInput, make_key
+from services.cloud.atlas.atlas import KeyframeInput, make_key
 from services.cloud.config import (
     CloudServiceConfig,
     FullBAConfig,
@@ -30,9 +30,10 @@ from services.cloud.config import (
     MbpConfig,
 )
 from services.cloud.core import CloudCore, SendCorrections, SolveRequest, solve
-from services.cloud.full_ba import FullBAProblem, build_full_ba, solve_full_ba
-from services.cloud.incremental_ba import forget, solve_full_ba_incremental
-from services.cloud.inertial import ImuStore, build_imu_terms
+from services.cloud.fusion.uplink import UplinkError, decode_keyframe_update
+from services.cloud.optimization.full_ba import FullBAProblem, build_full_ba, solve_full_ba
+from services.cloud.optimization.incremental_ba import forget, solve_full_ba_incremental
+from services.cloud.optimization.inertial import ImuStore, build_imu_terms
 from services.cloud.server import open_app
 from services.cloud.simulation import (
     default_camera,
@@ -44,7 +45,6 @@ from services.cloud.simulation import (
     vi_circle_atlas,
     wavy_circle,
 )
-from services.cloud.uplink import UplinkError, decode_keyframe_update
 
 ON = FullBAConfig()  # IMU factors on by default
 OFF = dataclasses.replace(FullBAConfig(), imu_factors=False)

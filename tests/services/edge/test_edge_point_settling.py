@@ -22,7 +22,7 @@ from common.links.edge_cloud import (
 )
 from common.protocol.messages import Message
 from common.vocabulary import Vocabulary
-from services.cloud.uplink import decode_map_point_update
+from services.cloud.fusion.uplink import decode_map_point_update
 from services.edge.point_uplink import SentPoints
 from services.edge.robot_session import RobotSession, SessionOptions
 from services.edge.vio.types import KeyframeSnapshot, MapPointBatch, MapPointSnapshot, MapUpdate

@@ -27,9 +27,9 @@ import numpy as np
 
 from common.geometry import inverse_T, so3_log
 from common.links.edge_cloud import FrameAnchor
-from services.cloud.atlas import Atlas
-from services.cloud.map_types import make_key
-from services.cloud.uplink import DecodedKeyframe
+from services.cloud.atlas.atlas import Atlas
+from services.cloud.atlas.map_types import make_key
+from services.cloud.fusion.uplink import DecodedKeyframe
 
 MOVED_M = 1e-3
 """A payload counts as moved by its anchor (``FrameRebase.moved``) beyond 1 mm ..."""
