@@ -14,15 +14,15 @@ SQLite transaction. The transport acknowledges after the handler returns, so an
 acknowledged keyframe is durable, and a restarted cloud tells the edge where to resume:
 nothing acknowledged is lost and nothing is applied twice (:class:`PositionStore`).
 
-Robots are named by strings on the wire (``KeyframeUpdate.agent_id``) and each robot's edge
-may start a new map for it (``map_id``, e.g. after tracking was lost): every (edge, robot,
-edge map) triple has its own frame, so it is one *atlas agent* (:data:`AgentKey`), numbered
-0, 1, ... in order of appearance. Several edges (sites) share one cloud: the edge is part of
-the key, so two edges' agents never mix (an edge can only address its own), a robot that
-moves to another edge becomes a new agent there whose map merges by place recognition as
-any other, and merging across edges is the same as within one. The table of agents (robot
-name, edge, edge map) is persisted with the keyframes. Corrections go back per atlas agent,
-to the edge that serves it, in that edge map's frame.
+Robots are named by strings on the wire (``KeyframeUpdate.agent_id``) and each robot's edge may
+start a new map for it (``map_id``, e.g. after tracking was lost): every (edge, robot, edge map)
+triple has its own frame, so it is one *atlas agent* (:data:`~services.cloud.agents.AgentKey`),
+numbered 0, 1, ... in order of appearance. Several edges (sites) share one cloud: the edge is part
+of the key, so two edges' agents never mix (an edge can only address its own), a robot that moves to
+another edge becomes a new agent there whose map merges by place recognition as any other, and
+merging across edges is the same as within one. The table of agents (robot name, edge, edge map) is
+persisted with the keyframes. Corrections go back per atlas agent, to the edge that serves it, in
+that edge map's frame.
 
 Missions (:mod:`services.cloud.store.mission`): the agents of earlier missions in the state
 directory are the read-only *prior map* (:attr:`CloudApp._prior`, by atlas agent id, apart
@@ -68,6 +68,7 @@ from common.protocol.errors import RemoteProtocolError
 from common.protocol.messages import Message
 from common.protocol.store import InboundPosition
 from common.vocabulary import Vocabulary
+from services.cloud.agents import AgentKey, AtlasAgent
 from services.cloud.app_optimization import AppOptimization
 from services.cloud.atlas.atlas import Atlas, AtlasSnapshot, KeyframeInput, make_key
 from services.cloud.config import CloudServiceConfig
@@ -91,9 +92,6 @@ from services.cloud.store.output import robot_trajectories
 from services.cloud.store.persistence import CloudStore
 
 log = logging.getLogger(__name__)
-
-AgentKey = tuple[str, str, int]
-"""An atlas agent's identity: (edge id, robot name, edge map id)."""
 
 
 class PositionStore:
@@ -132,19 +130,6 @@ class Reaction:
     events: FusionEvents | None = None
 
 
-@dataclass
-class _Agent:
-    agent_id: int
-    name: str
-    edge_id: str
-    edge_map: int
-    status: str = "initializing"
-    frames: int = 0
-    last_seen: float = 0.0
-    link_counters: dict[str, int] = field(default_factory=dict)
-    detail: str = ""
-
-
 class CloudApp(AppOptimization):
     """Message handling, optimisation hand-off, MBP and outputs over one atlas.
 
@@ -165,12 +150,12 @@ class CloudApp(AppOptimization):
         self.config = config
         self.positions = positions or PositionStore()
         # The current mission's agents by (edge, robot, edge map); earlier missions' by id.
-        self._agents: dict[AgentKey, _Agent] = {}
-        self._prior: dict[int, _Agent] = {}
+        self._agents: dict[AgentKey, AtlasAgent] = {}
+        self._prior: dict[int, AtlasAgent] = {}
         self.sensors = RobotSensorBook(store.sensors(), fusion.camera)
         missions = store.agent_missions()
         for aid, (name, edge, edge_map) in store.agents().items():
-            a = _Agent(aid, name, edge, edge_map)
+            a = AtlasAgent(aid, name, edge, edge_map)
             if missions.get(aid, store.mission) < store.mission:
                 a.status = "prior"
                 self._prior[aid] = a
@@ -206,7 +191,7 @@ class CloudApp(AppOptimization):
     # ------------------------------------------------------------------ agents
     def _agent(
         self, name: str, edge_id: str, edge_map: int, create: bool = True
-    ) -> tuple[_Agent, bool]:
+    ) -> tuple[AtlasAgent, bool]:
         """The current mission's agent (``edge_id``, robot ``name``, ``edge_map``) and whether
         it is new. An edge only ever addresses its own agents; a message that may not start one
         (``create`` False: culls, pose updates) for an agent the edge never had raises
@@ -218,7 +203,7 @@ class CloudApp(AppOptimization):
             raise UplinkError(f"edge {edge_id!r} has no agent of robot {name!r} map {edge_map}")
         known = [*self._agents.values(), *self._prior.values()]
         next_id = max((x.agent_id for x in known), default=-1) + 1
-        a = self._agents[edge_id, name, edge_map] = _Agent(next_id, name, edge_id, edge_map)
+        a = self._agents[edge_id, name, edge_map] = AtlasAgent(next_id, name, edge_id, edge_map)
         log.info("new agent %d: robot %r, map %d of edge %r", next_id, name, edge_map, edge_id)
         self._supersede()
         self._use_camera(next_id, name)
@@ -268,7 +253,7 @@ class CloudApp(AppOptimization):
         """The current mission and its merges into the prior map (``MissionClock.report``)."""
         return self.mission.report(a.name for a in self._agents.values())
 
-    def _rows(self, a: _Agent) -> dict[int, tuple[str, str, int]]:
+    def _rows(self, a: AtlasAgent) -> dict[int, tuple[str, str, int]]:
         return {a.agent_id: (a.name, a.edge_id, a.edge_map)}
 
     # ------------------------------------------------------------------ messages
@@ -375,7 +360,7 @@ class CloudApp(AppOptimization):
             reaction.new_keyframes[self.atlas.map_id_of_keyframe(key)] = 1
         return reaction
 
-    def _pose_only(self, a: _Agent, d: DecodedKeyframe) -> KeyframeInput | None:
+    def _pose_only(self, a: AtlasAgent, d: DecodedKeyframe) -> KeyframeInput | None:
         """The atlas input of a pose-only update (None: the cloud no longer has it)."""
         key = make_key(a.agent_id, d.keyframe_id)
         if not self.atlas.has_keyframe(key):
@@ -399,7 +384,7 @@ class CloudApp(AppOptimization):
             bias_accel=d.bias_accel,
         )
 
-    def _gone(self, a: _Agent, d: DecodedKeyframe) -> None:
+    def _gone(self, a: AtlasAgent, d: DecodedKeyframe) -> None:
         """Log a state update of a keyframe the cloud does not hold."""
         # A keyframe the cloud pruned (MBP) or the edge culled is routine; others not.
         routine = make_key(a.agent_id, d.keyframe_id) in self.atlas.removed_keyframes()
