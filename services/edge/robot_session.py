@@ -41,17 +41,19 @@ from common.links import CodecTimer, WireFormat
 from common.links.edge_cloud import (
     AgentStatus,
     CullEvent,
-    FrameAnchor,
     KeyframePoses,
-    KeyframeStates,
     KeyframeUpdateCoded,
     MapPointUpdateCoded,
+    pack_keyframe_update,
+    pack_map_point_update,
+)
+from common.links.edge_cloud_payloads import (
+    FrameAnchor,
+    KeyframeStates,
     PointBatch,
     encode_point_ids,
     encode_points,
     encode_states,
-    pack_keyframe_update,
-    pack_map_point_update,
 )
 from common.links.robot_edge import (
     Anchors,

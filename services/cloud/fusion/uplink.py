@@ -38,12 +38,14 @@ from common.errors import RecslamError
 from common.geometry import transform_points
 from common.links.edge_cloud import (
     CullEvent,
-    FrameAnchor,
     KeyframePoses,
     KeyframeUpdate,
     KeyframeUpdateCoded,
     MapPointUpdate,
     MapPointUpdateCoded,
+)
+from common.links.edge_cloud_payloads import (
+    FrameAnchor,
     decode_point_ids,
     decode_points,
     decode_states,

@@ -13,11 +13,10 @@ import numpy as np
 import pytest
 
 from common.geometry import so3_exp
-from common.links.edge_cloud import (
+from common.links.edge_cloud import KeyframePoses, MapPointUpdateCoded
+from common.links.edge_cloud_payloads import (
     FrameAnchor,
-    KeyframePoses,
     KeyframeStates,
-    MapPointUpdateCoded,
     PointBatch,
     encode_points,
     encode_states,

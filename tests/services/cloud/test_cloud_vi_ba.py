@@ -14,12 +14,8 @@ from common.calibration import EUROC_IMU
 from common.codec.imu import ImuEncoder
 from common.codec.types import ImuChunk
 from common.geometry import make_T, so3_exp
-from common.links.edge_cloud import (
-    KeyframeStates,
-    KeyframeUpdateCoded,
-    encode_point_ids,
-    encode_states,
-)
+from common.links.edge_cloud import KeyframeUpdateCoded
+from common.links.edge_cloud_payloads import KeyframeStates, encode_point_ids, encode_states
 from common.protocol.arrays import pack_array
 from common.vocabulary import Vocabulary
 from services.cloud.atlas.atlas import KeyframeInput, make_key

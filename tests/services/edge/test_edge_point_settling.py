@@ -14,12 +14,8 @@ import numpy as np
 
 from common.calibration import CameraCalibration
 from common.codec import KeyframeFeatures
-from common.links.edge_cloud import (
-    CullEvent,
-    KeyframeUpdateCoded,
-    MapPointUpdateCoded,
-    decode_point_ids,
-)
+from common.links.edge_cloud import CullEvent, KeyframeUpdateCoded, MapPointUpdateCoded
+from common.links.edge_cloud_payloads import decode_point_ids
 from common.protocol.messages import Message
 from common.vocabulary import Vocabulary
 from services.cloud.fusion.uplink import decode_map_point_update
