@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from common.errors import RecslamError
-from lab.table3 import ReplayDivergedError, replay, service_config
+from lab.replay_schedule import ReplayDivergedError
+from lab.table3 import replay, service_config
 from services.cloud.core import SolveRequest, SolveResult, solve
 from services.cloud.server import open_app
 from services.cloud.simulation import (
