@@ -87,7 +87,7 @@ def replay_rows(recording: Path, data: Path) -> list[str]:
     import lab.table3 as table3
     from common.evaluation.results import load_groundtruth
     from common.vocabulary import DEFAULT_VOCABULARY_PATH, Vocabulary
-    from services.cloud.core import SolveRequest, SolveResult, solve
+    from services.cloud.core_actions import SolveRequest, SolveResult, solve
     from services.cloud.optimization.full_ba import FullBAResult
     from services.cloud.runner import find_camera
     from services.cloud.store.recording import read_recording

@@ -61,7 +61,7 @@ from common.vocabulary import DEFAULT_VOCABULARY_PATH, Vocabulary
 from lab.links import git_commit
 from lab.table3 import ReplayResult, joint_ate, replay_recording, service_config
 from services.cloud.config import CloudServiceConfig
-from services.cloud.core import SolveKind, SolveRequest, SolveResult, solve
+from services.cloud.core_actions import SolveKind, SolveRequest, SolveResult, solve
 from services.cloud.runner import find_camera
 
 log = logging.getLogger("bench_mbp_midrun")

@@ -16,7 +16,8 @@ from collections.abc import Callable, Iterable
 from typing import cast
 
 from common.errors import RecslamError
-from services.cloud.core import Action, CloudCore, SolveRequest, SolveResult
+from services.cloud.core import CloudCore
+from services.cloud.core_actions import Action, SolveRequest, SolveResult
 from services.cloud.store.recording import Step
 
 log = logging.getLogger(__name__)

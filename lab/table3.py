@@ -53,7 +53,8 @@ from lab.loop_scoring import (
 from lab.replay_schedule import RecordedSteps, SolveClock
 from services.cloud.app import CloudApp, Reaction
 from services.cloud.config import CloudConfig, CloudServiceConfig, MbpConfig
-from services.cloud.core import CloudCore, SolveRequest, SolveResult, solve
+from services.cloud.core import CloudCore
+from services.cloud.core_actions import SolveRequest, SolveResult, solve
 from services.cloud.optimization.mbp import REASONS, backbone
 from services.cloud.server import open_app
 from services.cloud.store.recording import Record, Step, has_schedule, read_schedule
@@ -170,7 +171,7 @@ def replay(
     """Feed ``records`` to a fresh CloudApp on ``state_dir`` (must be empty) through the
     service's core (module docstring); without ``full_ba`` the full bundle adjustment is
     switched off (else it runs when ``config.domain.full_ba.enabled``). ``solve_fn`` solves
-    each of the core's requests (default: :func:`services.cloud.core.solve`).
+    each of the core's requests (default: :func:`services.cloud.core_actions.solve`).
 
     ``schedule``: ``recorded`` drives the core through the steps the service recorded
     (``records`` from :func:`services.cloud.store.recording.read_schedule` of a version-2

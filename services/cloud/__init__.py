@@ -15,9 +15,9 @@ Rooms import one way: ``atlas`` <- ``optimization`` <- ``fusion``; ``atlas`` <- 
 Service (this folder): ``app`` (reacts to messages on one worker thread, commits before
 acknowledging; its optimisation half ``app_optimization``; ``agents``, their shared records),
 ``core`` (sans-I/O schedule: debounced pose graphs, full BA, MBP, shutdown; takes ``now``, returns
-solve requests and corrections), ``server`` (asyncio runner of the core: lifecycle, solves in a
-separate process, corrections back to the edges; ``server_outputs``, ``decode_pool``, ``load``,
-``child_process``), ``simulation`` (synthetic world for tests), ``config``, ``stats``. Process:
-``runner`` (options, run config, run loop, dashboard wiring), started by ``recslam cloud`` or
-``python -m services.cloud``.
+solve requests and corrections, ``core_actions``), ``server`` (asyncio runner of the core:
+lifecycle, solves in a separate process, corrections back to the edges; ``server_outputs``,
+``decode_pool``, ``load``, ``child_process``), ``simulation`` (synthetic world for tests),
+``config``, ``stats``. Process: ``runner`` (options, run config, run loop, dashboard wiring),
+started by ``recslam cloud`` or ``python -m services.cloud``.
 """

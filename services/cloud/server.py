@@ -60,9 +60,9 @@ from services.cloud.app import CloudApp, PositionStore
 from services.cloud.app_optimization import Correction
 from services.cloud.child_process import child_process_init
 from services.cloud.config import CloudServiceConfig
-from services.cloud.core import (
+from services.cloud.core import CloudCore
+from services.cloud.core_actions import (
     Action,
-    CloudCore,
     Outcome,
     SendCorrections,
     SolveKind,

@@ -26,7 +26,7 @@ from common.protocol.arrays import pack_array
 from common.transport import Client, Delivery, TransportConfig, run
 from common.vocabulary import Vocabulary
 from services.cloud.config import CloudServiceConfig
-from services.cloud.core import SolveKind
+from services.cloud.core_actions import SolveKind
 from services.cloud.fusion.merge import yaw_of
 from services.cloud.server import CloudServer
 from services.cloud.simulation import (

@@ -25,7 +25,8 @@ from services.cloud.config import (
     GlobalOptimizationConfig,
     MbpConfig,
 )
-from services.cloud.core import CloudCore, SendCorrections, SolveRequest, solve
+from services.cloud.core import CloudCore
+from services.cloud.core_actions import SendCorrections, SolveRequest, solve
 from services.cloud.fusion.uplink import UplinkError, decode_keyframe_update
 from services.cloud.optimization.full_ba import FullBAProblem, build_full_ba, solve_full_ba
 from services.cloud.optimization.incremental_ba import forget, solve_full_ba_incremental
