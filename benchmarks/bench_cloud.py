@@ -18,11 +18,11 @@ from pathlib import Path
 import numpy as np
 
 from common.geometry import inverse_T
-from services.cloud.atlas import Atlas
+from services.cloud.atlas.atlas import Atlas
 from services.cloud.config import GlobalOptimizationConfig, MbpConfig, PlaceRecognitionConfig
-from services.cloud.global_optimization import PoseGraphProblem, optimize_pose_graph
-from services.cloud.mbp import covisibility_components, run_mbp
-from services.cloud.place_recognition import KeyframeDatabase, PlaceRecognizer
+from services.cloud.fusion.place_recognition import KeyframeDatabase, PlaceRecognizer
+from services.cloud.optimization.global_optimization import PoseGraphProblem, optimize_pose_graph
+from services.cloud.optimization.mbp import covisibility_components, run_mbp
 from services.cloud.simulation import circle_poses, default_camera, make_session, make_world, yaw_T
 
 log = logging.getLogger("bench_cloud")
@@ -251,8 +251,8 @@ def bench_service(tmp: Path) -> list[str]:
     from common.transport import Client, run
     from common.vocabulary import Vocabulary
     from services.cloud.config import CloudServiceConfig
+    from services.cloud.fusion.uplink import decode_keyframe_update
     from services.cloud.server import CloudServer
-    from services.cloud.uplink import decode_keyframe_update
 
     vocab = Vocabulary.load()
     scen = _service_scenario(vocab)

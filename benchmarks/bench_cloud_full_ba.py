@@ -27,9 +27,9 @@ from pathlib import Path
 import numpy as np
 
 from common.geometry import so3_exp
-from services.cloud.atlas import Atlas
+from services.cloud.atlas.atlas import Atlas
 from services.cloud.config import FullBAConfig, GlobalOptimizationConfig
-from services.cloud.full_ba import FullBAProblem, build_full_ba, solve_full_ba
+from services.cloud.optimization.full_ba import FullBAProblem, build_full_ba, solve_full_ba
 from services.cloud.simulation import circle_poses, default_camera, make_session, make_world
 
 log = logging.getLogger("bench_cloud_full_ba")
@@ -87,10 +87,10 @@ def replay_rows(recording: Path, data: Path) -> list[str]:
     import lab.table3 as table3
     from common.evaluation.results import load_groundtruth
     from common.vocabulary import DEFAULT_VOCABULARY_PATH, Vocabulary
-    from services.cloud.core import SolveRequest, SolveResult, solve
-    from services.cloud.full_ba import FullBAResult
-    from services.cloud.recording import read_recording
+    from services.cloud.core_actions import SolveRequest, SolveResult, solve
+    from services.cloud.optimization.full_ba import FullBAResult
     from services.cloud.runner import find_camera
+    from services.cloud.store.recording import read_recording
 
     camera = find_camera(None, data)
     vocab = Vocabulary.load(DEFAULT_VOCABULARY_PATH)
@@ -171,7 +171,7 @@ def sigma_sweep(state_dir: Path, camera: object, vocab: object, refs: dict) -> l
     import lab.table3 as table3
     from common.evaluation.alignment import AlignMode
     from common.evaluation.metrics import AteConfig, compute_joint_ate
-    from services.cloud.full_ba import apply_full_ba
+    from services.cloud.optimization.full_ba import apply_full_ba
 
     app = table3.open_app(state_dir, camera, vocab, table3.service_config(True))  # type: ignore[arg-type]
     try:

@@ -35,8 +35,8 @@ import numpy as np
 from common.calibration import ImuCalibration
 from common.evaluation.alignment import umeyama
 from services.cloud.config import FullBAConfig, GlobalOptimizationConfig
-from services.cloud.full_ba import build_full_ba, solve_full_ba
-from services.cloud.incremental_ba import forget, solve_full_ba_incremental
+from services.cloud.optimization.full_ba import build_full_ba, solve_full_ba
+from services.cloud.optimization.incremental_ba import forget, solve_full_ba_incremental
 from services.cloud.simulation import default_camera, map_scale, problem_prefix, vi_circle_atlas
 
 log = logging.getLogger("bench_cloud_vi_ba")
@@ -159,10 +159,10 @@ def ab_rows(pairs: list[tuple[Path, Path]], variants: list[str]) -> list[str]:
     from common.evaluation.results import load_groundtruth
     from common.vocabulary import DEFAULT_VOCABULARY_PATH, Vocabulary
     from services.cloud.config import CloudServiceConfig
-    from services.cloud.core import SolveRequest, solve
-    from services.cloud.full_ba import FullBAResult
-    from services.cloud.recording import read_schedule
+    from services.cloud.core_actions import SolveRequest, solve
+    from services.cloud.optimization.full_ba import FullBAResult
     from services.cloud.runner import find_camera
+    from services.cloud.store.recording import read_schedule
 
     vocab = Vocabulary.load(DEFAULT_VOCABULARY_PATH)
     rows = [
@@ -304,7 +304,7 @@ def main() -> None:
             "",
             "## Time per incremental (iSAM2) full BA vs keyframes (synthetic)",
             "",
-            "The service's incremental solver (`services/cloud/incremental_ba.py`, "
+            "The service's incremental solver (`services/cloud/optimization/incremental_ba.py`, "
             "`FullBAConfig.incremental`) fed the same problems in time order "
             "(`services.cloud.simulation.problem_prefix`), `--batch` keyframes more per full "
             "BA from 100 keyframes: the first builds the graph from a batch solve (rebuilt "

@@ -30,7 +30,7 @@ placed them through the robot's one map-from-edge transform, so a configuration 
 corrections differ from the live run's received them in a frame that no longer fit its own
 keyframes, and a replay was faithful only for the configuration the recording was made with.
 In newer recordings each message lands through the replaying cloud's own pose of its anchor
-(``services.cloud.rebase``): a rigid fix per message, close to faithful for other
+(``services.cloud.fusion.rebase``): a rigid fix per message, close to faithful for other
 configurations; still compare live (``bench_mbp_live.py``).
 
 Keyframes: the atlas at the end over the keyframes received. ATE: joint RMSE (SE(3)) of every
@@ -61,7 +61,7 @@ from common.vocabulary import DEFAULT_VOCABULARY_PATH, Vocabulary
 from lab.links import git_commit
 from lab.table3 import ReplayResult, joint_ate, replay_recording, service_config
 from services.cloud.config import CloudServiceConfig
-from services.cloud.core import SolveKind, SolveRequest, SolveResult, solve
+from services.cloud.core_actions import SolveKind, SolveRequest, SolveResult, solve
 from services.cloud.runner import find_camera
 
 log = logging.getLogger("bench_mbp_midrun")

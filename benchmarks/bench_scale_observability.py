@@ -36,8 +36,8 @@ from common.vocabulary import DEFAULT_VOCABULARY_PATH, Vocabulary
 from lab.links import git_commit
 from lab.scale_observability import nominal, scale_profile
 from lab.table3 import joint_ate, replay_recording, service_config
-from services.cloud.core import SolveKind, SolveRequest, SolveResult, solve
-from services.cloud.full_ba import FullBAProblem, FullBAResult
+from services.cloud.core_actions import SolveKind, SolveRequest, SolveResult, solve
+from services.cloud.optimization.full_ba import FullBAProblem, FullBAResult
 from services.cloud.runner import find_camera
 
 log = logging.getLogger("bench_scale_observability")

@@ -1,7 +1,7 @@
 """On-manifold IMU preintegration (paper Eq. 4, 13–14) with gtsam, over the segments that
 :class:`common.imu.ImuBuffer` slices (each piece's measurement the mean of both ends, as
 ORB-SLAM3 integrates). One copy for both users: the edge's VIO (``services.edge.vio``) and
-the cloud's visual-inertial global BA (``services.cloud.inertial``).
+the cloud's visual-inertial global BA (``services.cloud.optimization.inertial``).
 """
 
 from __future__ import annotations

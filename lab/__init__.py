@@ -10,7 +10,8 @@ tables and plots. Services never import this package, and it never imports the c
   that each report imports what it reads and nothing imports back.
 - :mod:`lab.table3`: ``recslam experiment table3``, the paper's Table 3 (MBP) from replays of
   a recorded uplink through the cloud's own core (tables and plot in
-  :mod:`lab.table3_report`; loop-detection precision / recall in :mod:`lab.loop_scoring`).
+  :mod:`lab.table3_report`; the core driven on the replay's clock in
+  :mod:`lab.replay_schedule`; loop-detection precision / recall in :mod:`lab.loop_scoring`).
 - :mod:`lab.vio_replay`: the robot front end, codecs and edge decoding of a sequence replayed
   in process into the edge's VIO, with ATE (``benchmarks/bench_vio_pipeline.py``).
 - :mod:`lab.datasets`: where the development datasets are (the shared EuRoC excerpt).

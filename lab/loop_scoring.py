@@ -46,7 +46,7 @@ import numpy as np
 from common.evaluation.metrics import rotation_angles_deg
 from common.evaluation.trajectory import Trajectory
 from common.geometry import inverse_T
-from services.cloud.map_fusion import reason_kind
+from services.cloud.fusion.map_fusion import reason_kind
 
 log = logging.getLogger(__name__)
 

@@ -1,7 +1,7 @@
 """Many robots at one cloud: uplink recordings replayed as 3, 6, 12, 24 ... agents.
 
 ``recslam demo --record-uplink FILE`` (``recslam cloud --record``) records every message the
-edge sent the cloud (:mod:`services.cloud.recording`). This module turns several such
+edge sent the cloud (:mod:`services.cloud.store.recording`). This module turns several such
 recordings into the uplink of a larger team and measures what the cloud pays for it:
 
 - **Copies** (:func:`plan_copies`): a team of N agents is made of copies of the recordings'
@@ -48,7 +48,7 @@ from common.links.edge_cloud import (
     decode_pose_correction,
 )
 from common.protocol.messages import Message
-from services.cloud.recording import Record
+from services.cloud.store.recording import Record
 
 log = logging.getLogger(__name__)
 
@@ -227,7 +227,7 @@ def records_of(sends: Sequence[Send]) -> list[Record]:
 
 def load_recordings(paths: Sequence[Path]) -> list[list[Record]]:
     """Every message record of each recording (a truncated tail dropped)."""
-    from services.cloud.recording import read_recording
+    from services.cloud.store.recording import read_recording
 
     return [list(read_recording(p, allow_truncated_tail=True)) for p in paths]
 
@@ -388,7 +388,7 @@ def core_replay(
 
     from common.vocabulary import Vocabulary
     from lab.table3 import replay, service_config
-    from services.cloud.core import SolveRequest, SolveResult, solve
+    from services.cloud.core_actions import SolveRequest, SolveResult, solve
     from services.cloud.simulation import default_camera
 
     solves: dict[str, dict[str, float]] = {}

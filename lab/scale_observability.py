@@ -6,15 +6,14 @@ scale with an inertial-only optimisation: the poses held up to one scale factor,
 and biases free (Campos et al., "ORB-SLAM3", IEEE T-RO 37(6), 2021, Sec. V-B). The same
 problem, swept over the scale, measures how well the flight determines it:
 
-for scales ``s`` on a grid, the keyframe positions of a solved full BA are scaled by ``s``
-about its fixed keyframe and held (orientations unchanged, gravity along the map's -z), and
-each keyframe's velocity and bias are solved against the IMU factors alone (the full BA's own
-``CombinedImuFactor`` terms, :func:`services.cloud.inertial.add_imu_factors`, with its noise
-scaling). A parabola fitted to the cost gives the scale the IMU prefers for this map's shape
-(``best_scale``, relative to the map) and its curvature ``a`` the scale's standard deviation
-from the IMU alone, ``sigma = sqrt(0.5 / a)`` (gtsam's error is half the squared whitened
-residual). A flight that barely accelerates gives a flat parabola: its map's scale is only as
-good as whatever else holds it.
+for scales ``s`` on a grid, the keyframe positions of a solved full BA are scaled by ``s`` about its
+fixed keyframe and held (orientations unchanged, gravity along the map's -z), and each keyframe's
+velocity and bias are solved against the IMU factors alone (the full BA's own ``CombinedImuFactor``
+terms, :func:`services.cloud.optimization.inertial.add_imu_factors`, with its noise scaling). A
+parabola fitted to the cost gives the scale the IMU prefers for this map's shape (``best_scale``,
+relative to the map) and its curvature ``a`` the scale's standard deviation from the IMU alone,
+``sigma = sqrt(0.5 / a)`` (gtsam's error is half the squared whitened residual). A flight that
+barely accelerates gives a flat parabola: its map's scale is only as good as whatever else holds it.
 """
 
 from __future__ import annotations
@@ -26,8 +25,8 @@ import gtsam
 import numpy as np
 
 from services.cloud.config import FullBAConfig
-from services.cloud.global_optimization import pose3
-from services.cloud.inertial import ImuTerms, add_imu_factors
+from services.cloud.optimization.global_optimization import pose3
+from services.cloud.optimization.inertial import ImuTerms, add_imu_factors
 
 
 @dataclass(frozen=True)

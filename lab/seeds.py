@@ -301,7 +301,7 @@ def constraint_check(
     criterion = criterion or LoopCriterion()
     from common.evaluation.results import load_groundtruth
     from lab.loop_scoring import Detection, GroundTruthPoses, KeyframeInfo, score_detection
-    from services.cloud.persistence import CloudStore
+    from services.cloud.store.persistence import CloudStore
 
     none: dict[str, float | int | None] = dict.fromkeys(
         ("constraints", "wrong_constraints", "max_constraint_err_m", "max_constraint_err_deg")

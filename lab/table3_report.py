@@ -127,8 +127,8 @@ def table3_markdown(t: Table3) -> str:
         ),
         "",
         "Why keyframes are kept (final atlas; what one more MBP pass would keep, by the first "
-        "of its rules that keeps each, see `services.cloud.mbp.backbone`; loop / merge "
-        "endpoints are not protected: MBP moves their constraints onto the absorbing "
+        "of its rules that keeps each, see `services.cloud.optimization.mbp.backbone`; "
+        "loop / merge endpoints are not protected: MBP moves their constraints onto the absorbing "
         "keyframe):",
         "",
         "| | keyframes | loop / merge endpoints | kept by one more MBP pass | protected (first "

@@ -319,7 +319,7 @@ def evaluate_in_frame(
 ) -> tuple[JointAteResult, Path]:
     """ATE of ``RESULT_DIR``'s trajectories under the joint alignment of an earlier run's
     ``ate.json`` (``frame_of``), without aligning again: for a mission that started inside
-    that run's saved map (``services.cloud.mission``), whose trajectories are in its map
+    that run's saved map (``services.cloud.store.mission``), whose trajectories are in its map
     frame, this measures how well the new mission sits in the old map, not just its own
     shape. Writes ``OUT/ate_prior_frame.json`` (``out_dir`` defaults to ``RESULT_DIR/eval``)
     and returns the result and that file."""

@@ -3,7 +3,8 @@
 - ``robot_edge``: RobotSensors, RobotFrame, RobotSequenceEnd (robot -> edge), InertialFeedback
   and InertialFeedbackCoded (edge -> robot; both decode into one FeedbackContent);
 - ``edge_cloud``: AgentSensors, KeyframeUpdate, MapPointUpdate, CullEvent, AgentStatus (edge ->
-  cloud), PoseCorrection (cloud -> edge);
+  cloud), PoseCorrection (cloud -> edge); ``edge_cloud_payloads``: the coded payloads they carry
+  (keyframe states, map point ids, map points, poses);
 - ``sensors``: the sensor description (calibrations) both links carry, and its codec;
 - ``wire``: what they share: the wire format (coded or raw) and the codecs' CPU timer.
 """

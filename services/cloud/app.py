@@ -1,36 +1,36 @@
 """The cloud's application: reacts to the edges' messages with the map-fusion blocks.
 
 :class:`CloudApp` is synchronous and owns every mutable piece of the cloud: the
-:class:`~services.cloud.map_fusion.MapFusion` (atlas, keyframe database) and the
-:class:`~services.cloud.persistence.CloudStore`. The network service runs all of its methods
+:class:`~services.cloud.fusion.map_fusion.MapFusion` (atlas, keyframe database) and the
+:class:`~services.cloud.store.persistence.CloudStore`. The network service runs all of its methods
 on one worker thread (so the atlas has a single owner and the event loop never blocks on
 decoding, verification, SQLite or MBP); only the pure pose-graph solve runs elsewhere.
 Building the optimisations, applying them (the corrections) and MBP are the base class's,
 :class:`~services.cloud.app_optimization.AppOptimization`.
 
-Per message (:meth:`CloudApp.handle`): decode (``services.cloud.uplink``), apply to the
+Per message (:meth:`CloudApp.handle`): decode (``services.cloud.fusion.uplink``), apply to the
 atlas, then commit what changed *together with the edge link's delivered position* in one
 SQLite transaction. The transport acknowledges after the handler returns, so an
 acknowledged keyframe is durable, and a restarted cloud tells the edge where to resume:
 nothing acknowledged is lost and nothing is applied twice (:class:`PositionStore`).
 
-Robots are named by strings on the wire (``KeyframeUpdate.agent_id``) and each robot's edge
-may start a new map for it (``map_id``, e.g. after tracking was lost): every (edge, robot,
-edge map) triple has its own frame, so it is one *atlas agent* (:data:`AgentKey`), numbered
-0, 1, ... in order of appearance. Several edges (sites) share one cloud: the edge is part of
-the key, so two edges' agents never mix (an edge can only address its own), a robot that
-moves to another edge becomes a new agent there whose map merges by place recognition as
-any other, and merging across edges is the same as within one. The table of agents (robot
-name, edge, edge map) is persisted with the keyframes. Corrections go back per atlas agent,
-to the edge that serves it, in that edge map's frame.
+Robots are named by strings on the wire (``KeyframeUpdate.agent_id``) and each robot's edge may
+start a new map for it (``map_id``, e.g. after tracking was lost): every (edge, robot, edge map)
+triple has its own frame, so it is one *atlas agent* (:data:`~services.cloud.agents.AgentKey`),
+numbered 0, 1, ... in order of appearance. Several edges (sites) share one cloud: the edge is part
+of the key, so two edges' agents never mix (an edge can only address its own), a robot that moves to
+another edge becomes a new agent there whose map merges by place recognition as any other, and
+merging across edges is the same as within one. The table of agents (robot name, edge, edge map) is
+persisted with the keyframes. Corrections go back per atlas agent, to the edge that serves it, in
+that edge map's frame.
 
-Missions (:mod:`services.cloud.mission`): the agents of earlier missions in the state
+Missions (:mod:`services.cloud.store.mission`): the agents of earlier missions in the state
 directory are the read-only *prior map* (:attr:`CloudApp._prior`, by atlas agent id, apart
 from the current mission's ``(robot, edge map)`` keys); new robots relocalise against it and
 their maps merge into it.
 
 Each robot's sensors (``AgentSensors``, sent by its edge before the robot's first keyframe)
-are persisted by robot name (``services.cloud.robot_sensors``; robot names are unique in a
+are persisted by robot name (``services.cloud.fusion.robot_sensors``; robot names are unique in a
 team, so a robot seen on a second edge keeps the sensors it first announced, and other
 sensors from another edge are logged and ignored): every atlas agent of that robot, on any
 edge, projects with its camera (``MapFusion.cameras``) and its keyframes decode with its image
@@ -68,19 +68,14 @@ from common.protocol.errors import RemoteProtocolError
 from common.protocol.messages import Message
 from common.protocol.store import InboundPosition
 from common.vocabulary import Vocabulary
+from services.cloud.agents import AgentKey, AtlasAgent
 from services.cloud.app_optimization import AppOptimization
-from services.cloud.atlas import Atlas, AtlasSnapshot, KeyframeInput, make_key
+from services.cloud.atlas.atlas import Atlas, AtlasSnapshot, KeyframeInput, make_key
 from services.cloud.config import CloudServiceConfig
-from services.cloud.frame_trajectories import FrameTrack
-from services.cloud.ground_truth import references_in_maps
-from services.cloud.map_fusion import FusionEvents, MapFusion
-from services.cloud.map_source import AgentInfo, CloudView
-from services.cloud.mission import MissionClock
-from services.cloud.output import robot_trajectories
-from services.cloud.persistence import CloudStore
-from services.cloud.rebase import FrameRebase, rebased_keyframe
-from services.cloud.robot_sensors import RobotSensorBook
-from services.cloud.uplink import (
+from services.cloud.fusion.map_fusion import FusionEvents, MapFusion
+from services.cloud.fusion.rebase import FrameRebase, rebased_keyframe
+from services.cloud.fusion.robot_sensors import RobotSensorBook
+from services.cloud.fusion.uplink import (
     DecodedKeyframe,
     KeyframeDecoders,
     UplinkError,
@@ -89,11 +84,14 @@ from services.cloud.uplink import (
     decode_keyframe_update,
     decode_map_point_update,
 )
+from services.cloud.store.frame_trajectories import FrameTrack
+from services.cloud.store.ground_truth import references_in_maps
+from services.cloud.store.map_source import AgentInfo, CloudView
+from services.cloud.store.mission import MissionClock
+from services.cloud.store.output import robot_trajectories
+from services.cloud.store.persistence import CloudStore
 
 log = logging.getLogger(__name__)
-
-AgentKey = tuple[str, str, int]
-"""An atlas agent's identity: (edge id, robot name, edge map id)."""
 
 
 class PositionStore:
@@ -132,19 +130,6 @@ class Reaction:
     events: FusionEvents | None = None
 
 
-@dataclass
-class _Agent:
-    agent_id: int
-    name: str
-    edge_id: str
-    edge_map: int
-    status: str = "initializing"
-    frames: int = 0
-    last_seen: float = 0.0
-    link_counters: dict[str, int] = field(default_factory=dict)
-    detail: str = ""
-
-
 class CloudApp(AppOptimization):
     """Message handling, optimisation hand-off, MBP and outputs over one atlas.
 
@@ -165,12 +150,12 @@ class CloudApp(AppOptimization):
         self.config = config
         self.positions = positions or PositionStore()
         # The current mission's agents by (edge, robot, edge map); earlier missions' by id.
-        self._agents: dict[AgentKey, _Agent] = {}
-        self._prior: dict[int, _Agent] = {}
+        self._agents: dict[AgentKey, AtlasAgent] = {}
+        self._prior: dict[int, AtlasAgent] = {}
         self.sensors = RobotSensorBook(store.sensors(), fusion.camera)
         missions = store.agent_missions()
         for aid, (name, edge, edge_map) in store.agents().items():
-            a = _Agent(aid, name, edge, edge_map)
+            a = AtlasAgent(aid, name, edge, edge_map)
             if missions.get(aid, store.mission) < store.mission:
                 a.status = "prior"
                 self._prior[aid] = a
@@ -206,7 +191,7 @@ class CloudApp(AppOptimization):
     # ------------------------------------------------------------------ agents
     def _agent(
         self, name: str, edge_id: str, edge_map: int, create: bool = True
-    ) -> tuple[_Agent, bool]:
+    ) -> tuple[AtlasAgent, bool]:
         """The current mission's agent (``edge_id``, robot ``name``, ``edge_map``) and whether
         it is new. An edge only ever addresses its own agents; a message that may not start one
         (``create`` False: culls, pose updates) for an agent the edge never had raises
@@ -218,7 +203,7 @@ class CloudApp(AppOptimization):
             raise UplinkError(f"edge {edge_id!r} has no agent of robot {name!r} map {edge_map}")
         known = [*self._agents.values(), *self._prior.values()]
         next_id = max((x.agent_id for x in known), default=-1) + 1
-        a = self._agents[edge_id, name, edge_map] = _Agent(next_id, name, edge_id, edge_map)
+        a = self._agents[edge_id, name, edge_map] = AtlasAgent(next_id, name, edge_id, edge_map)
         log.info("new agent %d: robot %r, map %d of edge %r", next_id, name, edge_map, edge_id)
         self._supersede()
         self._use_camera(next_id, name)
@@ -268,7 +253,7 @@ class CloudApp(AppOptimization):
         """The current mission and its merges into the prior map (``MissionClock.report``)."""
         return self.mission.report(a.name for a in self._agents.values())
 
-    def _rows(self, a: _Agent) -> dict[int, tuple[str, str, int]]:
+    def _rows(self, a: AtlasAgent) -> dict[int, tuple[str, str, int]]:
         return {a.agent_id: (a.name, a.edge_id, a.edge_map)}
 
     # ------------------------------------------------------------------ messages
@@ -375,7 +360,7 @@ class CloudApp(AppOptimization):
             reaction.new_keyframes[self.atlas.map_id_of_keyframe(key)] = 1
         return reaction
 
-    def _pose_only(self, a: _Agent, d: DecodedKeyframe) -> KeyframeInput | None:
+    def _pose_only(self, a: AtlasAgent, d: DecodedKeyframe) -> KeyframeInput | None:
         """The atlas input of a pose-only update (None: the cloud no longer has it)."""
         key = make_key(a.agent_id, d.keyframe_id)
         if not self.atlas.has_keyframe(key):
@@ -399,7 +384,7 @@ class CloudApp(AppOptimization):
             bias_accel=d.bias_accel,
         )
 
-    def _gone(self, a: _Agent, d: DecodedKeyframe) -> None:
+    def _gone(self, a: AtlasAgent, d: DecodedKeyframe) -> None:
         """Log a state update of a keyframe the cloud does not hold."""
         # A keyframe the cloud pruned (MBP) or the edge culled is routine; others not.
         routine = make_key(a.agent_id, d.keyframe_id) in self.atlas.removed_keyframes()
@@ -485,7 +470,7 @@ class CloudApp(AppOptimization):
     # ------------------------------------------------------------------ outputs
     def trajectories(self, retired: bool = True) -> tuple[dict[str, Trajectory], dict[str, int]]:
         """Keyframe trajectories ``T_map_body`` per robot name, and each robot's map id
-        (:func:`services.cloud.output.robot_trajectories`; ``retired``: also the keyframes MBP
+        (:func:`services.cloud.store.output.robot_trajectories`; ``retired``: also the keyframes MBP
         removed, through their anchors)."""
         agents: dict[str, list[int]] = {}
         for a in self._agents.values():
@@ -495,7 +480,7 @@ class CloudApp(AppOptimization):
 
     def frame_trajectories(self, keyframes: Mapping[str, Trajectory]) -> dict[str, Trajectory]:
         """Every frame's trajectory per robot, placed on ``keyframes`` (:meth:`trajectories`;
-        :class:`services.cloud.frame_trajectories.FrameTrack`)."""
+        :class:`services.cloud.store.frame_trajectories.FrameTrack`)."""
         return self.frames.trajectories(keyframes)
 
     def ground_truth(
@@ -505,7 +490,7 @@ class CloudApp(AppOptimization):
         max_dt_ns: int = 20_000_000,
     ) -> tuple[GroundTruth, ...]:
         """Each robot's reference trajectory in its map's frame, for the dashboard
-        (:func:`services.cloud.ground_truth.references_in_maps`)."""
+        (:func:`services.cloud.store.ground_truth.references_in_maps`)."""
         agents: dict[str, list[int]] = {}
         for a in self._agents.values():
             agents.setdefault(a.name, []).append(a.agent_id)

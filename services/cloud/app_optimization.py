@@ -27,16 +27,14 @@ from common.links.edge_cloud import (
     encode_map_placement,
     encode_pose_correction,
 )
-from services.cloud.atlas import Atlas, split_key
+from services.cloud.agents import AgentKey, AtlasAgent
+from services.cloud.atlas.atlas import Atlas, split_key
 from services.cloud.config import CloudServiceConfig
-from services.cloud.full_ba import FullBAProblem, FullBAResult
-from services.cloud.global_optimization import PoseGraphProblem, PoseGraphResult
-from services.cloud.map_fusion import MapFusion
-from services.cloud.mbp import MbpReport
-from services.cloud.persistence import CloudStore
-
-if TYPE_CHECKING:
-    from services.cloud.app import AgentKey, _Agent
+from services.cloud.fusion.map_fusion import MapFusion
+from services.cloud.optimization.full_ba import FullBAProblem, FullBAResult
+from services.cloud.optimization.global_optimization import PoseGraphProblem, PoseGraphResult
+from services.cloud.optimization.mbp import MbpReport
+from services.cloud.store.persistence import CloudStore
 
 log = logging.getLogger(__name__)
 
@@ -58,7 +56,7 @@ class AppOptimization:
     store: CloudStore
     config: CloudServiceConfig
     stage_timer: CodecTimer
-    _agents: dict[AgentKey, _Agent]
+    _agents: dict[AgentKey, AtlasAgent]
     _mbp_done: dict[int, int]  # map -> keyframes at its last MBP pass
     _pruned_points: set[int]  # removed by MBP (not by the edge's culling)
     _pruned_keyframes: set[int]

@@ -123,7 +123,7 @@ class MergeConfig:
         (default 0.05 m).
     fuse_max_hamming: ... and whose descriptors differ by at most this many bits (default 50).
     fuse_loop_points: a loop closed within one map fuses its verified 3D-3D point pairs too
-        (default True; ``services/cloud/merge.py``): the full BA then links the two visits
+        (default True; ``services/cloud/fusion/merge.py``): the full BA then links the two visits
         through shared points, not only through the loop's relative pose.
     fragment_max_scale_change: a *fragment* (a map whose robots have all moved on to newer
         maps, e.g. the one an edge began after a tracking loss and left at the next) may
@@ -196,7 +196,8 @@ class GlobalOptimizationConfig:
 
 @dataclass(frozen=True)
 class FullBAConfig:
-    """Full bundle-adjustment options (paper Eq. 20, full stage; ``services/cloud/full_ba.py``).
+    """Full bundle-adjustment options (paper Eq. 20, full stage;
+    ``services/cloud/optimization/full_ba.py``).
 
     enabled: run the full stage at all (default True; ``recslam cloud --no-full-ba``).
     pixel_sigma: reprojection standard deviation at pyramid level 0, pixels (default 1.0) ...
@@ -225,7 +226,7 @@ class FullBAConfig:
         with them in the pose graph only, 1.94 cm in the pose graph and the full BA at 0.002
         rad: the images fix a keyframe's tilt relative to the map better than the VIO's
         gravity (its tilt errors: median 0.04-0.08 deg, p95 0.22-0.39 deg).
-    imu_factors: visual-inertial global BA (``services/cloud/inertial.py``): between
+    imu_factors: visual-inertial global BA (``services/cloud/optimization/inertial.py``): between
         consecutive keyframes of one agent with forwarded IMU, a preintegrated
         ``CombinedImuFactor`` over pose, velocity and bias states replaces the relative-pose
         term (default True: on the recordings of seeds 0, 1, 2 replayed with the live
@@ -257,8 +258,8 @@ class FullBAConfig:
         8, +10 % joint ATE in all, and mixed on the harder flights (inward seed 0 5.06 ->
         4.83 cm, hover seed 1 0.36 -> 0.40 cm).
     incremental: solve on the map's iSAM2 graph, updated with what changed since the last
-        full BA (``services/cloud/incremental_ba.py``; a batch solve builds it first and
-        after merges); default True (False: the batch solve every time, whose cost grows
+        full BA (``services/cloud/optimization/incremental_ba.py``; a batch solve builds it
+        first and after merges); default True (False: the batch solve every time, whose cost grows
         with the map: 14-36 s at 5k keyframes against under 1 s per update,
         ``cloud_vi_ba_incremental.md``) ...
     incremental_min_keyframes: ... for maps of at least this many keyframes; smaller ones
@@ -337,7 +338,7 @@ class MbpConfig:
     min_observations: map points left with fewer observations are removed (default 2).
     blend_retired: a removed keyframe's pose follows both kept keyframes around it in time,
         blended by time, not only the one its loops moved to (default True;
-        ``services.cloud.retired.retired_pose``).
+        ``services.cloud.atlas.retired.retired_pose``).
     max_interval_s: a keyframe stays when removing it would leave its agent's kept
         keyframes around it further apart in time than this, seconds (default None: no limit;
         a pass while running has ``CloudServiceConfig.mbp_running_max_interval_s``).
@@ -447,7 +448,7 @@ class CloudServiceConfig:
         worker applies them (default 0: on the worker). The worker applies every message in
         turn on one thread, and a 1000-feature keyframe's decode is ~25 ms of it; with
         workers it overlaps the worker's other messages on other cores (no help on one core).
-    mission: the named mission to serve (``services.cloud.mission``): resumed when it is the
+    mission: the named mission to serve (``services.cloud.store.mission``): resumed when it is the
         state directory's current one, else started, the earlier missions' agents becoming
         the read-only prior map (default None: the current mission continues).
     gt_every_s: with ground truth, the dashboard's reference trajectories are re-aligned to

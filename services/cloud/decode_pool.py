@@ -22,7 +22,7 @@ from common.links.edge_cloud import KeyframeUpdate, KeyframeUpdateCoded
 from common.protocol.messages import Message
 from common.vocabulary import Vocabulary
 from services.cloud.child_process import child_process_init
-from services.cloud.uplink import KeyframeDecoders
+from services.cloud.fusion.uplink import KeyframeDecoders
 
 log = logging.getLogger(__name__)
 

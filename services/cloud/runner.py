@@ -88,7 +88,7 @@ class CloudRunConfig:
         stats_out: JSON counters file rewritten every second and at exit (None: none).
         record: uplink recording appended to (None: off).
         mission: the named mission to serve (None: the state directory's current one; see
-            ``services.cloud.mission``).
+            ``services.cloud.store.mission``).
         prior_frame: ``eval/ate.json`` of the mission whose map this one starts in (the ATE
             is also reported in its frame; None: not).
     """

@@ -24,11 +24,11 @@ described there, once) and owns the lifecycle:
   process would finish it anyway, and the shutdown's own solve would queue behind it), the
   rest of its round is handed back to the core (:meth:`CloudCore.cancel`), then the core's
   shutdown sequence runs and the trajectories are written;
-- the dashboard's :class:`~services.cloud.map_source.CloudMapSource` is refreshed every
+- the dashboard's :class:`~services.cloud.store.map_source.CloudMapSource` is refreshed every
   ``publish_every_s``; trajectories (and the ATE report with ground truth) are written every
   ``output_every_s`` and at :meth:`CloudServer.stop` (:mod:`services.cloud.server_outputs`);
 - with ``record``, every applied uplink message is appended to a recording
-  (:mod:`services.cloud.recording`) on the worker, right after it was applied.
+  (:mod:`services.cloud.store.recording`) on the worker, right after it was applied.
 """
 
 from __future__ import annotations
@@ -60,9 +60,9 @@ from services.cloud.app import CloudApp, PositionStore
 from services.cloud.app_optimization import Correction
 from services.cloud.child_process import child_process_init
 from services.cloud.config import CloudServiceConfig
-from services.cloud.core import (
+from services.cloud.core import CloudCore
+from services.cloud.core_actions import (
     Action,
-    CloudCore,
     Outcome,
     SendCorrections,
     SolveKind,
@@ -70,15 +70,15 @@ from services.cloud.core import (
     SolveResult,
 )
 from services.cloud.decode_pool import DecodePool, Predecoded
-from services.cloud.global_optimization import warm_up
+from services.cloud.fusion.map_fusion import MapFusion
 from services.cloud.load import BusyMeter
-from services.cloud.map_fusion import MapFusion
-from services.cloud.map_source import CloudMapSource
-from services.cloud.output import OutputWriter
-from services.cloud.persistence import CloudStore, PersistenceError
-from services.cloud.recording import RecordingWriter
+from services.cloud.optimization.global_optimization import warm_up
 from services.cloud.server_outputs import ServerOutputs
 from services.cloud.stats import CloudStats
+from services.cloud.store.map_source import CloudMapSource
+from services.cloud.store.output import OutputWriter
+from services.cloud.store.persistence import CloudStore, PersistenceError
+from services.cloud.store.recording import RecordingWriter
 
 log = logging.getLogger(__name__)
 
@@ -126,7 +126,7 @@ class CloudServer(ServerOutputs):
         record: append every applied uplink message to this recording file (default: none).
         ssl: TLS context of the listening side (None: plain TCP; frames are sealed anyway).
         prior_frame: the ``eval/ate.json`` of the mission whose map this one started in
-            (``services.cloud.mission``): the ATE is also reported in its frame.
+            (``services.cloud.store.mission``): the ATE is also reported in its frame.
     """
 
     def __init__(

@@ -2,11 +2,11 @@
 
 :class:`ServerOutputs` is a base of :class:`~services.cloud.server.CloudServer`, which sets the
 attributes declared here and starts the loops. :meth:`ServerOutputs.publish` refreshes the
-dashboard's :class:`~services.cloud.map_source.CloudMapSource` every ``publish_every_s`` (longer
-under load, ``CloudCore.publish_every_s``), with the known robots' ground truth reloaded every
-``gt_every_s``; :meth:`ServerOutputs.write_output` writes the trajectories (and the ATE report
-when ground truth is known) every ``output_every_s``. The app is read on the server's worker
-thread, files are read and written on its I/O thread.
+dashboard's :class:`~services.cloud.store.map_source.CloudMapSource` every ``publish_every_s``
+(longer under load, ``CloudCore.publish_every_s``), with the known robots' ground truth reloaded
+every ``gt_every_s``; :meth:`ServerOutputs.write_output` writes the trajectories (and the ATE report
+when ground truth is known) every ``output_every_s``. The app is read on the server's worker thread,
+files are read and written on its I/O thread.
 """
 
 from __future__ import annotations
@@ -27,8 +27,8 @@ from common.transport import Server
 from services.cloud.app import CloudApp
 from services.cloud.config import CloudServiceConfig
 from services.cloud.core import CloudCore
-from services.cloud.map_source import CloudMapSource, CloudView
-from services.cloud.output import OutputWriter
+from services.cloud.store.map_source import CloudMapSource, CloudView
+from services.cloud.store.output import OutputWriter
 
 log = logging.getLogger(__name__)
 

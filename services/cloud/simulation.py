@@ -27,9 +27,9 @@ from common.links.edge_cloud import (
     pack_map_point_update,
 )
 from common.vocabulary import Vocabulary
-from services.cloud.atlas import Atlas, KeyframeInput, MapPointInput
-from services.cloud.full_ba import FullBAProblem
-from services.cloud.inertial import ImuStore, ImuTerms
+from services.cloud.atlas.atlas import Atlas, KeyframeInput, MapPointInput
+from services.cloud.optimization.full_ba import FullBAProblem
+from services.cloud.optimization.inertial import ImuStore, ImuTerms
 
 # Camera z = body x (forward), camera x = -body y, camera y = -body z.
 R_BODY_CAM = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])

@@ -11,8 +11,9 @@ turns each :class:`~services.edge.worker.WorkResult` into messages:
   coded ``InertialFeedbackCoded`` with landmark deltas, per ``SessionOptions.wire``); tracks
   are named by stream numbers (``common.codec.tracks``);
 - to the cloud, :class:`KeyframeUpdate` (first time with the keyframe's features re-coded
-  standalone; later pose-only), :class:`MapPointUpdate`, :class:`CullEvent`, and every
-  ``status_every_frames`` an :class:`AgentStatus`.
+  standalone; later pose-only), :class:`MapPointUpdate`, :class:`CullEvent` (the base class
+  :class:`~services.edge.session_uplink.SessionUplink`), and every ``status_every_frames`` an
+  :class:`AgentStatus`.
 
 No sockets, no asyncio: ``services/edge/app.py`` drives it.
 """
@@ -20,58 +21,29 @@ No sockets, no asyncio: ``services/edge/app.py`` drives it.
 from __future__ import annotations
 
 import logging
-import time
 from collections import OrderedDict
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
 from common.calibration import CameraCalibration
-from common.codec import (
-    CodecConfig,
-    FeatureDecoder,
-    ImuDecoder,
-    KeyframeFeatures,
-    encode_standalone_keyframe,
-)
+from common.codec import CodecConfig, FeatureDecoder, ImuDecoder, KeyframeFeatures
 from common.codec.keypoints import kf_track_q
 from common.codec.tracks import next_stream_numbers
-from common.geometry import inverse_T, orthonormalize_T, so3_log
+from common.geometry import inverse_T
 from common.links import CodecTimer, WireFormat
-from common.links.edge_cloud import (
-    AgentStatus,
-    CullEvent,
-    FrameAnchor,
-    KeyframePoses,
-    KeyframeStates,
-    KeyframeUpdateCoded,
-    MapPointUpdateCoded,
-    PointBatch,
-    encode_point_ids,
-    encode_points,
-    encode_states,
-    pack_keyframe_update,
-    pack_map_point_update,
-)
-from common.links.robot_edge import (
-    Anchors,
-    CameraImuOffset,
-    RobotFrame,
-)
-from common.protocol.arrays import pack_array
+from common.links.edge_cloud import AgentStatus
+from common.links.robot_edge import Anchors, CameraImuOffset, RobotFrame
 from common.protocol.messages import Message
 from common.vocabulary import Vocabulary
-from services.edge.feedback import FeedbackPolicy, FeedbackSender
+from services.edge.feedback import FeedbackPolicy as FeedbackPolicy  # re-exported
+from services.edge.feedback import FeedbackSender
 from services.edge.frame_poses import FramePoseBatcher, frame_pose
 from services.edge.imu_uplink import ImuUplink
-from services.edge.point_uplink import Selection, SentPoints, one_point_each
-from services.edge.vio.types import (
-    FrameObservation,
-    FrameResult,
-    KeyframeSnapshot,
-    MapUpdate,
-    TrackingStatus,
-)
+from services.edge.point_uplink import SentPoints
+from services.edge.session_options import SessionOptions  # also imported from here
+from services.edge.session_uplink import SessionUplink
+from services.edge.vio.types import FrameObservation, FrameResult, TrackingStatus
 from services.edge.worker import WorkItem, WorkResult
 
 logger = logging.getLogger(__name__)
@@ -84,47 +56,6 @@ was decoded, as it does whenever the edge runs behind the robots, and then the c
 carried no points at all."""
 
 
-@dataclass(frozen=True)
-class SessionOptions:
-    """Per-robot output options: feedback policy, status period (frames), features kept for
-    the keyframe uplink (robot keyframes, newest), IMU history kept (s), and the map-point
-    uplink threshold: a point already sent is sent again only when it moved more than
-    ``point_resend_m`` (m) or gained observations in robot keyframes, and then with only the
-    new observations (local BA nudges every window point a little, and resending all of them
-    with every observation dominated the edge->cloud link)."""
-
-    feedback: FeedbackPolicy = field(default_factory=FeedbackPolicy)
-    status_every_frames: int = 20
-    keyframes_kept: int = 300
-    imu_history_s: float = 120.0
-    point_resend_m: float = 0.01
-    wire: WireFormat = WireFormat.CODED
-    """Encoding of the messages to the robot and to the cloud (``raw``: the schema-1 baseline)."""
-    frame_poses_every: int = 20
-    """Coded wire only: the tracked frames' poses relative to the newest uplinked keyframe go
-    to the cloud (``FramePoses``, 44 B a frame) in batches of this many frames (and when the
-    map changes, and at the end), so that it writes a trajectory of every frame."""
-    pose_resend_m: float = 1e-3
-    """Coded wire only: a keyframe the cloud has gets a new state (``KeyframePoses``) when its
-    position moved more than this (m) since last sent, its rotation more than
-    ``pose_resend_rad``, its velocity more than ``velocity_resend_mps`` or a bias more than
-    ``bias_resend``; each point then follows its reference keyframe at both ends, and is
-    re-sent when it moved more than ``point_resend_m`` from where it followed to."""
-    pose_resend_rad: float = 1e-3
-    velocity_resend_mps: float = 0.01
-    bias_resend: float = 1e-3
-    point_settle_keyframes: int = 0
-    """Coded wire only: a new map point goes up once this many robot keyframes were uplinked
-    after its first robot observer (``services.edge.point_uplink``; 0: at once, as the raw
-    wire does). Off by default: 3 cut the map-point bytes by ~45 % (edge->cloud 1237 -> 1020
-    / 1034 kbit/s at camera rate, default dataset) but joint ATE was 2.7 / 3.0 cm against 2.5
-    at 0 (single runs; ``benchmarks/results/link_budget_sweep.md``). A likely cause: a held
-    point kept the position it had before a cloud correction the edge applied meanwhile (the
-    VIO moves its points without re-sending them), so it reached the cloud off its corrected
-    keyframes; held points now move with those corrections (``SentPoints.move_held``), not
-    yet measured on the whole job."""
-
-
 @dataclass
 class Outputs:
     """Messages produced by one step: for the robot and for the cloud."""
@@ -134,20 +65,7 @@ class Outputs:
     status_due: bool = False  # time for an AgentStatus (the app adds the link counters)
 
 
-_State = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
-"""(T_world_body (4, 4), v (3,) m/s, bias gyro (3,), bias accel (3,)) of one keyframe"""
-_StateRow = tuple[int, np.ndarray, np.ndarray, np.ndarray, np.ndarray]
-"""(keyframe id, *:data:`_State`)"""
-
-
-def _states(rows: list[_StateRow], anchor: FrameAnchor | None = None) -> KeyframeStates:
-    """Rows of :data:`_StateRow` as KeyframeStates in the frame of ``anchor``."""
-    ids, T, v, bg, ba = zip(*rows, strict=True)
-    T_, v_, bg_, ba_ = (np.stack(x) for x in (T, v, bg, ba))
-    return KeyframeStates(np.array(ids, np.int64), T_, v_, bg_, ba_, anchor)
-
-
-class RobotSession:
+class RobotSession(SessionUplink):
     """Edge-side state of one robot (see the module docstring)."""
 
     def __init__(
@@ -202,7 +120,7 @@ class RobotSession:
         self._own_sorted: dict[int, np.ndarray] = {}  # map id -> sorted(_own_kfs[map id])
         self._sent_points: dict[int, SentPoints] = {}  # map id -> the points the cloud has
         # (map id, keyframe id) -> (T_world_body, v, bg, ba) the cloud has (coded wire)
-        self._sent_state: dict[tuple[int, int], _State] = {}
+        self._sent_state = {}
         # map id -> {keyframe id: T_world_body} of the uplinked keyframes whose pose here is
         # the one the cloud was sent or sent back (not moved by local BA since): the
         # candidates for a message's FrameAnchor (coded wire)
@@ -280,13 +198,6 @@ class RobotSession:
             msg.frame_index, imu.timestamps_ns, imu.gyro, imu.accel, obs, new_stream=restart
         )
 
-    def _imu_args(
-        self, prev: tuple[int, int] | None, key: tuple[int, int], t_ns: int
-    ) -> tuple[tuple[int, int] | None, int | None, tuple[int, int], int, int]:
-        """:class:`ImuUplink` arguments of keyframe ``key`` (at ``t_ns``) after ``prev``."""
-        prev_time = None if prev is None else self._kf_time.get(prev)
-        return prev, prev_time, key, t_ns, self.time_offset_ns
-
     # ------------------------------------------------------------------ outputs
     def on_result(self, res: WorkResult, *, replaying: bool = False) -> Outputs:
         """Messages for one VIO result (no robot feedback while replaying the journal)."""
@@ -361,264 +272,6 @@ class RobotSession:
         )
         self.feedback_sent += msg is not None
         return msg
-
-    def _uplink(self, upd: MapUpdate) -> list[Message]:
-        if self.options.wire is WireFormat.CODED:
-            return self._uplink_coded(upd)
-        return self._uplink_raw(upd)
-
-    def _uplink_coded(self, upd: MapUpdate) -> list[Message]:
-        """The coded uplink: new keyframes as KeyframeUpdateCoded, changed states of known
-        ones in one KeyframePoses, points as MapPointUpdateCoded (see ``common.links``)."""
-        msgs: list[Message] = []
-        timer = self.codec_timer
-        book = self._book(upd.map_id)
-        agreed = self._agreed.setdefault(upd.map_id, {})
-        anchor = self._anchor(agreed, {kf.keyframe_id for kf in upd.keyframes})
-        moved: list[_StateRow] = []
-        fresh: list[tuple[KeyframeSnapshot, _State, KeyframeFeatures, np.ndarray]] = []
-        for kf in upd.keyframes:
-            key = (upd.map_id, kf.keyframe_id)
-            if not self._register(key, kf.timestamp_ns, kf.robot_keyframe):
-                continue
-            T = orthonormalize_T(kf.T_world_body)
-            state: _State = (
-                T,
-                np.asarray(kf.v_world, float),
-                np.asarray(kf.bias_gyro, float),
-                np.asarray(kf.bias_accel, float),
-            )
-            if key in self._sent_kfs:
-                last = self._sent_state.get(key)
-                if last is None or self._state_moved(last, state):
-                    moved.append((kf.keyframe_id, *state))
-                    agreed[kf.keyframe_id] = T
-                else:  # nudged below the thresholds: no longer where the cloud has it
-                    agreed.pop(kf.keyframe_id, None)
-                continue
-            feats = self._kf_features.get(kf.timestamp_ns)
-            if feats is None:
-                logger.warning(
-                    "robot %s: features of keyframe %d no longer kept",
-                    self.agent_id,
-                    kf.keyframe_id,
-                )
-                continue
-            point_ids = np.asarray(kf.point_ids, np.int64)
-            book.add_keys(point_ids[point_ids >= 0], kf.keyframe_id)
-            fresh.append((kf, state, feats, point_ids))
-            self._sent_kfs.add(key)
-            self._sent_state[key] = state
-            agreed[kf.keyframe_id] = T
-            self.vio_keyframes += 1
-        if moved:
-            t0 = time.perf_counter()
-            states = _states(moved, anchor)
-            msgs.append(KeyframePoses(self.agent_id, upd.map_id, encode_states(states)))
-            timer.add("encode.KeyframePoses", time.perf_counter() - t0)
-            for kf_id, *new_state in moved:
-                key = (upd.map_id, kf_id)
-                T_new, v, bg, ba = new_state
-                book.follow(kf_id, self._sent_state[key][0], T_new)
-                self._sent_state[key] = (T_new, v, bg, ba)
-        points = self._points_to_send(upd)  # after the follows: compared where they moved to
-        kf_msgs: list[Message] = []
-        for kf, state, feats, point_ids in fresh:  # after the points: what they may name
-            t0 = time.perf_counter()
-            prev = self._up_prev[(upd.map_id, kf.keyframe_id)]
-            kf_msgs.append(
-                KeyframeUpdateCoded(
-                    agent_id=self.agent_id,
-                    map_id=upd.map_id,
-                    keyframe_id=kf.keyframe_id,
-                    previous_keyframe_id=-1 if prev is None else int(prev),
-                    timestamp_ns=kf.timestamp_ns,
-                    state=encode_states(_states([(kf.keyframe_id, *state)], anchor)),
-                    features=encode_standalone_keyframe(self.vocabulary, feats, self.codec),
-                    map_point_ids=encode_point_ids(book.carried(point_ids, kf.keyframe_id)),
-                    imu=self.imu_uplink.coded(
-                        *self._imu_args(
-                            None if prev is None else (upd.map_id, prev),
-                            (upd.map_id, kf.keyframe_id),
-                            kf.timestamp_ns,
-                        )
-                    ),
-                )
-            )
-            timer.add("encode.KeyframeUpdateCoded", time.perf_counter() - t0)
-        msgs[:0] = kf_msgs
-        msgs.extend(self.release_points(keep_map=upd.map_id))
-        if points is not None:
-            msgs.append(self._points_coded(upd.map_id, points, anchor))
-        msgs.extend(self._culls(upd))
-        return msgs
-
-    @staticmethod
-    def _anchor(agreed: dict[int, np.ndarray], changed: set[int]) -> FrameAnchor | None:
-        """The newest keyframe the cloud has at the pose it has here and that this update
-        leaves alone: the frame its messages are in (None: no such keyframe yet)."""
-        best = max((k for k in agreed if k not in changed), default=None)
-        return None if best is None else FrameAnchor(best, agreed[best])
-
-    def _follow_correction(self, map_id: int, deltas: dict[int, np.ndarray]) -> None:
-        """The VIO applied a cloud correction (``{keyframe id: (4, 4) T_new T_old^-1}``):
-        the agreed poses move as its keyframes did (``VioManager.apply_pose_corrections``)."""
-        agreed = self._agreed.get(map_id)
-        if not agreed:
-            return
-        for kf_id, T in agreed.items():
-            delta = deltas.get(kf_id)
-            if delta is not None:
-                agreed[kf_id] = orthonormalize_T(delta @ T)
-
-    def _points_coded(
-        self, map_id: int, points: Selection, anchor: FrameAnchor | None = None
-    ) -> MapPointUpdateCoded:
-        t0 = time.perf_counter()
-        ids, p_world, rows = points
-        last = len(ids) - 1 - np.unique(ids[::-1], return_index=True)[1]  # a point twice:
-        ids, p_world = ids[last], p_world[last]  # its last position (rows are distinct)
-        body = encode_points(PointBatch(ids, p_world, rows, anchor))
-        self.codec_timer.add("encode.MapPointUpdateCoded", time.perf_counter() - t0)
-        return MapPointUpdateCoded(self.agent_id, map_id, body)
-
-    def _book(self, map_id: int) -> SentPoints:
-        book = self._sent_points.get(map_id)
-        if book is None:
-            settle = self.options.point_settle_keyframes
-            book = SentPoints(settle if self.options.wire is WireFormat.CODED else 0)
-            self._sent_points[map_id] = book
-        return book
-
-    def _own(self, map_id: int) -> np.ndarray:
-        """The VIO's own keyframe ids of a map, ascending."""
-        own = self._own_sorted.get(map_id)
-        if own is None:
-            own = np.array(sorted(self._own_kfs.get(map_id, ())), np.int64)
-            self._own_sorted[map_id] = own
-        return own
-
-    def release_points(self, keep_map: int | None = None) -> list[Message]:
-        """The held points of every map but ``keep_map`` (all at the end of the robot's
-        sequence; a map the robot left gets no keyframe that would settle them)."""
-        msgs: list[Message] = []
-        for map_id, book in self._sent_points.items():
-            if map_id == keep_map or not book.n_held:
-                continue
-            points = book.release(self._own(map_id), self.options.point_resend_m)
-            if points is not None:
-                anchor = self._anchor(self._agreed.get(map_id, {}), set())
-                msgs.append(self._points_coded(map_id, points, anchor))
-        return msgs
-
-    def _state_moved(
-        self,
-        last: _State,
-        new: _State,
-    ) -> bool:
-        o = self.options
-        dT = inverse_T(last[0]) @ new[0]
-        return bool(
-            np.linalg.norm(new[0][:3, 3] - last[0][:3, 3]) > o.pose_resend_m
-            or np.linalg.norm(so3_log(dT[:3, :3])) > o.pose_resend_rad
-            or np.linalg.norm(new[1] - last[1]) > o.velocity_resend_mps
-            or np.abs(new[2] - last[2]).max() > o.bias_resend
-            or np.abs(new[3] - last[3]).max() > o.bias_resend
-        )
-
-    def _culls(self, upd: MapUpdate) -> list[Message]:
-        book = self._sent_points.get(upd.map_id)
-        removed = np.zeros(0, np.int64)
-        if book is not None and upd.removed_point_ids:
-            removed = book.remove(np.asarray(upd.removed_point_ids, np.int64))
-        if not len(removed):  # points the cloud never heard of need no cull
-            return []
-        return [CullEvent(self.agent_id, upd.map_id, b"", pack_array(removed, "<i8"))]
-
-    def _register(self, key: tuple[int, int], timestamp_ns: int, robot_keyframe: bool) -> bool:
-        """Note a keyframe ``(map id, keyframe id)`` of an update; False for the VIO's own
-        keyframes, which stay on the edge (uplinked ones chain to the previous uplinked one)."""
-        map_id, kf_id = key
-        self._kf_time[key] = timestamp_ns
-        if not robot_keyframe:
-            self._own_kfs.setdefault(map_id, set()).add(kf_id)
-            self._own_sorted.pop(map_id, None)
-            return False
-        if key not in self._up_prev:
-            self._up_prev[key] = self._last_up.get(map_id)
-            self._last_up[map_id] = kf_id
-        return True
-
-    def _uplink_raw(self, upd: MapUpdate) -> list[Message]:
-        msgs: list[Message] = []
-        for kf in upd.keyframes:
-            key = (upd.map_id, kf.keyframe_id)
-            if not self._register(key, kf.timestamp_ns, kf.robot_keyframe):
-                continue
-            prev = self._up_prev[key]
-            features = b""
-            imu = np.zeros((0, 7))
-            if key not in self._sent_kfs:
-                feats = self._kf_features.get(kf.timestamp_ns)
-                if feats is not None:
-                    features = encode_standalone_keyframe(self.vocabulary, feats, self.codec)
-                else:
-                    logger.warning(
-                        "robot %s: features of keyframe %d no longer kept",
-                        self.agent_id,
-                        kf.keyframe_id,
-                    )
-                prev_key = None if prev is None else (upd.map_id, int(prev))
-                imu = self.imu_uplink.raw(*self._imu_args(prev_key, key, kf.timestamp_ns))
-                self._sent_kfs.add(key)
-                self.vio_keyframes += 1
-            msgs.append(
-                pack_keyframe_update(
-                    self.agent_id,
-                    upd.map_id,
-                    kf.keyframe_id,
-                    -1 if prev is None else int(prev),
-                    kf.timestamp_ns,
-                    orthonormalize_T(kf.T_world_body),
-                    kf.v_world,
-                    kf.bias_gyro,
-                    kf.bias_accel,
-                    features,
-                    kf.point_ids if features else None,
-                    imu,
-                )
-            )
-        points = self._points_to_send(upd)
-        if points is not None:
-            msgs.append(pack_map_point_update(self.agent_id, upd.map_id, *points))
-        msgs.extend(self._culls(upd))
-        return msgs
-
-    def _points_to_send(self, upd: MapUpdate) -> Selection | None:
-        """The changed points worth sending: ``ids`` (P,), ``p_world`` (P, 3) m and the new
-        observation rows (R, 3) ``[point id, keyframe id, feature row]``, in ``upd`` order;
-        None if nothing is due.
-
-        The cloud only knows the robot keyframes (the VIO's own keyframes carry no features),
-        so only observations in those count: a point is sent once a robot keyframe observes
-        it, again when it gains such observations (only the new rows: the cloud adds them to
-        what it has) or moved more than ``point_resend_m`` since it was last sent.
-        """
-        book = self._book(upd.map_id)
-        if not upd.points and not book.n_held:
-            return None
-        own = self._own(upd.map_id)
-        batch = upd.points
-        if len(np.unique(batch.point_ids)) < len(batch):  # a point twice: one at a time
-            parts = [
-                book.select(b, own, self.options.point_resend_m) for b in one_point_each(batch)
-            ]
-            sent = [p for p in parts if p is not None]
-            if not sent:
-                return None
-            ids, p_world, rows = zip(*sent, strict=True)
-            return np.concatenate(ids), np.concatenate(p_world), np.concatenate(rows)
-        return book.select(batch, own, self.options.point_resend_m)
 
     def status(self, link_counters: dict[str, int]) -> AgentStatus:
         """The robot's :class:`AgentStatus` now (``link_counters``: flat int counters)."""

@@ -22,7 +22,7 @@ from common.data.synth import SynthConfig, generate_dataset
 from common.links.sensors import decode_sensors
 from lab.run.orchestration import Job, JobConfig, robot_frames
 from lab.run.report import RunFacts, write_report
-from services.cloud.map_types import split_key
+from services.cloud.atlas.map_types import split_key
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(400)]
 

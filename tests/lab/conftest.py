@@ -6,7 +6,6 @@ import numpy as np
 import pytest
 
 from common.vocabulary import Vocabulary
-from services.cloud.recording import RecordingWriter
 from services.cloud.simulation import (
     circle_poses,
     default_camera,
@@ -15,6 +14,7 @@ from services.cloud.simulation import (
     make_world,
     yaw_T,
 )
+from services.cloud.store.recording import RecordingWriter
 
 
 @pytest.fixture(scope="module")

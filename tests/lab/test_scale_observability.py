@@ -11,8 +11,8 @@ import pytest
 from common.calibration import EUROC_IMU
 from lab.scale_observability import nominal, scale_profile
 from services.cloud.config import FullBAConfig, GlobalOptimizationConfig
-from services.cloud.full_ba import build_full_ba
-from services.cloud.inertial import ImuTerms
+from services.cloud.optimization.full_ba import build_full_ba
+from services.cloud.optimization.inertial import ImuTerms
 from services.cloud.simulation import default_camera, vi_circle_atlas
 
 CFG = FullBAConfig()

@@ -184,8 +184,8 @@ def test_loop_constraints_checked_against_the_ground_truth(tmp_path: Path) -> No
     from common.evaluation.results import load_groundtruth
     from common.geometry import inverse_T
     from lab.seeds import constraint_check
-    from services.cloud.atlas import Atlas, KeyframeInput, make_key
-    from services.cloud.persistence import CloudStore
+    from services.cloud.atlas.atlas import Atlas, KeyframeInput, make_key
+    from services.cloud.store.persistence import CloudStore
 
     data = tmp_path / "data"
     ensure_dataset(data, 1, 1.0, 3)

@@ -9,14 +9,9 @@ import numpy as np
 import pytest
 
 from common.errors import RecslamError
-from lab.table3 import ReplayDivergedError, replay, service_config
-from services.cloud.core import SolveRequest, SolveResult, solve
-from services.cloud.recording import (
-    Step,
-    has_schedule,
-    read_recording,
-    read_schedule,
-)
+from lab.replay_schedule import ReplayDivergedError
+from lab.table3 import replay, service_config
+from services.cloud.core_actions import SolveRequest, SolveResult, solve
 from services.cloud.server import open_app
 from services.cloud.simulation import (
     circle_poses,
@@ -25,6 +20,12 @@ from services.cloud.simulation import (
     make_session,
     make_world,
     yaw_T,
+)
+from services.cloud.store.recording import (
+    Step,
+    has_schedule,
+    read_recording,
+    read_schedule,
 )
 
 

@@ -117,7 +117,7 @@ class SynthConfig:
     ``scene_seed``: the room's appearance (textures, posters, ``room-random``'s furniture)
     derives from it instead of ``seed`` (None: from ``seed``): datasets of one scene seed and
     different seeds are different flights through one room, e.g. two missions, one starting
-    in the map the other left (``services.cloud.mission``).
+    in the map the other left (``services.cloud.store.mission``).
     """
 
     robots: int = 3

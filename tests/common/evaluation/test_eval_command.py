@@ -155,7 +155,7 @@ def test_cli_no_time_overlap_is_a_clear_error(run_setup):
 def test_cloud_report_has_a_joint_row_only_for_one_map(run_setup, merged, capsys):
     """The cloud's writer (trajectories, cloud_maps.json, report) and ``recslam eval`` on its
     folder: a joint ATE row only when every robot is in one map."""
-    from services.cloud.output import OutputWriter
+    from services.cloud.store.output import OutputWriter
 
     result, dataset, _, ests = run_setup
     maps = {"A": 0, "B": 0, "C": 0} if merged else {"A": 0, "B": 3, "C": 3}

@@ -11,20 +11,22 @@ from common.codec.entropy import BitWriter
 from common.geometry import so3_exp
 from common.links.body import LinkDecodeError, seal
 from common.links.edge_cloud import (
+    PoseCorrection,
+    PoseCorrectionCoded,
+    decode_pose_correction,
+    encode_pose_correction,
+)
+from common.links.edge_cloud_payloads import (
     POSITION_STEP_M,
     FrameAnchor,
     KeyframeStates,
     PointBatch,
-    PoseCorrection,
-    PoseCorrectionCoded,
     _put_ids,
     decode_point_ids,
     decode_points,
-    decode_pose_correction,
     decode_states,
     encode_point_ids,
     encode_points,
-    encode_pose_correction,
     encode_states,
 )
 from common.protocol.errors import RemoteProtocolError

@@ -16,11 +16,11 @@ from common.links.edge_cloud import AgentStatus, CullEvent, decode_pose_correcti
 from common.protocol.arrays import pack_array
 from common.vocabulary import Vocabulary
 from services.cloud.app import CloudApp
-from services.cloud.atlas import make_key
+from services.cloud.atlas.atlas import make_key
 from services.cloud.config import CloudServiceConfig
-from services.cloud.map_fusion import MapFusion
-from services.cloud.mbp import MbpReport
-from services.cloud.persistence import CloudStore
+from services.cloud.fusion.map_fusion import MapFusion
+from services.cloud.fusion.uplink import UplinkError
+from services.cloud.optimization.mbp import MbpReport
 from services.cloud.simulation import (
     circle_poses,
     default_camera,
@@ -28,7 +28,7 @@ from services.cloud.simulation import (
     make_session,
     make_world,
 )
-from services.cloud.uplink import UplinkError
+from services.cloud.store.persistence import CloudStore
 
 T = TypeVar("T")
 
@@ -255,7 +255,7 @@ def test_mbp_while_running_keeps_its_agents_keyframes_close_in_time(tmp_path, vo
 
 def test_applied_optimisation_is_durable(tmp_path, vocab):
     from common.geometry import inverse_T
-    from services.cloud.global_optimization import optimize_pose_graph
+    from services.cloud.optimization.global_optimization import optimize_pose_graph
     from services.cloud.simulation import yaw_T
 
     world = make_world(12, n_points=2000)

@@ -12,14 +12,13 @@ import pytest
 from common.vocabulary import Vocabulary
 from services.cloud.app import CloudApp
 from services.cloud.config import CloudConfig, CloudServiceConfig, FullBAConfig, MbpConfig
-from services.cloud.core import (
-    CloudCore,
+from services.cloud.core import CloudCore, run_inline
+from services.cloud.core_actions import (
     CloudCoreError,
     Outcome,
     SendCorrections,
     SolveKind,
     SolveRequest,
-    run_inline,
     solve,
 )
 from services.cloud.server import open_app

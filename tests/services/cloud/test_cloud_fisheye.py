@@ -9,7 +9,7 @@ import pytest
 from common.calibration import CameraCalibration
 from common.camera import camera_model
 from common.data.synth.cameras import EUROC_CAM0, FISHEYE_CAM
-from services.cloud.verification import VerificationError, colmap_camera
+from services.cloud.fusion.verification import VerificationError, colmap_camera
 
 
 @pytest.mark.parametrize("model", [FISHEYE_CAM, EUROC_CAM0], ids=["equidistant", "radtan"])

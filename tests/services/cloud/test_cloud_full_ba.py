@@ -16,21 +16,21 @@ from common.geometry import inverse_T, so3_exp
 from common.protocol import SessionConfig
 from common.transport import Client, Delivery, TransportConfig, run
 from common.vocabulary import Vocabulary
-from services.cloud.atlas import Atlas, make_key
+from services.cloud.atlas.atlas import Atlas, make_key
 from services.cloud.config import (
     CloudConfig,
     CloudServiceConfig,
     FullBAConfig,
     GlobalOptimizationConfig,
 )
-from services.cloud.full_ba import (
+from services.cloud.fusion.map_fusion import MapFusion
+from services.cloud.optimization.full_ba import (
     FullBAResult,
     apply_full_ba,
     build_full_ba,
     reprojection_rms_px,
     solve_full_ba,
 )
-from services.cloud.map_fusion import MapFusion
 from services.cloud.server import CloudServer
 from services.cloud.simulation import (
     circle_poses,

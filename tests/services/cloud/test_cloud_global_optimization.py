@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 
 from common.geometry import inverse_T, so3_exp
-from services.cloud.atlas import Atlas, make_key
+from services.cloud.atlas.atlas import Atlas, make_key
 from services.cloud.child_process import child_process_init
 from services.cloud.config import CloudServiceConfig, GlobalOptimizationConfig
-from services.cloud.global_optimization import (
+from services.cloud.optimization.global_optimization import (
     GlobalOptimizationError,
     PoseGraphProblem,
     apply_pose_graph,

@@ -12,9 +12,9 @@ import pytest
 from common.calibration import EUROC_IMU
 from common.geometry import inverse_T
 from services.cloud.config import FullBAConfig, GlobalOptimizationConfig
-from services.cloud.core import SolveKind, SolveRequest, solve
-from services.cloud.full_ba import FullBAProblem, build_full_ba, solve_full_ba
-from services.cloud.incremental_ba import (
+from services.cloud.core_actions import SolveKind, SolveRequest, solve
+from services.cloud.optimization.full_ba import FullBAProblem, build_full_ba, solve_full_ba
+from services.cloud.optimization.incremental_ba import (
     _SOLVERS,
     L,
     V,

@@ -8,18 +8,18 @@ import numpy as np
 import pytest
 
 from common.geometry import inverse_T
-from services.cloud.atlas import make_key, split_key
+from services.cloud.atlas.atlas import make_key, split_key
 from services.cloud.config import (
     CloudConfig,
     MergeConfig,
     PlaceRecognitionConfig,
     VerificationConfig,
 )
-from services.cloud.global_optimization import optimize_pose_graph
-from services.cloud.map_fusion import MapFusion
-from services.cloud.merge import yaw_of
-from services.cloud.persistence import CloudStore
+from services.cloud.fusion.map_fusion import MapFusion
+from services.cloud.fusion.merge import yaw_of
+from services.cloud.optimization.global_optimization import optimize_pose_graph
 from services.cloud.simulation import circle_poses, default_camera, make_session, make_world, yaw_T
+from services.cloud.store.persistence import CloudStore
 
 
 def test_two_robots_merge_through_the_front_object(tmp_path):

@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 
 from common.geometry import inverse_T, make_T, transform_points
-from services.cloud.atlas import Atlas, make_key
+from services.cloud.atlas.atlas import Atlas, make_key
+from services.cloud.atlas.map_types import MapPointInput
 from services.cloud.config import MbpConfig
-from services.cloud.map_types import MapPointInput
-from services.cloud.mbp import (
+from services.cloud.optimization.mbp import (
     INERTIAL,
     PROTECTED,
     REASONS,

@@ -1,5 +1,5 @@
 """Two missions over the same synthetic room: the second starts inside the map the first left
-(``services.cloud.mission``), relocalises against it, merges into it and comes out in its
+(``services.cloud.store.mission``), relocalises against it, merges into it and comes out in its
 frame, while the prior map stays exactly as it was."""
 
 from __future__ import annotations
@@ -15,10 +15,9 @@ from common.links.edge_cloud import decode_pose_correction
 from common.vocabulary import Vocabulary
 from services.cloud.app import CloudApp
 from services.cloud.config import CloudServiceConfig
-from services.cloud.full_ba import solve_full_ba
-from services.cloud.global_optimization import optimize_pose_graph
-from services.cloud.map_fusion import MapFusion
-from services.cloud.persistence import CloudStore, PersistenceError
+from services.cloud.fusion.map_fusion import MapFusion
+from services.cloud.optimization.full_ba import solve_full_ba
+from services.cloud.optimization.global_optimization import optimize_pose_graph
 from services.cloud.simulation import (
     circle_poses,
     default_camera,
@@ -27,6 +26,7 @@ from services.cloud.simulation import (
     make_world,
     yaw_T,
 )
+from services.cloud.store.persistence import CloudStore, PersistenceError
 
 WORLD_SEED = 51
 FRAMES = {  # each robot's map frame T_map_world, per mission
@@ -188,7 +188,7 @@ def test_a_schema_5_directory_is_upgraded_and_its_agents_are_mission_0(tmp_path)
         assert store.enter_mission("next") == (1, True)
         assert store.enter_mission("next") == (1, False)
     with CloudStore(tmp_path) as store:  # the same name and edge map, in the new mission
-        from services.cloud.atlas import Atlas
+        from services.cloud.atlas.atlas import Atlas
 
         store.commit(Atlas(), agents={1: ("robot0", "edge", 0)})
         assert store.agent_missions() == {0: 0, 1: 1}

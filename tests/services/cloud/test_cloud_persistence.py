@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from common.geometry import inverse_T, make_T
-from services.cloud.atlas import Atlas, make_key
-from services.cloud.persistence import CloudStore, PersistenceError
+from services.cloud.atlas.atlas import Atlas, make_key
 from services.cloud.simulation import circle_poses, default_camera, make_session, make_world, yaw_T
+from services.cloud.store.persistence import CloudStore, PersistenceError
 
 
 def _covis(atlas):
@@ -126,7 +126,7 @@ def test_a_schema_5_state_dir_is_migrated_to_agents_keyed_by_edge(tmp_path):
     opens with its agents kept, and then holds the same robot and map on two edges."""
     import sqlite3
 
-    from services.cloud.persistence import DB_NAME, SCHEMA_VERSION
+    from services.cloud.store.persistence import DB_NAME, SCHEMA_VERSION
 
     db = sqlite3.connect(tmp_path / DB_NAME)
     db.executescript(
@@ -282,7 +282,7 @@ def test_what_a_failed_write_took_is_written_by_the_next_one(tmp_path, monkeypat
 def _point_rows(path):
     import sqlite3
 
-    from services.cloud.persistence import DB_NAME
+    from services.cloud.store.persistence import DB_NAME
 
     db = sqlite3.connect(path / DB_NAME)
     try:
@@ -336,7 +336,7 @@ def test_a_schema_6_state_dir_keeps_its_map_frame_positions(tmp_path):
     """Schema 6 stored every position in the map frame: its rows load as they were (in_ref 0)."""
     import sqlite3
 
-    from services.cloud.persistence import DB_NAME, SCHEMA_VERSION
+    from services.cloud.store.persistence import DB_NAME, SCHEMA_VERSION
 
     db = sqlite3.connect(tmp_path / DB_NAME)
     db.executescript(
@@ -361,7 +361,7 @@ def test_a_schema_6_state_dir_keeps_its_map_frame_positions(tmp_path):
 def test_a_schema_7_state_dir_gets_the_blend_columns_of_its_retired_keyframes(tmp_path):
     import sqlite3
 
-    from services.cloud.persistence import DB_NAME, SCHEMA_VERSION
+    from services.cloud.store.persistence import DB_NAME, SCHEMA_VERSION
 
     db = sqlite3.connect(tmp_path / DB_NAME)
     db.executescript(
@@ -388,7 +388,7 @@ def test_re_sent_points_rewrite_their_positions_only(tmp_path):
     the reloaded atlas holds both."""
     import sqlite3
 
-    from services.cloud.persistence import DB_NAME
+    from services.cloud.store.persistence import DB_NAME
 
     world = make_world(46, n_points=800)
     k0, m0 = make_session(world, default_camera(), 0, circle_poses(6, turns=0.2), np.eye(4))
@@ -432,7 +432,7 @@ def test_keyframe_state_refreshes_and_new_links_leave_the_features_unwritten(tmp
     newest state and every link (rebuilt from the points' observations)."""
     import sqlite3
 
-    from services.cloud.persistence import DB_NAME
+    from services.cloud.store.persistence import DB_NAME
 
     world = make_world(46, n_points=800)
     k0, m0 = make_session(world, default_camera(), 0, circle_poses(6, turns=0.2), np.eye(4))
@@ -479,7 +479,7 @@ def test_a_schema_8_state_dir_keeps_its_keyframes_states_and_gets_the_state_colu
     column."""
     import sqlite3
 
-    from services.cloud.persistence import DB_NAME, SCHEMA_VERSION
+    from services.cloud.store.persistence import DB_NAME, SCHEMA_VERSION
 
     world = make_world(46, n_points=400)
     k0, m0 = make_session(world, default_camera(), 0, circle_poses(4, turns=0.2), np.eye(4))

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from services.cloud.atlas import Atlas, split_key
+from services.cloud.atlas.atlas import Atlas, split_key
 from services.cloud.config import PlaceRecognitionConfig
-from services.cloud.place_recognition import (
+from services.cloud.fusion.place_recognition import (
     KeyframeDatabase,
     PlaceRecognitionError,
     PlaceRecognizer,

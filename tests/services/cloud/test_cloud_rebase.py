@@ -1,4 +1,4 @@
-"""The edge's coded payloads land through their FrameAnchor (``services.cloud.rebase``).
+"""The edge's coded payloads land through their FrameAnchor (``services.cloud.fusion.rebase``).
 
 The cloud corrects an agent's keyframes (as a pose graph would) while the edge, not having
 applied that correction yet, sends a pose update and points in its old frame, anchored on a
@@ -13,21 +13,19 @@ import numpy as np
 import pytest
 
 from common.geometry import so3_exp
-from common.links.edge_cloud import (
+from common.links.edge_cloud import KeyframePoses, MapPointUpdateCoded
+from common.links.edge_cloud_payloads import (
     FrameAnchor,
-    KeyframePoses,
     KeyframeStates,
-    MapPointUpdateCoded,
     PointBatch,
     encode_points,
     encode_states,
 )
 from common.vocabulary import Vocabulary
 from services.cloud.app import CloudApp
-from services.cloud.atlas import make_key
+from services.cloud.atlas.atlas import make_key
 from services.cloud.config import CloudServiceConfig
-from services.cloud.map_fusion import MapFusion
-from services.cloud.persistence import CloudStore
+from services.cloud.fusion.map_fusion import MapFusion
 from services.cloud.simulation import (
     circle_poses,
     default_camera,
@@ -35,6 +33,7 @@ from services.cloud.simulation import (
     make_session,
     make_world,
 )
+from services.cloud.store.persistence import CloudStore
 
 
 @pytest.fixture(scope="module")

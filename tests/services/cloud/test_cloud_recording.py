@@ -11,7 +11,7 @@ import pytest
 from common.links.edge_cloud import AgentStatus, CullEvent
 from common.protocol.arrays import pack_array
 from common.protocol.messages import encode_payload
-from services.cloud.recording import (
+from services.cloud.store.recording import (
     MAGIC,
     MAGIC_V1,
     RecordingError,

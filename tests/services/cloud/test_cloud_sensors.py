@@ -18,7 +18,7 @@ from common.links.sensors import Sensors
 from common.vocabulary import Vocabulary
 from services.cloud.config import CloudConfig, CloudServiceConfig, FullBAConfig, MbpConfig
 from services.cloud.core import CloudCore
-from services.cloud.merge import yaw_of
+from services.cloud.fusion.merge import yaw_of
 from services.cloud.server import open_app
 from services.cloud.simulation import (
     R_BODY_CAM,

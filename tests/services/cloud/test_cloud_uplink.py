@@ -12,8 +12,13 @@ from common.codec.types import CodecConfig
 from common.links.edge_cloud import CullEvent, decode_pose_correction, encode_pose_correction
 from common.protocol.arrays import pack_array
 from common.vocabulary import Vocabulary
-from services.cloud.atlas import Atlas
-from services.cloud.persistence import CloudStore
+from services.cloud.atlas.atlas import Atlas
+from services.cloud.fusion.uplink import (
+    UplinkError,
+    decode_cull_event,
+    decode_keyframe_update,
+    decode_map_point_update,
+)
 from services.cloud.simulation import (
     circle_poses,
     default_camera,
@@ -22,12 +27,7 @@ from services.cloud.simulation import (
     make_session,
     make_world,
 )
-from services.cloud.uplink import (
-    UplinkError,
-    decode_cull_event,
-    decode_keyframe_update,
-    decode_map_point_update,
-)
+from services.cloud.store.persistence import CloudStore
 
 
 @pytest.fixture(scope="module")

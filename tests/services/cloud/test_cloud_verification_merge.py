@@ -9,15 +9,16 @@ import numpy as np
 import pytest
 
 from common.geometry import inverse_T, so3_log
-from services.cloud.atlas import Atlas, make_key
+from services.cloud.atlas.atlas import Atlas, make_key
 from services.cloud.config import (
     AlignmentMode,
     MergeConfig,
     PlaceRecognitionConfig,
     VerificationConfig,
 )
-from services.cloud.merge import MergeError, align_points, apply_match, yaw_of
-from services.cloud.place_recognition import KeyframeDatabase, PlaceRecognizer
+from services.cloud.fusion.merge import MergeError, align_points, apply_match, yaw_of
+from services.cloud.fusion.place_recognition import KeyframeDatabase, PlaceRecognizer
+from services.cloud.fusion.verification import covisible_agreement, match_by_words, verify_candidate
 from services.cloud.simulation import (
     World,
     circle_poses,
@@ -26,7 +27,6 @@ from services.cloud.simulation import (
     make_world,
     yaw_T,
 )
-from services.cloud.verification import covisible_agreement, match_by_words, verify_candidate
 
 CAM = default_camera()
 

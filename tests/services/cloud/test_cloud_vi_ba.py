@@ -14,25 +14,23 @@ from common.calibration import EUROC_IMU
 from common.codec.imu import ImuEncoder
 from common.codec.types import ImuChunk
 from common.geometry import make_T, so3_exp
-from common.links.edge_cloud import (
-    KeyframeStates,
-    KeyframeUpdateCoded,
-    encode_point_ids,
-    encode_states,
-)
+from common.links.edge_cloud import KeyframeUpdateCoded
+from common.links.edge_cloud_payloads import KeyframeStates, encode_point_ids, encode_states
 from common.protocol.arrays import pack_array
 from common.vocabulary import Vocabulary
-from services.cloud.atlas import KeyframeInput, make_key
+from services.cloud.atlas.atlas import KeyframeInput, make_key
 from services.cloud.config import (
     CloudServiceConfig,
     FullBAConfig,
     GlobalOptimizationConfig,
     MbpConfig,
 )
-from services.cloud.core import CloudCore, SendCorrections, SolveRequest, solve
-from services.cloud.full_ba import FullBAProblem, build_full_ba, solve_full_ba
-from services.cloud.incremental_ba import forget, solve_full_ba_incremental
-from services.cloud.inertial import ImuStore, build_imu_terms
+from services.cloud.core import CloudCore
+from services.cloud.core_actions import SendCorrections, SolveRequest, solve
+from services.cloud.fusion.uplink import UplinkError, decode_keyframe_update
+from services.cloud.optimization.full_ba import FullBAProblem, build_full_ba, solve_full_ba
+from services.cloud.optimization.incremental_ba import forget, solve_full_ba_incremental
+from services.cloud.optimization.inertial import ImuStore, build_imu_terms
 from services.cloud.server import open_app
 from services.cloud.simulation import (
     default_camera,
@@ -44,7 +42,6 @@ from services.cloud.simulation import (
     vi_circle_atlas,
     wavy_circle,
 )
-from services.cloud.uplink import UplinkError, decode_keyframe_update
 
 ON = FullBAConfig()  # IMU factors on by default
 OFF = dataclasses.replace(FullBAConfig(), imu_factors=False)

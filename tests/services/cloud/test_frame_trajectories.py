@@ -6,7 +6,7 @@ import numpy as np
 
 from common.evaluation.trajectory import Trajectory
 from common.geometry import make_T, so3_exp
-from services.cloud.frame_trajectories import FrameTrack
+from services.cloud.store.frame_trajectories import FrameTrack
 
 
 def test_frames_land_on_their_keyframes_corrected_poses_and_orphans_are_left_out() -> None:

@@ -14,15 +14,11 @@ import numpy as np
 
 from common.calibration import CameraCalibration
 from common.codec import KeyframeFeatures
-from common.links.edge_cloud import (
-    CullEvent,
-    KeyframeUpdateCoded,
-    MapPointUpdateCoded,
-    decode_point_ids,
-)
+from common.links.edge_cloud import CullEvent, KeyframeUpdateCoded, MapPointUpdateCoded
+from common.links.edge_cloud_payloads import decode_point_ids
 from common.protocol.messages import Message
 from common.vocabulary import Vocabulary
-from services.cloud.uplink import decode_map_point_update
+from services.cloud.fusion.uplink import decode_map_point_update
 from services.edge.point_uplink import SentPoints
 from services.edge.robot_session import RobotSession, SessionOptions
 from services.edge.vio.types import KeyframeSnapshot, MapPointBatch, MapPointSnapshot, MapUpdate

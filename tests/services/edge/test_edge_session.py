@@ -168,9 +168,9 @@ def test_cloud_pose_correction_moves_the_tracking_state(run) -> None:
 
 
 def test_the_clouds_uplink_decoder_accepts_every_message(run) -> None:
-    """Contract check against the cloud's own decoders (services.cloud.uplink)."""
+    """Contract check against the cloud's own decoders (services.cloud.fusion.uplink)."""
     from common.links.edge_cloud import CullEvent
-    from services.cloud.uplink import (
+    from services.cloud.fusion.uplink import (
         decode_cull_event,
         decode_keyframe_update,
         decode_map_point_update,

@@ -28,7 +28,7 @@ from common.links.edge_cloud import (
 from common.protocol.errors import RemoteProtocolError
 from common.protocol.messages import Message
 from common.vocabulary import Vocabulary
-from services.cloud.uplink import (
+from services.cloud.fusion.uplink import (
     decode_keyframe_poses,
     decode_keyframe_update,
     decode_map_point_update,

@@ -1,11 +1,11 @@
 """The atlas's state and every read of it (:class:`AtlasQueries`).
 
-:class:`AtlasQueries` holds what :class:`~services.cloud.atlas.Atlas` is made of (keyframe and
+:class:`AtlasQueries` holds what :class:`~services.cloud.atlas.atlas.Atlas` is made of (keyframe and
 map point records keyed by ``agent_id << 32 | local_id``, the covisibility graph, each agent's
 map and ``T_map_agent``, merges, loops, removed and retired keyframes, aliases of fused points,
 what is unsaved) and answers the queries: agents and maps, counts and keys, frozen views,
 covisibility and spanning tree, point positions, observations and descriptors, retired poses,
-persistence rows and the dashboard's snapshot. :class:`~services.cloud.atlas.Atlas` adds every
+persistence rows and the dashboard's snapshot. :class:`~services.cloud.atlas.atlas.Atlas` adds every
 change (ingest, corrections, removal, restore); nothing mutable leaves either.
 """
 
@@ -15,15 +15,15 @@ from collections.abc import Iterable, Iterator
 
 import numpy as np
 
-from services.cloud.atlas_graph import CovisibilityGraph
-from services.cloud.atlas_records import (
+from services.cloud.atlas.atlas_graph import CovisibilityGraph
+from services.cloud.atlas.atlas_records import (
     KeyframeRecord,
     MapPointRecord,
     Unsaved,
     map_positions,
     snapshot_of,
 )
-from services.cloud.map_types import (
+from services.cloud.atlas.map_types import (
     AtlasError,
     AtlasSnapshot,
     KeyframeView,
@@ -32,11 +32,11 @@ from services.cloud.map_types import (
     MergeRecord,
     split_key,
 )
-from services.cloud.retired import RetiredKeyframes, retired_pose
+from services.cloud.atlas.retired import RetiredKeyframes, retired_pose
 
 
 class AtlasQueries:
-    """The state of the :class:`~services.cloud.atlas.Atlas` and its read-only queries."""
+    """The state of the :class:`~services.cloud.atlas.atlas.Atlas` and its read-only queries."""
 
     def __init__(self) -> None:
         self._kfs: dict[int, KeyframeRecord] = {}

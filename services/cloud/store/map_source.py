@@ -40,7 +40,7 @@ from common.map_view import (
     PointSet,
     StatsSnapshot,
 )
-from services.cloud.map_types import AtlasSnapshot
+from services.cloud.atlas.map_types import AtlasSnapshot
 
 _LOCAL_BITS = 32
 

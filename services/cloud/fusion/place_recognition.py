@@ -33,7 +33,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from common.errors import RecslamError
-from services.cloud.atlas import Atlas
+from services.cloud.atlas.atlas import Atlas
 from services.cloud.config import PlaceRecognitionConfig
 
 log = logging.getLogger(__name__)
@@ -228,7 +228,7 @@ class LoopCandidate:
 
     def early(self, config: PlaceRecognitionConfig) -> bool:
         """Not yet consistent over ``min_consistency`` queries: accepted only with the
-        covisibility check (:func:`services.cloud.verification.covisible_agreement`)."""
+        covisibility check (:func:`services.cloud.fusion.verification.covisible_agreement`)."""
         return self.consistency < config.min_consistency
 
 

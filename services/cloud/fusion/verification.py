@@ -33,9 +33,9 @@ from common.geometry import (
     transform_points,
     yaw_alignment,
 )
-from services.cloud.atlas import Atlas
+from services.cloud.atlas.atlas import Atlas
+from services.cloud.atlas.map_types import KeyframeView
 from services.cloud.config import VerificationConfig
-from services.cloud.map_types import KeyframeView
 
 log = logging.getLogger(__name__)
 

@@ -1,5 +1,5 @@
 """The cloud store's SQLite schema, its upgrades and its row formats (see
-:mod:`services.cloud.persistence`, which reads and writes through these).
+:mod:`services.cloud.store.persistence`, which reads and writes through these).
 
 Keyframe arrays are ``.npy`` payloads (``numpy.save``, no pickle) inside an uncompressed
 ``.npz`` blob per row. Map point rows use a flat little-endian blob for their observations:
@@ -21,7 +21,7 @@ import sqlite3
 import numpy as np
 
 from common.errors import RecslamError
-from services.cloud.map_types import AliasSnapshot, AtlasState
+from services.cloud.atlas.map_types import AliasSnapshot, AtlasState
 
 DB_NAME = "cloud.sqlite"
 SCHEMA_VERSION = 9

@@ -38,12 +38,14 @@ from common.errors import RecslamError
 from common.geometry import transform_points
 from common.links.edge_cloud import (
     CullEvent,
-    FrameAnchor,
     KeyframePoses,
     KeyframeUpdate,
     KeyframeUpdateCoded,
     MapPointUpdate,
     MapPointUpdateCoded,
+)
+from common.links.edge_cloud_payloads import (
+    FrameAnchor,
     decode_point_ids,
     decode_points,
     decode_states,
@@ -51,7 +53,7 @@ from common.links.edge_cloud import (
 from common.protocol.arrays import unpack_array
 from common.protocol.errors import RemoteProtocolError
 from common.vocabulary import Vocabulary
-from services.cloud.atlas import AtlasError, KeyframeInput, MapPointInput
+from services.cloud.atlas.atlas import AtlasError, KeyframeInput, MapPointInput
 
 log = logging.getLogger(__name__)
 
@@ -82,7 +84,7 @@ class DecodedKeyframe:
     imu: ImuChunk | None = None
     """The IMU samples since the robot's previous uplinked keyframe (None: none sent)."""
     anchor: FrameAnchor | None = None
-    """The frame of the pose (``services.cloud.rebase``; None: the agent's map frame)."""
+    """The frame of the pose (``services.cloud.fusion.rebase``; None: the agent's map frame)."""
 
 
 def _one(data: bytes, shape: tuple[int, ...], what: str) -> np.ndarray:
@@ -312,7 +314,7 @@ def decode_map_point_update(
 ) -> list[MapPointInput]:
     """One :class:`MapPointInput` per id (observations grouped by map point id). ``frame``:
     the ``(4, 4)`` correction of a coded payload's frame, from its anchor
-    (``services.cloud.rebase.FrameRebase.correction``; None: none)."""
+    (``services.cloud.fusion.rebase.FrameRebase.correction``; None: none)."""
     what = f"{type(msg).__name__} of {msg.agent_id}"
     p: np.ndarray | None
     try:

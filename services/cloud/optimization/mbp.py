@@ -62,9 +62,9 @@ from scipy.sparse.csgraph import connected_components
 from common.calibration import CameraCalibration
 from common.camera import camera_model
 from common.geometry import inverse_T, transform_points
-from services.cloud.atlas import Atlas
+from services.cloud.atlas.atlas import Atlas
+from services.cloud.atlas.map_types import CameraOf, camera_lookup
 from services.cloud.config import MbpConfig
-from services.cloud.map_types import CameraOf, camera_lookup
 
 log = logging.getLogger(__name__)
 
@@ -78,7 +78,8 @@ REASONS = (PROTECTED, NOT_COVERED, CONNECTOR, COVERS_REMOVED, INERTIAL)
 
 CONSTRAINING_OBSERVERS = 2
 """Coverage (step 1) counts a map point only when at least this many keyframes observe it:
-the full BA's own rule for a point that constrains poses (``services.cloud.full_ba``)."""
+the full BA's own rule for a point that constrains poses
+(``services.cloud.optimization.full_ba``)."""
 
 
 @dataclass(frozen=True)
@@ -127,7 +128,7 @@ def protected_keyframes(
     atlas: Atlas, map_id: int, keep_recent: int, hold: frozenset[int] = frozenset()
 ) -> set[int]:
     """Each agent's first keyframe in ``map_id`` and its ``keep_recent`` newest; every
-    keyframe of the agents in ``hold`` (a prior map, see ``services.cloud.mission``)."""
+    keyframe of the agents in ``hold`` (a prior map, see ``services.cloud.store.mission``)."""
     keys = set()
     for agent in atlas.agents_in_map(map_id):
         ak = atlas.keyframe_keys(map_id=map_id, agent_id=agent)

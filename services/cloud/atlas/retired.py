@@ -8,7 +8,7 @@ When an anchor goes too, its records move to an heir with the composed relative 
 may also hold the kept keyframe on its other side in time (``other``): its pose is then the
 blend of what both say (:func:`retired_pose`); on the live replays of
 ``benchmarks/results/mbp_midrun.md`` the removed keyframes were where MBP while running lost its
-accuracy, not the kept ones. Owned and mutated by :class:`~services.cloud.atlas.Atlas` only.
+accuracy, not the kept ones. Owned and mutated by :class:`~services.cloud.atlas.atlas.Atlas` only.
 """
 
 from __future__ import annotations
@@ -19,8 +19,8 @@ from dataclasses import replace
 import numpy as np
 
 from common.geometry import inverse_T, so3_exp, so3_log
-from services.cloud.atlas_records import KeyframeRecord
-from services.cloud.map_types import RetiredKeyframe, ro
+from services.cloud.atlas.atlas_records import KeyframeRecord
+from services.cloud.atlas.map_types import RetiredKeyframe, ro
 
 
 class RetiredKeyframes:

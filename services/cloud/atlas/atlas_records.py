@@ -1,9 +1,10 @@
 """The atlas's mutable keyframe and map-point records, and their frozen views.
 
-:class:`~services.cloud.atlas.Atlas` owns and mutates these records; what leaves it is a
-:class:`~services.cloud.map_types.KeyframeView` / :class:`~services.cloud.map_types.MapPointView`
-(read-only copies), and :meth:`KeyframeRecord.from_view` turns a view back into a record when
-an atlas is restored. Poses are in the record's map frame (``map_id``).
+:class:`~services.cloud.atlas.atlas.Atlas` owns and mutates these records; what leaves it is a
+:class:`~services.cloud.atlas.map_types.KeyframeView` /
+:class:`~services.cloud.atlas.map_types.MapPointView` (read-only copies), and
+:meth:`KeyframeRecord.from_view` turns a view back into a record when an atlas is restored. Poses
+are in the record's map frame (``map_id``).
 """
 
 from __future__ import annotations
@@ -14,8 +15,8 @@ from dataclasses import dataclass, field, fields
 
 import numpy as np
 
-from services.cloud.atlas_graph import CovisibilityGraph
-from services.cloud.map_types import (
+from services.cloud.atlas.atlas_graph import CovisibilityGraph
+from services.cloud.atlas.map_types import (
     AtlasSnapshot,
     KeyframeInput,
     KeyframeView,

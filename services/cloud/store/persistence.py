@@ -23,7 +23,7 @@ line), else starting it, which clears the stored edge positions (the new mission
 new streams). A robot name and edge map id are unique per mission and edge only, so that a new
 mission's ``robot0`` on edge map 0 is a new agent, not the old one's continuation.
 
-Rows (:mod:`services.cloud.persistence_schema`): keyframe arrays as ``.npz`` blobs, map point
+Rows (:mod:`services.cloud.store.persistence_schema`): keyframe arrays as ``.npz`` blobs, map point
 observations as flat ``<i8`` blobs; keyframe poses and map point positions have their own
 columns, and a point's position is in its reference keyframe's frame, so that writing an
 optimisation back (:meth:`CloudStore.commit_poses`) updates the poses of the keyframes it moved
@@ -42,7 +42,7 @@ from pathlib import Path
 
 import numpy as np
 
-from services.cloud.atlas import (
+from services.cloud.atlas.atlas import (
     Atlas,
     AtlasState,
     KeyframeView,
@@ -51,8 +51,8 @@ from services.cloud.atlas import (
     MergeRecord,
     RetiredKeyframe,
 )
-from services.cloud.atlas_records import Unsaved
-from services.cloud.persistence_schema import (
+from services.cloud.atlas.atlas_records import Unsaved
+from services.cloud.store.persistence_schema import (
     DB_NAME,
     SCHEMA,
     SCHEMA_VERSION,

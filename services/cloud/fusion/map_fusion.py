@@ -5,10 +5,10 @@ feeds what the edges send (:meth:`add_map_point`, :meth:`add_keyframe`); each ne
 queried for places seen before (intra- and inter-robot alike), candidates are verified, and a
 verified match merges two maps or adds a loop constraint. Maps that gained a constraint are
 reported in :attr:`FusionEvents.maps_to_optimize`; the service then runs
-:func:`~services.cloud.global_optimization.optimize_pose_graph` off its event loop on
+:func:`~services.cloud.optimization.global_optimization.optimize_pose_graph` off its event loop on
 :meth:`pose_graph` and hands the result back with :meth:`apply_optimization`; when there is time
 it does the same with the full bundle adjustment (:meth:`full_ba_problem`,
-:func:`~services.cloud.full_ba.solve_full_ba`).
+:func:`~services.cloud.optimization.full_ba.solve_full_ba`).
 Sans-I/O: no sockets, clocks or threads here.
 """
 
@@ -27,20 +27,25 @@ import numpy as np
 from common.calibration import EUROC_IMU, CameraCalibration, ImuCalibration
 from common.errors import RecslamError
 from common.links import CodecTimer
-from services.cloud.atlas import Atlas, KeyframeInput, MapPointInput, make_key, split_key
+from services.cloud.atlas.atlas import Atlas, KeyframeInput, MapPointInput, make_key, split_key
 from services.cloud.config import CloudConfig, MbpConfig
-from services.cloud.full_ba import FullBAProblem, FullBAResult, apply_full_ba, build_full_ba
-from services.cloud.global_optimization import (
+from services.cloud.fusion.merge import MatchOutcome, apply_match
+from services.cloud.fusion.place_recognition import KeyframeDatabase, PlaceRecognizer
+from services.cloud.fusion.verification import VerificationResult, verify_candidate
+from services.cloud.optimization.full_ba import (
+    FullBAProblem,
+    FullBAResult,
+    apply_full_ba,
+    build_full_ba,
+)
+from services.cloud.optimization.global_optimization import (
     PoseGraphProblem,
     PoseGraphResult,
     apply_pose_graph,
     build_pose_graph,
 )
-from services.cloud.inertial import ImuStore
-from services.cloud.mbp import MbpReport, run_mbp
-from services.cloud.merge import MatchOutcome, apply_match
-from services.cloud.place_recognition import KeyframeDatabase, PlaceRecognizer
-from services.cloud.verification import VerificationResult, verify_candidate
+from services.cloud.optimization.inertial import ImuStore
+from services.cloud.optimization.mbp import MbpReport, run_mbp
 
 log = logging.getLogger(__name__)
 
@@ -93,7 +98,7 @@ class MapFusion:
         for key in self.atlas.keyframe_keys():  # restored atlas: rebuild the database
             self.recognizer.add(self.atlas, key)
         # Agents whose keyframes and points stay where they are (a prior map, see
-        # services.cloud.mission): held in every optimisation, never pruned.
+        # services.cloud.store.mission): held in every optimisation, never pruned.
         self.held_agents: frozenset[int] = frozenset()
         # Agents whose robot has moved on to a newer map (the service marks them): a map of
         # such agents only is a fragment (``is_fragment``), which may merge with a scale.

@@ -1,16 +1,16 @@
 """Global optimisation of a map (paper Eq. 20), full stage: bundle adjustment with gtsam.
 
-The pose-graph stage (:mod:`services.cloud.global_optimization`) corrects drift quickly with
-relative-pose constraints only. When there is time the service follows it with this stage,
+The pose-graph stage (:mod:`services.cloud.optimization.global_optimization`) corrects drift quickly
+with relative-pose constraints only. When there is time the service follows it with this stage,
 which optimises keyframe poses *and* map points on Eq. 20's terms:
 
 - ``e_prio``: a tight prior on the map's first keyframe (the same one the pose graph fixes),
-- ``e_imu``: with ``FullBAConfig.imu_factors`` (the default), a preintegrated
-  ``CombinedImuFactor`` over pose, velocity and bias states between consecutive keyframes of
-  each agent whose IMU the edge forwarded (:mod:`services.cloud.inertial`); otherwise, and
-  for intervals without IMU, its stand-in: a ``BetweenFactor<Pose3>`` whose measurement is
-  the current relative pose (what the edge's visual-inertial odometry and the pose graph
-  left) with fixed sigmas (:class:`~services.cloud.config.FullBAConfig`),
+- ``e_imu``: with ``FullBAConfig.imu_factors`` (the default), a preintegrated ``CombinedImuFactor``
+  over pose, velocity and bias states between consecutive keyframes of each agent whose IMU the edge
+  forwarded (:mod:`services.cloud.optimization.inertial`); otherwise, and for intervals without IMU,
+  its stand-in: a ``BetweenFactor<Pose3>`` whose measurement is the current relative pose (what the
+  edge's visual-inertial odometry and the pose graph left) with fixed sigmas
+  (:class:`~services.cloud.config.FullBAConfig`),
 - loop and merge constraints as the pose graph has them (Cauchy kernel); a loop whose
   whitened error at the initial estimate exceeds ``loop_outlier_whitened`` is left out (the
   pose graph, solved just before, rejects outliers with the same test),
@@ -41,9 +41,10 @@ import numpy as np
 from common.calibration import CameraCalibration
 from common.camera import camera_model
 from common.geometry import inverse_T, transform_points
-from services.cloud.atlas import Atlas
+from services.cloud.atlas.atlas import Atlas
+from services.cloud.atlas.map_types import CameraOf, camera_lookup, split_key
 from services.cloud.config import FullBAConfig, GlobalOptimizationConfig
-from services.cloud.global_optimization import (
+from services.cloud.optimization.global_optimization import (
     GlobalOptimizationError,
     PoseGraphResult,
     add_attitude_factors,
@@ -53,7 +54,7 @@ from services.cloud.global_optimization import (
     pose3,
     up_in_body,
 )
-from services.cloud.inertial import (
+from services.cloud.optimization.inertial import (
     ImuOf,
     ImuStore,
     ImuTerms,
@@ -61,7 +62,6 @@ from services.cloud.inertial import (
     build_imu_terms,
     inertial_states,
 )
-from services.cloud.map_types import CameraOf, camera_lookup, split_key
 
 log = logging.getLogger(__name__)
 
@@ -107,7 +107,7 @@ class FullBAProblem:
     dropped_observations: int = 0
     up_body: np.ndarray | None = None
     """(N, 3) the up direction in each body frame at build time (held roll and pitch, see
-    :func:`services.cloud.global_optimization.add_attitude_factors`)."""
+    :func:`services.cloud.optimization.global_optimization.add_attitude_factors`)."""
     imu: ImuTerms | None = None
     """IMU terms between consecutive keyframes (None: IMU factors off)."""
     held: np.ndarray | None = None
@@ -148,8 +148,8 @@ class FullBAResult:
     """... and biases (M, 3) rad/s and m/s²."""
     mode: str = "batch"
     """How it was solved: ``"batch"`` (Levenberg–Marquardt), ``"isam2"`` (an incremental
-    update, :mod:`services.cloud.incremental_ba`; graph errors NaN) or ``"isam2-reset"`` (a
-    batch solve that (re)built the map's iSAM2 graph)."""
+    update, :mod:`services.cloud.optimization.incremental_ba`; graph errors NaN) or
+    ``"isam2-reset"`` (a batch solve that (re)built the map's iSAM2 graph)."""
 
 
 def _project(

@@ -12,7 +12,7 @@ from common.evaluation.association import match_timestamps
 from common.evaluation.errors import EvaluationError
 from common.evaluation.trajectory import Trajectory
 from common.map_view import GroundTruth
-from services.cloud.atlas import Atlas
+from services.cloud.atlas.atlas import Atlas
 
 
 def references_in_maps(

@@ -284,7 +284,7 @@ class RetiredKeyframe:
 
     ``other``: the agent's kept keyframe on the other side of it in time (None: none), with
     its pose in that one's frame ``T_other_body``; the pose is then the blend of the two
-    (:func:`services.cloud.retired.retired_pose`), ``w_other`` (0..1) of the way to what
+    (:func:`services.cloud.atlas.retired.retired_pose`), ``w_other`` (0..1) of the way to what
     ``other`` says, by time, so that a correction that bends the stretch between two kept
     keyframes after the removal carries the removed one along the bend, not rigidly with one
     end. It goes (the blend with it) when ``other`` goes."""

@@ -12,9 +12,9 @@ Covisibility (ORB-SLAM): the weight between two keyframes is the number of map p
 observe; it is kept up to date as observations arrive in any order (a map point may reference
 a keyframe that has not arrived yet; the observation is linked when it does). The spanning
 tree attaches every keyframe to its strongest covisible keyframe already in the tree; each
-agent's first keyframe is a root. The graph is :mod:`services.cloud.atlas_graph`; the records
-the atlas mutates and their frozen views are :mod:`services.cloud.atlas_records`; the atlas's
-state and its queries are :mod:`services.cloud.atlas_queries` (this module: every change).
+agent's first keyframe is a root. The graph is :mod:`services.cloud.atlas.atlas_graph`; the records
+the atlas mutates and their frozen views are :mod:`services.cloud.atlas.atlas_records`; the atlas's
+state and its queries are :mod:`services.cloud.atlas.atlas_queries` (this module: every change).
 
 Nothing mutable leaves the atlas: :meth:`Atlas.keyframe` returns a frozen copy and
 :meth:`Atlas.snapshot` plain read-only arrays for the dashboard.
@@ -28,8 +28,8 @@ from collections.abc import Sequence
 import numpy as np
 
 from common.geometry import inverse_T, make_T, similarity_scale
-from services.cloud.atlas_queries import AtlasQueries
-from services.cloud.atlas_records import (
+from services.cloud.atlas.atlas_queries import AtlasQueries
+from services.cloud.atlas.atlas_records import (
     KeyframeRecord,
     MapPointRecord,
     Unsaved,
@@ -37,7 +37,7 @@ from services.cloud.atlas_records import (
     map_positions,
     place_points,
 )
-from services.cloud.map_types import (
+from services.cloud.atlas.map_types import (
     LOCAL_BITS,
     AliasSnapshot,
     AtlasError,
@@ -54,7 +54,7 @@ from services.cloud.map_types import (
     ro,
     split_key,
 )
-from services.cloud.retired import RetiredKeyframes, retirement
+from services.cloud.atlas.retired import RetiredKeyframes, retirement
 
 __all__ = [
     "Atlas",
@@ -300,7 +300,7 @@ class Atlas(AtlasQueries):
             m.p_map = p
         # An agent's later keyframes land through a rigid T_map_agent: with a scale, the one
         # that is exact at the query keyframe (the place the merge joined; anchored payloads
-        # land relative to their anchor anyway, services.cloud.rebase).
+        # land relative to their anchor anyway, services.cloud.fusion.rebase).
         T_agent = make_T(R, T[:3, 3] + (scale - 1.0) * (R @ pivot))
         for a, mid in self._map_of_agent.items():
             if mid == source_map:

@@ -35,7 +35,7 @@ import numpy as np
 from common.calibration import ImuCalibration
 from common.imu import ImuBuffer, ImuDataError, ImuSegment, with_measured_noise
 from common.preintegration import make_bias, make_preintegration_params, preintegrate
-from services.cloud.atlas import Atlas
+from services.cloud.atlas.atlas import Atlas
 from services.cloud.config import FullBAConfig
 
 log = logging.getLogger(__name__)

@@ -9,7 +9,7 @@ until local BA moves them enough to be sent again (the edge does not re-send wha
 moved). After a loop, corrections move the newest keyframes most, exactly the ones the edge is
 still refining and sending.
 
-The coded payloads name their frame with a :class:`~common.links.edge_cloud.FrameAnchor`: a
+The coded payloads name their frame with a :class:`~common.links.edge_cloud_payloads.FrameAnchor`: a
 keyframe the cloud has, at the pose the edge has for it in that frame. The payload then lands
 at ``T_map_anchor @ inv(T_world_body_anchor) @ T_world_body``, i.e. with the correction
 ``T_fix = T_agent_anchor(cloud) @ inv(T_world_body_anchor)`` (in the agent's frame) applied
@@ -26,10 +26,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from common.geometry import inverse_T, so3_log
-from common.links.edge_cloud import FrameAnchor
-from services.cloud.atlas import Atlas
-from services.cloud.map_types import make_key
-from services.cloud.uplink import DecodedKeyframe
+from common.links.edge_cloud_payloads import FrameAnchor
+from services.cloud.atlas.atlas import Atlas
+from services.cloud.atlas.map_types import make_key
+from services.cloud.fusion.uplink import DecodedKeyframe
 
 MOVED_M = 1e-3
 """A payload counts as moved by its anchor (``FrameRebase.moved``) beyond 1 mm ..."""

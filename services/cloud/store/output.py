@@ -31,8 +31,8 @@ from common.evaluation.errors import EvaluationError
 from common.evaluation.report import EvalConfig, evaluate_in_frame, evaluate_run
 from common.evaluation.results import MAPS_FILE, write_result_trajectories
 from common.evaluation.trajectory import Trajectory
-from services.cloud.atlas import Atlas
-from services.cloud.mission import MISSION_FILE
+from services.cloud.atlas.atlas import Atlas
+from services.cloud.store.mission import MISSION_FILE
 
 log = logging.getLogger(__name__)
 
@@ -40,7 +40,7 @@ __all__ = ["FRAMES_DIR", "MAPS_FILE", "OutputWriter", "robot_trajectories"]
 
 FRAMES_DIR = "frames"
 """``RESULT_DIR/frames/``: every frame's trajectory (``trajectories/<robot>.tum``) and its
-``eval/ate.json`` (:mod:`services.cloud.frame_trajectories`)."""
+``eval/ate.json`` (:mod:`services.cloud.store.frame_trajectories`)."""
 
 
 def robot_trajectories(

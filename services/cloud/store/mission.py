@@ -1,6 +1,6 @@
 """Missions: a new team of robots starting inside the map an earlier mission left.
 
-A cloud state directory (``services.cloud.persistence``) can hold several missions, one after
+A cloud state directory (``services.cloud.store.persistence``) can hold several missions, one after
 the other; ``recslam cloud --state-dir DIR --mission NAME`` serves mission NAME: it resumes
 NAME when that is the directory's current mission (a crash restart runs the same command line,
 and must continue the same agents with exactly-once delivery from the stored edge positions),
@@ -20,7 +20,7 @@ map is read-only:
   truth overlay) are the current mission's;
 - its keyframes stay in the place-recognition database and are merge targets: a new robot's
   keyframe that matches one merges the robot's map *into* the prior map (the query's map is
-  re-expressed in the candidate's frame, ``services.cloud.merge.apply_match``), so the new
+  re-expressed in the candidate's frame, ``services.cloud.fusion.merge.apply_match``), so the new
   mission's trajectories come out in the first mission's frame.
 
 Why the operator chooses the mission at the cloud, rather than the edges carrying a mission
@@ -39,7 +39,7 @@ from __future__ import annotations
 import logging
 from collections.abc import Iterable, Mapping
 
-from services.cloud.atlas import Atlas
+from services.cloud.atlas.atlas import Atlas
 
 log = logging.getLogger(__name__)
 

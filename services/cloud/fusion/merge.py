@@ -36,9 +36,9 @@ from common.geometry import (
     umeyama_alignment,
     yaw_alignment,
 )
-from services.cloud.atlas import Atlas, LoopEdge, MergeRecord
+from services.cloud.atlas.atlas import Atlas, LoopEdge, MergeRecord
 from services.cloud.config import AlignmentMode, MergeConfig
-from services.cloud.verification import VerificationResult, pair_hamming
+from services.cloud.fusion.verification import VerificationResult, pair_hamming
 
 log = logging.getLogger(__name__)
 

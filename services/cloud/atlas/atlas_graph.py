@@ -4,7 +4,7 @@ The weight between two keyframes is the number of map points both observe; the a
 and removes weight as it links and unlinks observations, in any order. The spanning tree
 attaches every keyframe to its strongest covisible keyframe already in the tree; each agent's
 first keyframe is a root (parent -1). Removing a keyframe re-attaches its children to its
-parent (or makes them roots). Owned and mutated by :class:`~services.cloud.atlas.Atlas` only.
+parent (or makes them roots). Owned and mutated by :class:`~services.cloud.atlas.atlas.Atlas` only.
 """
 
 from __future__ import annotations

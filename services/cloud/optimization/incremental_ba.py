@@ -1,10 +1,10 @@
 """Incremental visual-inertial global BA (paper Eq. 20, full stage) with gtsam's iSAM2.
 
-The batch solve (:func:`services.cloud.full_ba.solve_full_ba`) rebuilds and relinearises the
-whole map every time, so its cost grows with the map (2.4 s per Levenberg–Marquardt iteration
-at 5k keyframes on this machine). Here the optimiser process keeps, per (cloud session, map),
-an ``ISAM2`` whose factor graph mirrors the last problem it was given, and each new
-:class:`~services.cloud.full_ba.FullBAProblem` of that map is applied as a difference:
+The batch solve (:func:`services.cloud.optimization.full_ba.solve_full_ba`) rebuilds and
+relinearises the whole map every time, so its cost grows with the map (2.4 s per Levenberg–Marquardt
+iteration at 5k keyframes on this machine). Here the optimiser process keeps, per (cloud session,
+map), an ``ISAM2`` whose factor graph mirrors the last problem it was given, and each new
+:class:`~services.cloud.optimization.full_ba.FullBAProblem` of that map is applied as a difference:
 
 - every term of the problem has a tag — ``("obs", keyframe, point)``, ``("edge", a, b,
   robust)``, ``("imu", a, b)``, ``("bias", keyframe)`` (a chain's first bias),
@@ -17,7 +17,7 @@ an ``ISAM2`` whose factor graph mirrors the last problem it was given, and each 
   times inverse problem pose) of the agent's nearest keyframe already in the graph, new points
   by the correction of a keyframe that observes them (the atlas may have moved since the last
   solve: a pose graph after a loop); new velocities come from the preintegrated IMU and the
-  poses as in :func:`services.cloud.inertial.initial_velocities`;
+  poses as in :func:`services.cloud.optimization.inertial.initial_velocities`;
 - a new loop edge whose whitened error at the current estimate exceeds
   ``loop_outlier_whitened`` is left out (and not tested again), as in the batch solve;
 - then ``update`` and up to ``incremental_max_updates - 1`` more (relinearisation steps)
@@ -49,8 +49,9 @@ import numpy as np
 
 from common.geometry import inverse_T, transform_points
 from common.preintegration import make_bias
+from services.cloud.atlas.map_types import split_key
 from services.cloud.config import FullBAConfig, GlobalOptimizationConfig
-from services.cloud.full_ba import (
+from services.cloud.optimization.full_ba import (
     FullBAError,
     FullBAProblem,
     FullBAResult,
@@ -60,9 +61,8 @@ from services.cloud.full_ba import (
     rms_px,
     solve_full_ba,
 )
-from services.cloud.global_optimization import gauge_prior_noise, held_indices
-from services.cloud.inertial import preintegrated
-from services.cloud.map_types import split_key
+from services.cloud.optimization.global_optimization import gauge_prior_noise, held_indices
+from services.cloud.optimization.inertial import preintegrated
 
 log = logging.getLogger(__name__)
 
@@ -151,7 +151,7 @@ def _velocity(
     gravity_mps2: float,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Velocities (3,) at both ends of a pair that fit its preintegration to the poses
-    (:func:`services.cloud.inertial.initial_velocities`)."""
+    (:func:`services.cloud.optimization.inertial.initial_velocities`)."""
     g = np.array([0.0, 0.0, -gravity_mps2])
     dt = pim.deltaTij()
     R_i = T_i[:3, :3]

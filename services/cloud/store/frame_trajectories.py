@@ -3,7 +3,7 @@
 The edges send, in :class:`~common.links.edge_cloud.FramePoses`, each tracked frame's pose
 relative to an uplinked keyframe (``T_kf_frame``, the VIO's motion since that keyframe).
 :class:`FrameTrack` keeps them per robot; :meth:`FrameTrack.trajectories` places each frame on
-its keyframe's pose in the robot's keyframe trajectory (:func:`services.cloud.output.
+its keyframe's pose in the robot's keyframe trajectory (:func:`services.cloud.store.output.
 robot_trajectories`: after the merges, loops and full BA, and through the anchors of the
 keyframes MBP removed), ``T_map_frame = T_map_kf @ T_kf_frame``, and adds the keyframes
 themselves: the trajectory at camera rate that ``recslam eval`` measures beside the keyframe

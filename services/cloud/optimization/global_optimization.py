@@ -33,7 +33,7 @@ import numpy as np
 
 from common.errors import RecslamError
 from common.geometry import inverse_T
-from services.cloud.atlas import Atlas, split_key
+from services.cloud.atlas.atlas import Atlas, split_key
 from services.cloud.config import GlobalOptimizationConfig
 
 log = logging.getLogger(__name__)
@@ -66,7 +66,7 @@ class PoseGraphProblem:
     built: the roll and pitch :func:`add_attitude_factors` holds (None: not held)."""
     held: np.ndarray | None = None
     """(H,) indices of keyframes held where they are by a prior as tight as ``fixed``'s
-    (a prior map's, see ``services.cloud.mission``; None: only ``fixed``)."""
+    (a prior map's, see ``services.cloud.store.mission``; None: only ``fixed``)."""
 
 
 def up_in_body(T_world_body: np.ndarray) -> np.ndarray:
