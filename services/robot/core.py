@@ -1,6 +1,7 @@
 """The robot's core (sans-I/O): sensor input and the edge's messages in, work and messages out.
 
-No sockets, threads, locks, clock or files here (h11's rule): time enters as ``now``
+The events, jobs and actions are in :mod:`services.robot.core_events`. No sockets,
+threads, locks, clock or files here (h11's rule): time enters as ``now``
 (monotonic seconds) and every decision comes out as a value. The runner
 (:mod:`services.robot.engine`) feeds :meth:`RobotCore.handle` with events from a driver, a
 folder playback or the edge, runs the CPU work :meth:`RobotCore.next_job` hands it (tracking
@@ -60,11 +61,25 @@ from common.links.robot_edge import (
     InertialFeedback,
     InertialFeedbackCoded,
     MapPlacement,
-    RobotFrame,
 )
 from common.protocol.messages import Message
-from services.robot.poses import PoseTrack, ReceivedPose
-from services.robot.uplink_budget import KeyframePlan, UplinkBudget
+from services.robot.core_events import (
+    Action,
+    ApplyFeedback,
+    EdgeInput,
+    EndOfInput,
+    Event,
+    FrameDone,
+    ImageInput,
+    ImuInput,
+    Job,
+    LinkLoad,
+    PoseOut,
+    Send,
+    TrackFrame,
+)
+from services.robot.poses import PoseTrack
+from services.robot.uplink_budget import UplinkBudget
 
 logger = logging.getLogger(__name__)
 
@@ -128,109 +143,6 @@ class LiveInputConfig:
         for name in ("imu_wait_s", "imu_gap_s", "clock_jump_s", "stall_s", "imu_keep_s"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
-
-
-# ----------------------------------------------------------------------------- events in
-@dataclass(frozen=True, eq=False)
-class ImuInput:
-    """IMU samples: ``timestamps_ns`` (K,) int64, ``gyro`` (K, 3) rad/s, ``accel`` (K, 3) m/s²,
-    IMU frame, in time order (one sample: K = 1)."""
-
-    timestamps_ns: np.ndarray
-    gyro: np.ndarray
-    accel: np.ndarray
-
-
-@dataclass(frozen=True, eq=False)
-class ImageInput:
-    """One camera image at ``timestamp_ns``: a uint8 (H, W) array, or raw bytes with their
-    ``encoding`` (one of :data:`ENCODINGS`), ``height``, ``width`` and row ``step`` [bytes]."""
-
-    timestamp_ns: int
-    image: np.ndarray | bytes
-    encoding: str = "mono8"
-    height: int = 0
-    width: int = 0
-    step: int = 0
-
-
-@dataclass(frozen=True, eq=False)
-class EdgeInput:
-    """One message from the edge."""
-
-    message: Message
-
-
-@dataclass(frozen=True)
-class EndOfInput:
-    """No more sensor data: images waiting for IMU are tracked with what has come."""
-
-
-@dataclass(frozen=True, eq=False)
-class FrameDone:
-    """The worker finished a :class:`TrackFrame`: the message to send, or None (the uplink
-    budget left the non-keyframe at ``timestamp_ns`` out, for ``left_out``)."""
-
-    message: RobotFrame | None
-    timestamp_ns: int = 0
-    left_out: str = ""
-
-
-@dataclass(frozen=True)
-class LinkLoad:
-    """The link to the edge at the moment: bytes waiting unacknowledged, and the bytes
-    acknowledged so far (a running total)."""
-
-    outbox_bytes: int
-    acked_bytes: int
-
-
-Event = ImuInput | ImageInput | EdgeInput | EndOfInput | FrameDone | LinkLoad
-
-
-# ----------------------------------------------------------------------------- work out
-@dataclass(frozen=True, eq=False)
-class TrackFrame:
-    """Apply ``feedback`` (in order), then track and code the image with its IMU
-    (``RobotApp.receive`` each, then ``RobotApp.process``); answer with :class:`FrameDone`.
-    ``hold_back``: unless the tracker makes it a keyframe, the frame is left out for this
-    reason (:mod:`services.robot.uplink_budget`; ``""``: it goes); ``plan``: the keyframes the
-    budget affords (``RobotApp.set_keyframe_plan``; None: the configured ones)."""
-
-    timestamp_ns: int
-    image: np.ndarray
-    imu: ImuBatch
-    feedback: tuple[Message, ...] = ()
-    hold_back: str = ""
-    plan: KeyframePlan | None = None
-
-
-@dataclass(frozen=True, eq=False)
-class ApplyFeedback:
-    """Apply the edge's ``feedback`` to the front end now (no frame is waiting)."""
-
-    feedback: tuple[Message, ...]
-
-
-Job = TrackFrame | ApplyFeedback
-
-
-# ----------------------------------------------------------------------------- actions
-@dataclass(frozen=True, eq=False)
-class Send:
-    """Send ``message`` to the edge (in order; the runner waits while the link is full)."""
-
-    message: Message
-
-
-@dataclass(frozen=True, eq=False)
-class PoseOut:
-    """The robot's pose at one frame, for the user (``RobotClient.poses``, ROS, TUM file)."""
-
-    pose: ReceivedPose
-
-
-Action = Send | PoseOut
 
 
 @dataclass
