@@ -449,8 +449,10 @@ class Job:
         while time.monotonic() < deadline:
             s = self.sample()
             robots = s["edge"].get("robots", {})
-            busy = any(
-                r["frames_processed"] < r["frames_decoded"] or r["queued"] for r in robots.values()
+            busy = any(  # (a frame skipped as stale, --max-vio-lag, is done with)
+                r["frames_processed"] + r.get("frames_skipped_stale", 0) < r["frames_decoded"]
+                or r["queued"]
+                for r in robots.values()
             )
             key = (s["cloud"].get("keyframes"), s["cloud"].get("messages"))
             if key != last or busy:
