@@ -2,6 +2,8 @@
 
 - ``recslam experiment bandwidth``: ATE, latency and achieved rate with the robot→edge links
   rate-limited (:mod:`lab.bandwidth`).
+- ``recslam experiment budget``: the rate–accuracy–latency curve, the recorder against fresh
+  before complete (:mod:`lab.budget`).
 - ``recslam experiment table3``: keyframes, map points and ATE with and without MBP from a
   recorded run, and loop-detection precision / recall (:mod:`lab.table3`).
 - ``recslam experiment links``: the bit budget of every link, raw vs coded wire
@@ -18,7 +20,7 @@ import argparse
 import logging
 from pathlib import Path
 
-from lab import bandwidth
+from lab import bandwidth, budget
 from lab.bandwidth import BandwidthConfig, parse_budgets, resolve_shaper
 
 
@@ -54,6 +56,23 @@ def register(sub: argparse._SubParsersAction) -> None:
         "can be made, else proxy",
     )
     b.set_defaults(func=run)
+    g = which.add_parser(
+        "budget",
+        help="the rate-accuracy-latency curve: recorder vs fresh-before-complete per link rate",
+        description=budget.__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    g.add_argument("--data", type=Path, default=Path("data/synth"), help="dataset folder")
+    g.add_argument(
+        "--rows",
+        default="unlimited,unlimited/fresh,50,50/fresh,50/auto,25/fresh",
+        help="comma-separated LINK[/fresh|/auto] (default %(default)s)",
+    )
+    g.add_argument("--robots", default="", help="comma-separated sequence folders (default: all)")
+    g.add_argument("--out", type=Path, default=Path("out/budget"), help="output folder")
+    g.add_argument("--timeout", type=float, default=1800.0, help="per-run timeout (s)")
+    g.add_argument("--shaper", choices=("auto", "tbf", "proxy"), default="auto")
+    g.set_defaults(func=run_budget_rows)
     t = which.add_parser(
         "table3",
         help="keyframes, map points and ATE with / without MBP, loop precision / recall, "
@@ -254,6 +273,26 @@ def run(args: argparse.Namespace) -> int:
     rows, table = run_bandwidth(bandwidth_config(args), progress=lambda m: print(m, flush=True))
     print(table)
     return 1 if any(r["failed"] for r in rows) else 0
+
+
+def run_budget_rows(args: argparse.Namespace) -> int:
+    """``recslam experiment budget`` (logic in :mod:`lab.budget`): OUT/budget.md and .png."""
+    from lab.budget import parse_rows, plot, run_rows, table
+
+    results = run_rows(
+        args.data,
+        tuple(r for r in args.robots.split(",") if r),
+        parse_rows(args.rows),
+        args.out,
+        args.timeout,
+        resolve_shaper(args.shaper),
+        progress=lambda m: print(m, flush=True),
+    )
+    text = table(results)
+    (args.out / "budget.md").write_text(text)
+    plot(results, args.out / "budget.png")
+    print(text)
+    return 1 if any(r["failed"] for r in results) else 0
 
 
 def run_table3(args: argparse.Namespace) -> int:
