@@ -1,32 +1,27 @@
-"""The edge's application: reacts to delivered messages, never touches bytes or sockets.
+"""The edge's application: the asyncio driver of :class:`~services.edge.core.EdgeCore`. It
+reacts to delivered messages and never touches bytes or sockets.
 
-Per robot (agent id) an :class:`_Robot` holds its sensors, a :class:`RobotSession` (decoders,
-outputs), a worker running its VIO (``services.edge.worker``), an input queue and a task
-draining it:
+The policy (joins and refusals, journal de-duplication, the bounded frame queue and its
+back-pressure, stale frames skipped, corrections and placements, sequence ends) is the
+core's (:mod:`services.edge.core`); this module does the core's actions. Per robot (agent id)
+a :class:`_Robot` holds what they need: its sensors, a :class:`RobotSession` (decoders,
+outputs), a worker running its VIO (``services.edge.worker``), a codec thread and a runner
+task:
 
-- ``RobotSensors`` (first message of every robot stream): the robot's own camera and IMU
-  calibrations; the robot's decoders and VIO are built from them, and they go on to the
-  cloud (``AgentSensors``) ahead of the robot's keyframes. It is journaled like every message,
-  so a restarted edge rebuilds the robot from its journal. An invalid description, a frame
-  before any description, or a robot that re-joins under the same agent id with a different
-  calibration is refused (``RejectedMessageError``: the robot is told why with a ``Reject``
-  and stops; the message is never redelivered); other robots are unaffected;
-- ``RobotFrame``: decoded at once (in stream order; a frame that does not decode is refused
-  likewise and leaves the decoders untouched), journaled (when a journal is configured) and
-  queued; the handler returns, so the transport acknowledges, once the
-  frame is in the journal. The queue is bounded (``EdgeConfig.max_queued_frames``): a full
-  queue makes the handler wait, which back-pressures the robot through the protocol window;
-- the robot's task feeds the worker frame by frame, one frame ahead (the worker computes the
-  next frame while the loop turns the previous result into messages via the :class:`Sink`:
-  feedback to the robot, uplink to the cloud);
-- the robot's codec work (decoding its frames, turning its VIO results into messages) runs on
-  the robot's own codec thread, one call at a time, never on the event loop: six robots'
-  decoding on a loaded machine once held the loop for 12 s, longer than the peers' idle
-  timeout, and every robot timed out (#20). The loop only moves messages, so heartbeats and
-  acks keep flowing however busy the codecs are;
-- ``PoseCorrection`` from the cloud is attached to that robot's next frame; the
-  ``MapPlacement`` that comes with it (where the robot's map sits in the global map) goes on
-  to the robot when it changed;
+- a robot's message goes to the core (:class:`RobotMessage`, with the robot's last journaled
+  position); a :class:`Reject` becomes ``RejectedMessageError`` (the robot is told why and
+  stops); a :class:`Hold` keeps the handler (so the transport's acknowledgement) waiting until
+  the core's :class:`Release`, which back-pressures the robot through the protocol window;
+  :class:`Journal` appends to the robot's journal before the handler returns;
+- the robot's codec work (decoding its frames, :class:`Decode`; turning its VIO results into
+  messages) runs on the robot's own codec thread, one call at a time, never on the event
+  loop: six robots' decoding on a loaded machine once held the loop for 12 s, longer than the
+  peers' idle timeout, and every robot timed out (#20). The loop only moves messages, so
+  heartbeats and acks keep flowing however busy the codecs are;
+- :class:`FeedWorker` hands a frame to the worker at once; the robot's runner task takes the
+  results in order, turns each into messages on the codec thread (:class:`WorkerResult`: the
+  core says where they go) and reports :class:`StepDone`; :class:`CloseSequence` (the robot's
+  sequence end) sends the rest of its points, frame poses and a status to the cloud;
 - on start, :meth:`EdgeApp.replay` re-decodes each journal and fast-forwards the VIO over it
   (no robot feedback during replay). The re-run is a new map (map ids of this run's
   generations, :data:`~services.edge.worker.GENERATIONS_PER_RUN`): the VIO is not
@@ -38,67 +33,59 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import dataclasses
 import functools
 import logging
-from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
-import numpy as np
-
 from common.codec.errors import CodecError
-from common.links.edge_cloud import (
-    MapPlacement,
-    PoseCorrection,
-    PoseCorrectionCoded,
-    agent_sensors_message,
-    decode_map_placement,
-    decode_pose_correction,
-)
-from common.links.robot_edge import MapPlacement as RobotMapPlacement
-from common.links.robot_edge import RobotFrame, RobotSensors, RobotSequenceEnd, read_sensors
+from common.links.robot_edge import RobotFrame
 from common.links.sensors import Sensors
-from common.protocol.errors import RejectedMessageError, RemoteProtocolError
+from common.protocol.errors import RejectedMessageError
 from common.protocol.messages import Message, decode_payload, encode_payload
 from common.transport import Delivery
 from common.vocabulary import Vocabulary
+from services.edge.config import EdgeConfig
+from services.edge.core import EdgeCore
+from services.edge.core_events import (
+    Action,
+    CloseSequence,
+    CloudMessage,
+    Decode,
+    Event,
+    FeedbackLost,
+    FeedWorker,
+    FrameDecoded,
+    FrameUndecodable,
+    Hold,
+    Journal,
+    Reject,
+    Release,
+    RobotExpected,
+    RobotMessage,
+    RobotSendFailed,
+    SendStatus,
+    StartRobot,
+    StepDone,
+    ToCloud,
+    ToRobot,
+    WorkerResult,
+)
 from services.edge.journal import JournalRecord, JournalStore
-from services.edge.robot_session import RobotSession, SessionOptions
-from services.edge.vio.types import VioOptions
+from services.edge.robot_session import RobotSession
 from services.edge.worker import (
     GENERATIONS_PER_RUN,
     Worker,
     WorkerFactory,
     WorkerSpec,
-    WorkItem,
+    WorkResult,
     make_worker,
 )
 
 logger = logging.getLogger(__name__)
 
-
-@dataclass(frozen=True)
-class EdgeConfig:
-    """Options of the edge application.
-
-    worker: "process" (one spawned VIO process per robot, default) or "thread".
-    max_queued_frames: decoded frames waiting for a robot's VIO before the handler waits
-        (200 = 10 s at 20 Hz).
-    max_vio_lag_s: fresh before complete at the edge (``recslam edge --max-vio-lag``): a
-        non-keyframe whose camera time is more than this behind the robot's newest decoded
-        frame is not given to the VIO (its IMU goes with the next frame, which the VIO
-        integrates across the gap; counted per robot as ``frames_skipped_stale``); keyframes
-        always go. 0 (default): every frame, however late (the lossless recorder).
-    vio: the VIO's options; session: feedback / status / uplink options.
-    """
-
-    worker: str = "process"
-    max_queued_frames: int = 200
-    max_vio_lag_s: float = 0.0
-    vio: VioOptions = field(default_factory=VioOptions)
-    session: SessionOptions = field(default_factory=SessionOptions)
+__all__ = ["EdgeApp", "EdgeConfig", "Sink"]
 
 
 class Sink(Protocol):
@@ -114,23 +101,20 @@ class Sink(Protocol):
     def link_counters(self, agent_id: str) -> dict[str, int]: ...
 
 
+_Job = tuple[asyncio.Future[WorkResult] | None, bool]  # a step (None: the sequence end)
+
+
 @dataclass
 class _Robot:
     sensors: Sensors
     session: RobotSession
     worker: Worker
-    queue: asyncio.Queue[tuple[WorkItem | None, bool]]
-    space: asyncio.Event
     codec: ThreadPoolExecutor  # decode and on_result, one at a time (they share state)
-    corrections: list[tuple[int, dict[int, np.ndarray]]] = field(default_factory=list)
-    placement: tuple[int, int, bytes] | None = None  # the last one the robot was sent
+    jobs: asyncio.Queue[_Job] = field(default_factory=asyncio.Queue)  # for the runner, in order
     task: asyncio.Task[None] | None = None
     idle: asyncio.Event = field(default_factory=asyncio.Event)
     ended: asyncio.Event = field(default_factory=asyncio.Event)
-    expected_frames: int | None = None
-    newest_ns: int = 0  # camera time of the newest frame decoded
-    skipped_stale: int = 0  # non-keyframes not given to the VIO (EdgeConfig.max_vio_lag_s)
-    carry: list[WorkItem] = field(default_factory=list)  # their IMU, for the next frame
+    released: asyncio.Event = field(default_factory=asyncio.Event)  # a held message queued
 
 
 class EdgeApp:
@@ -149,8 +133,60 @@ class EdgeApp:
         self.config = config or EdgeConfig()
         self.journal = journal
         self.worker_factory = worker_factory
+        self.core = EdgeCore(self.config, journal=journal is not None)
         self.robots: dict[str, _Robot] = {}
-        self.on_robot_added: Callable[[str], None] | None = None
+
+    # ------------------------------------------------------------------ the core
+    async def _handle(self, event: Event) -> None:
+        """Give ``event`` to the core and do its actions."""
+        actions = self.core.handle(event, asyncio.get_running_loop().time())
+        agent_id = getattr(event, "agent_id", "")
+        rb = self.robots.get(agent_id)
+        if rb is not None:
+            if self.core.idle(agent_id):
+                rb.idle.set()
+            else:
+                rb.idle.clear()
+        await self._do(actions)
+
+    async def _do(self, actions: list[Action]) -> None:
+        """Do the core's ``actions`` in order. Those that hand out work (FeedWorker,
+        CloseSequence, Journal, Release) are done at once, without yielding to the loop."""
+        for a in actions:
+            if isinstance(a, StartRobot):
+                self._new_robot(a.agent_id, a.sensors)
+            elif isinstance(a, Reject):
+                raise RejectedMessageError(a.reason)
+            elif isinstance(a, Decode):
+                await self._decode(a)
+            elif isinstance(a, Hold):
+                rb = self.robots[a.agent_id]
+                rb.released.clear()
+                await rb.released.wait()
+            elif isinstance(a, Release):
+                self.robots[a.agent_id].released.set()
+            elif isinstance(a, Journal):
+                assert self.journal is not None
+                m = a.message
+                rec = JournalRecord(a.stream_id, a.seq, m.TYPE_ID, encode_payload(m))
+                self.journal.journal(a.agent_id).append(rec)
+            elif isinstance(a, FeedWorker):
+                rb = self.robots[a.agent_id]
+                rb.jobs.put_nowait((asyncio.ensure_future(rb.worker.step(a.item)), a.replaying))
+            elif isinstance(a, CloseSequence):
+                self.robots[a.agent_id].jobs.put_nowait((None, False))
+            elif isinstance(a, ToRobot):
+                if not self.sink.to_robot(a.agent_id, a.message):
+                    await self._handle(RobotSendFailed(a.agent_id, a.message))
+            elif isinstance(a, ToCloud):
+                await self.sink.to_cloud(a.message)
+            elif isinstance(a, SendStatus):
+                await self._send_status(self.robots[a.agent_id].session)
+            elif isinstance(a, FeedbackLost):
+                self.robots[a.agent_id].session.feedback_lost()
+
+    async def _send_status(self, s: RobotSession) -> None:
+        await self.sink.to_cloud(s.status(self.sink.link_counters(s.agent_id)))
 
     # ------------------------------------------------------------------ robots
     def _new_robot(self, agent_id: str, sensors: Sensors) -> _Robot:
@@ -163,12 +199,10 @@ class EdgeApp:
             sensors,
             session,
             self.worker_factory(spec, self.config.worker),
-            asyncio.Queue(),
-            asyncio.Event(),
             ThreadPoolExecutor(1, thread_name_prefix=f"codec-{agent_id}"),
         )
         rb.idle.set()
-        rb.task = asyncio.create_task(self._drain(rb), name=f"edge-robot-{agent_id}")
+        rb.task = asyncio.create_task(self._run(rb), name=f"edge-robot-{agent_id}")
         self.robots[agent_id] = rb
         if self.journal is not None:
             self.journal.register(agent_id)
@@ -180,188 +214,62 @@ class EdgeApp:
         )
         return rb
 
-    async def _join(self, agent_id: str, msg: RobotSensors) -> None:
-        """A robot described its sensors: a new robot's session, or the check that a known
-        robot came back with the very same ones (RejectedMessageError otherwise)."""
+    async def _decode(self, a: Decode) -> None:
+        """Decode a frame on the robot's codec thread (in stream order)."""
+        rb = self.robots[a.agent_id]
+        loop = asyncio.get_running_loop()
         try:
-            sensors = read_sensors(msg)
-        except RemoteProtocolError as exc:
-            why = f"robot {agent_id}: invalid sensor description: {exc}"
-            raise RejectedMessageError(why) from exc
-        rb = self.robots.get(agent_id)
-        if rb is not None:
-            if not rb.sensors.same_as(sensors):
-                raise RejectedMessageError(
-                    f"robot {agent_id} re-joined with other sensors ({sensors.summary()}) "
-                    f"than its session has ({rb.sensors.summary()}); refused, maps are never "
-                    "mixed: give a robot with a new calibration a new agent id"
-                )
-            return
-        self._new_robot(agent_id, sensors)
-        await self.sink.to_cloud(agent_sensors_message(agent_id, sensors))
+            item = await loop.run_in_executor(rb.codec, rb.session.decode, a.frame)
+        except CodecError as exc:  # the robot's fault: refused once, decoders untouched
+            await self._handle(FrameUndecodable(a.agent_id, a.frame.frame_index, str(exc)))
+        else:
+            await self._handle(FrameDecoded(a.agent_id, item))
 
-    async def _drain(self, rb: _Robot) -> None:
-        """Feed the robot's worker in order, one frame ahead: the next frame is handed over
-        before the previous result is turned into messages, so the VIO never waits for this
-        loop (the worker runs its steps one after another, in order)."""
+    async def _run(self, rb: _Robot) -> None:
+        """The robot's runner: its worker's results in order, each turned into messages on
+        the codec thread while the worker computes the next step; then the sequence end."""
         s = rb.session
-        pending: tuple[asyncio.Future, bool] | None = None  # the step in flight
-        while True:
-            if pending is not None and rb.queue.empty():
-                await self._finish(rb, *pending)  # nothing to overlap with
-                pending = None
-                if rb.queue.empty():
-                    rb.idle.set()
-                continue
-            item, replaying = await rb.queue.get()
-            rb.idle.clear()
-            rb.space.set()
-            if item is None:
+        loop = asyncio.get_running_loop()
+        try:
+            while True:
+                step, replaying = await rb.jobs.get()
+                if step is None:  # the sequence end, every step before it done
+                    s.finished = True
+                    for m in [*s.release_points(), *s.release_frame_poses()]:  # the rest
+                        await self.sink.to_cloud(m)
+                    await self._send_status(s)
+                    rb.ended.set()
+                else:
+                    res = await step
+                    on_result = functools.partial(s.on_result, res, replaying=replaying)
+                    out = await loop.run_in_executor(rb.codec, on_result)
+                    await self._handle(
+                        WorkerResult(
+                            s.agent_id,
+                            tuple(out.robot),
+                            tuple(out.cloud),
+                            out.status_due,
+                            res.failed,
+                        )
+                    )
+                await self._handle(StepDone(s.agent_id))
+        except BaseException:  # cancelled (shutdown) or a worker error: drop the steps out
+            while not rb.jobs.empty():
+                pending, _ = rb.jobs.get_nowait()
                 if pending is not None:
-                    await self._finish(rb, *pending)
-                    pending = None
-                s.finished = True
-                for m in [*s.release_points(), *s.release_frame_poses()]:  # the rest
-                    await self.sink.to_cloud(m)
-                await self.sink.to_cloud(s.status(self.sink.link_counters(s.agent_id)))
-                rb.ended.set()
-                if rb.queue.empty():
-                    rb.idle.set()
-                continue
-            if self._stale(rb, item, replaying):
-                rb.carry.append(item)
-                rb.skipped_stale += 1
-                continue
-            if rb.carry:
-                item = _with_imu_of(rb.carry, item)
-                rb.carry.clear()
-            if rb.corrections:
-                item = dataclasses.replace(item, corrections=tuple(rb.corrections))
-                rb.corrections.clear()
-            step = asyncio.ensure_future(rb.worker.step(item))
-            if pending is not None:
-                try:
-                    await self._finish(rb, *pending)
-                except BaseException:  # cancelled (shutdown) or a worker error: drop the next
-                    step.cancel()
-                    raise
-            pending = (step, replaying)
-
-    def _stale(self, rb: _Robot, item: WorkItem, replaying: bool) -> bool:
-        """A non-keyframe too far behind the robot's newest frame for the VIO to spend time
-        on (``EdgeConfig.max_vio_lag_s``; never while replaying, never a keyframe)."""
-        lag = self.config.max_vio_lag_s
-        obs = item.obs
-        if replaying or lag <= 0 or obs is None or obs.is_keyframe or item.new_stream:
-            return False
-        return rb.newest_ns - obs.timestamp_ns > lag * 1e9
-
-    async def _finish(self, rb: _Robot, step: asyncio.Future, replaying: bool) -> None:
-        """Turn one worker result into feedback and uplink messages."""
-        s = rb.session
-        res = await step
-        if res.failed:
-            logger.error("robot %s: %s (other robots unaffected)", s.agent_id, res.failed)
-        on_result = functools.partial(s.on_result, res, replaying=replaying)
-        out = await asyncio.get_running_loop().run_in_executor(rb.codec, on_result)
-        for m in out.robot:
-            if not self.sink.to_robot(s.agent_id, m):
-                s.feedback_lost()
-        for m in out.cloud:
-            await self.sink.to_cloud(m)
-        if out.status_due:
-            await self.sink.to_cloud(s.status(self.sink.link_counters(s.agent_id)))
-
-    async def _enqueue(self, rb: _Robot, item: WorkItem | None, replaying: bool) -> None:
-        if not replaying:
-            while rb.queue.qsize() >= self.config.max_queued_frames:
-                rb.space.clear()
-                await rb.space.wait()
-        rb.idle.clear()
-        if item is not None and item.obs is not None:
-            rb.newest_ns = max(rb.newest_ns, item.obs.timestamp_ns)
-        rb.queue.put_nowait((item, replaying))
+                    pending.cancel()
+            raise
 
     # ------------------------------------------------------------------ messages
     async def on_robot_message(self, d: Delivery) -> None:
         """Handler of the robots' link (one call per message, in order per robot)."""
-        if self.journal is not None:
-            last = self.journal.journal(d.peer).last
-            if last is not None and last.stream_id == d.stream_id and d.seq <= last.last_delivered:
-                return  # already journaled (and processed) before a restart
-        await self._apply(d.peer, d.message, replaying=False)
-        if self.journal is not None:
-            rec = JournalRecord(d.stream_id, d.seq, d.message.TYPE_ID, encode_payload(d.message))
-            self.journal.journal(d.peer).append(rec)
-
-    async def _apply(self, agent_id: str, m: Message, replaying: bool) -> None:
-        if isinstance(m, RobotSensors):
-            await self._join(agent_id, m)
-            return
-        rb = self.robots.get(agent_id)
-        if rb is None:
-            raise RejectedMessageError(
-                f"robot {agent_id}: {type(m).__name__} before its RobotSensors (a robot's "
-                "stream starts with its sensor description; after an edge restart without "
-                "--state-dir the robot must restart its stream)"
-            )
-        if isinstance(m, RobotFrame):
-            loop = asyncio.get_running_loop()
-            try:
-                item = await loop.run_in_executor(rb.codec, rb.session.decode, m)
-            except CodecError as exc:  # the robot's fault: refused once, decoders untouched
-                raise RejectedMessageError(
-                    f"robot {agent_id}: frame {m.frame_index} does not decode: {exc}"
-                ) from exc
-            await self._enqueue(rb, item, replaying)
-        elif isinstance(m, RobotSequenceEnd):
-            rb.expected_frames = m.frames
-            logger.info(
-                "robot %s: sequence end after %d frames (decoded %d)",
-                rb.session.agent_id,
-                m.frames,
-                rb.session.frames,
-            )
-            await self._enqueue(rb, None, replaying)
-        else:
-            logger.warning(
-                "robot %s sent an unexpected %s; ignored", rb.session.agent_id, type(m).__name__
-            )
+        last = None if self.journal is None else self.journal.journal(d.peer).last
+        await self._handle(RobotMessage(d.peer, d.message, d.stream_id, d.seq, last))
 
     async def on_cloud_message(self, d: Delivery) -> None:
         """Handler of the cloud link: pose corrections for a robot's map, and where that map
         sits in the global map (forwarded to the robot when it changed)."""
-        m = d.message
-        if not isinstance(m, PoseCorrection | PoseCorrectionCoded | MapPlacement):
-            logger.warning("cloud sent an unexpected %s; ignored", type(m).__name__)
-            return
-        rb = self.robots.get(m.agent_id)
-        if rb is None:
-            logger.warning("%s for unknown robot %s; ignored", type(m).__name__, m.agent_id)
-            return
-        if isinstance(m, MapPlacement):
-            self._forward_placement(rb, m)
-            return
-        try:
-            ids, T = decode_pose_correction(m)
-        except RemoteProtocolError as exc:
-            logger.warning("pose correction for %s refused: %s", m.agent_id, exc)
-            return
-        poses = {int(k): np.array(t) for k, t in zip(ids, T, strict=True)}
-        rb.corrections.append((m.map_id, poses))
-
-    def _forward_placement(self, rb: _Robot, m: MapPlacement) -> None:
-        try:
-            decode_map_placement(m)
-        except RemoteProtocolError as exc:
-            logger.warning("map placement for %s refused: %s", m.agent_id, exc)
-            return
-        key = (m.map_id, m.global_map, m.pose)
-        if rb.placement == key:
-            return
-        msg = RobotMapPlacement(m.map_id, m.global_map, m.pose)
-        if self.sink.to_robot(m.agent_id, msg):
-            rb.placement = key
+        await self._handle(CloudMessage(d.message))
 
     # ------------------------------------------------------------------ restart
     async def replay(self) -> int:
@@ -374,7 +282,9 @@ class EdgeApp:
             for rec in records:
                 try:
                     msg = decode_payload(rec.type_id, rec.payload)
-                    await self._apply(agent, msg, replaying=True)
+                    await self._handle(
+                        RobotMessage(agent, msg, rec.stream_id, rec.seq, replaying=True)
+                    )
                 except RejectedMessageError as exc:  # a journal from before sensors travelled
                     logger.error("robot %s: journal not replayed: %s", agent, exc)
                     break
@@ -394,10 +304,11 @@ class EdgeApp:
         out = {}
         for name, rb in self.robots.items():
             s = rb.session
+            core = self.core.stats(name)
             out[name] = {
                 "frames_decoded": s.frames,
                 "frames_processed": s.processed,
-                "frames_skipped_stale": rb.skipped_stale,
+                "frames_skipped_stale": core["frames_skipped_stale"],
                 "keyframes_decoded": s.keyframes,
                 "keyframes_uplinked": s.vio_keyframes,
                 "state": s.state,
@@ -407,13 +318,13 @@ class EdgeApp:
                 "map_id": s.map_id,
                 "failures": list(s.failures),
                 "feedback_sent": s.feedback_sent,
-                "queued": rb.queue.qsize(),
+                "queued": core["queued"],
                 "finished": s.finished,
-                "expected_frames": rb.expected_frames,
+                "expected_frames": core["expected_frames"],
                 "frame_s": list(s.frame_s),
                 "track_s": list(s.track_s),
                 "local_ba_s": list(s.local_ba_s),
-                "sensors": rb.sensors.summary(),
+                "sensors": core["sensors"],
             }
         return out
 
@@ -421,9 +332,7 @@ class EdgeApp:
         """Create the sessions of robots expected soon (agent id -> the sensors they will
         describe; one that joins with others is refused) and start their workers now."""
         for agent_id, sensors in robots.items():
-            if agent_id not in self.robots:
-                self._new_robot(agent_id, sensors)
-                await self.sink.to_cloud(agent_sensors_message(agent_id, sensors))
+            await self._handle(RobotExpected(agent_id, sensors))
         await self.start_workers()
 
     async def start_workers(self) -> None:
@@ -441,14 +350,3 @@ class EdgeApp:
                     await rb.task
             await rb.worker.close()
             rb.codec.shutdown(wait=False)
-
-
-def _with_imu_of(skipped: list[WorkItem], item: WorkItem) -> WorkItem:
-    """``item`` with the IMU of the frames ``skipped`` before it, in time order."""
-    parts = [*skipped, item]
-    return dataclasses.replace(
-        item,
-        imu_t_ns=np.concatenate([p.imu_t_ns for p in parts]),
-        gyro=np.concatenate([p.gyro for p in parts]),
-        accel=np.concatenate([p.accel for p in parts]),
-    )

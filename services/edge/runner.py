@@ -308,7 +308,7 @@ def serve(config: EdgeRunConfig, announce: Announce = logger.info) -> int:
 
 
 def _server(config: EdgeRunConfig, secret: Keyring, vocab: Vocabulary) -> EdgeServer:
-    from services.edge.app import EdgeConfig
+    from services.edge.config import EdgeConfig
     from services.edge.robot_session import SessionOptions
     from services.edge.server import EdgeServer, EdgeServiceConfig
     from services.edge.vio.types import ViInitOptions, VioOptions
