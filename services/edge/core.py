@@ -314,7 +314,8 @@ class EdgeCore:
         assert hand is not None
         rb.in_hand = None
         if queued.item is not None and queued.item.obs is not None:
-            rb.newest_ns = max(rb.newest_ns, queued.item.obs.timestamp_ns)
+            t = queued.item.obs.timestamp_ns  # (a restarted stream's time starts again)
+            rb.newest_ns = t if queued.item.new_stream else max(rb.newest_ns, t)
         rb.queue.append(queued)
         out = self._journal(agent_id, hand)
         if rb.busy == 0 and not rb.closing:  # the runner waits for a frame
