@@ -184,7 +184,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         metavar="KBPS|auto",
         help="the link's rate to the edge in kbit/s, or 'auto' (estimated from the link's "
         "acknowledgements): keyframes and the IMU always go, non-keyframes at the rate the "
-        "budget leaves (20/10/5 Hz) and only when the link's backlog drains within 0.5 s "
+        "budget leaves (20/10/5 Hz) and only when the link's backlog drains within 0.7 s "
         "(fresh before complete); default: none, every frame goes",
     )
     p.add_argument(

@@ -60,8 +60,10 @@ class UplinkBudgetConfig:
         auto: estimate the rate from the link's acknowledgements instead (``budget_kbps``
             is then ignored).
         max_delay_s: a non-keyframe is left out when the backlog ahead of it would take
-            longer than this to drain at the link's rate (0.5 s: a pose a second after the
-            camera at most, with the edge's work and the way back).
+            longer than this to drain at the link's rate, and a keyframe is planned no
+            bigger than this much of the link (0.7 s: the pose is due back within 1 s of the
+            camera, and tracking, the edge's VIO and the way back took 0.2-0.3 s in the
+            one-robot runs of ``budget.md``).
         rates_hz: the non-keyframe rates to choose from, highest first (the camera's 20 Hz,
             then 10 and 5: the VIO bridges a 0.2 s gap with the IMU alone).
         headroom: share of the rate the frames are planned to fill (0.8: the transport's
@@ -80,7 +82,7 @@ class UplinkBudgetConfig:
 
     budget_kbps: float | None = None
     auto: bool = False
-    max_delay_s: float = 0.5
+    max_delay_s: float = 0.7
     rates_hz: tuple[float, ...] = (20.0, 10.0, 5.0)
     headroom: float = 0.8
     window_s: float = 10.0
@@ -174,15 +176,18 @@ class UplinkBudget:
 
     def keyframe_plan(self, max_features: int = 1000) -> KeyframePlan | None:
         """The keyframes the budget affords (None: no budget, or no rate measured yet):
-        features for ``keyframe_period_s`` of the keyframes' share (between ``min_features``
-        and ``max_features``), and the interval at which such keyframes fit."""
+        features for ``keyframe_period_s`` of the keyframes' share, at most what the link
+        carries in ``max_delay_s`` (between ``min_features`` and ``max_features``), and the
+        interval at which such keyframes fit."""
         rate = self.rate_Bps()
         if rate is None:
             return None
         cfg = self.config
         share = cfg.keyframe_share * cfg.headroom * rate  # B/s for keyframes
-        n = 50 * round(share * cfg.keyframe_period_s / cfg.bytes_per_feature / 50)
-        n = max(cfg.min_features, min(max_features, n))
+        n = share * cfg.keyframe_period_s / cfg.bytes_per_feature
+        # ... and no keyframe holds the frames behind it back longer than max_delay_s
+        n = min(n, rate * cfg.headroom * cfg.max_delay_s / cfg.bytes_per_feature)
+        n = max(cfg.min_features, min(max_features, 50 * round(n / 50)))
         # (in steps of 50 features and 0.1 s: an estimated rate moves a little all the time)
         return KeyframePlan(n, round(n * cfg.bytes_per_feature / share, 1))
 

@@ -18,9 +18,9 @@ def test_without_a_budget_every_frame_goes():
 
 def test_a_backlog_that_would_not_drain_in_time_leaves_non_keyframes_out():
     b = UplinkBudget(UplinkBudgetConfig(budget_kbps=50.0))  # 6250 B/s
-    b.on_link(0.0, 4000, 0)  # 0.64 s of backlog > 0.5 s
+    b.on_link(0.0, 5000, 0)  # 0.8 s of backlog > 0.7 s
     assert b.hold_back(0.0) == "backlog"
-    b.on_link(0.1, 3000, 1000)  # 0.48 s: goes
+    b.on_link(0.1, 4000, 1000)  # 0.64 s: goes
     assert b.hold_back(0.1) == ""
 
 
@@ -94,6 +94,8 @@ def test_keyframes_are_planned_to_fit_the_budget(euroc_micro):
     assert slow is not None and slow.n_features == 300
     assert slow.n_features * 21 / slow.min_interval_s <= 0.6 * 0.8 * 6250 * 1.05
     assert 1.5 < slow.min_interval_s < 3.0
+    mid = UplinkBudget(UplinkBudgetConfig(budget_kbps=200.0)).keyframe_plan()
+    assert mid is not None and mid.n_features == 650  # 0.7 s of the link: 13.7 kB
     fast = UplinkBudget(UplinkBudgetConfig(budget_kbps=1000.0)).keyframe_plan()
     assert fast is not None and fast.n_features == 1000 and fast.min_interval_s < 0.5
     seq = EurocSequence(euroc_micro)
