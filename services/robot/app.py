@@ -149,6 +149,16 @@ class RobotApp:
                     plan.min_interval_s,
                 )
 
+    def predicted_pose(self, timestamp_ns: int) -> tuple[int, np.ndarray] | None:
+        """(map id, (4, 4) T_map_body): the front end's IMU propagation of the edge's last
+        state to this frame's time, in the edge's map (None before the edge's first state)."""
+        state = self.front_end.predictor.state_at(timestamp_ns)
+        if state is None or self._map_id is None:
+            return None
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = state.R_world_imu, state.p_world_imu
+        return self._map_id, T
+
     def process(self, timestamp_ns: int, image: np.ndarray, imu: ImuSamples) -> RobotFrame:
         """Track and code one frame (CPU work, one thread at a time) -> the message to send.
 

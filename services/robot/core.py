@@ -206,9 +206,13 @@ class RobotCore:
             if msg is None:  # fresh before complete: no pose will come for it
                 self.frames_left_out += 1
                 self.uplink.left(event.left_out)
-                self.poses.forget(event.timestamp_ns)
-                self._flags.pop(event.timestamp_ns, None)
-                return []
+                flags = self._flags.pop(event.timestamp_ns, None)
+                if event.predicted is None:
+                    self.poses.forget(event.timestamp_ns)
+                    return []
+                map_id, T = event.predicted
+                pose = self.poses.on_predicted(event.timestamp_ns, map_id, T, now)
+                return [PoseOut(dataclasses.replace(pose, flags=flags) if flags else pose)]
             self.frames_sent += 1
             self.uplink.on_sent(now, len(msg.features) + len(msg.imu), msg.keyframe)
             return [Send(msg)]

@@ -54,11 +54,13 @@ class EndOfInput:
 @dataclass(frozen=True, eq=False)
 class FrameDone:
     """The worker finished a :class:`TrackFrame`: the message to send, or None (the uplink
-    budget left the non-keyframe at ``timestamp_ns`` out, for ``left_out``)."""
+    budget left the non-keyframe at ``timestamp_ns`` out, for ``left_out``; ``predicted``:
+    the robot's own pose of it, from the IMU, once the edge's state came)."""
 
     message: RobotFrame | None
     timestamp_ns: int = 0
     left_out: str = ""
+    predicted: tuple[int, np.ndarray] | None = None  # (map id, (4, 4) T_map_body) of it
 
 
 @dataclass(frozen=True)

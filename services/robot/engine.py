@@ -67,7 +67,8 @@ def run_job(app: RobotApp, job: Job) -> FrameDone | None:
         return None
     app.set_keyframe_plan(job.plan)
     frame = app.process_if(job.timestamp_ns, job.image, job.imu, send=not job.hold_back)
-    return FrameDone(frame, job.timestamp_ns, job.hold_back)
+    predicted = app.predicted_pose(job.timestamp_ns) if frame is None else None
+    return FrameDone(frame, job.timestamp_ns, job.hold_back, predicted)
 
 
 class RobotEngine:

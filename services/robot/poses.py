@@ -67,6 +67,7 @@ class PoseTrack:
         self.with_pose = 0  # ... that carried a metric pose
         self.rejected = 0  # malformed ones (logged, not retried)
         self.with_global = 0  # metric poses placed in the global map
+        self.predicted = 0  # poses the robot predicted itself (frames the budget left out)
         self.placements: dict[int, tuple[int, np.ndarray]] = {}  # map -> (global map, T)
         self.latencies_s: deque[float] = deque(maxlen=window)
         self._captured: OrderedDict[int, float] = OrderedDict()
@@ -112,6 +113,23 @@ class PoseTrack:
         self.latest = pose
         return pose
 
+    def on_predicted(
+        self, timestamp_ns: int, map_id: int, T_map_body: np.ndarray, now_s: float
+    ) -> ReceivedPose:
+        """The robot's own pose of a frame the edge will not see (the uplink budget left it
+        out): its tracker's IMU propagation from the edge's last state, status
+        ``"predicted"``; its latency is not the edge's (not in :meth:`summary`'s)."""
+        t_cap = self._captured.pop(int(timestamp_ns), None)
+        placed = self.placements.get(int(map_id))
+        global_map, T_global = (
+            (None, None) if placed is None else (placed[0], placed[1] @ T_map_body)
+        )
+        self.predicted += 1
+        latency = None if t_cap is None else now_s - t_cap
+        return ReceivedPose(
+            int(timestamp_ns), int(map_id), "predicted", T_map_body, latency, global_map, T_global
+        )
+
     def on_placement(self, msg: MapPlacement) -> bool:
         """Where the robot's map ``msg.map_id`` now sits in the global map; False (logged,
         counted) if the message is malformed."""
@@ -139,6 +157,7 @@ class PoseTrack:
             "with_pose": self.with_pose,
             "with_global": self.with_global,
             "rejected": self.rejected,
+            "predicted": self.predicted,
             **stats,
         }
 
@@ -155,9 +174,11 @@ def open_tum(path: Path | None) -> TextIO | None:
 
 def tum_line(pose: ReceivedPose, global_frame: bool = False) -> str | None:
     """``t tx ty tz qx qy qz qw`` (TUM: seconds, position m, Hamilton quaternion xyzw) of a
-    pose in its own map (or, ``global_frame``, the global map), None without one."""
+    pose in its own map (or, ``global_frame``, the global map), None without one, and None for
+    a predicted pose (the files hold the edge's poses in camera-time order; a predicted one
+    comes out before the edge's of earlier frames)."""
     T = pose.T_global_body if global_frame else pose.T_map_body
-    if T is None:
+    if T is None or pose.status == "predicted":
         return None
     w, x, y, z = R_to_quat_wxyz(T[:3, :3])
     p = T[:3, 3]

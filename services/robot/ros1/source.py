@@ -96,8 +96,8 @@ def serve(config: Ros1RunConfig) -> int:
                     placed[0] = where
                 bridge.send(data)
                 counts["odometry"] += 1
-            if pose_file is not None:
-                pose_file.write(f"{tum_line(pose)}\n")
+            if pose_file is not None and (line := tum_line(pose)) is not None:
+                pose_file.write(f"{line}\n")
 
         def on_signal(signum: int, _frame: object) -> None:
             logger.warning("robot: %s: ending the input", signal.Signals(signum).name)

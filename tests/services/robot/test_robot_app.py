@@ -247,3 +247,25 @@ def test_left_out_non_keyframes_keep_the_stream_decodable_and_the_imu_whole(euro
     # A track that lived through a gap keeps its number: the edge's VIO sees one feature.
     assert session.frames == sent
     assert all(len(a & b) > 100 for a, b in itertools.pairwise(numbers))
+
+
+def test_the_robot_predicts_its_pose_from_the_edges_last_state(euroc_micro):
+    """``predicted_pose``: none before the edge's first state; then the state propagated with
+    the IMU to the frame's time, in the edge's map."""
+    seq = EurocSequence(euroc_micro)
+    app = RobotApp(FrontEndConfig(), seq.cam0, seq.imu, Vocabulary.load())
+    frames = list(seq.frames(0, 3))
+    for fr in frames[:2]:
+        app.process(fr.timestamp_ns, fr.image, fr.imu)
+    t = frames[1].timestamp_ns
+    assert app.predicted_pose(t) is None
+    deliver(app, feedback(t, map_id=4))
+    map_id, T = app.predicted_pose(t)
+    assert map_id == 4 and np.allclose(T, np.eye(4))  # the state itself
+    app.process(frames[2].timestamp_ns, frames[2].image, frames[2].imu)
+    _, T2 = app.predicted_pose(frames[2].timestamp_ns)
+    dt = (frames[2].timestamp_ns - t) * 1e-9
+    # propagated: it moved, by about the state's velocity (the fabricated state's attitude
+    # does not put gravity where this IMU measures it: up to 2 g of error over dt)
+    moved = T2[:3, 3] - np.array([0.1, 0.2, 0.3]) * dt
+    assert 0 < np.linalg.norm(T2[:3, 3]) and np.linalg.norm(moved) < 0.5 * 2 * 9.81 * dt**2

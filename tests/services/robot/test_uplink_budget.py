@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections import deque
+
 import numpy as np
 import pytest
 
@@ -108,3 +110,22 @@ def test_keyframes_are_planned_to_fit_the_budget(euroc_micro):
     assert first.is_keyframe and 250 <= len(first) <= 300
     fe.set_keyframe_plan(None)
     assert fe.orb.n_features == 1000 and fe.config == FrontEndConfig()
+
+
+def test_a_frame_left_out_gets_the_robots_own_predicted_pose():
+    """Once the edge's state came, a frame the budget left out still has a pose on the robot:
+    the IMU propagation, status "predicted", placed in the global map like the edge's; it is
+    not written to the TUM files (they keep the edge's poses in camera-time order)."""
+    from services.robot.poses import tum_line
+
+    core = RobotCore(8, 6)
+    core.poses.captured(5_000, 1.0)
+    T = np.eye(4)
+    T[:3, 3] = [1.0, 2.0, 3.0]
+    (out,) = core.handle(FrameDone(None, 5_000, "rate", (7, T)), 1.05)
+    pose = out.pose
+    assert pose.status == "predicted" and pose.map_id == 7
+    assert np.allclose(pose.T_map_body, T) and pose.latency_s == pytest.approx(0.05)
+    assert core.poses.summary()["predicted"] == 1 and core.poses.pending == 0
+    assert core.poses.latencies_s == deque() or len(core.poses.latencies_s) == 0
+    assert tum_line(pose) is None
