@@ -221,9 +221,11 @@ def run_budget(
     shaper: str = "proxy",
     robot_args: tuple[str, ...] = (),
     edge_args: tuple[str, ...] = (),
+    cut: tuple[float, float] | None = None,
 ) -> dict[str, Any]:
     """One run at ``kbit_s`` (None = unlimited) shaped by ``shaper``; returns its table row.
-    ``robot_args`` / ``edge_args``: more arguments for every robot / edge."""
+    ``robot_args`` / ``edge_args``: more arguments for every robot / edge; ``cut``: (at, for)
+    seconds after the robots started, every robot link is down (tbf only)."""
     import shutil
 
     from lab.run.orchestration import JobConfig
@@ -244,8 +246,22 @@ def run_budget(
                 robot_args=robot_args,
                 edge_args=edge_args,
             )
-            stream_s, codes, frames = _run_job(config, timeout)
+            timers = []
+            if cut is not None:
+                import threading
+
+                timers = [
+                    threading.Timer(cut[0], topology.set_links, (False,)),
+                    threading.Timer(cut[0] + cut[1], topology.set_links, (True,)),
+                ]
+            try:
+                stream_s, codes, frames = _run_job(config, timeout, timers)
+            finally:
+                for timer in timers:
+                    timer.cancel()
     else:
+        if cut is not None:
+            raise RecslamError("a link cut needs the tbf shaper (network namespaces)")
         links = ThrottledLinks(kbit_s)
         try:
             config = JobConfig(
@@ -262,13 +278,18 @@ def run_budget(
     return _row(out, kbit_s, stream_s, time.perf_counter() - t0, codes, frames)
 
 
-def _run_job(config: Any, timeout: float) -> tuple[float, dict[str, int], dict[str, int]]:
-    """Start the job of ``config``, wait for the robots and the edge, stop it: the streaming
-    time, the exit codes and the frames per robot."""
+def _run_job(
+    config: Any, timeout: float, timers: list[Any] | None = None
+) -> tuple[float, dict[str, int], dict[str, int]]:
+    """Start the job of ``config`` (and ``timers``, threading.Timers, with the robots), wait
+    for the robots and the edge, stop it: the streaming time, the exit codes and the frames
+    per robot."""
     from lab.run.orchestration import Job, robot_frames
 
     with Job(config) as job:
         job.start()
+        for timer in timers or ():
+            timer.start()
         t_robots = time.perf_counter()
         job.wait_robots(timeout, every_s=0.5)
         stream_s = time.perf_counter() - t_robots

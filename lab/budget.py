@@ -10,7 +10,9 @@ proxy, ``--shaper proxy``), named ``LINK[/MODE]``:
 - ``/fresh``: the robots play as live drivers (``recslam robot --live``), with
   ``--uplink-budget LINK`` (none when unlimited), and the edge gives its VIO no non-keyframe
   more than ``--max-vio-lag`` behind (0.5 s);
-- ``/auto``: the same with ``--uplink-budget auto`` (the robot measures the link's rate).
+- ``/auto``: the same with ``--uplink-budget auto`` (the robot measures the link's rate);
+- ``/cut`` (after the mode): every robot's link goes down :data:`CUT` s after the robots
+  started, for the time given there (tbf: ``ip link set down`` on the robots' veth ends).
 
 Per row: rates both ways, frames in / sent / decoded (lost = sent − decoded: must be 0), what
 the rules left out, the pose latency at the robot (camera → pose back; the worst robot's
@@ -33,6 +35,8 @@ log = logging.getLogger(__name__)
 
 MODES = ("", "fresh", "auto")
 MAX_VIO_LAG_S = 0.5
+CUT = (30.0, 20.0)
+"""The outage of a ``/cut`` row: (at, for) seconds after the robots started."""
 
 
 @dataclass(frozen=True)
@@ -41,11 +45,13 @@ class Row:
 
     link_kbps: float | None
     mode: str = ""
+    cut: bool = False
 
     @property
     def name(self) -> str:
         link = "unlimited" if self.link_kbps is None else f"{self.link_kbps:g}"
-        return f"{link}/{self.mode}" if self.mode else link
+        name = f"{link}/{self.mode}" if self.mode else link
+        return name + "/cut" if self.cut else name
 
     def robot_args(self) -> tuple[str, ...]:
         if not self.mode:
@@ -66,10 +72,12 @@ def parse_rows(text: str) -> list[Row]:
     rows = []
     for item in (x.strip() for x in text.split(",") if x.strip()):
         link, _, mode = item.partition("/")
+        cut = mode == "cut" or mode.endswith("/cut")
+        mode = mode.removesuffix("cut").removesuffix("/")
         if mode not in MODES:
             raise RecslamError(f"row {item!r}: mode must be one of fresh, auto (or none)")
         if link == "unlimited":
-            rows.append(Row(None, mode))
+            rows.append(Row(None, mode, cut))
             continue
         try:
             kbps = float(link)
@@ -77,7 +85,7 @@ def parse_rows(text: str) -> list[Row]:
             raise RecslamError(f"row {item!r}: {link!r} is not kbit/s or 'unlimited'") from None
         if not kbps > 0:
             raise RecslamError(f"row {item!r}: the rate must be positive")
-        rows.append(Row(kbps, mode))
+        rows.append(Row(kbps, mode, cut))
     if not rows:
         raise RecslamError("no rows")
     return rows
@@ -111,6 +119,7 @@ def run_rows(
             shaper,
             robot_args=row.robot_args(),
             edge_args=row.edge_args(),
+            cut=CUT if row.cut else None,
         )
         result["row"] = row.name
         results.append(result)

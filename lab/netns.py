@@ -73,6 +73,15 @@ class Star:
         """argv that runs ``argv`` inside ``namespace``."""
         return netns_exec(namespace, argv)
 
+    def set_links(self, up: bool) -> None:
+        """Take every robot's link down (an outage: nothing passes either way) or up again."""
+        for leaf in self.leaves.values():
+            state = "up" if up else "down"
+            subprocess.run(
+                ["ip", "-n", leaf.namespace, "link", "set", leaf.device, state], check=True
+            )
+        log.info("robot links %s", "up" if up else "down")
+
     def placement(self, hub_services: Sequence[str] = ("cloud", "edge")) -> Placement:
         """Cloud and edge in the hub (the edge listening on every hub address), each leaf's
         robot in its namespace reaching the edge at its link's hub address."""

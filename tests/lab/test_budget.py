@@ -53,3 +53,11 @@ def test_table_counts_lost_frames_and_the_plot_is_written(tmp_path):
     assert "0.30 / 0.90 / 2.00" in text and "| 0.40 | 0.60 |" in text
     plot(results, tmp_path / "b.png")
     assert (tmp_path / "b.png").stat().st_size > 10_000
+
+
+def test_a_cut_row_names_its_outage():
+    rows = parse_rows("50/fresh/cut,50/cut")
+    assert [r.name for r in rows] == ["50/fresh/cut", "50/cut"]
+    assert rows[0].cut and rows[0].mode == "fresh" and rows[1].cut and rows[1].mode == ""
+    with pytest.raises(RecslamError, match="mode"):
+        parse_rows("50/cut/fresh")

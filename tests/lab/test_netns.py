@@ -45,6 +45,17 @@ with socket.create_connection((sys.argv[1], int(sys.argv[2])), timeout=60) as s:
 """
 
 
+REACH = """
+import socket, sys
+try:  # nobody listens there: refused means the hub answered
+    socket.create_connection((sys.argv[1], 7599), timeout=1).close()
+except ConnectionRefusedError:
+    sys.exit(0)
+except OSError:
+    sys.exit(1)
+"""
+
+
 def transfer(link_star, from_ns: str, to_ns: str, to_addr: str, port: int) -> dict:
     """Send SIZE bytes from ``from_ns`` to ``to_addr`` in ``to_ns``; the receiver's count."""
     receiver = subprocess.Popen(
@@ -94,6 +105,18 @@ def test_an_unshaped_star_is_much_faster_than_the_shaped_rate() -> None:
         up = transfer(s, leaf.namespace, s.hub, leaf.hub_addr, 7503)
     assert up["bytes"] == SIZE
     assert 8 * SIZE / up["seconds"] / 1000 > 10 * RATE_KBIT
+
+
+def test_a_cut_link_passes_nothing_until_it_is_up_again() -> None:
+    """``Star.set_links``: an outage drill (the budget experiment's ``/cut`` rows)."""
+    with star(["robot0"], None) as s:
+        leaf = s.leaves["robot0"]
+        reach = s.exec_argv(leaf.namespace, [sys.executable, "-c", REACH, leaf.hub_addr])
+        assert subprocess.run(reach, capture_output=True).returncode == 0
+        s.set_links(False)
+        assert subprocess.run(reach, capture_output=True).returncode != 0
+        s.set_links(True)
+        assert subprocess.run(reach, capture_output=True).returncode == 0
 
 
 def test_namespaces_are_deleted_after_an_error_and_leftovers_of_dead_runs_cleaned() -> None:
