@@ -22,7 +22,8 @@ The link's rate is the budget the user gives (``--uplink-budget KBPS``), or, wit
 estimated from the transport's acknowledgements the way a delay-based congestion controller
 (BBR's delivery rate) does: bytes acknowledged per second over the intervals in which the
 link had a backlog (an idle link says nothing about its capacity), the highest of the last
-``window_s``; before the first estimate every frame goes.
+``window_s``; the last estimate holds while the link says nothing (cut); before the first
+estimate every frame goes.
 
 No clock, no sockets here: ``now`` (monotonic s) and the link's load
 (:meth:`UplinkBudget.on_link`) come in, decisions go out.
@@ -133,6 +134,7 @@ class UplinkBudget:
         self._outbox = 0  # bytes waiting in the link (unacknowledged)
         self._acked: tuple[float, int] | None = None  # last sample (now, acked bytes total)
         self._rates: deque[tuple[float, float]] = deque()  # (now, B/s) delivery samples
+        self._last_rate: float | None = None  # the last estimate [B/s]
         self.rate_hz = self.config.rates_hz[0]
 
     # ------------------------------------------------------------------ in
@@ -170,8 +172,10 @@ class UplinkBudget:
     def rate_Bps(self) -> float | None:
         """The link's rate [B/s] the decisions use (None: no budget, or none measured yet)."""
         cfg = self.config
-        if cfg.auto:
-            return max((r for _, r in self._rates), default=None)
+        if cfg.auto:  # (no sample for a while, e.g. an outage: the last estimate holds)
+            if self._rates:
+                self._last_rate = max(r for _, r in self._rates)
+            return self._last_rate
         return None if cfg.budget_kbps is None else cfg.budget_kbps * 1000.0 / 8.0
 
     def keyframe_plan(self, max_features: int = 1000) -> KeyframePlan | None:

@@ -53,8 +53,11 @@ def test_auto_measures_the_rate_only_while_the_link_has_a_backlog():
     b.on_link(3.0, 15_000, 56_250)  # 6250 B/s acknowledged with a backlog throughout
     assert b.rate_Bps() == pytest.approx(6250.0)
     assert b.hold_back(3.0) == "backlog"  # 15 kB at 6.25 kB/s: 2.4 s
-    b.on_link(20.0, 100, 70_000)  # the samples age out of the window
-    assert b.rate_Bps() is None
+    b.on_link(20.0, 100, 70_000)  # the samples age out: the last estimate holds (an outage
+    assert b.rate_Bps() == pytest.approx(6250.0)  # must not turn the budget off)
+    b.on_link(20.5, 5000, 70_000)
+    b.on_link(21.0, 2000, 73_000)  # a new sample replaces it
+    assert b.rate_Bps() == pytest.approx(6000.0)
 
 
 def test_parse_names_what_is_wrong():
