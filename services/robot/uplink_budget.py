@@ -21,9 +21,11 @@ and the rate is the lowest; the backlog rule then drops what would still be late
 The link's rate is the budget the user gives (``--uplink-budget KBPS``), or, with ``auto``,
 estimated from the transport's acknowledgements the way a delay-based congestion controller
 (BBR's delivery rate) does: bytes acknowledged per second over the intervals in which the
-link had a backlog (an idle link says nothing about its capacity), the highest of the last
-``window_s``; the last estimate holds while the link says nothing (cut); before the first
-estimate every frame goes.
+link had a backlog (an idle link says nothing about its capacity): the bytes acknowledged in
+those intervals over their total time, in the last ``window_s`` (a ratio of sums: one ack can
+cover a 20 kB keyframe at once, so a single interval's rate, or their maximum, overstates the
+link many times over), reported from one second of such time on; the last estimate holds while
+the link says nothing (cut); before the first estimate every frame goes.
 
 No clock, no sockets here: ``now`` (monotonic s) and the link's load
 (:meth:`UplinkBudget.on_link`) come in, decisions go out.
@@ -133,7 +135,7 @@ class UplinkBudget:
         self._last_nkf: float | None = None  # when the last non-keyframe went [s]
         self._outbox = 0  # bytes waiting in the link (unacknowledged)
         self._acked: tuple[float, int] | None = None  # last sample (now, acked bytes total)
-        self._rates: deque[tuple[float, float]] = deque()  # (now, B/s) delivery samples
+        self._rates: deque[tuple[float, float, int]] = deque()  # (now, s, B) with a backlog
         self._last_rate: float | None = None  # the last estimate [B/s]
         self.rate_hz = self.config.rates_hz[0]
 
@@ -150,8 +152,8 @@ class UplinkBudget:
         # Only a link that had a backlog all along measures its capacity (BBR's
         # "not application-limited"): short intervals are too noisy, and over long ones the
         # link may have idled in between.
-        if 0.2 <= dt <= 2.0 and prev_outbox > 0 and self._outbox > 0 and db > 0:
-            self._rates.append((now, db / dt))
+        if 0.2 <= dt <= 2.0 and prev_outbox > 0 and self._outbox > 0:
+            self._rates.append((now, dt, db))
         elif dt < 0.2:
             self._acked = prev  # keep the older sample: measure over a longer interval
         while self._rates and self._rates[0][0] < now - self.config.window_s:
@@ -173,8 +175,9 @@ class UplinkBudget:
         """The link's rate [B/s] the decisions use (None: no budget, or none measured yet)."""
         cfg = self.config
         if cfg.auto:  # (no sample for a while, e.g. an outage: the last estimate holds)
-            if self._rates:
-                self._last_rate = max(r for _, r in self._rates)
+            secs = sum(dt for _, dt, _ in self._rates)
+            if secs >= 1.0:
+                self._last_rate = sum(db for _, _, db in self._rates) / secs
             return self._last_rate
         return None if cfg.budget_kbps is None else cfg.budget_kbps * 1000.0 / 8.0
 

@@ -50,14 +50,16 @@ def test_auto_measures_the_rate_only_while_the_link_has_a_backlog():
     b.on_link(1.0, 0, 50_000)  # idle link at the end: says nothing of its capacity
     assert b.rate_Bps() is None
     b.on_link(2.0, 20_000, 50_000)
-    b.on_link(3.0, 15_000, 56_250)  # 6250 B/s acknowledged with a backlog throughout
+    b.on_link(2.5, 20_000, 50_000)  # a big message's ack has not come yet ...
+    b.on_link(3.0, 15_000, 56_250)  # ... now: 6250 B/s over the backlogged second, not 12500
     assert b.rate_Bps() == pytest.approx(6250.0)
     assert b.hold_back(3.0) == "backlog"  # 15 kB at 6.25 kB/s: 2.4 s
     b.on_link(20.0, 100, 70_000)  # the samples age out: the last estimate holds (an outage
     assert b.rate_Bps() == pytest.approx(6250.0)  # must not turn the budget off)
     b.on_link(20.5, 5000, 70_000)
-    b.on_link(21.0, 2000, 73_000)  # a new sample replaces it
-    assert b.rate_Bps() == pytest.approx(6000.0)
+    b.on_link(21.0, 2000, 72_000)
+    b.on_link(21.5, 2000, 75_000)  # a new second of samples replaces it
+    assert b.rate_Bps() == pytest.approx(5000 / 1.5)  # 5 kB acknowledged in 1.5 s of backlog
 
 
 def test_parse_names_what_is_wrong():
