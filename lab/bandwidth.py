@@ -333,6 +333,22 @@ def _row(
     return row
 
 
+def recovery_s(series: list[list[float]], reconnect_s: float, bound_s: float = 1.0) -> float | None:
+    """How long after ``reconnect_s`` (camera time since the first pose [s]) the pose latency
+    came back under ``bound_s`` for good: the camera time of the first pose after which every
+    latency is below it, minus ``reconnect_s`` (None: never, or no poses)."""
+    if not series:
+        return None
+    t0 = series[0][0]
+    last_bad = reconnect_s
+    for t_ns, latency in series:
+        t = (t_ns - t0) * 1e-9
+        if t >= reconnect_s and latency >= bound_s:
+            last_bad = t
+    tail = [t for t, _ in series if (t - t0) * 1e-9 > last_bad]
+    return None if not tail else (tail[0] - t0) * 1e-9 - reconnect_s
+
+
 def freshness(report: dict[str, Any]) -> dict[str, Any]:
     """What the fresh-before-complete rules did and what the robots felt, from a run's report:
     frames left out by the uplink budget, dropped by a live robot behind its camera, skipped by

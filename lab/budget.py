@@ -122,10 +122,24 @@ def run_rows(
             cut=CUT if row.cut else None,
         )
         result["row"] = row.name
+        if row.cut:
+            result["recovery_s"] = _recovery(out / row.name.replace("/", "-"))
         results.append(result)
         (out / "budget.json").write_text(json.dumps(results, indent=1, default=str))
         progress(f"   done in {time.perf_counter() - t:.0f} s: {result}")
     return results
+
+
+def _recovery(out: Path) -> float | None:
+    """The slowest robot's time from reconnecting until its pose latency stayed under 1 s
+    (``lab.bandwidth.recovery_s``; None if a robot never got there)."""
+    from lab.bandwidth import recovery_s
+
+    times = []
+    for path in sorted((out / "run" / "stats").glob("robot-*.json")):
+        series = json.loads(path.read_text()).get("latency_series", [])
+        times.append(recovery_s(series, CUT[0] + CUT[1]))
+    return None if not times or None in times else max(t for t in times if t is not None)
 
 
 def _f(x: Any, spec: str) -> str:
@@ -142,8 +156,9 @@ def table(results: list[dict[str, Any]]) -> str:
         "| row | up kbit/s | down kbit/s | to cloud kbit/s | frames in / sent / decoded | "
         "lost | left out (budget) | dropped (live) | skipped (VIO late) | poses back | "
         "latency median / p95 / max s | keyframes | maps | joint ATE keyframes cm | "
-        "joint ATE every frame cm | robots' own ATE (mean) cm | streaming s |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "joint ATE every frame cm | robots' own ATE (mean) cm | streaming s | "
+        "latency < 1 s again after reconnecting s |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in results:
         lost = r["frames_sent"] - r["frames_decoded"]
@@ -156,7 +171,7 @@ def table(results: list[dict[str, Any]]) -> str:
             f"{_f(r.get('latency_p95_s'), '.2f')} / {_f(r.get('latency_max_s'), '.2f')} | "
             f"{r['keyframes']} | {r.get('maps')} | {_cm(r['ate_joint_m'])} | "
             f"{_cm(r.get('frames_ate_joint_m'))} | {_cm(r['ate_own_mean_m'])} | "
-            f"{_f(r['stream_s'], '.0f')} |"
+            f"{_f(r['stream_s'], '.0f')} | {_f(r.get('recovery_s'), '.1f')} |"
         )
     return "\n".join(lines) + "\n"
 

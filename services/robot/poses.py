@@ -70,6 +70,8 @@ class PoseTrack:
         self.predicted = 0  # poses the robot predicted itself (frames the budget left out)
         self.placements: dict[int, tuple[int, np.ndarray]] = {}  # map -> (global map, T)
         self.latencies_s: deque[float] = deque(maxlen=window)
+        # (camera time [ns], latency [s]) of the newest poses: recovery after an outage
+        self.series: deque[tuple[int, float]] = deque(maxlen=min(window, 20_000))
         self._captured: OrderedDict[int, float] = OrderedDict()
 
     @property
@@ -110,6 +112,7 @@ class PoseTrack:
         self.with_global += T_global is not None
         if latency is not None:
             self.latencies_s.append(latency)
+            self.series.append((int(msg.timestamp_ns), latency))
         self.latest = pose
         return pose
 

@@ -110,6 +110,7 @@ class RobotRunResult:
     sessions: tuple[dict[str, Any], ...] = ()
     poses: dict[str, float | int] = field(default_factory=dict)
     cores: tuple[dict[str, Any], ...] = ()  # each session's core counters (RobotCore.stats)
+    latency_series: tuple[tuple[int, float], ...] = ()  # (camera time ns, latency s), newest
 
 
 class RobotService:
@@ -301,6 +302,7 @@ class RobotService:
             sessions=tuple(sessions),
             poses=poses,
             cores=tuple(self.cores),
+            latency_series=tuple(self.poses.series),
         )
         if cfg.stats_out is not None:
             write_run_stats(cfg.stats_out, result)

@@ -61,3 +61,14 @@ def test_a_cut_row_names_its_outage():
     assert rows[0].cut and rows[0].mode == "fresh" and rows[1].cut and rows[1].mode == ""
     with pytest.raises(RecslamError, match="mode"):
         parse_rows("50/cut/fresh")
+
+
+def test_recovery_is_when_the_latency_stays_under_a_second_after_reconnecting():
+    from lab.bandwidth import recovery_s
+
+    s = 1_000_000_000
+    series = [[0, 0.1], [10 * s, 0.2], [55 * s, 20.0], [56 * s, 0.5], [58 * s, 3.0], [59 * s, 0.4]]
+    assert recovery_s(series, 50.0) == pytest.approx(9.0)  # 59 s is the first for good
+    assert recovery_s([[0, 0.1], [60 * s, 5.0]], 50.0) is None  # never back
+    assert recovery_s([[0, 0.1], [51 * s, 0.2]], 50.0) == pytest.approx(1.0)
+    assert recovery_s([], 50.0) is None
