@@ -176,8 +176,9 @@ class UplinkBudget:
         cfg = self.config
         if cfg.auto:  # (no sample for a while, e.g. an outage: the last estimate holds)
             secs = sum(dt for _, dt, _ in self._rates)
-            if secs >= 1.0:
-                self._last_rate = sum(db for _, _, db in self._rates) / secs
+            acked = sum(db for _, _, db in self._rates)
+            if secs >= 1.0 and acked > 0:  # (nothing acknowledged: a stall, not a rate)
+                self._last_rate = acked / secs
             return self._last_rate
         return None if cfg.budget_kbps is None else cfg.budget_kbps * 1000.0 / 8.0
 

@@ -46,6 +46,11 @@ def test_the_non_keyframe_rate_is_what_the_keyframes_leave():
 def test_auto_measures_the_rate_only_while_the_link_has_a_backlog():
     b = UplinkBudget(UplinkBudgetConfig(auto=True))
     assert b.rate_Bps() is None and b.hold_back(0.0) == ""  # nothing measured yet: all go
+    b.on_link(0.0, 9000, 0)
+    b.on_link(0.6, 9000, 0)
+    b.on_link(1.2, 9000, 0)  # a backlog and no ack for 1.2 s: a stall, not a zero rate
+    assert b.rate_Bps() is None and b.hold_back(1.2) == ""
+    b = UplinkBudget(UplinkBudgetConfig(auto=True))
     b.on_link(0.0, 0, 0)
     b.on_link(1.0, 0, 50_000)  # idle link at the end: says nothing of its capacity
     assert b.rate_Bps() is None
