@@ -143,7 +143,7 @@ class RobotApp:
             self.front_end.set_keyframe_plan(plan)
             self.keyframe_plan = plan
             if plan is not None:
-                logger.info(
+                logger.debug(
                     "uplink budget: keyframes of at most %d features, at least %.1f s apart",
                     plan.n_features,
                     plan.min_interval_s,

@@ -13,6 +13,11 @@ The link carries two classes of data (the issue's "fresh before complete"):
   a stream, but on the one ordered, lossless stream the paper asks for (what is sent stays
   bit-exact; only the subset is chosen). Frames left out are counted by reason.
 
+Keyframes are planned to fit (:meth:`UplinkBudget.keyframe_plan`): fewer features and further
+apart at low rates. While the link is behind (an outage), keyframes are held to those tracking
+needs (tracking lost), so the reliable backlog stays small and drains soon after the link is
+back.
+
 The non-keyframe rate is the highest of ``rates_hz`` whose bytes fit in what the budget leaves
 after the keyframes (both measured over the last ``window_s`` of what was sent), with
 ``headroom`` to spare: at 50 kbit/s and ~20 kB keyframes every two seconds nothing is left
@@ -34,6 +39,7 @@ No clock, no sockets here: ``now`` (monotonic s) and the link's load
 from __future__ import annotations
 
 import logging
+import math
 from collections import deque
 from dataclasses import dataclass
 from typing import Any
@@ -196,6 +202,11 @@ class UplinkBudget:
         # ... and no keyframe holds the frames behind it back longer than max_delay_s
         n = min(n, rate * cfg.headroom * cfg.max_delay_s / cfg.bytes_per_feature)
         n = max(cfg.min_features, min(max_features, 50 * round(n / 50)))
+        if self._outbox / rate > cfg.max_delay_s:
+            # The link is behind (an outage, or a keyframe still going out): no keyframe
+            # but those tracking needs (tracking lost), so the backlog the link must drain
+            # once it is back holds no more than the map needs.
+            return KeyframePlan(n, math.inf)
         # (in steps of 50 features and 0.1 s: an estimated rate moves a little all the time)
         return KeyframePlan(n, round(n * cfg.bytes_per_feature / share, 1))
 

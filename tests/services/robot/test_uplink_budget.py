@@ -106,6 +106,10 @@ def test_keyframes_are_planned_to_fit_the_budget(euroc_micro):
     assert slow is not None and slow.n_features == 300
     assert slow.n_features * 21 / slow.min_interval_s <= 0.6 * 0.8 * 6250 * 1.05
     assert 1.5 < slow.min_interval_s < 3.0
+    behind = UplinkBudget(UplinkBudgetConfig(budget_kbps=50.0))
+    behind.on_link(0.0, 50_000, 0)  # 8 s of backlog (an outage): only keyframes tracking needs
+    held = behind.keyframe_plan()
+    assert held is not None and held.min_interval_s == float("inf")
     mid = UplinkBudget(UplinkBudgetConfig(budget_kbps=200.0)).keyframe_plan()
     assert mid is not None and mid.n_features == 650  # 0.7 s of the link: 13.7 kB
     fast = UplinkBudget(UplinkBudgetConfig(budget_kbps=1000.0)).keyframe_plan()
