@@ -169,11 +169,17 @@ class RobotApp:
         return msg
 
     def process_if(
-        self, timestamp_ns: int, image: np.ndarray, imu: ImuSamples, send: bool
+        self,
+        timestamp_ns: int,
+        image: np.ndarray,
+        imu: ImuSamples,
+        send: bool,
+        send_keyframe: bool = True,
     ) -> RobotFrame | None:
         """:meth:`process`, except that with ``send=False`` the frame is tracked but, unless
-        the front end makes it a keyframe, not coded (None: the uplink budget left it out);
-        its IMU then goes with the next frame sent, so the edge integrates across the gap."""
+        the front end makes it a keyframe (and ``send_keyframe``: not during an outage), not
+        coded (None: the uplink budget left it out); its IMU then goes with the next frame
+        sent, so the edge integrates across the gap."""
         self.apply_pending()
         ts, gyro, accel = imu.timestamps_ns, imu.gyro, imu.accel
         if self.frames == 0 and not self._carry and len(ts):
@@ -181,7 +187,7 @@ class RobotApp:
             ts, gyro, accel = ts[keep], gyro[keep], accel[keep]
         chunk = imu_used(ts, gyro, accel)
         tracked = self.front_end.process(image, timestamp_ns, chunk)
-        if not send and not tracked.is_keyframe:
+        if not send and (not tracked.is_keyframe or not send_keyframe):
             self._carry.append(chunk)
             self.skipped += 1
             return None

@@ -66,7 +66,10 @@ def run_job(app: RobotApp, job: Job) -> FrameDone | None:
         app.apply_pending()
         return None
     app.set_keyframe_plan(job.plan)
-    frame = app.process_if(job.timestamp_ns, job.image, job.imu, send=not job.hold_back)
+    outage = job.hold_back == "outage"  # (keyframes are left out too)
+    frame = app.process_if(
+        job.timestamp_ns, job.image, job.imu, send=not job.hold_back, send_keyframe=not outage
+    )
     predicted = app.predicted_pose(job.timestamp_ns) if frame is None else None
     return FrameDone(frame, job.timestamp_ns, job.hold_back, predicted)
 

@@ -16,7 +16,10 @@ The link carries two classes of data (the issue's "fresh before complete"):
 Keyframes are planned to fit (:meth:`UplinkBudget.keyframe_plan`): fewer features and further
 apart at low rates. While the link is behind (an outage), keyframes are held to those tracking
 needs (tracking lost), so the reliable backlog stays small and drains soon after the link is
-back.
+back; once nothing has been acknowledged for ``stall_s`` with data waiting (the link is
+down), every frame is left out, keyframes too: what is made during an outage would arrive
+stale, and the edge's VIO starts a new map after the gap, which the cloud merges like any
+other (the frames before the outage stay exactly-once in the reliable backlog).
 
 The non-keyframe rate is the highest of ``rates_hz`` whose bytes fit in what the budget leaves
 after the keyframes (both measured over the last ``window_s`` of what was sent), with
@@ -46,8 +49,9 @@ from typing import Any
 
 logger = logging.getLogger(__name__)
 
-REASONS = ("rate", "backlog")
-"""Why a non-keyframe was left out: the budget's non-keyframe rate, or the link's backlog."""
+REASONS = ("rate", "backlog", "outage")
+"""Why a frame was left out: the budget's non-keyframe rate, the link's backlog (both
+non-keyframes only), or an outage (keyframes too)."""
 
 
 @dataclass(frozen=True)
@@ -83,6 +87,8 @@ class UplinkBudgetConfig:
             non-keyframes and the IMU).
         bytes_per_feature: a keyframe's coded bytes per feature (21: ~170 bits, keypoint
             ~20 b + ORB descriptor ~150 b under the context model, ``codec.md``).
+        stall_s: nothing acknowledged for this long [s] with data waiting is an outage
+            (2 s: a 6 kB keyframe's ack at 50 kbit/s takes ~1 s).
         min_features, keyframe_period_s: a keyframe plan keeps the features that
             ``keyframe_period_s`` of the keyframes' share pays for, at least ``min_features``
             (300: fewer cost the edge's VIO its robustness), and spaces keyframes so that they
@@ -99,6 +105,7 @@ class UplinkBudgetConfig:
     bytes_per_feature: float = 21.0
     min_features: int = 300
     keyframe_period_s: float = 1.5
+    stall_s: float = 2.0
 
     def __post_init__(self) -> None:
         if self.budget_kbps is not None and not self.budget_kbps > 0:
@@ -143,6 +150,8 @@ class UplinkBudget:
         self._acked: tuple[float, int] | None = None  # last sample (now, acked bytes total)
         self._rates: deque[tuple[float, float, int]] = deque()  # (now, s, B) with a backlog
         self._last_rate: float | None = None  # the last estimate [B/s]
+        self._acked_total: int | None = None
+        self._progress_t: float | None = None  # when the link last moved [s]
         self.rate_hz = self.config.rates_hz[0]
 
     # ------------------------------------------------------------------ in
@@ -151,6 +160,9 @@ class UplinkBudget:
         bytes acknowledged so far (a running total)."""
         prev, prev_outbox = self._acked, self._outbox
         self._outbox = int(outbox_bytes)
+        if self._outbox == 0 or self._acked_total is None or acked_bytes > self._acked_total:
+            self._progress_t = now  # the link moves (or has nothing to move)
+        self._acked_total = int(acked_bytes)
         self._acked = (now, int(acked_bytes))
         if prev is None:
             return
@@ -216,12 +228,19 @@ class UplinkBudget:
         rate = self.rate_Bps()
         if rate is None:
             return ""
+        if self.outage(now):
+            return "outage"
         if self._outbox / rate > self.config.max_delay_s:
             return "backlog"
         self.rate_hz = self._choose_rate(rate)
         if self._last_nkf is not None and now - self._last_nkf < 0.9 / self.rate_hz:
             return "rate"
         return ""
+
+    def outage(self, now: float) -> bool:
+        """Data waits and nothing was acknowledged for ``stall_s`` (a budget applies)."""
+        t = self._progress_t
+        return self.config.active and t is not None and now - t >= self.config.stall_s
 
     def left(self, reason: str) -> None:
         """A non-keyframe was left out for ``reason``."""

@@ -21,7 +21,7 @@ from common.protocol.messages import Blob
 from common.vocabulary import Vocabulary
 from services.edge.robot_session import RobotSession
 from services.robot.app import RobotApp, content_to_state
-from services.robot.config import FrontEndConfig
+from services.robot.config import FrontEndConfig, KeyframeDecisionConfig
 
 
 def feedback(ts: int, map_id: int = 0, n_points: int = 0, **over) -> InertialFeedback:
@@ -269,3 +269,23 @@ def test_the_robot_predicts_its_pose_from_the_edges_last_state(euroc_micro):
     # does not put gravity where this IMU measures it: up to 2 g of error over dt)
     moved = T2[:3, 3] - np.array([0.1, 0.2, 0.3]) * dt
     assert np.linalg.norm(T2[:3, 3]) > 0 and np.linalg.norm(moved) < 0.5 * 2 * 9.81 * dt**2
+
+
+def test_an_outage_leaves_keyframes_out_and_the_stream_still_decodes(euroc_micro):
+    """During an outage the budget leaves keyframes out too: the next frame sent is coded
+    against the last one sent, and its tracks that the left-out keyframe started are new."""
+    seq = EurocSequence(euroc_micro)
+    vocab = Vocabulary.load()
+    config = FrontEndConfig(keyframe=KeyframeDecisionConfig(max_interval_s=0.2))
+    app = RobotApp(config, seq.cam0, seq.imu, vocab)
+    session = RobotSession("r", seq.cam0, vocab)
+    left_keyframes = 0
+    for k, fr in enumerate(seq.frames(0, 20)):
+        outage = 5 <= k < 12
+        msg = app.process_if(fr.timestamp_ns, fr.image, fr.imu, not outage, not outage)
+        if msg is None:
+            left_keyframes += app.front_end._kf_t == fr.timestamp_ns
+            continue
+        item = session.decode(msg)
+        assert np.array_equal(app._anchors[fr.timestamp_ns].numbers, item.obs.track_ids)
+    assert left_keyframes >= 1 and session.frames == 13

@@ -90,7 +90,7 @@ def test_the_core_counts_a_frame_left_out_and_expects_no_pose_for_it():
     sent = RobotFrame(1, 2_000, True, b"x" * 100, b"y" * 10)
     assert len(core.handle(FrameDone(sent, 2_000), 1.2)) == 1
     assert core.uplink.sent_keyframes == 1
-    assert core.stats()["uplink"]["left_out"] == {"rate": 0, "backlog": 1}
+    assert core.stats()["uplink"]["left_out"] == {"rate": 0, "backlog": 1, "outage": 0}
 
 
 def test_keyframes_are_planned_to_fit_the_budget(euroc_micro):
@@ -143,3 +143,19 @@ def test_a_frame_left_out_gets_the_robots_own_predicted_pose():
     assert core.poses.summary()["predicted"] == 1 and core.poses.pending == 0
     assert core.poses.latencies_s == deque() or len(core.poses.latencies_s) == 0
     assert tum_line(pose) is None
+
+
+def test_an_outage_is_data_waiting_and_nothing_acknowledged_for_two_seconds():
+    b = UplinkBudget(UplinkBudgetConfig(budget_kbps=100.0))
+    b.on_link(0.0, 3000, 0)
+    b.on_link(1.0, 3000, 0)
+    assert b.hold_back(1.0) == ""  # 0.24 s of backlog, 1 s without an ack: not yet
+    b.on_link(2.1, 9000, 0)
+    assert b.outage(2.1) and b.hold_back(2.1) == "outage"
+    b.on_link(2.3, 8000, 1000)  # the link is back
+    assert not b.outage(2.3) and b.hold_back(2.3) == ""
+    idle = UplinkBudget(UplinkBudgetConfig(budget_kbps=100.0))
+    idle.on_link(0.0, 0, 0)
+    idle.on_link(5.0, 0, 0)  # nothing waits: no outage however long
+    assert not idle.outage(5.0)
+    assert not UplinkBudget().outage(100.0)  # no budget: the recorder never leaves out
