@@ -81,8 +81,9 @@ class TrackFrame:
     """Apply ``feedback`` (in order), then track and code the image with its IMU
     (``RobotApp.receive`` each, then ``RobotApp.process``); answer with :class:`FrameDone`.
     ``hold_back``: unless the tracker makes it a keyframe (``"outage"``: even then), the
-    frame is left out for this reason (:mod:`services.robot.uplink_budget`; ``""``: it goes); ``plan``: the keyframes the
-    budget affords (``RobotApp.set_keyframe_plan``; None: the configured ones)."""
+    frame is left out for this reason (:mod:`services.robot.uplink_budget`; ``""``: it
+    goes); ``plan``: the keyframes the budget affords (``RobotApp.set_keyframe_plan``; None:
+    the configured ones)."""
 
     timestamp_ns: int
     image: np.ndarray
