@@ -18,8 +18,9 @@ apart at low rates. While the link is behind (an outage), keyframes are held to 
 needs (tracking lost), so the reliable backlog stays small and drains soon after the link is
 back; once nothing has been acknowledged for ``stall_s`` with data waiting (the link is
 down), every frame is left out, keyframes too: what is made during an outage would arrive
-stale, and the edge's VIO starts a new map after the gap, which the cloud merges like any
-other (the frames before the outage stay exactly-once in the reliable backlog).
+stale, and the edge's VIO starts a new map after the gap, which the cloud merges by place
+recognition like any other, when it recognises the place (the frames before the outage stay
+exactly-once in the reliable backlog).
 
 The non-keyframe rate is the highest of ``rates_hz`` whose bytes fit in what the budget leaves
 after the keyframes (both measured over the last ``window_s`` of what was sent), with
