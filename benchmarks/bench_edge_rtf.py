@@ -42,7 +42,7 @@ from common.vocabulary import Vocabulary
 from services.edge.app import EdgeConfig
 from services.edge.server import EdgeServer, EdgeServiceConfig
 from services.edge.sim_robot import code_sequence, play
-from services.edge.vio.simulation import SimOptions, simulate
+from services.edge.vio.simulation import SimConfig, simulate
 
 log = logging.getLogger("bench_edge_rtf")
 RESULTS = Path(__file__).resolve().parent / "results" / "edge_rtf.md"
@@ -201,7 +201,7 @@ def main() -> None:
     logging.basicConfig(level=logging.WARNING)
     vocab = Vocabulary.load()
     if args.synth is None:
-        seqs = [simulate(SimOptions(duration_s=args.seconds, seed=s)) for s in range(3)]
+        seqs = [simulate(SimConfig(duration_s=args.seconds, seed=s)) for s in range(3)]
         coded = [code_sequence(q, vocab) for q in seqs]
         cam, imu = seqs[0].camera, seqs[0].imu
         source = (

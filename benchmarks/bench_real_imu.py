@@ -36,7 +36,7 @@ from common.evaluation import AlignMode, AteConfig, Trajectory, compute_ate
 from lab.links import git_commit
 from lab.vio_replay import decode_sequence, load_decoded, save_decoded, score
 from services.edge.vio.manager import VioManager
-from services.edge.vio.types import TrackingStatus, ViInitOptions, VioOptions
+from services.edge.vio.types import TrackingStatus, ViInitConfig, VioConfig
 
 log = logging.getLogger("bench_real_imu")
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -100,7 +100,7 @@ def run(
     cache: Path,
     imu: str,
     estimate: bool = True,
-    options: VioOptions | None = None,
+    options: VioConfig | None = None,
 ) -> Row:
     seq = EurocSequence(dataset / robot)
     file = cache / f"{dataset.name}_{robot}_{seconds:g}s.npz"
@@ -109,7 +109,7 @@ def run(
     else:
         frames = decode_sequence(seq.root, seconds)
         save_decoded(file, frames)
-    options = options or VioOptions(estimate_time_offset=estimate)
+    options = options or VioConfig(estimate_time_offset=estimate)
     vio = VioManager(seq.cam0, seq.imu, options, robot)
     # The robot's IMU, batched as a robot that was told the VIO's offset batches it: each
     # frame's batch reaches the first sample at or after t + offset (t alone while it is 0).
@@ -233,19 +233,19 @@ def table_row(r: Row) -> str:
     )
 
 
-OFFSET_VARIANTS: tuple[tuple[str, bool, float | None, ViInitOptions], ...] = (
+OFFSET_VARIANTS: tuple[tuple[str, bool, float | None, ViInitConfig], ...] = (
     # name, the dataset with the late IMU, offset given to the VIO (None: estimated), VI init
-    ("synchronised, estimated", False, None, ViInitOptions()),
-    ("synchronised, estimated, wait 6 s", False, None, ViInitOptions(wait_for_time_offset_s=6)),
-    ("15 ms, given", True, 15.0, ViInitOptions()),
+    ("synchronised, estimated", False, None, ViInitConfig()),
+    ("synchronised, estimated, wait 6 s", False, None, ViInitConfig(wait_for_time_offset_s=6)),
+    ("15 ms, given", True, 15.0, ViInitConfig()),
     (
         "15 ms, estimated, no refinement on change",
         True,
         None,
-        ViInitOptions(refine_on_offset_change_ms=0.0),
+        ViInitConfig(refine_on_offset_change_ms=0.0),
     ),
-    ("15 ms, estimated (default)", True, None, ViInitOptions()),
-    ("15 ms, estimated, wait 6 s", True, None, ViInitOptions(wait_for_time_offset_s=6)),
+    ("15 ms, estimated (default)", True, None, ViInitConfig()),
+    ("15 ms, estimated, wait 6 s", True, None, ViInitConfig(wait_for_time_offset_s=6)),
 )
 
 
@@ -255,7 +255,7 @@ def offset_variants(args: argparse.Namespace) -> None:
     rows: list[tuple[str, Row]] = []
     for name, late, given, vi_init in OFFSET_VARIANTS:
         dataset = args.real15 if late else args.real
-        options = VioOptions(
+        options = VioConfig(
             estimate_time_offset=given is None,
             time_offset_ns=round((given or 0.0) * 1e6),
             vi_init=vi_init,

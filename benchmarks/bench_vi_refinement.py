@@ -3,7 +3,7 @@
 The edge VIO re-runs its visual-inertial initialisation as a full BA over every keyframe at
 map ages 4/7/10/15/25/35/50 s (``VioManager.run_vi_init``, 40–240 keyframes). For each robot
 of the cached pipeline inputs (``benchmarks/bench_vio_pipeline.py`` writes them), the VIO
-runs twice on the same frames: with ``LocalBAOptions.schur_max_keyframes`` 50 (windows of more
+runs twice on the same frames: with ``LocalBAConfig.schur_max_keyframes`` 50 (windows of more
 free keyframes go to gtsam's LM, the former default) and with the default (every window by
 the Schur-complement solver, whose reduced camera system is sparse above 20 keyframes). CPU
 time of each ``run_vi_init`` call, VIO CPU per frame, ATE.
@@ -26,7 +26,7 @@ from common.data.euroc import EurocSequence
 from lab.vio_replay import DecodedFrame, ReplayScore, load_decoded, score
 from services.edge.vio.manager import VioManager
 from services.edge.vio.state import VioMap
-from services.edge.vio.types import VioOptions
+from services.edge.vio.types import VioConfig
 
 log = logging.getLogger("bench_vi_refinement")
 RESULTS = Path(__file__).resolve().parent / "results" / "vi_refinement.md"
@@ -48,7 +48,7 @@ class _TimedVio(VioManager):
 
 
 def _run(
-    frames: list[DecodedFrame], seq: EurocSequence, options: VioOptions, name: str
+    frames: list[DecodedFrame], seq: EurocSequence, options: VioConfig, name: str
 ) -> tuple[list[float], float, ReplayScore]:
     vio = _TimedVio(seq.cam0, seq.imu, options, name)
     results = []
@@ -70,7 +70,7 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=RESULTS, help="markdown table written")
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
-    default = VioOptions()
+    default = VioConfig()
     variants = {
         "gtsam > 50 keyframes": replace(
             default, local_ba=replace(default.local_ba, schur_max_keyframes=50)

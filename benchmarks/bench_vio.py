@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from services.edge.vio.manager import VioManager
-from services.edge.vio.simulation import SimOptions, evaluate_run, run_sequence, simulate
+from services.edge.vio.simulation import SimConfig, evaluate_run, run_sequence, simulate
 
 log = logging.getLogger("bench_vio")
 RESULTS = Path(__file__).resolve().parent / "results" / "vio.md"
@@ -41,7 +41,7 @@ def bench(duration_s: float, seeds: list[int]) -> list[str]:
         "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for seed in seeds:
-        opts = SimOptions(duration_s=duration_s, seed=seed)
+        opts = SimConfig(duration_s=duration_s, seed=seed)
         seq = simulate(opts)
         vio = VioManager(seq.camera, seq.imu)
         t0 = time.perf_counter()
@@ -63,7 +63,7 @@ def bench(duration_s: float, seeds: list[int]) -> list[str]:
 
 def _one_robot(args: tuple[float, int]) -> tuple[int, float, float]:
     duration_s, seed = args
-    seq = simulate(SimOptions(duration_s=duration_s, seed=seed))
+    seq = simulate(SimConfig(duration_s=duration_s, seed=seed))
     vio = VioManager(seq.camera, seq.imu)
     t0 = time.perf_counter()
     results = run_sequence(vio, seq)

@@ -17,7 +17,7 @@ import numpy as np
 
 from common.calibration import CameraCalibration, ImuCalibration
 from services.edge.vio.manager import VioManager
-from services.edge.vio.types import FrameObservation, FrameResult, TrackingStatus, VioOptions
+from services.edge.vio.types import FrameObservation, FrameResult, TrackingStatus, VioConfig
 
 logger = logging.getLogger(__name__)
 
@@ -111,7 +111,7 @@ def run_vio(
     frames: list[DecodedFrame],
     camera: CameraCalibration,
     imu: ImuCalibration,
-    options: VioOptions | None = None,
+    options: VioConfig | None = None,
     name: str = "robot",
 ) -> list[FrameResult]:
     """Feed every frame (IMU first) to a fresh :class:`VioManager`; the per-frame results."""

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from services.edge.session_options import SessionOptions
-from services.edge.vio.types import VioOptions
+from services.edge.session_config import EdgeSessionConfig
+from services.edge.vio.types import VioConfig
 
 
 @dataclass(frozen=True)
@@ -26,5 +26,5 @@ class EdgeConfig:
     worker: str = "process"
     max_queued_frames: int = 200
     max_vio_lag_s: float = 0.0
-    vio: VioOptions = field(default_factory=VioOptions)
-    session: SessionOptions = field(default_factory=SessionOptions)
+    vio: VioConfig = field(default_factory=VioConfig)
+    session: EdgeSessionConfig = field(default_factory=EdgeSessionConfig)

@@ -8,7 +8,7 @@ turns each :class:`~services.edge.worker.WorkResult` into messages:
 - to the robot, inertial feedback after VI initialisation (or a new map) and then whenever
   biases/velocity moved more than :class:`FeedbackPolicy`'s thresholds or every
   ``every_frames`` frames (``services.edge.feedback``: raw :class:`InertialFeedback` or
-  coded ``InertialFeedbackCoded`` with landmark deltas, per ``SessionOptions.wire``); tracks
+  coded ``InertialFeedbackCoded`` with landmark deltas, per ``EdgeSessionConfig.wire``); tracks
   are named by stream numbers (``common.codec.tracks``);
 - to the cloud, :class:`KeyframeUpdate` (first time with the keyframe's features re-coded
   standalone; later pose-only), :class:`MapPointUpdate`, :class:`CullEvent` (the base class
@@ -41,7 +41,7 @@ from services.edge.feedback import FeedbackSender
 from services.edge.frame_poses import FramePoseBatcher, frame_pose
 from services.edge.imu_uplink import ImuUplink
 from services.edge.point_uplink import SentPoints
-from services.edge.session_options import SessionOptions  # also imported from here
+from services.edge.session_config import EdgeSessionConfig  # also imported from here
 from services.edge.session_uplink import SessionUplink
 from services.edge.vio.types import FrameObservation, FrameResult, TrackingStatus
 from services.edge.worker import WorkItem, WorkResult
@@ -73,12 +73,12 @@ class RobotSession(SessionUplink):
         agent_id: str,
         camera: CameraCalibration,
         vocabulary: Vocabulary,
-        options: SessionOptions | None = None,
+        options: EdgeSessionConfig | None = None,
     ) -> None:
         self.agent_id = agent_id
         self.vocabulary = vocabulary
         self.codec = CodecConfig(image_width=camera.width, image_height=camera.height)
-        self.options = options or SessionOptions()
+        self.options = options or EdgeSessionConfig()
         self.frames = 0  # frames decoded (this stream)
         self.keyframes = 0  # robot keyframes decoded
         self.processed = 0  # frames the VIO finished

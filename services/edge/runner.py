@@ -234,7 +234,7 @@ def config_from_args(args: argparse.Namespace) -> EdgeRunConfig:
 def _time_offset(text: str) -> float | None:
     """``--time-offset-ms``: a number of milliseconds (within the VIO's search range), or
     ``auto`` (None)."""
-    from services.edge.vio.time_offset import TimeOffsetOptions
+    from services.edge.vio.time_offset import TimeOffsetConfig
 
     if text.strip().lower() == "auto":
         return None
@@ -242,7 +242,7 @@ def _time_offset(text: str) -> float | None:
         ms = float(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected milliseconds or auto, got {text!r}") from None
-    limit = TimeOffsetOptions().max_offset_ms
+    limit = TimeOffsetConfig().max_offset_ms
     if not abs(ms) <= limit:
         raise argparse.ArgumentTypeError(
             f"{ms} ms is beyond ±{limit:g} ms: check the calibration's sign"
@@ -309,9 +309,9 @@ def serve(config: EdgeRunConfig, announce: Announce = logger.info) -> int:
 
 def _server(config: EdgeRunConfig, secret: Keyring, vocab: Vocabulary) -> EdgeServer:
     from services.edge.config import EdgeConfig
-    from services.edge.robot_session import SessionOptions
+    from services.edge.robot_session import EdgeSessionConfig
     from services.edge.server import EdgeServer, EdgeServiceConfig
-    from services.edge.vio.types import ViInitOptions, VioOptions
+    from services.edge.vio.types import ViInitConfig, VioConfig
 
     cloud_host, cloud_port = config.cloud if config.cloud is not None else (None, 0)
     service = EdgeServiceConfig(
@@ -321,14 +321,14 @@ def _server(config: EdgeRunConfig, secret: Keyring, vocab: Vocabulary) -> EdgeSe
         stop_flush_timeout_s=config.stop_flush_timeout_s,
         give_up_after_s=config.give_up_after_s,
     )
-    vio = VioOptions(
+    vio = VioConfig(
         time_offset_ns=round((config.time_offset_ms or 0.0) * 1e6),
         estimate_time_offset=config.time_offset_ms is None,
-        vi_init=ViInitOptions(wait_for_time_offset_s=config.offset_wait_s),
+        vi_init=ViInitConfig(wait_for_time_offset_s=config.offset_wait_s),
     )
     app = EdgeConfig(
         worker=config.worker,
-        session=SessionOptions(wire=config.wire),
+        session=EdgeSessionConfig(wire=config.wire),
         vio=vio,
         max_vio_lag_s=config.max_vio_lag_s,
     )

@@ -3,7 +3,7 @@ messages to the cloud.
 
 :class:`SessionUplink` is a base of :class:`~services.edge.robot_session.RobotSession`, which
 sets the attributes declared here. Per :class:`~services.edge.vio.types.MapUpdate`
-(``SessionOptions.wire``): on the coded wire, a new robot keyframe as
+(``EdgeSessionConfig.wire``): on the coded wire, a new robot keyframe as
 :class:`~common.links.edge_cloud.KeyframeUpdateCoded` (its features re-coded standalone, its
 state, its IMU since the previous uplinked keyframe), the states of keyframes the cloud has
 that moved past the thresholds in one :class:`~common.links.edge_cloud.KeyframePoses`, points
@@ -47,7 +47,7 @@ from common.protocol.messages import Message
 from common.vocabulary import Vocabulary
 from services.edge.imu_uplink import ImuUplink
 from services.edge.point_uplink import Selection, SentPoints, one_point_each
-from services.edge.session_options import SessionOptions
+from services.edge.session_config import EdgeSessionConfig
 from services.edge.vio.types import KeyframeSnapshot, MapUpdate
 
 logger = logging.getLogger(__name__)
@@ -71,7 +71,7 @@ class SessionUplink:
     agent_id: str
     vocabulary: Vocabulary
     codec: CodecConfig
-    options: SessionOptions
+    options: EdgeSessionConfig
     codec_timer: CodecTimer
     vio_keyframes: int  # keyframes uplinked (distinct)
     time_offset_ns: int  # the VIO's camera-IMU offset (t_imu = t_cam + offset)

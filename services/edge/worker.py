@@ -40,7 +40,7 @@ from services.edge.vio.types import (
     FrameObservation,
     FrameResult,
     MapUpdate,
-    VioOptions,
+    VioConfig,
     VioState,
 )
 
@@ -106,7 +106,7 @@ class WorkerSpec:
     agent_id: str
     camera: CameraCalibration
     imu: ImuCalibration
-    options: VioOptions = field(default_factory=VioOptions)
+    options: VioConfig = field(default_factory=VioConfig)
     generation: int = 0
 
 

@@ -7,12 +7,12 @@ undistorted normalised coordinates (unit-focal Cal3_S2 with the camera extrinsic
 walk) under a Huber kernel between consecutive keyframes. Keyframes outside the window that
 observe window points, and the keyframe just before the window, are held fixed by tight priors.
 
-Two solvers of this one problem (``LocalBAOptions.solver``): "schur" (default,
+Two solvers of this one problem (``LocalBAConfig.solver``): "schur" (default,
 :mod:`services.edge.vio.ba_solver`: reprojection terms in numpy, points eliminated by Schur
 complement, the IMU factors and priors of the same gtsam graph linearised by gtsam; fixed
 keyframes are constants) and "gtsam" (the whole graph with a projection factor per
 observation, gtsam's LM; the reference, also used for windows of more than
-``LocalBAOptions.schur_max_keyframes`` free keyframes). Both follow gtsam's LM schedule and
+``LocalBAConfig.schur_max_keyframes`` free keyframes). Both follow gtsam's LM schedule and
 report gtsam's graph error.
 """
 
@@ -29,7 +29,7 @@ from gtsam.symbol_shorthand import B, L, V, X
 from common.preintegration import make_bias, preintegrate
 from services.edge.vio.ba_solver import Observations, SchurLM, observation_chi2
 from services.edge.vio.state import MapPoint, PinholeUndistorter, VioMap, project
-from services.edge.vio.types import LocalBAOptions, MappingOptions
+from services.edge.vio.types import LocalBAConfig, MappingConfig
 
 logger = logging.getLogger(__name__)
 
@@ -77,8 +77,8 @@ def bundle_adjust(
     window_ids: list[int],
     camera: PinholeUndistorter,
     imu_params: gtsam.PreintegrationCombinedParams | None,
-    options: LocalBAOptions,
-    mapping: MappingOptions,
+    options: LocalBAConfig,
+    mapping: MappingConfig,
     gauge_ids: tuple[int, ...] = (),
     max_iterations: int | None = None,
     bias_prior_sigmas: tuple[float, float] = (1.0, 0.1),
@@ -178,7 +178,7 @@ def bundle_adjust(
         solved = _solve_gtsam(
             graph, values, variables, p_world, obs_arrays, camera, options, n_iter
         )
-    else:  # "schur" (LocalBAOptions checks the name)
+    else:  # "schur" (LocalBAConfig checks the name)
         free = [X(kf.id) for kf in window if kf.id not in fixed_set]
         if use_imu:
             free += [key(kf.id) for kf in window for key in (V, B)]
@@ -215,7 +215,7 @@ def _solve_gtsam(
     p_world: np.ndarray,
     obs: Observations,
     camera: PinholeUndistorter,
-    options: LocalBAOptions,
+    options: LocalBAConfig,
     max_iterations: int,
 ) -> _Solved:
     """The reference path: one gtsam graph with a projection factor per observation, gtsam's
@@ -254,7 +254,7 @@ def _solve_schur(
     p_world: np.ndarray,
     obs: Observations,
     camera: PinholeUndistorter,
-    options: LocalBAOptions,
+    options: LocalBAConfig,
     max_iterations: int,
 ) -> _Solved:
     """Schur-complement LM (:mod:`services.edge.vio.ba_solver`): reprojection in numpy, the
@@ -340,7 +340,7 @@ def _select(
 
 
 def cull_observations(
-    vmap: VioMap, points: list, camera: PinholeUndistorter, mapping: MappingOptions
+    vmap: VioMap, points: list, camera: PinholeUndistorter, mapping: MappingConfig
 ) -> tuple[int, int]:
     """Remove observations with chi2 above ``mapping.cull_chi2`` or behind the camera, then
     points left with fewer than ``mapping.min_observations``. Returns (observations, points)."""
@@ -356,7 +356,7 @@ def _cull(
     obs: Observations,
     keyframe_ids: list[int],
     camera: PinholeUndistorter,
-    mapping: MappingOptions,
+    mapping: MappingConfig,
 ) -> tuple[int, int]:
     """:func:`cull_observations` on a table of every observation of ``points`` (``obs.pose``
     indexes ``keyframe_ids``, ``obs.point`` indexes ``points``)."""

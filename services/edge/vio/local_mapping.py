@@ -10,13 +10,13 @@ import numpy as np
 
 from common.geometry import inverse_T
 from services.edge.vio.state import Keyframe, MapPoint, PinholeUndistorter, VioMap, project
-from services.edge.vio.types import MappingOptions
+from services.edge.vio.types import MappingConfig
 
 logger = logging.getLogger(__name__)
 
 
 def associate_keyframe(
-    vmap: VioMap, kf: Keyframe, camera: PinholeUndistorter, options: MappingOptions
+    vmap: VioMap, kf: Keyframe, camera: PinholeUndistorter, options: MappingConfig
 ) -> int:
     """Add ``kf``'s observation to the map point of each of its tracks that reprojects well.
     Returns the number of observations added."""
@@ -42,7 +42,7 @@ def associate_keyframe(
 
 
 def match_by_projection(
-    vmap: VioMap, kf: Keyframe, camera: PinholeUndistorter, options: MappingOptions
+    vmap: VioMap, kf: Keyframe, camera: PinholeUndistorter, options: MappingConfig
 ) -> int:
     """Bind ``kf``'s features that have no map point (new robot tracks) to existing map points
     that project near them with a close ORB descriptor (ORB-SLAM's search by projection):
@@ -119,7 +119,7 @@ def triangulate_new_points(
     vmap: VioMap,
     kf: Keyframe,
     camera: PinholeUndistorter,
-    options: MappingOptions,
+    options: MappingConfig,
     search_keyframes: int = 20,
 ) -> int:
     """Create map points for ``kf``'s tracks without one that earlier keyframes also saw.

@@ -40,8 +40,8 @@ from services.edge.vio.types import (
     FrameResult,
     MapUpdate,
     TrackingStatus,
+    VioConfig,
     VioError,
-    VioOptions,
     VioState,
     VioStats,
 )
@@ -71,10 +71,10 @@ class VioManager(ViInitSchedule):
         self,
         camera: CameraCalibration,
         imu: ImuCalibration,
-        options: VioOptions | None = None,
+        options: VioConfig | None = None,
         robot_name: str = "robot",
     ) -> None:
-        self.options = options or VioOptions()
+        self.options = options or VioConfig()
         self.camera = PinholeUndistorter(camera)
         if not np.allclose(imu.T_body_imu, np.eye(4)):
             # Body frame = IMU frame: express the camera extrinsic relative to the IMU.
@@ -144,7 +144,7 @@ class VioManager(ViInitSchedule):
         """Measure the white-noise densities (gyro rad/s/√Hz, accel m/s²/√Hz) the newest samples
         show (:func:`common.imu.measured_noise_density`, kept in ``stats``) and set the
         preintegration noise from them where they exceed the calibration
-        (``VioOptions.noise_from_data``); True when the IMU is now weighted by measured noise.
+        (``VioConfig.noise_from_data``); True when the IMU is now weighted by measured noise.
         Run at each VI
         initialisation and refinement, so the IMU is weighted as the sensor behaves in flight,
         not as its datasheet says (a real ADIS16448 on a MAV: 25-33x gyro, 40-60x accel)."""
@@ -535,7 +535,7 @@ class VioManager(ViInitSchedule):
         return self._result(frame, T_out, TrackingStatus.INITIALIZING, n_inl, is_kf, why)
 
     def _keyframe_due(self, frame: _Frame, last_kf: Keyframe, vmap: VioMap, n_inl: int) -> bool:
-        """Robot keyframes, and the VIO's own ones (see ``VioOptions.max_keyframe_interval_s``)."""
+        """Robot keyframes, and the VIO's own ones (see ``VioConfig.max_keyframe_interval_s``)."""
         opt = self.options
         dt = (frame.obs.timestamp_ns - last_kf.timestamp_ns) * 1e-9
         if dt < opt.min_keyframe_interval_s:

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from services.edge.vio.types import MonoInitOptions
+from services.edge.vio.types import MonoInitConfig
 
 logger = logging.getLogger(__name__)
 
@@ -145,7 +145,7 @@ def _refine_two_view(R, t, x0, x1, p0, good, sigma):
 
 
 def two_view_geometry(
-    x0: np.ndarray, x1: np.ndarray, focal_px: float, options: MonoInitOptions
+    x0: np.ndarray, x1: np.ndarray, focal_px: float, options: MonoInitConfig
 ) -> tuple[TwoViewResult | None, str]:
     """Relative motion and structure from matched normalised coordinates (N, 2) each.
 

@@ -41,7 +41,7 @@ EUROC_CAM0 = CameraCalibration(
 
 
 @dataclass(frozen=True)
-class SimOptions:
+class SimConfig:
     """Synthetic sequence parameters (defaults: a 20 s EuRoC-like hand-held/MAV motion)."""
 
     duration_s: float = 20.0
@@ -105,7 +105,7 @@ def _rot(axis: int, a: np.ndarray) -> np.ndarray:
 _R0 = np.array([[0.0, 0.0, 1.0], [0.0, -1.0, 0.0], [1.0, 0.0, 0.0]])  # body x up, body z fwd
 
 
-def trajectory(t: np.ndarray, o: SimOptions):
+def trajectory(t: np.ndarray, o: SimConfig):
     """Analytic state at times ``t`` (K,) s: R_world_body (K,3,3), p (K,3), v (K,3),
     a_world (K,3), omega_body (K,3)."""
     A = np.array(o.motion_amplitude_m)
@@ -134,7 +134,7 @@ def trajectory(t: np.ndarray, o: SimOptions):
     return R, p, v, acc, w_body
 
 
-def _landmarks(o: SimOptions, rng: np.random.Generator) -> np.ndarray:
+def _landmarks(o: SimConfig, rng: np.random.Generator) -> np.ndarray:
     n = o.n_landmarks
     h, H = o.room_half_size_m, o.room_height_m
     n_walls = int(0.75 * n)
@@ -154,12 +154,12 @@ def _landmarks(o: SimOptions, rng: np.random.Generator) -> np.ndarray:
 
 
 def simulate(
-    options: SimOptions | None = None,
+    options: SimConfig | None = None,
     camera: CameraCalibration = EUROC_CAM0,
     imu: ImuCalibration = EUROC_IMU,
 ) -> SimSequence:
     """Generate one synthetic sequence (deterministic per ``options.seed``)."""
-    o = options or SimOptions()
+    o = options or SimConfig()
     # One stream per component: a shorter sequence is a prefix of a longer one (same seed).
     rng_lm, rng_g, rng_a, rng_bg, rng_ba, rng = (
         np.random.default_rng([o.seed, k]) for k in range(6)
@@ -267,20 +267,20 @@ def ate_rmse(est: np.ndarray, gt: np.ndarray, with_scale: bool = False) -> tuple
     return float(np.sqrt((err**2).sum(1).mean())), s_sim
 
 
-def ground_truth_map(seq: SimSequence, max_keyframes: int, bias_from_options: SimOptions):
+def ground_truth_map(seq: SimSequence, max_keyframes: int, bias_from_options: SimConfig):
     """A :class:`VioMap` built from the sequence's robot keyframes at their true states
     (poses, velocities, initial biases), points triangulated from the noisy tracks.
     For tests of the back end in isolation."""
     from common.imu import ImuBuffer
     from services.edge.vio.local_mapping import associate_keyframe, triangulate_new_points
     from services.edge.vio.state import Keyframe, PinholeUndistorter, VioMap
-    from services.edge.vio.types import MappingOptions
+    from services.edge.vio.types import MappingConfig
 
     cam = PinholeUndistorter(seq.camera)
     buf = ImuBuffer()
     buf.append(seq.imu_timestamps_ns, seq.gyro, seq.accel)
     vmap = VioMap(0)
-    mopt = MappingOptions()
+    mopt = MappingConfig()
     prev = None
     kf_frames = [i for i, f in enumerate(seq.frames) if f.is_keyframe][:max_keyframes]
     for k, i in enumerate(kf_frames):

@@ -34,7 +34,7 @@ logger = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
-class TimeOffsetOptions:
+class TimeOffsetConfig:
     """``max_offset_ms``: the search range (±); ``grid_step_ms``: its coarse grid;
     ``baselines``: the frame gaps compared; ``max_pair_s``: the longest pair interval [s];
     ``huber_rad``: the residual [rad] beyond which a pair counts linearly (a tracking glitch
@@ -162,7 +162,7 @@ def estimate_time_offset(
     imu_t_ns: np.ndarray,
     gyro: np.ndarray,
     bias_gyro: np.ndarray,
-    options: TimeOffsetOptions | None = None,
+    options: TimeOffsetConfig | None = None,
     around_ns: int = 0,
     range_ms: float | None = None,
 ) -> TimeOffsetEstimate | str:
@@ -174,7 +174,7 @@ def estimate_time_offset(
     gyro bias estimate (zeros before initialisation). The search covers ``around_ns ±
     range_ms`` (default ``options.max_offset_ms``).
     """
-    o = options or TimeOffsetOptions()
+    o = options or TimeOffsetConfig()
     t_cam_ns = np.asarray(t_cam_ns, np.int64)
     imu_t_ns = np.asarray(imu_t_ns, np.int64)
     if len(imu_t_ns) < 3 or len(t_cam_ns) < 3:
@@ -256,7 +256,7 @@ class TimeOffsetTracker:
     starts at the given value (the calibration's) and is only changed by ``update``.
     """
 
-    def __init__(self, options: TimeOffsetOptions, offset_ns: int = 0, enabled: bool = True):
+    def __init__(self, options: TimeOffsetConfig, offset_ns: int = 0, enabled: bool = True):
         self.options = options
         self.offset_ns = int(offset_ns)
         self.enabled = enabled

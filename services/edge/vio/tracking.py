@@ -22,7 +22,7 @@ from gtsam.symbol_shorthand import B, V, X
 from common.geometry import inverse_T, make_T, so3_exp
 from common.preintegration import make_bias
 from services.edge.vio.state import Keyframe, PinholeUndistorter, project
-from services.edge.vio.types import TrackingOptions
+from services.edge.vio.types import TrackingConfig
 
 logger = logging.getLogger(__name__)
 
@@ -60,7 +60,7 @@ def _chi2(T_world_body, T_body_cam, P, xy, sigma) -> np.ndarray:
     return np.where(z > 0, np.nan_to_num(e, nan=np.inf), np.inf)
 
 
-def _ransac(P, xy, camera: PinholeUndistorter, options: TrackingOptions) -> np.ndarray | None:
+def _ransac(P, xy, camera: PinholeUndistorter, options: TrackingConfig) -> np.ndarray | None:
     ok, rvec, tvec, inl = cv2.solvePnPRansac(
         np.ascontiguousarray(P, dtype=np.float64),
         np.ascontiguousarray(xy, dtype=np.float64),
@@ -133,7 +133,7 @@ def _optimise(
     camera: PinholeUndistorter,
     prior: ImuPrior | None,
     v0: np.ndarray | None,
-    options: TrackingOptions,
+    options: TrackingConfig,
 ) -> tuple[np.ndarray, np.ndarray | None, gtsam.imuBias.ConstantBias | None]:
     """Motion-only optimisation: Gauss–Newton with backtracking on the pose (and, with an
     IMU prior, velocity and bias of the frame). The reprojection terms are linearised here in
@@ -215,7 +215,7 @@ def track_frame(
     sigma: np.ndarray,
     ids: np.ndarray,
     camera: PinholeUndistorter,
-    options: TrackingOptions,
+    options: TrackingConfig,
     T_pred: np.ndarray | None,
     prior: ImuPrior | None = None,
     v_pred: np.ndarray | None = None,

@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from common.errors import RecslamError
-from services.edge.vio.time_offset import TimeOffsetOptions
+from services.edge.vio.time_offset import TimeOffsetConfig
 
 
 class VioError(RecslamError):
@@ -35,7 +35,7 @@ class TrackingStatus(enum.Enum):
 
 
 @dataclass(frozen=True)
-class MonoInitOptions:
+class MonoInitConfig:
     """Two-view initialisation (ORB-SLAM-like model selection between E and H)."""
 
     min_tracks: int = 60  # shared tracks needed between reference and current keyframe
@@ -48,7 +48,7 @@ class MonoInitOptions:
 
 
 @dataclass(frozen=True)
-class ViInitOptions:
+class ViInitConfig:
     """Inertial-only MAP initialisation (ORB-SLAM3) and its later refinements."""
 
     first_after_s: float = 2.0  # map age before the first VI initialisation
@@ -76,7 +76,7 @@ class ViInitOptions:
     retry_interval_s: float = 0.5  # after a rejected attempt, wait this long (map time)
     max_cost_per_residual: float = 0.25  # reject (retry at the next keyframe) above this ...
     # ... or above this when the IMU is weighted by the noise it shows (a real sensor's
-    # vibration, VioOptions.noise_from_data): then the whitened residuals are as the model
+    # vibration, VioConfig.noise_from_data): then the whitened residuals are as the model
     # says, about 1 each (V2_01/02/03's real IMUs: 0.5-1.6), where the datasheet-clean
     # generator's IMU, its visual pose noise overstated, gives 0.1-0.25.
     max_cost_per_residual_measured_noise: float = 2.0
@@ -97,7 +97,7 @@ class ViInitOptions:
 
 
 @dataclass(frozen=True)
-class TrackingOptions:
+class TrackingConfig:
     """Per-frame pose tracking (PnP RANSAC, then motion-only optimisation)."""
 
     min_inliers: int = 15  # fewer inliers: tracking lost, a new map is started
@@ -109,7 +109,7 @@ class TrackingOptions:
 
 
 @dataclass(frozen=True)
-class MappingOptions:
+class MappingConfig:
     """Keyframe processing: triangulation of new map points and culling."""
 
     min_parallax_deg: float = 1.0  # between the first and last observing keyframe
@@ -125,7 +125,7 @@ class MappingOptions:
 
 
 @dataclass(frozen=True)
-class LocalBAOptions:
+class LocalBAConfig:
     """Local bundle adjustment (paper Eq. 18, Fig. 5b)."""
 
     window_size: int = 10  # newest keyframes optimised; older observers are fixed
@@ -159,11 +159,11 @@ class LocalBAOptions:
 
     def __post_init__(self) -> None:
         if self.solver not in ("schur", "gtsam"):
-            raise VioError(f"LocalBAOptions.solver: {self.solver!r} (expected 'schur' or 'gtsam')")
+            raise VioError(f"LocalBAConfig.solver: {self.solver!r} (expected 'schur' or 'gtsam')")
 
 
 @dataclass(frozen=True)
-class VioOptions:
+class VioConfig:
     """Every option of one robot's VIO. Defaults suit EuRoC-like data at 20 Hz."""
 
     gravity_mps2: float = 9.81
@@ -187,12 +187,12 @@ class VioOptions:
     # VIO estimates it online from its frames' rotations and the gyro (time_offset.py).
     time_offset_ns: int = 0
     estimate_time_offset: bool = True
-    time_offset: TimeOffsetOptions = field(default_factory=TimeOffsetOptions)
-    mono_init: MonoInitOptions = field(default_factory=MonoInitOptions)
-    vi_init: ViInitOptions = field(default_factory=ViInitOptions)
-    tracking: TrackingOptions = field(default_factory=TrackingOptions)
-    mapping: MappingOptions = field(default_factory=MappingOptions)
-    local_ba: LocalBAOptions = field(default_factory=LocalBAOptions)
+    time_offset: TimeOffsetConfig = field(default_factory=TimeOffsetConfig)
+    mono_init: MonoInitConfig = field(default_factory=MonoInitConfig)
+    vi_init: ViInitConfig = field(default_factory=ViInitConfig)
+    tracking: TrackingConfig = field(default_factory=TrackingConfig)
+    mapping: MappingConfig = field(default_factory=MappingConfig)
+    local_ba: LocalBAConfig = field(default_factory=LocalBAConfig)
 
 
 # ------------------------------------------------------------------------------ inputs

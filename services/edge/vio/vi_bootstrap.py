@@ -25,7 +25,7 @@ import numpy as np
 from common.geometry import make_T
 from services.edge.vio.local_ba import BAStats, bundle_adjust
 from services.edge.vio.state import Keyframe, PinholeUndistorter, VioMap, project
-from services.edge.vio.types import LocalBAOptions, VioOptions
+from services.edge.vio.types import LocalBAConfig, VioConfig
 from services.edge.vio.vi_init import inertial_only_map, subsample_keyframes
 
 
@@ -56,14 +56,14 @@ def first_vi_init(
     kfs: list[Keyframe],
     camera: PinholeUndistorter,
     imu_params: gtsam.PreintegrationCombinedParams,
-    options: VioOptions,
-    ba_options: LocalBAOptions,
+    options: VioConfig,
+    ba_options: LocalBAConfig,
     gyro_bias_guess: np.ndarray,
     noise_measured: bool = False,
 ) -> ViInitOutcome:
     """The first VI initialisation over ``kfs`` (keyframes connected by IMU segments, oldest
     first); the map changes only when it is applied (``reason == ""``). ``noise_measured``:
-    the IMU is weighted by the noise it shows (``VioOptions.noise_from_data``), so its
+    the IMU is weighted by the noise it shows (``VioConfig.noise_from_data``), so its
     whitened residuals are judged by ``vi_init.max_cost_per_residual_measured_noise``. A
     refusal's reason gives the numbers (keyframes, span, scale and biases found)."""
     vopt = options.vi_init
@@ -120,8 +120,8 @@ def refine_vi(
     kfs: list[Keyframe],
     camera: PinholeUndistorter,
     imu_params: gtsam.PreintegrationCombinedParams,
-    options: VioOptions,
-    ba_options: LocalBAOptions,
+    options: VioConfig,
+    ba_options: LocalBAConfig,
 ) -> tuple[BAStats, np.ndarray]:
     """A visual-inertial BA over ``kfs`` of a VI-initialised map; returns its statistics and
     the correction ``(4, 4)`` :func:`reanchor` applied to the map afterwards."""
@@ -137,8 +137,8 @@ def _vi_ba(
     kfs: list[Keyframe],
     camera: PinholeUndistorter,
     imu_params: gtsam.PreintegrationCombinedParams,
-    options: VioOptions,
-    ba_options: LocalBAOptions,
+    options: VioConfig,
+    ba_options: LocalBAConfig,
     bias_prior_sigmas: tuple[float, float],
 ) -> BAStats:
     """The visual-inertial BA over ``kfs`` (gauge: the oldest), with these bias priors."""

@@ -22,7 +22,7 @@ import numpy as np
 
 from services.edge.vio.state import PinholeUndistorter, VioMap
 from services.edge.vio.time_offset import TimeOffsetTracker
-from services.edge.vio.types import LocalBAOptions, VioOptions, VioStats
+from services.edge.vio.types import LocalBAConfig, VioConfig, VioStats
 from services.edge.vio.vi_bootstrap import first_vi_init, refine_vi
 
 logger = logging.getLogger(__name__)
@@ -31,7 +31,7 @@ logger = logging.getLogger(__name__)
 class ViInitSchedule:
     """The VI initialisation schedule of :class:`~services.edge.vio.manager.VioManager`."""
 
-    options: VioOptions
+    options: VioConfig
     camera: PinholeUndistorter
     imu_params: gtsam.PreintegrationCombinedParams
     name: str
@@ -39,7 +39,7 @@ class ViInitSchedule:
     _last_T: np.ndarray | None
     _last_init_reason: str
     _bias_guess: tuple[np.ndarray, np.ndarray]  # (accel, gyro)
-    _full_ba_options: LocalBAOptions
+    _full_ba_options: LocalBAConfig
     _time_offset: TimeOffsetTracker
 
     def measure_imu_noise(self) -> bool:  # VioManager's

@@ -1,4 +1,4 @@
-"""Settling of new map points on the coded uplink (``SessionOptions.point_settle_keyframes``).
+"""Settling of new map points on the coded uplink (``EdgeSessionConfig.point_settle_keyframes``).
 
 Hand-computed expectations with ``settle = 2``: a point first seen by robot keyframe 0 is
 held while keyframe 1 goes up (the keyframes' messages do not name it), goes up (once, at
@@ -20,7 +20,7 @@ from common.protocol.messages import Message
 from common.vocabulary import Vocabulary
 from services.cloud.fusion.uplink import decode_map_point_update
 from services.edge.point_uplink import SentPoints
-from services.edge.robot_session import RobotSession, SessionOptions
+from services.edge.robot_session import EdgeSessionConfig, RobotSession
 from services.edge.vio.types import KeyframeSnapshot, MapPointBatch, MapPointSnapshot, MapUpdate
 
 VOCAB = Vocabulary.load()
@@ -28,7 +28,7 @@ VOCAB = Vocabulary.load()
 
 def _session(settle: int = 2) -> RobotSession:
     cam = CameraCalibration(fx=400.0, fy=400.0, cx=320.0, cy=240.0, width=640, height=480)
-    s = RobotSession("r", cam, VOCAB, SessionOptions(point_settle_keyframes=settle))
+    s = RobotSession("r", cam, VOCAB, EdgeSessionConfig(point_settle_keyframes=settle))
     rng = np.random.default_rng(0)
     kp = np.array([[10, 20, 0, 3], [100, 50, 0, 7], [300, 200, 1, 30]], np.int32)
     for k in range(6):

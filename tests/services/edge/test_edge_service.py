@@ -34,7 +34,7 @@ from common.vocabulary import Vocabulary
 from services.edge.app import EdgeConfig
 from services.edge.server import EdgeServer, EdgeServiceConfig
 from services.edge.sim_robot import code_sequence, play, sim_sensors
-from services.edge.vio.simulation import SimOptions, simulate
+from services.edge.vio.simulation import SimConfig, simulate
 from services.edge.worker import MAP_ID_STRIDE, ProcessWorker, WorkerSpec, WorkItem, WorkResult
 
 SECRET = b"edge-test-secret-0123456789"
@@ -52,7 +52,7 @@ def vocab() -> Vocabulary:
 @pytest.fixture(scope="module")
 def sim_frames(vocab):
     """A 7 s simulated robot (enough motion for VI initialisation), coded as RobotFrames."""
-    seq = simulate(SimOptions(duration_s=7.0, seed=1))
+    seq = simulate(SimConfig(duration_s=7.0, seed=1))
     return seq, code_sequence(seq, vocab)
 
 
@@ -243,7 +243,7 @@ def test_failing_robot_vio_does_not_disturb_another(vocab, sim_frames) -> None:
     last = fbs[-1]
     assert len(held) > 10
     assert np.allclose(last.gravity_world, [0, 0, -9.81], atol=1e-5)  # float32 on the wire
-    assert np.linalg.norm(last.bias_gyro - np.array(SimOptions().bias_gyro)) < 5e-3
+    assert np.linalg.norm(last.bias_gyro - np.array(SimConfig().bias_gyro)) < 5e-3
     # Uplink: keyframes with features and IMU, map points, status.
     first = cloud.of(KeyframeUpdateCoded, "good")
     assert len(first) == len({m.keyframe_id for m in first}) == g["keyframes_uplinked"] > 5
@@ -513,5 +513,5 @@ def test_a_late_vio_skips_stale_non_keyframes_and_keeps_their_imu(vocab, sim_fra
     assert r["frames_processed"] + r["frames_skipped_stale"] == len(frames)
     assert r["frames_processed"] >= keyframes and r["state"] == "tracking"
     fbs = [decode_feedback(m) for m in robot.feedback if isinstance(m, InertialFeedbackCoded)]
-    assert fbs and np.linalg.norm(fbs[-1].bias_gyro - np.array(SimOptions().bias_gyro)) < 5e-3
+    assert fbs and np.linalg.norm(fbs[-1].bias_gyro - np.array(SimConfig().bias_gyro)) < 5e-3
     assert len(cloud.of(KeyframeUpdateCoded, "r")) > 5

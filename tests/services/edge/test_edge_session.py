@@ -23,19 +23,19 @@ from common.protocol.messages import encode_payload
 from common.vocabulary import Vocabulary
 from services.edge.feedback import FeedbackPolicy, FeedbackSender
 from services.edge.imu_uplink import ImuUplink
-from services.edge.robot_session import RobotSession, SessionOptions
+from services.edge.robot_session import EdgeSessionConfig, RobotSession
 from services.edge.sim_robot import code_sequence
-from services.edge.vio.simulation import SimOptions, simulate
+from services.edge.vio.simulation import SimConfig, simulate
 from services.edge.worker import VioRunner, WorkerSpec
 
-RAW = SessionOptions(wire=WireFormat.RAW)  # these tests pin the schema-1 uplink
+RAW = EdgeSessionConfig(wire=WireFormat.RAW)  # these tests pin the schema-1 uplink
 
 
 @pytest.fixture(scope="module")
 def run():
     """A 5 s simulated robot through RobotSession + VioRunner, frame by frame."""
     vocab = Vocabulary.load()
-    seq = simulate(SimOptions(duration_s=5.0, seed=3))
+    seq = simulate(SimConfig(duration_s=5.0, seed=3))
     frames = code_sequence(seq, vocab)
     session = RobotSession("r", seq.camera, vocab, RAW)
     runner = VioRunner(WorkerSpec("r", seq.camera, seq.imu))
@@ -216,7 +216,7 @@ def test_coded_feedback_keeps_its_points_when_the_vio_runs_far_behind() -> None:
     """Every frame decoded before the VIO sees the first (an edge far behind its robots, as
     when the queue fills): the feedback still finds each result's frame and sends points."""
     vocab = Vocabulary.load()
-    seq = simulate(SimOptions(duration_s=8.0, seed=5))
+    seq = simulate(SimConfig(duration_s=8.0, seed=5))
     session = RobotSession("r", seq.camera, vocab)  # the coded wire
     items = [session.decode(msg) for msg in code_sequence(seq, vocab)]
     runner = VioRunner(WorkerSpec("r", seq.camera, seq.imu))
@@ -236,7 +236,7 @@ def test_a_restarted_robot_stream_starts_a_new_vio_map_without_a_failure() -> No
     from services.edge.worker import MAP_ID_STRIDE
 
     vocab = Vocabulary.load()
-    seq = simulate(SimOptions(duration_s=3.0, seed=5))
+    seq = simulate(SimConfig(duration_s=3.0, seed=5))
     frames = code_sequence(seq, vocab)[:40]
     session = RobotSession("r", seq.camera, vocab)
     runner = VioRunner(WorkerSpec("r", seq.camera, seq.imu))
@@ -263,7 +263,7 @@ def test_a_frame_that_fails_to_decode_leaves_the_decoders_as_they_were() -> None
     from common.codec.errors import CodecError
 
     vocab = Vocabulary.load()
-    seq = simulate(SimOptions(duration_s=1.0, seed=5))
+    seq = simulate(SimConfig(duration_s=1.0, seed=5))
     frames = code_sequence(seq, vocab)
     session = RobotSession("r", seq.camera, vocab, RAW)
     session.decode(frames[0])

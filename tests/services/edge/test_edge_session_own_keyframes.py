@@ -9,11 +9,11 @@ from common.links import WireFormat
 from common.links.edge_cloud import KeyframeUpdate, MapPointUpdate
 from common.protocol.arrays import unpack_array
 from common.vocabulary import Vocabulary
-from services.edge.robot_session import RobotSession, SessionOptions
+from services.edge.robot_session import EdgeSessionConfig, RobotSession
 from services.edge.vio.types import KeyframeSnapshot, MapPointBatch, MapPointSnapshot, MapUpdate
 from services.edge.worker import WorkResult
 
-RAW = SessionOptions(wire=WireFormat.RAW)  # these tests pin the schema-1 uplink
+RAW = EdgeSessionConfig(wire=WireFormat.RAW)  # these tests pin the schema-1 uplink
 
 
 def _kf(kid: int, prev: int | None, robot: bool) -> KeyframeSnapshot:

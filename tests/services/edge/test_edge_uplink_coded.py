@@ -1,4 +1,4 @@
-"""The coded edge -> cloud uplink of one robot session (``SessionOptions.wire`` CODED).
+"""The coded edge -> cloud uplink of one robot session (``EdgeSessionConfig.wire`` CODED).
 
 Hand-computed expectations: a new keyframe goes as KeyframeUpdateCoded and the observations
 its point ids carry are not sent again as rows; a keyframe that moved goes in one
@@ -33,7 +33,7 @@ from services.cloud.fusion.uplink import (
     decode_keyframe_update,
     decode_map_point_update,
 )
-from services.edge.robot_session import RobotSession, SessionOptions
+from services.edge.robot_session import EdgeSessionConfig, RobotSession
 from services.edge.vio.types import (
     FrameResult,
     KeyframeSnapshot,
@@ -48,7 +48,7 @@ VOCAB = Vocabulary.load()
 
 def _session() -> RobotSession:
     cam = CameraCalibration(fx=400.0, fy=400.0, cx=320.0, cy=240.0, width=640, height=480)
-    s = RobotSession("r", cam, VOCAB, SessionOptions(point_settle_keyframes=0))
+    s = RobotSession("r", cam, VOCAB, EdgeSessionConfig(point_settle_keyframes=0))
     rng = np.random.default_rng(0)
     kp = np.array([[10, 20, 0, 3], [100, 50, 0, 7], [300, 200, 1, 30]], np.int32)
     desc = rng.integers(0, 256, (3, 32), dtype=np.uint8)

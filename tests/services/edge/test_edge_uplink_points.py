@@ -16,10 +16,10 @@ from common.links.edge_cloud import CullEvent, MapPointUpdate
 from common.protocol.arrays import unpack_array
 from common.protocol.messages import Message
 from common.vocabulary import Vocabulary
-from services.edge.robot_session import RobotSession, SessionOptions
+from services.edge.robot_session import EdgeSessionConfig, RobotSession
 from services.edge.vio.types import KeyframeSnapshot, MapPointBatch, MapPointSnapshot, MapUpdate
 
-RAW = SessionOptions(wire=WireFormat.RAW)  # these tests pin the schema-1 uplink
+RAW = EdgeSessionConfig(wire=WireFormat.RAW)  # these tests pin the schema-1 uplink
 
 Sent = tuple[list[int], list[list[float]], list[list[int]]]
 

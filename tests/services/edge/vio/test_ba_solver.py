@@ -14,13 +14,13 @@ from services.edge.vio import ba_solver
 from services.edge.vio.ba_solver import Observations, SchurLM, reprojection_terms
 from services.edge.vio.ba_sparse import sparse_spd_solve
 from services.edge.vio.local_ba import bundle_adjust, reprojection_chi2
-from services.edge.vio.simulation import SimOptions, ground_truth_map, simulate
-from services.edge.vio.types import LocalBAOptions, MappingOptions, VioError
+from services.edge.vio.simulation import SimConfig, ground_truth_map, simulate
+from services.edge.vio.types import LocalBAConfig, MappingConfig, VioError
 
 
 @pytest.fixture(scope="module")
 def scene():
-    opts = SimOptions(duration_s=5.0, seed=7)
+    opts = SimConfig(duration_s=5.0, seed=7)
     return opts, simulate(opts)
 
 
@@ -54,8 +54,8 @@ def _both(vmap, window, cam, params, **kw):
     out = {}
     for solver in ("gtsam", "schur"):
         vm = copy.deepcopy(vmap)
-        opts = replace(LocalBAOptions(), solver=solver)
-        out[solver] = (vm, bundle_adjust(vm, window, cam, params, opts, MappingOptions(), **kw))
+        opts = replace(LocalBAConfig(), solver=solver)
+        out[solver] = (vm, bundle_adjust(vm, window, cam, params, opts, MappingConfig(), **kw))
     return out
 
 
@@ -209,22 +209,22 @@ def test_schur_lm_stops_at_max_iterations_and_reports_its_costs(scene):
 def test_large_windows_fall_back_to_gtsam_and_unknown_solvers_are_rejected(scene):
     vmap, cam, _, window = _perturbed(scene, seed=5)
     results = []
-    for opts in (LocalBAOptions(solver="gtsam"), LocalBAOptions(schur_max_keyframes=4)):
+    for opts in (LocalBAConfig(solver="gtsam"), LocalBAConfig(schur_max_keyframes=4)):
         vm = copy.deepcopy(vmap)
-        results.append((vm, bundle_adjust(vm, window, cam, None, opts, MappingOptions())))
+        results.append((vm, bundle_adjust(vm, window, cam, None, opts, MappingConfig())))
     (va, sa), (vb, sb) = results
     assert sa == sb  # 8 free keyframes > 4: the gtsam path, bit for bit
     for k in window:
         assert np.array_equal(va.keyframes[k].T_world_body, vb.keyframes[k].T_world_body)
     with pytest.raises(VioError, match="solver"):
-        LocalBAOptions(solver="ceres")
+        LocalBAConfig(solver="ceres")
 
 
 def test_big_visual_inertial_window_uses_the_sparse_system_and_agrees_with_gtsam(monkeypatch):
     """A 60-keyframe window with IMU (894 camera-side dimensions, the gauge pose held), as
     the VI refinements over every keyframe: the Schur solver's sparse reduced camera system
     gives gtsam's solution, and the dense one's to rounding."""
-    opts = SimOptions(duration_s=15.0, seed=7)
+    opts = SimConfig(duration_s=15.0, seed=7)
     seq = simulate(opts)
     vmap, cam, ids, _ = _perturbed((opts, seq), n_window=60, seed=6, n_keyframes=60)
     assert len(ids) == 60
@@ -245,7 +245,7 @@ def test_big_visual_inertial_window_uses_the_sparse_system_and_agrees_with_gtsam
     n_sparse = len(sparse_solves)
     monkeypatch.setattr(ba_solver, "SPARSE_MIN_DIM", 10**6)  # the dense reduced system
     vd = copy.deepcopy(vmap)
-    dense = bundle_adjust(vd, ids, cam, params, LocalBAOptions(), MappingOptions(), **kw)
+    dense = bundle_adjust(vd, ids, cam, params, LocalBAConfig(), MappingConfig(), **kw)
     assert len(sparse_solves) == n_sparse
     assert dense.error_after == pytest.approx(stats.error_after, rel=1e-9)
     for k in ids:

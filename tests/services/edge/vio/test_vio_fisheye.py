@@ -11,7 +11,7 @@ from common.data.synth.cameras import FISHEYE_CAM
 from services.edge.vio.manager import VioManager
 from services.edge.vio.simulation import (
     EUROC_CAM0,
-    SimOptions,
+    SimConfig,
     evaluate_run,
     run_sequence,
     simulate,
@@ -22,7 +22,7 @@ from services.edge.vio.types import FrameObservation
 
 def test_fisheye_end_to_end_20s_ate_and_scale() -> None:
     camera = FISHEYE_CAM.to_calibration(EUROC_CAM0.T_body_cam, 20.0)
-    seq = simulate(SimOptions(duration_s=20.0, seed=0, outlier_ratio=0.05), camera=camera)
+    seq = simulate(SimConfig(duration_s=20.0, seed=0, outlier_ratio=0.05), camera=camera)
     assert max(np.abs(f.keypoints_px - 255.5).max() for f in seq.frames) > 200  # wide angles
     vio = VioManager(seq.camera, seq.imu)
     m = evaluate_run(vio, run_sequence(vio, seq), seq)
@@ -42,7 +42,7 @@ def test_features_looking_ninety_degrees_off_axis_are_dropped() -> None:
     uv = np.array([[255.5, 255.5], [0.0, 0.0], [400.0, 300.0]])  # centre, corner (115 deg)
     xy = undistorter.normalise(uv)
     assert np.isfinite(xy[[0, 2]]).all() and np.isnan(xy[1]).all()
-    vio = VioManager(camera, simulate(SimOptions(duration_s=0.3)).imu)
+    vio = VioManager(camera, simulate(SimConfig(duration_s=0.3)).imu)
     obs = FrameObservation(
         timestamp_ns=1, track_ids=np.arange(3), keypoints_px=uv, levels=np.zeros(3, np.uint8)
     )
@@ -54,7 +54,7 @@ def test_rows_leaving_the_vio_are_the_robots_rows_when_features_were_left_out() 
     still goes up with one point id per robot feature, and each observation row names the
     robot's row of that feature (the uplink indexes the robot's keyframe features with them)."""
     camera = FISHEYE_CAM.to_calibration(EUROC_CAM0.T_body_cam, 20.0)
-    seq = simulate(SimOptions(duration_s=8.0, seed=0), camera=camera)
+    seq = simulate(SimConfig(duration_s=8.0, seed=0), camera=camera)
     undistorter = PinholeUndistorter(camera)
     frames = {}
     vio = VioManager(seq.camera, seq.imu)

@@ -6,13 +6,13 @@ import pytest
 from common.geometry import so3_exp
 from common.preintegration import make_preintegration_params
 from services.edge.vio.local_ba import bundle_adjust, reprojection_chi2
-from services.edge.vio.simulation import SimOptions, ground_truth_map, simulate
-from services.edge.vio.types import LocalBAOptions, MappingOptions
+from services.edge.vio.simulation import SimConfig, ground_truth_map, simulate
+from services.edge.vio.types import LocalBAConfig, MappingConfig
 
 
 @pytest.fixture(scope="module")
 def scene():
-    opts = SimOptions(duration_s=5.0, seed=7)
+    opts = SimConfig(duration_s=5.0, seed=7)
     return opts, simulate(opts)
 
 
@@ -34,7 +34,7 @@ def test_local_ba_lowers_error_and_keeps_fixed_keyframes(scene, use_imu):
         vmap.points[p].p_world = vmap.points[p].p_world + rng.normal(0, 0.03, 3)
     chi2_before = reprojection_chi2(vmap, window, cam)
     params = make_preintegration_params(seq.imu, 9.81, 1e-4) if use_imu else None
-    stats = bundle_adjust(vmap, window, cam, params, LocalBAOptions(), MappingOptions())
+    stats = bundle_adjust(vmap, window, cam, params, LocalBAConfig(), MappingConfig())
     chi2_after = reprojection_chi2(vmap, window, cam)
     assert stats.n_fixed >= 1
     assert stats.error_after < 0.2 * stats.error_before
@@ -66,8 +66,8 @@ def test_visual_inertial_ba_recovers_a_wrong_scale(scene):
         ids,
         cam,
         params,
-        LocalBAOptions(),
-        MappingOptions(),
+        LocalBAConfig(),
+        MappingConfig(),
         gauge_ids=(ids[0],),
         max_iterations=30,
     )

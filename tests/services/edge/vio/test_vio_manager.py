@@ -5,13 +5,13 @@ import pytest
 
 from common.geometry import umeyama_alignment
 from services.edge.vio.manager import VioManager
-from services.edge.vio.simulation import SimOptions, evaluate_run, run_sequence, simulate
+from services.edge.vio.simulation import SimConfig, evaluate_run, run_sequence, simulate
 from services.edge.vio.types import FrameObservation, TrackingStatus, VioError
 
 
 def test_end_to_end_20s_ate_and_scale():
     # 5 % of the observations of every frame are gross outliers (5-30 px), as bad LK tracks.
-    seq = simulate(SimOptions(duration_s=20.0, seed=0, outlier_ratio=0.05))
+    seq = simulate(SimConfig(duration_s=20.0, seed=0, outlier_ratio=0.05))
     vio = VioManager(seq.camera, seq.imu)
     results = run_sequence(vio, seq)
     m = evaluate_run(vio, results, seq)
@@ -25,7 +25,7 @@ def test_end_to_end_20s_ate_and_scale():
     assert abs(m.scale_keyframes - 1.0) < 0.02
     state = vio.get_state()
     assert state is not None
-    assert np.linalg.norm(state.bias_gyro - np.array(SimOptions().bias_gyro)) < 2e-3
+    assert np.linalg.norm(state.bias_gyro - np.array(SimConfig().bias_gyro)) < 2e-3
     assert abs(np.linalg.norm(state.gravity_body) - 9.81) < 1e-9
     updates = vio.pop_map_updates()
     assert updates and updates[-1].vi_initialized
@@ -36,7 +36,7 @@ def test_end_to_end_20s_ate_and_scale():
 
 @pytest.mark.parametrize("seed", [0, 2, 4])
 def test_vi_initialisation_recovers_scale_and_gravity(seed):
-    seq = simulate(SimOptions(duration_s=6.0, seed=seed))
+    seq = simulate(SimConfig(duration_s=6.0, seed=seed))
     vio = VioManager(seq.camera, seq.imu)
     for t, g, a, fr in seq.feed():
         vio.feed_imu(t, g, a)
@@ -59,7 +59,7 @@ def test_vi_initialisation_recovers_scale_and_gravity(seed):
 
 
 def test_tracking_loss_starts_a_new_map():
-    seq = simulate(SimOptions(duration_s=6.0, seed=5))
+    seq = simulate(SimConfig(duration_s=6.0, seed=5))
     vio = VioManager(seq.camera, seq.imu)
     results = []
     for i, (t, g, a, fr) in enumerate(seq.feed()):
@@ -89,7 +89,7 @@ def test_rejects_malformed_frames():
         FrameObservation(0, np.arange(3), np.zeros((3, 3)), np.zeros(3))
     with pytest.raises(VioError, match="duplicate"):
         FrameObservation(0, np.array([1, 1]), np.zeros((2, 2)), np.zeros(2))
-    seq = simulate(SimOptions(duration_s=0.3))
+    seq = simulate(SimConfig(duration_s=0.3))
     vio = VioManager(seq.camera, seq.imu)
     vio.feed_frame(seq.frames[1])
     with pytest.raises(VioError, match="not after"):
@@ -103,7 +103,7 @@ def test_a_visual_map_before_vi_initialisation_takes_no_pose_correction():
     map from its journal) the map's scale is its own: they are ignored, nothing moves."""
     from common.geometry import make_T, so3_exp
 
-    seq = simulate(SimOptions(duration_s=8.0, seed=6))
+    seq = simulate(SimConfig(duration_s=8.0, seed=6))
     vio = VioManager(seq.camera, seq.imu)
     for t, g, a, fr in seq.feed():
         vio.feed_imu(t, g, a)
@@ -123,7 +123,7 @@ def test_pose_corrections_move_map_rigidly_and_tracking_continues():
     from common.geometry import make_T, so3_exp
     from services.edge.vio.local_ba import reprojection_chi2
 
-    seq = simulate(SimOptions(duration_s=8.0, seed=6))
+    seq = simulate(SimConfig(duration_s=8.0, seed=6))
     vio = VioManager(seq.camera, seq.imu)
     feed = list(seq.feed())
     for t, g, a, fr in feed[:130]:
@@ -155,7 +155,7 @@ def test_pose_corrections_move_map_rigidly_and_tracking_continues():
 def test_a_map_goes_up_only_once_vi_initialised_and_then_whole():
     """No map updates before VI initialisation (no scale, no gravity yet); the first one after
     holds every keyframe of the map."""
-    seq = simulate(SimOptions(duration_s=8.0, seed=6))
+    seq = simulate(SimConfig(duration_s=8.0, seed=6))
     vio = VioManager(seq.camera, seq.imu)
     before_init = []
     first = None

@@ -8,13 +8,13 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from services.edge.vio.manager import VioManager
-from services.edge.vio.simulation import SimOptions, evaluate_run, simulate
+from services.edge.vio.simulation import SimConfig, evaluate_run, simulate
 from services.edge.vio.time_offset import (
-    TimeOffsetOptions,
+    TimeOffsetConfig,
     TimeOffsetTracker,
     estimate_time_offset,
 )
-from services.edge.vio.types import TrackingStatus, ViInitOptions, VioOptions
+from services.edge.vio.types import TrackingStatus, ViInitConfig, VioConfig
 
 BIAS = np.array([0.02, -0.01, 0.08])  # rad/s, like the real V2 flights' ADIS16448
 
@@ -80,7 +80,7 @@ def test_too_few_frames_or_no_overlap_is_said() -> None:
 
 def test_the_tracker_moves_the_offset_only_on_confident_estimates_of_its_map() -> None:
     t_cam, R, t_imu, gyro = _mav(12.0)
-    tracker = TimeOffsetTracker(TimeOffsetOptions(every_s=1.0), offset_ns=0)
+    tracker = TimeOffsetTracker(TimeOffsetConfig(every_s=1.0), offset_ns=0)
     for t, r in zip(t_cam[:60], R[:60], strict=True):  # 3 s: too short to be confident
         tracker.add_frame(int(t), r, map_id=0)
     assert tracker.update(t_imu, gyro, np.zeros(3), force=True) is None
@@ -96,7 +96,7 @@ def test_the_tracker_moves_the_offset_only_on_confident_estimates_of_its_map() -
     tracker.add_frame(int(t_cam[-1]) + 100_000_000, R[-1], map_id=1)
     assert tracker.update(t_imu, gyro, np.zeros(3), force=True) is None
     assert tracker.offset_ns == new
-    off = TimeOffsetTracker(TimeOffsetOptions(), offset_ns=5_000_000, enabled=False)
+    off = TimeOffsetTracker(TimeOffsetConfig(), offset_ns=5_000_000, enabled=False)
     for t, r in zip(t_cam, R, strict=True):
         off.add_frame(int(t), r, map_id=0)
     assert off.update(t_imu, gyro, np.zeros(3), force=True) is None and off.offset_ns == 5_000_000
@@ -107,7 +107,7 @@ def test_a_flight_that_never_gives_a_confident_offset_is_asked_less_and_less() -
     a VI initialisation, retried every half second) runs at most once per 3 s."""
     t_cam, R, t_imu, gyro = _mav(15.0, seconds=60.0, rate_scale=0.002)
     for force, at_most in ((False, 8), (True, 20)):  # without the backoff: 20, and 1200
-        tracker = TimeOffsetTracker(TimeOffsetOptions())
+        tracker = TimeOffsetTracker(TimeOffsetConfig())
         for t, r in zip(t_cam, R, strict=True):
             tracker.add_frame(int(t), r, map_id=0)
             assert tracker.update(t_imu, gyro, np.zeros(3), force=force) is None
@@ -115,7 +115,7 @@ def test_a_flight_that_never_gives_a_confident_offset_is_asked_less_and_less() -
         assert 3 <= tracker.runs <= at_most, (force, tracker.runs)
 
 
-def _run(seq, shift_ns: int, options: VioOptions):
+def _run(seq, shift_ns: int, options: VioConfig):
     """Feed ``seq`` with its IMU stamped ``shift_ns`` later, each frame's batch reaching the
     first sample at or after ``t + shift`` (a robot that batches by the offset)."""
     vio = VioManager(seq.camera, seq.imu, options)
@@ -132,11 +132,11 @@ def _run(seq, shift_ns: int, options: VioOptions):
 
 def test_the_vio_reads_its_imu_at_frame_time_plus_the_offset() -> None:
     """An IMU stamped 15 ms late with the offset given gives the synchronised run's poses."""
-    seq = simulate(SimOptions(duration_s=8.0, seed=1))
-    fixed = VioOptions(estimate_time_offset=False)
+    seq = simulate(SimConfig(duration_s=8.0, seed=1))
+    fixed = VioConfig(estimate_time_offset=False)
     vio0, sync = _run(seq, 0, fixed)
     vio1, late = _run(
-        seq, 15_000_000, VioOptions(estimate_time_offset=False, time_offset_ns=15_000_000)
+        seq, 15_000_000, VioConfig(estimate_time_offset=False, time_offset_ns=15_000_000)
     )
     assert vio0.initialized and vio1.initialized
     assert vio1.time_offset_ns == 15_000_000 and vio1.stats.time_offset_ms == 15.0
@@ -152,8 +152,8 @@ def test_the_vio_reads_its_imu_at_frame_time_plus_the_offset() -> None:
 
 
 def test_estimating_on_a_synchronised_run_keeps_the_offset_near_zero() -> None:
-    seq = simulate(SimOptions(duration_s=20.0, seed=0))
-    vio, res = _run(seq, 0, VioOptions())
+    seq = simulate(SimConfig(duration_s=20.0, seed=0))
+    vio, res = _run(seq, 0, VioConfig())
     m = evaluate_run(vio, res, seq)
     assert abs(vio.time_offset_ns) < 1_000_000  # not moved, or moved by less than 1 ms
     assert m.n_maps == 1 and m.ate_keyframes_m < 0.05
@@ -164,15 +164,15 @@ def test_a_map_is_refined_when_its_offset_moves_and_its_first_init_can_wait_for_
     estimates of sigma ~3 ms: taken as confident here): once the estimate moves the offset, the
     map is refined at once on the re-sliced IMU (one VI run more than with that switched off);
     with a wait, the first VI initialisation comes after the offset moved, not before."""
-    seq = simulate(SimOptions(duration_s=14.0, seed=1))
-    loose = TimeOffsetOptions(max_sigma_ms=5.0)
+    seq = simulate(SimConfig(duration_s=14.0, seed=1))
+    loose = TimeOffsetConfig(max_sigma_ms=5.0)
     runs = {}
     for name, vi in (
-        ("off", ViInitOptions(refine_on_offset_change_ms=0.0)),
-        ("on", ViInitOptions()),
-        ("wait", ViInitOptions(wait_for_time_offset_s=8.0)),
+        ("off", ViInitConfig(refine_on_offset_change_ms=0.0)),
+        ("on", ViInitConfig()),
+        ("wait", ViInitConfig(wait_for_time_offset_s=8.0)),
     ):
-        vio, res = _run(seq, 15_000_000, VioOptions(vi_init=vi, time_offset=loose))
+        vio, res = _run(seq, 15_000_000, VioConfig(vi_init=vi, time_offset=loose))
         assert abs(vio.time_offset_ns) > 2_000_000, name  # the estimate moved it
         vmap = vio.current_map
         assert vmap is not None and vmap.vi_initialized

@@ -5,17 +5,17 @@ import numpy as np
 from gtsam.symbol_shorthand import L, X
 
 from common.geometry import make_T, so3_exp
-from services.edge.vio.simulation import SimOptions, simulate
+from services.edge.vio.simulation import SimConfig, simulate
 from services.edge.vio.state import PinholeUndistorter, project
 from services.edge.vio.tracking import _optimise, track_frame
-from services.edge.vio.types import TrackingOptions
+from services.edge.vio.types import TrackingConfig
 
 _UNIT_K = gtsam.Cal3_S2(1.0, 1.0, 0.0, 0.0, 0.0)
 
 
 def _scene(seed: int, n: int = 200):
     rng = np.random.default_rng(seed)
-    camera = PinholeUndistorter(simulate(SimOptions(duration_s=0.2, seed=seed)).camera)
+    camera = PinholeUndistorter(simulate(SimConfig(duration_s=0.2, seed=seed)).camera)
     T_true = make_T(so3_exp(rng.normal(0, 0.3, 3)), rng.normal(0, 0.5, 3))
     T_world_cam = T_true @ camera.T_body_cam
     p_cam = np.column_stack(
@@ -57,7 +57,7 @@ def _gtsam_reference(T0, P, xy, sigma, camera, options):
 
 
 def test_motion_only_optimum_matches_gtsam_projection_factors():
-    options = TrackingOptions(max_iterations=30)
+    options = TrackingConfig(max_iterations=30)
     for seed in range(3):
         camera, T_true, P, xy, sigma = _scene(seed)
         T0 = T_true @ make_T(so3_exp(np.array([0.02, -0.03, 0.01])), [0.05, -0.04, 0.03])
@@ -74,7 +74,7 @@ def test_track_frame_recovers_pose_and_rejects_outliers():
     camera, T_true, P, xy, sigma = _scene(7)
     ids = np.arange(len(P))
     T_pred = T_true @ make_T(so3_exp(np.array([0.05, 0.0, -0.04])), [0.2, 0.1, -0.1])
-    result, reason = track_frame(P, xy, sigma, ids, camera, TrackingOptions(), T_pred)
+    result, reason = track_frame(P, xy, sigma, ids, camera, TrackingConfig(), T_pred)
     assert result is not None, reason
     assert np.linalg.norm(result.T_world_body[:3, 3] - T_true[:3, 3]) < 0.02
     outliers = set(range(len(P) // 10))

@@ -6,13 +6,13 @@ import numpy as np
 
 from common.geometry import make_T, so3_exp
 from common.preintegration import make_preintegration_params
-from services.edge.vio.simulation import SimOptions, ground_truth_map, simulate
+from services.edge.vio.simulation import SimConfig, ground_truth_map, simulate
 from services.edge.vio.vi_init import inertial_only_map, subsample_keyframes
 
 
 def _visual_frame_keyframes(n_keyframes: int, pos_noise_m: float, rot_noise_deg: float):
     """Ground-truth keyframes moved into an arbitrary up-to-scale 'visual' frame."""
-    opts = SimOptions(duration_s=6.0, seed=3)
+    opts = SimConfig(duration_s=6.0, seed=3)
     seq = simulate(opts)
     vmap, _ = ground_truth_map(seq, n_keyframes, opts)
     rng = np.random.default_rng(0)
@@ -40,7 +40,7 @@ def test_inertial_only_map_recovers_scale_gravity_and_gyro_bias():
     assert res is not None, reason
     assert abs(res.scale * s_vw - 1.0) < 0.02
     assert _gravity_error_deg(res.R_world_v, R_vw) < 1.0
-    assert np.linalg.norm(res.bias_gyro - np.array(SimOptions().bias_gyro)) < 5e-4
+    assert np.linalg.norm(res.bias_gyro - np.array(SimConfig().bias_gyro)) < 5e-4
 
 
 def test_inertial_only_map_with_noisy_visual_poses_within_bounds():

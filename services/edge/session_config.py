@@ -10,7 +10,7 @@ from services.edge.feedback import FeedbackPolicy
 
 
 @dataclass(frozen=True)
-class SessionOptions:
+class EdgeSessionConfig:
     """Per-robot output options: feedback policy, status period (frames), features kept for
     the keyframe uplink (robot keyframes, newest), IMU history kept (s), and the map-point
     uplink threshold: a point already sent is sent again only when it moved more than
