@@ -79,7 +79,9 @@ class _Pipe:
                 writer.close()
             self.done.set()
 
-    async def pump(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter, up: bool):
+    async def pump(
+        self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter, up: bool
+    ) -> None:
         cfg, rng, stats = self.proxy.config, self.proxy.rng, self.proxy.stats
         try:
             while not self.done.is_set():
@@ -172,7 +174,7 @@ class FaultProxy:
         if self._server is not None:
             await self._server.wait_closed()
 
-    async def _on_client(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter):
+    async def _on_client(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         task = asyncio.current_task()
         assert task is not None
         self._tasks.add(task)

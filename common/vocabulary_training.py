@@ -10,10 +10,14 @@ from __future__ import annotations
 import logging
 from collections.abc import Iterator
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from common.vocabulary import VocabularyError
+
+if TYPE_CHECKING:
+    import cv2
 
 log = logging.getLogger(__name__)
 
@@ -43,7 +47,7 @@ SKIMAGE_BLURS = (0.0, 1.5)
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm")
 
 
-def orb_extractor(nfeatures: int = 1000):
+def orb_extractor(nfeatures: int = 1000) -> cv2.ORB:
     """ORB as the robot runs it on keyframes (8 levels, scale 1.2)."""
     import cv2
 

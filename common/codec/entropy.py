@@ -248,7 +248,7 @@ class BitReader:
         except (ValueError, RuntimeError) as exc:
             raise CodecError(f"bad entropy-coded body: {exc}") from exc
 
-    def _decode(self, *args) -> np.ndarray:
+    def _decode(self, *args: object) -> np.ndarray:
         try:
             return np.asarray(self._dec.decode(*args), dtype=np.int64)
         except (ValueError, RuntimeError, AssertionError, OverflowError) as exc:

@@ -82,7 +82,9 @@ def decode_kf_keypoints(r: BitReader, config: CodecConfig) -> np.ndarray:
 
 
 # ---------------------------------------------------------------------- links
-def _link_key(q: np.ndarray, lev: np.ndarray, tracks_q: np.ndarray, tracks_lev) -> np.ndarray:
+def _link_key(
+    q: np.ndarray, lev: np.ndarray, tracks_q: np.ndarray, tracks_lev: np.ndarray
+) -> np.ndarray:
     """Sort key of previous tracks for each query: other levels last, then squared distance."""
     d = q[:, None, :] - tracks_q[None, :, :]
     other = (lev[:, None] != tracks_lev[None, :]).astype(np.int64) << 50
@@ -103,7 +105,9 @@ def _by_level_ok(q: np.ndarray, pred: np.ndarray) -> bool:
     return bool(np.abs(q).max(initial=0) < lim and np.abs(pred).max(initial=0) < lim)
 
 
-def _ranks_full(q, lev, pred, tracks_lev, tgt: np.ndarray) -> np.ndarray:
+def _ranks_full(
+    q: np.ndarray, lev: np.ndarray, pred: np.ndarray, tracks_lev: np.ndarray, tgt: np.ndarray
+) -> np.ndarray:
     """Ranks of the targets ``tgt (R,)`` among all previous tracks, by definition."""
     n_prev = pred.shape[0]
     ranks = np.zeros(tgt.size, dtype=np.int64)
@@ -117,7 +121,9 @@ def _ranks_full(q, lev, pred, tracks_lev, tgt: np.ndarray) -> np.ndarray:
     return ranks
 
 
-def _link_ranks(q, lev, pred, tracks_lev, tgt: np.ndarray) -> np.ndarray:
+def _link_ranks(
+    q: np.ndarray, lev: np.ndarray, pred: np.ndarray, tracks_lev: np.ndarray, tgt: np.ndarray
+) -> np.ndarray:
     """Rank of each target track (see module docstring) for queries ``q (R, 2)``."""
     if not _by_level_ok(q, pred):
         return _ranks_full(q, lev, pred, tracks_lev, tgt)
@@ -137,7 +143,9 @@ def _link_ranks(q, lev, pred, tracks_lev, tgt: np.ndarray) -> np.ndarray:
     return ranks
 
 
-def _links_of_ranks(q, lev, pred, tracks_lev, ranks: np.ndarray) -> np.ndarray:
+def _links_of_ranks(
+    q: np.ndarray, lev: np.ndarray, pred: np.ndarray, tracks_lev: np.ndarray, ranks: np.ndarray
+) -> np.ndarray:
     """Inverse of :func:`_link_ranks`: the track of each rank (ranks < number of tracks)."""
     out = np.zeros(ranks.size, dtype=np.int64)
     todo = np.ones(ranks.size, dtype=bool)

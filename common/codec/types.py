@@ -21,7 +21,9 @@ continues (or -1).
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 
@@ -61,7 +63,9 @@ class CodecConfig:
         return int(np.floor(self.image_width / s + 0.5)), int(np.floor(self.image_height / s + 0.5))
 
 
-def _as_array(x: np.ndarray, dtype, shape_tail: tuple[int, ...], what: str) -> np.ndarray:
+def _as_array(
+    x: np.ndarray, dtype: type[np.generic], shape_tail: tuple[int, ...], what: str
+) -> np.ndarray:
     a = np.asarray(x)
     if a.ndim != 1 + len(shape_tail) or a.shape[1:] != shape_tail:
         want = ", ".join(["N", *map(str, shape_tail)])
@@ -69,6 +73,19 @@ def _as_array(x: np.ndarray, dtype, shape_tail: tuple[int, ...], what: str) -> n
     out = np.array(a, dtype=dtype, copy=True)
     out.setflags(write=False)
     return out
+
+
+class CvKeypointLike(Protocol):
+    """What :meth:`KeyframeFeatures.from_cv` reads of a keypoint (``cv2.KeyPoint`` has it)."""
+
+    @property
+    def pt(self) -> Sequence[float]: ...  # (x, y) level-0 pixels
+
+    @property
+    def octave(self) -> int: ...  # pyramid level in the low byte
+
+    @property
+    def angle(self) -> float: ...  # degrees
 
 
 @dataclass(frozen=True)
@@ -134,7 +151,7 @@ class KeyframeFeatures:
     @classmethod
     def from_cv(
         cls,
-        cv_keypoints,
+        cv_keypoints: Sequence[CvKeypointLike],
         descriptors: np.ndarray,
         links: np.ndarray | None = None,
         config: CodecConfig = CodecConfig(),

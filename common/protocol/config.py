@@ -8,6 +8,7 @@ from common.protocol import auth
 from common.protocol.errors import LocalProtocolError
 from common.protocol.framing import DEFAULT_MAX_FRAME_SIZE
 from common.protocol.link import Link, LinkLimits
+from common.protocol.link_state import InboundPosition, OutboundState
 
 MAX_NAME_LENGTH = 64
 
@@ -96,6 +97,12 @@ class SessionConfig:
     def link_limits(self) -> LinkLimits:
         return LinkLimits(self.max_outbox_messages, self.max_outbox_bytes, self.max_frame_size)
 
-    def new_link(self, **kwargs) -> Link:
-        """A fresh :class:`Link` with this config's limits (kwargs go to ``Link``)."""
-        return Link(self.link_limits(), **kwargs)
+    def new_link(
+        self,
+        *,
+        inbound: InboundPosition | None = None,
+        outbound: OutboundState | None = None,
+        peer: str | None = None,
+    ) -> Link:
+        """A fresh :class:`Link` with this config's limits (the keywords go to ``Link``)."""
+        return Link(self.link_limits(), inbound=inbound, outbound=outbound, peer=peer)

@@ -24,7 +24,7 @@ import shutil
 import time
 from dataclasses import asdict, dataclass, field, is_dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import cv2
 import numpy as np
@@ -286,13 +286,19 @@ def robot_timestamps(config: SynthConfig, robot: int) -> tuple[np.ndarray, np.nd
     return ts, np.arange(0, n, step), t0
 
 
+class _Progress(Protocol):
+    """What :func:`_write_robot` needs of its progress bar (a ``tqdm``)."""
+
+    def update(self, n: int = 1) -> object: ...
+
+
 def _write_robot(
     out: Path,
     k: int,
     config: SynthConfig,
     traj: Motion,
     renderer: Renderer,
-    bar,
+    bar: _Progress,
     recorded: RecordedImu | None = None,
 ) -> tuple[RobotSummary, list[np.ndarray], dict[str, Any]]:
     """Simulate (or take the ``recorded`` IMU), render and write robot ``k``; returns its

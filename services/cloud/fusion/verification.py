@@ -151,7 +151,9 @@ def match_by_words(
     return np.stack([a_idx[keep], b_idx[keep]], axis=1).astype(np.int64)
 
 
-def _pose(uv: np.ndarray, p: np.ndarray, camera: pycolmap.Camera, cfg: VerificationConfig):
+def _pose(
+    uv: np.ndarray, p: np.ndarray, camera: pycolmap.Camera, cfg: VerificationConfig
+) -> tuple[np.ndarray, np.ndarray] | tuple[None, None]:
     opts = pycolmap.AbsolutePoseEstimationOptions()
     opts.ransac.max_error = cfg.reprojection_px
     opts.ransac.random_seed = cfg.seed
@@ -216,7 +218,7 @@ def verify_candidate(
     q_idx = qi[m[:, 0]]
     mp_keys = C.map_point_keys[ci[m[:, 1]]]
     T_cam_cmap, inl = _pose(Q.keypoints[q_idx], atlas.map_point_positions(mp_keys), col_cam, cfg)
-    if T_cam_cmap is None:
+    if T_cam_cmap is None or inl is None:  # both or neither
         return _reject(query_key, candidate_key, "no 3D-2D pose")
     ratio = float(inl.sum()) / n_put
     if ratio < cfg.min_inlier_ratio or inl.sum() < cfg.min_initial_matches:
@@ -230,7 +232,7 @@ def verify_candidate(
     if rows.size < cfg.min_inliers:
         return _reject(query_key, candidate_key, f"{rows.size} projected matches", int(rows.size))
     T_cam_cmap, inl = _pose(Q.keypoints[q_idx], group.P[rows], col_cam, cfg)
-    if T_cam_cmap is None:
+    if T_cam_cmap is None or inl is None:  # both or neither
         return _reject(query_key, candidate_key, "no refined pose")
     n_inl = int(inl.sum())
     ratio = n_inl / len(q_idx)

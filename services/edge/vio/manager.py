@@ -34,7 +34,7 @@ from services.edge.vio.local_mapping import (
 from services.edge.vio.mono_init import two_view_geometry
 from services.edge.vio.state import Keyframe, MapPoint, PinholeUndistorter, VioMap
 from services.edge.vio.time_offset import TimeOffsetTracker
-from services.edge.vio.tracking import ImuPrior, track_frame
+from services.edge.vio.tracking import ImuPrior, TrackResult, track_frame
 from services.edge.vio.types import (
     FrameObservation,
     FrameResult,
@@ -314,11 +314,21 @@ class VioManager(ViInitSchedule):
                     kf.imu_from_previous = seg
         return True
 
-    def _result(self, frame: _Frame, T, status, n_inl, is_kf, reason="") -> FrameResult:
+    def _result(
+        self,
+        frame: _Frame,
+        T: np.ndarray | None,
+        status: TrackingStatus,
+        n_inl: int,
+        is_kf: bool,
+        reason: str = "",
+    ) -> FrameResult:
         T = np.eye(4) if T is None else np.array(T)
         return FrameResult(frame.obs.timestamp_ns, T, status, self.map_id, n_inl, is_kf, reason)
 
-    def _new_keyframe(self, frame: _Frame, T_world_body: np.ndarray, previous: Keyframe | None):
+    def _new_keyframe(
+        self, frame: _Frame, T_world_body: np.ndarray, previous: Keyframe | None
+    ) -> Keyframe:
         seg = None
         if previous is not None:
             seg = self._segment(previous.timestamp_ns, frame.obs.timestamp_ns)
@@ -442,7 +452,9 @@ class VioManager(ViInitSchedule):
         )
 
     # ------------------------------------------------------------------ tracking
-    def _predict(self, frame: _Frame, vmap: VioMap):
+    def _predict(
+        self, frame: _Frame, vmap: VioMap
+    ) -> tuple[np.ndarray, np.ndarray | None, ImuPrior | None]:
         """(T_pred, v_pred, ImuPrior | None) for the frame."""
         t = frame.obs.timestamp_ns
         last_kf = vmap.last_keyframe()
@@ -548,9 +560,12 @@ class VioManager(ViInitSchedule):
         return dt >= opt.max_keyframe_interval_s or n_inl < opt.min_tracked_point_ratio * n_kf
 
     # ------------------------------------------------------------------ local mapping
-    def _insert_keyframe(self, frame: _Frame, res, vmap: VioMap, last_kf: Keyframe) -> Keyframe:
+    def _insert_keyframe(
+        self, frame: _Frame, res: TrackResult, vmap: VioMap, last_kf: Keyframe
+    ) -> Keyframe:
         kf = self._new_keyframe(frame, res.T_world_body, last_kf)
         if res.v_world is not None:
+            assert res.bias_accel is not None and res.bias_gyro is not None  # set with v_world
             kf.v_world = res.v_world.copy()
             kf.bias_accel = res.bias_accel.copy()
             kf.bias_gyro = res.bias_gyro.copy()

@@ -67,7 +67,12 @@ def _essential_score(E: np.ndarray, x0: np.ndarray, x1: np.ndarray, sigma: float
 
 
 def triangulate_two_view(
-    R: np.ndarray, t: np.ndarray, x0: np.ndarray, x1: np.ndarray, sigma: float, min_parallax_deg
+    R: np.ndarray,
+    t: np.ndarray,
+    x0: np.ndarray,
+    x1: np.ndarray,
+    sigma: float,
+    min_parallax_deg: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Points (N, 3) in camera 0, a good mask (N,) and parallax (N,) in degrees."""
     P0 = np.hstack([np.eye(3), np.zeros((3, 1))])
@@ -96,7 +101,15 @@ def triangulate_two_view(
     return p0, good, parallax
 
 
-def _refine_two_view(R, t, x0, x1, p0, good, sigma):
+def _refine_two_view(
+    R: np.ndarray,
+    t: np.ndarray,
+    x0: np.ndarray,
+    x1: np.ndarray,
+    p0: np.ndarray,
+    good: np.ndarray,
+    sigma: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Two-view bundle adjustment (camera 0 fixed; the scale gauge is held by LM damping and
     re-normalised by the caller). Returns refined ``R``, ``t`` and points (N, 3)."""
     import gtsam

@@ -11,13 +11,18 @@ from __future__ import annotations
 
 from collections.abc import Iterator
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from common.calibration import EUROC_IMU, CameraCalibration, ImuCalibration
 from common.camera import camera_model
 from common.geometry import inverse_T, umeyama_alignment
-from services.edge.vio.types import FrameObservation
+from services.edge.vio.types import FrameObservation, FrameResult
+
+if TYPE_CHECKING:
+    from services.edge.vio.manager import VioManager
+    from services.edge.vio.state import PinholeUndistorter, VioMap
 
 EUROC_CAM0 = CameraCalibration(
     width=752,
@@ -105,7 +110,9 @@ def _rot(axis: int, a: np.ndarray) -> np.ndarray:
 _R0 = np.array([[0.0, 0.0, 1.0], [0.0, -1.0, 0.0], [1.0, 0.0, 0.0]])  # body x up, body z fwd
 
 
-def trajectory(t: np.ndarray, o: SimConfig):
+def trajectory(
+    t: np.ndarray, o: SimConfig
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Analytic state at times ``t`` (K,) s: R_world_body (K,3,3), p (K,3), v (K,3),
     a_world (K,3), omega_body (K,3)."""
     A = np.array(o.motion_amplitude_m)
@@ -267,7 +274,9 @@ def ate_rmse(est: np.ndarray, gt: np.ndarray, with_scale: bool = False) -> tuple
     return float(np.sqrt((err**2).sum(1).mean())), s_sim
 
 
-def ground_truth_map(seq: SimSequence, max_keyframes: int, bias_from_options: SimConfig):
+def ground_truth_map(
+    seq: SimSequence, max_keyframes: int, bias_from_options: SimConfig
+) -> tuple[VioMap, PinholeUndistorter]:
     """A :class:`VioMap` built from the sequence's robot keyframes at their true states
     (poses, velocities, initial biases), points triangulated from the noisy tracks.
     For tests of the back end in isolation."""
@@ -326,7 +335,7 @@ class RunMetrics:
     scale_keyframes: float
 
 
-def run_sequence(manager, seq: SimSequence) -> list:
+def run_sequence(manager: VioManager, seq: SimSequence) -> list[FrameResult]:
     """Feed a sequence to a VioManager; returns its FrameResults."""
     out = []
     for t, gyro, accel, frame in seq.feed():
@@ -335,7 +344,7 @@ def run_sequence(manager, seq: SimSequence) -> list:
     return out
 
 
-def evaluate_run(manager, results: list, seq: SimSequence) -> RunMetrics:
+def evaluate_run(manager: VioManager, results: list[FrameResult], seq: SimSequence) -> RunMetrics:
     """ATE and scale of a finished run against the sequence's ground truth."""
     from services.edge.vio.types import TrackingStatus
 

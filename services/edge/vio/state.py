@@ -177,7 +177,9 @@ class VioMap:
             mp.observations.pop(keyframe_id, None)
             self._dirty_points.add(point_id)
 
-    def mark_dirty(self, keyframe_ids: list[int] | None = None, point_ids: list[int] | None = None):
+    def mark_dirty(
+        self, keyframe_ids: list[int] | None = None, point_ids: list[int] | None = None
+    ) -> None:
         self._dirty_keyframes.update(keyframe_ids or [])
         self._dirty_points.update(pid for pid in (point_ids or []) if pid in self.points)
 

@@ -25,6 +25,7 @@ recent frames.
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -135,7 +136,13 @@ def _pairs(t: np.ndarray, baselines: tuple[int, ...], max_pair_s: float) -> np.n
     return np.concatenate(out) if out else np.zeros((0, 2), np.int64)
 
 
-def _jackknife_sigma(residuals, offset: float, t_pair: np.ndarray, e: np.ndarray, o) -> float:
+def _jackknife_sigma(
+    residuals: Callable[[float], tuple[np.ndarray, np.ndarray]],
+    offset: float,
+    t_pair: np.ndarray,
+    e: np.ndarray,
+    o: TimeOffsetConfig,
+) -> float:
     """Standard deviation [s] of the offset by the delete-a-block jackknife over
     ``o.jackknife_blocks`` contiguous stretches of time: the residuals of neighbouring frames
     are not independent (tracking errors and vibration last longer than a frame), so the cost's

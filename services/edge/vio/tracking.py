@@ -54,13 +54,21 @@ class TrackResult:
     R_world_body_visual: np.ndarray | None = None
 
 
-def _chi2(T_world_body, T_body_cam, P, xy, sigma) -> np.ndarray:
+def _chi2(
+    T_world_body: np.ndarray,
+    T_body_cam: np.ndarray,
+    P: np.ndarray,
+    xy: np.ndarray,
+    sigma: np.ndarray,
+) -> np.ndarray:
     proj, z = project(T_world_body, T_body_cam, P)
     e = np.sum((proj - xy) ** 2, axis=1) / sigma**2
     return np.where(z > 0, np.nan_to_num(e, nan=np.inf), np.inf)
 
 
-def _ransac(P, xy, camera: PinholeUndistorter, options: TrackingConfig) -> np.ndarray | None:
+def _ransac(
+    P: np.ndarray, xy: np.ndarray, camera: PinholeUndistorter, options: TrackingConfig
+) -> np.ndarray | None:
     ok, rvec, tvec, inl = cv2.solvePnPRansac(
         np.ascontiguousarray(P, dtype=np.float64),
         np.ascontiguousarray(xy, dtype=np.float64),
@@ -197,7 +205,12 @@ def _optimise(
 
 
 def _visual_rotation(
-    T: np.ndarray, P: np.ndarray, xy: np.ndarray, sigma: np.ndarray, camera, c2: float
+    T: np.ndarray,
+    P: np.ndarray,
+    xy: np.ndarray,
+    sigma: np.ndarray,
+    camera: PinholeUndistorter,
+    c2: float,
 ) -> np.ndarray:
     """The rotation (3, 3) of the pose that the reprojections of ``P`` (M, 3) at ``xy`` (M, 2)
     alone give, by two Gauss-Newton steps from ``T`` (4, 4)."""

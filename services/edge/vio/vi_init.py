@@ -98,7 +98,7 @@ class _Problem:
             cov += np.diag(extra)
             self.W[k] = np.linalg.inv(np.linalg.cholesky(cov + 1e-12 * np.eye(9)))
 
-    def deltas(self, ba: np.ndarray, bg: np.ndarray):
+    def deltas(self, ba: np.ndarray, bg: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Bias-corrected (ΔR (M,3,3), Δv (M,3), Δp (M,3)) via gtsam's first-order update."""
         key = (*ba.tolist(), *bg.tolist())
         if key != self._cache_key:
@@ -119,7 +119,9 @@ class _Problem:
         assert self._deltas is not None
         return self._deltas
 
-    def residuals(self, R_wv, s, v, ba, bg) -> np.ndarray:
+    def residuals(
+        self, R_wv: np.ndarray, s: float, v: np.ndarray, ba: np.ndarray, bg: np.ndarray
+    ) -> np.ndarray:
         _, dv, dp = self.deltas(ba, bg)
         rR = self._rR
         R = R_wv @ self.R_v  # (N, 3, 3)
@@ -204,11 +206,11 @@ def inertial_only_map(
         s0 = 1.0
     v0 = x_lin[1:].reshape(n, 3) if x_lin[0] > 0 else np.zeros((n, 3))
 
-    def unpack(x):
+    def unpack(x: np.ndarray) -> tuple[np.ndarray, float, np.ndarray, np.ndarray, np.ndarray]:
         R_wv = so3_exp(np.array([x[1], x[2], 0.0])) @ R_wv0
         return R_wv, float(np.exp(x[0])), x[3 : 3 + 3 * n].reshape(n, 3), x[-3:], x[-6:-3]
 
-    def fun(x):
+    def fun(x: np.ndarray) -> np.ndarray:
         R_wv, s, v, ba, bg = unpack(x)
         r = prob.residuals(R_wv, s, v, ba, bg)
         pri = np.concatenate(

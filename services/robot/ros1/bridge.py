@@ -24,6 +24,7 @@ import logging
 import socket
 import sys
 import threading
+from collections.abc import Iterator
 
 import rospy
 import tf2_ros
@@ -49,7 +50,7 @@ class Link:
         with self.lock:
             self.sock.sendall(data)
 
-    def frames(self):
+    def frames(self) -> Iterator[tuple[int, bytes]]:
         while True:
             data = self.sock.recv(1 << 20)
             if not data:
