@@ -250,9 +250,9 @@ def bench_service(tmp: Path) -> list[str]:
     from common.protocol import SessionConfig
     from common.transport import Client, run
     from common.vocabulary import Vocabulary
-    from services.cloud.config import CloudServiceConfig
     from services.cloud.fusion.uplink import decode_keyframe_update
     from services.cloud.server import CloudServer
+    from services.cloud.service_config import CloudServiceConfig, StoreConfig
 
     vocab = Vocabulary.load()
     scen = _service_scenario(vocab)
@@ -268,7 +268,7 @@ def bench_service(tmp: Path) -> list[str]:
 
     async def main() -> tuple[float, float, float, object]:
         session = SessionConfig("cloud", "cloud", secret)
-        cfg = CloudServiceConfig(output_every_s=0)
+        cfg = CloudServiceConfig(store=StoreConfig(output_every_s=0))
         cloud = CloudServer(session, tmp / "state", default_camera(), vocab, cfg)
         _, port = await cloud.start()
         lags: list[float] = []
@@ -371,8 +371,9 @@ def bench_fusion_table(tmp: Path, n_kf: int) -> list[str]:
     from common.protocol import SessionConfig
     from common.transport import Client, run
     from common.vocabulary import Vocabulary
-    from services.cloud.config import CloudConfig, CloudServiceConfig, MbpConfig
+    from services.cloud.config import CloudConfig, MbpConfig
     from services.cloud.server import CloudServer
+    from services.cloud.service_config import CloudServiceConfig, MbpScheduleConfig, StoreConfig
 
     vocab = Vocabulary.load()
     scen = _fusion_scenario(vocab, n_kf, drift_deg=0.05, drift_m=0.002)
@@ -389,7 +390,11 @@ def bench_fusion_table(tmp: Path, n_kf: int) -> list[str]:
     secret = b"bench-cloud-fusion-secret"
     for label, mbp in (("without MBP", False), ("with MBP", True)):
         domain = CloudConfig(mbp=MbpConfig(enabled=mbp))
-        cfg = CloudServiceConfig(domain=domain, output_every_s=0, mbp_every_keyframes=10**9)
+        cfg = CloudServiceConfig(
+            domain=domain,
+            store=StoreConfig(output_every_s=0),
+            mbp=MbpScheduleConfig(every_keyframes=10**9),
+        )
 
         async def main(cfg=cfg, mbp=mbp, label=label):
             session = SessionConfig("cloud", "cloud", secret)

@@ -254,7 +254,7 @@ def main() -> None:
             f"Recording `{args.recording}`, ground truth `{args.data}`; "
             "`lab.table3.replay` with the service's defaults (MBP on), pose graph only vs "
             "pose graph + full BA on the server's schedule (every "
-            "`full_ba_every_keyframes`, on quiet, and at the end).",
+            "`full_ba.every_keyframes`, on quiet, and at the end).",
             "",
             *replay_rows(args.recording, args.data),
         ]

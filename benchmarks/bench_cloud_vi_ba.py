@@ -158,10 +158,10 @@ def ab_rows(pairs: list[tuple[Path, Path]], variants: list[str]) -> list[str]:
     from common.evaluation.metrics import AteConfig, compute_joint_ate
     from common.evaluation.results import load_groundtruth
     from common.vocabulary import DEFAULT_VOCABULARY_PATH, Vocabulary
-    from services.cloud.config import CloudServiceConfig
     from services.cloud.core_actions import SolveRequest, solve
     from services.cloud.optimization.full_ba import FullBAResult
     from services.cloud.runner import find_camera
+    from services.cloud.service_config import CloudServiceConfig
     from services.cloud.store.recording import read_schedule
 
     vocab = Vocabulary.load(DEFAULT_VOCABULARY_PATH)

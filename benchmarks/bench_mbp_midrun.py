@@ -14,18 +14,19 @@ keyframes and at shutdown) and:
 - **no MBP**;
 - **MBP at shutdown** (the service's default);
 - **MBP every N keyframes** while running, once per ``--settle`` value S (a pass while running
-  keeps each agent's S newest keyframes, ``CloudServiceConfig.mbp_settle_keyframes``; the
-  final pass at shutdown keeps ``mbp_keep_recent`` = 5), each twice: the pass right after
+  keeps each agent's S newest keyframes, ``MbpScheduleConfig.settle_keyframes``; the
+  final pass at shutdown keeps ``keep_recent`` = 5), each twice: the pass right after
   the pose graph that finds it due, and the pass after a full BA of the map that this pose
-  graph then schedules (``mbp_after_full_ba``);
+  graph then schedules (``MbpScheduleConfig.after_full_ba``);
 - one row per ``--variant``: the last of those (every N, last settle, after a full BA) with
-  ``KEY=VALUE`` overrides: a ``CloudServiceConfig`` field, or ``full_ba.X`` / ``mbp.X`` /
-  ``optimization.X`` of its domain (values parsed as int, float, true/false, none, else
+  ``KEY=VALUE`` overrides, ``KEY`` a dotted path into ``CloudServiceConfig``
+  (``mbp.every_keyframes``, ``mbp.running.cover_ratio``, ``full_ba.every_keyframes``,
+  ``domain.full_ba.imu_factors``, ...; values parsed as int, float, true/false, none, else
   string).
 
 A replay is open-loop: the recorded edge applied the corrections of the *live* cloud, and its
 later updates (map points re-observed on a revisit) are in its corrected frame. In recordings
-made before the edge named the frame of its messages (``FrameAnchor``, session 19) the cloud
+made before the edge named the frame of its messages (``FrameAnchor``) the cloud
 placed them through the robot's one map-from-edge transform, so a configuration whose
 corrections differ from the live run's received them in a frame that no longer fit its own
 keyframes, and a replay was faithful only for the configuration the recording was made with.
@@ -60,9 +61,9 @@ from common.evaluation.results import load_groundtruth
 from common.vocabulary import DEFAULT_VOCABULARY_PATH, Vocabulary
 from lab.links import git_commit
 from lab.table3 import ReplayResult, joint_ate, replay_recording, service_config
-from services.cloud.config import CloudServiceConfig
 from services.cloud.core_actions import SolveKind, SolveRequest, SolveResult, solve
 from services.cloud.runner import find_camera
+from services.cloud.service_config import CloudServiceConfig
 
 log = logging.getLogger("bench_mbp_midrun")
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -82,17 +83,19 @@ def _value(text: str) -> Any:  # a field value of any type, checked by the datac
     return text
 
 
+def _replaced(obj: Any, path: list[str], value: Any) -> Any:
+    """The dataclass ``obj`` with the field at the dotted ``path`` set to ``value``."""
+    name, *rest = path
+    return dataclasses.replace(
+        obj, **{name: _replaced(getattr(obj, name), rest, value) if rest else value}
+    )
+
+
 def overridden(cfg: CloudServiceConfig, spec: str) -> CloudServiceConfig:
     """``cfg`` with ``KEY=VALUE[,KEY=VALUE...]`` applied (module docstring)."""
     for item in filter(None, spec.split(",")):
         key, _, text = item.partition("=")
-        value = _value(text)
-        part, _, name = key.partition(".")
-        if name:
-            sub = dataclasses.replace(getattr(cfg.domain, part), **{name: value})
-            cfg = dataclasses.replace(cfg, domain=dataclasses.replace(cfg.domain, **{part: sub}))
-        else:
-            cfg = dataclasses.replace(cfg, **{key: value})
+        cfg = _replaced(cfg, key.split("."), _value(text))
     return cfg
 
 
@@ -105,11 +108,11 @@ def variants(
         ("MBP at shutdown", service_config(True)),
     ]
     for s in settles:
-        cfg = dataclasses.replace(
-            service_config(True, every), mbp_settle_keyframes=s, mbp_after_full_ba=False
+        cfg = overridden(
+            service_config(True, every), f"mbp.settle_keyframes={s},mbp.after_full_ba=false"
         )
         rows.append((f"every {every}, settle {s}, after its pose graph", cfg))
-        cfg = dataclasses.replace(cfg, mbp_after_full_ba=True)
+        cfg = overridden(cfg, "mbp.after_full_ba=true")
         rows.append((f"every {every}, settle {s}, after a full BA", cfg))
     base = rows[-1][1]
     for spec in extra:

@@ -52,11 +52,12 @@ from lab.loop_scoring import (
 )
 from lab.replay_schedule import RecordedSteps, SolveClock
 from services.cloud.app import CloudApp, Reaction
-from services.cloud.config import CloudConfig, CloudServiceConfig, MbpConfig
+from services.cloud.config import CloudConfig, MbpConfig
 from services.cloud.core import CloudCore
 from services.cloud.core_actions import SolveRequest, SolveResult, solve
 from services.cloud.optimization.mbp import REASONS, backbone
 from services.cloud.server import open_app
+from services.cloud.service_config import CloudServiceConfig, MbpScheduleConfig
 from services.cloud.store.recording import Record, Step, has_schedule, read_schedule
 
 log = logging.getLogger(__name__)
@@ -68,7 +69,7 @@ def service_config(mbp: bool, every_keyframes: int | None = None) -> CloudServic
     domain = CloudConfig(mbp=dataclasses.replace(MbpConfig(), enabled=mbp))
     cfg = CloudServiceConfig(domain=domain)
     if every_keyframes is not None:
-        cfg = dataclasses.replace(cfg, mbp_every_keyframes=every_keyframes)
+        cfg = dataclasses.replace(cfg, mbp=MbpScheduleConfig(every_keyframes=every_keyframes))
     return cfg
 
 
@@ -302,9 +303,9 @@ def backbone_breakdown(app: CloudApp) -> dict[str, int]:
     """Why the final atlas' keyframes would be kept by one more MBP pass, summed over maps (a
     diagnostic of :func:`services.cloud.optimization.mbp.backbone` with MBP's settings, even when
     the replay ran without MBP): ``kept_by_one_more_pass`` and its partition by reason
-    (``protected``: each agent's first and ``mbp_keep_recent`` newest; ``not_covered``: the
-    other keyframes see too little of it; ``covers_removed``: a removed keyframe would lose
-    its coverage; ``connector``: the kept keyframes would fall apart), and
+    (``protected``: each agent's first and ``MbpScheduleConfig.keep_recent`` newest;
+    ``not_covered``: the other keyframes see too little of it; ``covers_removed``: a removed
+    keyframe would lose its coverage; ``connector``: the kept keyframes would fall apart), and
     ``loop_endpoints``: keyframes at a loop / merge constraint (not protected: MBP moves the
     constraint onto the absorbing keyframe)."""
     atlas = app.atlas
@@ -313,7 +314,7 @@ def backbone_breakdown(app: CloudApp) -> dict[str, int]:
     ends = {k for e in atlas.loops() for k in (e.key_a, e.key_b)}
     out["loop_endpoints"] = len(ends)
     for m in atlas.maps():
-        bb = backbone(atlas, m, app.config.domain.mbp, app.config.mbp_keep_recent)
+        bb = backbone(atlas, m, app.config.domain.mbp, app.config.mbp.keep_recent)
         out["kept_by_one_more_pass"] += len(bb.kept)
         for why in bb.reasons.values():
             out[why] += 1

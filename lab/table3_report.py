@@ -121,7 +121,7 @@ def table3_markdown(t: Table3) -> str:
             f"({_pct(m_ate or 0.0, j_off or 0.0)}): "
             f"**{'not worse' if mid_ok else 'worse'}**"
             ", which is why the service prunes at shutdown by default "
-            "(`mbp_every_keyframes` 0, `mbp_at_shutdown`)."
+            "(`mbp.every_keyframes` 0, `mbp.at_shutdown`)."
             if mid
             else ""
         ),

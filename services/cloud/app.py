@@ -71,7 +71,6 @@ from common.vocabulary import Vocabulary
 from services.cloud.agents import AgentKey, AtlasAgent
 from services.cloud.app_optimization import AppOptimization
 from services.cloud.atlas.atlas import Atlas, AtlasSnapshot, KeyframeInput, make_key
-from services.cloud.config import CloudServiceConfig
 from services.cloud.fusion.map_fusion import FusionEvents, MapFusion
 from services.cloud.fusion.rebase import FrameRebase, rebased_keyframe
 from services.cloud.fusion.robot_sensors import RobotSensorBook
@@ -84,6 +83,7 @@ from services.cloud.fusion.uplink import (
     decode_keyframe_update,
     decode_map_point_update,
 )
+from services.cloud.service_config import CloudServiceConfig
 from services.cloud.store.frame_trajectories import FrameTrack
 from services.cloud.store.ground_truth import references_in_maps
 from services.cloud.store.map_source import AgentInfo, CloudView

@@ -7,13 +7,14 @@ build a map's problem with a token of the atlas' merge state, the solve runs els
 :meth:`AppOptimization.apply_optimization` writes it back (unless maps were merged meanwhile)
 and returns the :class:`Correction` for each agent in the map, in its edge map's frame.
 :meth:`AppOptimization.prune` runs MBP on a map (:meth:`AppOptimization.prune_due`: every
-``mbp_every_keyframes`` new keyframes) and keeps what it removed for the dashboard.
+``MbpScheduleConfig.every_keyframes`` new keyframes) and keeps what it removed for the
+dashboard.
 """
 
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -29,11 +30,11 @@ from common.links.edge_cloud import (
 )
 from services.cloud.agents import AgentKey, AtlasAgent
 from services.cloud.atlas.atlas import Atlas, split_key
-from services.cloud.config import CloudServiceConfig
 from services.cloud.fusion.map_fusion import MapFusion
 from services.cloud.optimization.full_ba import FullBAProblem, FullBAResult
 from services.cloud.optimization.global_optimization import PoseGraphProblem, PoseGraphResult
 from services.cloud.optimization.mbp import MbpReport
+from services.cloud.service_config import CloudServiceConfig
 from services.cloud.store.persistence import CloudStore
 
 log = logging.getLogger(__name__)
@@ -132,33 +133,23 @@ class AppOptimization:
         self.fusion.recognizer.shed_early = overloaded
 
     def prune_due(self, map_id: int) -> bool:
-        every = self.config.mbp_every_keyframes
-        if not self.config.domain.mbp.enabled or every <= 0 or map_id not in self.atlas.maps():
+        every = self.config.mbp.every_keyframes
+        on = self.config.domain.mbp.enabled and self.config.mbp.running.enabled
+        if not on or every <= 0 or map_id not in self.atlas.maps():
             return False
         n = self.atlas.n_keyframes(map_id)
         return n - self._mbp_done.get(map_id, 0) >= every
 
     def prune(self, map_id: int, final: bool = False) -> MbpReport:
         """MBP on ``map_id`` (then the whole atlas is saved). While running (not ``final``)
-        each agent's ``mbp_settle_keyframes`` newest keyframes are kept, a keyframe goes only
-        at ``mbp_running_cover_ratio`` and only while its agent's kept keyframes stay within
-        ``mbp_running_max_interval_s``, and map points go at ``mbp_running_min_observations``;
-        the final pass (at shutdown) keeps ``mbp_keep_recent`` and ``domain.mbp``."""
+        each agent's ``MbpScheduleConfig.settle_keyframes`` newest keyframes are kept and the
+        pass has ``MbpScheduleConfig.running``'s options; the final pass (at shutdown) keeps
+        ``MbpScheduleConfig.keep_recent`` and has ``CloudConfig.mbp``'s."""
         before = set(self.atlas.map_point_keys(map_id))
-        cfg = self.config
-        keep, mbp = cfg.mbp_keep_recent, cfg.domain.mbp
+        schedule = self.config.mbp
+        keep, mbp = schedule.keep_recent, self.config.domain.mbp
         if not final:
-            keep = max(keep, cfg.mbp_settle_keyframes)
-            mbp = replace(
-                mbp,
-                cover_ratio=mbp.cover_ratio
-                if cfg.mbp_running_cover_ratio is None
-                else cfg.mbp_running_cover_ratio,
-                min_observations=mbp.min_observations
-                if cfg.mbp_running_min_observations is None
-                else cfg.mbp_running_min_observations,
-                max_interval_s=cfg.mbp_running_max_interval_s,
-            )
+            keep, mbp = max(keep, schedule.settle_keyframes), schedule.running
         with self.stage_timer.span("stage.mbp"):
             report = self.fusion.prune(map_id, keep, mbp)
         self._changes += 1

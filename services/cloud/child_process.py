@@ -14,7 +14,7 @@ def child_process_init(parent_pid: int, nice: int = 0) -> None:
     The service owns its lifecycle: SIGINT / SIGTERM (e.g. Ctrl-C to the process group) are
     ignored, and the process exits as soon as ``parent_pid`` is gone, even after a SIGKILL of
     the service (checked every second). ``nice``: added to the process's niceness
-    (``CloudServiceConfig.optimizer_nice``)."""
+    (``ProcessConfig.optimizer_nice``)."""
     if nice:
         os.nice(nice)
     signal.signal(signal.SIGINT, signal.SIG_IGN)

@@ -1,15 +1,14 @@
 """Options of the cloud tier's domain code (paper Section VI.B), one frozen dataclass per block.
 
 Every default is documented where it is declared; :class:`CloudConfig` bundles them so a
-service builds one object and hands the parts down.
+service builds one object and hands the parts down (the service's own options, which nest
+this one, are in :mod:`services.cloud.service_config`).
 """
 
 from __future__ import annotations
 
 import enum
 from dataclasses import dataclass, field
-
-from common.links import WireFormat
 
 
 class AlignmentMode(enum.Enum):
@@ -124,7 +123,9 @@ class MergeConfig:
     fuse_max_hamming: ... and whose descriptors differ by at most this many bits (default 50).
     fuse_loop_points: a loop closed within one map fuses its verified 3D-3D point pairs too
         (default True; ``services/cloud/fusion/merge.py``): the full BA then links the two visits
-        through shared points, not only through the loop's relative pose.
+        through shared points, not only through the loop's relative pose. On replays of seeds
+        0 / 1 / 2, joint ATE 0.23 / 0.27 / 0.38 cm with it against 0.54 / 0.52 / 0.51 cm
+        without (benchmarks/results/loop_recall.md).
     fragment_max_scale_change: a *fragment* (a map whose robots have all moved on to newer
         maps, e.g. the one an edge began after a tracking loss and left at the next) may
         differ in scale from the map it merges with by this fraction (default 0.2): its
@@ -252,8 +253,8 @@ class FullBAConfig:
         sigma (0: held like the rest, the default), so gravity through the IMU factors sets the
         map's tilt: the 4-DoF gauge of visual-inertial estimation (position and yaw). Held,
         the first keyframe keeps the tilt the edge's early gravity estimate gave it (0.01-0.2°
-        on the recordings): with a noise-free IMU weighted 10x (session 24, a seed-2 final
-        map) the solve then ends 0.41 cm off at scale 0.998, freed 0.18 cm. Not the default:
+        on the recordings): with a noise-free IMU weighted 10x (a seed-2 final map) the
+        solve then ends 0.41 cm off at scale 0.998, freed 0.18 cm. Not the default:
         on replays of 12 recordings (seeds 0-2, with and without MBP) 0.05 rad was worse on
         8, +10 % joint ATE in all, and mixed on the harder flights (inward seed 0 5.06 ->
         4.83 cm, hover seed 1 0.36 -> 0.40 cm).
@@ -335,13 +336,14 @@ class MbpConfig:
         ATE 3.17 cm).
     max_virtual_reprojection_px: an observation of a removed keyframe is "good" (and folded
         into the absorbing keyframe) if it reprojects within this many pixels (default 3.0).
-    min_observations: map points left with fewer observations are removed (default 2).
+    min_observations: map points left with fewer observations are removed (default 2; at
+        least 1: a map point needs an observer).
     blend_retired: a removed keyframe's pose follows both kept keyframes around it in time,
         blended by time, not only the one its loops moved to (default True;
         ``services.cloud.atlas.retired.retired_pose``).
     max_interval_s: a keyframe stays when removing it would leave its agent's kept
         keyframes around it further apart in time than this, seconds (default None: no limit;
-        a pass while running has ``CloudServiceConfig.mbp_running_max_interval_s``).
+        a pass while running has ``MbpScheduleConfig.running``'s 1.5 s).
     """
 
     enabled: bool = True
@@ -351,6 +353,10 @@ class MbpConfig:
     min_observations: int = 2
     blend_retired: bool = True
     max_interval_s: float | None = None
+
+    def __post_init__(self) -> None:
+        if self.min_observations < 1:
+            raise ValueError(f"min_observations must be >= 1, got {self.min_observations}")
 
 
 @dataclass(frozen=True)
@@ -363,170 +369,3 @@ class CloudConfig:
     optimization: GlobalOptimizationConfig = field(default_factory=GlobalOptimizationConfig)
     full_ba: FullBAConfig = field(default_factory=FullBAConfig)
     mbp: MbpConfig = field(default_factory=MbpConfig)
-
-
-@dataclass(frozen=True)
-class CloudServiceConfig:
-    """Options of the cloud network service (``services/cloud/server.py``).
-
-    optimize_every_keyframes: a map is optimised after this many new keyframes even without a
-        loop or merge (default 25); a verified loop or merge schedules it at once.
-    debounce_s: after a trigger, wait this long so that a burst of triggers costs one
-        optimisation (default 0.5 s).
-    optimize_rest_factor: a scheduled round starts no sooner than this many times the last
-        round's duration after its end (default 1.0: the optimisation rounds take at most
-        about half of the time, whatever the map's size, and the messages the rest; a small
-        map's rounds are shorter than ``debounce_s``, which rules then).
-    mbp_every_keyframes: MBP runs on a map (when ``domain.mbp.enabled``) after this many new
-        keyframes since its last pass, right after an optimisation (0 = never while running;
-        default 0: live, every 40 kept 18-34 % of the keyframes at -31 / -50 / +17 % mean
-        joint ATE against runs without it on seeds 0 / 1 / 2, six runs each (ten on seed 2),
-        sessions 24-25, benchmarks/results/mbp_live.md; replays of six recordings -0.7 %
-        mean, both of seed 2 worse, all of it the map's scale, mbp_midrun.md) ...
-    mbp_at_shutdown: ... and over every map at shutdown, after the last full BA, before the
-        trajectories are written (default True): the persisted map is the pruned one.
-    mbp_keep_recent: each agent's newest keyframes MBP never removes (default 5) ...
-    mbp_settle_keyframes: ... and, in a pass while running, each agent's this many newest
-        keyframes (default 30): they are still in the edge's reach (it keeps re-sending their
-        poses and their young points keep moving), and pruning them folds and freezes
-        unsettled geometry (protecting 5 instead raised the replays' joint ATE 3-7x).
-    mbp_running_cover_ratio: a pass while running removes a keyframe only while the kept
-        keyframes observe this fraction of its map points (``MbpConfig.cover_ratio``, which
-        the pass at shutdown keeps; None: the same; default 0.8). What a pass while running
-        keeps must carry the later loops and full BAs. On session 19's replays of recordings
-        of seeds 1 and 2 (before loops fused their points), against no pruning: 0.5 kept 54 /
-        31 % of the keyframes at +4.4 / +2.6 % joint ATE, 0.7 kept 55 / 34 % at +2.3 / -6.1 %,
-        0.8 kept 57 / 34 % at +1.1 / -14 %.
-    mbp_running_min_observations: a pass while running removes only the map points left with
-        fewer observations (``MbpConfig.min_observations``, which the pass at shutdown keeps;
-        None: the same; default 1: only those left with none). A point MBP leaves with one
-        observer constrains nothing now, but a later keyframe, loop or merge can observe it
-        again; culled, it was gone for them. On replays of recordings of seeds 0 and 1
-        (session 22), culling at 2 was +7.6 / +15.5 % joint ATE against no pruning, keeping
-        them (with coverage counted on the points two keyframes see) +3.8 / -0.8 %.
-    mbp_running_max_interval_s: a pass while running keeps a keyframe whose removal would
-        leave its agent's kept keyframes around it further apart in time than this, seconds
-        (``MbpConfig.max_interval_s``; None: no limit; the pass at shutdown, after the last
-        full BA, has none). Above the full BA's ``imu_max_interval_s`` (3 s) the full BAs
-        after the pass bridge an interval with the weak relative-pose stand-in only, not
-        with the IMU: on a seed-1 replay the pruned map's last full BA had 7 such gaps. Default
-        1.5 s: on replays of recordings of seeds 0 / 1 / 2 (session 22, loops fusing their
-        points), against no pruning, no limit gave 0.24 / 0.32 / 0.76 cm against 0.18 / 0.28 /
-        0.45, 3 s 0.17 / 0.29 / 0.61, 1.5 s 0.15 / 0.26 / 0.55 (the rest of seed 2's gap is
-        the map's scale: Sim(3) 0.12 cm either way).
-    mbp_after_full_ba: with full BA on, a pass while running waits for a full BA: the pose
-        graph that finds MBP due schedules a full BA of the map at once, and the pass runs
-        right after that is applied (default True). A pose graph moves the keyframes and each
-        map point only with its reference keyframe, so right after one the points seen across
-        a loop are where the loop left them; a pass then folds that geometry into the
-        absorbing keyframes' virtual observations. Costs one more full BA per pass.
-    word_group_level: verification matches words within their vocabulary ancestor at this
-        tree level (None = same word only; default 3 of a k=10, L=4 vocabulary, so that a
-        few flipped descriptor bits that change the leaf do not lose the match).
-    output_every_s: trajectories (and the ATE report) are rewritten this often (default 30 s;
-        0 = only at shutdown).
-    publish_every_s: the dashboard's map view is refreshed this often (default 0.5 s; 0 =
-        never: no dashboard reads it, and the atlas snapshot it takes on the worker grows with
-        the map, 66 ms per refresh at 3 agents in benchmarks/results/scale.md) ...
-    publish_rest_factor: ... and no sooner than this many times the last refresh's duration
-        after it (default 10: the refreshes take at most ~10 % of the worker; 0.21 s at 12
-        agents, ~400k points, then every 2.1 s).
-    bandwidth_window_s: bandwidth samples kept for the dashboard (default 120 s).
-    display_spacing_m: in the dashboard, maps that are not merged yet are shown side by side,
-        this far apart along x (default 0 m: each in its own frame, overlapping).
-    optimizer_process: solve pose graphs in a separate process (default True: gtsam holds the
-        GIL during most of a solve, which would stall the event loop's thread); False uses a
-        thread (no process start-up, fine for small maps).
-    optimizer_nice: the optimizer process's niceness increment (``os.nice``; 0-19; default
-        0: the service's priority). Higher gives a core shared by the worker and the solver
-        to the worker first (nice 10: ~9x the solver's share while both run). Measured on 12
-        agents at one core (benchmarks/results/scale.md): nice 10 against 0, queue peak
-        1995 vs 2600 messages, drained 31 vs 58 s after the end, but 52 vs 88 % of the
-        keyframes corrected before it: an overloaded cloud then takes the edges' messages
-        faster and corrects the robots less, so it is not the default.
-    decode_workers: decode the keyframes' features in this many helper processes before the
-        worker applies them (default 0: on the worker). The worker applies every message in
-        turn on one thread, and a 1000-feature keyframe's decode is ~25 ms of it; with
-        workers it overlaps the worker's other messages on other cores (no help on one core).
-    mission: the named mission to serve (``services.cloud.store.mission``): resumed when it is the
-        state directory's current one, else started, the earlier missions' agents becoming
-        the read-only prior map (default None: the current mission continues).
-    gt_every_s: with ground truth, the dashboard's reference trajectories are re-aligned to
-        the maps this often (default 5 s).
-    full_ba_every_keyframes: when ``domain.full_ba.enabled``, a map gets a full bundle
-        adjustment right after its pose-graph optimisation once it has this many new
-        keyframes since its last one (default 100) ...
-    full_ba_quiet_s: ... and when no new keyframe has arrived and nothing is scheduled for
-        this long while the map changed since its last one (0 = never on quiet; default 0:
-        on the recorded 3-robot run, 17x slower than real time, 10 s fired 31 full BAs and
-        the open-loop replay's joint ATE went 5.5 -> 6.4 cm, while every 100 keyframes +
-        shutdown gave 2.5 cm and shutdown only 1.4 cm; see cloud_full_ba.md) ...
-    full_ba_at_shutdown_s: ... and once at shutdown, before the trajectories are written,
-        after the pending pose graphs, within this many seconds in all (default 30 s: the
-        orchestration's stop waits 120 s; 0 = not at shutdown).
-    overload_busy: the cloud is *overloaded* once its worker thread was busy (wall time,
-        waiting for the core included) at least this share of the last ``overload_window_s``
-        (default 0.9; 0 = never overloaded). While it is, the work that only refines sheds
-        (:class:`services.cloud.core.CloudCore`): no full BA while running (nor the MBP pass
-        that waits for one; both run once the load falls, and at shutdown) and no early loop
-        candidates (``PlaceRecognitionConfig.early_candidates``: only consistent ones are
-        verified), and the dashboard's map view is refreshed every
-        ``overload_publish_every_s`` at most (default 5 s: its atlas snapshot took ~0.2 s of
-        the worker at 12 agents, ~400k points). Messages, pose graphs and their corrections
-        go on as always ...
-    overload_clear: ... until the busy share falls to this (default 0.6) ...
-    overload_window_s: ... over this many seconds (default 10 s).
-    """
-
-    wire: WireFormat = WireFormat.CODED
-    """How corrections go to the edges (``PoseCorrectionCoded``; ``raw``: the schema-1
-    float64 ``PoseCorrection``)."""
-
-    domain: CloudConfig = field(default_factory=CloudConfig)
-    optimize_every_keyframes: int = 25
-    debounce_s: float = 0.5
-    optimize_rest_factor: float = 1.0
-    mbp_every_keyframes: int = 0
-    mbp_at_shutdown: bool = True
-    mbp_keep_recent: int = 5
-    mbp_settle_keyframes: int = 30
-    mbp_running_cover_ratio: float | None = 0.8
-    mbp_running_min_observations: int | None = 1
-    mbp_running_max_interval_s: float | None = 1.5
-    mbp_after_full_ba: bool = True
-    word_group_level: int | None = 3
-    mission: str | None = None
-    output_every_s: float = 30.0
-    publish_every_s: float = 0.5
-    bandwidth_window_s: float = 120.0
-    display_spacing_m: float = 0.0
-    optimizer_process: bool = True
-    optimizer_nice: int = 0
-    decode_workers: int = 0
-    gt_every_s: float = 5.0
-    full_ba_every_keyframes: int = 100
-    full_ba_quiet_s: float = 0.0
-    full_ba_at_shutdown_s: float = 30.0
-    overload_busy: float = 0.9
-    overload_clear: float = 0.6
-    overload_window_s: float = 10.0
-    overload_publish_every_s: float = 5.0
-    publish_rest_factor: float = 10.0
-
-    def __post_init__(self) -> None:
-        if self.overload_busy and not 0 <= self.overload_clear < self.overload_busy <= 1:
-            raise ValueError(
-                "need 0 <= overload_clear < overload_busy <= 1 (or overload_busy 0), got "
-                f"{self.overload_clear} and {self.overload_busy}"
-            )
-        if self.overload_window_s <= 0:
-            raise ValueError(f"overload_window_s must be > 0, got {self.overload_window_s}")
-        if self.mbp_running_min_observations is not None and self.mbp_running_min_observations < 1:
-            raise ValueError(
-                "mbp_running_min_observations must be >= 1 (a map point needs an observer) "
-                f"or None, got {self.mbp_running_min_observations}"
-            )
-        if not 0 <= self.optimizer_nice <= 19:
-            raise ValueError(f"optimizer_nice must be in 0..19, got {self.optimizer_nice}")
-        if self.decode_workers < 0:
-            raise ValueError(f"decode_workers must be >= 0, got {self.decode_workers}")

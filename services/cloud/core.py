@@ -11,47 +11,47 @@ this one schedule.
 
 The schedule:
 
-- **Pose graph, debounced.** A map is scheduled ("dirty") at once after a loop or merge on it
-  and after every ``optimize_every_keyframes`` new keyframes; at :meth:`CloudCore.resume`
-  (a restart) every map is, so fresh corrections go out. The first trigger arms a deadline
-  ``debounce_s`` later (:meth:`CloudCore.next_deadline`); triggers before it cost nothing
-  more. At the deadline (:meth:`CloudCore.on_timer`) the dirty maps are taken in order and
+- **Pose graph, debounced.** A map is scheduled ("dirty") at once after a loop or merge on it and
+  after every ``OptimizationScheduleConfig.every_keyframes`` new keyframes; at
+  :meth:`CloudCore.resume` (a restart) every map is, so fresh corrections go out. The first trigger
+  arms a deadline ``debounce_s`` later (:meth:`CloudCore.next_deadline`); triggers before it cost
+  nothing more. At the deadline (:meth:`CloudCore.on_timer`) the dirty maps are taken in order and
   each one's pose graph is built, solved and applied; the corrected poses go to the edges
   (:class:`SendCorrections`, each robot's poses in its own map frame).
 - **A round at a time.** While a round's solve is out, messages keep being handled; a trigger
   that arrives meanwhile arms its deadline ``debounce_s`` after the round ends.
 - **Rest after a round.** A scheduled round (debounced or quiet) starts no sooner than
-  ``optimize_rest_factor`` times the last round's duration after its end, so that as maps
-  grow the optimisation's share of the time stays bounded and the messages keep theirs
-  (rounds on request: :meth:`CloudCore.optimize`, ``full_ba``, ``flush``, ``shutdown`` do not
-  wait).
+  ``OptimizationScheduleConfig.rest_factor`` times the last round's duration after its end, so that
+  as maps grow the optimisation's share of the time stays bounded and the messages keep theirs
+  (rounds on request: :meth:`CloudCore.optimize`, ``full_ba``, ``flush``, ``shutdown`` do not wait).
 - **Merged during a solve.** If maps were merged while a solve was out
   (``apply_optimization`` returns None: the result is in a stale frame), a pose graph is
   scheduled again (dirty + trigger); a full BA counts as one more change of its map, picked up
   by the next full-BA occasion.
-- **MBP when due** (``CloudApp.prune_due``: ``mbp_every_keyframes`` new keyframes since the
-  map's last pass). With full BA on and ``mbp_after_full_ba``, the pose graph that finds it
-  due is followed by a full BA of the map and the pass runs right after that full BA is
-  applied (not after the full BA at shutdown: the shutdown pass follows it anyway); else
+- **MBP when due** (``CloudApp.prune_due``: ``MbpScheduleConfig.every_keyframes`` new keyframes
+  since the map's last pass). With full BA on and ``MbpScheduleConfig.after_full_ba``, the pose
+  graph that finds it due is followed by a full BA of the map and the pass runs right after that
+  full BA is applied (not after the full BA at shutdown: the shutdown pass follows it anyway); else
   the pass runs right after the pose graph is applied.
-- **Full bundle adjustment** (when ``domain.full_ba.enabled``), built, solved and applied like
-  a pose graph, corrections included: right after a map's pose graph once it has
-  ``full_ba_every_keyframes`` changes (new keyframes, loops / merges) since its last full BA;
-  when no new keyframe has arrived for ``full_ba_quiet_s`` and nothing is scheduled ("quiet":
-  every changed map); and at shutdown.
-- **Overload** (:meth:`CloudCore.load`: the runner reports the share of recent wall time its
-  worker was busy): from ``overload_busy`` until it falls to ``overload_clear`` the cloud
-  sheds what only refines the map: no full BA is started (a due one waits, and so does the
-  MBP pass that waits for it; once the load fell, their maps get a pose graph scheduled and
-  they follow it), no quiet full BA, and place recognition verifies only consistent
-  candidates (``CloudApp.shed``), and the dashboard's map view is refreshed less often
-  (:meth:`CloudCore.publish_every_s`). Messages, pose graphs and corrections go on: the
-  edges' queues stay bounded as long as those alone fit the cloud's CPU.
-- **Shutdown** (:meth:`CloudCore.shutdown`): with full BA on and ``full_ba_at_shutdown_s`` > 0,
-  the scheduled pose graphs first, then a full BA of every changed map, the solves sharing
-  ``full_ba_at_shutdown_s`` in all (a map with no time left is skipped; no corrections are
-  sent); then MBP over every map when ``mbp_at_shutdown`` (the persisted map is the pruned
-  one, the trajectories keep every pose through the retired keyframes).
+- **Full bundle adjustment** (when ``domain.full_ba.enabled``), built, solved and applied like a
+  pose graph, corrections included: right after a map's pose graph once it has
+  ``FullBAScheduleConfig.every_keyframes`` changes (new keyframes, loops / merges) since its last
+  full BA; when no new keyframe has arrived for ``FullBAScheduleConfig.quiet_s`` and nothing is
+  scheduled ("quiet": every changed map); and at shutdown.
+- **Overload** (:meth:`CloudCore.load`: the runner reports the share of recent wall time its worker
+  was busy): from ``OverloadConfig.busy`` until it falls to ``OverloadConfig.clear`` the cloud sheds
+  what only refines the map: no full BA is started (a due one waits, and so does the MBP pass that
+  waits for it; once the load fell, their maps get a pose graph scheduled and they follow it), no
+  quiet full BA, and place recognition verifies only consistent candidates (``CloudApp.shed``), and
+  the dashboard's map view is refreshed less often (:meth:`CloudCore.publish_every_s`). Messages,
+  pose graphs and corrections go on: the edges' queues stay bounded as long as those alone fit the
+  cloud's CPU.
+- **Shutdown** (:meth:`CloudCore.shutdown`): with full BA on and
+  ``FullBAScheduleConfig.at_shutdown_s`` > 0, the scheduled pose graphs first, then a full BA of
+  every changed map, the solves sharing ``FullBAScheduleConfig.at_shutdown_s`` in all (a map with no
+  time left is skipped; no corrections are sent); then MBP over every map when
+  ``MbpScheduleConfig.at_shutdown`` (the persisted map is the pruned one, the trajectories keep
+  every pose through the retired keyframes).
 
 A failure of one map's step (build, solve, apply, MBP) is logged and the round goes on with
 the next step, as the service always did. A full BA that began and was not applied (its solve
@@ -146,7 +146,8 @@ class CloudCore:
         self._trigger_t: float | None = None  # None while triggered in a round: set at its end
         self._busy = False
         self._round_t0 = 0.0  # when the running round started
-        self._rest_until = -math.inf  # no scheduled round before (see optimize_rest_factor)
+        # no scheduled round before this (see OptimizationScheduleConfig.rest_factor)
+        self._rest_until = -math.inf
         self._steps: deque[_Step] = deque()
         self._outstanding: tuple[SolveRequest, _PoseGraph | _FullBA] | None = None
         self.optimizations = 0  # pose graphs applied
@@ -178,19 +179,19 @@ class CloudCore:
 
     # ------------------------------------------------------------------ load
     def load(self, busy: float, now: float) -> bool:
-        """The share of the recent wall time (``overload_window_s``) the runner's worker was
+        """The share of the recent wall time (``OverloadConfig.window_s``) the runner's worker was
         busy; True when this changed :attr:`overloaded` (the runner records it then, so that
         a replay of the recording sheds where the service did)."""
         cfg = self.config
         if self.overloaded:
-            if busy > cfg.overload_clear:
+            if busy > cfg.overload.clear:
                 return False
             self.overloaded_s += self._spell_s(now)
             self._overloaded_since = None
             log.info("load %.2f: no longer overloaded; full BA and early candidates resume", busy)
             self._resume_deferred(now)
         else:
-            if not cfg.overload_busy or busy < cfg.overload_busy:
+            if not cfg.overload.busy or busy < cfg.overload.busy:
                 return False
             self._overloaded_since = now
             self.overloads += 1
@@ -198,7 +199,7 @@ class CloudCore:
                 "load %.2f: overloaded; no full BA while running and no early loop candidates "
                 "until it falls to %.2f",
                 busy,
-                cfg.overload_clear,
+                cfg.overload.clear,
             )
         self.app.shed(self.overloaded)
         return True
@@ -206,12 +207,12 @@ class CloudCore:
     def _pass_waits_for_full_ba(self, map_id: int) -> bool:
         """An MBP pass is due on the map and runs after its full BA."""
         cfg = self.config
-        return cfg.domain.full_ba.enabled and cfg.mbp_after_full_ba and self.app.prune_due(map_id)
+        return cfg.domain.full_ba.enabled and cfg.mbp.after_full_ba and self.app.prune_due(map_id)
 
     def _full_ba_due(self, map_id: int, pass_waits: bool) -> bool:
         """The map's full BA is due after its pose graph: it changed enough since its last
         one, or an MBP pass waits for it (``pass_waits``)."""
-        enough = self._since_full.get(map_id, 0) >= self.config.full_ba_every_keyframes
+        enough = self._since_full.get(map_id, 0) >= self.config.full_ba.every_keyframes
         return self.config.domain.full_ba.enabled and (enough or pass_waits)
 
     def _resume_deferred(self, now: float) -> None:
@@ -227,11 +228,11 @@ class CloudCore:
         """How long until the dashboard's map view is refreshed again (0: never), given
         that the last refresh took ``last_s`` seconds of the worker."""
         cfg = self.config
-        every = cfg.publish_every_s
+        every = cfg.map_view.publish_every_s
         if every <= 0:
             return every
-        every = max(every, cfg.publish_rest_factor * last_s)
-        return max(every, cfg.overload_publish_every_s) if self.overloaded else every
+        every = max(every, cfg.map_view.publish_rest_factor * last_s)
+        return max(every, cfg.overload.publish_every_s) if self.overloaded else every
 
     def status(self, now: float) -> str:
         """The load shedding in words, for the dashboard ('' while not overloaded)."""
@@ -273,7 +274,7 @@ class CloudCore:
         for m, n in reaction.new_keyframes.items():
             self._since_full[m] = self._since_full.get(m, 0) + n
             self._since_opt[m] = self._since_opt.get(m, 0) + n
-            if self._since_opt[m] >= self.config.optimize_every_keyframes:
+            if self._since_opt[m] >= self.config.schedule.every_keyframes:
                 self._dirty.add(m)
                 trigger = True
         if trigger:
@@ -287,7 +288,7 @@ class CloudCore:
 
     # ------------------------------------------------------------------ timer
     def _quiet_pending(self) -> bool:
-        full = self.config.domain.full_ba.enabled and self.config.full_ba_quiet_s > 0
+        full = self.config.domain.full_ba.enabled and self.config.full_ba.quiet_s > 0
         if not full or self.overloaded or self._dirty:
             return False
         return any(n > 0 for n in self._since_full.values())
@@ -299,9 +300,9 @@ class CloudCore:
             return None
         if self._triggered:
             assert self._trigger_t is not None
-            return max(self._trigger_t + self.config.debounce_s, self._rest_until)
+            return max(self._trigger_t + self.config.schedule.debounce_s, self._rest_until)
         if self._quiet_pending():
-            return max(self._last_keyframe_t + self.config.full_ba_quiet_s, self._rest_until)
+            return max(self._last_keyframe_t + self.config.full_ba.quiet_s, self._rest_until)
         return None
 
     def on_timer(self, now: float) -> list[Action]:
@@ -337,17 +338,17 @@ class CloudCore:
 
     def shutdown(self, now: float) -> list[Action]:
         """The shutdown sequence (module docstring); the full BAs share what is left of
-        ``full_ba_at_shutdown_s`` counted from ``now``."""
+        ``FullBAScheduleConfig.at_shutdown_s`` counted from ``now``."""
         self._check_idle()
         cfg = self.config
         steps: list[_Step] = []
-        budget = cfg.full_ba_at_shutdown_s
+        budget = cfg.full_ba.at_shutdown_s
         if cfg.domain.full_ba.enabled and budget > 0:
             self._triggered, self._trigger_t = False, None
             maps, self._dirty = sorted(self._dirty), set()
             steps += [_PoseGraph(m) for m in maps]
             steps.append(_FullBAChanged("shutdown", now + budget, send=False))
-        if cfg.mbp_at_shutdown and cfg.domain.mbp.enabled:
+        if cfg.mbp.at_shutdown and cfg.domain.mbp.enabled:
             steps.append(_PruneAll())
         return self._start(steps, now)
 
@@ -407,7 +408,7 @@ class CloudCore:
             self.full_bas += 1
             if step.send:
                 actions.insert(0, SendCorrections(tuple(corrections)))
-            if self.config.mbp_after_full_ba and step.send:  # not at shutdown
+            if self.config.mbp.after_full_ba and step.send:  # not at shutdown
                 self._prune_if_due(m)
         return actions + self._advance(now)
 
@@ -461,7 +462,7 @@ class CloudCore:
 
     def _end(self, now: float) -> None:
         self._busy = False
-        rest = self.config.optimize_rest_factor * max(0.0, now - self._round_t0)
+        rest = self.config.schedule.rest_factor * max(0.0, now - self._round_t0)
         self._rest_until = now + rest if rest > 0 else -math.inf
         if self._triggered and self._trigger_t is None:
             self._trigger_t = now  # triggered during the round: debounce from its end

@@ -1,4 +1,4 @@
-"""Keyframe features decoded in helper processes (``CloudServiceConfig.decode_workers``).
+"""Keyframe features decoded in helper processes (``ProcessConfig.decode_workers``).
 
 The cloud's worker applies the edges' messages in turn on one thread. A keyframe's features
 are standalone (``common.codec.frames.KIND_STANDALONE_KEYFRAME``), so any process can decode

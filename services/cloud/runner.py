@@ -1,8 +1,9 @@
 """The cloud service as a process: its arguments, its run config and its run loop.
 
 ``add_arguments`` defines the options once, for ``recslam cloud`` and ``python -m
-services.cloud`` alike; ``config_from_args`` turns them into a :class:`CloudRunConfig`;
-``serve`` runs the service until SIGINT / SIGTERM:
+services.cloud`` alike; ``config_from_args`` turns them into a :class:`CloudRunConfig`, and
+``service_config`` that into the service's nested options; ``serve`` runs the service until
+SIGINT / SIGTERM:
 
 - loads its keys (``--key-file``, else the operator secret of ``--secret-file`` or
   ``$RECSLAM_SECRET``) and the TLS files if any,
@@ -48,6 +49,7 @@ if TYPE_CHECKING:
     from common.calibration import CameraCalibration
     from common.vocabulary import Vocabulary
     from services.cloud.server import CloudServer
+    from services.cloud.service_config import CloudServiceConfig
 
 logger = logging.getLogger(__name__)
 
@@ -76,10 +78,10 @@ class CloudRunConfig:
         full_ba: full bundle adjustment after the pose graph on/off.
         incremental_ba: ... solved on the map's iSAM2 graph (``FullBAConfig.incremental``).
         optimizer_nice: niceness added to the optimizer process
-            (``CloudServiceConfig.optimizer_nice``).
-        decode_workers: keyframe decode processes (``CloudServiceConfig.decode_workers``).
+            (``ProcessConfig.optimizer_nice``).
+        decode_workers: keyframe decode processes (``ProcessConfig.decode_workers``).
         overload_busy: the worker's busy share from which the cloud sheds its optional work
-            (``CloudServiceConfig.overload_busy``; 0: never).
+            (``OverloadConfig.busy``; 0: never).
         early_loop_candidates: candidates verified before they are consistent over
             consecutive keyframes (``PlaceRecognitionConfig.early_candidates``).
         agent_id: this service's agent id.
@@ -431,42 +433,53 @@ def serve(config: CloudRunConfig, announce: Announce = logger.info) -> int:
     return run(_run(config, secret, camera, vocab, announce))
 
 
+def service_config(config: CloudRunConfig) -> CloudServiceConfig:
+    """The service's options for the run ``config``: the defaults but for what the command
+    line sets (``--no-mbp``, ``--mbp-every``, ``--early-loop-candidates``, ``--no-full-ba``,
+    ``--no-incremental-ba``, ``--overload-busy``, ``--dashboard-port 0``, ``--mission``,
+    ``--output-every``, ``--optimizer-nice``, ``--decode-workers``, ``--wire``)."""
+    from services.cloud.config import CloudConfig, FullBAConfig, MbpConfig, PlaceRecognitionConfig
+    from services.cloud.service_config import (
+        CloudServiceConfig,
+        MapViewConfig,
+        MbpScheduleConfig,
+        OverloadConfig,
+        ProcessConfig,
+        StoreConfig,
+    )
+
+    domain = CloudConfig(
+        mbp=MbpConfig(enabled=config.mbp),
+        full_ba=FullBAConfig(enabled=config.full_ba, incremental=config.incremental_ba),
+        place_recognition=PlaceRecognitionConfig(early_candidates=config.early_loop_candidates),
+    )
+    return CloudServiceConfig(
+        domain=domain,
+        wire=config.wire,
+        mbp=MbpScheduleConfig(every_keyframes=config.mbp_every),
+        overload=OverloadConfig(
+            busy=config.overload_busy,
+            clear=min(OverloadConfig.clear, config.overload_busy * 2 / 3),
+        ),
+        # no dashboard: no map view to refresh (its atlas snapshot costs the worker)
+        map_view=MapViewConfig(
+            publish_every_s=MapViewConfig.publish_every_s if config.dashboard_port else 0.0
+        ),
+        store=StoreConfig(mission=config.mission, output_every_s=config.output_every_s),
+        processes=ProcessConfig(
+            optimizer_nice=config.optimizer_nice, decode_workers=config.decode_workers
+        ),
+    )
+
+
 def _server(
     config: CloudRunConfig, secret: Keyring, camera: CameraCalibration, vocab: Vocabulary
 ) -> CloudServer:
     from common.protocol import SessionConfig
     from common.transport import TransportConfig
-    from services.cloud.config import (
-        CloudConfig,
-        CloudServiceConfig,
-        FullBAConfig,
-        MbpConfig,
-        PlaceRecognitionConfig,
-    )
     from services.cloud.server import CloudServer
 
-    domain = CloudConfig(
-        mbp=dataclasses.replace(MbpConfig(), enabled=config.mbp),
-        full_ba=dataclasses.replace(
-            FullBAConfig(), enabled=config.full_ba, incremental=config.incremental_ba
-        ),
-        place_recognition=dataclasses.replace(
-            PlaceRecognitionConfig(), early_candidates=config.early_loop_candidates
-        ),
-    )
-    service = CloudServiceConfig(
-        domain=domain,
-        output_every_s=config.output_every_s,
-        wire=config.wire,
-        mbp_every_keyframes=config.mbp_every,
-        optimizer_nice=config.optimizer_nice,
-        decode_workers=config.decode_workers,
-        overload_busy=config.overload_busy,
-        overload_clear=min(CloudServiceConfig.overload_clear, config.overload_busy * 2 / 3),
-        # no dashboard: no map view to refresh (its atlas snapshot costs the worker)
-        publish_every_s=CloudServiceConfig.publish_every_s if config.dashboard_port else 0.0,
-        mission=config.mission,
-    )
+    service = service_config(config)
     return CloudServer(
         SessionConfig("cloud", config.agent_id, keys=secret),
         config.state_dir,

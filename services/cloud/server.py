@@ -15,18 +15,19 @@ described there, once) and owns the lifecycle:
   (``RejectedMessageError``: a ``Reject``), so one bad message can neither wedge an edge's
   stream nor come back. A storage failure (disk full, read-only state) is not the
   message's fault: the transport retries it with backoff, holding the edge back;
-- the core's one timer (:meth:`CloudCore.next_deadline`) is a task on the event loop, with
-  loop time as ``now``; the solves it asks for run in a separate *optimizer* process (gtsam
-  holds the GIL for most of a solve, so a thread would starve the event loop: measured in
-  ``benchmarks/results/cloud_service.md``; ``optimizer_process=False`` uses a thread), and
-  the corrected poses go to the edges as ``PoseCorrection`` in each robot's own map frame;
+- the core's one timer (:meth:`CloudCore.next_deadline`) is a task on the event loop, with loop time
+  as ``now``; the solves it asks for run in a separate *optimizer* process (gtsam holds the GIL for
+  most of a solve, so a thread would starve the event loop: measured in
+  ``benchmarks/results/cloud_service.md``; ``ProcessConfig.optimizer_process`` False uses a thread),
+  and the corrected poses go to the edges as ``PoseCorrection`` in each robot's own map frame;
 - at :meth:`CloudServer.stop`: a solve in flight is waited for and applied (the optimizer
   process would finish it anyway, and the shutdown's own solve would queue behind it), the
   rest of its round is handed back to the core (:meth:`CloudCore.cancel`), then the core's
   shutdown sequence runs and the trajectories are written;
 - the dashboard's :class:`~services.cloud.store.map_source.CloudMapSource` is refreshed every
-  ``publish_every_s``; trajectories (and the ATE report with ground truth) are written every
-  ``output_every_s`` and at :meth:`CloudServer.stop` (:mod:`services.cloud.server_outputs`);
+  ``MapViewConfig.publish_every_s``; trajectories (and the ATE report with ground truth) are written
+  every ``StoreConfig.output_every_s`` and at :meth:`CloudServer.stop`
+  (:mod:`services.cloud.server_outputs`);
 - with ``record``, every applied uplink message is appended to a recording
   (:mod:`services.cloud.store.recording`) on the worker, right after it was applied.
 """
@@ -59,7 +60,6 @@ from common.vocabulary import Vocabulary
 from services.cloud.app import CloudApp, PositionStore
 from services.cloud.app_optimization import Correction
 from services.cloud.child_process import child_process_init
-from services.cloud.config import CloudServiceConfig
 from services.cloud.core import CloudCore
 from services.cloud.core_actions import (
     Action,
@@ -74,6 +74,7 @@ from services.cloud.fusion.map_fusion import MapFusion
 from services.cloud.load import BusyMeter
 from services.cloud.optimization.global_optimization import warm_up
 from services.cloud.server_outputs import ServerOutputs
+from services.cloud.service_config import CloudServiceConfig
 from services.cloud.stats import CloudStats
 from services.cloud.store.map_source import CloudMapSource
 from services.cloud.store.output import OutputWriter
@@ -95,8 +96,8 @@ def open_app(
     """The cloud's :class:`CloudApp` on ``state_dir`` (resumed if it holds a previous run);
     ``camera``: the fallback for robots whose calibration never arrives."""
     store = CloudStore(Path(state_dir))
-    if config.mission is not None:
-        store.enter_mission(config.mission)
+    if config.store.mission is not None:
+        store.enter_mission(config.store.mission)
     atlas = store.load()
     wg = None
     if config.word_group_level is not None:
@@ -149,7 +150,7 @@ class CloudServer(ServerOutputs):
         self.camera = camera
         self.vocabulary = vocabulary
         self.map_source = CloudMapSource(
-            self.config.display_spacing_m, self.config.bandwidth_window_s
+            self.config.map_view.display_spacing_m, self.config.map_view.bandwidth_window_s
         )
         self.output = (
             OutputWriter(Path(results_dir), groundtruth, prior_frame)
@@ -160,7 +161,7 @@ class CloudServer(ServerOutputs):
         self._worker = ThreadPoolExecutor(1, thread_name_prefix="cloud-worker")
         self._io = ThreadPoolExecutor(1, thread_name_prefix="cloud-io")
         self._optimizer = self._new_optimizer()
-        self._decode_pool = DecodePool(self.config.decode_workers, vocabulary)
+        self._decode_pool = DecodePool(self.config.processes.decode_workers, vocabulary)
         self._app: CloudApp | None = None
         self._core: CloudCore | None = None
         self._server = Server(
@@ -176,7 +177,7 @@ class CloudServer(ServerOutputs):
         self._corrections = 0
         self._queued = 0  # messages handed to the worker and not applied yet
         self._queued_max = 0
-        self._busy = BusyMeter(self.config.overload_window_s)  # the worker's (its thread only)
+        self._busy = BusyMeter(self.config.overload.window_s)  # the worker's (its thread only)
         self.timer = CodecTimer()  # wall: wait.worker, wall.* (worker thread), solve.* (loop)
         self.cpu_timer = CodecTimer(clock=time.thread_time)  # handle.* (worker thread)
         self._final_stats: CloudStats | None = None
@@ -189,13 +190,13 @@ class CloudServer(ServerOutputs):
 
     # ------------------------------------------------------------------ lifecycle
     def _new_optimizer(self) -> Executor:
-        if self.config.optimizer_process:
+        if self.config.processes.optimizer_process:
             # spawn: no fork of a threaded process; the child imports only the optimiser.
             return ProcessPoolExecutor(
                 1,
                 mp_context=multiprocessing.get_context("spawn"),
                 initializer=child_process_init,
-                initargs=(os.getpid(), self.config.optimizer_nice),
+                initargs=(os.getpid(), self.config.processes.optimizer_nice),
             )
         return ThreadPoolExecutor(1, thread_name_prefix="cloud-optimizer")
 
@@ -237,9 +238,9 @@ class CloudServer(ServerOutputs):
         self.address = await self._server.start(host, port)
         # the core's timer first: stop waits for it, and cancels the others
         self._tasks = [asyncio.create_task(self._optimize_loop(), name="cloud-optimize")]
-        if self.config.publish_every_s > 0:  # 0: no dashboard reads the map view
+        if self.config.map_view.publish_every_s > 0:  # 0: no dashboard reads the map view
             self._tasks.append(asyncio.create_task(self._publish_loop(), name="cloud-publish"))
-        if self.output is not None and self.config.output_every_s > 0:
+        if self.output is not None and self.config.store.output_every_s > 0:
             self._tasks.append(asyncio.create_task(self._output_loop(), name="cloud-output"))
         return self.address
 
@@ -372,13 +373,13 @@ class CloudServer(ServerOutputs):
     async def _optimize_loop(self) -> None:
         """The core's single timer: sleep until its deadline (or until a message moved it),
         then run the round that is due. While the cloud is overloaded it also wakes every
-        tenth of ``overload_window_s`` to measure the load again: the load falls while no
+        tenth of ``OverloadConfig.window_s`` to measure the load again: the load falls while no
         message comes, and an overload measured only on messages would outlast the burst
         that caused it (no quiet full BA after the last message)."""
         core = self._core
         assert core is not None
         loop = asyncio.get_running_loop()
-        recheck_s = self.config.overload_window_s / 10
+        recheck_s = self.config.overload.window_s / 10
 
         def schedule() -> tuple[float | None, bool]:
             return core.next_deadline(), core.overloaded

@@ -2,10 +2,11 @@
 
 :class:`ServerOutputs` is a base of :class:`~services.cloud.server.CloudServer`, which sets the
 attributes declared here and starts the loops. :meth:`ServerOutputs.publish` refreshes the
-dashboard's :class:`~services.cloud.store.map_source.CloudMapSource` every ``publish_every_s``
-(longer under load, ``CloudCore.publish_every_s``), with the known robots' ground truth reloaded
-every ``gt_every_s``; :meth:`ServerOutputs.write_output` writes the trajectories (and the ATE report
-when ground truth is known) every ``output_every_s``. The app is read on the server's worker thread,
+dashboard's :class:`~services.cloud.store.map_source.CloudMapSource` every
+``MapViewConfig.publish_every_s`` (longer under load, ``CloudCore.publish_every_s``), with the
+known robots' ground truth reloaded every ``MapViewConfig.gt_every_s``;
+:meth:`ServerOutputs.write_output` writes the trajectories (and the ATE report when ground truth
+is known) every ``StoreConfig.output_every_s``. The app is read on the server's worker thread,
 files are read and written on its I/O thread.
 """
 
@@ -25,8 +26,8 @@ from common.evaluation.results import load_groundtruth
 from common.evaluation.trajectory import Trajectory
 from common.transport import Server
 from services.cloud.app import CloudApp
-from services.cloud.config import CloudServiceConfig
 from services.cloud.core import CloudCore
+from services.cloud.service_config import CloudServiceConfig
 from services.cloud.store.map_source import CloudMapSource, CloudView
 from services.cloud.store.output import OutputWriter
 
@@ -72,7 +73,7 @@ class ServerOutputs:
         """Ground truth of the known robots, every ``gt_every_s`` (None in between)."""
         source = self.output.groundtruth if self.output is not None else None
         loop = asyncio.get_running_loop()
-        if source is None or loop.time() - self._gt_published < self.config.gt_every_s:
+        if source is None or loop.time() - self._gt_published < self.config.map_view.gt_every_s:
             return None
         self._gt_published = loop.time()
         app = self._app
@@ -107,7 +108,9 @@ class ServerOutputs:
                 log.exception("map view refresh failed")
             core = self._core  # (rests as long as the refresh took, and longer under load)
             last = loop.time() - t0
-            every = self.config.publish_every_s if core is None else core.publish_every_s(last)
+            every = (
+                self.config.map_view.publish_every_s if core is None else core.publish_every_s(last)
+            )
             await asyncio.sleep(every)
 
     async def write_output(self, evaluate: bool = True) -> list[Path]:
@@ -124,7 +127,7 @@ class ServerOutputs:
 
     async def _output_loop(self) -> None:
         while True:
-            await asyncio.sleep(self.config.output_every_s)
+            await asyncio.sleep(self.config.store.output_every_s)
             try:
                 await self.write_output(evaluate=True)
             except asyncio.CancelledError:

@@ -13,6 +13,13 @@ from lab.replay_schedule import ReplayDivergedError
 from lab.table3 import replay, service_config
 from services.cloud.core_actions import SolveRequest, SolveResult, solve
 from services.cloud.server import open_app
+from services.cloud.service_config import (
+    MbpScheduleConfig,
+    OptimizationScheduleConfig,
+    OverloadConfig,
+    ProcessConfig,
+    StoreConfig,
+)
 from services.cloud.simulation import (
     circle_poses,
     default_camera,
@@ -34,10 +41,8 @@ def test_replay_with_and_without_mbp(recording, vocab, tmp_path):
     for mbp in (False, True):
         cfg = dataclasses.replace(
             service_config(mbp),
-            optimize_every_keyframes=5,
-            mbp_every_keyframes=10,
-            mbp_keep_recent=2,
-            mbp_settle_keyframes=2,
+            schedule=OptimizationScheduleConfig(every_keyframes=5),
+            mbp=MbpScheduleConfig(every_keyframes=10, keep_recent=2, settle_keyframes=2),
         )
         results[mbp] = replay(
             read_recording(recording), default_camera(), vocab, cfg, tmp_path / str(mbp), "x"
@@ -91,7 +96,7 @@ def test_replay_of_a_recording_with_each_robots_calibration(tmp_path, vocab):
     of its keyframes; the replay uses them: r1, seen through a 640x480 camera of its own
     (another size, intrinsics and mounting than the fallback camera), decodes and merges.
     It holds the service's schedule too: replayed through it, the core ends where the service
-    ended (same solves, same poses), its load shedding included (a low ``overload_busy``:
+    ended (same solves, same poses), its load shedding included (a low ``OverloadConfig.busy``:
     the worker applying messages back to back is overloaded)."""
     import asyncio
 
@@ -119,11 +124,10 @@ def test_replay_of_a_recording_with_each_robots_calibration(tmp_path, vocab):
     rec = tmp_path / "uplink.rec"
     cfg = dataclasses.replace(
         service_config(False),
-        output_every_s=0,
-        optimizer_process=False,
-        debounce_s=0.05,
-        overload_busy=0.2,
-        overload_clear=0.01,
+        store=StoreConfig(output_every_s=0),
+        processes=ProcessConfig(optimizer_process=False),
+        schedule=OptimizationScheduleConfig(debounce_s=0.05),
+        overload=OverloadConfig(busy=0.2, clear=0.01),
     )
     stats = []
 
@@ -181,7 +185,9 @@ def test_replay_of_a_recording_with_each_robots_calibration(tmp_path, vocab):
         )
 
     # A configuration that schedules otherwise does not fit the recorded steps.
-    other = dataclasses.replace(cfg, optimize_every_keyframes=1000, debounce_s=1e6)
+    other = dataclasses.replace(
+        cfg, schedule=OptimizationScheduleConfig(every_keyframes=1000, debounce_s=1e6)
+    )
     with pytest.raises(ReplayDivergedError, match="schedules otherwise"):
         replay(
             read_schedule(rec), default_camera(), vocab, other, tmp_path / "r3", schedule="recorded"
@@ -192,7 +198,10 @@ def test_solves_that_take_time_let_records_arrive_before_their_result(recording,
     """With solve latency the replay handles the records received while a solve is out
     before its result applies, as the service does: one round spans many records, so fewer
     pose graphs run than when solves take no time; nothing is lost either way."""
-    cfg = dataclasses.replace(service_config(False), optimize_every_keyframes=2, debounce_s=0.1)
+    cfg = dataclasses.replace(
+        service_config(False),
+        schedule=OptimizationScheduleConfig(every_keyframes=2, debounce_s=0.1),
+    )
 
     def slow_solve(request: SolveRequest) -> SolveResult:
         t0 = time.perf_counter()

@@ -13,7 +13,7 @@ Within one map the match adds the loop constraint (the pose graph corrects the d
 and, with ``MergeConfig.fuse_loop_points``, fuses the verified pairs: the query keyframe's
 points become the candidate side's, as ORB-SLAM fuses the map points of a closed loop, so the
 full BA sees the place seen twice as one set of points instead of two sets joined only by the
-loop's relative pose. On a recording of seed 1 replayed (session 22) the final full BA then
+loop's relative pose. On a recording of seed 1 replayed, the final full BA then
 gave 0.28 cm joint ATE instead of 0.54 cm (without it the full BA ended worse than the pose
 graph before it, 0.46 cm, and without the loop edges at 2.5 cm: the images of one map held
 no link across its loops).

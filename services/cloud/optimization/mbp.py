@@ -39,8 +39,8 @@ keyframe and a lower fraction, applied to the whole map under a connectivity con
    fewer than ``min_observations`` kept observers are also folded into the next absorbers
    (the other kept keyframes sharing ``min_shared`` points with r, strongest first).
 5. Map points left with fewer than ``min_observations`` observations are removed (a pass
-   while the robots run removes only the points left without any, ``CloudServiceConfig.
-   mbp_running_min_observations``: a later keyframe or loop can still observe them).
+   while the robots run removes only the points left without any, ``MbpScheduleConfig.
+   running``: a later keyframe or loop can still observe them).
 6. A removed keyframe is *retired* (:meth:`Atlas.retire_keyframe`): its pose stays, relative
    to the kept keyframe its loops moved to, so trajectories and the ATE still cover every
    keyframe (ORB-SLAM reports culled keyframes through their parents the same way), and

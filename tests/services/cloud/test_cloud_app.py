@@ -17,10 +17,10 @@ from common.protocol.arrays import pack_array
 from common.vocabulary import Vocabulary
 from services.cloud.app import CloudApp
 from services.cloud.atlas.atlas import make_key
-from services.cloud.config import CloudServiceConfig
 from services.cloud.fusion.map_fusion import MapFusion
 from services.cloud.fusion.uplink import UplinkError
 from services.cloud.optimization.mbp import MbpReport
+from services.cloud.service_config import CloudServiceConfig, MbpScheduleConfig
 from services.cloud.simulation import (
     circle_poses,
     default_camera,
@@ -152,11 +152,16 @@ def _pruned(
     session: tuple[list, list],
     final: bool,
     read: Callable[[CloudApp, MbpReport], T],
-    **settings: Any,
+    settle: int,
+    **running: Any,
 ) -> T:
-    """``read`` of an app fed ``session`` (keyframes, map points) under
-    ``CloudServiceConfig(**settings)`` after one MBP pass (at shutdown when ``final``)."""
-    app = _app(path, vocab, dataclasses.replace(CloudServiceConfig(), **settings))
+    """``read`` of an app fed ``session`` (keyframes, map points) after one MBP pass (at
+    shutdown when ``final``), the pass while running keeping each agent's ``settle`` newest
+    keyframes and taking the options ``running`` changes in ``MbpScheduleConfig.running``."""
+    schedule = MbpScheduleConfig()
+    running_mbp = dataclasses.replace(schedule.running, **running)
+    mbp = dataclasses.replace(schedule, settle_keyframes=settle, running=running_mbp)
+    app = _app(path, vocab, CloudServiceConfig(mbp=mbp))
     try:
         kfs, mps = session
         for k in kfs:
@@ -176,7 +181,8 @@ def _pruned_grid(
     values: tuple[Any, ...],
 ) -> dict[tuple[Any, bool], T]:
     """:func:`_pruned` of the half-circle session (5 newest keyframes settling) for each of
-    ``values`` of ``setting``, while running and at shutdown: ``{(value, final): read}``."""
+    ``values`` of the running pass's ``setting``, while running and at shutdown:
+    ``{(value, final): read}``."""
     session = _half_circle_session()
     return {
         (v, final): _pruned(
@@ -185,7 +191,7 @@ def _pruned_grid(
             session,
             final,
             read,
-            mbp_settle_keyframes=5,
+            5,
             **{setting: v},
         )
         for v in values
@@ -198,32 +204,31 @@ def _removed(app: CloudApp, report: MbpReport) -> set[int]:
 
 
 def test_mbp_while_running_keeps_the_unsettled_newest_keyframes(tmp_path, vocab):
-    """A pass while running never removes an agent's ``mbp_settle_keyframes`` newest
+    """A pass while running never removes an agent's ``MbpScheduleConfig.settle_keyframes`` newest
     keyframes (still in the edge's reach); the final pass at shutdown may."""
     session = _half_circle_session()
     newest = {make_key(0, k.keyframe_id) for k in session[0][-12:]}
     removed = {
-        final: _pruned(
-            tmp_path / str(final), vocab, session, final, _removed, mbp_settle_keyframes=12
-        )
+        final: _pruned(tmp_path / str(final), vocab, session, final, _removed, settle=12)
         for final in (False, True)
     }
     assert removed[False] and not removed[False] & newest
-    assert removed[True] & newest  # at shutdown only mbp_keep_recent (5) are protected
+    assert removed[True] & newest  # at shutdown only keep_recent (5) are protected
 
 
 def test_mbp_while_running_removes_only_at_its_own_cover_ratio(tmp_path, vocab):
-    """``mbp_running_cover_ratio`` rules the passes while running, not the pass at shutdown:
-    one above 1 (no keyframe can be covered that well) removes nothing while running."""
-    removed = _pruned_grid(tmp_path, vocab, _removed, "mbp_running_cover_ratio", (None, 1.01))
-    assert removed[None, False] and not removed[1.01, False]
-    assert removed[1.01, True] == removed[None, True]
+    """The running pass's ``cover_ratio`` rules the passes while running, not the pass at
+    shutdown: one above 1 (no keyframe can be covered that well) removes nothing while
+    running."""
+    removed = _pruned_grid(tmp_path, vocab, _removed, "cover_ratio", (0.5, 1.01))
+    assert removed[0.5, False] and not removed[1.01, False]
+    assert removed[1.01, True] == removed[0.5, True]
 
 
 def test_mbp_while_running_keeps_the_points_left_with_one_observer(tmp_path, vocab):
-    """A pass while running removes only the points left without an observer
-    (``mbp_running_min_observations`` 1: a later keyframe or loop may see them again); one at 2
-    and the pass at shutdown remove those left with one too."""
+    """A pass while running removes only the points left without an observer (the running pass's
+    ``min_observations`` 1: a later keyframe or loop may see them again); one at 2 and the pass at
+    shutdown remove those left with one too."""
 
     def observers(app: CloudApp, report: MbpReport) -> np.ndarray:
         assert report.removed_keyframes
@@ -231,7 +236,7 @@ def test_mbp_while_running_keeps_the_points_left_with_one_observer(tmp_path, voc
             [len(app.atlas.map_point_observations(m)) for m in app.atlas.map_point_keys()]
         )
 
-    counts = _pruned_grid(tmp_path, vocab, observers, "mbp_running_min_observations", (1, 2))
+    counts = _pruned_grid(tmp_path, vocab, observers, "min_observations", (1, 2))
     assert counts[1, False][0] == 0 and counts[1, False][1] > 0
     for case in ((2, False), (1, True), (2, True)):
         assert counts[case][:2].sum() == 0
@@ -239,7 +244,7 @@ def test_mbp_while_running_keeps_the_points_left_with_one_observer(tmp_path, voc
 
 def test_mbp_while_running_keeps_its_agents_keyframes_close_in_time(tmp_path, vocab):
     """A pass while running keeps each agent's kept keyframes within
-    ``mbp_running_max_interval_s`` (the full BA's IMU intervals); the pass at shutdown and a
+    the running pass's ``max_interval_s`` (the full BA's IMU intervals); the pass at shutdown and a
     limit of None do not."""
 
     def widest_gap(app: CloudApp, report: MbpReport) -> float:
@@ -248,7 +253,7 @@ def test_mbp_while_running_keeps_its_agents_keyframes_close_in_time(tmp_path, vo
         return float(np.max(np.diff(stamps)))
 
     # The session's keyframes are 0.2 s apart.
-    gap = _pruned_grid(tmp_path, vocab, widest_gap, "mbp_running_max_interval_s", (0.5, None))
+    gap = _pruned_grid(tmp_path, vocab, widest_gap, "max_interval_s", (0.5, None))
     assert gap[0.5, False] <= 0.5 + 1e-9
     assert gap[None, False] > 0.5 and gap[0.5, True] > 0.5
 
@@ -365,8 +370,3 @@ def test_one_robot_on_two_edges_is_two_agents_each_corrected_through_its_own_edg
         assert restarted.fusion.superseded_agents == {0}
     finally:
         restarted.close()
-
-
-def test_running_min_observations_below_one_is_refused() -> None:
-    with pytest.raises(ValueError, match="mbp_running_min_observations"):
-        CloudServiceConfig(mbp_running_min_observations=0)

@@ -3,7 +3,6 @@ solve runs in this thread when the test hands it back."""
 
 from __future__ import annotations
 
-import dataclasses
 import pickle
 
 import numpy as np
@@ -11,7 +10,7 @@ import pytest
 
 from common.vocabulary import Vocabulary
 from services.cloud.app import CloudApp
-from services.cloud.config import CloudConfig, CloudServiceConfig, FullBAConfig, MbpConfig
+from services.cloud.config import CloudConfig, FullBAConfig, MbpConfig
 from services.cloud.core import CloudCore, run_inline
 from services.cloud.core_actions import (
     CloudCoreError,
@@ -22,6 +21,13 @@ from services.cloud.core_actions import (
     solve,
 )
 from services.cloud.server import open_app
+from services.cloud.service_config import (
+    CloudServiceConfig,
+    FullBAScheduleConfig,
+    MbpScheduleConfig,
+    OptimizationScheduleConfig,
+    OverloadConfig,
+)
 from services.cloud.simulation import (
     circle_poses,
     default_camera,
@@ -59,14 +65,29 @@ def steps(vocab) -> dict[str, list[list]]:
     return {name: encode_session(kfs, mps, name, vocab, 7) for name, (kfs, mps) in sessions.items()}
 
 
-def _config(full_ba: bool = False, mbp: bool = False, **kw) -> CloudServiceConfig:
+def _config(
+    full_ba: bool = False,
+    mbp: bool = False,
+    every: int = 1000,
+    rest_factor: float = 0.0,
+    full_ba_schedule: FullBAScheduleConfig | None = None,
+    mbp_schedule: MbpScheduleConfig | None = None,
+    overload: OverloadConfig | None = None,
+) -> CloudServiceConfig:
+    """Full BA and MBP on or off, a pose graph every ``every`` new keyframes (1000: on loops
+    and merges only) with no rest after a round, the other groups the service's unless given."""
     domain = CloudConfig(
         full_ba=FullBAConfig(enabled=full_ba, max_iterations=3), mbp=MbpConfig(enabled=mbp)
     )
-    base = CloudServiceConfig(
-        domain=domain, debounce_s=0.5, optimize_every_keyframes=1000, optimize_rest_factor=0.0
+    return CloudServiceConfig(
+        domain=domain,
+        schedule=OptimizationScheduleConfig(
+            every_keyframes=every, debounce_s=0.5, rest_factor=rest_factor
+        ),
+        full_ba=full_ba_schedule or FullBAScheduleConfig(),
+        mbp=mbp_schedule or MbpScheduleConfig(),
+        overload=overload or OverloadConfig(),
     )
-    return dataclasses.replace(base, **kw)
 
 
 class Feed:
@@ -108,7 +129,7 @@ def _requests(actions) -> list[SolveRequest]:
 
 
 def test_a_keyframe_burst_costs_one_pose_graph_debounce_s_after_the_trigger(feed):
-    f = feed(_config(optimize_every_keyframes=3))
+    f = feed(_config(every=3))
     core = f.core
     f.keyframe("r0", 0.0)
     f.keyframe("r0", 0.1)
@@ -137,7 +158,7 @@ def test_a_keyframe_burst_costs_one_pose_graph_debounce_s_after_the_trigger(feed
 
 
 def test_a_trigger_during_a_solve_is_debounced_from_the_end_of_the_round(feed):
-    f = feed(_config(optimize_every_keyframes=2))
+    f = feed(_config(every=2))
     core = f.core
     f.keyframe("r0", 0.0)
     f.keyframe("r0", 0.1)
@@ -154,7 +175,7 @@ def test_a_trigger_during_a_solve_is_debounced_from_the_end_of_the_round(feed):
 def test_after_a_long_round_the_next_rests_rest_factor_times_as_long(feed):
     """A round that took 4 s (a big map on a busy core) is followed by 2 s without a
     scheduled one (factor 0.5), whatever the debounce; a short round by the debounce."""
-    f = feed(_config(optimize_every_keyframes=2, optimize_rest_factor=0.5))
+    f = feed(_config(every=2, rest_factor=0.5))
     core = f.core
     f.keyframe("r0", 0.0)
     f.keyframe("r0", 0.1)
@@ -209,8 +230,10 @@ def test_a_merge_during_a_solve_reschedules_the_map(feed):
     assert sent == {"r0", "r1"} and core.dirty == frozenset()
 
 
-def test_a_full_ba_follows_the_pose_graph_after_full_ba_every_keyframes(feed):
-    f = feed(_config(full_ba=True, optimize_every_keyframes=3, full_ba_every_keyframes=6))
+def test_a_full_ba_follows_the_pose_graph_after_its_every_keyframes(feed):
+    f = feed(
+        _config(full_ba=True, every=3, full_ba_schedule=FullBAScheduleConfig(every_keyframes=6))
+    )
     core = f.core
     for i in range(3):
         f.keyframe("r0", 0.1 * i)
@@ -229,8 +252,8 @@ def test_a_full_ba_follows_the_pose_graph_after_full_ba_every_keyframes(feed):
     assert core.full_bas == 1 and core.changed_since_full_ba(0) == 0 and not core.busy
 
 
-def test_quiet_maps_get_a_full_ba_full_ba_quiet_s_after_the_last_keyframe(feed):
-    f = feed(_config(full_ba=True, full_ba_quiet_s=2.0))
+def test_quiet_maps_get_a_full_ba_quiet_s_after_the_last_keyframe(feed):
+    f = feed(_config(full_ba=True, full_ba_schedule=FullBAScheduleConfig(quiet_s=2.0)))
     core = f.core
     f.keyframe("r0", 0.0)
     f.keyframe("r0", 0.4)
@@ -243,7 +266,7 @@ def test_quiet_maps_get_a_full_ba_full_ba_quiet_s_after_the_last_keyframe(feed):
 
 
 def test_quiet_waits_while_a_pose_graph_is_scheduled(feed):
-    f = feed(_config(full_ba=True, full_ba_quiet_s=1.0, optimize_every_keyframes=2))
+    f = feed(_config(full_ba=True, every=2, full_ba_schedule=FullBAScheduleConfig(quiet_s=1.0)))
     core = f.core
     f.keyframe("r0", 0.0)
     f.keyframe("r0", 0.1)  # triggers a pose graph at 0.6; the quiet one would be at 1.1
@@ -256,15 +279,14 @@ def test_quiet_waits_while_a_pose_graph_is_scheduled(feed):
 
 
 @pytest.mark.parametrize("after_full_ba", [True, False])
-def test_mbp_while_running_follows_a_full_ba_when_mbp_after_full_ba(feed, after_full_ba):
+def test_mbp_while_running_follows_a_full_ba_when_after_full_ba(feed, after_full_ba):
     f = feed(
         _config(
             full_ba=True,
             mbp=True,
-            optimize_every_keyframes=3,
-            full_ba_every_keyframes=1000,  # never due by itself here
-            mbp_every_keyframes=3,
-            mbp_after_full_ba=after_full_ba,
+            every=3,
+            full_ba_schedule=FullBAScheduleConfig(every_keyframes=1000),  # never due by itself
+            mbp_schedule=MbpScheduleConfig(every_keyframes=3, after_full_ba=after_full_ba),
         )
     )
     core = f.core
@@ -287,7 +309,12 @@ def test_mbp_while_running_follows_a_full_ba_when_mbp_after_full_ba(feed, after_
 @pytest.mark.parametrize("elapsed", [10.0, 31.0])
 def test_shutdown_pose_graphs_then_full_ba_within_the_budget_then_mbp(feed, elapsed):
     f = feed(
-        _config(full_ba=True, mbp=True, optimize_every_keyframes=3, full_ba_at_shutdown_s=30.0)
+        _config(
+            full_ba=True,
+            mbp=True,
+            every=3,
+            full_ba_schedule=FullBAScheduleConfig(at_shutdown_s=30.0),
+        )
     )
     core = f.core
     for i in range(6):
@@ -312,7 +339,7 @@ def test_shutdown_pose_graphs_then_full_ba_within_the_budget_then_mbp(feed, elap
 
 
 def test_cancel_schedules_the_unapplied_pose_graphs_again(feed):
-    f = feed(_config(optimize_every_keyframes=2))
+    f = feed(_config(every=2))
     core = f.core
     f.keyframe("r0", 0.0)
     f.keyframe("r0", 0.1)
@@ -335,9 +362,11 @@ def test_a_solve_request_runs_in_another_process_as_in_this_one(feed):
 
 
 def test_overloaded_the_due_full_ba_waits_and_runs_at_the_first_pose_graph_after(feed):
-    f = feed(_config(full_ba=True, optimize_every_keyframes=3, full_ba_every_keyframes=3))
+    f = feed(
+        _config(full_ba=True, every=3, full_ba_schedule=FullBAScheduleConfig(every_keyframes=3))
+    )
     core = f.core
-    assert not core.load(0.89, 0.0) and not core.overloaded  # under overload_busy 0.9
+    assert not core.load(0.89, 0.0) and not core.overloaded  # under OverloadConfig.busy 0.9
     assert core.status(0.0) == ""
     assert core.load(0.95, 0.0) and core.overloaded and core.overloads == 1
     assert f.app.fusion.recognizer.shed_early  # the early loop candidates shed too
@@ -351,7 +380,7 @@ def test_overloaded_the_due_full_ba_waits_and_runs_at_the_first_pose_graph_after
     assert core.full_bas == 0 and core.full_bas_deferred == 1
     assert core.status(1.5).startswith("overloaded for 2 s: no full BA while running (1 deferred")
     assert core.changed_since_full_ba(0) == 3  # still owed
-    assert not core.load(0.7, 2.0) and core.overloaded  # above overload_clear 0.6: stays
+    assert not core.load(0.7, 2.0) and core.overloaded  # above OverloadConfig.clear 0.6: stays
     assert core.load(0.5, 4.0) and not core.overloaded
     assert not f.app.fusion.recognizer.shed_early
     assert core.publish_every_s() == 0.5
@@ -365,7 +394,9 @@ def test_overloaded_the_due_full_ba_waits_and_runs_at_the_first_pose_graph_after
 
 
 def test_a_full_ba_deferred_by_the_overload_runs_once_it_falls_without_a_new_keyframe(feed):
-    f = feed(_config(full_ba=True, optimize_every_keyframes=3, full_ba_every_keyframes=3))
+    f = feed(
+        _config(full_ba=True, every=3, full_ba_schedule=FullBAScheduleConfig(every_keyframes=3))
+    )
     core = f.core
     core.load(0.95, 0.0)
     for i in range(3):
@@ -382,7 +413,7 @@ def test_a_full_ba_deferred_by_the_overload_runs_once_it_falls_without_a_new_key
 
 
 def test_overloaded_no_quiet_full_ba_but_shutdown_runs_it(feed):
-    f = feed(_config(full_ba=True, full_ba_quiet_s=1.0))
+    f = feed(_config(full_ba=True, full_ba_schedule=FullBAScheduleConfig(quiet_s=1.0)))
     core = f.core
     core.load(1.0, 0.0)
     f.keyframe("r0", 0.0)
@@ -393,17 +424,17 @@ def test_overloaded_no_quiet_full_ba_but_shutdown_runs_it(feed):
     assert core.full_bas == 1
 
 
-def test_overload_busy_zero_never_sheds(feed):
-    f = feed(_config(overload_busy=0.0, overload_clear=0.0))
+def test_overload_busy_zero_never_sheds_and_clear_must_be_below_busy(feed):
+    f = feed(_config(overload=OverloadConfig(busy=0.0, clear=0.0)))
     assert not f.core.load(1.0, 0.0) and not f.core.overloaded
-    with pytest.raises(ValueError, match="overload_clear"):
-        _config(overload_busy=0.5, overload_clear=0.6)
+    with pytest.raises(ValueError, match="clear"):
+        OverloadConfig(busy=0.5, clear=0.6)
 
 
 def test_a_full_ba_cut_short_by_the_stop_still_runs_at_shutdown(feed):
     # The service stops while a quiet full BA is out: the round is cancelled, its result never
     # comes back, and the shutdown must still run a full BA of that map (it had changes).
-    f = feed(_config(full_ba=True, full_ba_quiet_s=1.0))
+    f = feed(_config(full_ba=True, full_ba_schedule=FullBAScheduleConfig(quiet_s=1.0)))
     core = f.core
     f.keyframe("r0", 0.0)
     f.keyframe("r0", 0.4)
@@ -420,7 +451,7 @@ def test_a_full_ba_cut_short_by_the_stop_still_runs_at_shutdown(feed):
 
 
 def test_a_failed_full_ba_solve_is_owed_to_the_next_occasion(feed):
-    f = feed(_config(full_ba=True, full_ba_quiet_s=1.0))
+    f = feed(_config(full_ba=True, full_ba_schedule=FullBAScheduleConfig(quiet_s=1.0)))
     core = f.core
     f.keyframe("r0", 0.0)
     f.keyframe("r0", 0.4)

@@ -17,12 +17,7 @@ from common.protocol import SessionConfig
 from common.transport import Client, Delivery, TransportConfig, run
 from common.vocabulary import Vocabulary
 from services.cloud.atlas.atlas import Atlas, make_key
-from services.cloud.config import (
-    CloudConfig,
-    CloudServiceConfig,
-    FullBAConfig,
-    GlobalOptimizationConfig,
-)
+from services.cloud.config import CloudConfig, FullBAConfig, GlobalOptimizationConfig
 from services.cloud.fusion.map_fusion import MapFusion
 from services.cloud.optimization.full_ba import (
     FullBAResult,
@@ -32,6 +27,13 @@ from services.cloud.optimization.full_ba import (
     solve_full_ba,
 )
 from services.cloud.server import CloudServer
+from services.cloud.service_config import (
+    CloudServiceConfig,
+    FullBAScheduleConfig,
+    MapViewConfig,
+    ProcessConfig,
+    StoreConfig,
+)
 from services.cloud.simulation import (
     circle_poses,
     default_camera,
@@ -199,10 +201,10 @@ def _service_run(tmp_path, vocab, session, enabled: bool) -> np.ndarray:
     domain = dataclasses.replace(CloudConfig(), full_ba=FullBAConfig(enabled=enabled))
     cfg = CloudServiceConfig(
         domain=domain,
-        output_every_s=0,
-        publish_every_s=10.0,
-        optimizer_process=False,
-        full_ba_quiet_s=0.0,
+        store=StoreConfig(output_every_s=0),
+        map_view=MapViewConfig(publish_every_s=10.0),
+        processes=ProcessConfig(optimizer_process=False),
+        full_ba=FullBAScheduleConfig(quiet_s=0.0),
     )
     out = tmp_path / ("on" if enabled else "off")
     cloud = CloudServer(

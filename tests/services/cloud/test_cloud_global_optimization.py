@@ -12,7 +12,7 @@ import pytest
 from common.geometry import inverse_T, so3_exp
 from services.cloud.atlas.atlas import Atlas, make_key
 from services.cloud.child_process import child_process_init
-from services.cloud.config import CloudServiceConfig, GlobalOptimizationConfig
+from services.cloud.config import GlobalOptimizationConfig
 from services.cloud.optimization.global_optimization import (
     GlobalOptimizationError,
     PoseGraphProblem,
@@ -21,6 +21,7 @@ from services.cloud.optimization.global_optimization import (
     optimize_pose_graph,
     up_in_body,
 )
+from services.cloud.service_config import ProcessConfig
 from services.cloud.simulation import circle_poses, default_camera, make_session, make_world, yaw_T
 
 
@@ -144,7 +145,8 @@ def _niceness() -> int:
 
 @pytest.mark.parametrize("nice", [0, 10])
 def test_the_optimizer_process_runs_at_the_configured_niceness(nice: int) -> None:
-    """The solves are background work: the optimizer process runs ``optimizer_nice`` above
+    """The solves are background work: the optimizer process runs
+    ``ProcessConfig.optimizer_nice`` above
     the service, so a shared core goes to the worker that applies the edges' messages."""
     with ProcessPoolExecutor(
         1,
@@ -157,4 +159,4 @@ def test_the_optimizer_process_runs_at_the_configured_niceness(nice: int) -> Non
 
 def test_optimizer_nice_out_of_range_is_refused() -> None:
     with pytest.raises(ValueError, match="optimizer_nice"):
-        CloudServiceConfig(optimizer_nice=-1)
+        ProcessConfig(optimizer_nice=-1)

@@ -14,10 +14,16 @@ import pytest
 from common.links.edge_cloud import decode_pose_correction
 from common.vocabulary import Vocabulary
 from services.cloud.app import CloudApp
-from services.cloud.config import CloudServiceConfig
 from services.cloud.fusion.map_fusion import MapFusion
 from services.cloud.optimization.full_ba import solve_full_ba
 from services.cloud.optimization.global_optimization import optimize_pose_graph
+from services.cloud.service_config import (
+    CloudServiceConfig,
+    FullBAScheduleConfig,
+    MapViewConfig,
+    OptimizationScheduleConfig,
+    StoreConfig,
+)
 from services.cloud.simulation import (
     circle_poses,
     default_camera,
@@ -68,7 +74,7 @@ def missions(vocab):
 
 
 def _app(path, vocab, mission: str | None = None) -> CloudApp:
-    cfg = dataclasses.replace(CloudServiceConfig(), mission=mission)
+    cfg = CloudServiceConfig(store=StoreConfig(mission=mission))
     store = CloudStore(path)
     if mission is not None:
         store.enter_mission(mission)
@@ -224,14 +230,17 @@ def test_the_service_runs_mission_2_in_mission_1s_map_and_reports_it(tmp_path, v
 
     async def mission(name: str | None, edge: str, robots: dict, prior_frame=None) -> list:
         cfg = CloudServiceConfig(
-            debounce_s=0.2, output_every_s=0, gt_every_s=0, full_ba_at_shutdown_s=5.0
+            schedule=OptimizationScheduleConfig(debounce_s=0.2),
+            full_ba=FullBAScheduleConfig(at_shutdown_s=5.0),
+            map_view=MapViewConfig(gt_every_s=0),
+            store=StoreConfig(output_every_s=0),
         )
         cloud = CloudServer(
             SessionConfig("cloud", "cloud", secret),
             tmp_path / "state",
             default_camera(),
             vocab,
-            dataclasses.replace(cfg, mission=name),
+            dataclasses.replace(cfg, store=dataclasses.replace(cfg.store, mission=name)),
             results_dir=tmp_path / (name or "m1"),
             groundtruth=tmp_path / ("gt2" if name else "gt1"),
             transport=fast,

@@ -24,8 +24,8 @@ from common.links.edge_cloud_payloads import (
 from common.vocabulary import Vocabulary
 from services.cloud.app import CloudApp
 from services.cloud.atlas.atlas import make_key
-from services.cloud.config import CloudServiceConfig
 from services.cloud.fusion.map_fusion import MapFusion
+from services.cloud.service_config import CloudServiceConfig
 from services.cloud.simulation import (
     circle_poses,
     default_camera,

@@ -93,11 +93,13 @@ def test_cloud_server_records_every_applied_message(tmp_path):
     from common.protocol import SessionConfig
     from common.transport import Delivery
     from common.vocabulary import Vocabulary
-    from services.cloud.config import CloudServiceConfig
     from services.cloud.server import CloudServer
+    from services.cloud.service_config import CloudServiceConfig, ProcessConfig, StoreConfig
     from services.cloud.simulation import default_camera
 
-    cfg = CloudServiceConfig(output_every_s=0, optimizer_process=False)
+    cfg = CloudServiceConfig(
+        store=StoreConfig(output_every_s=0), processes=ProcessConfig(optimizer_process=False)
+    )
     session = SessionConfig("cloud", "cloud", b"0123456789abcdef0123")
     rec = tmp_path / "uplink.rec"
     msgs = [AgentStatus("robot0", 0, "tracking", i, 0, 0, {}) for i in (1, 2)]

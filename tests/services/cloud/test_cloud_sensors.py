@@ -16,10 +16,11 @@ from common.geometry import inverse_T, make_T
 from common.links.edge_cloud import agent_sensors_message
 from common.links.sensors import Sensors
 from common.vocabulary import Vocabulary
-from services.cloud.config import CloudConfig, CloudServiceConfig, FullBAConfig, MbpConfig
+from services.cloud.config import CloudConfig, FullBAConfig, MbpConfig
 from services.cloud.core import CloudCore
 from services.cloud.fusion.merge import yaw_of
 from services.cloud.server import open_app
+from services.cloud.service_config import CloudServiceConfig, OptimizationScheduleConfig
 from services.cloud.simulation import (
     R_BODY_CAM,
     circle_poses,
@@ -44,7 +45,7 @@ CAM_B = CameraCalibration(
 T_R1_WORLD = yaw_T(np.radians(-60.0), np.array([-1.5, 0.5, 0.0]))
 CFG = CloudServiceConfig(
     domain=CloudConfig(full_ba=FullBAConfig(enabled=False), mbp=MbpConfig(enabled=False)),
-    optimize_every_keyframes=1000,
+    schedule=OptimizationScheduleConfig(every_keyframes=1000),
 )
 
 

@@ -25,10 +25,17 @@ from common.protocol import SessionConfig
 from common.protocol.arrays import pack_array
 from common.transport import Client, Delivery, TransportConfig, run
 from common.vocabulary import Vocabulary
-from services.cloud.config import CloudServiceConfig
 from services.cloud.core_actions import SolveKind
 from services.cloud.fusion.merge import yaw_of
 from services.cloud.server import CloudServer
+from services.cloud.service_config import (
+    CloudServiceConfig,
+    FullBAScheduleConfig,
+    MapViewConfig,
+    OptimizationScheduleConfig,
+    ProcessConfig,
+    StoreConfig,
+)
 from services.cloud.simulation import (
     circle_poses,
     default_camera,
@@ -120,12 +127,11 @@ def _cloud(
     tmp_path, vocab, decode_workers: int = 0, full_ba_quiet_s: float = 0.0, **kw
 ) -> CloudServer:
     cfg = CloudServiceConfig(
-        debounce_s=0.2,
-        output_every_s=0,
-        publish_every_s=0.2,
-        gt_every_s=0,
-        decode_workers=decode_workers,
-        full_ba_quiet_s=full_ba_quiet_s,
+        schedule=OptimizationScheduleConfig(debounce_s=0.2),
+        full_ba=FullBAScheduleConfig(quiet_s=full_ba_quiet_s),
+        map_view=MapViewConfig(publish_every_s=0.2, gt_every_s=0),
+        store=StoreConfig(output_every_s=0),
+        processes=ProcessConfig(decode_workers=decode_workers),
     )
     session = SessionConfig("cloud", "cloud", SECRET, **kw.pop("session", {}))
     return CloudServer(
@@ -632,9 +638,11 @@ def test_an_edge_cannot_cull_or_update_a_robot_another_edge_serves(tmp_path, voc
 
 
 def test_no_map_view_refresh_without_a_dashboard(tmp_path, vocab):
-    """publish_every_s = 0 (``recslam cloud --dashboard-port 0``): no task snapshots the
-    atlas for a dashboard nobody serves."""
-    cfg = CloudServiceConfig(publish_every_s=0.0, output_every_s=0)
+    """``MapViewConfig.publish_every_s`` = 0 (``recslam cloud --dashboard-port 0``): no task
+    snapshots the atlas for a dashboard nobody serves."""
+    cfg = CloudServiceConfig(
+        map_view=MapViewConfig(publish_every_s=0.0), store=StoreConfig(output_every_s=0)
+    )
 
     async def main():
         cloud = CloudServer(

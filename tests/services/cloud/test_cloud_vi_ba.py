@@ -19,12 +19,7 @@ from common.links.edge_cloud_payloads import KeyframeStates, encode_point_ids, e
 from common.protocol.arrays import pack_array
 from common.vocabulary import Vocabulary
 from services.cloud.atlas.atlas import KeyframeInput, make_key
-from services.cloud.config import (
-    CloudServiceConfig,
-    FullBAConfig,
-    GlobalOptimizationConfig,
-    MbpConfig,
-)
+from services.cloud.config import FullBAConfig, GlobalOptimizationConfig, MbpConfig
 from services.cloud.core import CloudCore
 from services.cloud.core_actions import SendCorrections, SolveRequest, solve
 from services.cloud.fusion.uplink import UplinkError, decode_keyframe_update
@@ -32,6 +27,7 @@ from services.cloud.optimization.full_ba import FullBAProblem, build_full_ba, so
 from services.cloud.optimization.incremental_ba import forget, solve_full_ba_incremental
 from services.cloud.optimization.inertial import ImuStore, build_imu_terms
 from services.cloud.server import open_app
+from services.cloud.service_config import CloudServiceConfig, OptimizationScheduleConfig
 from services.cloud.simulation import (
     default_camera,
     encode_keyframe_update,
@@ -247,7 +243,9 @@ def test_the_service_core_runs_a_vi_full_ba_from_forwarded_imu(tmp_path, vocab):
     base = CloudServiceConfig()
     full = dataclasses.replace(base.domain.full_ba, imu_factors=True, max_iterations=3)
     domain = dataclasses.replace(base.domain, full_ba=full, mbp=MbpConfig(enabled=False))
-    cfg = dataclasses.replace(base, domain=domain, optimize_every_keyframes=1000)
+    cfg = dataclasses.replace(
+        base, domain=domain, schedule=OptimizationScheduleConfig(every_keyframes=1000)
+    )
     app = open_app(tmp_path / "state", cam, vocab, cfg)
     try:
         core = CloudCore(app)

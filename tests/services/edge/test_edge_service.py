@@ -102,8 +102,8 @@ def test_excerpt_robot_to_edge_to_real_cloud(tmp_path, vocab, euroc_micro) -> No
     """The image-based robot plays the excerpt into the edge (VIO in a worker process), which
     reports to the real cloud service: every frame decoded, status received, no VIO failure,
     and the VIO says why it has not initialised (too little motion)."""
-    from services.cloud.config import CloudServiceConfig
     from services.cloud.server import CloudServer
+    from services.cloud.service_config import CloudServiceConfig, ProcessConfig, StoreConfig
     from services.robot.server import RobotService
     from services.robot.service_config import Rate, RobotServiceConfig
 
@@ -115,7 +115,10 @@ def test_excerpt_robot_to_edge_to_real_cloud(tmp_path, vocab, euroc_micro) -> No
             tmp_path / "cloud",
             camera,
             vocab,
-            dataclasses.replace(CloudServiceConfig(), optimizer_process=False, output_every_s=0),
+            CloudServiceConfig(
+                processes=ProcessConfig(optimizer_process=False),
+                store=StoreConfig(output_every_s=0),
+            ),
             transport=TransportConfig(accept_roles=("edge",)),
         )
         _, cport = await cloud.start()

@@ -5,7 +5,6 @@ back, the tracked ones close to the ground truth)."""
 from __future__ import annotations
 
 import asyncio
-import dataclasses
 import json
 from pathlib import Path
 
@@ -28,8 +27,8 @@ from common.protocol.errors import RemoteProtocolError
 from common.protocol.messages import decode_payload, encode_payload
 from common.transport import TransportConfig
 from common.vocabulary import Vocabulary
-from services.cloud.config import CloudServiceConfig
 from services.cloud.server import CloudServer
+from services.cloud.service_config import CloudServiceConfig, ProcessConfig, StoreConfig
 from services.edge.app import EdgeConfig
 from services.edge.server import EdgeServer, EdgeServiceConfig
 from services.robot.poses import PoseTrack, tum_line
@@ -130,7 +129,10 @@ def test_every_frame_gets_its_pose_back_and_the_tracked_ones_follow_the_truth(
             tmp_path / "cloud",
             None,
             Vocabulary.load(),
-            dataclasses.replace(CloudServiceConfig(), optimizer_process=False, output_every_s=0),
+            CloudServiceConfig(
+                processes=ProcessConfig(optimizer_process=False),
+                store=StoreConfig(output_every_s=0),
+            ),
             results_dir=results,
             groundtruth=data,
             transport=TransportConfig(accept_roles=("edge",)),
