@@ -394,6 +394,7 @@ def test_stalled_sockets_cannot_lock_peers_out():
     run(main())
 
 
+@pytest.mark.slow
 def test_a_robot_joins_and_streams_while_200_stalled_connections_are_held():
     """Issue 18's lock-out, at scale: 200 connections from 10 other addresses send a byte and
     stall, all of them held; a new robot joins and streams 100 messages at 50 Hz on one

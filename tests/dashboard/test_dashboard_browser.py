@@ -100,6 +100,7 @@ def _settled_shot(page, want_points: bool, timeout_s: float = 30.0) -> bytes:
         time.sleep(1.0)
 
 
+@pytest.mark.slow
 def test_dashboard_draws_points_and_panels_in_chromium(browser, tmp_path):
     delta, stats = make_demo_map(DemoConfig(n_points=30_000))
     stats = dataclasses.replace(stats, status="overloaded for 12 s: no full BA while running")

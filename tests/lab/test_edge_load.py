@@ -5,6 +5,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import pytest
+
 from lab.edge_load import read_run, timeouts, write_table
 
 
@@ -42,6 +44,7 @@ def test_read_run_counts_what_the_run_left(tmp_path):
     assert timeouts(tmp_path / "a" / "run" / "logs") == {"robot1": 2}
 
 
+@pytest.mark.slow
 def test_write_table_rows_and_plot(tmp_path):
     runs = [
         read_run(_run(tmp_path / "a", duplicates=0, timeout_lines=0)),

@@ -78,6 +78,7 @@ def transfer(link_star, from_ns: str, to_ns: str, to_addr: str, port: int) -> di
     return json.loads(out)
 
 
+@pytest.mark.slow
 def test_a_shaped_link_carries_tcp_at_the_tbf_rate_both_ways() -> None:
     with star(["robot0"], Tbf(RATE_KBIT)) as s:
         leaf = s.leaves["robot0"]

@@ -99,6 +99,7 @@ def test_a_correction_is_read_as_the_edge_reads_it():
         assert (r.robot, r.map_id, sorted(r.keyframe_ids), r.t) == ("s2-robot1", 4, [3, 5, 9], 2.5)
 
 
+@pytest.mark.slow
 def test_live_replay_to_a_cloud_process(recording, tmp_path):
     """Four agents (two copies of the tiny recording, two fake edges), sped up 10x, to a real
     ``recslam cloud``: every message applied, the copies merged, keyframes corrected."""
@@ -141,6 +142,7 @@ def test_live_replay_to_a_cloud_process(recording, tmp_path):
     assert png.stat().st_size > 10_000
 
 
+@pytest.mark.slow
 def test_core_replay_times_every_stage(recording, tmp_path):
     from lab.scale import core_replay
 

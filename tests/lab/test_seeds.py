@@ -29,6 +29,7 @@ def test_parse_seeds() -> None:
             parse_seeds(bad)
 
 
+@pytest.mark.slow
 def test_dataset_built_once_and_never_replaced(tmp_path: Path) -> None:
     folder = tmp_path / "seed-4"
     assert ensure_dataset(folder, 1, 0.5, 4) is True
@@ -123,6 +124,7 @@ def test_generator_options_name_folders_and_tables() -> None:
         GeneratorOptions(world="moon")
 
 
+@pytest.mark.slow
 def test_dataset_built_with_generator_options_and_not_mixed_up(tmp_path: Path) -> None:
     from lab.seeds import GeneratorOptions
 
@@ -177,6 +179,7 @@ def test_seeds_subcommand_passes_generator_options(tmp_path: Path) -> None:
     assert experiment.seeds_config(parser.parse_args(argv), argv).out == Path("out/seeds")
 
 
+@pytest.mark.slow
 def test_loop_constraints_checked_against_the_ground_truth(tmp_path: Path) -> None:
     """A constraint that agrees with the truth passes; one 0.5 m off is counted as wrong."""
     import numpy as np

@@ -36,6 +36,7 @@ from services.cloud.store.recording import (
 )
 
 
+@pytest.mark.slow
 def test_replay_with_and_without_mbp(recording, vocab, tmp_path):
     results = {}
     for mbp in (False, True):
@@ -91,6 +92,7 @@ def test_record_options_parse_and_reach_the_cloud_command(tmp_path):
     assert "--record" not in plain.cloud_argv()
 
 
+@pytest.mark.slow
 def test_replay_of_a_recording_with_each_robots_calibration(tmp_path, vocab):
     """A recording the cloud service writes today holds each robot's ``AgentSensors`` ahead
     of its keyframes; the replay uses them: r1, seen through a 640x480 camera of its own
@@ -194,6 +196,7 @@ def test_replay_of_a_recording_with_each_robots_calibration(tmp_path, vocab):
         )
 
 
+@pytest.mark.slow
 def test_solves_that_take_time_let_records_arrive_before_their_result(recording, vocab, tmp_path):
     """With solve latency the replay handles the records received while a solve is out
     before its result applies, as the service does: one round spans many records, so fewer

@@ -4,6 +4,7 @@ robot front end, the codecs and the edge's decoding (lab.vio_replay)."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from common.data.euroc import EurocSequence
 from common.data.synth import SynthConfig, generate_dataset
@@ -11,6 +12,7 @@ from lab.vio_replay import decode_sequence, load_decoded, run_vio, save_decoded,
 from services.edge.vio.types import TrackingStatus
 
 
+@pytest.mark.slow
 def test_vio_replay_rendered_robot_initialises_and_tracks(tmp_path):
     cfg = SynthConfig(robots=1, seconds=10.0, seed=7, progress=False, contact_sheet=False)
     generate_dataset(tmp_path / "synth", cfg)

@@ -54,6 +54,7 @@ def robot(dataset: Path, port: int, *extra: str, secret: str = SECRET):
     )
 
 
+@pytest.mark.slow
 def test_robot_gives_up_on_a_closed_port_with_one_line(euroc_micro) -> None:
     port = closed_port()
     t0 = time.monotonic()
@@ -124,6 +125,7 @@ def _edge(tmp_path: Path, cloud_port: int, *extra: str) -> subprocess.Popen:
         )
 
 
+@pytest.mark.slow
 def test_edge_gives_up_on_an_unreachable_cloud_with_one_line(tmp_path) -> None:
     port = closed_port()
     edge = _edge(tmp_path, port, "--give-up-after", "2")
@@ -140,6 +142,7 @@ def test_edge_gives_up_on_an_unreachable_cloud_with_one_line(tmp_path) -> None:
     assert "last failure: cannot connect" in lines[0]
 
 
+@pytest.mark.slow
 def test_edge_stopped_with_a_backlog_for_a_down_cloud_flushes_for_a_bound(
     tmp_path, euroc_micro
 ) -> None:

@@ -14,6 +14,8 @@ import itertools
 import logging
 import random
 
+import pytest
+
 from common.faultproxy import FaultConfig, FaultProxy
 from common.protocol import Blob, SessionConfig
 from common.transport import Client, Delivery, Server, TransportConfig, run
@@ -73,6 +75,7 @@ def check(channels: list[int], n: int) -> tuple[int, int, int]:
     return lost, duplicated, reordered
 
 
+@pytest.mark.slow
 def test_exactly_once_in_order_across_100_cuts():
     async def main():
         up_rec, down_rec = Recorder(UP), Recorder(DOWN)
@@ -175,6 +178,7 @@ def test_throttled_link_delivers_everything():
     assert stats.cuts == 0 and stats.bytes_up > 200 * 10
 
 
+@pytest.mark.slow
 def test_heartbeats_detect_a_black_hole_and_the_link_recovers(caplog):
     async def main():
         rec = Recorder(2)

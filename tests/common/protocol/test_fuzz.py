@@ -7,6 +7,7 @@ from __future__ import annotations
 import itertools
 
 import msgpack
+import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -58,6 +59,7 @@ def drain(decoder: FrameDecoder, chunks: list[bytes]) -> list:
     return frames
 
 
+@pytest.mark.slow
 @fuzz(3000)
 @given(st.binary(max_size=6000), st.lists(st.integers(0, 10_000), max_size=8))
 def test_random_bytes_only_raise_remote_protocol_error(data, cuts):
@@ -108,6 +110,7 @@ def mutate(data: bytes, ops: list[tuple[str, int, int]]) -> bytes:
     return bytes(buf)
 
 
+@pytest.mark.slow
 @fuzz(3000)
 @given(frame_specs, mutations, st.lists(st.integers(0, 10_000), max_size=6))
 def test_mutated_valid_streams(specs, ops, cuts):
@@ -141,6 +144,7 @@ msgpack_values = st.recursive(
 )
 
 
+@pytest.mark.slow
 @fuzz(2000)
 @given(st.sampled_from(TYPE_IDS), msgpack_values | st.binary(max_size=60))
 def test_payload_decoder_rejects_wrong_shapes_with_remote_error(type_id, value):
@@ -153,6 +157,7 @@ def test_payload_decoder_rejects_wrong_shapes_with_remote_error(type_id, value):
     assert decode_payload(type_id, encode_payload(msg)) == msg  # what passes is well-typed
 
 
+@pytest.mark.slow
 @fuzz(1500)
 @given(
     st.lists(

@@ -10,6 +10,8 @@ import socket
 import sys
 from pathlib import Path
 
+import pytest
+
 from common.protocol import Blob, SessionConfig
 from common.transport import Client, Delivery, TransportConfig, run
 
@@ -34,6 +36,7 @@ def read_log(path: Path) -> list[tuple[bytes, int, int, bytes]]:
     return out
 
 
+@pytest.mark.slow
 def test_receiver_process_killed_and_restarted(tmp_path):
     log = tmp_path / "delivered.log"
     port = free_port()

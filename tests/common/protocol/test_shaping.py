@@ -30,6 +30,7 @@ def read_channels(log: Path) -> list[int]:
     return [int.from_bytes(data[o + 24 : o + 32]) for o in range(0, len(data) - 39, 40)]
 
 
+@pytest.mark.slow
 def test_tbf_link_delivers_everything_at_the_shaped_rate(tmp_path):
     log, out = tmp_path / "delivered.log", tmp_path / "sender.json"
     env = dict(os.environ, PYTHONPATH=str(HERE.parents[2]))

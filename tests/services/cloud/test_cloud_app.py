@@ -216,6 +216,7 @@ def test_mbp_while_running_keeps_the_unsettled_newest_keyframes(tmp_path, vocab)
     assert removed[True] & newest  # at shutdown only keep_recent (5) are protected
 
 
+@pytest.mark.slow
 def test_mbp_while_running_removes_only_at_its_own_cover_ratio(tmp_path, vocab):
     """The running pass's ``cover_ratio`` rules the passes while running, not the pass at
     shutdown: one above 1 (no keyframe can be covered that well) removes nothing while

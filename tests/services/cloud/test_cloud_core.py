@@ -128,6 +128,7 @@ def _requests(actions) -> list[SolveRequest]:
     return [a for a in actions if isinstance(a, SolveRequest)]
 
 
+@pytest.mark.slow
 def test_a_keyframe_burst_costs_one_pose_graph_debounce_s_after_the_trigger(feed):
     f = feed(_config(every=3))
     core = f.core
@@ -193,6 +194,7 @@ def test_after_a_long_round_the_next_rests_rest_factor_times_as_long(feed):
     assert core.optimize(0, 6.9)  # on request: at once
 
 
+@pytest.mark.slow
 def test_a_merge_during_a_solve_reschedules_the_map(feed):
     f = feed(_config())
     core = f.core

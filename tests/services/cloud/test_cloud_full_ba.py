@@ -239,6 +239,7 @@ def _service_run(tmp_path, vocab, session, enabled: bool) -> np.ndarray:
     return np.linalg.norm(traj.p_world_body - poses[:, :3, 3], axis=1)
 
 
+@pytest.mark.slow
 def test_service_runs_full_ba_at_shutdown_before_writing_trajectories(tmp_path, vocab, session):
     err_off = _service_run(tmp_path, vocab, session, enabled=False)
     err_on = _service_run(tmp_path, vocab, session, enabled=True)

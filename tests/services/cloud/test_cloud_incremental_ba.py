@@ -50,6 +50,7 @@ def _positions_cm(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.abs(a[:, :3, 3] - b[:, :3, 3]).max() * 100)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("partial", [True, False], ids=["partial-check", "full-check"])
 def test_time_ordered_updates_reach_the_batch_solution(session, partial):
     _, _, truth, problem = _circle(160)
@@ -89,6 +90,7 @@ def test_the_result_is_the_graph_estimate_read_key_by_key(session):
     np.testing.assert_array_equal(np.array([solver.poses[k] for k in keys]), T)
 
 
+@pytest.mark.slow
 def test_a_relinearisation_budget_holds_back_the_smallest_steps_and_still_converges(session):
     _, _, truth, problem = _circle(160)
     # One update per solve leaves a pending step for the next one to relinearise.

@@ -22,6 +22,7 @@ from services.cloud.simulation import circle_poses, default_camera, make_session
 from services.cloud.store.persistence import CloudStore
 
 
+@pytest.mark.slow
 def test_two_robots_merge_through_the_front_object(tmp_path):
     world = make_world(51)
     cam = default_camera()
@@ -75,6 +76,7 @@ def _fuse(cfg, world, cam, sessions, shed_early=False):
     return fusion, edges
 
 
+@pytest.mark.slow
 def test_early_candidates_close_more_revisits_and_every_one_is_true():
     """Verified at once and confirmed by the query's covisible keyframes (ORB-SLAM3), the
     second robot's revisits are closed at more of its keyframes than when a candidate must
@@ -120,6 +122,7 @@ def _scaled(session, scale):
     return out, [dataclasses.replace(m, p_world=scale * m.p_world) for m in mps]
 
 
+@pytest.mark.slow
 def test_a_fragment_off_in_scale_merges_back_with_its_scale():
     """Agent 1's map is 12 % too small (as a map an edge began after a tracking loss). While
     its robot still uses it, its point pairs disagree with agent 0's through the verified pose

@@ -61,6 +61,7 @@ def _points(atlas, key):
     return set(mk[mk >= 0].tolist())
 
 
+@pytest.mark.slow
 def test_mbp_removes_40_percent_keeps_graph_connected_and_folds_observations(dense):
     kfs, mps = dense
     atlas = _atlas(kfs, mps)

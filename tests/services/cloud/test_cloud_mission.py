@@ -100,6 +100,7 @@ def _optimize(app: CloudApp, map_id: int) -> list:
     return app.apply_optimization(map_id, result, token) or []
 
 
+@pytest.mark.slow
 def test_second_mission_merges_into_the_saved_map_and_reports_in_its_frame(
     tmp_path, vocab, missions
 ):
@@ -215,6 +216,7 @@ def _write_truth(folder, mission: str, robots: dict) -> None:
         write_tum(folder / f"{name}.tum", Trajectory(ts, T[:, :3, 3], q, name))
 
 
+@pytest.mark.slow
 def test_the_service_runs_mission_2_in_mission_1s_map_and_reports_it(tmp_path, vocab, missions):
     """Over loopback TCP, as ``recslam cloud --mission m2 --prior-frame ...`` runs it."""
     import json

@@ -184,6 +184,7 @@ def _stored(path):
     )
 
 
+@pytest.mark.slow
 def test_incremental_saves_store_what_a_whole_save_stores(tmp_path):
     """After its first whole write, save_all writes only what the atlas changed since (and the
     atlas a store loaded starts as stored): after every kind of change, the directory holds

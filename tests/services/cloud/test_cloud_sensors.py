@@ -86,6 +86,7 @@ def _run(tmp_path, vocab, steps, cameras: dict[str, CameraCalibration]):
     return app
 
 
+@pytest.mark.slow
 def test_each_robot_is_decoded_and_verified_with_its_own_camera(tmp_path, vocab, steps):
     app = _run(tmp_path, vocab, steps, {"r0": default_camera(), "r1": CAM_B})
     try:
@@ -115,6 +116,7 @@ def test_each_robot_is_decoded_and_verified_with_its_own_camera(tmp_path, vocab,
         again.close()
 
 
+@pytest.mark.slow
 def test_wrong_intrinsics_do_not_verify(tmp_path, vocab, steps):
     """Control: told r1 has r0's focal lengths and mounting (same image size), the cloud's
     verification of r1's keyframes against r0's map fails: the camera in use is the robot's."""

@@ -146,6 +146,7 @@ def _cloud(
     )
 
 
+@pytest.mark.slow
 def test_two_edges_merge_send_corrections_and_write_trajectories(tmp_path, vocab, scenario):
     T_map_world = np.eye(4)
 
@@ -250,6 +251,7 @@ def test_two_edges_merge_send_corrections_and_write_trajectories(tmp_path, vocab
     run(main())
 
 
+@pytest.mark.slow
 def test_a_stop_waits_for_the_full_ba_in_flight_and_applies_it(tmp_path, vocab, scenario):
     """After a burst that overloaded the worker, the load is measured again without messages,
     so the quiet full BA runs; a stop that arrives while it is in the optimizer waits for it
@@ -295,6 +297,7 @@ def test_a_stop_waits_for_the_full_ba_in_flight_and_applies_it(tmp_path, vocab, 
     run(main())
 
 
+@pytest.mark.slow
 def test_restart_resumes_acknowledged_keyframes_without_duplicates(tmp_path, vocab, scenario):
     msgs = scenario["r0"]["messages"]
     half = len(msgs) // 2
@@ -345,6 +348,7 @@ def test_restart_resumes_acknowledged_keyframes_without_duplicates(tmp_path, voc
     run(main())
 
 
+@pytest.mark.slow
 def test_malformed_message_is_refused_once_and_disturbs_no_edge(tmp_path, vocab, scenario):
     good_msgs = scenario["r1"]["messages"]
 
@@ -381,6 +385,7 @@ def test_malformed_message_is_refused_once_and_disturbs_no_edge(tmp_path, vocab,
     run(main())
 
 
+@pytest.mark.slow
 def test_keyframes_decoded_in_the_decode_process_land_as_decoded_on_the_worker(
     tmp_path, vocab, scenario
 ):
@@ -503,6 +508,7 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
+@pytest.mark.slow
 def test_cloud_command_survives_sigkill_then_stops_on_sigterm_and_writes_results(
     tmp_path, vocab, scenario
 ):
@@ -598,6 +604,7 @@ def test_cloud_command_survives_sigkill_then_stops_on_sigterm_and_writes_results
     assert (tmp_path / "res" / "eval" / "ate.md").is_file()
 
 
+@pytest.mark.slow
 def test_an_edge_cannot_cull_or_update_a_robot_another_edge_serves(tmp_path, vocab, scenario):
     """The attack of issue 18: an edge (with a valid edge credential) sends a CullEvent and a
     keyframe for a robot another edge serves. Agents are keyed by (edge, robot, edge map), so

@@ -75,6 +75,7 @@ def _robot(dataset: Path, port: int, agent_id: str, **kw) -> RobotService:
     return RobotService(cfg, transport=FAST)
 
 
+@pytest.mark.slow
 def test_two_cameras_through_one_edge_and_a_rejoin_with_another_is_refused(team) -> None:
     sensors = {}
     for name, path in team.items():

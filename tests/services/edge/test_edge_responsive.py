@@ -38,6 +38,7 @@ def _slow(spec: WorkerSpec, kind: str) -> _SlowWorker:
     return _SlowWorker(spec)
 
 
+@pytest.mark.slow
 def test_slow_vio_makes_late_acks_not_duplicates(vocab, sim_frames) -> None:  # noqa: F811
     seq, frames = sim_frames
     frames = frames[:8]

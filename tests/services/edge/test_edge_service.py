@@ -98,6 +98,7 @@ def _edge(vocab, cloud_port: int, worker: str, **kw) -> EdgeServer:
 
 
 # ------------------------------------------------------------------ EuRoC excerpt, real cloud
+@pytest.mark.slow
 def test_excerpt_robot_to_edge_to_real_cloud(tmp_path, vocab, euroc_micro) -> None:
     """The image-based robot plays the excerpt into the edge (VIO in a worker process), which
     reports to the real cloud service: every frame decoded, status received, no VIO failure,
@@ -186,6 +187,7 @@ def _faulty_for(name: str):
     return make
 
 
+@pytest.mark.slow
 def test_failing_robot_vio_does_not_disturb_another(vocab, sim_frames) -> None:
     """Robot "bad" gets a VIO exception at frame 25 and its worker process dies at frame 60;
     each time it re-initialises (fresh VIO, new map id range, process respawned). Robot "good"
@@ -295,6 +297,7 @@ def _start_edge(port: int, cloud_port: int, state: Path, log: Path) -> subproces
         return subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=out, stderr=subprocess.STDOUT)
 
 
+@pytest.mark.slow
 def test_edge_killed_and_restarted_loses_no_frame(tmp_path, vocab, sim_frames) -> None:
     """SIGKILL the edge process mid-stream, restart it on the same state directory: the
     journal replay plus the robot's replay give every frame exactly once, and the keyframes
@@ -407,6 +410,7 @@ def test_edge_command_parses_and_names_missing_inputs(tmp_path, monkeypatch, cap
 
 
 # ------------------------------------------------------------------ rendered synthetic robot
+@pytest.mark.slow
 def test_synthetic_robot_initialises_and_receives_feedback(tmp_path) -> None:
     """The image-based robot plays a rendered synthetic sequence (15 s, enough keyframes for
     the default VI initialisation) in real time into the edge: the VIO initialises, the edge
@@ -457,6 +461,7 @@ def test_synthetic_robot_initialises_and_receives_feedback(tmp_path) -> None:
     assert len(kfs) == s["keyframes_uplinked"] >= 5
 
 
+@pytest.mark.slow
 def test_a_late_vio_skips_stale_non_keyframes_and_keeps_their_imu(vocab, sim_frames) -> None:
     """Fresh before complete at the edge: a robot's frames arrive far faster than its VIO runs
     (played at link speed); with ``max_vio_lag_s`` the non-keyframes more than that behind the

@@ -212,6 +212,7 @@ def test_map_points_are_resent_only_when_moved_or_reobserved() -> None:
     assert sent_ids(point(1, 0.05, 2), point(2, 0.001, 3)) == [1, 2]
 
 
+@pytest.mark.slow
 def test_coded_feedback_keeps_its_points_when_the_vio_runs_far_behind() -> None:
     """Every frame decoded before the VIO sees the first (an edge far behind its robots, as
     when the queue fills): the feedback still finds each result's frame and sends points."""

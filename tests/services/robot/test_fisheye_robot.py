@@ -46,6 +46,7 @@ def run(fisheye_robot: EurocSequence):
     return cc, out
 
 
+@pytest.mark.slow
 def test_fisheye_robot_keeps_its_tracks(fisheye_robot: EurocSequence, run) -> None:
     assert fisheye_robot.cam0.model == "equidistant"
     _, out = run

@@ -44,6 +44,7 @@ def docs_example() -> str:
     return block.group(1)
 
 
+@pytest.mark.slow
 def test_the_docs_example_runs_as_written_against_a_real_edge(
     tmp_path: Path, euroc_micro: Path
 ) -> None:

@@ -106,6 +106,7 @@ def test_a_placed_map_gives_global_poses_and_a_bad_placement_is_refused() -> Non
     assert (s["received"], s["with_global"], s["rejected"]) == (3, 1, 1)
 
 
+@pytest.mark.slow
 def test_every_frame_gets_its_pose_back_and_the_tracked_ones_follow_the_truth(
     tmp_path: Path,
 ) -> None:

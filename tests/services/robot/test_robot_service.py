@@ -220,6 +220,7 @@ def test_frames_decode_to_what_the_robot_used_and_feedback_is_applied(vocabulary
     assert by_type["RobotFrame"]["messages"] >= N_FRAMES
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("rate,backlog_s", [(Rate.REALTIME, 1800.0), (Rate.MAX, 0.05)])
 def test_edge_outage_loses_nothing(vocabulary, rate, backlog_s, caplog, euroc_micro):
     """The edge vanishes (black hole + cut) mid-run: the robot keeps tracking and queueing
@@ -287,6 +288,7 @@ def test_edge_outage_loses_nothing(vocabulary, rate, backlog_s, caplog, euroc_mi
         assert "backlog full" in caplog.text
 
 
+@pytest.mark.slow
 def test_robot_process_runs_to_the_end_and_stops_on_sigterm(vocabulary, tmp_path, euroc_micro):
     """``python -m services.robot`` as a real process: secret file, --rate max to the end
     (exit 0, every frame); realtime with SIGTERM mid-run (exit 130, sequence end sent)."""

@@ -177,6 +177,7 @@ def test_inertial_state_switches_to_preintegration(seq: EurocSequence, frames: l
     assert min(o.stats.n_inliers for o in after) > 800
 
 
+@pytest.mark.slow
 def test_imu_prediction_beats_plain_lk_under_fast_rotation(seq: EurocSequence, frames) -> None:
     """Real frames re-rendered with a fast camera swing (and the matching gyro): the IMU-
     assisted tracker keeps more tracks than plain LK on the same frames."""

@@ -49,6 +49,7 @@ def _yaml_field(text: str, key: str) -> str:
     return m.group(1)
 
 
+@pytest.mark.slow
 def test_each_robot_states_its_own_camera_and_images_have_its_size(team: Path) -> None:
     meta = json.loads((team / "dataset.json").read_text())
     assert meta["config"]["cameras"] == list(TEAM)

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import pytest
 
 from common.data.synth import SynthConfig, generate_dataset
 
@@ -67,6 +68,7 @@ def dataset_digest(out: Path) -> str:
     return h.hexdigest()
 
 
+@pytest.mark.slow
 def test_default_dataset_is_unchanged(tmp_path: Path) -> None:
     generate_dataset(
         tmp_path,

@@ -83,6 +83,7 @@ def test_motion_blur_is_the_mean_of_sub_renders(renderer: Renderer) -> None:
     assert sharpness(blurred) < 0.6 * sharpness(centre)
 
 
+@pytest.mark.slow
 def test_generated_dataset_with_steps_and_blur(tmp_path: Path) -> None:
     effects = EffectsConfig(exposure_steps=True, step_every_s=(0.4, 0.7), motion_blur_ms=4.0)
     cfg = SynthConfig(

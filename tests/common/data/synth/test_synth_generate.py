@@ -52,6 +52,7 @@ def generated(tmp_path_factory) -> tuple[Path, Path]:
     return a, b
 
 
+@pytest.mark.slow
 def test_same_seed_gives_identical_bytes(generated) -> None:
     a, b = generated
     files_a = sorted(p.relative_to(a) for p in a.rglob("*") if p.is_file())
@@ -153,6 +154,7 @@ def test_groundtruth_quaternions_are_continuous(generated) -> None:
     assert dots.min() > 0.99
 
 
+@pytest.mark.slow
 def test_rerun_replaces_previous_output(tmp_path) -> None:
     cfg = SynthConfig(robots=2, seconds=0.1, seed=1, progress=False, contact_sheet=False)
     generate_dataset(tmp_path, cfg)
@@ -176,6 +178,7 @@ def test_bad_settings_are_refused(tmp_path, capsys) -> None:
     assert "robots" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_cli_harder_options_are_recorded_and_shown(tmp_path, capsys) -> None:
     out = tmp_path / "hard"
     argv = ["dataset", "synth", "--out", str(out), "--robots", "1", "--seconds", "0.3"]
@@ -203,6 +206,7 @@ def test_cli_harder_options_are_recorded_and_shown(tmp_path, capsys) -> None:
         assert why in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_cli_flies_a_recorded_trajectory(tmp_path, hand_made_tum, capsys) -> None:
     out = tmp_path / "rec"
     argv = ["dataset", "synth", "--out", str(out), "--seconds", "0.3", "--no-progress"]

@@ -27,6 +27,7 @@ def _family(name: str, robot: int):
     return make_flights(SCENE, REGION, parse_flight(name), 3, 20.0, seed=3)[robot]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     ("name", "robot", "t0"),
     [

@@ -70,6 +70,7 @@ def _velocity_change_ratio(flight: RecordedFlight, t_s, accel, bias) -> float:
     return num / den
 
 
+@pytest.mark.slow
 def test_flown_with_its_imu_a_recording_keeps_the_motion_the_imu_measured(euroc_v2: Path) -> None:
     """The smoothing that keeps a simulated IMU from differentiating Vicon noise takes real
     motion out of the images; with the recorded IMU the flight is smoothed at the recorder's

@@ -42,6 +42,7 @@ def test_unknown_world_is_refused() -> None:
         make_world("moon", 0)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(("world", "flight"), [("hall", "ring"), ("room-random", "figure8")])
 def test_worlds_render_with_enough_texture_to_track(world: str, flight: str) -> None:
     w = make_world(world, 2)

@@ -5,6 +5,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import pytest
 
 from common.data.euroc import read_camera_csv, read_camera_yaml, read_imu_csv, read_imu_yaml
 from services.edge.vio.manager import VioManager
@@ -39,6 +40,7 @@ def _lk_frames(mav0: Path, keyframe_every: int = 5, max_features: int = 150):
         yield FrameObservation(int(t), ids, pts.astype(np.float64), np.zeros(len(ids)), is_kf)
 
 
+@pytest.mark.slow
 def test_euroc_excerpt_initialises_or_says_why(caplog, euroc_micro: Path):
     mav0 = euroc_micro.resolve() / "mav0"
     camera = read_camera_yaml(mav0 / "cam0" / "sensor.yaml")

@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+import pytest
 
 from common.data.synth.cameras import FISHEYE_CAM
 from services.edge.vio.manager import VioManager
@@ -20,6 +21,7 @@ from services.edge.vio.state import PinholeUndistorter
 from services.edge.vio.types import FrameObservation
 
 
+@pytest.mark.slow
 def test_fisheye_end_to_end_20s_ate_and_scale() -> None:
     camera = FISHEYE_CAM.to_calibration(EUROC_CAM0.T_body_cam, 20.0)
     seq = simulate(SimConfig(duration_s=20.0, seed=0, outlier_ratio=0.05), camera=camera)
@@ -49,6 +51,7 @@ def test_features_looking_ninety_degrees_off_axis_are_dropped() -> None:
     vio.feed_frame(obs)  # accepted: the corner feature is dropped before the estimator
 
 
+@pytest.mark.slow
 def test_rows_leaving_the_vio_are_the_robots_rows_when_features_were_left_out() -> None:
     """A fisheye keyframe whose features the VIO partly left out (90 degrees or more off axis)
     still goes up with one point id per robot feature, and each observation row names the

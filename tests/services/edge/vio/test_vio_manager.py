@@ -9,6 +9,7 @@ from services.edge.vio.simulation import SimConfig, evaluate_run, run_sequence, 
 from services.edge.vio.types import FrameObservation, TrackingStatus, VioError
 
 
+@pytest.mark.slow
 def test_end_to_end_20s_ate_and_scale():
     # 5 % of the observations of every frame are gross outliers (5-30 px), as bad LK tracks.
     seq = simulate(SimConfig(duration_s=20.0, seed=0, outlier_ratio=0.05))

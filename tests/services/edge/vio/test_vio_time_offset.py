@@ -50,6 +50,7 @@ def _mav(offset_ms: float, seconds: float = 20.0, rate_scale: float = 1.0, seed:
     )
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("offset_ms", [-20.0, 0.0, 15.0])
 def test_the_offset_and_the_gyro_bias_are_found_on_mav_motion(offset_ms: float) -> None:
     t_cam, R, t_imu, gyro = _mav(offset_ms)
@@ -62,6 +63,7 @@ def test_the_offset_and_the_gyro_bias_are_found_on_mav_motion(offset_ms: float) 
     assert np.abs(est.bias_gyro - BIAS).max() < 2e-3  # solved with the offset
 
 
+@pytest.mark.slow
 def test_a_flight_that_hardly_turns_gives_no_confident_offset() -> None:
     t_cam, R, t_imu, gyro = _mav(15.0, rate_scale=0.002)
     est = estimate_time_offset(t_cam, R, t_imu, gyro, np.zeros(3))
@@ -78,6 +80,7 @@ def test_too_few_frames_or_no_overlap_is_said() -> None:
     assert isinstance(why, str) and "0 frame pairs" in why
 
 
+@pytest.mark.slow
 def test_the_tracker_moves_the_offset_only_on_confident_estimates_of_its_map() -> None:
     t_cam, R, t_imu, gyro = _mav(12.0)
     tracker = TimeOffsetTracker(TimeOffsetConfig(every_s=1.0), offset_ns=0)
@@ -102,6 +105,7 @@ def test_the_tracker_moves_the_offset_only_on_confident_estimates_of_its_map() -
     assert off.update(t_imu, gyro, np.zeros(3), force=True) is None and off.offset_ns == 5_000_000
 
 
+@pytest.mark.slow
 def test_a_flight_that_never_gives_a_confident_offset_is_asked_less_and_less() -> None:
     """Each unconfident estimate waits longer for the next (up to 30 s); a forced one (before
     a VI initialisation, retried every half second) runs at most once per 3 s."""
@@ -130,6 +134,7 @@ def _run(seq, shift_ns: int, options: VioConfig):
     return vio, out
 
 
+@pytest.mark.slow
 def test_the_vio_reads_its_imu_at_frame_time_plus_the_offset() -> None:
     """An IMU stamped 15 ms late with the offset given gives the synchronised run's poses."""
     seq = simulate(SimConfig(duration_s=8.0, seed=1))
@@ -151,6 +156,7 @@ def test_the_vio_reads_its_imu_at_frame_time_plus_the_offset() -> None:
     assert moved > 1e-4
 
 
+@pytest.mark.slow
 def test_estimating_on_a_synchronised_run_keeps_the_offset_near_zero() -> None:
     seq = simulate(SimConfig(duration_s=20.0, seed=0))
     vio, res = _run(seq, 0, VioConfig())
@@ -159,6 +165,7 @@ def test_estimating_on_a_synchronised_run_keeps_the_offset_near_zero() -> None:
     assert m.n_maps == 1 and m.ate_keyframes_m < 0.05
 
 
+@pytest.mark.slow
 def test_a_map_is_refined_when_its_offset_moves_and_its_first_init_can_wait_for_it() -> None:
     """An IMU 15 ms late, the offset estimated (this smooth simulated flight only gives
     estimates of sigma ~3 ms: taken as confident here): once the estimate moves the offset, the
