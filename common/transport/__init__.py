@@ -31,6 +31,6 @@ first.
 
 import common.links  # noqa: F401  (registers every link's message types for decoding)
 from common.transport.connection import Delivery, Peer, TransportConfig, run
-from common.transport.endpoints import Client, Server
+from common.transport.endpoints import Client, Server, link_load
 
-__all__ = ["Client", "Delivery", "Peer", "Server", "TransportConfig", "run"]
+__all__ = ["Client", "Delivery", "Peer", "Server", "TransportConfig", "link_load", "run"]

@@ -404,3 +404,12 @@ class Server:
                 old.abort("replaced")
                 await asyncio.sleep(0)
         return peer
+
+
+def link_load(client: Client | None) -> tuple[int, int]:
+    """A client's link to its server: (bytes unacknowledged, bytes acknowledged so far);
+    (0, 0) before it started."""
+    if client is None or client.peer is None:
+        return 0, 0
+    link = client.peer.link
+    return link.outbox_bytes, link.acked_bytes

@@ -40,12 +40,14 @@ from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 from common.codec.errors import CodecError
+from common.links.edge_cloud import KeyframeUpdate, KeyframeUpdateCoded
 from common.links.robot_edge import RobotFrame
 from common.links.sensors import Sensors
 from common.protocol.errors import RejectedMessageError
 from common.protocol.messages import Message, decode_payload, encode_payload
 from common.transport import Delivery
 from common.vocabulary import Vocabulary
+from services.edge.cloud_budget import CloudBudget
 from services.edge.config import EdgeConfig
 from services.edge.core import EdgeCore
 from services.edge.core_events import (
@@ -100,6 +102,10 @@ class Sink(Protocol):
 
     def link_counters(self, agent_id: str) -> dict[str, int]: ...
 
+    def cloud_load(self) -> tuple[int, int]:
+        """The cloud link: (bytes unacknowledged, bytes acknowledged so far)."""
+        ...
+
 
 _Job = tuple[asyncio.Future[WorkResult] | None, bool]  # a step (None: the sequence end)
 
@@ -135,6 +141,7 @@ class EdgeApp:
         self.worker_factory = worker_factory
         self.core = EdgeCore(self.config, journal=journal is not None)
         self.robots: dict[str, _Robot] = {}
+        self.cloud_budget = CloudBudget(self.config.cloud_budget)
 
     # ------------------------------------------------------------------ the core
     async def _handle(self, event: Event) -> None:
@@ -179,14 +186,32 @@ class EdgeApp:
                 if not self.sink.to_robot(a.agent_id, a.message):
                     await self._handle(RobotSendFailed(a.agent_id, a.message))
             elif isinstance(a, ToCloud):
-                await self.sink.to_cloud(a.message)
+                await self._to_cloud(a.message)
             elif isinstance(a, SendStatus):
                 await self._send_status(self.robots[a.agent_id].session)
             elif isinstance(a, FeedbackLost):
                 self.robots[a.agent_id].session.feedback_lost()
 
     async def _send_status(self, s: RobotSession) -> None:
-        await self.sink.to_cloud(s.status(self.sink.link_counters(s.agent_id)))
+        await self._to_cloud(s.status(self.sink.link_counters(s.agent_id)))
+
+    async def _to_cloud(self, m: Message) -> None:
+        """Send ``m`` to the cloud, counted by the cloud budget (when one applies)."""
+        if self.config.cloud_budget.active:
+            keyframe = isinstance(m, KeyframeUpdateCoded) or (
+                isinstance(m, KeyframeUpdate) and bool(m.features)
+            )
+            now = asyncio.get_running_loop().time()
+            self.cloud_budget.on_sent(now, len(encode_payload(m)), keyframe)
+        await self.sink.to_cloud(m)
+
+    def _allowance(self, s: RobotSession) -> None:
+        """Hand the session the cloud budget's allowance for its next results."""
+        if not self.config.cloud_budget.active:
+            return
+        self.cloud_budget.on_link(asyncio.get_running_loop().time(), *self.sink.cloud_load())
+        active = sum(not rb.session.finished for rb in self.robots.values())
+        s.cloud_allowance = self.cloud_budget.allowance(active)
 
     # ------------------------------------------------------------------ robots
     def _new_robot(self, agent_id: str, sensors: Sensors) -> _Robot:
@@ -236,11 +261,12 @@ class EdgeApp:
                 if step is None:  # the sequence end, every step before it done
                     s.finished = True
                     for m in [*s.release_points(), *s.release_frame_poses()]:  # the rest
-                        await self.sink.to_cloud(m)
+                        await self._to_cloud(m)
                     await self._send_status(s)
                     rb.ended.set()
                 else:
                     res = await step
+                    self._allowance(s)
                     on_result = functools.partial(s.on_result, res, replaying=replaying)
                     out = await loop.run_in_executor(rb.codec, on_result)
                     await self._handle(
@@ -311,6 +337,7 @@ class EdgeApp:
                 "frames_skipped_stale": core["frames_skipped_stale"],
                 "keyframes_decoded": s.keyframes,
                 "keyframes_uplinked": s.vio_keyframes,
+                "keyframes_kept_on_edge": dict(s.kept_on_edge),
                 "state": s.state,
                 "reason": s.reason,
                 "time_offset_ms": s.time_offset_ns * 1e-6,

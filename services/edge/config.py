@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from services.edge.cloud_budget import CloudBudgetConfig
 from services.edge.session_config import EdgeSessionConfig
 from services.edge.vio.types import VioConfig
 
@@ -20,11 +21,14 @@ class EdgeConfig:
         frame is not given to the VIO (its IMU goes with the next frame, which the VIO
         integrates across the gap; counted per robot as ``frames_skipped_stale``); keyframes
         always go. 0 (default): every frame, however late (the lossless recorder).
+    cloud_budget: which robot keyframes go up to the cloud (``recslam edge --cloud-budget``,
+        ``services/edge/cloud_budget.py``); default: every one.
     vio: the VIO's options; session: feedback / status / uplink options.
     """
 
     worker: str = "process"
     max_queued_frames: int = 200
     max_vio_lag_s: float = 0.0
+    cloud_budget: CloudBudgetConfig = field(default_factory=CloudBudgetConfig)
     vio: VioConfig = field(default_factory=VioConfig)
     session: EdgeSessionConfig = field(default_factory=EdgeSessionConfig)

@@ -36,6 +36,7 @@ from common.links.edge_cloud import AgentStatus
 from common.links.robot_edge import Anchors, CameraImuOffset, RobotFrame
 from common.protocol.messages import Message
 from common.vocabulary import Vocabulary
+from services.edge.cloud_budget import REASONS as CLOUD_BUDGET_REASONS
 from services.edge.feedback import FeedbackPolicy as FeedbackPolicy  # re-exported
 from services.edge.feedback import FeedbackSender
 from services.edge.frame_poses import FramePoseBatcher, frame_pose
@@ -115,6 +116,8 @@ class RobotSession(SessionUplink):
         # The VIO's own keyframes (no robot features) stay on the edge: uplinked keyframes
         # chain to the previous uplinked keyframe of their map, observations skip the others.
         self._own_kfs: dict[int, set[int]] = {}  # map id -> the VIO's own keyframe ids
+        self.cloud_allowance = None  # set by the driver when a cloud budget applies
+        self.kept_on_edge = dict.fromkeys(CLOUD_BUDGET_REASONS, 0)
         self._up_prev: dict[tuple[int, int], int | None] = {}
         self._last_up: dict[int, int] = {}
         self._own_sorted: dict[int, np.ndarray] = {}  # map id -> sorted(_own_kfs[map id])

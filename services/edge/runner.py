@@ -48,6 +48,7 @@ from common.protocol import PeerUnreachableError
 from common.protocol.auth import Keyring
 from common.protocol.credentials import load_keys
 from common.transport.tls import TlsFiles
+from services.edge.cloud_budget import CloudBudgetConfig
 
 if TYPE_CHECKING:
     from common.vocabulary import Vocabulary
@@ -82,6 +83,7 @@ class EdgeRunConfig:
             estimate (0: it does not wait).
         max_vio_lag_s: a robot's non-keyframes more than this behind its newest frame are
             not given to its VIO (``EdgeConfig.max_vio_lag_s``; 0: every frame).
+        cloud_budget: which robot keyframes go up to the cloud (``EdgeConfig.cloud_budget``).
     """
 
     listen: tuple[str, int] = ("0.0.0.0", 7000)
@@ -100,6 +102,7 @@ class EdgeRunConfig:
     offset_wait_s: float = 0.0
     give_up_after_s: float = 0.0
     max_vio_lag_s: float = 0.0
+    cloud_budget: CloudBudgetConfig = field(default_factory=CloudBudgetConfig)
 
 
 def add_wire_argument(p: argparse.ArgumentParser) -> None:
@@ -123,6 +126,18 @@ def add_vio_lag_argument(p: argparse.ArgumentParser) -> None:
         help="fresh before complete: a robot's non-keyframes more than S seconds behind its "
         "newest frame are not given to its VIO (their IMU goes with the next frame; keyframes "
         "always go; default 0: every frame, however late)",
+    )
+
+
+def add_cloud_budget_argument(p: argparse.ArgumentParser) -> None:
+    """``--cloud-budget`` (also the demo's, passed to its edges)."""
+    p.add_argument(
+        "--cloud-budget",
+        default=None,
+        metavar="KBPS|auto",
+        help="the edge->cloud link's rate in kbit/s, or 'auto' (measured from its "
+        "acknowledgements): robot keyframes go up to the cloud only as far apart as it "
+        "carries them, the others stay on the edge like the VIO's own (default: every one)",
     )
 
 
@@ -198,6 +213,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     add_time_offset_arguments(p)
     add_vio_lag_argument(p)
+    add_cloud_budget_argument(p)
     p.add_argument(
         "--stop-flush-timeout",
         type=float,
@@ -228,7 +244,16 @@ def config_from_args(args: argparse.Namespace) -> EdgeRunConfig:
         time_offset_ms=args.time_offset_ms,
         offset_wait_s=args.offset_wait,
         max_vio_lag_s=args.max_vio_lag,
+        cloud_budget=_cloud_budget(args.cloud_budget),
     )
+
+
+def _cloud_budget(text: str | None) -> CloudBudgetConfig:
+    """``--cloud-budget`` as a config; a bad value is an argparse error naming it."""
+    try:
+        return CloudBudgetConfig.parse(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
 
 
 def _time_offset(text: str) -> float | None:
@@ -331,6 +356,7 @@ def _server(config: EdgeRunConfig, secret: Keyring, vocab: Vocabulary) -> EdgeSe
         session=EdgeSessionConfig(wire=config.wire),
         vio=vio,
         max_vio_lag_s=config.max_vio_lag_s,
+        cloud_budget=config.cloud_budget,
     )
     return EdgeServer(secret, vocab, app, service, state_dir=config.state_dir, tls=config.tls)
 

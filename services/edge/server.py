@@ -40,7 +40,7 @@ from typing import Any
 from common.protocol import OutboxFullError, PeerRejectedError, SessionConfig
 from common.protocol.auth import Keyring, as_keyring
 from common.protocol.messages import Message
-from common.transport import Client, Server, TransportConfig
+from common.transport import Client, Server, TransportConfig, link_load
 from common.transport.stalls import StallMonitor
 from common.transport.tls import TlsFiles
 from common.vocabulary import Vocabulary
@@ -188,6 +188,9 @@ class EdgeServer:
     def link_counters(self, agent_id: str) -> dict[str, int]:
         peer = self.server.peers.get(agent_id)
         return {} if peer is None else flat_counters(peer.counters())
+
+    def cloud_load(self) -> tuple[int, int]:
+        return link_load(self.cloud)
 
     # ------------------------------------------------------------------ lifecycle
     async def start(self, host: str = "127.0.0.1", port: int = 0) -> tuple[str, int]:

@@ -45,6 +45,7 @@ from common.links.edge_cloud_payloads import (
 from common.protocol.arrays import pack_array
 from common.protocol.messages import Message
 from common.vocabulary import Vocabulary
+from services.edge.cloud_budget import KeyframeAllowance
 from services.edge.imu_uplink import ImuUplink
 from services.edge.point_uplink import Selection, SentPoints, one_point_each
 from services.edge.session_config import EdgeSessionConfig
@@ -92,6 +93,10 @@ class SessionUplink:
     # one the cloud was sent or sent back (not moved by local BA since): the candidates for a
     # message's FrameAnchor (coded wire)
     _agreed: dict[int, dict[int, np.ndarray]]
+    # The cloud budget's allowance for the next results (None: every robot keyframe goes up;
+    # set by the driver, ``EdgeApp``) and the robot keyframes it kept on the edge, by reason.
+    cloud_allowance: KeyframeAllowance | None
+    kept_on_edge: dict[str, int]
 
     def _imu_args(
         self, prev: tuple[int, int] | None, key: tuple[int, int], t_ns: int
@@ -278,14 +283,35 @@ class SessionUplink:
         keyframes, which stay on the edge (uplinked ones chain to the previous uplinked one)."""
         map_id, kf_id = key
         self._kf_time[key] = timestamp_ns
+        own = self._own_kfs.setdefault(map_id, set())
+        if kf_id in own:
+            return False
+        if robot_keyframe and key not in self._up_prev:
+            reason = self._kept_back(map_id, timestamp_ns)
+            if reason:  # the cloud budget keeps it on the edge, like the VIO's own
+                self.kept_on_edge[reason] += 1
+                robot_keyframe = False
         if not robot_keyframe:
-            self._own_kfs.setdefault(map_id, set()).add(kf_id)
+            own.add(kf_id)
             self._own_sorted.pop(map_id, None)
             return False
         if key not in self._up_prev:
             self._up_prev[key] = self._last_up.get(map_id)
             self._last_up[map_id] = kf_id
         return True
+
+    def _kept_back(self, map_id: int, timestamp_ns: int) -> str:
+        """Why the cloud budget keeps a new robot keyframe (at ``timestamp_ns``) of map
+        ``map_id`` on the edge (a reason of ``cloud_budget.REASONS``), or ``""``: it goes up.
+        A map's first keyframe always goes (the cloud must know the map)."""
+        allowance = self.cloud_allowance
+        last = self._last_up.get(map_id)
+        if allowance is None or last is None:
+            return ""
+        if allowance.hold:
+            return "backlog"
+        since_s = (timestamp_ns - self._kf_time[(map_id, last)]) * 1e-9
+        return "rate" if since_s < 0.95 * allowance.min_interval_s else ""
 
     def _uplink_raw(self, upd: MapUpdate) -> list[Message]:
         msgs: list[Message] = []

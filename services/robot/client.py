@@ -47,7 +47,7 @@ from common.links.sensors import Sensors
 from common.protocol import SessionConfig
 from common.protocol.auth import Keyring, as_keyring
 from common.protocol.messages import Message
-from common.transport import Client, TransportConfig
+from common.transport import Client, TransportConfig, link_load
 from common.transport.tls import TlsFiles
 from common.vocabulary import DEFAULT_VOCABULARY_PATH, Vocabulary
 from services.robot.app import RobotApp
@@ -59,7 +59,7 @@ from services.robot.core import (
     LiveInputConfig,
     RobotCore,
 )
-from services.robot.engine import RobotEngine, link_load
+from services.robot.engine import RobotEngine
 from services.robot.poses import ReceivedPose
 from services.robot.uplink_budget import UplinkBudget, UplinkBudgetConfig
 

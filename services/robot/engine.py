@@ -25,7 +25,7 @@ from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 from common.protocol.messages import Message
-from common.transport import Client, Delivery
+from common.transport import Delivery
 from services.robot.app import RobotApp
 from services.robot.core import (
     Action,
@@ -47,15 +47,6 @@ logger = logging.getLogger(__name__)
 
 SendFn = Callable[[Message], Awaitable[bool]]
 """Queue a message to the edge, waiting while the link is full; False: give up (abort)."""
-
-
-def link_load(client: Client | None) -> tuple[int, int]:
-    """A client's link to the edge: (bytes unacknowledged, bytes acknowledged so far);
-    (0, 0) before it started."""
-    if client is None or client.peer is None:
-        return 0, 0
-    link = client.peer.link
-    return link.outbox_bytes, link.acked_bytes
 
 
 def run_job(app: RobotApp, job: Job) -> FrameDone | None:

@@ -77,11 +77,11 @@ from common.links.sensors import Sensors
 from common.protocol import PeerRejectedError, PeerUnreachableError, SessionConfig
 from common.protocol.auth import as_keyring
 from common.protocol.messages import Message
-from common.transport import Client, TransportConfig
+from common.transport import Client, TransportConfig, link_load
 from common.vocabulary import Vocabulary
 from services.robot.app import RobotApp
 from services.robot.core import ImageInput, ImuInput, RobotCore
-from services.robot.engine import RobotEngine, link_load
+from services.robot.engine import RobotEngine
 from services.robot.poses import PoseTrack, ReceivedPose, open_tum, tum_line
 from services.robot.service_config import (
     Rate,

@@ -48,6 +48,8 @@ from collections import deque
 from dataclasses import dataclass
 from typing import Any
 
+from common.protocol.delivery_rate import DeliveryRate
+
 logger = logging.getLogger(__name__)
 
 REASONS = ("rate", "backlog", "outage")
@@ -147,36 +149,14 @@ class UplinkBudget:
         self.sent_keyframes = self.sent_non_keyframes = 0
         self._sent: deque[tuple[float, int, bool]] = deque()  # (now, bytes, keyframe)
         self._last_nkf: float | None = None  # when the last non-keyframe went [s]
-        self._outbox = 0  # bytes waiting in the link (unacknowledged)
-        self._acked: tuple[float, int] | None = None  # last sample (now, acked bytes total)
-        self._rates: deque[tuple[float, float, int]] = deque()  # (now, s, B) with a backlog
-        self._last_rate: float | None = None  # the last estimate [B/s]
-        self._acked_total: int | None = None
-        self._progress_t: float | None = None  # when the link last moved [s]
+        self.link = DeliveryRate(self.config.window_s)  # the link's load and measured rate
         self.rate_hz = self.config.rates_hz[0]
 
     # ------------------------------------------------------------------ in
     def on_link(self, now: float, outbox_bytes: int, acked_bytes: int) -> None:
         """The link's load at ``now``: bytes waiting (sent or not, unacknowledged) and the
         bytes acknowledged so far (a running total)."""
-        prev, prev_outbox = self._acked, self._outbox
-        self._outbox = int(outbox_bytes)
-        if self._outbox == 0 or self._acked_total is None or acked_bytes > self._acked_total:
-            self._progress_t = now  # the link moves (or has nothing to move)
-        self._acked_total = int(acked_bytes)
-        self._acked = (now, int(acked_bytes))
-        if prev is None:
-            return
-        dt, db = now - prev[0], int(acked_bytes) - prev[1]
-        # Only a link that had a backlog all along measures its capacity (BBR's
-        # "not application-limited"): short intervals are too noisy, and over long ones the
-        # link may have idled in between.
-        if 0.2 <= dt <= 2.0 and prev_outbox > 0 and self._outbox > 0:
-            self._rates.append((now, dt, db))
-        elif dt < 0.2:
-            self._acked = prev  # keep the older sample: measure over a longer interval
-        while self._rates and self._rates[0][0] < now - self.config.window_s:
-            self._rates.popleft()
+        self.link.on_link(now, outbox_bytes, acked_bytes)
 
     def on_sent(self, now: float, nbytes: int, keyframe: bool) -> None:
         """A frame of ``nbytes`` was handed to the link."""
@@ -194,11 +174,7 @@ class UplinkBudget:
         """The link's rate [B/s] the decisions use (None: no budget, or none measured yet)."""
         cfg = self.config
         if cfg.auto:  # (no sample for a while, e.g. an outage: the last estimate holds)
-            secs = sum(dt for _, dt, _ in self._rates)
-            acked = sum(db for _, _, db in self._rates)
-            if secs >= 1.0 and acked > 0:  # (nothing acknowledged: a stall, not a rate)
-                self._last_rate = acked / secs
-            return self._last_rate
+            return self.link.rate_Bps()
         return None if cfg.budget_kbps is None else cfg.budget_kbps * 1000.0 / 8.0
 
     def keyframe_plan(self, max_features: int = 1000) -> KeyframePlan | None:
@@ -215,7 +191,7 @@ class UplinkBudget:
         # ... and no keyframe holds the frames behind it back longer than max_delay_s
         n = min(n, rate * cfg.headroom * cfg.max_delay_s / cfg.bytes_per_feature)
         n = max(cfg.min_features, min(max_features, 50 * round(n / 50)))
-        if self._outbox / rate > cfg.max_delay_s:
+        if self.link.outbox_bytes / rate > cfg.max_delay_s:
             # The link is behind (an outage, or a keyframe still going out): no keyframe
             # but those tracking needs (tracking lost), so the backlog the link must drain
             # once it is back holds no more than the map needs.
@@ -231,7 +207,7 @@ class UplinkBudget:
             return ""
         if self.outage(now):
             return "outage"
-        if self._outbox / rate > self.config.max_delay_s:
+        if self.link.outbox_bytes / rate > self.config.max_delay_s:
             return "backlog"
         self.rate_hz = self._choose_rate(rate)
         if self._last_nkf is not None and now - self._last_nkf < 0.9 / self.rate_hz:
@@ -240,8 +216,7 @@ class UplinkBudget:
 
     def outage(self, now: float) -> bool:
         """Data waits and nothing was acknowledged for ``stall_s`` (a budget applies)."""
-        t = self._progress_t
-        return self.config.active and t is not None and now - t >= self.config.stall_s
+        return self.config.active and self.link.stalled(now, self.config.stall_s)
 
     def left(self, reason: str) -> None:
         """A non-keyframe was left out for ``reason``."""
