@@ -368,6 +368,8 @@ def freshness(report: dict[str, Any]) -> dict[str, Any]:
         "left_out": sum(r.get("frames_left_out") or 0 for r in rs),
         "dropped_live": sum(r.get("frames_dropped_live") or 0 for r in rs),
         "skipped_stale": sum(r.get("frames_skipped_stale") or 0 for r in rs),
+        "kept_on_edge": sum(r.get("keyframes_kept_on_edge") or 0 for r in rs),
+        "keyframes_uplinked": sum(r.get("keyframes_uplinked") or 0 for r in rs),
         "poses_received": sum(r.get("poses_received") or 0 for r in rs),
         "latency_median_s": worst("median"),
         "latency_p95_s": worst("p95"),

@@ -11,6 +11,9 @@ proxy, ``--shaper proxy``), named ``LINK[/MODE]``:
   ``--uplink-budget LINK`` (none when unlimited), and the edge gives its VIO no non-keyframe
   more than ``--max-vio-lag`` behind (0.5 s);
 - ``/auto``: the same with ``--uplink-budget auto`` (the robot measures the link's rate);
+- ``/cloudN`` (after the mode): the edge's ``--cloud-budget N`` (kbit/s, or ``auto``): robot
+  keyframes go up to the cloud only as far apart as N carries them (the edge->cloud link is
+  not shaped here: the row shows what the edge sends under the budget);
 - ``/cut`` (after the mode): every robot's link goes down :data:`CUT` s after the robots
   started, for the time given there (tbf: ``ip link set down`` on the robots' veth ends).
 
@@ -46,11 +49,13 @@ class Row:
     link_kbps: float | None
     mode: str = ""
     cut: bool = False
+    cloud: str = ""  # the edge's --cloud-budget ("": none)
 
     @property
     def name(self) -> str:
         link = "unlimited" if self.link_kbps is None else f"{self.link_kbps:g}"
         name = f"{link}/{self.mode}" if self.mode else link
+        name = f"{name}/cloud{self.cloud}" if self.cloud else name
         return name + "/cut" if self.cut else name
 
     def robot_args(self) -> tuple[str, ...]:
@@ -63,7 +68,8 @@ class Row:
         return ("--live", "--uplink-budget", f"{self.link_kbps:g}")
 
     def edge_args(self) -> tuple[str, ...]:
-        return ("--max-vio-lag", f"{MAX_VIO_LAG_S:g}") if self.mode else ()
+        lag = ("--max-vio-lag", f"{MAX_VIO_LAG_S:g}") if self.mode else ()
+        return (*lag, "--cloud-budget", self.cloud) if self.cloud else lag
 
 
 def parse_rows(text: str) -> list[Row]:
@@ -71,13 +77,17 @@ def parse_rows(text: str) -> list[Row]:
     item)."""
     rows = []
     for item in (x.strip() for x in text.split(",") if x.strip()):
-        link, _, mode = item.partition("/")
-        cut = mode == "cut" or mode.endswith("/cut")
-        mode = mode.removesuffix("cut").removesuffix("/")
+        link, *parts = item.split("/")
+        cut = bool(parts) and parts[-1] == "cut"
+        parts = parts[:-1] if cut else parts
+        cloud = parts.pop().removeprefix("cloud") if parts and parts[-1][:5] == "cloud" else ""
+        mode = parts[0] if len(parts) == 1 else "" if not parts else "?"
         if mode not in MODES:
             raise RecslamError(f"row {item!r}: mode must be one of fresh, auto (or none)")
+        if (cloud and not _cloud_budget_ok(cloud)) or item.endswith("/cloud"):
+            raise RecslamError(f"row {item!r}: LINK[/MODE][/cloudN][/cut], N kbit/s or auto")
         if link == "unlimited":
-            rows.append(Row(None, mode, cut))
+            rows.append(Row(None, mode, cut, cloud))
             continue
         try:
             kbps = float(link)
@@ -85,10 +95,17 @@ def parse_rows(text: str) -> list[Row]:
             raise RecslamError(f"row {item!r}: {link!r} is not kbit/s or 'unlimited'") from None
         if not kbps > 0:
             raise RecslamError(f"row {item!r}: the rate must be positive")
-        rows.append(Row(kbps, mode, cut))
+        rows.append(Row(kbps, mode, cut, cloud))
     if not rows:
         raise RecslamError("no rows")
     return rows
+
+
+def _cloud_budget_ok(text: str) -> bool:
+    try:
+        return text == "auto" or float(text) > 0
+    except ValueError:
+        return False
 
 
 def run_rows(
@@ -157,8 +174,8 @@ def table(results: list[dict[str, Any]]) -> str:
         "lost | left out (budget) | dropped (live) | skipped (VIO late) | poses back | "
         "latency median / p95 / max s | keyframes | maps | joint ATE keyframes cm | "
         "joint ATE every frame cm | robots' own ATE (mean) cm | streaming s | "
-        "latency < 1 s again after reconnecting s |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "latency < 1 s again after reconnecting s | keyframes to cloud / kept on edge |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in results:
         lost = r["frames_sent"] - r["frames_decoded"]
@@ -171,7 +188,8 @@ def table(results: list[dict[str, Any]]) -> str:
             f"{_f(r.get('latency_p95_s'), '.2f')} / {_f(r.get('latency_max_s'), '.2f')} | "
             f"{r['keyframes']} | {r.get('maps')} | {_cm(r['ate_joint_m'])} | "
             f"{_cm(r.get('frames_ate_joint_m'))} | {_cm(r['ate_own_mean_m'])} | "
-            f"{_f(r['stream_s'], '.0f')} | {_f(r.get('recovery_s'), '.1f')} |"
+            f"{_f(r['stream_s'], '.0f')} | {_f(r.get('recovery_s'), '.1f')} | "
+            f"{r.get('keyframes_uplinked', '–')} / {r.get('kept_on_edge', '–')} |"
         )
     return "\n".join(lines) + "\n"
 

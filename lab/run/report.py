@@ -121,6 +121,7 @@ def collect(run_dir: Path, facts: RunFacts) -> dict[str, Any]:
             "frames_skipped_stale": r.get("frames_skipped_stale", 0),
             "keyframes_decoded": r.get("keyframes_decoded"),
             "keyframes_uplinked": r.get("keyframes_uplinked"),
+            "keyframes_kept_on_edge": sum((r.get("keyframes_kept_on_edge") or {}).values()),
             "vio_state": r.get("state"),
             "map": maps.get("robots", {}).get(name),
             "bits_per_frame": 8.0 * frame_bytes / decoded if decoded else None,

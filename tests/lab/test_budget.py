@@ -63,6 +63,23 @@ def test_a_cut_row_names_its_outage():
         parse_rows("50/cut/fresh")
 
 
+def test_a_cloud_budget_row_passes_it_to_the_edge():
+    rows = parse_rows("100/fresh/cloud150,100/fresh/cloudauto/cut,unlimited/cloud300")
+    assert [r.name for r in rows] == [
+        "100/fresh/cloud150",
+        "100/fresh/cloudauto/cut",
+        "unlimited/cloud300",
+    ]
+    assert rows[0].edge_args() == ("--max-vio-lag", "0.5", "--cloud-budget", "150")
+    assert rows[1].cut and rows[1].edge_args()[-1] == "auto"
+    assert rows[2].edge_args() == ("--cloud-budget", "300") and rows[2].robot_args() == ()
+    for bad in ("100/fresh/cloudfast", "100/fresh/cloud", "100/fresh/cloud-5"):
+        with pytest.raises(RecslamError, match="cloudN"):
+            parse_rows(bad)
+    with pytest.raises(RecslamError, match="mode"):
+        parse_rows("100/cloud150/fresh")
+
+
 def test_recovery_is_when_the_latency_stays_under_a_second_after_reconnecting():
     from lab.bandwidth import recovery_s
 
