@@ -13,19 +13,19 @@ from lab.replay_schedule import ReplayDivergedError
 from lab.table3 import replay, service_config
 from services.cloud.core_actions import SolveRequest, SolveResult, solve
 from services.cloud.server import open_app
-from services.cloud.simulation import (
+from services.cloud.store.recording import (
+    Step,
+    has_schedule,
+    read_recording,
+    read_schedule,
+)
+from sim.cloud import (
     circle_poses,
     default_camera,
     encode_session,
     make_session,
     make_world,
     yaw_T,
-)
-from services.cloud.store.recording import (
-    Step,
-    has_schedule,
-    read_recording,
-    read_schedule,
 )
 
 
@@ -103,7 +103,7 @@ def test_replay_of_a_recording_with_each_robots_calibration(tmp_path, vocab):
     from common.protocol import SessionConfig
     from common.transport import Delivery
     from services.cloud.server import CloudServer
-    from services.cloud.simulation import R_BODY_CAM
+    from sim.cloud import R_BODY_CAM
 
     mount = make_T(R_BODY_CAM, np.array([0.12, -0.03, 0.02]))
     cam_b = CameraCalibration(640, 480, 330.0, 331.5, 318.2, 243.7, (-0.21, 0.04, 5e-4, 0.0), mount)

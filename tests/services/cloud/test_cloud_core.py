@@ -22,7 +22,7 @@ from services.cloud.core_actions import (
     solve,
 )
 from services.cloud.server import open_app
-from services.cloud.simulation import (
+from sim.cloud import (
     circle_poses,
     default_camera,
     encode_session,

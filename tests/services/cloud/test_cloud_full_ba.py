@@ -32,7 +32,7 @@ from services.cloud.optimization.full_ba import (
     solve_full_ba,
 )
 from services.cloud.server import CloudServer
-from services.cloud.simulation import (
+from sim.cloud import (
     circle_poses,
     default_camera,
     encode_keyframe_update,

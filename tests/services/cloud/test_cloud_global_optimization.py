@@ -21,7 +21,7 @@ from services.cloud.optimization.global_optimization import (
     optimize_pose_graph,
     up_in_body,
 )
-from services.cloud.simulation import circle_poses, default_camera, make_session, make_world, yaw_T
+from sim.cloud import circle_poses, default_camera, make_session, make_world, yaw_T
 
 
 def _rmse(atlas, poses, n):

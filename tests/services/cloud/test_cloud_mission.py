@@ -18,7 +18,8 @@ from services.cloud.config import CloudServiceConfig
 from services.cloud.fusion.map_fusion import MapFusion
 from services.cloud.optimization.full_ba import solve_full_ba
 from services.cloud.optimization.global_optimization import optimize_pose_graph
-from services.cloud.simulation import (
+from services.cloud.store.persistence import CloudStore, PersistenceError
+from sim.cloud import (
     circle_poses,
     default_camera,
     encode_session,
@@ -26,7 +27,6 @@ from services.cloud.simulation import (
     make_world,
     yaw_T,
 )
-from services.cloud.store.persistence import CloudStore, PersistenceError
 
 WORLD_SEED = 51
 FRAMES = {  # each robot's map frame T_map_world, per mission

@@ -26,14 +26,14 @@ from services.cloud.app import CloudApp
 from services.cloud.atlas.atlas import make_key
 from services.cloud.config import CloudServiceConfig
 from services.cloud.fusion.map_fusion import MapFusion
-from services.cloud.simulation import (
+from services.cloud.store.persistence import CloudStore
+from sim.cloud import (
     circle_poses,
     default_camera,
     encode_keyframe_update,
     make_session,
     make_world,
 )
-from services.cloud.store.persistence import CloudStore
 
 
 @pytest.fixture(scope="module")

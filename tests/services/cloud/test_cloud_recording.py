@@ -95,7 +95,7 @@ def test_cloud_server_records_every_applied_message(tmp_path):
     from common.vocabulary import Vocabulary
     from services.cloud.config import CloudServiceConfig
     from services.cloud.server import CloudServer
-    from services.cloud.simulation import default_camera
+    from sim.cloud import default_camera
 
     cfg = CloudServiceConfig(output_every_s=0, optimizer_process=False)
     session = SessionConfig("cloud", "cloud", b"0123456789abcdef0123")

@@ -5,8 +5,8 @@ import pytest
 
 from common.geometry import umeyama_alignment
 from services.edge.vio.manager import VioManager
-from services.edge.vio.simulation import SimConfig, evaluate_run, run_sequence, simulate
 from services.edge.vio.types import FrameObservation, TrackingStatus, VioError
+from sim.vio import SimConfig, evaluate_run, run_sequence, simulate
 
 
 def test_end_to_end_20s_ate_and_scale():

@@ -1,6 +1,6 @@
 """A simulated robot for edge tests and benchmarks: the VIO simulator's tracks, coded.
 
-:func:`code_sequence` turns a :class:`~services.edge.vio.simulation.SimSequence` (tracks and
+:func:`code_sequence` turns a :class:`~sim.vio.SimSequence` (tracks and
 IMU without images, with ground truth) into the :class:`RobotFrame` messages a real robot
 would send: keyframes on ORB's integer level grid with descriptors and continuation links,
 non-keyframes as survivors (in the codec's order) plus new tracks on the 1/4 px grid, IMU
@@ -35,7 +35,7 @@ from common.protocol import SessionConfig
 from common.protocol.messages import Message
 from common.transport import Client, Delivery, TransportConfig
 from common.vocabulary import Vocabulary
-from services.edge.vio.simulation import SimSequence
+from sim.vio import SimSequence
 
 logger = logging.getLogger(__name__)
 
