@@ -1,11 +1,13 @@
 """A simulated robot for edge tests and benchmarks: the VIO simulator's tracks, coded.
 
-:func:`code_sequence` turns a :class:`~sim.vio.SimSequence` (tracks and
-IMU without images, with ground truth) into the :class:`RobotFrame` messages a real robot
-would send: keyframes on ORB's integer level grid with descriptors and continuation links,
-non-keyframes as survivors (in the codec's order) plus new tracks on the 1/4 px grid, IMU
-through the IMU codec. :func:`play` sends them to an edge over the real transport, after the
-robot's sensors (:func:`sim_sensors`).
+:func:`code_sequence` turns a :class:`~sim.vio.SimSequence` (tracks and IMU without images,
+with ground truth) into the :class:`RobotFrame` messages a real robot would send: each frame
+becomes the front end's :class:`~services.robot.tracker.TrackedFrame` (keyframe keypoints on
+ORB's integer level grid, non-keyframe keypoints on the codec's sub-pixel grid, survivors first
+in the previous frame's order) and goes through the robot's own
+:class:`~services.robot.coding.FrameCoder` and :class:`~services.robot.coding.ImuCoder`.
+:func:`play` sends them to an edge over the real transport, after the robot's sensors
+(:func:`sim_sensors`).
 
 It stands in for the image-based robot where the EuRoC excerpt has too little motion for the
 VIO to initialise (and until rendered synthetic datasets exist).
@@ -20,21 +22,18 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from common.codec import (
-    CodecConfig,
-    FeatureEncoder,
-    ImuChunk,
-    ImuEncoder,
-    KeyframeFeatures,
-    NonKeyframeFeatures,
-    quantise_uv,
-)
+from common.codec import CodecConfig, ImuChunk, quantise_uv
+from common.codec.keypoints import kf_track_q
 from common.links.robot_edge import RobotFrame, RobotSequenceEnd, sensors_message
 from common.links.sensors import Sensors
 from common.protocol import SessionConfig
 from common.protocol.messages import Message
 from common.transport import Client, Delivery, TransportConfig
 from common.vocabulary import Vocabulary
+from services.edge.vio.types import FrameObservation
+from services.robot.coding import FrameCoder, ImuCoder
+from services.robot.keyframe_decision import KeyframeReason
+from services.robot.tracker import TrackedFrame, TrackingStats
 from sim.vio import SimSequence
 
 logger = logging.getLogger(__name__)
@@ -48,41 +47,82 @@ def sim_sensors(seq: SimSequence) -> Sensors:
 def code_sequence(seq: SimSequence, vocabulary: Vocabulary) -> list[RobotFrame]:
     """Every frame of ``seq`` as a coded :class:`RobotFrame` (frame order)."""
     cfg = CodecConfig(image_width=seq.camera.width, image_height=seq.camera.height)
-    enc = FeatureEncoder(vocabulary, cfg)
-    imu_enc = ImuEncoder()
-    prev_ids = np.zeros(0, np.int64)  # codec order of the active tracks (simulator ids)
+    coder = FrameCoder(vocabulary, cfg)
+    imu_coder = ImuCoder()
+    tracks = _Tracks(cfg)
     out: list[RobotFrame] = []
     for k, (t_imu, gyro, accel, fr) in enumerate(seq.feed()):
-        row_of = {int(t): r for r, t in enumerate(prev_ids)}
-        if fr.is_keyframe:
-            lv = fr.levels.astype(np.int64)
-            s = cfg.level_scale(lv)
-            kp = np.zeros((len(fr.track_ids), 4), np.int32)
-            kp[:, :2] = np.floor(fr.keypoints_px / s[:, None] + 0.5)
-            kp[:, 2] = lv
-            kp[:, 3] = (fr.track_ids * 7) % cfg.angle_bins
-            size = np.array([cfg.level_size(int(v)) for v in lv]).reshape(-1, 2)
-            kp[:, 0] = np.clip(kp[:, 0], 0, size[:, 0] - 1)
-            kp[:, 1] = np.clip(kp[:, 1], 0, size[:, 1] - 1)
-            links = np.array([row_of.get(int(t), -1) for t in fr.track_ids], np.int32)
-            assert fr.descriptors is not None
-            feats = KeyframeFeatures(kp, fr.descriptors, links)
-            order = feats.canonical_order()
-            payload = enc.encode_keyframe(feats.canonical())
-            prev_ids = fr.track_ids[order]
-        else:
-            cur = {int(t): r for r, t in enumerate(fr.track_ids)}
-            survived = np.array([int(t) in cur for t in prev_ids], bool)
-            rows = [cur[int(t)] for t in prev_ids[survived]]
-            rows += [r for r, t in enumerate(fr.track_ids) if int(t) not in row_of]
-            rows_a = np.array(rows, np.int64)
-            uv = quantise_uv(fr.keypoints_px[rows_a], cfg) if len(rows_a) else np.zeros((0, 2))
-            kp3 = np.concatenate([uv, fr.levels[rows_a, None].astype(np.float64)], axis=1)
-            payload = enc.encode_non_keyframe(NonKeyframeFeatures(survived, kp3))
-            prev_ids = fr.track_ids[rows_a]
-        imu = imu_enc.encode(ImuChunk(t_imu, gyro, accel))
+        payload = coder.encode(tracks.frame(k, fr)).payload
+        imu = imu_coder.encode(ImuChunk(t_imu, gyro, accel))
         out.append(RobotFrame(k, fr.timestamp_ns, fr.is_keyframe, payload, imu))
     return out
+
+
+class _Tracks:
+    """The simulator's frames as the front end would hand them to the coder: the rows, grids
+    and orientations of the :class:`TrackedFrame` contract (``services.robot.tracker``)."""
+
+    def __init__(self, config: CodecConfig) -> None:
+        self.config = config
+        self.previous = np.zeros(0, np.int64)  # the previous frame's track ids, row order
+        self.keyframe_id = -1
+        self.keyframe_rows: dict[int, int] = {}  # track id -> row of the last keyframe
+
+    def frame(self, index: int, fr: FrameObservation) -> TrackedFrame:
+        """Frame ``index`` of the sequence, ``fr``, as a :class:`TrackedFrame`."""
+        cfg = self.config
+        survived = np.isin(self.previous, fr.track_ids)
+        angles = None
+        if fr.is_keyframe:
+            # A keyframe's rows in the simulator's (extraction) order, on ORB's level grid;
+            # orientations at the centre of a bin drawn from the track id.
+            rows = np.arange(len(fr.track_ids))
+            levels = fr.levels.astype(np.int64)
+            kp = np.zeros((len(rows), 4), np.int32)
+            kp[:, :2] = np.floor(fr.keypoints_px / cfg.level_scale(levels)[:, None] + 0.5)
+            kp[:, 2] = levels
+            size = np.array([cfg.level_size(int(v)) for v in levels]).reshape(-1, 2)
+            kp[:, 0] = np.clip(kp[:, 0], 0, size[:, 0] - 1)
+            kp[:, 1] = np.clip(kp[:, 1], 0, size[:, 1] - 1)
+            keypoints = kf_track_q(kp, cfg) / cfg.subpixel
+            bins = (fr.track_ids * 7) % cfg.angle_bins
+            angles = ((bins + 0.5) * (360.0 / cfg.angle_bins)).astype(np.float32)
+            self.keyframe_id += 1
+            self.keyframe_rows = {int(t): r for r, t in enumerate(fr.track_ids)}
+            kf_index = rows.astype(np.int32)
+            # (The simulator does not say which of its rules made the keyframe; the coder reads
+            # no reason.)
+            reason = KeyframeReason.FIRST_FRAME if index == 0 else KeyframeReason.MAX_INTERVAL
+        else:
+            # Survivors first, in the previous frame's order, then new tracks.
+            row_of = {int(t): r for r, t in enumerate(fr.track_ids)}
+            old = [row_of[int(t)] for t in self.previous[survived]]
+            prev = set(self.previous.tolist())
+            rows = np.array(
+                old + [r for r, t in enumerate(fr.track_ids) if int(t) not in prev], np.int64
+            )
+            keypoints = quantise_uv(fr.keypoints_px[rows].reshape(-1, 2), cfg)
+            kf_index = np.array(
+                [self.keyframe_rows.get(int(t), -1) for t in fr.track_ids[rows]], np.int32
+            )
+            reason = KeyframeReason.NOT_KEYFRAME
+        track_ids = fr.track_ids[rows].astype(np.int64)
+        self.previous = track_ids
+        return TrackedFrame(
+            frame_index=index,
+            timestamp_ns=fr.timestamp_ns,
+            is_keyframe=fr.is_keyframe,
+            keyframe_reason=reason,
+            keyframe_id=self.keyframe_id,
+            track_ids=track_ids,
+            keyframe_feature_index=kf_index,
+            keypoints=keypoints,
+            levels=fr.levels[rows].astype(np.uint8),
+            survived_mask_vs_previous=survived,
+            descriptors=fr.descriptors,
+            angles=angles,
+            stats=TrackingStats(n_previous=len(survived), n_features=len(rows)),
+        )
 
 
 @dataclass
