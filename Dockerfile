@@ -26,6 +26,7 @@ COPY common common
 COPY services services
 COPY dashboard dashboard
 COPY lab lab
+COPY sim sim
 ARG PIP_INDEX=""
 ARG PIP_EXTRA_INDEX=""
 ARG PIP_TRUSTED=""

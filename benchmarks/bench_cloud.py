@@ -23,7 +23,7 @@ from services.cloud.config import GlobalOptimizationConfig, MbpConfig, PlaceReco
 from services.cloud.fusion.place_recognition import KeyframeDatabase, PlaceRecognizer
 from services.cloud.optimization.global_optimization import PoseGraphProblem, optimize_pose_graph
 from services.cloud.optimization.mbp import covisibility_components, run_mbp
-from services.cloud.simulation import circle_poses, default_camera, make_session, make_world, yaw_T
+from sim.cloud import circle_poses, default_camera, make_session, make_world, yaw_T
 
 log = logging.getLogger("bench_cloud")
 RESULTS = Path(__file__).resolve().parent / "results" / "cloud.md"
@@ -170,7 +170,7 @@ def bench_detection(n: int) -> str:
 # ----------------------------------------------------------------------------- service
 def _service_scenario(vocab):
     """Two robots in one room, coded as an edge sends them (keyframe, then new map points)."""
-    from services.cloud.simulation import encode_session
+    from sim.cloud import encode_session
 
     world = make_world(51)
     cam = default_camera()
@@ -330,7 +330,7 @@ def bench_service(tmp: Path) -> list[str]:
 def _fusion_scenario(vocab, n_kf: int, drift_deg: float, drift_m: float):
     """Three robots with odometry drift in one room, each in its own map frame; coded as an
     edge sends them. Returns {robot: (messages, truth T_world_body (K, 4, 4), stamps ns)}."""
-    from services.cloud.simulation import encode_session
+    from sim.cloud import encode_session
 
     world = make_world(61, n_points=5000)
     cam = default_camera()

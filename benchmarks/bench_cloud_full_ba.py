@@ -4,7 +4,7 @@ a recorded run replayed with and without it.
 Run: ``.venv/bin/python benchmarks/bench_cloud_full_ba.py [--quick]
 [--recording FILE --data DATASET]``; writes ``benchmarks/results/cloud_full_ba.md``.
 
-Part 1 (synthetic, :mod:`services.cloud.simulation`): one agent on a circle in a room of
+Part 1 (synthetic, :mod:`sim.cloud`): one agent on a circle in a room of
 landmarks; keyframe poses (1 cm / 0.6° per axis) and points (3 cm) perturbed; problem build
 (atlas -> plain arrays, on the service's worker) and solve (in the optimiser process) timed
 separately, one run each, with the service's default options.
@@ -30,7 +30,7 @@ from common.geometry import so3_exp
 from services.cloud.atlas.atlas import Atlas
 from services.cloud.config import FullBAConfig, GlobalOptimizationConfig
 from services.cloud.optimization.full_ba import FullBAProblem, build_full_ba, solve_full_ba
-from services.cloud.simulation import circle_poses, default_camera, make_session, make_world
+from sim.cloud import circle_poses, default_camera, make_session, make_world
 
 log = logging.getLogger("bench_cloud_full_ba")
 RESULTS = Path(__file__).resolve().parent / "results" / "cloud_full_ba.md"

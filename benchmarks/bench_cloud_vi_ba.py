@@ -4,7 +4,7 @@ ATE with / without IMU factors on the same recordings.
 Run: ``.venv/bin/python benchmarks/bench_cloud_vi_ba.py [--sizes 1000,5000,20000] [--landmarks 600]
 [--ab RECORDING:DATASET ...]``; writes ``benchmarks/results/cloud_vi_ba.md``.
 
-Part 1 (synthetic, :func:`services.cloud.simulation.vi_circle_atlas`): one agent on a circle
+Part 1 (synthetic, :func:`sim.cloud.vi_circle_atlas`): one agent on a circle
 in a room of landmarks, keyframes every 0.25 s with the exact IMU between them (constant gyro
 and specific force of a circular flight, EuRoC noise densities in the factors), keyframe
 positions, points and velocities scaled by 1.03 about the first keyframe plus 1 cm / 0.6°
@@ -37,7 +37,7 @@ from common.evaluation.alignment import umeyama
 from services.cloud.config import FullBAConfig, GlobalOptimizationConfig
 from services.cloud.optimization.full_ba import build_full_ba, solve_full_ba
 from services.cloud.optimization.incremental_ba import forget, solve_full_ba_incremental
-from services.cloud.simulation import default_camera, map_scale, problem_prefix, vi_circle_atlas
+from sim.cloud import default_camera, map_scale, problem_prefix, vi_circle_atlas
 
 log = logging.getLogger("bench_cloud_vi_ba")
 RESULTS = Path(__file__).resolve().parent / "results" / "cloud_vi_ba.md"
@@ -306,7 +306,7 @@ def main() -> None:
             "",
             "The service's incremental solver (`services/cloud/optimization/incremental_ba.py`, "
             "`FullBAConfig.incremental`) fed the same problems in time order "
-            "(`services.cloud.simulation.problem_prefix`), `--batch` keyframes more per full "
+            "(`sim.cloud.problem_prefix`), `--batch` keyframes more per full "
             "BA from 100 keyframes: the first builds the graph from a batch solve (rebuilt "
             "column), every later one is an iSAM2 update of what changed and at most "
             "`incremental_max_updates` - 1 more relinearisation steps, each relinearising at "

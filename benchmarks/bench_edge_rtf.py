@@ -1,6 +1,6 @@
 """Edge service real-time factor: 1 and 3 robots through the whole network path.
 
-Each robot is a simulated, coded robot (``services.edge.sim_robot``: the VIO simulator's
+Each robot is a simulated, coded robot (``sim.robot``: the VIO simulator's
 tracks and IMU as RobotFrame messages, seeds 0, 1, 2) sending as fast as the link allows
 (``--rate max``) over loopback TCP to one in-process :class:`EdgeServer` (decode, journal-less,
 VIO, feedback, uplink to a stub cloud). Workers are started before the clock starts.
@@ -41,8 +41,8 @@ from common.transport import Delivery, Server, TransportConfig
 from common.vocabulary import Vocabulary
 from services.edge.app import EdgeConfig
 from services.edge.server import EdgeServer, EdgeServiceConfig
-from services.edge.sim_robot import code_sequence, play
-from services.edge.vio.simulation import SimConfig, simulate
+from sim.robot import code_sequence, play
+from sim.vio import SimConfig, simulate
 
 log = logging.getLogger("bench_edge_rtf")
 RESULTS = Path(__file__).resolve().parent / "results" / "edge_rtf.md"
@@ -205,7 +205,7 @@ def main() -> None:
         coded = [code_sequence(q, vocab) for q in seqs]
         cam, imu = seqs[0].camera, seqs[0].imu
         source = (
-            f"`services.edge.sim_robot` coded simulator sequences ({args.seconds:.0f} s, seeds "
+            f"`sim.robot` coded simulator sequences ({args.seconds:.0f} s, seeds "
             "0-2, 20 Hz camera, 200 Hz IMU, 150 tracks)"
         )
         results = RESULTS

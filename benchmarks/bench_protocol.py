@@ -25,12 +25,12 @@ import tempfile
 import time
 from pathlib import Path
 
-from common.faultproxy import FaultConfig, FaultProxy
-from common.netem import shaped_link, shaping_unavailable
 from common.protocol import HEADER_SIZE, Blob, SessionConfig
 from common.protocol.messages import encode_payload
 from common.transport import Client, Delivery, Server, TransportConfig, run
 from lab.tls import self_signed_contexts
+from sim.faultproxy import FaultConfig, FaultProxy
+from sim.netem import shaped_link, shaping_unavailable
 
 log = logging.getLogger("bench_protocol")
 RESULTS = Path(__file__).resolve().parent / "results" / "protocol.md"

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from services.edge.vio.manager import VioManager
-from services.edge.vio.simulation import SimConfig, evaluate_run, run_sequence, simulate
+from sim.vio import SimConfig, evaluate_run, run_sequence, simulate
 
 log = logging.getLogger("bench_vio")
 RESULTS = Path(__file__).resolve().parent / "results" / "vio.md"
@@ -105,7 +105,7 @@ def main() -> int:
             "",
             f"Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores "
             f"(shared with other jobs while measured), Python {platform.python_version()}.",
-            "Sequences: `services.edge.vio.simulation` (room of 3000 landmarks, EuRoC cam0 "
+            "Sequences: `sim.vio` (room of 3000 landmarks, EuRoC cam0 "
             "intrinsics/distortion/extrinsic, 0.5 px noise × 1.2^level, 150 tracks, robot "
             "keyframes every 0.25 s, 200 Hz ADIS16448 IMU noise and bias random walk).",
             "RT factor = frames processed per wall second ÷ 20 Hz, everything synchronous on "

@@ -11,7 +11,7 @@ as separate processes (``lab.run.orchestration``), shaped by one of two shapers 
   root and iproute2; nothing is changed in the host's own namespace, and the namespaces are
   deleted afterwards, also after a failure. ``unlimited`` runs in the same namespaces, unshaped.
 - ``proxy``: every robot connects to the edge on loopback through its own throttling TCP proxy
-  (``common.faultproxy.FaultProxy`` with ``rate_bytes_per_s``, in a thread of this process): an
+  (``sim.faultproxy.FaultProxy`` with ``rate_bytes_per_s``, in a thread of this process): an
   application-level token bucket on the byte stream.
 
 ``auto`` (the default) is ``tbf`` where namespaces with tbf can be made, else ``proxy``.
@@ -75,7 +75,7 @@ SHAPERS = ("proxy", "tbf")
 def resolve_shaper(name: str) -> str:
     """``auto`` -> ``tbf`` where network namespaces with tbf can be made here, else
     ``proxy``; ``tbf`` where they cannot -> RecslamError naming why; else ``name``."""
-    from common.netem import shaping_unavailable
+    from sim.netem import shaping_unavailable
 
     if name == "auto":
         reason = shaping_unavailable()
@@ -126,7 +126,7 @@ class ThrottledLinks:
         """Start a proxy to the edge for ``robot``; returns its port (JobConfig.robot_links)."""
         import asyncio
 
-        from common.faultproxy import FaultConfig, FaultProxy
+        from sim.faultproxy import FaultConfig, FaultProxy
 
         if self.kbit_s is None:
             return edge_port

@@ -30,7 +30,8 @@ from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 
-from common.netem import (
+from lab.run.orchestration import Placement
+from sim.netem import (
     ShapingError,
     Tbf,
     add_namespace,
@@ -39,7 +40,6 @@ from common.netem import (
     shaping_unavailable,
     veth_link,
 )
-from lab.run.orchestration import Placement
 
 log = logging.getLogger(__name__)
 

@@ -389,7 +389,7 @@ def core_replay(
     from common.vocabulary import Vocabulary
     from lab.table3 import replay, service_config
     from services.cloud.core_actions import SolveRequest, SolveResult, solve
-    from services.cloud.simulation import default_camera
+    from sim.cloud import default_camera
 
     solves: dict[str, dict[str, float]] = {}
 

@@ -3,11 +3,13 @@
 ``services`` and ``dashboard`` import ``common``; ``common`` imports neither; no service
 imports another; nothing below the command line imports ``recslam`` (the CLI) or ``lab`` (the
 experiments); the dashboard reads the cloud through ``common.map_view`` and imports no
-service; a service wires the dashboard in its runner only. ``lab`` drives the services and
-never imports the CLI; ``benchmarks`` are scripts beside the CLI: they may import ``lab`` but
-not ``recslam`` (what a benchmark needs of a command lives in ``lab`` or ``common``). Every
-import counts: module level, inside functions, under ``TYPE_CHECKING``, relative, and
-``importlib.import_module("...")``.
+service; a service wires the dashboard in its runner only. ``sim`` (the simulators and link
+tools, on the lab floor) imports ``common`` and ``services``, never ``lab`` or the CLI;
+``common``, ``services`` and ``dashboard`` never import ``sim``; ``lab``, ``benchmarks``, the
+CLI and the tests may. ``lab`` drives the services and never imports the CLI; ``benchmarks``
+are scripts beside the CLI: they may import ``lab`` but not ``recslam`` (what a benchmark needs
+of a command lives in ``lab`` or ``common``). Every import counts: module level, inside
+functions, under ``TYPE_CHECKING``, relative, and ``importlib.import_module("...")``.
 
 The cloud's rooms (``services/cloud/atlas``, ``optimization``, ``fusion``, ``store``) import
 one way too: ``atlas`` <- ``optimization`` <- ``fusion``, ``atlas`` <- ``store``.
@@ -27,8 +29,10 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-PACKAGES = ("common", "services", "dashboard", "lab", "recslam", "benchmarks")
+PACKAGES = ("common", "services", "dashboard", "lab", "sim", "recslam", "benchmarks")
 CLI_AND_LAB = ("recslam", "lab")
+SIM = "sim"
+"""The simulators: above ``common`` and ``services``, below ``lab``, the benchmarks and the CLI."""
 SCRIPTS = ("benchmarks",)
 """Folders of scripts: run as ``python benchmarks/x.py``, they import their siblings by bare
 name (``from bench_real_imu import run``)."""
@@ -199,6 +203,8 @@ def _broken_rule(source: str, target: str) -> str | None:
         return f"{top} does not import the CLI" if target_top == "recslam" else None
     if target_top in CLI_AND_LAB:
         return f"nothing below the CLI imports {target_top}"
+    if target_top == SIM and top != SIM:
+        return f"{top} does not import the simulators"
     if top == "common" and target_top in ("services", "dashboard"):
         return f"common imports no {target_top}"
     if top == "dashboard" and target_top == "services":
@@ -253,6 +259,18 @@ def test_known_exceptions_are_still_needed() -> None:
         ("benchmarks.bench_mbp_live", "lab.seeds", False),
         ("recslam.commands.demo", "lab.run.orchestration", False),
         ("recslam.commands.cloud", "services.cloud.runner", False),
+        ("sim.cloud", "services.cloud.atlas.atlas", False),
+        ("sim.robot", "services.robot.coding", False),
+        ("sim.robot", "sim.vio", False),
+        ("sim.netem", "common.errors", False),
+        ("sim.cloud", "lab.table3", True),
+        ("sim.vio", "recslam.cli", True),
+        ("services.cloud.runner", "sim.cloud", True),
+        ("common.data.synth.cameras", "sim.vio", True),
+        ("dashboard.viewer", "sim.cloud", True),
+        ("lab.bandwidth", "sim.faultproxy", False),
+        ("benchmarks.bench_vio", "sim.vio", False),
+        ("recslam.commands.experiment", "sim.netem", False),
     ],
 )
 def test_rules_catch_what_they_name(source: str, target: str, broken: bool) -> None:

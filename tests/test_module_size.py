@@ -11,7 +11,7 @@ from __future__ import annotations
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-PACKAGES = ("common", "services", "dashboard", "lab", "recslam", "benchmarks")
+PACKAGES = ("common", "services", "dashboard", "lab", "sim", "recslam", "benchmarks")
 MAX_LINES = 650
 
 

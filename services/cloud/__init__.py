@@ -17,7 +17,7 @@ acknowledging; its optimisation half ``app_optimization``; ``agents``, their sha
 ``core`` (sans-I/O schedule: debounced pose graphs, full BA, MBP, shutdown; takes ``now``, returns
 solve requests and corrections, ``core_actions``), ``server`` (asyncio runner of the core:
 lifecycle, solves in a separate process, corrections back to the edges; ``server_outputs``,
-``decode_pool``, ``load``, ``child_process``), ``simulation`` (synthetic world for tests),
-``config``, ``stats``. Process: ``runner`` (options, run config, run loop, dashboard wiring),
-started by ``recslam cloud`` or ``python -m services.cloud``.
+``decode_pool``, ``load``, ``child_process``), ``config``, ``stats``. Process: ``runner``
+(options, run config, run loop, dashboard wiring), started by ``recslam cloud`` or ``python -m
+services.cloud``. The synthetic world of the tests is ``sim.cloud``, outside the service.
 """

@@ -376,9 +376,10 @@ def config_from_args(args: argparse.Namespace) -> CloudRunConfig:
 def find_camera(camera: Path | None, groundtruth: Path | None) -> CameraCalibration:
     """The fallback camera: ``camera`` (an EuRoC cam0 ``sensor.yaml``), else the first
     ``<robot>/mav0/cam0/sensor.yaml`` (or ``mav0/cam0/sensor.yaml``) under the ``groundtruth``
-    folder, else the synthetic dataset's EuRoC-like camera (with a warning)."""
+    folder, else the synthetic dataset's EuRoC camera (the ``euroc`` preset of
+    :mod:`common.data.synth.cameras` at 20 Hz, logged)."""
     from common.data.euroc import read_camera_yaml
-    from services.cloud.simulation import default_camera
+    from common.data.synth.cameras import camera_preset
 
     if camera is not None:
         return read_camera_yaml(camera)
@@ -389,7 +390,7 @@ def find_camera(camera: Path | None, groundtruth: Path | None) -> CameraCalibrat
             logger.info("camera calibration from %s", yaml)
             return read_camera_yaml(yaml)
     logger.info("fallback camera: the synthetic dataset's EuRoC-like camera")
-    return default_camera()
+    return camera_preset("euroc").calibration(20.0)
 
 
 async def write_stats(path: Path, cloud: CloudServer, codec_owners: Sequence[object] = ()) -> None:

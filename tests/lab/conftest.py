@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from common.vocabulary import Vocabulary
-from services.cloud.simulation import (
+from services.cloud.store.recording import RecordingWriter
+from sim.cloud import (
     circle_poses,
     default_camera,
     encode_session,
@@ -14,7 +15,6 @@ from services.cloud.simulation import (
     make_world,
     yaw_T,
 )
-from services.cloud.store.recording import RecordingWriter
 
 
 @pytest.fixture(scope="module")

@@ -90,16 +90,16 @@ def test_run_bandwidth_rejects_a_missing_dataset(tmp_path: Path) -> None:
 
 
 def test_shapers_resolve_and_a_bad_one_is_named(monkeypatch) -> None:
-    import common.netem
     import lab.netns
+    import sim.netem
 
     assert resolve_shaper("proxy") == "proxy"
-    monkeypatch.setattr(common.netem, "shaping_unavailable", lambda: "network namespaces need root")
+    monkeypatch.setattr(sim.netem, "shaping_unavailable", lambda: "network namespaces need root")
     monkeypatch.setattr(lab.netns, "shaping_unavailable", lambda: "network namespaces need root")
     assert resolve_shaper("auto") == "proxy"
     with pytest.raises(RecslamError, match="need root"):
         resolve_shaper("tbf")
-    monkeypatch.setattr(common.netem, "shaping_unavailable", lambda: None)
+    monkeypatch.setattr(sim.netem, "shaping_unavailable", lambda: None)
     assert resolve_shaper("auto") == "tbf"
     with pytest.raises(RecslamError, match="'bogus'"):
         BandwidthConfig(data=Path("d"), budgets=(None,), shaper="bogus")

@@ -14,7 +14,7 @@ from lab.loop_scoring import (
     QueryEvent,
     score_loops,
 )
-from services.cloud.simulation import R_BODY_CAM, circle_poses, yaw_T
+from sim.cloud import R_BODY_CAM, circle_poses, yaw_T
 
 
 def _gt() -> tuple[GroundTruthPoses, dict[int, KeyframeInfo], np.ndarray, np.ndarray]:

@@ -13,8 +13,8 @@ import sys
 
 import pytest
 
-from common.netem import ShapingError, shaping_unavailable
 from lab.netns import PREFIX, Tbf, cleanup_leftovers, namespaces, star
+from sim.netem import ShapingError, shaping_unavailable
 
 _reason = shaping_unavailable()
 pytestmark = [

@@ -102,8 +102,16 @@ def test_a_correction_is_read_as_the_edge_reads_it():
 @pytest.mark.slow
 def test_live_replay_to_a_cloud_process(recording, tmp_path):
     """Four agents (two copies of the tiny recording, two fake edges), sped up 10x, to a real
-    ``recslam cloud``: every message applied, the copies merged, keyframes corrected."""
+    ``recslam cloud``: every message applied, the copies merged, keyframes corrected. The
+    recording holds no robot calibrations (``AgentSensors``), so the cloud is given the
+    simulator's camera as its fallback (``--camera``)."""
+    from common.data.euroc_write import EurocWriter
     from lab.scale_live import LiveConfig, run_live
+    from sim.cloud import default_camera
+
+    with EurocWriter(tmp_path / "camera") as writer:
+        writer.add_camera("cam0", default_camera(), "sim.cloud's camera")
+    camera = tmp_path / "camera" / "mav0" / "cam0" / "sensor.yaml"
 
     recs = load_recordings([recording])
     copies = plan_copies([robots_of(recs[0])], 4, shift_s=1.0)
@@ -114,7 +122,7 @@ def test_live_replay_to_a_cloud_process(recording, tmp_path):
         drain_s=2.0,
         sample_every_s=0.2,
         stop_timeout_s=10.0,
-        cloud_args=("--no-full-ba", "--no-mbp"),
+        cloud_args=("--no-full-ba", "--no-mbp", "--camera", str(camera)),
     )
     live = run_live(sends, tmp_path / "live", cfg)
     assert live.sent == len(sends) and live.edges == 2 and not live.rejected

@@ -13,7 +13,7 @@ from lab.scale_observability import nominal, scale_profile
 from services.cloud.config import FullBAConfig, GlobalOptimizationConfig
 from services.cloud.optimization.full_ba import build_full_ba
 from services.cloud.optimization.inertial import ImuTerms
-from services.cloud.simulation import default_camera, vi_circle_atlas
+from sim.cloud import default_camera, vi_circle_atlas
 
 CFG = FullBAConfig()
 

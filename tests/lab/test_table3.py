@@ -20,7 +20,7 @@ from services.cloud.service_config import (
     ProcessConfig,
     StoreConfig,
 )
-from services.cloud.simulation import (
+from sim.cloud import (
     circle_poses,
     default_camera,
     encode_session,
@@ -110,7 +110,7 @@ def test_replay_of_a_recording_with_each_robots_calibration(tmp_path, vocab):
     from common.protocol import SessionConfig
     from common.transport import Delivery
     from services.cloud.server import CloudServer
-    from services.cloud.simulation import R_BODY_CAM
+    from sim.cloud import R_BODY_CAM
 
     mount = make_T(R_BODY_CAM, np.array([0.12, -0.03, 0.02]))
     cam_b = CameraCalibration(640, 480, 330.0, 331.5, 318.2, 243.7, (-0.21, 0.04, 5e-4, 0.0), mount)

@@ -74,11 +74,11 @@ def test_robot_options_build_one_config_both_ways(tmp_path, monkeypatch) -> None
     assert config.max_frames == 9 and config.secret.operator == SECRET.encode()
 
 
-def test_service_entry_points_do_not_load_the_cli_or_lab() -> None:
+def test_service_entry_points_do_not_load_the_cli_lab_or_sim() -> None:
     code = (
         "import sys\n"
         "import services.cloud.__main__, services.edge.__main__, services.robot.__main__\n"
-        "print(sorted(m for m in sys.modules if m.split('.')[0] in ('recslam', 'lab')))\n"
+        "print(sorted(m for m in sys.modules if m.split('.')[0] in ('recslam', 'lab', 'sim')))\n"
     )
     out = subprocess.run(
         [sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, check=True

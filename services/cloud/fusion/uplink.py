@@ -15,7 +15,7 @@ Decoding turns the wire messages of ``common.protocol.messages`` into the atlas'
 - :class:`CullEvent` -> keyframe and map point ids.
 
 Corrections for the edges are built by ``common.links.edge_cloud.encode_pose_correction``;
-what an edge sends for a simulated session is built by ``services.cloud.simulation``
+what an edge sends for a simulated session is built by ``sim.cloud``
 (``encode_session``) with the links' own packers.
 
 Everything that can be wrong in a peer's message raises :class:`UplinkError` naming the

@@ -8,8 +8,8 @@ Front object: :class:`services.edge.vio.manager.VioManager` —
 Modules: ``types`` (options and data), ``imu`` (buffer, preintegration), ``state`` (keyframes,
 map points), ``mono_init`` (two-view E/H), ``vi_init`` (inertial-only MAP), ``tracking``
 (PnP + IMU-aided motion-only optimisation), ``local_mapping`` (association, search by
-projection, triangulation), ``local_ba`` (gtsam visual-inertial BA), ``simulation`` (built-in
-simulator and run/evaluation helpers).
+projection, triangulation), ``local_ba`` (gtsam visual-inertial BA). The built-in simulator
+and its run/evaluation helpers are ``sim.vio``, outside the service.
 """
 
 import logging

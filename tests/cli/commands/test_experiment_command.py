@@ -20,7 +20,7 @@ def parse(argv: list[str]) -> argparse.Namespace:
 
 
 def test_bandwidth_defaults() -> None:
-    from common.netem import shaping_unavailable
+    from sim.netem import shaping_unavailable
 
     args = parse([])
     assert args.func is experiment.run

@@ -12,6 +12,7 @@ from hypothesis import strategies as st
 
 import common.links.robot_edge as robot_edge
 from common.camera import PinholeRadtan
+from common.data.synth.cameras import EUROC_CAM0
 from common.geometry import so3_exp
 from common.links import WireFormat
 from common.links.robot_edge import (
@@ -28,12 +29,11 @@ from common.links.robot_edge import (
 from common.protocol.arrays import pack_array
 from common.protocol.errors import RemoteProtocolError
 from common.protocol.messages import decode_payload, encode_payload
-from services.edge.vio.simulation import EUROC_CAM0
 
 T_BODY_CAM = np.eye(4)  # a camera turned about the body axes and set off a few cm
 T_BODY_CAM[:3, :3] = so3_exp(np.array([0.3, -1.4, 1.2]))
 T_BODY_CAM[:3, 3] = [-0.02, -0.06, 0.01]
-CAM = dataclasses.replace(EUROC_CAM0, T_body_cam=T_BODY_CAM)  # EuRoC cam0 intrinsics
+CAM = EUROC_CAM0.to_calibration(T_BODY_CAM, 20.0)  # EuRoC cam0 intrinsics
 
 
 def on_rays(T_world_body: np.ndarray, uv: np.ndarray, z: np.ndarray) -> np.ndarray:

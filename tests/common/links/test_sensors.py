@@ -22,7 +22,7 @@ from common.links.sensors import (
 )
 from common.protocol import RemoteProtocolError
 from common.protocol.messages import decode_payload, encode_payload
-from services.cloud.simulation import default_camera
+from sim.cloud import default_camera
 
 
 def _rot(rx: float, rz: float) -> np.ndarray:

@@ -16,7 +16,7 @@ import random
 
 import pytest
 
-from common.faultproxy import FaultConfig, FaultProxy
+from sim.faultproxy import FaultConfig, FaultProxy
 from common.protocol import Blob, SessionConfig
 from common.transport import Client, Delivery, Server, TransportConfig, run
 

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from common.netem import shaped_link, shaping_unavailable
+from sim.netem import shaped_link, shaping_unavailable
 
 HERE = Path(__file__).parent
 SECRET = "shaping-test-secret-0123456789"

@@ -21,7 +21,7 @@ from services.cloud.fusion.map_fusion import MapFusion
 from services.cloud.fusion.uplink import UplinkError
 from services.cloud.optimization.mbp import MbpReport
 from services.cloud.service_config import CloudServiceConfig, MbpScheduleConfig
-from services.cloud.simulation import (
+from sim.cloud import (
     circle_poses,
     default_camera,
     encode_keyframe_update,
@@ -262,7 +262,7 @@ def test_mbp_while_running_keeps_its_agents_keyframes_close_in_time(tmp_path, vo
 def test_applied_optimisation_is_durable(tmp_path, vocab):
     from common.geometry import inverse_T
     from services.cloud.optimization.global_optimization import optimize_pose_graph
-    from services.cloud.simulation import yaw_T
+    from sim.cloud import yaw_T
 
     world = make_world(12, n_points=2000)
     poses = circle_poses(10, turns=0.3)

@@ -10,7 +10,7 @@ import pytest
 from common.geometry import inverse_T, transform_points
 from services.cloud.atlas.atlas import Atlas, AtlasError, KeyframeInput, make_key, split_key
 from services.cloud.atlas.map_types import MapPointInput
-from services.cloud.simulation import circle_poses, default_camera, make_session, make_world, yaw_T
+from sim.cloud import circle_poses, default_camera, make_session, make_world, yaw_T
 
 
 @pytest.fixture(scope="module")

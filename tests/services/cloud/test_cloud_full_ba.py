@@ -34,7 +34,7 @@ from services.cloud.service_config import (
     ProcessConfig,
     StoreConfig,
 )
-from services.cloud.simulation import (
+from sim.cloud import (
     circle_poses,
     default_camera,
     encode_keyframe_update,

@@ -22,7 +22,7 @@ from services.cloud.optimization.global_optimization import (
     up_in_body,
 )
 from services.cloud.service_config import ProcessConfig
-from services.cloud.simulation import circle_poses, default_camera, make_session, make_world, yaw_T
+from sim.cloud import circle_poses, default_camera, make_session, make_world, yaw_T
 
 
 def _rmse(atlas, poses, n):

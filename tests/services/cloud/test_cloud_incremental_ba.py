@@ -23,7 +23,7 @@ from services.cloud.optimization.incremental_ba import (
     forget,
     solve_full_ba_incremental,
 )
-from services.cloud.simulation import default_camera, map_scale, problem_prefix, vi_circle_atlas
+from sim.cloud import default_camera, map_scale, problem_prefix, vi_circle_atlas
 
 CFG = dataclasses.replace(FullBAConfig(), incremental=True, incremental_min_keyframes=0)
 GRAPH = GlobalOptimizationConfig()

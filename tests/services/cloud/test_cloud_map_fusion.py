@@ -18,8 +18,8 @@ from services.cloud.config import (
 from services.cloud.fusion.map_fusion import MapFusion
 from services.cloud.fusion.merge import yaw_of
 from services.cloud.optimization.global_optimization import optimize_pose_graph
-from services.cloud.simulation import circle_poses, default_camera, make_session, make_world, yaw_T
 from services.cloud.store.persistence import CloudStore
+from sim.cloud import circle_poses, default_camera, make_session, make_world, yaw_T
 
 
 @pytest.mark.slow

@@ -23,7 +23,7 @@ from services.cloud.optimization.mbp import (
     run_mbp,
     select_backbone,
 )
-from services.cloud.simulation import circle_poses, default_camera, make_session, make_world
+from sim.cloud import circle_poses, default_camera, make_session, make_world
 
 CAM = default_camera()
 

@@ -24,7 +24,7 @@ from services.cloud.service_config import (
     OptimizationScheduleConfig,
     StoreConfig,
 )
-from services.cloud.simulation import (
+from sim.cloud import (
     circle_poses,
     default_camera,
     encode_session,

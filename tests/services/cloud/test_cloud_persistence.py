@@ -9,8 +9,8 @@ import pytest
 
 from common.geometry import inverse_T, make_T
 from services.cloud.atlas.atlas import Atlas, make_key
-from services.cloud.simulation import circle_poses, default_camera, make_session, make_world, yaw_T
 from services.cloud.store.persistence import CloudStore, PersistenceError
+from sim.cloud import circle_poses, default_camera, make_session, make_world, yaw_T
 
 
 def _covis(atlas):

@@ -14,7 +14,7 @@ from services.cloud.fusion.place_recognition import (
     bow_vector,
     l1_score,
 )
-from services.cloud.simulation import circle_poses, default_camera, make_session, make_world, yaw_T
+from sim.cloud import circle_poses, default_camera, make_session, make_world, yaw_T
 
 
 def test_bow_vector_is_l1_normalised_tfidf_and_score_is_dbow2_l1():

@@ -26,7 +26,7 @@ from services.cloud.app import CloudApp
 from services.cloud.atlas.atlas import make_key
 from services.cloud.fusion.map_fusion import MapFusion
 from services.cloud.service_config import CloudServiceConfig
-from services.cloud.simulation import (
+from sim.cloud import (
     circle_poses,
     default_camera,
     encode_keyframe_update,

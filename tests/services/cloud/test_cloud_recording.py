@@ -95,7 +95,7 @@ def test_cloud_server_records_every_applied_message(tmp_path):
     from common.vocabulary import Vocabulary
     from services.cloud.server import CloudServer
     from services.cloud.service_config import CloudServiceConfig, ProcessConfig, StoreConfig
-    from services.cloud.simulation import default_camera
+    from sim.cloud import default_camera
 
     cfg = CloudServiceConfig(
         store=StoreConfig(output_every_s=0), processes=ProcessConfig(optimizer_process=False)

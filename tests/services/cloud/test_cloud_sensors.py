@@ -21,7 +21,7 @@ from services.cloud.core import CloudCore
 from services.cloud.fusion.merge import yaw_of
 from services.cloud.server import open_app
 from services.cloud.service_config import CloudServiceConfig, OptimizationScheduleConfig
-from services.cloud.simulation import (
+from sim.cloud import (
     R_BODY_CAM,
     circle_poses,
     default_camera,

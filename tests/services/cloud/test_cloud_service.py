@@ -36,7 +36,7 @@ from services.cloud.service_config import (
     ProcessConfig,
     StoreConfig,
 )
-from services.cloud.simulation import (
+from sim.cloud import (
     circle_poses,
     default_camera,
     encode_session,
@@ -463,7 +463,7 @@ def _garbage_connection(port: int) -> str:
 def test_map_source_versions_and_pruned_items():
     from common.map_view import MapSource
     from services.cloud.atlas.atlas import Atlas
-    from services.cloud.simulation import default_camera as cam
+    from sim.cloud import default_camera as cam
     from services.cloud.store.map_source import CloudView
 
     world = make_world(3, n_points=800)

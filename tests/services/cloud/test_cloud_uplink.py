@@ -19,7 +19,8 @@ from services.cloud.fusion.uplink import (
     decode_keyframe_update,
     decode_map_point_update,
 )
-from services.cloud.simulation import (
+from services.cloud.store.persistence import CloudStore
+from sim.cloud import (
     circle_poses,
     default_camera,
     encode_keyframe_update,
@@ -27,7 +28,6 @@ from services.cloud.simulation import (
     make_session,
     make_world,
 )
-from services.cloud.store.persistence import CloudStore
 
 
 @pytest.fixture(scope="module")

@@ -19,7 +19,7 @@ from services.cloud.config import (
 from services.cloud.fusion.merge import MergeError, align_points, apply_match, yaw_of
 from services.cloud.fusion.place_recognition import KeyframeDatabase, PlaceRecognizer
 from services.cloud.fusion.verification import covisible_agreement, match_by_words, verify_candidate
-from services.cloud.simulation import (
+from sim.cloud import (
     World,
     circle_poses,
     default_camera,

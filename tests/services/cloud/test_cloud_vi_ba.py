@@ -28,7 +28,7 @@ from services.cloud.optimization.incremental_ba import forget, solve_full_ba_inc
 from services.cloud.optimization.inertial import ImuStore, build_imu_terms
 from services.cloud.server import open_app
 from services.cloud.service_config import CloudServiceConfig, OptimizationScheduleConfig
-from services.cloud.simulation import (
+from sim.cloud import (
     default_camera,
     encode_keyframe_update,
     encode_session,

@@ -160,8 +160,8 @@ def test_the_edge_refuses_bad_descriptions_and_frames_before_one() -> None:
     from common.links.robot_edge import RobotFrame, RobotSensors, sensors_message
     from common.protocol import RejectedMessageError
     from common.transport import Delivery
-    from services.cloud.simulation import default_camera
     from services.edge.app import EdgeApp
+    from sim.cloud import default_camera
 
     good = Sensors(default_camera(), EUROC_IMU)
     other = Sensors(OTHER_CAMERA.to_calibration(default_camera().T_body_cam, 20.0), EUROC_IMU)

@@ -42,14 +42,14 @@ from services.edge.core_events import (
     ToRobot,
     WorkerResult,
 )
-from services.edge.vio.simulation import EUROC_CAM0
 from services.edge.vio.types import FrameObservation
 from services.edge.worker import WorkItem
+from sim.vio import EUROC_CAMERA
 
-SENSORS = Sensors(EUROC_CAM0, EUROC_IMU)
+SENSORS = Sensors(EUROC_CAMERA, EUROC_IMU)
 OTHER = Sensors(
     PinholeRadtan(640, 480, 380.0, 378.5, 315.5, 242.25, -0.22, 0.05, 2e-4, -1e-4).to_calibration(
-        EUROC_CAM0.T_body_cam, 20.0
+        EUROC_CAMERA.T_body_cam, 20.0
     ),
     EUROC_IMU,
 )

@@ -18,8 +18,8 @@ import pytest
 from common.transport import TransportConfig
 from services.edge.app import EdgeConfig
 from services.edge.server import EdgeServer, EdgeServiceConfig
-from services.edge.sim_robot import play, sim_sensors
 from services.edge.worker import ThreadWorker, WorkerSpec, WorkItem, WorkResult
+from sim.robot import play, sim_sensors
 from tests.services.edge.test_edge_service import SECRET, sim_frames, vocab  # noqa: F401
 
 pytestmark = pytest.mark.timeout(240)

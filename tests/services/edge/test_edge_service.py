@@ -33,9 +33,9 @@ from common.transport import Delivery, Server, TransportConfig
 from common.vocabulary import Vocabulary
 from services.edge.app import EdgeConfig
 from services.edge.server import EdgeServer, EdgeServiceConfig
-from services.edge.sim_robot import code_sequence, play, sim_sensors
-from services.edge.vio.simulation import SimConfig, simulate
 from services.edge.worker import MAP_ID_STRIDE, ProcessWorker, WorkerSpec, WorkItem, WorkResult
+from sim.robot import code_sequence, play, sim_sensors
+from sim.vio import SimConfig, simulate
 
 SECRET = b"edge-test-secret-0123456789"
 FAST = TransportConfig(reconnect_initial_delay=0.02, reconnect_max_delay=0.3)

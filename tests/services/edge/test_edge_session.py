@@ -24,9 +24,9 @@ from common.vocabulary import Vocabulary
 from services.edge.feedback import FeedbackPolicy, FeedbackSender
 from services.edge.imu_uplink import ImuUplink
 from services.edge.robot_session import EdgeSessionConfig, RobotSession
-from services.edge.sim_robot import code_sequence
-from services.edge.vio.simulation import SimConfig, simulate
 from services.edge.worker import VioRunner, WorkerSpec
+from sim.robot import code_sequence
+from sim.vio import SimConfig, simulate
 
 RAW = EdgeSessionConfig(wire=WireFormat.RAW)  # these tests pin the schema-1 uplink
 

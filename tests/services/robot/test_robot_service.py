@@ -19,7 +19,6 @@ import pytest
 from common.codec import FeatureDecoder, ImuDecoder, KeyframeFeatures, angle_to_bin
 from common.codec.keypoints import kf_track_q
 from common.data.euroc import EurocSequence
-from common.faultproxy import FaultConfig, FaultProxy
 from common.geometry import so3_exp
 from common.links.robot_edge import InertialFeedback, RobotFrame, RobotSequenceEnd
 from common.protocol import SessionConfig
@@ -30,6 +29,7 @@ from services.robot.app import UsedFrame
 from services.robot.coding import next_stream_numbers
 from services.robot.server import RobotService
 from services.robot.service_config import Rate, RobotServiceConfig
+from sim.faultproxy import FaultConfig, FaultProxy
 
 ROOT = Path(__file__).resolve().parents[3]
 SECRET = b"robot-service-test-secret"

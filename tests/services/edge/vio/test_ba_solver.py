@@ -14,8 +14,8 @@ from services.edge.vio import ba_solver
 from services.edge.vio.ba_solver import Observations, SchurLM, reprojection_terms
 from services.edge.vio.ba_sparse import sparse_spd_solve
 from services.edge.vio.local_ba import bundle_adjust, reprojection_chi2
-from services.edge.vio.simulation import SimConfig, ground_truth_map, simulate
 from services.edge.vio.types import LocalBAConfig, MappingConfig, VioError
+from sim.vio import SimConfig, ground_truth_map, simulate
 
 
 @pytest.fixture(scope="module")

@@ -10,20 +10,20 @@ import pytest
 
 from common.data.synth.cameras import FISHEYE_CAM
 from services.edge.vio.manager import VioManager
-from services.edge.vio.simulation import (
-    EUROC_CAM0,
+from services.edge.vio.state import PinholeUndistorter
+from services.edge.vio.types import FrameObservation
+from sim.vio import (
+    EUROC_CAMERA,
     SimConfig,
     evaluate_run,
     run_sequence,
     simulate,
 )
-from services.edge.vio.state import PinholeUndistorter
-from services.edge.vio.types import FrameObservation
 
 
 @pytest.mark.slow
 def test_fisheye_end_to_end_20s_ate_and_scale() -> None:
-    camera = FISHEYE_CAM.to_calibration(EUROC_CAM0.T_body_cam, 20.0)
+    camera = FISHEYE_CAM.to_calibration(EUROC_CAMERA.T_body_cam, 20.0)
     seq = simulate(SimConfig(duration_s=20.0, seed=0, outlier_ratio=0.05), camera=camera)
     assert max(np.abs(f.keypoints_px - 255.5).max() for f in seq.frames) > 200  # wide angles
     vio = VioManager(seq.camera, seq.imu)
@@ -39,7 +39,7 @@ def test_fisheye_end_to_end_20s_ate_and_scale() -> None:
 
 
 def test_features_looking_ninety_degrees_off_axis_are_dropped() -> None:
-    camera = FISHEYE_CAM.to_calibration(EUROC_CAM0.T_body_cam, 20.0)
+    camera = FISHEYE_CAM.to_calibration(EUROC_CAMERA.T_body_cam, 20.0)
     undistorter = PinholeUndistorter(camera)
     uv = np.array([[255.5, 255.5], [0.0, 0.0], [400.0, 300.0]])  # centre, corner (115 deg)
     xy = undistorter.normalise(uv)
@@ -56,7 +56,7 @@ def test_rows_leaving_the_vio_are_the_robots_rows_when_features_were_left_out() 
     """A fisheye keyframe whose features the VIO partly left out (90 degrees or more off axis)
     still goes up with one point id per robot feature, and each observation row names the
     robot's row of that feature (the uplink indexes the robot's keyframe features with them)."""
-    camera = FISHEYE_CAM.to_calibration(EUROC_CAM0.T_body_cam, 20.0)
+    camera = FISHEYE_CAM.to_calibration(EUROC_CAMERA.T_body_cam, 20.0)
     seq = simulate(SimConfig(duration_s=8.0, seed=0), camera=camera)
     undistorter = PinholeUndistorter(camera)
     frames = {}

@@ -6,8 +6,8 @@ import pytest
 from common.geometry import so3_exp
 from common.preintegration import make_preintegration_params
 from services.edge.vio.local_ba import bundle_adjust, reprojection_chi2
-from services.edge.vio.simulation import SimConfig, ground_truth_map, simulate
 from services.edge.vio.types import LocalBAConfig, MappingConfig
+from sim.vio import SimConfig, ground_truth_map, simulate
 
 
 @pytest.fixture(scope="module")

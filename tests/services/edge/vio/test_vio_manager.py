@@ -5,8 +5,8 @@ import pytest
 
 from common.geometry import umeyama_alignment
 from services.edge.vio.manager import VioManager
-from services.edge.vio.simulation import SimConfig, evaluate_run, run_sequence, simulate
 from services.edge.vio.types import FrameObservation, TrackingStatus, VioError
+from sim.vio import SimConfig, evaluate_run, run_sequence, simulate
 
 
 @pytest.mark.slow

@@ -8,13 +8,13 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from services.edge.vio.manager import VioManager
-from services.edge.vio.simulation import SimConfig, evaluate_run, simulate
 from services.edge.vio.time_offset import (
     TimeOffsetConfig,
     TimeOffsetTracker,
     estimate_time_offset,
 )
 from services.edge.vio.types import TrackingStatus, ViInitConfig, VioConfig
+from sim.vio import SimConfig, evaluate_run, simulate
 
 BIAS = np.array([0.02, -0.01, 0.08])  # rad/s, like the real V2 flights' ADIS16448
 

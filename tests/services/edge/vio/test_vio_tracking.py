@@ -5,10 +5,10 @@ import numpy as np
 from gtsam.symbol_shorthand import L, X
 
 from common.geometry import make_T, so3_exp
-from services.edge.vio.simulation import SimConfig, simulate
 from services.edge.vio.state import PinholeUndistorter, project
 from services.edge.vio.tracking import _optimise, track_frame
 from services.edge.vio.types import TrackingConfig
+from sim.vio import SimConfig, simulate
 
 _UNIT_K = gtsam.Cal3_S2(1.0, 1.0, 0.0, 0.0, 0.0)
 

@@ -6,8 +6,8 @@ import numpy as np
 
 from common.geometry import make_T, so3_exp
 from common.preintegration import make_preintegration_params
-from services.edge.vio.simulation import SimConfig, ground_truth_map, simulate
 from services.edge.vio.vi_init import inertial_only_map, subsample_keyframes
+from sim.vio import SimConfig, ground_truth_map, simulate
 
 
 def _visual_frame_keyframes(n_keyframes: int, pos_noise_m: float, rot_noise_deg: float):

@@ -1,8 +1,8 @@
 """Built-in simulator for the VIO (OpenVINS-style): tracks and IMU without images.
 
 A room of random landmarks (walls, floor, ceiling), a smooth trajectory with analytic
-derivatives, a camera through :func:`common.camera.camera_model` (default EuRoC cam0: pinhole +
-radial-tangential intrinsics and extrinsic), persistent track ids with robot-like keyframes
+derivatives, a camera through :func:`common.camera.camera_model` (default :data:`EUROC_CAMERA`,
+the generator's EuRoC cam0 preset), persistent track ids with robot-like keyframes
 (new tracks start only on keyframes, as ORB runs only there), and 200 Hz IMU with EuRoC
 ADIS16448 white noise and bias random walk. Deterministic per seed.
 """
@@ -17,6 +17,7 @@ import numpy as np
 
 from common.calibration import EUROC_IMU, CameraCalibration, ImuCalibration
 from common.camera import camera_model
+from common.data.synth.cameras import camera_preset
 from common.geometry import inverse_T, umeyama_alignment
 from services.edge.vio.types import FrameObservation, FrameResult
 
@@ -24,25 +25,9 @@ if TYPE_CHECKING:
     from services.edge.vio.manager import VioManager
     from services.edge.vio.state import PinholeUndistorter, VioMap
 
-EUROC_CAM0 = CameraCalibration(
-    width=752,
-    height=480,
-    fx=458.654,
-    fy=457.296,
-    cx=367.215,
-    cy=248.375,
-    distortion=(-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05),
-    T_body_cam=np.array(
-        [
-            [0.0148655429818, -0.999880929698, 0.00414029679422, -0.0216401454975],
-            [0.999557249008, 0.0149672133247, 0.025715529948, -0.064676986768],
-            [-0.0257744366974, 0.00375618835797, 0.999660727178, 0.00981073058949],
-            [0.0, 0.0, 0.0, 1.0],
-        ]
-    ),
-    rate_hz=20.0,
-)
-"""EuRoC cam0 (body = IMU frame in EuRoC)."""
+EUROC_CAMERA = camera_preset("euroc").calibration(20.0)
+"""EuRoC cam0 at 20 Hz: the synthetic generator's preset (:mod:`common.data.synth.cameras`:
+intrinsics, distortion and EuRoC's ``T_body_cam``, body = IMU frame)."""
 
 
 @dataclass(frozen=True)
@@ -162,7 +147,7 @@ def _landmarks(o: SimConfig, rng: np.random.Generator) -> np.ndarray:
 
 def simulate(
     options: SimConfig | None = None,
-    camera: CameraCalibration = EUROC_CAM0,
+    camera: CameraCalibration = EUROC_CAMERA,
     imu: ImuCalibration = EUROC_IMU,
 ) -> SimSequence:
     """Generate one synthetic sequence (deterministic per ``options.seed``)."""

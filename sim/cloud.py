@@ -19,6 +19,7 @@ from common.calibration import EUROC_IMU, CameraCalibration, ImuCalibration
 from common.camera import camera_model
 from common.codec.frames import FeatureEncoder
 from common.codec.types import CodecConfig, KeyframeFeatures
+from common.data.synth.cameras import EUROC_CAM0
 from common.geometry import inverse_T, make_T, so3_exp, transform_points
 from common.links.edge_cloud import (
     KeyframeUpdate,
@@ -31,22 +32,19 @@ from services.cloud.atlas.atlas import Atlas, KeyframeInput, MapPointInput
 from services.cloud.optimization.full_ba import FullBAProblem
 from services.cloud.optimization.inertial import ImuStore, ImuTerms
 
-# Camera z = body x (forward), camera x = -body y, camera y = -body z.
+# The simulated robots' body is gravity-aligned (x forward, z up), unlike EuRoC's IMU frame, so
+# EuRoC's camera sits on a forward-looking mount: camera z = body x, camera x = -body y,
+# camera y = -body z, 5 cm ahead of the body's origin.
 R_BODY_CAM = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+T_BODY_CAM = make_T(R_BODY_CAM, np.array([0.05, 0.0, 0.0]))
+T_BODY_CAM.setflags(write=False)
 
 
 def default_camera() -> CameraCalibration:
-    """EuRoC-like 752×480 camera with radial-tangential distortion, forward-looking."""
-    return CameraCalibration(
-        width=752,
-        height=480,
-        fx=458.654,
-        fy=457.296,
-        cx=367.215,
-        cy=248.375,
-        distortion=(-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05),
-        T_body_cam=make_T(R_BODY_CAM, np.array([0.05, 0.0, 0.0])),
-    )
+    """EuRoC cam0 (752×480 radial-tangential: the synthetic generator's preset,
+    :data:`common.data.synth.cameras.EUROC_CAM0`) at 20 Hz on the forward-looking
+    :data:`T_BODY_CAM`."""
+    return EUROC_CAM0.to_calibration(T_BODY_CAM, 20.0)
 
 
 def yaw_T(yaw: float, t: np.ndarray) -> np.ndarray:
@@ -321,7 +319,7 @@ def encode_session(
     :class:`KeyframeUpdate`, then (if any) one :class:`MapPointUpdate` of the map points that
     keyframe observed first (the lowest keyframe id in a point's observations); observations
     in coded feature indices; ``codec``: the robot's feature codec (default: a 752×480
-    image). For simulations (``services.cloud.simulation.make_session``),
+    image). For simulations (:func:`make_session`),
     tests and benchmarks."""
     coded: dict[int, KeyframeUpdate] = {}
     inv: dict[int, np.ndarray] = {}
