@@ -72,26 +72,32 @@ def counts_markdown(stats: StatsSnapshot) -> str:
     )
 
 
+def agent_label(agent_id: int, name: str | None) -> str:
+    """How the dashboard names an agent: its robot's name (the one the robot, its files and
+    its logs use), or ``agent N`` before the cloud knows it. The cloud numbers agents in the
+    order they joined, so "robot 0" could be ``robot1``: the number alone misled."""
+    return name or f"agent {agent_id}"
+
+
 def agents_markdown(stats: StatsSnapshot, ate_m: dict[int, float | None]) -> str:
     """Agents table; ``ate_m`` supplies the live ATE where the source gave none."""
     rows = [
-        "| Agent | Robot @ edge | Status | Frames | KFs | Last seen | ATE |",
+        "| Robot | Edge | Status | Frames | KFs | Last seen | ATE |",
         "|---|---|---|---:|---:|---:|---:|",
     ]
     for a in stats.agents:
         ate = a.ate_rmse_m if a.ate_rmse_m is not None else ate_m.get(a.agent_id)
         ate_txt = f"{ate:.3f} m" if ate is not None else "–"
         ago = max(stats.time - a.last_seen, 0.0)
-        where = f"{a.name or '–'} @ {a.edge or '–'}"
         rows.append(
-            f"| robot {a.agent_id} | {where} | {a.status.value} | {a.frames} | {a.keyframes} "
-            f"| {ago:.1f} s ago | {ate_txt} |"
+            f"| {agent_label(a.agent_id, a.name)} | {a.edge or '–'} | {a.status.value} "
+            f"| {a.frames} | {a.keyframes} | {ago:.1f} s ago | {ate_txt} |"
         )
     if not stats.agents:
         rows.append("| – | | no agents yet | | | | |")
     # Why a robot is where it is (a refused VI initialisation's numbers, its camera-IMU
     # offset): a line each under the table, not a column (they run long).
-    why = [f"- **robot {a.agent_id}**: {a.detail}" for a in stats.agents if a.detail]
+    why = [f"- **{agent_label(a.agent_id, a.name)}**: {a.detail}" for a in stats.agents if a.detail]
     return "\n".join(rows) + "\n" + ("\n" + "\n".join(why) + "\n" if why else "")
 
 

@@ -17,6 +17,7 @@ import viser
 from common.geometry import R_to_quat_wxyz
 from common.map_view import GroundTruth, MapDelta
 from dashboard.map_state import KeyframeTracks, PointChunks
+from dashboard.panels import agent_label
 
 log = logging.getLogger(__name__)
 
@@ -88,6 +89,7 @@ class MapScene:
     def __init__(self, server: viser.ViserServer, config: SceneConfig) -> None:
         self._server = server
         self._cfg = config
+        self.names: dict[int, str] = {}  # agent -> its robot's name (labels)
         self.points = PointChunks(config.chunk_points, config.max_points)
         self.keyframes = KeyframeTracks()
         self._handles: dict[str, object] = {}
@@ -232,6 +234,16 @@ class MapScene:
             pale = _paler(agent_color(a), 0.35)
             self._lines(f"/map/gt/a{a}", _polyline(g.p_world), pale, self.show_ground_truth)
 
+    def set_names(self, names: dict[int, str]) -> None:
+        """The agents' robot names (from the source's stats): labels drawn before a name was
+        known are drawn again with it (a node added under the same name replaces it)."""
+        for agent, text in names.items():
+            if self.names.get(agent) == text:
+                continue
+            self.names[agent] = text
+            if f"/map/pose/a{agent}" in self._handles:
+                self._server.scene.add_label(f"/map/pose/a{agent}/label", text)
+
     def _send_pose(self, agent: int, T_world_body: np.ndarray) -> None:
         name = f"/map/pose/a{agent}"
         wxyz = R_to_quat_wxyz(T_world_body[:3, :3])
@@ -241,7 +253,7 @@ class MapScene:
             self._handles[name] = self._server.scene.add_frame(
                 name, axes_length=0.3, axes_radius=0.02, wxyz=wxyz, position=pos
             )
-            self._server.scene.add_label(f"{name}/label", f"robot {agent}")
+            self._server.scene.add_label(f"{name}/label", agent_label(agent, self.names.get(agent)))
         else:
             h.wxyz = wxyz  # type: ignore[attr-defined]
             h.position = pos  # type: ignore[attr-defined]

@@ -182,6 +182,8 @@ class Dashboard:
             self.ticks += 1
         if with_stats:
             stats = self._source.stats()
+            with self._lock:
+                self._scene.set_names({a.agent_id: a.name for a in stats.agents if a.name})
             self._panels.update(stats, self._live_ate())
             self.stats_updates += 1
 

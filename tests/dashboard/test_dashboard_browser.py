@@ -140,11 +140,11 @@ def test_dashboard_draws_points_and_panels_in_chromium(browser, tmp_path):
     assert "Map points" in text and str(c.map_points) in text and str(c.map_points_kept) in text
     assert str(c.keyframes) in text and str(c.keyframes_kept) in text
     for a in range(3):
-        assert f"robot {a}" in text
+        assert f"robot{a}\t" in text  # agents by their robot names (a table cell)
     assert "tracking" in text and "merged" in text
     # Edges (two sites in the demo): which robot is on which edge, each edge's link rates.
     assert "site-a→cloud" in text and "site-b→cloud" in text and "robot0→site-a" in text
-    assert "robot0 @ site-a" in text and "robot2 @ site-b" in text
+    assert "robot0\tsite-a" in text and "robot2\tsite-b" in text
     assert "robots→edge" in text and "robot0, robot1" in text and "robot2" in text
     assert "no edges yet" in empty_text
     assert "no agents yet" in empty_text and str(c.map_points) not in empty_text

@@ -167,7 +167,7 @@ def test_edges_show_their_robots_and_link_rates():
     assert (b.robots_up, b.cloud_down) == (1.0, 2.0)
     text = edges_markdown(stats, window_s=5.0)
     assert "| a | r0, r1 | 4.0 / 0.4 | 8.0 / 0.0 |" in text
-    assert "r1 @ b" in agents_markdown(stats, {})
+    assert "| r1 | b |" in agents_markdown(stats, {})
 
 
 def test_agents_say_why_with_the_edges_numbers():
@@ -185,8 +185,8 @@ def test_agents_say_why_with_the_edges_numbers():
         AgentRecord(1, AgentState.TRACKING, 30, 5, 9.0, 1, name="r1"),
     )
     text = agents_markdown(StatsSnapshot(10.0, agents, MapCounts(0, 0, 0, 0, 0, 0), ()), {})
-    assert f"- **robot 0**: {why}" in text
-    assert "**robot 1**" not in text
+    assert f"- **r0**: {why}" in text
+    assert "**r1**" not in text
 
 
 def test_counts_say_the_sources_status_when_it_has_one():

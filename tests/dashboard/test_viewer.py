@@ -67,7 +67,9 @@ def test_dashboard_builds_scene_incrementally_and_toggles_mbp():
         assert {"/map/links/loops", "/map/links/merges"} <= set(names)
         assert len(dash.scene.points) == 4000
         assert "| Map points | 4000 |" in dash._panels.counts.content
-        assert "robot 2" in dash._panels.agents.content and " m |" in dash._panels.agents.content
+        assert "| robot2 | site-b |" in dash._panels.agents.content
+        assert " m |" in dash._panels.agents.content
+        assert dash.scene.names == {0: "robot0", 1: "robot1", 2: "robot2"}  # the labels
         handles = dash.scene._handles
         pruned = [h for n, h in handles.items() if n.startswith("/map/points") and "pruned" in n]
         assert pruned and all(h.visible for h in pruned)

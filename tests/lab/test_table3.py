@@ -20,6 +20,12 @@ from services.cloud.service_config import (
     ProcessConfig,
     StoreConfig,
 )
+from services.cloud.store.recording import (
+    Step,
+    has_schedule,
+    read_recording,
+    read_schedule,
+)
 from sim.cloud import (
     circle_poses,
     default_camera,
@@ -27,12 +33,6 @@ from sim.cloud import (
     make_session,
     make_world,
     yaw_T,
-)
-from services.cloud.store.recording import (
-    Step,
-    has_schedule,
-    read_recording,
-    read_schedule,
 )
 
 

@@ -16,9 +16,9 @@ import random
 
 import pytest
 
-from sim.faultproxy import FaultConfig, FaultProxy
 from common.protocol import Blob, SessionConfig
 from common.transport import Client, Delivery, Server, TransportConfig, run
+from sim.faultproxy import FaultConfig, FaultProxy
 
 SECRET = b"fault-test-secret-0123456789"
 UP, DOWN, CUTS = 10_000, 2_000, 100

@@ -21,6 +21,7 @@ from services.cloud.fusion.map_fusion import MapFusion
 from services.cloud.fusion.uplink import UplinkError
 from services.cloud.optimization.mbp import MbpReport
 from services.cloud.service_config import CloudServiceConfig, MbpScheduleConfig
+from services.cloud.store.persistence import CloudStore
 from sim.cloud import (
     circle_poses,
     default_camera,
@@ -28,7 +29,6 @@ from sim.cloud import (
     make_session,
     make_world,
 )
-from services.cloud.store.persistence import CloudStore
 
 T = TypeVar("T")
 

@@ -24,6 +24,7 @@ from services.cloud.service_config import (
     OptimizationScheduleConfig,
     StoreConfig,
 )
+from services.cloud.store.persistence import CloudStore, PersistenceError
 from sim.cloud import (
     circle_poses,
     default_camera,
@@ -32,7 +33,6 @@ from sim.cloud import (
     make_world,
     yaw_T,
 )
-from services.cloud.store.persistence import CloudStore, PersistenceError
 
 WORLD_SEED = 51
 FRAMES = {  # each robot's map frame T_map_world, per mission

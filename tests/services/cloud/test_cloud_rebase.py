@@ -26,6 +26,7 @@ from services.cloud.app import CloudApp
 from services.cloud.atlas.atlas import make_key
 from services.cloud.fusion.map_fusion import MapFusion
 from services.cloud.service_config import CloudServiceConfig
+from services.cloud.store.persistence import CloudStore
 from sim.cloud import (
     circle_poses,
     default_camera,
@@ -33,7 +34,6 @@ from sim.cloud import (
     make_session,
     make_world,
 )
-from services.cloud.store.persistence import CloudStore
 
 
 @pytest.fixture(scope="module")

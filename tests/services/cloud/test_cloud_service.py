@@ -36,6 +36,7 @@ from services.cloud.service_config import (
     ProcessConfig,
     StoreConfig,
 )
+from services.cloud.store.map_source import CloudMapSource
 from sim.cloud import (
     circle_poses,
     default_camera,
@@ -44,7 +45,6 @@ from sim.cloud import (
     make_world,
     yaw_T,
 )
-from services.cloud.store.map_source import CloudMapSource
 
 SECRET = b"cloud-service-test-secret"
 FAST = TransportConfig(reconnect_initial_delay=0.01, reconnect_max_delay=0.2)
@@ -463,8 +463,8 @@ def _garbage_connection(port: int) -> str:
 def test_map_source_versions_and_pruned_items():
     from common.map_view import MapSource
     from services.cloud.atlas.atlas import Atlas
-    from sim.cloud import default_camera as cam
     from services.cloud.store.map_source import CloudView
+    from sim.cloud import default_camera as cam
 
     world = make_world(3, n_points=800)
     kfs, mps = make_session(world, cam(), 0, circle_poses(6, turns=0.3), np.eye(4), seed=4)
