@@ -197,12 +197,13 @@ class EdgeApp:
 
     async def _to_cloud(self, m: Message) -> None:
         """Send ``m`` to the cloud, counted by the cloud budget (when one applies)."""
+        features = 0
+        if isinstance(m, KeyframeUpdateCoded | KeyframeUpdate) and m.agent_id in self.robots:
+            sent = self.robots[m.agent_id].session.features_uplinked
+            features = sent.pop((m.map_id, m.keyframe_id), 0)
         if self.config.cloud_budget.active:
-            keyframe = isinstance(m, KeyframeUpdateCoded) or (
-                isinstance(m, KeyframeUpdate) and bool(m.features)
-            )
             now = asyncio.get_running_loop().time()
-            self.cloud_budget.on_sent(now, len(encode_payload(m)), keyframe)
+            self.cloud_budget.on_sent(now, len(encode_payload(m)), features)
         await self.sink.to_cloud(m)
 
     def _allowance(self, s: RobotSession) -> None:

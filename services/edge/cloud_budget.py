@@ -11,11 +11,14 @@ backbone profiling, which prunes 18-34 % of the keyframes anyway (``mbp_live.md`
 
 Two rules, as on the robot's uplink (``services/robot/uplink_budget.py``):
 
-- **rate**: a robot's next keyframe goes up once ``min_interval_s`` of its camera time has
-  passed since its last uplinked one, where the interval is what the link affords: the
-  edge->cloud bytes per uplinked keyframe (everything the link carried over the last
-  ``window_s``, points and poses included, over the keyframes in it) times the robots sharing
-  the link, over ``headroom`` of the link's rate;
+- **rate**: each robot gets an equal share of ``headroom`` of the link's rate. A new robot
+  keyframe carries the features that share paid for since the robot's last uplinked one
+  (its camera time since then × the share / the link's measured bytes per uplinked
+  feature, everything it carried over the last ``window_s`` included: points, poses,
+  status), those on map points first, the rest spread over the image. If that is fewer than
+  ``min_features`` it stays on the edge, and the next one has more time behind it. So at a
+  low rate keyframes go up further apart and smaller, rather than only further apart:
+  keeping whole keyframes back made the map too sparse to merge (``budget_cloud.md``);
 - **backlog**: while what already waits in the link would take longer than ``max_delay_s``
   to drain, new keyframes stay on the edge (a cut, or a burst): the reliable backlog stays
   what the map needs, and drains soon after the link is back.
@@ -56,8 +59,10 @@ class CloudBudgetConfig:
             falls further behind merges later and sends its corrections later).
         headroom: share of the rate the keyframes (and what they bring) are planned to fill
             (0.8: status, heartbeats and the transport's framing share the link).
-        window_s: bytes per keyframe and the acknowledgement rate are measured over this long
+        window_s: bytes per feature and the acknowledgement rate are measured over this long
             (20 s: several keyframes of every robot).
+        min_features: a keyframe that could carry fewer stays on the edge (300, as on the
+            robot: fewer cost place recognition and the merge's verification their matches).
     """
 
     budget_kbps: float | None = None
@@ -65,6 +70,7 @@ class CloudBudgetConfig:
     max_delay_s: float = 3.0
     headroom: float = 0.8
     window_s: float = 20.0
+    min_features: int = 300
 
     def __post_init__(self) -> None:
         if self.budget_kbps is not None and not self.budget_kbps > 0:
@@ -96,11 +102,23 @@ class CloudBudgetConfig:
 
 @dataclass(frozen=True)
 class KeyframeAllowance:
-    """What one robot's session may uplink next: robot keyframes at least ``min_interval_s``
-    of camera time apart, none while ``hold`` (the link is behind)."""
+    """What one robot's session may uplink next: ``share_Bps`` of the link [B/s] at
+    ``bytes_per_feature`` [B] (everything the link carries per uplinked feature), keyframes
+    of at least ``min_features``; none while ``hold`` (the link is behind)."""
 
-    min_interval_s: float
+    share_Bps: float = 0.0
+    bytes_per_feature: float = 1.0
+    min_features: int = 300
     hold: bool = False
+
+    def features(self, since_s: float) -> int:
+        """Features a keyframe ``since_s`` [s] of camera time after the robot's last uplinked
+        one may carry (in steps of 50: the measured sizes move a little all the time); 0:
+        it stays on the edge."""
+        if self.hold:
+            return 0
+        n = 50 * int(self.share_Bps * since_s / self.bytes_per_feature / 50)
+        return n if n >= self.min_features else 0
 
 
 class CloudBudget:
@@ -110,7 +128,7 @@ class CloudBudget:
     def __init__(self, config: CloudBudgetConfig | None = None) -> None:
         self.config = config or CloudBudgetConfig()
         self.link = DeliveryRate(self.config.window_s)
-        self._sent: deque[tuple[float, int, bool]] = deque()  # (now, bytes, keyframe)
+        self._sent: deque[tuple[float, int, int]] = deque()  # (now, bytes, features)
         self.sent_bytes = 0
         self.sent_keyframes = 0
 
@@ -119,11 +137,11 @@ class CloudBudget:
         """The link's load at ``now``: bytes waiting and bytes acknowledged so far."""
         self.link.on_link(now, outbox_bytes, acked_bytes)
 
-    def on_sent(self, now: float, nbytes: int, keyframe: bool) -> None:
-        """A message of ``nbytes`` (a keyframe or not) was handed to the link."""
-        self._sent.append((now, int(nbytes), bool(keyframe)))
+    def on_sent(self, now: float, nbytes: int, features: int = 0) -> None:
+        """A message of ``nbytes`` was handed to the link (a keyframe: with ``features``)."""
+        self._sent.append((now, int(nbytes), int(features)))
         self.sent_bytes += int(nbytes)
-        self.sent_keyframes += int(keyframe)
+        self.sent_keyframes += int(features > 0)
         while self._sent and self._sent[0][0] < now - self.config.window_s:
             self._sent.popleft()
 
@@ -135,36 +153,35 @@ class CloudBudget:
             return self.link.rate_Bps()
         return None if cfg.budget_kbps is None else cfg.budget_kbps * 1000.0 / 8.0
 
-    def bytes_per_keyframe(self) -> float | None:
-        """Everything the link carried over the window per keyframe in it [B] (None: no
-        keyframe in the window)."""
-        n = sum(1 for _, _, k in self._sent if k)
+    def bytes_per_feature(self) -> float | None:
+        """Everything the link carried over the window per keyframe feature in it [B] (None:
+        no keyframe in the window)."""
+        n = sum(f for _, _, f in self._sent)
         return sum(b for _, b, _ in self._sent) / n if n else None
 
     def allowance(self, robots: int) -> KeyframeAllowance | None:
-        """The allowance of each of ``robots`` sharing the link (None: every keyframe goes:
-        no budget, or nothing measured yet)."""
+        """The allowance of each of ``robots`` sharing the link (None: every keyframe goes
+        whole: no budget, or nothing measured yet)."""
         rate = self.rate_Bps()
         if rate is None:
             return None
         cfg = self.config
         if self.link.outbox_bytes / rate > cfg.max_delay_s:
-            return KeyframeAllowance(0.0, hold=True)
-        per_kf = self.bytes_per_keyframe()
-        if per_kf is None:
+            return KeyframeAllowance(hold=True)
+        per_feature = self.bytes_per_feature()
+        if per_feature is None:
             return None
-        # (in steps of 0.1 s: the measured sizes move a little all the time)
-        interval = max(1, robots) * per_kf / (cfg.headroom * rate)
-        return KeyframeAllowance(round(interval, 1))
+        share = cfg.headroom * rate / max(1, robots)
+        return KeyframeAllowance(share, per_feature, cfg.min_features)
 
     def stats(self) -> dict[str, Any]:
         rate = self.rate_Bps()
-        per_kf = self.bytes_per_keyframe()
+        per_feature = self.bytes_per_feature()
         return {
             "budget_kbps": self.config.budget_kbps,
             "auto": self.config.auto,
             "rate_kbps": None if rate is None else round(rate * 8e-3, 1),
-            "bytes_per_keyframe": None if per_kf is None else round(per_kf),
+            "bytes_per_feature": None if per_feature is None else round(per_feature, 1),
             "sent_keyframes": self.sent_keyframes,
             "sent_bytes": self.sent_bytes,
         }

@@ -118,6 +118,9 @@ class RobotSession(SessionUplink):
         self._own_kfs: dict[int, set[int]] = {}  # map id -> the VIO's own keyframe ids
         self.cloud_allowance = None  # set by the driver when a cloud budget applies
         self.kept_on_edge = dict.fromkeys(CLOUD_BUDGET_REASONS, 0)
+        self._budget_n = {}
+        self._feature_rows = {}
+        self.features_uplinked = {}
         self._up_prev: dict[tuple[int, int], int | None] = {}
         self._last_up: dict[int, int] = {}
         self._own_sorted: dict[int, np.ndarray] = {}  # map id -> sorted(_own_kfs[map id])

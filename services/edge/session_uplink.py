@@ -49,7 +49,7 @@ from services.edge.cloud_budget import KeyframeAllowance
 from services.edge.imu_uplink import ImuUplink
 from services.edge.point_uplink import Selection, SentPoints, one_point_each
 from services.edge.session_config import EdgeSessionConfig
-from services.edge.vio.types import KeyframeSnapshot, MapUpdate
+from services.edge.vio.types import KeyframeSnapshot, MapPointBatch, MapUpdate
 
 logger = logging.getLogger(__name__)
 
@@ -97,6 +97,11 @@ class SessionUplink:
     # set by the driver, ``EdgeApp``) and the robot keyframes it kept on the edge, by reason.
     cloud_allowance: KeyframeAllowance | None
     kept_on_edge: dict[str, int]
+    _budget_n: dict[tuple[int, int], int | None]  # features a registered keyframe may carry
+    # (map id, keyframe id) -> for each of its robot features, its row in what the cloud was
+    # sent, or -1 (only keyframes the budget cut down to a subset)
+    _feature_rows: dict[tuple[int, int], np.ndarray]
+    features_uplinked: dict[tuple[int, int], int]  # keyframe -> features sent (the driver's)
 
     def _imu_args(
         self, prev: tuple[int, int] | None, key: tuple[int, int], t_ns: int
@@ -148,6 +153,7 @@ class SessionUplink:
                 )
                 continue
             point_ids = np.asarray(kf.point_ids, np.int64)
+            feats, point_ids = self._subset(key, feats, point_ids, self._budget_n.pop(key, None))
             book.add_keys(point_ids[point_ids >= 0], kf.keyframe_id)
             fresh.append((kf, state, feats, point_ids))
             self._sent_kfs.add(key)
@@ -189,6 +195,7 @@ class SessionUplink:
                 )
             )
             timer.add("encode.KeyframeUpdateCoded", time.perf_counter() - t0)
+            self.features_uplinked[(upd.map_id, kf.keyframe_id)] = len(feats)
         msgs[:0] = kf_msgs
         msgs.extend(self.release_points(keep_map=upd.map_id))
         if points is not None:
@@ -291,6 +298,8 @@ class SessionUplink:
             if reason:  # the cloud budget keeps it on the edge, like the VIO's own
                 self.kept_on_edge[reason] += 1
                 robot_keyframe = False
+            else:  # (before it becomes the newest uplinked one)
+                self._budget_n[key] = self._budget_features(map_id, timestamp_ns)
         if not robot_keyframe:
             own.add(kf_id)
             self._own_sorted.pop(map_id, None)
@@ -302,16 +311,46 @@ class SessionUplink:
 
     def _kept_back(self, map_id: int, timestamp_ns: int) -> str:
         """Why the cloud budget keeps a new robot keyframe (at ``timestamp_ns``) of map
-        ``map_id`` on the edge (a reason of ``cloud_budget.REASONS``), or ``""``: it goes up.
-        A map's first keyframe always goes (the cloud must know the map)."""
+        ``map_id`` on the edge (a reason of ``cloud_budget.REASONS``), or ``""``: it goes up
+        (with :meth:`_budget_features` features). A map's first keyframe always goes (the
+        cloud must know the map)."""
         allowance = self.cloud_allowance
         last = self._last_up.get(map_id)
         if allowance is None or last is None:
             return ""
         if allowance.hold:
             return "backlog"
+        return "" if self._budget_features(map_id, timestamp_ns) else "rate"
+
+    def _budget_features(self, map_id: int, timestamp_ns: int) -> int | None:
+        """How many features a new robot keyframe of ``map_id`` may carry up (None: all; 0:
+        none, it stays on the edge)."""
+        allowance = self.cloud_allowance
+        last = self._last_up.get(map_id)
+        if allowance is None or last is None:
+            return None
         since_s = (timestamp_ns - self._kf_time[(map_id, last)]) * 1e-9
-        return "rate" if since_s < 0.95 * allowance.min_interval_s else ""
+        return allowance.features(since_s)
+
+    def _subset(
+        self, key: tuple[int, int], feats: KeyframeFeatures, point_ids: np.ndarray, n: int | None
+    ) -> tuple[KeyframeFeatures, np.ndarray]:
+        """At most ``n`` of a keyframe's features for the cloud: those on map points first,
+        then the others evenly over their canonical order (by level, then row: spread over
+        the image). Remembers the rows kept (``_feature_rows``) so that the points'
+        observations name the rows the cloud has, and drop those it has not."""
+        if n is None or n >= len(feats):
+            return feats, point_ids
+        on_points = np.flatnonzero(point_ids >= 0)
+        others = np.flatnonzero(point_ids < 0)
+        k = max(0, n - len(on_points))
+        pick = others[np.linspace(0, len(others) - 1, k).round().astype(int)] if k else others[:0]
+        keep = np.sort(np.concatenate([on_points[:n], pick]))
+        rows = np.full(len(feats), -1, np.int64)
+        rows[keep] = np.arange(len(keep))
+        self._feature_rows[key] = rows
+        sub = KeyframeFeatures(feats.keypoints[keep], feats.descriptors[keep], feats.links[keep])
+        return sub, point_ids[keep]
 
     def _uplink_raw(self, upd: MapUpdate) -> list[Message]:
         msgs: list[Message] = []
@@ -326,12 +365,14 @@ class SessionUplink:
                 feats = self._kf_features.get(kf.timestamp_ns)
                 if feats is not None:
                     features = encode_standalone_keyframe(self.vocabulary, feats, self.codec)
+                    self.features_uplinked[key] = len(feats)
                 else:
                     logger.warning(
                         "robot %s: features of keyframe %d no longer kept",
                         self.agent_id,
                         kf.keyframe_id,
                     )
+                self._budget_n.pop(key, None)  # (the raw wire sends every feature)
                 prev_key = None if prev is None else (upd.map_id, int(prev))
                 imu = self.imu_uplink.raw(*self._imu_args(prev_key, key, kf.timestamp_ns))
                 self._sent_kfs.add(key)
@@ -372,7 +413,7 @@ class SessionUplink:
         if not upd.points and not book.n_held:
             return None
         own = self._own(upd.map_id)
-        batch = upd.points
+        batch = self._on_rows_sent(upd.map_id, upd.points)
         if len(np.unique(batch.point_ids)) < len(batch):  # a point twice: one at a time
             parts = [
                 book.select(b, own, self.options.point_resend_m) for b in one_point_each(batch)
@@ -383,3 +424,31 @@ class SessionUplink:
             ids, p_world, rows = zip(*sent, strict=True)
             return np.concatenate(ids), np.concatenate(p_world), np.concatenate(rows)
         return book.select(batch, own, self.options.point_resend_m)
+
+    def _on_rows_sent(self, map_id: int, batch: MapPointBatch) -> MapPointBatch:
+        """``batch`` with the observations in keyframes the cloud budget cut down renamed to
+        the rows the cloud has, and those in features it was not sent dropped (a point left
+        with no observation in a robot keyframe is then not sent, as any such point)."""
+        cut = [
+            k for k in np.unique(batch.keyframe_ids).tolist() if (map_id, k) in self._feature_rows
+        ]
+        if not cut:
+            return batch
+        feat = batch.feature_indices.copy()
+        keep = np.ones(len(feat), bool)
+        for k in cut:
+            at = np.flatnonzero(batch.keyframe_ids == k)
+            rows = self._feature_rows[(map_id, k)]
+            inside = feat[at] < len(rows)
+            new = np.full(len(at), -1, np.int64)
+            new[inside] = rows[feat[at][inside]]
+            feat[at] = new
+            keep[at] = new >= 0
+        owner = np.repeat(np.arange(len(batch)), batch.counts)[keep]
+        return MapPointBatch(
+            batch.point_ids,
+            batch.p_world,
+            np.bincount(owner, minlength=len(batch)).astype(np.int64),
+            batch.keyframe_ids[keep],
+            feat[keep],
+        )

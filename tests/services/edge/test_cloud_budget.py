@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from common.codec import KeyframeFeatures
+from common.codec import KeyframeFeatures, decode_standalone_keyframe
 from common.data.synth import EUROC_CAM0
 from common.links.edge_cloud import KeyframeUpdateCoded
 from common.vocabulary import Vocabulary
@@ -21,17 +21,20 @@ def test_no_budget_allows_everything() -> None:
     assert b.allowance(3) is None
 
 
-def test_the_interval_is_what_the_link_carries_per_keyframe_for_every_robot() -> None:
+def test_a_robots_share_pays_for_features_at_the_links_bytes_per_feature() -> None:
     b = CloudBudget(CloudBudgetConfig(budget_kbps=100.0, headroom=0.8))  # 12 500 B/s
-    assert b.allowance(3) is None  # nothing measured yet: every keyframe goes
-    for k in range(4):  # 4 keyframes of 8 kB, and 8 kB of points etc. beside them
-        b.on_sent(float(k), 8_000, True)
-        b.on_sent(k + 0.5, 2_000, False)
-    assert b.bytes_per_keyframe() == pytest.approx(10_000.0)
+    assert b.allowance(3) is None  # nothing measured yet: every keyframe goes whole
+    for k in range(4):  # 4 keyframes of 400 features in 8 kB, and 2 kB of points etc.
+        b.on_sent(float(k), 8_000, 400)
+        b.on_sent(k + 0.5, 2_000)
+    assert b.bytes_per_feature() == pytest.approx(25.0)
     a = b.allowance(3)
-    assert a == KeyframeAllowance(round(3 * 10_000 / (0.8 * 12_500), 1))  # 3.0 s
+    assert a is not None and a.share_Bps == pytest.approx(0.8 * 12_500 / 3)
+    assert a.features(3.0) == 400  # 3333 B/s x 3 s / 25 B, in steps of 50
+    assert a.features(2.0) == 0  # 266 < 300: it stays on the edge
     b.on_link(5.0, 12_500 * 4, 0)  # 4 s of backlog > max_delay_s 3 s
-    assert b.allowance(3) == KeyframeAllowance(0.0, hold=True)
+    held = b.allowance(3)
+    assert held is not None and held.hold and held.features(100.0) == 0
 
 
 def test_a_bad_budget_names_itself() -> None:
@@ -45,39 +48,63 @@ def test_a_bad_budget_names_itself() -> None:
 
 
 def _keyframe(session: RobotSession, kf_id: int, t_s: float) -> KeyframeSnapshot:
-    """A robot keyframe with 50 features, none on a map point; its features on the session."""
+    """A robot keyframe with 400 features, the first 100 on map points 1000 + row; its
+    features on the session."""
     rng = np.random.default_rng(kf_id)
     t_ns = int(t_s * 1e9)
-    xy = rng.integers(10, 400, (50, 2))
-    kp = np.column_stack([xy, np.zeros(50, int), rng.integers(0, 30, 50)])
-    desc = rng.integers(0, 256, (50, 32), dtype=np.uint8)
-    feats = KeyframeFeatures(kp, desc, np.full(50, -1)).canonical()
+    xy = rng.integers(10, 400, (400, 2))
+    kp = np.column_stack([xy, np.zeros(400, int), rng.integers(0, 30, 400)])
+    desc = rng.integers(0, 256, (400, 32), dtype=np.uint8)
+    feats = KeyframeFeatures(kp, desc, np.full(400, -1)).canonical()
     session._kf_features[t_ns] = feats
     T = np.eye(4)
     T[0, 3] = t_s
     z = np.zeros(3)
+    point_ids = np.full(400, -1)
+    point_ids[:100] = 1000 + np.arange(100)
     return KeyframeSnapshot(
-        kf_id, 0, t_ns, T, z, z, z, np.arange(50), np.full(50, -1), None, robot_keyframe=True
+        kf_id, 0, t_ns, T, z, z, z, np.arange(400), point_ids, None, robot_keyframe=True
     )
 
 
-def test_a_session_uplinks_keyframes_as_far_apart_as_allowed_and_chains_them() -> None:
-    session = RobotSession("r", EUROC_CAM0, Vocabulary.load())
-    session.cloud_allowance = KeyframeAllowance(1.0)
+def _sent(session: RobotSession, kf: KeyframeSnapshot) -> list[KeyframeUpdateCoded]:
+    upd = MapUpdate(0, True, (kf,), MapPointBatch.of(()), ())
+    return [m for m in session._uplink(upd) if isinstance(m, KeyframeUpdateCoded)]
+
+
+def test_a_session_sends_what_its_share_paid_for_and_keeps_the_rest_on_the_edge() -> None:
+    vocab = Vocabulary.load()
+    session = RobotSession("r", EUROC_CAM0, vocab)
+    session.cloud_allowance = KeyframeAllowance(1000.0, 10.0, 300)  # 100 features a second
     sent: list[KeyframeUpdateCoded] = []
-    for k in range(10):  # a keyframe every 0.3 s
-        upd = MapUpdate(0, True, (_keyframe(session, k, 0.3 * k),), MapPointBatch.of(()), ())
-        sent += [m for m in session._uplink(upd) if isinstance(m, KeyframeUpdateCoded)]
-    # the map's first goes; then each once 0.95 s of camera time passed: 0, 4, 8 (1.2 s)
-    assert [m.keyframe_id for m in sent] == [0, 4, 8]
-    assert [m.previous_keyframe_id for m in sent] == [-1, 0, 4]
-    assert session.kept_on_edge == {"rate": 7, "backlog": 0}
-    assert session.vio_keyframes == 3
-    session.cloud_allowance = KeyframeAllowance(0.0, hold=True)
-    upd = MapUpdate(0, True, (_keyframe(session, 10, 3.0),), MapPointBatch.of(()), ())
-    assert not [m for m in session._uplink(upd) if isinstance(m, KeyframeUpdateCoded)]
+    for k in range(12):  # a keyframe every 0.3 s
+        sent += _sent(session, _keyframe(session, k, 0.3 * k))
+    # the map's first goes whole; then one once 3 s paid for 300 features: keyframe 10
+    assert [m.keyframe_id for m in sent] == [0, 10]
+    assert [m.previous_keyframe_id for m in sent] == [-1, 0]
+    assert session.kept_on_edge == {"rate": 10, "backlog": 0}
+    first, cut = (decode_standalone_keyframe(vocab, m.features, session.codec) for m in sent)
+    assert len(first) == 400 and len(cut) == 300
+    rows = session._feature_rows[(0, 10)]
+    assert (rows[:100] >= 0).all()  # every feature on a map point kept
+    assert (rows >= 0).sum() == 300 and (np.sort(rows[rows >= 0]) == np.arange(300)).all()
+    # a point observed in keyframe 10 at a kept and a dropped row: renamed, and dropped
+    dropped = int(np.flatnonzero(rows < 0)[0])
+    batch = MapPointBatch(
+        np.array([7, 8]),
+        np.zeros((2, 3)),
+        np.array([2, 1]),
+        np.array([10, 10, 0]),
+        np.array([150, dropped, 3]),
+    )
+    out = session._on_rows_sent(0, batch)
+    assert out.counts.tolist() == [1, 1]
+    assert out.keyframe_ids.tolist() == [10, 0]
+    assert out.feature_indices.tolist() == [int(rows[150]), 3]
+    session.cloud_allowance = KeyframeAllowance(hold=True)
+    assert not _sent(session, _keyframe(session, 12, 9.0))
     assert session.kept_on_edge["backlog"] == 1
-    session.cloud_allowance = None  # no budget: the next goes, chained to the last sent
-    upd = MapUpdate(0, True, (_keyframe(session, 11, 3.3),), MapPointBatch.of(()), ())
-    (m,) = [m for m in session._uplink(upd) if isinstance(m, KeyframeUpdateCoded)]
-    assert (m.keyframe_id, m.previous_keyframe_id) == (11, 8)
+    session.cloud_allowance = None  # no budget: the next goes whole, chained to the last sent
+    (m,) = _sent(session, _keyframe(session, 13, 9.3))
+    assert (m.keyframe_id, m.previous_keyframe_id) == (13, 10)
+    assert len(decode_standalone_keyframe(vocab, m.features, session.codec)) == 400
