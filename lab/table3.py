@@ -51,12 +51,11 @@ from lab.loop_scoring import (
     score_loops,
 )
 from lab.replay_schedule import RecordedSteps, SolveClock
-from services.cloud.app import CloudApp, Reaction
+from services.cloud.app import CloudApp, Reaction, open_app
 from services.cloud.config import CloudConfig, MbpConfig
 from services.cloud.core import CloudCore
 from services.cloud.core_actions import SolveRequest, SolveResult, solve
 from services.cloud.optimization.mbp import REASONS, backbone
-from services.cloud.server import open_app
 from services.cloud.service_config import CloudServiceConfig, MbpScheduleConfig
 from services.cloud.store.recording import Record, Step, has_schedule, read_schedule
 

@@ -46,9 +46,11 @@ import threading
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
+from common.calibration import CameraCalibration
 from common.evaluation.trajectory import Trajectory
 from common.links import CodecTimer
 from common.links.edge_cloud import (
@@ -537,3 +539,25 @@ class CloudApp(AppOptimization):
 
     def close(self) -> None:
         self.store.close()
+
+
+def open_app(
+    state_dir: str | Path | None,
+    camera: CameraCalibration | None,
+    vocabulary: Vocabulary,
+    config: CloudServiceConfig,
+    positions: PositionStore | None = None,
+) -> CloudApp:
+    """The cloud's :class:`CloudApp` on ``state_dir`` (resumed if it holds a previous run;
+    None: in memory, nothing kept, for tests and replays that drive the app without a
+    folder); ``camera``: the fallback for robots whose calibration never arrives."""
+    store = CloudStore(state_dir)
+    if config.store.mission is not None:
+        store.enter_mission(config.store.mission)
+    atlas = store.load()
+    wg = None
+    if config.word_group_level is not None:
+        words = range(vocabulary.n_words)
+        wg = vocabulary.ancestor_at_level(list(words), config.word_group_level)
+    fusion = MapFusion(camera, vocabulary.idf, config.domain, atlas, wg)
+    return CloudApp(fusion, store, vocabulary, config, positions)

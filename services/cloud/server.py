@@ -57,7 +57,7 @@ from common.protocol import OutboxFullError, SessionConfig
 from common.protocol.errors import LocalProtocolError, RejectedMessageError
 from common.transport import Delivery, Server, TransportConfig
 from common.vocabulary import Vocabulary
-from services.cloud.app import CloudApp, PositionStore
+from services.cloud.app import CloudApp, PositionStore, open_app
 from services.cloud.app_optimization import Correction
 from services.cloud.child_process import child_process_init
 from services.cloud.core import CloudCore
@@ -70,7 +70,6 @@ from services.cloud.core_actions import (
     SolveResult,
 )
 from services.cloud.decode_pool import DecodePool, Predecoded
-from services.cloud.fusion.map_fusion import MapFusion
 from services.cloud.load import BusyMeter
 from services.cloud.optimization.global_optimization import warm_up
 from services.cloud.server_outputs import ServerOutputs
@@ -78,33 +77,12 @@ from services.cloud.service_config import CloudServiceConfig
 from services.cloud.stats import CloudStats
 from services.cloud.store.map_source import CloudMapSource
 from services.cloud.store.output import OutputWriter
-from services.cloud.store.persistence import CloudStore, PersistenceError
+from services.cloud.store.persistence import PersistenceError
 from services.cloud.store.recording import RecordingWriter
 
 log = logging.getLogger(__name__)
 
 T = TypeVar("T")
-
-
-def open_app(
-    state_dir: str | Path,
-    camera: CameraCalibration | None,
-    vocabulary: Vocabulary,
-    config: CloudServiceConfig,
-    positions: PositionStore | None = None,
-) -> CloudApp:
-    """The cloud's :class:`CloudApp` on ``state_dir`` (resumed if it holds a previous run);
-    ``camera``: the fallback for robots whose calibration never arrives."""
-    store = CloudStore(Path(state_dir))
-    if config.store.mission is not None:
-        store.enter_mission(config.store.mission)
-    atlas = store.load()
-    wg = None
-    if config.word_group_level is not None:
-        words = range(vocabulary.n_words)
-        wg = vocabulary.ancestor_at_level(list(words), config.word_group_level)
-    fusion = MapFusion(camera, vocabulary.idf, config.domain, atlas, wg)
-    return CloudApp(fusion, store, vocabulary, config, positions)
 
 
 def _applied(outcomes: Iterable[Outcome], map_id: int, kind: SolveKind) -> bool:

@@ -11,8 +11,8 @@ import pytest
 from common.errors import RecslamError
 from lab.replay_schedule import ReplayDivergedError
 from lab.table3 import replay, service_config
+from services.cloud.app import open_app
 from services.cloud.core_actions import SolveRequest, SolveResult, solve
-from services.cloud.server import open_app
 from services.cloud.service_config import (
     MbpScheduleConfig,
     OptimizationScheduleConfig,

@@ -76,13 +76,15 @@ FIRST_MISSION = "mission-0"
 
 
 class CloudStore:
-    """The cloud's state directory (``<state_dir>/cloud.sqlite``)."""
+    """The cloud's state directory (``<state_dir>/cloud.sqlite``; None: in memory)."""
 
-    def __init__(self, state_dir: str | Path) -> None:
-        self.path = Path(state_dir) / DB_NAME
+    def __init__(self, state_dir: str | Path | None) -> None:
+        # None: an in-memory database (tests, replays): the same schema, nothing kept
+        self.path = Path(":memory:") if state_dir is None else Path(state_dir) / DB_NAME
         try:
-            self.path.parent.mkdir(parents=True, exist_ok=True)
-            self._db = sqlite3.connect(self.path, isolation_level=None)
+            if state_dir is not None:
+                self.path.parent.mkdir(parents=True, exist_ok=True)
+            self._db = sqlite3.connect(str(self.path), isolation_level=None)
             self._db.execute("PRAGMA journal_mode=WAL")
             self._db.execute("PRAGMA synchronous=FULL")
             self._db.executescript(SCHEMA)

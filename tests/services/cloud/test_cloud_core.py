@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from common.vocabulary import Vocabulary
-from services.cloud.app import CloudApp
+from services.cloud.app import CloudApp, open_app
 from services.cloud.config import CloudConfig, FullBAConfig, MbpConfig
 from services.cloud.core import CloudCore, run_inline
 from services.cloud.core_actions import (
@@ -20,7 +20,6 @@ from services.cloud.core_actions import (
     SolveRequest,
     solve,
 )
-from services.cloud.server import open_app
 from services.cloud.service_config import (
     CloudServiceConfig,
     FullBAScheduleConfig,
@@ -91,10 +90,11 @@ def _config(
 
 
 class Feed:
-    """A core over a fresh app, fed one keyframe (with its map points) at a time."""
+    """A core over a fresh in-memory app (no folder, as h11's tests drive its state
+    machine), fed one keyframe (with its map points) at a time."""
 
-    def __init__(self, tmp_path, vocab, steps, config: CloudServiceConfig) -> None:
-        self.app: CloudApp = open_app(tmp_path / "state", default_camera(), vocab, config)
+    def __init__(self, vocab, steps, config: CloudServiceConfig) -> None:
+        self.app: CloudApp = open_app(None, default_camera(), vocab, config)
         self.core = CloudCore(self.app)
         self.steps = {name: iter(s) for name, s in steps.items()}
         self.seq = 0
@@ -112,11 +112,11 @@ class Feed:
 
 
 @pytest.fixture
-def feed(tmp_path, vocab, steps):
+def feed(vocab, steps):
     made: list[Feed] = []
 
     def make(config: CloudServiceConfig) -> Feed:
-        made.append(Feed(tmp_path / str(len(made)), vocab, steps, config))
+        made.append(Feed(vocab, steps, config))
         return made[-1]
 
     yield make

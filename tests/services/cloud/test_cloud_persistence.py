@@ -509,3 +509,15 @@ def test_a_schema_8_state_dir_keeps_its_keyframes_states_and_gets_the_state_colu
     again = CloudStore(tmp_path).load()
     np.testing.assert_allclose(again.keyframe(keys[1]).velocity, v)
     np.testing.assert_allclose(again.keyframe(keys[2]).velocity, k0[2].velocity)
+
+
+def test_an_in_memory_store_keeps_nothing_and_needs_no_folder(tmp_path, monkeypatch) -> None:
+    """``CloudStore(None)`` (``open_app(None, ...)``): the same schema in memory, for tests and
+    replays that drive the app as h11's tests drive its state machine; no file is made."""
+    from services.cloud.store.persistence import CloudStore
+
+    monkeypatch.chdir(tmp_path)
+    store = CloudStore(None)
+    assert store.load().n_keyframes() == 0
+    store.close()
+    assert list(tmp_path.iterdir()) == []

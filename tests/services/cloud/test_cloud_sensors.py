@@ -16,10 +16,10 @@ from common.geometry import inverse_T, make_T
 from common.links.edge_cloud import agent_sensors_message
 from common.links.sensors import Sensors
 from common.vocabulary import Vocabulary
+from services.cloud.app import open_app
 from services.cloud.config import CloudConfig, FullBAConfig, MbpConfig
 from services.cloud.core import CloudCore
 from services.cloud.fusion.merge import yaw_of
-from services.cloud.server import open_app
 from services.cloud.service_config import CloudServiceConfig, OptimizationScheduleConfig
 from sim.cloud import (
     R_BODY_CAM,

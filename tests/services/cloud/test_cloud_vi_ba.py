@@ -18,6 +18,7 @@ from common.links.edge_cloud import KeyframeUpdateCoded
 from common.links.edge_cloud_payloads import KeyframeStates, encode_point_ids, encode_states
 from common.protocol.arrays import pack_array
 from common.vocabulary import Vocabulary
+from services.cloud.app import open_app
 from services.cloud.atlas.atlas import KeyframeInput, make_key
 from services.cloud.config import FullBAConfig, GlobalOptimizationConfig, MbpConfig
 from services.cloud.core import CloudCore
@@ -26,7 +27,6 @@ from services.cloud.fusion.uplink import UplinkError, decode_keyframe_update
 from services.cloud.optimization.full_ba import FullBAProblem, build_full_ba, solve_full_ba
 from services.cloud.optimization.incremental_ba import forget, solve_full_ba_incremental
 from services.cloud.optimization.inertial import ImuStore, build_imu_terms
-from services.cloud.server import open_app
 from services.cloud.service_config import CloudServiceConfig, OptimizationScheduleConfig
 from sim.cloud import (
     default_camera,
