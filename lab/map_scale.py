@@ -17,7 +17,7 @@ its output what it made of them, so a solve that moves the scale shows as a step
 from __future__ import annotations
 
 import logging
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -51,7 +51,7 @@ class SolveTrace:
     """A solve function (:func:`services.cloud.core_actions.solve` by default) that keeps
     each solve's keyframe poses before and after (``snapshots``, in solve order)."""
 
-    inner: object = solve
+    inner: Callable[[SolveRequest], SolveResult] = solve
     snapshots: list[Snapshot] = field(default_factory=list)
 
     def __call__(self, request: SolveRequest) -> SolveResult:
@@ -61,7 +61,7 @@ class SolveTrace:
         self.snapshots.append(
             Snapshot(f"{n} {kind} before", request.map_id, p.keys.copy(), p.T_world_body.copy())
         )
-        result: SolveResult = self.inner(request)  # type: ignore[operator]
+        result = self.inner(request)
         self.snapshots.append(
             Snapshot(
                 f"{n} {kind} after", request.map_id, result.keys.copy(), result.T_world_body.copy()
