@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any, cast
+
 import numpy as np
 import pytest
 
@@ -9,6 +11,7 @@ from common.evaluation.trajectory import Trajectory
 from common.geometry import R_to_quat_wxyz, make_T, quat_wxyz_to_R, so3_exp
 from lab.loop_scoring import KeyframeInfo
 from lab.map_scale import Snapshot, SolveTrace, snapshot_trajectories, stage_scale
+from services.cloud.optimization.global_optimization import PoseGraphResult
 
 
 def _truth(name: str, n: int, phase: float) -> Trajectory:
@@ -55,13 +58,11 @@ def test_the_solve_trace_keeps_poses_before_and_after_each_solve():
         map_id = 3
         problem = type("P", (), {"keys": np.array([1, 2]), "T_world_body": np.eye(4)[None]})()
 
-    class _Result:
-        keys = np.array([1, 2])
-        T_world_body = 2 * np.eye(4)[None]
-
-    trace = SolveTrace(inner=lambda request: _Result())
-    trace(_Request())  # type: ignore[arg-type]
-    trace(_Request())  # type: ignore[arg-type]
+    result = PoseGraphResult(np.array([1, 2]), 2 * np.eye(4)[None], 0.0, 0.0, 1, np.zeros(0))
+    trace = SolveTrace(inner=lambda request: result)
+    request = cast(Any, _Request())
+    trace(request)
+    trace(request)
     labels = [s.label for s in trace.snapshots]
     assert labels == [
         "0 pose graph before",
