@@ -114,6 +114,12 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--ab", action="append", required=True, help="LABEL=RECORDING:DATASET")
     ap.add_argument("--variant", action="append", default=[], help="LABEL:KEY=VALUE,...")
+    ap.add_argument(
+        "--base",
+        default="",
+        help="KEY=VALUE,... applied to every variant first (e.g. full_ba.max_seconds=10000: "
+        "solves not cut by the wall-time budget, so that a loaded machine gives the same result)",
+    )
     ap.add_argument("--jobs", type=int, default=1)
     ap.add_argument("--write", type=Path, default=None, help="write the tables to this file")
     args = ap.parse_args()
@@ -126,11 +132,16 @@ def main() -> None:
         rec, _, data = rest.partition(":")
         runs.append((label, Path(rec), Path(data)))
     variants = [("default", "")] + [tuple(v.split(":", 1)) for v in args.variant]
-    jobs = [(lab, rec, data, v, spec) for lab, rec, data in runs for v, spec in variants]
+    jobs = [
+        (lab, rec, data, v, ",".join(filter(None, (args.base, spec))))
+        for lab, rec, data in runs
+        for v, spec in variants
+    ]
     with concurrent.futures.ProcessPoolExecutor(max_workers=args.jobs) as pool:
         results = list(pool.map(run_one, *zip(*jobs, strict=True)))
     lines = [
         f"Command: `benchmarks/bench_map_scale.py {' '.join('--ab ' + a for a in args.ab)} "
+        f"--base {args.base!r} "
         f"{' '.join(repr('--variant ' + v) for v in args.variant)}`; commit {git_commit()}; "
         f"{time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}; {platform.machine()}.",
         "",
