@@ -471,12 +471,12 @@ def solve_full_ba(
     built = _build_graph(problem, problem.T_world_body, problem.p_world, config, graph_config)
     result, initial_error, iterations = _levenberg_marquardt(built, config, t0)
     scale = config.imu_noise_scale
-    rounds = config.imu_reweight_rounds if built.n_imu and problem.imu is not None else 0
+    terms = problem.imu
+    rounds = config.imu_reweight_rounds if built.n_imu and terms is not None else 0
     for _ in range(rounds):
-        if time.perf_counter() - t0 > config.max_seconds:
+        if terms is None or time.perf_counter() - t0 > config.max_seconds:
             break
-        assert problem.imu is not None
-        factor = imu_variance_factor(built.graph, built.imu_first, built.n_imu, result, problem.imu)
+        factor = imu_variance_factor(built.graph, built.imu_first, built.n_imu, result, terms)
         new_scale = reweighted_noise_scale(scale, factor, config)
         if abs(np.log(new_scale / scale)) < np.log1p(config.imu_reweight_tolerance):
             break
