@@ -244,6 +244,27 @@ class FullBAConfig:
         noise the agent's newest samples show where it exceeds them 1.5-fold
         (``common.imu.with_measured_noise``, as the edge's VIO does): a real MAV's vibration is
         25-60x the ADIS16448's datasheet; a simulated IMU keeps its calibration.
+    imu_reweight_rounds: after the solve, re-weight the IMU to fit and solve again, at most this
+        many times (default 3; 0: the noise above as it is). Variance component estimation
+        (Förstner 1979): the IMU factors' whitened squared residuals over their redundancy
+        (:func:`services.cloud.optimization.inertial.imu_variance_factor`) scale the noise by
+        its square root. The second-difference measurement above sees a MAV's rotor vibration,
+        which mostly cancels over a keyframe interval: on EuRoC V2_01-03's recorded IMUs along
+        their rendered flights, the preintegrated velocity errs by 0.04 m/s²/√Hz over 0.25-0.5 s
+        against 0.11 measured (x3: 0.33), so the IMU held the map's scale only to ±3.4 % and the
+        scale stayed where the young maps' merges and loops put it (−0.4 to −0.8 %). The fit
+        settles near x0.3 of the measured density (0.033, the error measured against the
+        ground truth), and the same final full BA ends at −0.21 % instead of −0.54 % (joint
+        1.34 -> 0.69 cm); live runs 1.44 -> 0.86 cm, 15 ms offset 3.63 -> 1.15 cm
+        (benchmarks/results/map_scale.md). The rounds stay within ``max_seconds`` (at shutdown
+        ``full_ba_at_shutdown_s``): on a loaded machine they may not all run ...
+    imu_reweight_tolerance: ... stopping when the scale changes by less than this fraction
+        (default 0.1) ...
+    imu_reweight_max_step: ... each round changing it by at most this factor either way
+        (default 10) ...
+    imu_noise_scale_min / imu_noise_scale_max: ... and keeping it within these (defaults 0.25,
+        10: a fit cannot make the IMU four times more certain than its calibration or the
+        measured noise, nor ten times less).
     imu_max_interval_s: keyframe intervals longer than this get no IMU factor (default 3 s) ...
     imu_max_gap_s: ... nor do intervals with two IMU samples further apart (default 0.05 s).
     bias_prior_accel / bias_prior_gyro: sigmas of the prior on the first bias of each agent's
@@ -303,6 +324,11 @@ class FullBAConfig:
     imu_noise_scale: float = 3.0
     imu_noise_from_data: bool = True
     imu_noise_window_samples: int = 4000
+    imu_reweight_rounds: int = 3
+    imu_reweight_tolerance: float = 0.1
+    imu_reweight_max_step: float = 10.0
+    imu_noise_scale_min: float = 0.25
+    imu_noise_scale_max: float = 10.0
     imu_max_interval_s: float = 3.0
     imu_max_gap_s: float = 0.05
     bias_prior_accel: float = 0.1

@@ -30,6 +30,7 @@ corrected poses to the edges exactly as after a pose-graph optimisation.
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import logging
 import time
@@ -60,6 +61,7 @@ from services.cloud.optimization.inertial import (
     ImuTerms,
     add_imu_factors,
     build_imu_terms,
+    imu_variance_factor,
     inertial_states,
 )
 
@@ -150,6 +152,9 @@ class FullBAResult:
     """How it was solved: ``"batch"`` (Levenberg–Marquardt), ``"isam2"`` (an incremental
     update, :mod:`services.cloud.optimization.incremental_ba`; graph errors NaN) or
     ``"isam2-reset"`` (a batch solve that (re)built the map's iSAM2 graph)."""
+    imu_noise_scale: float = float("nan")
+    """The factor on the robots' IMU noise the solve ended with (``imu_noise_scale``, then
+    re-weighted to fit, :func:`solve_full_ba`); NaN without IMU factors."""
 
 
 def _project(
@@ -313,29 +318,35 @@ def gauge_tilt_sigma(problem: FullBAProblem, config: FullBAConfig) -> float:
     return config.gauge_tilt_sigma_rad if imu and not held else 0.0
 
 
-def solve_full_ba(
+@dataclass
+class _Graph:
+    """A built full-BA graph: initial values, loop edges left out, the IMU factors' range."""
+
+    graph: gtsam.NonlinearFactorGraph
+    values: gtsam.Values
+    rejected: list[int]
+    imu_first: int
+    n_imu: int
+
+
+def _build_graph(
     problem: FullBAProblem,
+    T_init: np.ndarray,
+    p_init: np.ndarray,
     config: FullBAConfig,
     graph_config: GlobalOptimizationConfig,
-) -> FullBAResult:
-    """Solve the bundle adjustment with Levenberg–Marquardt (pure; no atlas access).
-
-    At most ``config.max_iterations`` iterations and, after the one that crosses it,
-    ``config.max_seconds`` of wall time (graph construction included)."""
-    t0 = time.perf_counter()
+) -> _Graph:
+    """The problem's graph (module docstring) with initial poses ``T_init`` (N, 4, 4) and
+    points ``p_init`` (P, 3); priors and loop tests at the problem's own estimates."""
     n, n_pts = problem.keys.shape[0], problem.point_keys.shape[0]
-    if n == 0:
-        raise FullBAError("empty full-BA problem")
-    if not 0 <= problem.fixed < n:
-        raise FullBAError(f"fixed index {problem.fixed} outside 0..{n - 1}")
     X = gtsam.symbol_shorthand.X
     L = gtsam.symbol_shorthand.L
     graph = gtsam.NonlinearFactorGraph()
     values = gtsam.Values()
     for i in range(n):
-        values.insert(X(i), pose3(problem.T_world_body[i]))
+        values.insert(X(i), pose3(T_init[i]))
     for j in range(n_pts):
-        values.insert(L(j), np.asarray(problem.p_world[j], np.float64))
+        values.insert(L(j), np.asarray(p_init[j], np.float64))
     prior = gtsam.noiseModel.Isotropic.Sigma(6, graph_config.prior_sigma)
     tilt = gauge_tilt_sigma(problem, config)
     for i in held_indices(problem.fixed, problem.held):
@@ -366,9 +377,9 @@ def solve_full_ba(
             if loop_kernel is not None:
                 noise = gtsam.noiseModel.Robust.Create(loop_kernel, noise)
         graph.add(gtsam.BetweenFactorPose3(X(i), X(j), meas, noise))
-    n_imu = 0
+    imu_first, n_imu = int(graph.size()), 0
     if problem.imu is not None and problem.imu.n_pairs:
-        n_imu = add_imu_factors(graph, values, problem.imu, problem.T_world_body, config)
+        n_imu = add_imu_factors(graph, values, problem.imu, T_init, config)
     obs_kernel = kernel(config.robust_kernel, config.kernel_scale)
     body_P_cam = [pose3(Tbc) for Tbc in problem.T_body_cam]
     noise_of: dict[float, gtsam.noiseModel.Base] = {}
@@ -387,11 +398,19 @@ def solve_full_ba(
                 obs_noise = gtsam.noiseModel.Robust.Create(obs_kernel, obs_noise)
             noise_of[s] = obs_noise
         graph.add(factor(xy, obs_noise, X(kf), L(pt), _UNIT_K, body_P_cam[kf]))
+    return _Graph(graph, values, rejected, imu_first, n_imu)
+
+
+def _levenberg_marquardt(
+    built: _Graph, config: FullBAConfig, t0: float
+) -> tuple[gtsam.Values, float, int]:
+    """Solve ``built``: (values, initial error, iterations); bounded as :func:`solve_full_ba`
+    says."""
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(config.max_iterations)
     params.setRelativeErrorTol(config.relative_error_tol)
     params.setVerbosityLM("SILENT")
-    optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
+    optimizer = gtsam.LevenbergMarquardtOptimizer(built.graph, built.values, params)
     initial_error = error = float(optimizer.error())
     iterations = 0
     try:
@@ -411,11 +430,70 @@ def solve_full_ba(
                 break
     except RuntimeError as exc:  # indeterminant system: keep the last good estimate
         log.warning("full BA: Levenberg-Marquardt stopped after %d iterations: %s", iterations, exc)
-    result = optimizer.values()
+    return optimizer.values(), initial_error, iterations
+
+
+def reweighted_noise_scale(scale: float, factor: float, config: FullBAConfig) -> float:
+    """The IMU noise scale after a solve whose IMU variance factor was ``factor``
+    (:func:`~services.cloud.optimization.inertial.imu_variance_factor`): ``scale ·
+    sqrt(factor)``, the step bounded to ``config.imu_reweight_max_step`` either way and the
+    result to ``[imu_noise_scale_min, imu_noise_scale_max]``; ``scale`` unchanged when the
+    factor is not finite and positive."""
+    if not (np.isfinite(factor) and factor > 0):
+        return scale
+    step = float(
+        np.clip(np.sqrt(factor), 1 / config.imu_reweight_max_step, config.imu_reweight_max_step)
+    )
+    return float(np.clip(scale * step, config.imu_noise_scale_min, config.imu_noise_scale_max))
+
+
+def solve_full_ba(
+    problem: FullBAProblem,
+    config: FullBAConfig,
+    graph_config: GlobalOptimizationConfig,
+) -> FullBAResult:
+    """Solve the bundle adjustment with Levenberg–Marquardt (pure; no atlas access).
+
+    At most ``config.max_iterations`` iterations and, after the one that crosses it,
+    ``config.max_seconds`` of wall time (graph construction included). With IMU factors and
+    ``config.imu_reweight_rounds``, the IMU's noise is then re-weighted to fit (variance
+    component estimation): the IMU variance factor of the solution scales the noise
+    (:func:`reweighted_noise_scale`) and the problem is solved again from the solution, until
+    the scale changes by less than ``imu_reweight_tolerance`` or the rounds run out."""
+    t0 = time.perf_counter()
+    n, n_pts = problem.keys.shape[0], problem.point_keys.shape[0]
+    if n == 0:
+        raise FullBAError("empty full-BA problem")
+    if not 0 <= problem.fixed < n:
+        raise FullBAError(f"fixed index {problem.fixed} outside 0..{n - 1}")
+    X = gtsam.symbol_shorthand.X
+    L = gtsam.symbol_shorthand.L
+    built = _build_graph(problem, problem.T_world_body, problem.p_world, config, graph_config)
+    result, initial_error, iterations = _levenberg_marquardt(built, config, t0)
+    scale = config.imu_noise_scale
+    terms = problem.imu
+    rounds = config.imu_reweight_rounds if built.n_imu and terms is not None else 0
+    for _ in range(rounds):
+        if terms is None or time.perf_counter() - t0 > config.max_seconds:
+            break
+        factor = imu_variance_factor(built.graph, built.imu_first, built.n_imu, result, terms)
+        new_scale = reweighted_noise_scale(scale, factor, config)
+        if abs(np.log(new_scale / scale)) < np.log1p(config.imu_reweight_tolerance):
+            break
+        log.info(
+            "full BA: IMU variance factor %.3g, noise scale %.3g -> %.3g", factor, scale, new_scale
+        )
+        scale = new_scale
+        config = dataclasses.replace(config, imu_noise_scale=scale)
+        T_now = np.array([result.atPose3(X(i)).matrix() for i in range(n)])
+        p_now = np.array([result.atPoint3(L(j)) for j in range(n_pts)]).reshape(n_pts, 3)
+        built = _build_graph(problem, T_now, p_now, config, graph_config)
+        result, _, more = _levenberg_marquardt(built, config, t0)
+        iterations += more
     T_out = np.array([result.atPose3(X(i)).matrix() for i in range(n)])
     p_out = np.array([result.atPoint3(L(j)) for j in range(n_pts)]).reshape(n_pts, 3)
     idx, vel, bg, ba = np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3))
-    if n_imu and problem.imu is not None:
+    if built.n_imu and problem.imu is not None:
         idx, vel, bg, ba = inertial_states(result, problem.imu)
     seconds = time.perf_counter() - t0
     out = FullBAResult(
@@ -424,25 +502,27 @@ def solve_full_ba(
         point_keys=problem.point_keys.copy(),
         p_world=p_out,
         initial_error=initial_error,
-        final_error=float(graph.error(result)),
+        final_error=float(built.graph.error(result)),
         initial_rms_px=rms_px(problem, problem.T_world_body, problem.p_world),
         final_rms_px=rms_px(problem, T_out, p_out),
         iterations=iterations,
-        rejected_edges=np.array(rejected, np.int64),
+        rejected_edges=np.array(built.rejected, np.int64),
         seconds=seconds,
         inertial_index=idx,
         velocity=vel,
         bias_gyro=bg,
         bias_accel=ba,
+        imu_noise_scale=scale if built.n_imu else float("nan"),
     )
     log.info(
-        "full BA: %d keyframes, %d points, %d observations, %d IMU factors, %d iterations in "
-        "%.2f s: "
+        "full BA: %d keyframes, %d points, %d observations, %d IMU factors (noise x%.3g), "
+        "%d iterations in %.2f s: "
         "error %.4g -> %.4g, reprojection RMS %.2f -> %.2f px",
         n,
         n_pts,
         problem.n_observations,
-        n_imu,
+        built.n_imu,
+        scale,
         iterations,
         seconds,
         out.initial_error,

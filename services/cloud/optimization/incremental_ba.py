@@ -93,6 +93,7 @@ class _Solver:
     obs_factors: dict[int, dict[int, int]] = field(default_factory=dict)  # kf -> point -> index
     inertial: set[int] = field(default_factory=set)  # keyframes with V / B
     poses: dict[int, np.ndarray] | None = None  # keyframe key -> its pose in the last result
+    imu_noise_scale: float | None = None  # the batch solve's re-weighted IMU noise scale
     next_slot: int = 0
     next_point: int = 0
     updates: int = 0
@@ -531,6 +532,7 @@ def _result(
         bias_gyro=np.array([b.gyroscope() for b in bias]).reshape(-1, 3),
         bias_accel=np.array([b.accelerometer() for b in bias]).reshape(-1, 3),
         mode=mode,
+        imu_noise_scale=solver.imu_noise_scale or float("nan"),
     )
 
 
@@ -563,6 +565,8 @@ def solve_full_ba_incremental(
     fp = _fingerprint(problem)
     if solver is not None and solver.fingerprint == fp:
         _SOLVERS.move_to_end(name)
+        if solver.imu_noise_scale is not None:  # the IMU weighted as the batch solve found
+            config = dataclasses.replace(config, imu_noise_scale=solver.imu_noise_scale)
         try:
             updates = _update(solver, problem, config, graph_config, t0)
             out = _result(solver, problem, updates, t0, "isam2")
@@ -584,6 +588,9 @@ def solve_full_ba_incremental(
     _SOLVERS.pop(name, None)
     batch = solve_full_ba(problem, config, graph_config)
     solver = _Solver(gtsam.ISAM2(_params(config)), fp)
+    if np.isfinite(batch.imu_noise_scale):
+        solver.imu_noise_scale = batch.imu_noise_scale
+        config = dataclasses.replace(config, imu_noise_scale=batch.imu_noise_scale)
     seeded = dataclasses.replace(problem, T_world_body=batch.T_world_body, p_world=batch.p_world)
     try:
         _update(solver, seeded, config, graph_config, t0, seed=batch)

@@ -269,6 +269,23 @@ def add_imu_factors(
     return len(pims) + int(terms.first.shape[0])
 
 
+def imu_variance_factor(
+    graph: gtsam.NonlinearFactorGraph, first: int, count: int, values: gtsam.Values, terms: ImuTerms
+) -> float:
+    """The IMU's variance factor at a solution (variance component estimation, Förstner 1979):
+    the whitened squared residuals of the ``count`` IMU factors from index ``first`` of
+    ``graph`` (those :func:`add_imu_factors` added) over their redundancy, ``15 K + 6 C - 9 M``
+    (K pairs, C bias priors, M keyframes with velocity and bias; the poses counted as fixed
+    by the images). Near 1 when the assumed noise fits; 0.1 when the IMU agrees with the map
+    ten times better in variance than assumed. NaN when the redundancy is not positive."""
+    n_states = np.unique(np.concatenate([terms.pair_i, terms.pair_j])).size
+    redundancy = 15 * terms.n_pairs + 6 * int(terms.first.shape[0]) - 9 * n_states
+    if redundancy <= 0:
+        return float("nan")
+    chi2 = 2.0 * sum(graph.at(first + k).error(values) for k in range(count))
+    return float(chi2 / redundancy)
+
+
 def inertial_states(
     values: gtsam.Values, terms: ImuTerms
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

@@ -24,9 +24,15 @@ from services.cloud.config import FullBAConfig, GlobalOptimizationConfig, MbpCon
 from services.cloud.core import CloudCore
 from services.cloud.core_actions import SendCorrections, SolveRequest, solve
 from services.cloud.fusion.uplink import UplinkError, decode_keyframe_update
-from services.cloud.optimization.full_ba import FullBAProblem, build_full_ba, solve_full_ba
+from services.cloud.optimization.full_ba import (
+    FullBAProblem,
+    _build_graph,
+    build_full_ba,
+    reweighted_noise_scale,
+    solve_full_ba,
+)
 from services.cloud.optimization.incremental_ba import forget, solve_full_ba_incremental
-from services.cloud.optimization.inertial import ImuStore, build_imu_terms
+from services.cloud.optimization.inertial import ImuStore, build_imu_terms, imu_variance_factor
 from services.cloud.service_config import CloudServiceConfig, OptimizationScheduleConfig
 from sim.cloud import (
     default_camera,
@@ -321,3 +327,89 @@ def test_a_free_gauge_tilt_lets_gravity_level_a_tilted_map(incremental):
         assert abs(yaw) < 1e-3
     assert out["held"] == pytest.approx(1.0, abs=0.01)  # the prior holds the wrong tilt
     assert out["free"] < 0.15, out  # gravity levels the map (0.085° here)
+
+
+def _noisy_store(store: ImuStore, density: float, seed: int = 3) -> ImuStore:
+    """``store``'s agent-0 samples with white noise of ``density`` (accel, m/s²/√Hz; the gyro
+    a twelfth of it, as the ADIS16448's datasheet) added."""
+    buf = store.buffer(0)
+    assert buf is not None
+    t, gyro, accel = buf.timestamps_ns, buf.gyro, buf.accel
+    rng = np.random.default_rng(seed)
+    sd = density / np.sqrt(0.005)  # per 200 Hz sample
+    out = ImuStore()
+    out.add(
+        0,
+        t,
+        gyro + rng.normal(0.0, sd / 12.0, gyro.shape),
+        accel + rng.normal(0.0, sd, accel.shape),
+    )
+    return out
+
+
+def test_the_imu_variance_factor_scales_inversely_with_the_assumed_variance():
+    atlas, store, _ = vi_circle_atlas(40, n_landmarks=300)
+    store = _noisy_store(store, 0.02)
+    cfg = dataclasses.replace(ON, imu_reweight_rounds=0)
+    problem = build_full_ba(atlas, 0, default_camera(), cfg, GRAPH, store, _imu_of)
+    res = solve_full_ba(problem, cfg, GRAPH)
+    assert problem.imu is not None
+    factors = []
+    for scale in (1.0, 2.0):
+        c = dataclasses.replace(cfg, imu_noise_scale=scale)
+        built = _build_graph(problem, res.T_world_body, res.p_world, c, GRAPH)
+        values = built.values  # at the solution's poses; velocities fitted to them
+        factors.append(
+            imu_variance_factor(built.graph, built.imu_first, built.n_imu, values, problem.imu)
+        )
+    assert factors[0] > 0
+    # Bias priors' share aside, four times the variance: a quarter of the factor.
+    assert factors[1] == pytest.approx(factors[0] / 4, rel=0.05)
+
+
+def test_reweighting_lowers_an_overstated_imu_noise_and_recovers_the_scale():
+    atlas, store, truth = vi_circle_atlas(60, scale=1.05)
+    store = _noisy_store(store, 0.02)
+    over = dataclasses.replace(ON, imu_noise_scale=30.0, imu_noise_scale_max=30.0)
+    problem = build_full_ba(atlas, 0, default_camera(), over, GRAPH, store, _imu_of)
+    fixed = solve_full_ba(problem, dataclasses.replace(over, imu_reweight_rounds=0), GRAPH)
+    fitted = solve_full_ba(problem, over, GRAPH)
+    assert fixed.imu_noise_scale == 30.0
+    assert fitted.imu_noise_scale < 10.0  # the measured noise is the sensor's: ~1x fits
+    err_fixed = abs(map_scale(fixed.T_world_body, truth.T_world_body) - 1.0)
+    err_fitted = abs(map_scale(fitted.T_world_body, truth.T_world_body) - 1.0)
+    assert err_fitted < 0.5 * err_fixed
+
+
+def test_reweighted_noise_scale_bounds_each_step_and_the_result():
+    cfg = dataclasses.replace(
+        ON, imu_reweight_max_step=4.0, imu_noise_scale_min=0.5, imu_noise_scale_max=8.0
+    )
+    assert reweighted_noise_scale(3.0, 0.25, cfg) == pytest.approx(1.5)  # sqrt: sigma
+    assert reweighted_noise_scale(3.0, 1e-6, cfg) == pytest.approx(0.75)  # step at most 4x
+    assert reweighted_noise_scale(1.0, 1e-6, cfg) == pytest.approx(0.5)  # floor
+    assert reweighted_noise_scale(3.0, 100.0, cfg) == pytest.approx(8.0)  # ceiling
+    assert reweighted_noise_scale(3.0, float("nan"), cfg) == 3.0
+    assert reweighted_noise_scale(3.0, 0.0, cfg) == 3.0
+
+
+def test_the_incremental_graph_keeps_the_noise_its_batch_solve_fitted():
+    atlas, store, _ = vi_circle_atlas(40, n_landmarks=300)
+    store = _noisy_store(store, 0.02)
+    cfg = dataclasses.replace(
+        ON,
+        incremental=True,
+        incremental_min_keyframes=0,
+        imu_noise_scale=30.0,
+        imu_noise_scale_max=30.0,
+    )
+    session = uuid.uuid4().hex
+    problem = build_full_ba(atlas, 0, default_camera(), cfg, GRAPH, store, _imu_of)
+    try:
+        reset = solve_full_ba_incremental(problem, cfg, GRAPH, session, 0)
+        update = solve_full_ba_incremental(problem, cfg, GRAPH, session, 0)
+    finally:
+        forget(session)
+    assert reset.mode == "isam2-reset" and update.mode == "isam2"
+    assert reset.imu_noise_scale < 10.0  # fitted, not the configured 30
+    assert update.imu_noise_scale == reset.imu_noise_scale
