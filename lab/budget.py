@@ -80,12 +80,13 @@ def parse_rows(text: str) -> list[Row]:
         link, *parts = item.split("/")
         cut = bool(parts) and parts[-1] == "cut"
         parts = parts[:-1] if cut else parts
-        cloud = parts.pop().removeprefix("cloud") if parts and parts[-1][:5] == "cloud" else ""
+        cloud = parts.pop().removeprefix("cloud") if parts and parts[-1][:5] == "cloud" else None
         mode = parts[0] if len(parts) == 1 else "" if not parts else "?"
         if mode not in MODES:
             raise RecslamError(f"row {item!r}: mode must be one of fresh, auto (or none)")
-        if (cloud and not _cloud_budget_ok(cloud)) or item.endswith("/cloud"):
+        if cloud is not None and not _cloud_budget_ok(cloud):
             raise RecslamError(f"row {item!r}: LINK[/MODE][/cloudN][/cut], N kbit/s or auto")
+        cloud = cloud or ""
         if link == "unlimited":
             rows.append(Row(None, mode, cut, cloud))
             continue

@@ -294,12 +294,13 @@ class SessionUplink:
         if kf_id in own:
             return False
         if robot_keyframe and key not in self._up_prev:
-            reason = self._kept_back(map_id, timestamp_ns)
-            if reason:  # the cloud budget keeps it on the edge, like the VIO's own
-                self.kept_on_edge[reason] += 1
+            n = self._budget_features(map_id, timestamp_ns)  # (before it is the newest sent)
+            if n == 0:  # the cloud budget keeps it on the edge, like the VIO's own
+                hold = self.cloud_allowance is not None and self.cloud_allowance.hold
+                self.kept_on_edge["backlog" if hold else "rate"] += 1
                 robot_keyframe = False
-            else:  # (before it becomes the newest uplinked one)
-                self._budget_n[key] = self._budget_features(map_id, timestamp_ns)
+            else:
+                self._budget_n[key] = n
         if not robot_keyframe:
             own.add(kf_id)
             self._own_sorted.pop(map_id, None)
@@ -309,22 +310,10 @@ class SessionUplink:
             self._last_up[map_id] = kf_id
         return True
 
-    def _kept_back(self, map_id: int, timestamp_ns: int) -> str:
-        """Why the cloud budget keeps a new robot keyframe (at ``timestamp_ns``) of map
-        ``map_id`` on the edge (a reason of ``cloud_budget.REASONS``), or ``""``: it goes up
-        (with :meth:`_budget_features` features). A map's first keyframe always goes (the
-        cloud must know the map)."""
-        allowance = self.cloud_allowance
-        last = self._last_up.get(map_id)
-        if allowance is None or last is None:
-            return ""
-        if allowance.hold:
-            return "backlog"
-        return "" if self._budget_features(map_id, timestamp_ns) else "rate"
-
     def _budget_features(self, map_id: int, timestamp_ns: int) -> int | None:
         """How many features a new robot keyframe of ``map_id`` may carry up (None: all; 0:
-        none, it stays on the edge)."""
+        none, it stays on the edge: too little paid for, or the link is behind). A map's first
+        keyframe always goes whole (the cloud must know the map)."""
         allowance = self.cloud_allowance
         last = self._last_up.get(map_id)
         if allowance is None or last is None:

@@ -433,6 +433,13 @@ def _levenberg_marquardt(
     return optimizer.values(), initial_error, iterations
 
 
+def _estimates(values: gtsam.Values, n: int, n_pts: int) -> tuple[np.ndarray, np.ndarray]:
+    """The ``n`` poses (n, 4, 4) and ``n_pts`` points (n_pts, 3) of a full-BA solution."""
+    X, L = gtsam.symbol_shorthand.X, gtsam.symbol_shorthand.L
+    T = np.array([values.atPose3(X(i)).matrix() for i in range(n)])
+    return T, np.array([values.atPoint3(L(j)) for j in range(n_pts)]).reshape(n_pts, 3)
+
+
 def reweighted_noise_scale(scale: float, factor: float, config: FullBAConfig) -> float:
     """The IMU noise scale after a solve whose IMU variance factor was ``factor``
     (:func:`~services.cloud.optimization.inertial.imu_variance_factor`): ``scale ·
@@ -466,8 +473,6 @@ def solve_full_ba(
         raise FullBAError("empty full-BA problem")
     if not 0 <= problem.fixed < n:
         raise FullBAError(f"fixed index {problem.fixed} outside 0..{n - 1}")
-    X = gtsam.symbol_shorthand.X
-    L = gtsam.symbol_shorthand.L
     built = _build_graph(problem, problem.T_world_body, problem.p_world, config, graph_config)
     result, initial_error, iterations = _levenberg_marquardt(built, config, t0)
     scale = config.imu_noise_scale
@@ -485,13 +490,10 @@ def solve_full_ba(
         )
         scale = new_scale
         config = dataclasses.replace(config, imu_noise_scale=scale)
-        T_now = np.array([result.atPose3(X(i)).matrix() for i in range(n)])
-        p_now = np.array([result.atPoint3(L(j)) for j in range(n_pts)]).reshape(n_pts, 3)
-        built = _build_graph(problem, T_now, p_now, config, graph_config)
+        built = _build_graph(problem, *_estimates(result, n, n_pts), config, graph_config)
         result, _, more = _levenberg_marquardt(built, config, t0)
         iterations += more
-    T_out = np.array([result.atPose3(X(i)).matrix() for i in range(n)])
-    p_out = np.array([result.atPoint3(L(j)) for j in range(n_pts)]).reshape(n_pts, 3)
+    T_out, p_out = _estimates(result, n, n_pts)
     idx, vel, bg, ba = np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3))
     if built.n_imu and problem.imu is not None:
         idx, vel, bg, ba = inertial_states(result, problem.imu)
