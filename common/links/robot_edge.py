@@ -122,24 +122,44 @@ class CameraImuOffset(Message):
 
 
 POSE_STATUSES = ("tracking", "initializing", "lost")
-"""``FramePose.status``: the VIO's state at that frame (``services.edge.vio.TrackingStatus``)."""
+"""The VIO's state at a frame (``services.edge.vio.TrackingStatus``); ``FramePose.status`` is
+its index here (one byte on the wire where the name took nine: the pose goes at camera rate)."""
 
 
 @message(0x0304)
 class FramePose(Message):
     """The robot's pose at one of its frames, as the edge's VIO found it: sent for every
     frame the VIO finished, so that the robot (and whoever it serves) has its own pose.
+    Build it with :func:`frame_pose_message`, read it with :func:`pose_status` and
+    :func:`decode_pose`.
 
     ``timestamp_ns``: the frame's camera time; ``map_id``: the edge's map it is in;
-    ``status``: one of :data:`POSE_STATUSES`; ``pose``: 28 bytes, 7 little-endian float32, the
-    unit quaternion (w, x, y, z), w >= 0, of ``R_map_body`` and ``p_map_body`` m
-    (:func:`encode_pose`), in the frame of the robot's own map as the cloud's corrections
-    have moved it; ``b""`` while the VIO has no metric pose (initialising, lost)."""
+    ``status``: the index of the VIO's state in :data:`POSE_STATUSES`; ``pose``: 28 bytes, 7
+    little-endian float32, the unit quaternion (w, x, y, z), w >= 0, of ``R_map_body`` and
+    ``p_map_body`` m (:func:`encode_pose`), in the frame of the robot's own map as the cloud's
+    corrections have moved it; ``b""`` while the VIO has no metric pose (initialising, lost)."""
 
     timestamp_ns: int
     map_id: int
-    status: str
+    status: int
     pose: bytes
+
+
+def frame_pose_message(timestamp_ns: int, map_id: int, status: str, pose: bytes) -> FramePose:
+    """A :class:`FramePose` with ``status`` by name (one of :data:`POSE_STATUSES`;
+    ValueError naming it otherwise)."""
+    if status not in POSE_STATUSES:
+        raise ValueError(f"pose status {status!r} is not one of {POSE_STATUSES}")
+    return FramePose(int(timestamp_ns), int(map_id), POSE_STATUSES.index(status), pose)
+
+
+def pose_status(msg: FramePose) -> str:
+    """The name of a :class:`FramePose`'s status; RemoteProtocolError if it has none."""
+    if not 0 <= msg.status < len(POSE_STATUSES):
+        raise RemoteProtocolError(
+            f"FramePose.status {msg.status!r} is not an index of {POSE_STATUSES}"
+        )
+    return POSE_STATUSES[msg.status]
 
 
 def encode_pose(T_map_body: np.ndarray) -> bytes:
@@ -150,8 +170,7 @@ def encode_pose(T_map_body: np.ndarray) -> bytes:
 def decode_pose(msg: FramePose) -> np.ndarray | None:
     """``T_map_body`` (4, 4) of a :class:`FramePose`, None if it carries none;
     RemoteProtocolError naming the field if the message is malformed."""
-    if msg.status not in POSE_STATUSES:
-        raise RemoteProtocolError(f"FramePose.status {msg.status!r} is not one of {POSE_STATUSES}")
+    pose_status(msg)
     if not msg.pose:
         return None
     return unpack_sent_pose(msg.pose, "FramePose.pose")

@@ -33,7 +33,7 @@ import msgpack
 
 from common.protocol.errors import LocalProtocolError, ProtocolError, RemoteProtocolError
 
-SCHEMA_VERSION = 6
+SCHEMA_VERSION = 7
 """2: the coded link messages (0x0302, 0x0405-0x0407, 0x0502) exist; a schema-1 peer would not
 know them, so it is refused at the handshake with a clear reason. 3: a robot's stream starts
 with its sensors (``RobotSensors`` 0x0203, forwarded as ``AgentSensors`` 0x0408); a schema-2
@@ -43,7 +43,8 @@ schema-3 cloud would refuse each of them. 5: the edge tells a robot its camera-I
 (``CameraImuOffset`` 0x0303) and ``AgentStatus`` carries a ``detail`` and the offset the cloud
 reads the robot's IMU with (``time_offset_ns``). 6: the edge sends a robot its pose at every
 frame (``FramePose`` 0x0304) and the cloud the frames' poses relative to their keyframes
-(``FramePoses`` 0x0409); a schema-5 robot or cloud would not know them."""
+(``FramePoses`` 0x0409); a schema-5 robot or cloud would not know them. 7: ``FramePose.status``
+is an index into ``common.links.robot_edge.POSE_STATUSES``, not the name."""
 CONTROL_MAX_TYPE_ID = 0x00FF
 
 _Converter = Callable[[Any, str], Any]

@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from common.links.edge_cloud import FramePoses, pack_frame_poses
-from common.links.robot_edge import FramePose, encode_pose
+from common.links.robot_edge import FramePose, encode_pose, frame_pose_message
 from services.edge.vio.types import FrameResult, TrackingStatus
 
 
@@ -20,10 +20,10 @@ def frame_pose(result: FrameResult | None, timestamp_ns: int, map_id: int) -> Fr
     """The robot's pose at a frame: ``result`` (None: the VIO failed on the frame at
     ``timestamp_ns`` of map ``map_id`` and starts over, "lost")."""
     if result is None:
-        return FramePose(int(timestamp_ns), int(map_id), "lost", b"")
+        return frame_pose_message(timestamp_ns, map_id, "lost", b"")
     metric = result.status is TrackingStatus.TRACKING
     pose = encode_pose(result.T_world_body) if metric else b""
-    return FramePose(result.timestamp_ns, int(result.map_id), result.status.value, pose)
+    return frame_pose_message(result.timestamp_ns, result.map_id, result.status.value, pose)
 
 
 class FramePoseBatcher:

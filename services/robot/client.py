@@ -85,7 +85,8 @@ class RobotClientConfig:
         live: the live-input limits (queue, IMU wait, gaps, jumps, stalls).
         front_end: front-end options.
         vocabulary: ORB vocabulary file (the repository's default).
-        camera_rate_hz: the camera's rate, to size the outbox (20 Hz).
+        camera_rate_hz: the camera's rate, to size the outbox and to acknowledge the edge's
+            messages with the next frame (20 Hz).
         backlog_s: edge outage the outbox absorbs before back-pressure (1800 s).
         close_timeout_s: longest wait at :meth:`RobotClient.close` for the edge (30 s).
         uplink: the uplink budget: which non-keyframes go (default none: every frame).
@@ -267,6 +268,9 @@ class RobotClient:
             heartbeat_interval=cfg.heartbeat_interval_s,
             idle_timeout=cfg.idle_timeout_s,
             max_outbox_messages=math.ceil(cfg.backlog_s * cfg.camera_rate_hz) + 16,
+            # The edge's poses are acknowledged by the next frame's header (each carries the
+            # cumulative ack) rather than by an Ack frame of their own: at most one frame late.
+            ack_delay=min(0.2, 1.0 / max(cfg.camera_rate_hz, 1e-3)),
         )
         executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="robot-worker")
         try:

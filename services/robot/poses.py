@@ -27,7 +27,13 @@ from typing import TextIO
 import numpy as np
 
 from common.geometry import R_to_quat_wxyz
-from common.links.robot_edge import FramePose, MapPlacement, decode_map_placement, decode_pose
+from common.links.robot_edge import (
+    FramePose,
+    MapPlacement,
+    decode_map_placement,
+    decode_pose,
+    pose_status,
+)
 from common.protocol.errors import RemoteProtocolError
 
 logger = logging.getLogger(__name__)
@@ -105,7 +111,13 @@ class PoseTrack:
         if placed is not None and T is not None:
             global_map, T_global = placed[0], placed[1] @ T
         pose = ReceivedPose(
-            int(msg.timestamp_ns), int(msg.map_id), msg.status, T, latency, global_map, T_global
+            int(msg.timestamp_ns),
+            int(msg.map_id),
+            pose_status(msg),
+            T,
+            latency,
+            global_map,
+            T_global,
         )
         self.received += 1
         self.with_pose += T is not None

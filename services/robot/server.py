@@ -188,6 +188,9 @@ class RobotService:
             idle_timeout=cfg.idle_timeout_s,
             max_outbox_messages=math.ceil(cfg.backlog_s * rate) + 16,
             max_outbox_bytes=cfg.max_backlog_bytes,
+            # The edge's poses are acknowledged by the next frame's header (each carries the
+            # cumulative ack) rather than by an Ack frame of their own: at most one frame late.
+            ack_delay=min(0.2, 1.0 / rate),
         )
 
     def request_stop(self) -> None:

@@ -11,7 +11,12 @@ import pytest
 
 from common.data.euroc import ImuBatch, frames_with_imu
 from common.geometry import make_T
-from common.links.robot_edge import CameraImuOffset, FramePose, RobotFrame, encode_pose
+from common.links.robot_edge import (
+    CameraImuOffset,
+    RobotFrame,
+    encode_pose,
+    frame_pose_message,
+)
 from common.protocol.messages import Blob
 from services.robot.core import (
     ApplyFeedback,
@@ -43,7 +48,9 @@ def imu(ts) -> ImuInput:
 
 
 def pose_of(core: RobotCore, t: int, now: float) -> PoseOut:
-    (out,) = core.handle(EdgeInput(FramePose(t, 0, "tracking", encode_pose(np.eye(4)))), now)
+    (out,) = core.handle(
+        EdgeInput(frame_pose_message(t, 0, "tracking", encode_pose(np.eye(4)))), now
+    )
     assert isinstance(out, PoseOut)
     return out
 
@@ -220,8 +227,9 @@ def test_images_of_the_wrong_size_type_or_encoding_are_dropped_colour_converted(
 def test_a_pose_without_its_capture_still_arrives_and_malformed_ones_do_not() -> None:
     core = RobotCore(W, H)
     out = core.handle(
-        EdgeInput(FramePose(5, 0, "tracking", encode_pose(make_T(np.eye(3), [1, 2, 3])))), 1.0
+        EdgeInput(frame_pose_message(5, 0, "tracking", encode_pose(make_T(np.eye(3), [1, 2, 3])))),
+        1.0,
     )
     assert isinstance(out[0], PoseOut) and out[0].pose.latency_s is None
-    assert core.handle(EdgeInput(FramePose(6, 0, "tracking", b"\x00")), 1.0) == []
+    assert core.handle(EdgeInput(frame_pose_message(6, 0, "tracking", b"\x00")), 1.0) == []
     assert core.stats()["poses"]["rejected"] == 1

@@ -21,6 +21,8 @@ from common.links.robot_edge import (
     decode_map_placement,
     decode_pose,
     encode_pose,
+    frame_pose_message,
+    pose_status,
 )
 from common.protocol import SessionConfig
 from common.protocol.errors import RemoteProtocolError
@@ -43,18 +45,21 @@ pytestmark = pytest.mark.timeout(400)
 
 def test_a_frame_pose_round_trips_at_float32_precision_and_bad_ones_are_named() -> None:
     T = make_T(so3_exp(np.array([0.3, -1.2, 2.0])), np.array([12.5, -3.25, 1.0]))
-    msg = FramePose(1_600_000_000_050_000_000, 3, "tracking", encode_pose(T))
+    msg = frame_pose_message(1_600_000_000_050_000_000, 3, "tracking", encode_pose(T))
     back = decode_payload(FramePose.TYPE_ID, encode_payload(msg))
     assert isinstance(back, FramePose) and len(back.pose) == 28
     T_back = decode_pose(back)
     assert T_back is not None
     assert np.abs(T_back[:3, 3] - T[:3, 3]).max() < 2e-6  # float32 within 16 m
     assert np.abs(T_back[:3, :3] - T[:3, :3]).max() < 1e-6
-    assert decode_pose(FramePose(1, 0, "initializing", b"")) is None
-    with pytest.raises(RemoteProtocolError, match="status 'flying'"):
-        decode_pose(FramePose(1, 0, "flying", b""))
+    assert decode_pose(frame_pose_message(1, 0, "initializing", b"")) is None
+    assert pose_status(back) == "tracking" and len(encode_payload(msg)) <= 48
+    with pytest.raises(ValueError, match="flying"):
+        frame_pose_message(1, 0, "flying", b"")
+    with pytest.raises(RemoteProtocolError, match="status 3 is not an index"):
+        decode_pose(FramePose(1, 0, 3, b""))
     with pytest.raises(RemoteProtocolError, match="27 bytes"):
-        decode_pose(FramePose(1, 0, "tracking", bytes(27)))
+        decode_pose(frame_pose_message(1, 0, "tracking", bytes(27)))
     with pytest.raises(ValueError, match="finite"):
         encode_pose(np.full((4, 4), np.nan))
 
@@ -65,13 +70,13 @@ def test_pose_track_measures_capture_to_pose_latency_and_writes_tum() -> None:
     for k in range(5):  # frames taken 0.05 s apart; only the newest 3 are remembered
         track.captured(1_000_000_000 + 50_000_000 * k, 10.0 + 0.05 * k)
     assert track.pending == 3
-    first = track.on_pose(FramePose(1_000_000_000, 0, "tracking", encode_pose(T)), 11.0)
+    first = track.on_pose(frame_pose_message(1_000_000_000, 0, "tracking", encode_pose(T)), 11.0)
     assert first is not None and first.latency_s is None  # forgotten: no latency
-    late = track.on_pose(FramePose(1_150_000_000, 0, "tracking", encode_pose(T)), 10.4)
+    late = track.on_pose(frame_pose_message(1_150_000_000, 0, "tracking", encode_pose(T)), 10.4)
     assert late is not None and late.latency_s == pytest.approx(0.25)
-    lost = track.on_pose(FramePose(1_200_000_000, 1, "lost", b""), 10.5)
+    lost = track.on_pose(frame_pose_message(1_200_000_000, 1, "lost", b""), 10.5)
     assert lost is not None and lost.T_map_body is None and lost.latency_s == pytest.approx(0.3)
-    assert track.on_pose(FramePose(1_100_000_000, 0, "tracking", b"\x00"), 10.6) is None
+    assert track.on_pose(frame_pose_message(1_100_000_000, 0, "tracking", b"\x00"), 10.6) is None
     s = track.summary()
     assert (s["received"], s["with_pose"], s["rejected"]) == (3, 2, 1)
     assert s["median_s"] == pytest.approx(0.275) and s["max_s"] == pytest.approx(0.3)
@@ -86,18 +91,18 @@ def test_pose_track_measures_capture_to_pose_latency_and_writes_tum() -> None:
 def test_a_placed_map_gives_global_poses_and_a_bad_placement_is_refused() -> None:
     track = PoseTrack()
     T_map_body = make_T(so3_exp(np.array([0.0, 0.0, 0.4])), np.array([1.0, 0.0, 0.5]))
-    before = track.on_pose(FramePose(1_000, 7, "tracking", encode_pose(T_map_body)), 1.0)
+    before = track.on_pose(frame_pose_message(1_000, 7, "tracking", encode_pose(T_map_body)), 1.0)
     assert before is not None and before.T_global_body is None and tum_line(before, True) is None
     T_global_map = make_T(so3_exp(np.array([0.0, 0.0, -1.1])), np.array([-4.0, 2.5, 0.0]))
     place = MapPlacement(7, 2, encode_pose(T_global_map))
     back = decode_payload(MapPlacement.TYPE_ID, encode_payload(place))
     assert isinstance(back, MapPlacement) and track.on_placement(back)
-    after = track.on_pose(FramePose(2_000, 7, "tracking", encode_pose(T_map_body)), 2.0)
+    after = track.on_pose(frame_pose_message(2_000, 7, "tracking", encode_pose(T_map_body)), 2.0)
     assert after is not None and after.global_map == 2 and after.T_global_body is not None
     np.testing.assert_allclose(after.T_global_body, T_global_map @ T_map_body, atol=1e-5)
     assert after.T_map_body is not None
     np.testing.assert_allclose(after.T_map_body, T_map_body, atol=1e-6)  # own frame unchanged
-    other = track.on_pose(FramePose(3_000, 8, "tracking", encode_pose(T_map_body)), 3.0)
+    other = track.on_pose(frame_pose_message(3_000, 8, "tracking", encode_pose(T_map_body)), 3.0)
     assert other is not None and other.T_global_body is None  # map 8 was never placed
     assert not track.on_placement(MapPlacement(8, 2, bytes(20)))
     with pytest.raises(RemoteProtocolError, match=r"MapPlacement\.pose has 20 bytes"):
