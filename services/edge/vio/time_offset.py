@@ -292,16 +292,26 @@ class TimeOffsetTracker:
             self._R.pop(0)
 
     def update(
-        self, imu_t_ns: np.ndarray, gyro: np.ndarray, bias_gyro: np.ndarray, force: bool = False
+        self,
+        imu_t_ns: np.ndarray,
+        gyro: np.ndarray,
+        bias_gyro: np.ndarray,
+        force: bool = False,
+        now_only: bool = False,
     ) -> int | None:
-        """Estimate when due (or ``force``); the new ``offset_ns`` if it changed, else None."""
+        """Estimate when due (or ``force``: at most once per ``every_s``; ``now_only``: now,
+        unless the newest frame was estimated already); the new ``offset_ns`` if it changed,
+        else None."""
         if not self.enabled or len(self._t) < 3:
             return None
         now = self._t[-1]
         o = self.options
         if self._next_ns is not None and now < self._next_ns:
             assert self._last_ns is not None
-            if not force or now - self._last_ns < o.every_s * 1e9:
+            if now_only:
+                if now == self._last_ns:
+                    return None
+            elif not force or now - self._last_ns < o.every_s * 1e9:
                 return None
         every = o.confident_every_s if self.confident else self._every_s
         self._next_ns, self._last_ns = now + int(every * 1e9), now
@@ -327,6 +337,28 @@ class TimeOffsetTracker:
         if abs(est.offset_ns - self.offset_ns) < o.min_change_ms * 1e6:
             return None
         logger.info("camera-IMU time offset %+.2f ms -> %s", self.offset_ns * 1e-6, est)
+        self.offset_ns = est.offset_ns
+        self.updates += 1
+        return self.offset_ns
+
+    def adopt_last(self, k_sigmas: float, min_move_ms: float) -> int | None:
+        """Take the last estimate although it is not confident, when its sigma is within
+        ``max_sigma_ms`` (it lacks only the span) and the offset in use lies more than
+        ``k_sigmas`` of its sigmas and ``min_move_ms`` from it: the data rejects the
+        calibration's value (15 ms off, estimated at 16.1 ± 0.1 ms over 3 s of frames). Over so
+        short a span the sigma understates the error (a few ms on real flights), hence the
+        floor. For the moment the IMU is first used (a VI initialisation) when no confident
+        estimate came in time. The new ``offset_ns``, else None."""
+        est = self.last
+        if not self.enabled or self.confident or est is None or k_sigmas <= 0:
+            return None
+        if not est.sigma_ms <= self.options.max_sigma_ms:
+            return None  # also a non-finite sigma
+        if abs(est.offset_ns - self.offset_ns) * 1e-6 <= max(k_sigmas * est.sigma_ms, min_move_ms):
+            return None
+        logger.info(
+            "camera-IMU time offset %+.2f ms -> %s (not confident)", self.offset_ns * 1e-6, est
+        )
         self.offset_ns = est.offset_ns
         self.updates += 1
         return self.offset_ns

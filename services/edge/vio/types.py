@@ -89,6 +89,14 @@ class ViInitConfig:
     # refinements only partly undo (real V2 flights: robot2 6.3 -> 3.2 cm from 8 s on, robot0
     # and robot1 equal); the price is a first init ~5 s later (6.9-7.9 s after motion there).
     wait_for_time_offset_s: float = 0.0
+    # A first VI initialisation without a confident offset takes an estimate made then whose
+    # sigma is within time_offset.max_sigma_ms (it lacks only the span) when the offset in use
+    # lies more than this many of its sigmas (0: never) and adopt_time_offset_min_ms from it: a
+    # 15 ms offset unknown, estimated at 16.1 ± 0.1 ms over the map's first 3 s, must not start
+    # the map with the IMU read 15 ms out of step (real V2_03: edge VIO 4.3 -> 3.6 cm). The
+    # floor: over so short a span the sigma understates the error by a few ms.
+    adopt_time_offset_sigmas: float = 3.0
+    adopt_time_offset_min_ms: float = 5.0
     # A VI-initialised map whose camera-IMU offset moved by this much [ms] since its last VI
     # (re)solve is refined at once (the IMU between its keyframes was re-sliced) rather than
     # at the next age of refine_after_s (0: never). Real V2 flights with a 15 ms offset found

@@ -45,7 +45,9 @@ class ViInitSchedule:
     def measure_imu_noise(self) -> bool:  # VioManager's
         raise NotImplementedError
 
-    def update_time_offset(self, vmap: VioMap, force: bool = False) -> bool:  # VioManager's
+    def update_time_offset(  # VioManager's
+        self, vmap: VioMap, force: bool = False, adopt: float = 0.0
+    ) -> bool:
         raise NotImplementedError
 
     def _maybe_vi_init(self, vmap: VioMap) -> None:
@@ -66,6 +68,8 @@ class ViInitSchedule:
                     self._last_init_reason = f"VI init waits for the camera-IMU offset{est}"
                     return
                 vmap.last_vi_attempt_ns = kfs[-1].timestamp_ns
+                if offset.enabled and not offset.confident:
+                    self.update_time_offset(vmap, adopt=vopt.adopt_time_offset_sigmas)
         else:
             moved_ms = abs(self._time_offset.offset_ns - vmap.vi_time_offset_ns) * 1e-6
             limit = vopt.refine_on_offset_change_ms
