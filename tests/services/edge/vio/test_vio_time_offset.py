@@ -165,6 +165,31 @@ def test_estimating_on_a_synchronised_run_keeps_the_offset_near_zero() -> None:
     assert m.n_maps == 1 and m.ate_keyframes_m < 0.05
 
 
+def test_an_unconfident_estimate_is_adopted_only_when_it_rejects_the_offset_in_use() -> None:
+    """At a first VI initialisation the tracker may take an estimate that lacks only the span:
+    when its sigma is within max_sigma_ms and it lies more than k sigmas and a floor from the
+    offset in use; never when confident already, never a wide one, never a small move."""
+    t_cam, R, t_imu, gyro = _mav(12.0)
+
+    def short(options: TimeOffsetConfig) -> TimeOffsetTracker:
+        tracker = TimeOffsetTracker(options, offset_ns=0)
+        for t, r in zip(t_cam[:60], R[:60], strict=True):  # 3 s: too short to be confident
+            tracker.add_frame(int(t), r, map_id=0)
+        assert tracker.update(t_imu, gyro, np.zeros(3), now_only=True) is None
+        assert tracker.last is not None and not tracker.last.confident
+        return tracker
+
+    tracker = short(TimeOffsetConfig())
+    assert tracker.last is not None and tracker.last.sigma_ms <= 1.0
+    assert tracker.adopt_last(3.0, 20.0) is None and tracker.offset_ns == 0  # under the floor
+    new = tracker.adopt_last(3.0, 5.0)
+    assert new is not None and abs(new * 1e-6 - 12.0) < 0.5 and tracker.offset_ns == new
+    assert tracker.adopt_last(3.0, 5.0) is None  # nothing left to move
+    strict = short(TimeOffsetConfig(max_sigma_ms=1e-6))  # every estimate "wide"
+    assert strict.adopt_last(3.0, 5.0) is None and strict.offset_ns == 0
+    assert short(TimeOffsetConfig()).adopt_last(0.0, 5.0) is None  # switched off
+
+
 @pytest.mark.slow
 def test_a_map_is_refined_when_its_offset_moves_and_its_first_init_can_wait_for_it() -> None:
     """An IMU 15 ms late, the offset estimated (this smooth simulated flight only gives
