@@ -4,7 +4,9 @@
 the attributes declared here). At each new keyframe ``_maybe_vi_init`` decides: the first VI
 initialisation once the map spans ``vi_init.first_after_s`` with ``vi_init.min_keyframes``
 keyframes (a refused one is retried ``vi_init.retry_interval_s`` later; while the camera-IMU
-offset is estimated and not yet confident, up to ``vi_init.wait_for_time_offset_s`` later),
+offset is estimated and not yet confident, up to ``vi_init.wait_for_time_offset_s`` later;
+without a confident offset it then takes an estimate made at that moment that rejects the offset
+in use, ``vi_init.adopt_time_offset_sigmas``),
 then a refinement at each map age of ``vi_init.refine_after_s``, and at once when the offset
 moved by ``vi_init.refine_on_offset_change_ms`` since the last one.
 :meth:`ViInitSchedule.run_vi_init` runs one (:mod:`services.edge.vio.vi_bootstrap`) over the
