@@ -59,7 +59,7 @@ from services.robot.core import (
     LiveInputConfig,
     RobotCore,
 )
-from services.robot.engine import RobotEngine
+from services.robot.engine import RobotEngine, ack_delay_s
 from services.robot.poses import ReceivedPose
 from services.robot.uplink_budget import UplinkBudget, UplinkBudgetConfig
 
@@ -268,9 +268,7 @@ class RobotClient:
             heartbeat_interval=cfg.heartbeat_interval_s,
             idle_timeout=cfg.idle_timeout_s,
             max_outbox_messages=math.ceil(cfg.backlog_s * cfg.camera_rate_hz) + 16,
-            # The edge's poses are acknowledged by the next frame's header (each carries the
-            # cumulative ack) rather than by an Ack frame of their own: at most one frame late.
-            ack_delay=min(0.2, 1.0 / max(cfg.camera_rate_hz, 1e-3)),
+            ack_delay=ack_delay_s(cfg.camera_rate_hz),
         )
         executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="robot-worker")
         try:

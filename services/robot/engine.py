@@ -65,6 +65,13 @@ def run_job(app: RobotApp, job: Job) -> FrameDone | None:
     return FrameDone(frame, job.timestamp_ns, job.hold_back, predicted)
 
 
+def ack_delay_s(camera_rate_hz: float) -> float:
+    """How long the robot's link holds an acknowledgement of the edge's messages: one camera
+    period (at most 0.2 s), so that it rides on the next frame's header (each carries the
+    cumulative ack) rather than costing an ``Ack`` frame of its own."""
+    return min(0.2, 1.0 / max(camera_rate_hz, 1e-3))
+
+
 class RobotEngine:
     """Core + front end + worker thread on the running loop (see the module docstring)."""
 

@@ -81,7 +81,7 @@ from common.transport import Client, TransportConfig, link_load
 from common.vocabulary import Vocabulary
 from services.robot.app import RobotApp
 from services.robot.core import ImageInput, ImuInput, RobotCore
-from services.robot.engine import RobotEngine
+from services.robot.engine import RobotEngine, ack_delay_s
 from services.robot.poses import PoseTrack, ReceivedPose, open_tum, tum_line
 from services.robot.service_config import (
     Rate,
@@ -188,9 +188,7 @@ class RobotService:
             idle_timeout=cfg.idle_timeout_s,
             max_outbox_messages=math.ceil(cfg.backlog_s * rate) + 16,
             max_outbox_bytes=cfg.max_backlog_bytes,
-            # The edge's poses are acknowledged by the next frame's header (each carries the
-            # cumulative ack) rather than by an Ack frame of their own: at most one frame late.
-            ack_delay=min(0.2, 1.0 / rate),
+            ack_delay=ack_delay_s(rate),
         )
 
     def request_stop(self) -> None:

@@ -296,17 +296,18 @@ class VioManager(ViInitSchedule):
             seg = self._imu.held_segment(a, b) if b > a else None
         return seg
 
-    def update_time_offset(self, vmap: VioMap, force: bool = False, adopt: float = 0.0) -> bool:
+    def update_time_offset(self, vmap: VioMap, force: bool = False, adopt: bool = False) -> bool:
         """Estimate the camera-IMU time offset when due (``force``: now, at most once per
-        ``every_s``; ``adopt`` > 0: now, and take an unconfident estimate that far, in sigmas,
-        from the offset in use); when it moved,
+        ``every_s``; ``adopt``: now, and take an unconfident estimate that rejects the offset
+        in use, ``vi_init.adopt_time_offset_*``); when it moved,
         re-slice the IMU of the map's keyframes the buffer still holds. True if it moved."""
         bias = self._last_bias[1] if self._last_bias is not None else self._bias_guess[1]
         buf = self._imu
-        new = self._time_offset.update(buf.timestamps_ns, buf.gyro, bias, force, adopt > 0)
-        if new is None and adopt > 0:
+        new = self._time_offset.update(buf.timestamps_ns, buf.gyro, bias, force, adopt)
+        if new is None and adopt:
             vopt = self.options.vi_init
-            new = self._time_offset.adopt_last(adopt, vopt.adopt_time_offset_min_ms)
+            k, floor = vopt.adopt_time_offset_sigmas, vopt.adopt_time_offset_min_ms
+            new = self._time_offset.adopt_last(k, floor)
         if (est := self._time_offset.last) is not None:
             self.stats.time_offset_sigma_ms = est.sigma_ms
         if new is None:

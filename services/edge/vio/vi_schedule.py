@@ -48,7 +48,7 @@ class ViInitSchedule:
         raise NotImplementedError
 
     def update_time_offset(  # VioManager's
-        self, vmap: VioMap, force: bool = False, adopt: float = 0.0
+        self, vmap: VioMap, force: bool = False, adopt: bool = False
     ) -> bool:
         raise NotImplementedError
 
@@ -71,7 +71,7 @@ class ViInitSchedule:
                     return
                 vmap.last_vi_attempt_ns = kfs[-1].timestamp_ns
                 if offset.enabled and not offset.confident:
-                    self.update_time_offset(vmap, adopt=vopt.adopt_time_offset_sigmas)
+                    self.update_time_offset(vmap, adopt=vopt.adopt_time_offset_sigmas > 0)
         else:
             moved_ms = abs(self._time_offset.offset_ns - vmap.vi_time_offset_ns) * 1e-6
             limit = vopt.refine_on_offset_change_ms
