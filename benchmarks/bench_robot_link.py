@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -49,8 +48,8 @@ class RobotLink:
 
 def robot_links(name: str, out: Path, rate_hz: float) -> list[RobotLink]:
     """One :class:`RobotLink` per robot of the run in ``out``."""
-    report = (out / "report.md").read_text()
-    ate = re.search(r"Joint ATE RMSE: ([\d.]+) m", report)
+    report = json.loads((out / "report.json").read_text())
+    ate_m = report.get("ate", {}).get("joint_rmse_m")
     rows = []
     for path in sorted((out / "run" / "stats").glob("robot-*.json")):
         stats = json.loads(path.read_text())
@@ -64,10 +63,12 @@ def robot_links(name: str, out: Path, rate_hz: float) -> list[RobotLink]:
                 for t, v in c["by_type"].items()
             }
             per[direction] = (c["bytes"] * 8 / seconds / 1e3, types)
-        lat = re.search(
-            rf"\| {robot} \| (\d+) / (\d+) \| \d+ \| ([\d.]+) \| ([\d.]+) \| ([\d.]+) \|", report
+        lat = report.get("robots", {}).get(robot, {}).get("pose_latency_s") or {}
+        latency = (
+            (f"{lat['median']:.2f}", f"{lat['p95']:.2f}", f"{lat['max']:.2f}")
+            if lat
+            else ("—", "—", "—")
         )
-        latency = (lat.group(3), lat.group(4), lat.group(5)) if lat else ("—", "—", "—")
         rows.append(
             RobotLink(
                 name,
@@ -78,7 +79,7 @@ def robot_links(name: str, out: Path, rate_hz: float) -> list[RobotLink]:
                 per["rx"][0],
                 per["rx"][1],
                 latency,
-                100 * float(ate.group(1)) if ate else float("nan"),
+                100 * float(ate_m) if ate_m is not None else float("nan"),
             )
         )
     return rows
