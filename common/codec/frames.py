@@ -11,6 +11,8 @@ Payload layout (little endian)::
 
 Keyframe body: keypoints (see ``keypoints.py``), continuation links, descriptors (see
 ``descriptors.py``). Non-keyframe body: survival flags, predicted positions, new tracks.
+A keyframe of kind 4 (:data:`KIND_KEYFRAME_CARRY`, ``CodecConfig.carry_track_descriptors``)
+codes no descriptor for a feature that continues a track with one: it carries the track's.
 
 State both ends hold after every frame (:class:`FeatureCodecState`): the active tracks
 (quarter-pixel positions, levels, last descriptor if any), the adaptive descriptor tables and
@@ -44,6 +46,12 @@ KIND_STANDALONE_KEYFRAME = 3
 """A keyframe coded from a fresh state (:func:`encode_standalone_keyframe`): its descriptors
 as one adaptive block, and no table update after it (nothing reads them), so it decodes in
 one pass over the bit planes and leaves the decoder's tables untouched."""
+KIND_KEYFRAME_CARRY = 4
+"""A keyframe whose features that continue a track with a descriptor carry that descriptor
+(no bits for it; ``CodecConfig.carry_track_descriptors``); the others are coded as in kind 1.
+The edge's VIO keeps a map point's first descriptor and binds continued tracks by their link,
+so what a continued feature's new descriptor would tell the edge is what the inter residual
+paid for (~93 of ~170 bits per feature on EuRoC, ``codec.md``)."""
 HEADER = struct.Struct("<BBHH")
 
 
@@ -98,6 +106,20 @@ class FeatureCodecState:
             self.survival_counts.copy(),
             self.link_counts.copy(),
         )
+
+
+def _previous_descriptors(
+    st: FeatureCodecState, links: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The last descriptor (N, 32) uint8 of each keyframe feature's track and whether it
+    has one (N,) bool, from the links (N,) (-1: a new track)."""
+    links = np.asarray(links, np.int64)
+    has_prev = np.zeros(len(links), dtype=bool)
+    prev_desc = np.zeros((len(links), 32), np.uint8)
+    linked = links >= 0
+    has_prev[linked] = st.tracks_has_desc[links[linked]]
+    prev_desc[linked] = st.tracks_desc[links[linked]]
+    return prev_desc, has_prev
 
 
 def _header(kind: int, seq: int, vocab_fp: int) -> bytes:
@@ -214,15 +236,38 @@ class FeatureEncoder(_Base):
             st.link_counts,
             self.config,
         )
-        links = kf.links.astype(np.int64)
-        has_prev = np.zeros(len(kf), dtype=bool)
-        prev_desc = np.zeros((len(kf), 32), np.uint8)
-        linked = links >= 0
-        has_prev[linked] = st.tracks_has_desc[links[linked]]
-        prev_desc[linked] = st.tracks_desc[links[linked]]
-        self._desc.encode(w, st.descriptors, kf.descriptors, prev_desc, has_prev, undo, standalone)
+        prev_desc, has_prev = _previous_descriptors(st, kf.links)
+        # (a keyframe continuing no described track is coded as kind 1: the same body)
+        carry = self.config.carry_track_descriptors and not standalone and bool(has_prev.any())
+        if carry:
+            if not np.array_equal(kf.descriptors[has_prev], prev_desc[has_prev]):
+                raise CodecUsageError(
+                    "with carry_track_descriptors a feature that continues a track with a "
+                    "descriptor must carry it (use FeatureEncoder.carry_descriptors)"
+                )
+            new = ~has_prev
+            self._desc.encode(
+                w, st.descriptors, kf.descriptors[new], prev_desc[new], has_prev[new], undo
+            )
+        else:
+            self._desc.encode(
+                w, st.descriptors, kf.descriptors, prev_desc, has_prev, undo, standalone
+            )
         self._apply_keyframe(st, kf)
-        return self._finish(st, w, KIND_STANDALONE_KEYFRAME if standalone else KIND_KEYFRAME)
+        kind = KIND_STANDALONE_KEYFRAME if standalone else KIND_KEYFRAME
+        return self._finish(st, w, KIND_KEYFRAME_CARRY if carry else kind)
+
+    def carry_descriptors(self, kf: KeyframeFeatures) -> KeyframeFeatures:
+        """``kf`` with each feature that continues a track with a descriptor given that
+        descriptor (``kf`` itself without ``carry_track_descriptors``): what
+        :meth:`encode_keyframe` codes and the decoder returns, in the encoder's present state."""
+        if not self.config.carry_track_descriptors:
+            return kf
+        self._validate_keyframe(kf)
+        prev_desc, has_prev = _previous_descriptors(self.state, kf.links)
+        desc = kf.descriptors.copy()
+        desc[has_prev] = prev_desc[has_prev]
+        return KeyframeFeatures(kf.keypoints, desc, kf.links)
 
     def encode_non_keyframe(self, nkf: NonKeyframeFeatures) -> bytes:
         cfg = self.config
@@ -318,10 +363,12 @@ class FeatureDecoder(_Base):
         kind = vk & 0xF
         out: KeyframeFeatures | NonKeyframeFeatures
         undo: UndoLog = []
-        if kind in (KIND_KEYFRAME, KIND_STANDALONE_KEYFRAME):
+        if kind in (KIND_KEYFRAME, KIND_STANDALONE_KEYFRAME, KIND_KEYFRAME_CARRY):
             st = self.state.copy_sharing_tables()
             try:
-                out = self._decode_keyframe(r, st, undo, kind == KIND_STANDALONE_KEYFRAME)
+                out = self._decode_keyframe(
+                    r, st, undo, kind == KIND_STANDALONE_KEYFRAME, kind == KIND_KEYFRAME_CARRY
+                )
             except BaseException:
                 rollback(st.descriptors, undo)
                 raise
@@ -334,7 +381,12 @@ class FeatureDecoder(_Base):
         return out, st, undo
 
     def _decode_keyframe(
-        self, r: BitReader, st: FeatureCodecState, undo: UndoLog, standalone: bool = False
+        self,
+        r: BitReader,
+        st: FeatureCodecState,
+        undo: UndoLog,
+        standalone: bool = False,
+        carry: bool = False,
     ) -> KeyframeFeatures:
         kp = kpc.decode_kf_keypoints(r, self.config)
         q = kpc.kf_track_q(kp, self.config)
@@ -348,13 +400,13 @@ class FeatureDecoder(_Base):
             st.link_counts,
             self.config,
         )
-        n = kp.shape[0]
-        has_prev = np.zeros(n, dtype=bool)
-        prev_desc = np.zeros((n, 32), np.uint8)
-        linked = links >= 0
-        has_prev[linked] = st.tracks_has_desc[links[linked]]
-        prev_desc[linked] = st.tracks_desc[links[linked]]
-        desc = self._desc.decode(r, st.descriptors, prev_desc, has_prev, undo, standalone)
+        prev_desc, has_prev = _previous_descriptors(st, links)
+        if carry:
+            desc = prev_desc
+            new = ~has_prev
+            desc[new] = self._desc.decode(r, st.descriptors, prev_desc[new], has_prev[new], undo)
+        else:
+            desc = self._desc.decode(r, st.descriptors, prev_desc, has_prev, undo, standalone)
         kf = KeyframeFeatures(kp, desc, links.astype(np.int32))
         self._apply_keyframe(st, kf)
         return kf

@@ -41,6 +41,10 @@ class CodecConfig:
     max_features: the decoder rejects frames announcing more features (16384).
     descriptor_block: features per adaptation block of the descriptor model (256).
     prior_weight: weight (in samples) of the vocabulary's bit prior (2.0).
+    carry_track_descriptors: a keyframe feature that continues a track with a descriptor
+        carries that descriptor and costs no descriptor bits (True; the receiver decodes
+        either way, the payload's kind says which). False: it is coded against it, intra or
+        inter (XOR residual), whichever is cheaper: the paper's [55].
     """
 
     image_width: int = 752
@@ -52,6 +56,7 @@ class CodecConfig:
     max_features: int = 16384
     descriptor_block: int = 256
     prior_weight: float = 2.0
+    carry_track_descriptors: bool = True
 
     def level_scale(self, level: np.ndarray) -> np.ndarray:
         """``scale_factor ** level`` as float64 (same expression everywhere)."""

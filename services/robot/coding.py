@@ -84,6 +84,7 @@ def codec_config_for(front_end: FrontEndConfig, width: int, height: int) -> Code
         n_levels=front_end.orb.n_levels,
         scale_factor=front_end.orb.scale_factor,
         subpixel=round(subpixel),
+        carry_track_descriptors=front_end.carry_track_descriptors,
     )
 
 
@@ -280,7 +281,8 @@ class FrameCoder:
         kf = KeyframeFeatures(kp, frame.descriptors, links.astype(np.int32))
         order = kf.canonical_order()
         coded = KeyframeFeatures(kf.keypoints[order], kf.descriptors[order], kf.links[order])
-        return coded, frame.track_ids[order].astype(np.int64)
+        # A continued track keeps its descriptor (CodecConfig.carry_track_descriptors).
+        return self.encoder.carry_descriptors(coded), frame.track_ids[order].astype(np.int64)
 
     def _non_keyframe(self, frame: TrackedFrame) -> tuple[NonKeyframeFeatures, np.ndarray]:
         self._check_unique(frame)

@@ -186,6 +186,11 @@ class FrontEndConfig:
     """Output keypoints lie on this grid; the tracker continues from the quantised values."""
     keyframe_association_radius_px: float = 3.0
     """A surviving track continues as the nearest keyframe ORB keypoint within this radius."""
+    carry_track_descriptors: bool = True
+    """A keyframe feature that continues a track keeps the descriptor the track got at its
+    first keyframe, and the codec sends none for it (``CodecConfig.carry_track_descriptors``;
+    the map point keeps its first descriptor at the edge anyway). False: the keyframe's own
+    ORB descriptor, coded against the track's (the paper's [55] inter mode)."""
     orb_match_max_hamming: int = 64
     """ORB-matching baseline: largest Hamming distance of an accepted match."""
     orb_match_ratio: float = 0.8

@@ -382,6 +382,14 @@ class FrontEnd:
         ids = np.full(n, -1, np.int64)
         ia, ib = associate_nearest(cur_pts, kps, self.config.keyframe_association_radius_px)
         ids[ib] = cur_ids[ia]
+        desc = feats.descriptors
+        if self.config.carry_track_descriptors and self._desc is not None and len(ia):
+            # A continued track keeps its descriptor: that of the last keyframe's feature
+            # it continues (tracks born since, by top-up, take the new ORB descriptor).
+            row = self._kf_index[survived][ia]
+            had = row >= 0
+            desc = desc.copy()
+            desc[ib[had]] = self._desc[row[had]]
         fresh = ids < 0
         ids[fresh] = self._new_ids(int(fresh.sum()))
         prev_rows = np.flatnonzero(survived)
@@ -395,10 +403,10 @@ class FrontEnd:
         self._kf_index = np.arange(n, dtype=np.int32)
         self._pts = kps
         self._levels = feats.levels.copy()
-        self._desc = feats.descriptors
+        self._desc = desc
         stats.update(n_new=int(fresh.sum()), n_features=n)
         return self._emit(
-            timestamp_ns, True, reason, survived_kf, feats.descriptors, feats.angles, stats, t_start
+            timestamp_ns, True, reason, survived_kf, desc, feats.angles, stats, t_start
         )
 
     def _emit(

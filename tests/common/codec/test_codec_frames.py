@@ -46,6 +46,8 @@ def pair(vocab):
 
 
 def roundtrip(enc, dec, frame):
+    if isinstance(frame, KeyframeFeatures):
+        frame = enc.carry_descriptors(frame)  # continued tracks keep their descriptor
     payload = (
         enc.encode_keyframe(frame)
         if isinstance(frame, KeyframeFeatures)
@@ -76,7 +78,8 @@ def test_orb_keyframe_roundtrip_and_cost(vocab, orb_kf):
 
 
 def test_inter_coding_against_previous_descriptor(vocab, orb_kf):
-    enc, dec = pair(vocab)
+    enc = FeatureEncoder(vocab, CodecConfig(carry_track_descriptors=False))
+    dec = FeatureDecoder(vocab)
     roundtrip(enc, dec, orb_kf)
     # Same features again, each continuing its own track, a few bits flipped: inter wins.
     rng = np.random.default_rng(0)
@@ -88,6 +91,36 @@ def test_inter_coding_against_previous_descriptor(vocab, orb_kf):
     payload = roundtrip(enc, dec, kf2)
     assert 8 * len(payload) / len(kf2) < 100
     assert enc.last_bits.get("word", 0.0) < 0.1 * len(kf2)  # words are not sent for inter
+
+
+def test_continued_tracks_carry_their_descriptor(vocab, orb_kf):
+    """Default: a keyframe feature continuing a track with a descriptor costs no descriptor
+    bits and decodes to the track's descriptor; new features are coded as before."""
+    from common.codec.frames import HEADER, KIND_KEYFRAME_CARRY
+
+    enc, dec = pair(vocab)
+    first = roundtrip(enc, dec, orb_kf)
+    n = len(orb_kf)
+    rng = np.random.default_rng(5)
+    desc = rng.integers(0, 256, (n, 32), dtype=np.uint8)  # fresh descriptors, unlike the track's
+    links = np.where(np.arange(n) % 2 == 0, np.arange(n), -1)  # every other feature continues
+    kf2 = KeyframeFeatures(orb_kf.keypoints, desc, links)
+    assert kf2.is_canonical()
+    with pytest.raises(CodecUsageError, match="carry"):
+        enc.encode_keyframe(kf2)  # the caller must give the track's descriptor
+    carried = enc.carry_descriptors(kf2)
+    cont = links >= 0
+    assert np.array_equal(carried.descriptors[cont], orb_kf.descriptors[cont])
+    assert np.array_equal(carried.descriptors[~cont], desc[~cont])
+    payload = roundtrip(enc, dec, carried)
+    assert HEADER.unpack(payload[: HEADER.size])[1] & 0xF == KIND_KEYFRAME_CARRY
+    # About half the features' descriptors: random ones cost ~256 bits each, ORB's fewer.
+    assert len(payload) < 0.5 * n * 32 + 0.6 * len(first)
+    assert enc.last_bits.get("mode", 0.0) == 0.0  # no inter/intra choice is sent
+    # The same frame with the inter mode costs more (a residual per continued feature).
+    enc_b = FeatureEncoder(vocab, CodecConfig(carry_track_descriptors=False))
+    enc_b.encode_keyframe(orb_kf)
+    assert len(enc_b.encode_keyframe(carried)) > len(payload)
 
 
 def test_empty_and_single_feature_frames(vocab):
@@ -238,7 +271,7 @@ def test_corrupted_or_truncated_payload_raises_codec_error(vocab, stream, data):
 @settings(
     max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
 )
-@given(body=st.binary(min_size=0, max_size=600), kind=st.sampled_from([1, 2, 3]))
+@given(body=st.binary(min_size=0, max_size=600), kind=st.sampled_from([1, 2, 3, 4]))
 def test_garbage_body_with_valid_header_never_crashes(vocab, stream, body, kind):
     """Bypassing the CRC: the parser itself must fail cleanly (CodecError) or decode."""
     dec = FeatureDecoder(vocab)
