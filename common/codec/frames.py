@@ -13,9 +13,12 @@ Keyframe body: keypoints (see ``keypoints.py``), continuation links, descriptors
 ``descriptors.py``). Non-keyframe body: survival flags, predicted positions, new tracks.
 A keyframe of kind 4 (:data:`KIND_KEYFRAME_CARRY`, ``CodecConfig.carry_track_descriptors``)
 codes no descriptor for a feature that continues a track with one: it carries the track's.
+A non-keyframe of kind 5 (:data:`KIND_NON_KEYFRAME_VELOCITY`, ``CodecConfig.track_velocity``)
+may predict a track from its last step.
 
 State both ends hold after every frame (:class:`FeatureCodecState`): the active tracks
-(quarter-pixel positions, levels, last descriptor if any), the adaptive descriptor tables and
+(quarter-pixel positions, levels, last descriptor if any, last step if any), the adaptive
+descriptor tables and
 the adaptive flag counts. Encoder and decoder work on a copy and commit it only after a
 frame was coded completely, so a rejected payload leaves the state untouched. The copy
 shares the 8 MB descriptor tables, which keyframe coding updates in place while recording
@@ -46,6 +49,9 @@ KIND_STANDALONE_KEYFRAME = 3
 """A keyframe coded from a fresh state (:func:`encode_standalone_keyframe`): its descriptors
 as one adaptive block, and no table update after it (nothing reads them), so it decodes in
 one pass over the bit planes and leaves the decoder's tables untouched."""
+KIND_NON_KEYFRAME_VELOCITY = 5
+"""A non-keyframe whose survivors may be predicted by their track's last step
+(``CodecConfig.track_velocity``, :func:`common.codec.keypoints.encode_non_keyframe_velocity`)."""
 KIND_KEYFRAME_CARRY = 4
 """A keyframe whose features that continue a track with a descriptor carry that descriptor
 (no bits for it; ``CodecConfig.carry_track_descriptors``); the others are coded as in kind 1.
@@ -61,6 +67,8 @@ class FeatureCodecState:
 
     tracks_q: (T, 2) int64 level-0 positions in 1/subpixel px. tracks_level: (T,) int64.
     tracks_desc: (T, 32) uint8 last descriptor; tracks_has_desc: (T,) bool.
+    tracks_v: (T, 2) int64 the track's step in the last coded frame, 1/subpixel px;
+    tracks_has_v: (T,) bool (False: new in that frame, or a keyframe's feature).
     """
 
     seq: int
@@ -71,6 +79,8 @@ class FeatureCodecState:
     descriptors: DescriptorModelState
     survival_counts: np.ndarray
     link_counts: np.ndarray
+    tracks_v: np.ndarray
+    tracks_has_v: np.ndarray
 
     @classmethod
     def initial(cls, vocab: Vocabulary, config: CodecConfig) -> FeatureCodecState:
@@ -83,6 +93,8 @@ class FeatureCodecState:
             descriptors=DescriptorModelState.initial(vocab, config.prior_weight),
             survival_counts=np.array([9.0, 10.0]),
             link_counts=np.array([1.0, 2.0, 1.0, 2.0]),
+            tracks_v=np.zeros((0, 2), np.int64),
+            tracks_has_v=np.zeros(0, bool),
         )
 
     def copy(self, descriptors: bool = True) -> FeatureCodecState:
@@ -105,6 +117,8 @@ class FeatureCodecState:
             descriptors,
             self.survival_counts.copy(),
             self.link_counts.copy(),
+            self.tracks_v.copy(),
+            self.tracks_has_v.copy(),
         )
 
 
@@ -156,6 +170,8 @@ class _Base:
         st.tracks_level = kf.keypoints[:, 2].astype(np.int64)
         st.tracks_desc = kf.descriptors.copy()
         st.tracks_has_desc = np.ones(len(kf), dtype=bool)
+        st.tracks_v = np.zeros((len(kf), 2), np.int64)
+        st.tracks_has_v = np.zeros(len(kf), dtype=bool)
 
     @staticmethod
     def _apply_non_keyframe(
@@ -163,6 +179,10 @@ class _Base:
     ) -> None:
         n_surv = int(survived.sum())
         n_new = q.shape[0] - n_surv
+        st.tracks_v = np.concatenate(
+            [q[:n_surv] - st.tracks_q[survived], np.zeros((n_new, 2), np.int64)]
+        )
+        st.tracks_has_v = np.concatenate([np.ones(n_surv, bool), np.zeros(n_new, bool)])
         st.tracks_q = q
         st.tracks_level = levels
         st.tracks_desc = np.concatenate([st.tracks_desc[survived], np.zeros((n_new, 32), np.uint8)])
@@ -306,12 +326,27 @@ class FeatureEncoder(_Base):
             raise CodecUsageError("tracked keypoints far outside the image")
         st = self.state.copy(descriptors=False)
         w = BitWriter()
-        kpc.encode_non_keyframe(
-            w, nkf.survived, kp, st.tracks_q, st.tracks_level, st.survival_counts, cfg
-        )
+        if cfg.track_velocity:
+            kpc.encode_non_keyframe_velocity(
+                w,
+                nkf.survived,
+                kp,
+                st.tracks_q,
+                st.tracks_level,
+                st.tracks_v,
+                st.tracks_has_v,
+                st.survival_counts,
+                cfg,
+            )
+        else:
+            kpc.encode_non_keyframe(
+                w, nkf.survived, kp, st.tracks_q, st.tracks_level, st.survival_counts, cfg
+            )
         q = np.floor(kp[:, :2] * cfg.subpixel + 0.5).astype(np.int64)
         self._apply_non_keyframe(st, nkf.survived, q, lev.astype(np.int64))
-        return self._finish(st, w, KIND_NON_KEYFRAME)
+        return self._finish(
+            st, w, KIND_NON_KEYFRAME_VELOCITY if cfg.track_velocity else KIND_NON_KEYFRAME
+        )
 
     def _finish(self, st: FeatureCodecState, w: BitWriter, kind: int) -> bytes:
         payload = _seal(_header(kind, st.seq, self._vocab_fp), w.finish())
@@ -372,9 +407,9 @@ class FeatureDecoder(_Base):
             except BaseException:
                 rollback(st.descriptors, undo)
                 raise
-        elif kind == KIND_NON_KEYFRAME:
+        elif kind in (KIND_NON_KEYFRAME, KIND_NON_KEYFRAME_VELOCITY):
             st = self.state.copy(descriptors=False)
-            out = self._decode_non_keyframe(r, st)
+            out = self._decode_non_keyframe(r, st, kind == KIND_NON_KEYFRAME_VELOCITY)
         else:
             raise CodecError(f"unknown frame kind {kind}")
         st.seq += 1
@@ -411,11 +446,24 @@ class FeatureDecoder(_Base):
         self._apply_keyframe(st, kf)
         return kf
 
-    def _decode_non_keyframe(self, r: BitReader, st: FeatureCodecState) -> NonKeyframeFeatures:
+    def _decode_non_keyframe(
+        self, r: BitReader, st: FeatureCodecState, velocity: bool = False
+    ) -> NonKeyframeFeatures:
         cfg = self.config
-        survived, q, levels = kpc.decode_non_keyframe(
-            r, st.tracks_q, st.tracks_level, st.survival_counts, cfg
-        )
+        if velocity:
+            survived, q, levels = kpc.decode_non_keyframe_velocity(
+                r,
+                st.tracks_q,
+                st.tracks_level,
+                st.tracks_v,
+                st.tracks_has_v,
+                st.survival_counts,
+                cfg,
+            )
+        else:
+            survived, q, levels = kpc.decode_non_keyframe(
+                r, st.tracks_q, st.tracks_level, st.survival_counts, cfg
+            )
         if q.size and (
             q[:, 0].min() < -cfg.image_width * cfg.subpixel
             or q[:, 0].max() >= 2 * cfg.image_width * cfg.subpixel

@@ -45,6 +45,9 @@ class CodecConfig:
         carries that descriptor and costs no descriptor bits (True; the receiver decodes
         either way, the payload's kind says which). False: it is coded against it, intra or
         inter (XOR residual), whichever is cheaper: the paper's [55].
+    track_velocity: a non-keyframe may predict each track from its last step plus an affine
+        correction (kind 5; True) instead of by one affine flow for all (kind 2). The decoder
+        reads either.
     """
 
     image_width: int = 752
@@ -57,6 +60,7 @@ class CodecConfig:
     descriptor_block: int = 256
     prior_weight: float = 2.0
     carry_track_descriptors: bool = True
+    track_velocity: bool = True
 
     def level_scale(self, level: np.ndarray) -> np.ndarray:
         """``scale_factor ** level`` as float64 (same expression everywhere)."""

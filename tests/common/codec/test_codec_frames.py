@@ -123,6 +123,38 @@ def test_continued_tracks_carry_their_descriptor(vocab, orb_kf):
     assert len(enc_b.encode_keyframe(carried)) > len(payload)
 
 
+def test_tracks_predicted_from_their_last_step(vocab, orb_kf):
+    """Kind 5 (default): tracks moving each at their own steady speed (parallax) cost fewer
+    bits than one affine flow for all (kind 2), and both decode bit-exactly; a frame where
+    the last steps do not help falls back to the affine flow (the encoder's flag)."""
+    from common.codec.frames import HEADER, KIND_NON_KEYFRAME, KIND_NON_KEYFRAME_VELOCITY
+
+    rng = np.random.default_rng(6)
+    n = len(orb_kf)
+    speed = rng.uniform(-3.0, 3.0, (n, 2))  # px per frame, one per track (depth)
+    sizes = {}
+    for velocity in (True, False):
+        cfg = CodecConfig(track_velocity=velocity)
+        enc, dec = FeatureEncoder(vocab, cfg), FeatureDecoder(vocab)
+        roundtrip(enc, dec, orb_kf)
+        uv, lev, total = orb_kf.uv(), orb_kf.keypoints[:, 2].astype(float), 0
+        for k in range(6):
+            uv = quantise_uv(uv + speed + rng.normal(0, 0.05, uv.shape))
+            nkf = NonKeyframeFeatures(np.ones(n, bool), np.c_[uv, lev])
+            payload = roundtrip(enc, dec, nkf)
+            kind = HEADER.unpack(payload[: HEADER.size])[1] & 0xF
+            assert kind == (KIND_NON_KEYFRAME_VELOCITY if velocity else KIND_NON_KEYFRAME)
+            total += len(payload) if k else 0  # the first step has no last step yet
+        # a jump of every track against its last step: still exact
+        roundtrip(
+            enc,
+            dec,
+            NonKeyframeFeatures(np.ones(n, bool), np.c_[quantise_uv(uv - 40 * speed), lev]),
+        )
+        sizes[velocity] = total
+    assert sizes[True] < 0.7 * sizes[False], sizes
+
+
 def test_empty_and_single_feature_frames(vocab):
     rng = np.random.default_rng(1)
     enc, dec = pair(vocab)
@@ -271,7 +303,7 @@ def test_corrupted_or_truncated_payload_raises_codec_error(vocab, stream, data):
 @settings(
     max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
 )
-@given(body=st.binary(min_size=0, max_size=600), kind=st.sampled_from([1, 2, 3, 4]))
+@given(body=st.binary(min_size=0, max_size=600), kind=st.sampled_from([1, 2, 3, 4, 5]))
 def test_garbage_body_with_valid_header_never_crashes(vocab, stream, body, kind):
     """Bypassing the CRC: the parser itself must fail cleanly (CodecError) or decode."""
     dec = FeatureDecoder(vocab)
