@@ -214,7 +214,8 @@ class RobotCore:
                 pose = self.poses.on_predicted(event.timestamp_ns, map_id, T, now)
                 return [PoseOut(dataclasses.replace(pose, flags=flags) if flags else pose)]
             self.frames_sent += 1
-            self.uplink.on_sent(now, len(msg.features) + len(msg.imu), msg.keyframe)
+            nbytes = len(msg.features) + len(msg.imu)
+            self.uplink.on_sent(now, nbytes, msg.keyframe, event.features)
             return [Send(msg)]
         elif isinstance(event, LinkLoad):
             self.uplink.on_link(now, event.outbox_bytes, event.acked_bytes)

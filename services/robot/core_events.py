@@ -55,12 +55,14 @@ class EndOfInput:
 class FrameDone:
     """The worker finished a :class:`TrackFrame`: the message to send, or None (the uplink
     budget left the non-keyframe at ``timestamp_ns`` out, for ``left_out``; ``predicted``:
-    the robot's own pose of it, from the IMU, once the edge's state came)."""
+    the robot's own pose of it, from the IMU, once the edge's state came; ``features``: a
+    keyframe's feature count)."""
 
     message: RobotFrame | None
     timestamp_ns: int = 0
     left_out: str = ""
     predicted: tuple[int, np.ndarray] | None = None  # (map id, (4, 4) T_map_body) of it
+    features: int = 0
 
 
 @dataclass(frozen=True)

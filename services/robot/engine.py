@@ -62,7 +62,8 @@ def run_job(app: RobotApp, job: Job) -> FrameDone | None:
         job.timestamp_ns, job.image, job.imu, send=not job.hold_back, send_keyframe=not outage
     )
     predicted = app.predicted_pose(job.timestamp_ns) if frame is None else None
-    return FrameDone(frame, job.timestamp_ns, job.hold_back, predicted)
+    features = len(app.frame_coder.track_ids) if frame is not None and frame.keyframe else 0
+    return FrameDone(frame, job.timestamp_ns, job.hold_back, predicted, features)
 
 
 def ack_delay_s(camera_rate_hz: float) -> float:

@@ -88,8 +88,10 @@ class UplinkBudgetConfig:
             several keyframes).
         keyframe_share: share of the planned rate for keyframes (0.6; the rest carries the
             non-keyframes and the IMU).
-        bytes_per_feature: a keyframe's coded bytes per feature (21: ~170 bits, keypoint
-            ~20 b + ORB descriptor ~150 b under the context model, ``codec.md``).
+        bytes_per_feature: a keyframe's bytes per feature until one was sent (21: ~170
+            bits, keypoint ~20 b + ORB descriptor ~150 b under the context model,
+            ``codec.md``); then what the keyframes sent in the last ``window_s`` cost (a
+            feature that continues a track costs no descriptor, so it depends on the motion).
         stall_s: nothing acknowledged for this long [s] with data waiting is an outage
             (2 s: a 6 kB keyframe's ack at 50 kbit/s takes ~1 s).
         min_features, keyframe_period_s: a keyframe plan keeps the features that
@@ -148,6 +150,7 @@ class UplinkBudget:
         self.left_out: dict[str, int] = dict.fromkeys(REASONS, 0)
         self.sent_keyframes = self.sent_non_keyframes = 0
         self._sent: deque[tuple[float, int, bool]] = deque()  # (now, bytes, keyframe)
+        self._kf_sent: deque[tuple[float, int, int]] = deque()  # (now, bytes, features)
         self._last_nkf: float | None = None  # when the last non-keyframe went [s]
         self.link = DeliveryRate(self.config.window_s)  # the link's load and measured rate
         self.rate_hz = self.config.rates_hz[0]
@@ -158,11 +161,15 @@ class UplinkBudget:
         bytes acknowledged so far (a running total)."""
         self.link.on_link(now, outbox_bytes, acked_bytes)
 
-    def on_sent(self, now: float, nbytes: int, keyframe: bool) -> None:
-        """A frame of ``nbytes`` was handed to the link."""
+    def on_sent(self, now: float, nbytes: int, keyframe: bool, features: int = 0) -> None:
+        """A frame of ``nbytes`` was handed to the link (a keyframe: of ``features``)."""
         self._sent.append((now, int(nbytes), bool(keyframe)))
         if keyframe:
             self.sent_keyframes += 1
+            if features > 0:
+                self._kf_sent.append((now, int(nbytes), int(features)))
+                while len(self._kf_sent) > 1 and self._kf_sent[0][0] < now - self.config.window_s:
+                    self._kf_sent.popleft()
         else:
             self.sent_non_keyframes += 1
             self._last_nkf = now
@@ -170,6 +177,14 @@ class UplinkBudget:
             self._sent.popleft()
 
     # ------------------------------------------------------------------ out
+    def bytes_per_feature(self) -> float:
+        """What a keyframe's feature costs [B]: measured over the keyframes of the last
+        ``window_s`` (at least the last one), ``bytes_per_feature`` before any."""
+        features = sum(f for _, _, f in self._kf_sent)
+        if not features:
+            return self.config.bytes_per_feature
+        return sum(b for _, b, _ in self._kf_sent) / features
+
     def rate_Bps(self) -> float | None:
         """The link's rate [B/s] the decisions use (None: no budget, or none measured yet)."""
         cfg = self.config
@@ -187,9 +202,10 @@ class UplinkBudget:
             return None
         cfg = self.config
         share = cfg.keyframe_share * cfg.headroom * rate  # B/s for keyframes
-        n = share * cfg.keyframe_period_s / cfg.bytes_per_feature
+        per_feature = self.bytes_per_feature()
+        n = share * cfg.keyframe_period_s / per_feature
         # ... and no keyframe holds the frames behind it back longer than max_delay_s
-        n = min(n, rate * cfg.headroom * cfg.max_delay_s / cfg.bytes_per_feature)
+        n = min(n, rate * cfg.headroom * cfg.max_delay_s / per_feature)
         n = max(cfg.min_features, min(max_features, 50 * round(n / 50)))
         if self.link.outbox_bytes / rate > cfg.max_delay_s:
             # The link is behind (an outage, or a keyframe still going out): no keyframe
@@ -197,7 +213,7 @@ class UplinkBudget:
             # once it is back holds no more than the map needs.
             return KeyframePlan(n, math.inf)
         # (in steps of 50 features and 0.1 s: an estimated rate moves a little all the time)
-        return KeyframePlan(n, round(n * cfg.bytes_per_feature / share, 1))
+        return KeyframePlan(n, round(n * per_feature / share, 1))
 
     def hold_back(self, now: float) -> str:
         """Why the next frame, unless the tracker makes it a keyframe, is left out (one of
@@ -243,6 +259,7 @@ class UplinkBudget:
             "budget_kbps": self.config.budget_kbps,
             "auto": self.config.auto,
             "rate_kbps": None if rate is None else round(rate * 8e-3, 1),
+            "bytes_per_feature": round(self.bytes_per_feature(), 1),
             "non_keyframe_hz": self.rate_hz,
             "left_out": dict(self.left_out),
             "sent_keyframes": self.sent_keyframes,

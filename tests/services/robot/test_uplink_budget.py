@@ -114,6 +114,16 @@ def test_keyframes_are_planned_to_fit_the_budget(euroc_micro):
     assert mid is not None and mid.n_features == 650  # 0.7 s of the link: 13.7 kB
     fast = UplinkBudget(UplinkBudgetConfig(budget_kbps=1000.0)).keyframe_plan()
     assert fast is not None and fast.n_features == 1000 and fast.min_interval_s < 0.5
+    # What the keyframes sent cost is measured: cheaper features (continued tracks carry
+    # their descriptor) buy more of them, or the same sooner.
+    cheap = UplinkBudget(UplinkBudgetConfig(budget_kbps=200.0))
+    cheap.on_sent(0.0, 10_500, True, 1000)
+    assert cheap.bytes_per_feature() == 10.5
+    plan = cheap.keyframe_plan()
+    assert plan is not None and plan.n_features == 1000  # 0.7 s of the link: 13.7 kB
+    cheap.on_sent(11.0, 4_200, True, 200)  # the older keyframe leaves the 10 s window
+    assert cheap.bytes_per_feature() == 21.0
+    assert cheap.stats()["bytes_per_feature"] == 21.0
     seq = EurocSequence(euroc_micro)
     fe = FrontEnd(FrontEndConfig(), seq.cam0, seq.imu)
     fe.set_keyframe_plan(slow)
