@@ -29,6 +29,7 @@ import cv2
 import numpy as np
 
 from common.codec import (
+    CodecConfig,
     FeatureDecoder,
     FeatureEncoder,
     ImuChunk,
@@ -128,18 +129,23 @@ def match_links(kf: KeyframeFeatures, prev: KeyframeFeatures) -> KeyframeFeature
 
 
 def run_keyframes(vocab, images, orb, mode: str) -> Tally:
-    enc, dec = FeatureEncoder(vocab), FeatureDecoder(vocab)
+    """``mode``: intra (every 5th frame), all-intra (every frame), inter (continued features
+    coded against their track's descriptor, the paper's [55]) or carry (they carry it: the
+    default, ``CodecConfig.carry_track_descriptors``)."""
+    cfg = CodecConfig(carry_track_descriptors=mode == "carry")
+    enc, dec = FeatureEncoder(vocab, cfg), FeatureDecoder(vocab)
     tally = Tally()
     step = 1 if mode == "all-intra" else KF_EVERY
     prev = None
     n_inter = 0
     for img in images[::step]:
         kf = orb_keyframe(orb, img)
-        if mode == "inter" and prev is not None:
-            kf = match_links(kf, prev)
+        if mode in ("inter", "carry") and prev is not None:
+            kf = enc.carry_descriptors(match_links(kf, prev))
         before = enc.state.descriptors.mode_counts[0]
+        carried = int(np.count_nonzero(kf.links >= 0)) if mode == "carry" else 0
         code(enc, dec, kf, tally)
-        n_inter += enc.state.descriptors.mode_counts[0] - before
+        n_inter += enc.state.descriptors.mode_counts[0] - before + carried
         if mode == "intra":
             time_standalone_and_lookup(vocab, kf, tally)
         prev = kf
@@ -175,9 +181,14 @@ def keyframe_timing_lines(kf: dict[str, Tally]) -> list[str]:
     ]
 
 
-def run_non_keyframes(vocab, images, orb, predict: bool = True) -> tuple[Tally, dict]:
-    """Keyframe every KF_EVERY frames, LK tracks between; returns the non-keyframe tally."""
-    enc, dec = FeatureEncoder(vocab), FeatureDecoder(vocab)
+def run_non_keyframes(
+    vocab, images, orb, predict: bool = True, velocity: bool = True
+) -> tuple[Tally, dict]:
+    """Keyframe every KF_EVERY frames, LK tracks between; returns the non-keyframe tally.
+    ``velocity``: tracks predicted from their last step (kind 5, the default) or by one
+    affine flow for all (kind 2); ``predict=False``: no flow model at all."""
+    cfg = CodecConfig(track_velocity=velocity and predict)
+    enc, dec = FeatureEncoder(vocab, cfg), FeatureDecoder(vocab)
     kf_tally, tally = Tally(), Tally()
     original = kpc.fit_affine
     if not predict:
@@ -284,7 +295,8 @@ def main() -> int:
     vocab = Vocabulary.load(args.vocabulary) if args.vocabulary else Vocabulary.load()
     orb = cv2.ORB_create(nfeatures=1000, scaleFactor=1.2, nlevels=8)
 
-    kf = {m: run_keyframes(vocab, images, orb, m) for m in ("intra", "all-intra", "inter")}
+    modes = ("intra", "all-intra", "inter", "carry")
+    kf = {m: run_keyframes(vocab, images, orb, m) for m in modes}
     kparts = ["keypoint", "link", "mode", "word", "residual", "overhead"]
     if args.keyframes_only:
         for name, t in kf.items():
@@ -297,6 +309,7 @@ def main() -> int:
     moving = rotating_sequence(images)
     nkf["swinging camera"] = run_non_keyframes(vocab, moving, orb)
     nkf["swinging camera, every 2."] = run_non_keyframes(vocab, moving[::2], orb)
+    nkf_affine = run_non_keyframes(vocab, moving, orb, velocity=False)
     nkf_nopred = run_non_keyframes(vocab, moving, orb, predict=False)
     imu = run_imu(args.dataset)
 
@@ -324,6 +337,13 @@ def main() -> int:
             kparts,
             "< intra",
         ),
+        fmt_row(
+            f"carry, every 5th frame ({100 * kf['carry'].extra['inter_fraction']:.0f}% carried"
+            " or inter)",
+            kf["carry"],
+            kparts,
+            "< inter",
+        ),
         "",
         *keyframe_timing_lines(kf),
         "",
@@ -331,8 +351,8 @@ def main() -> int:
         "",
         "## Non-keyframes (LK tracks, 1/4 px grid)",
         "",
-        "| sequence | tracks/frame | median flow px | mean abs residual px | survival | "
-        "keypoint | new | side | overhead | total | target |",
+        "| sequence | tracks/frame | median flow px | mean abs residual px (one affine flow) | "
+        "survival | keypoint | new | side | overhead | total | target |",
         "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for skip, (t, info) in nkf.items():
@@ -344,6 +364,13 @@ def main() -> int:
             f"{t.per('side'):.2f} | {t.per('overhead'):.2f} | **{t.total:.2f}** | "
             f"≤ 12 (paper {PAPER_NKF}) |"
         )
+    t, info = nkf_affine
+    lines.append(
+        f"| swinging camera, one affine flow (kind 2) | {info['tracks_per_frame']:.0f} | "
+        f"{info['median_flow_px']:.2f} | {info['mean_abs_residual_px']:.2f} | "
+        f"{t.per('survival'):.2f} | {t.per('keypoint'):.2f} | {t.per('new'):.2f} | "
+        f"{t.per('side'):.2f} | {t.per('overhead'):.2f} | **{t.total:.2f}** | – |"
+    )
     t, info = nkf_nopred
     lines.append(
         f"| swinging camera, no flow model | {info['tracks_per_frame']:.0f} | "
@@ -376,6 +403,12 @@ def main() -> int:
         f"- Keyframe inter lower than intra: {inter:.1f} vs {intra:.1f} — "
         + ("met" if inter < intra else "missed")
         + " (depends on how many features continue a track with a descriptor)."
+    )
+    carry = kf["carry"].total
+    lines.append(
+        f"- Keyframe carry (the default) lower than inter: {carry:.1f} vs {inter:.1f} — "
+        + ("met" if carry < inter else "missed")
+        + " (a continued feature keeps its track's descriptor: no descriptor bits)."
     )
     worst = max(t.total for t, _ in nkf.values())
     lines.append(
