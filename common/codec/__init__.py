@@ -8,6 +8,7 @@ from common.codec.frames import (
     FeatureEncoder,
     decode_standalone_keyframe,
     encode_standalone_keyframe,
+    fill_carried,
 )
 from common.codec.imu import ImuCodecConfig, ImuDecoder, ImuEncoder, dequantise_imu
 from common.codec.types import (
@@ -36,5 +37,6 @@ __all__ = [
     "decode_standalone_keyframe",
     "dequantise_imu",
     "encode_standalone_keyframe",
+    "fill_carried",
     "quantise_uv",
 ]

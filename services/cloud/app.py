@@ -180,6 +180,9 @@ class CloudApp(AppOptimization):
         self.codec_timer = CodecTimer()
         self.frames = FrameTrack()  # the robots' frames relative to their keyframes
         self.decoders = KeyframeDecoders(vocabulary)  # one feature decoder per codec config
+        # (edge agent id, edge map id) -> (keyframe id, descriptors) of the newest keyframe
+        # received: what the next one's carried descriptors name (``fill_carried``)
+        self._last_descriptors: dict[tuple[str, int], tuple[int, np.ndarray]] = {}
         # CPU time of the worker's stages (``stage.*``: map fusion's per keyframe, the
         # commits, building and applying optimisations, MBP), for ``--stats-out``.
         self.stage_timer = fusion.timer
@@ -319,13 +322,23 @@ class CloudApp(AppOptimization):
         t0, c0 = time.perf_counter(), self.stage_timer.clock()
         try:
             d = decode_keyframe_update(
-                msg, a.agent_id, self.vocabulary, self.sensors.codec(a.name), self.decoders
+                msg,
+                a.agent_id,
+                self.vocabulary,
+                self.sensors.codec(a.name),
+                self.decoders,
+                lambda kf_id: self._descriptors_of(msg.agent_id, msg.map_id, a.agent_id, kf_id),
             )
         except UplinkError:
             self.rejected += 1
             raise
         self.codec_timer.add(f"decode.{type(msg).__name__}", time.perf_counter() - t0)
         self.stage_timer.add("stage.decode", self.stage_timer.clock() - c0)
+        if d.keyframe is not None:
+            self._last_descriptors[(msg.agent_id, msg.map_id)] = (
+                msg.keyframe_id,
+                d.keyframe.descriptors,
+            )
         if (T_fix := self.rebase.correction(self.atlas, a.agent_id, d.anchor)) is not None:
             d = rebased_keyframe(d, T_fix)
         if d.imu is not None:
@@ -361,6 +374,18 @@ class CloudApp(AppOptimization):
         if is_new and self.atlas.has_keyframe(key):
             reaction.new_keyframes[self.atlas.map_id_of_keyframe(key)] = 1
         return reaction
+
+    def _descriptors_of(
+        self, name: str, map_id: int, agent_id: int, keyframe_id: int
+    ) -> np.ndarray | None:
+        """Descriptors (M, 32) of keyframe ``keyframe_id`` of robot ``name``'s map ``map_id``
+        as received: the newest received (kept here), else the atlas's (its rows stay; a
+        restarted cloud), else None."""
+        last = self._last_descriptors.get((name, map_id))
+        if last is not None and last[0] == keyframe_id:
+            return last[1]
+        key = make_key(agent_id, keyframe_id)
+        return self.atlas.keyframe(key).descriptors if self.atlas.has_keyframe(key) else None
 
     def _pose_only(self, a: AtlasAgent, d: DecodedKeyframe) -> KeyframeInput | None:
         """The atlas input of a pose-only update (None: the cloud no longer has it)."""

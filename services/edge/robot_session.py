@@ -120,6 +120,7 @@ class RobotSession(SessionUplink):
         self.kept_on_edge = dict.fromkeys(CLOUD_BUDGET_REASONS, 0)
         self._budget_n = {}
         self._feature_rows = {}
+        self._sent_descriptors = {}
         self.features_uplinked = {}
         self._up_prev: dict[tuple[int, int], int | None] = {}
         self._last_up: dict[int, int] = {}

@@ -31,7 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from common.codec.errors import CodecError, CodecUsageError
-from common.codec.frames import FeatureDecoder
+from common.codec.frames import FeatureDecoder, fill_carried
 from common.codec.imu import ImuDecoder
 from common.codec.types import CodecConfig, ImuChunk, KeyframeFeatures, NonKeyframeFeatures
 from common.errors import RecslamError
@@ -182,10 +182,14 @@ def decode_keyframe_update(
     vocabulary: Vocabulary,
     codec: CodecConfig | None = None,
     decoders: KeyframeDecoders | None = None,
+    carried_from: Callable[[int], np.ndarray | None] | None = None,
 ) -> DecodedKeyframe:
     """Decode one keyframe (schema-1 or coded); ``agent_id`` is the cloud's integer id of
     ``msg.agent_id``; ``decoders`` (of ``vocabulary``): decode the features with those
-    (default: a fresh decoder)."""
+    (default: a fresh decoder); ``carried_from(keyframe id)``: the descriptors (M, 32) of
+    that keyframe of the same robot map as the cloud received them, or None, for features
+    that carry the descriptor of a row of ``msg.previous_keyframe_id`` (UplinkError naming it
+    if the cloud does not have it)."""
     what = f"{type(msg).__name__} {msg.agent_id}/{msg.keyframe_id}"
     if msg.keyframe_id < 0:
         raise UplinkError(f"{what}: negative keyframe id")
@@ -223,6 +227,18 @@ def decode_keyframe_update(
             raise UplinkError(f"{what}: features: {exc}") from exc
         if not isinstance(feats, KeyframeFeatures):
             raise UplinkError(f"{what}: features are a non-keyframe payload")
+        if (feats.links >= 0).any():  # descriptors carried from the previous keyframe
+            prev_id = getattr(msg, "previous_keyframe_id", -1)
+            prev = None if carried_from is None or prev_id < 0 else carried_from(prev_id)
+            if prev is None:
+                raise UplinkError(
+                    f"{what}: features carry descriptors of keyframe {prev_id}, which the "
+                    "cloud does not have"
+                )
+            try:
+                feats = fill_carried(feats, prev)
+            except CodecError as exc:
+                raise UplinkError(f"{what}: features: {exc}") from exc
         n = len(feats)
         if mp_ids.size == 0:
             mp_ids = np.full(n, -1, np.int64)

@@ -303,7 +303,7 @@ def test_corrupted_or_truncated_payload_raises_codec_error(vocab, stream, data):
 @settings(
     max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
 )
-@given(body=st.binary(min_size=0, max_size=600), kind=st.sampled_from([1, 2, 3, 4, 5]))
+@given(body=st.binary(min_size=0, max_size=600), kind=st.sampled_from([1, 2, 3, 4, 5, 6]))
 def test_garbage_body_with_valid_header_never_crashes(vocab, stream, body, kind):
     """Bypassing the CRC: the parser itself must fail cleanly (CodecError) or decode."""
     dec = FeatureDecoder(vocab)
@@ -326,6 +326,34 @@ def test_standalone_keyframe(vocab, orb_kf):
     assert np.array_equal(out.descriptors, orb_kf.descriptors)
     assert np.all(out.links == -1)
     assert decode_standalone_keyframe(vocab, payload).equals(out)  # no hidden state
+
+
+def test_a_standalone_keyframe_carries_descriptors_of_the_previous_one(vocab, orb_kf):
+    """Kind 6: features whose descriptor the receiver's previous keyframe holds send its row
+    instead; decoded, they are links with zero descriptors until fill_carried; a row the
+    previous keyframe does not have is refused by name."""
+    from common.codec import decode_standalone_keyframe, encode_standalone_keyframe, fill_carried
+    from common.codec.frames import HEADER, KIND_STANDALONE_CARRY
+
+    n = len(orb_kf)
+    rng = np.random.default_rng(7)
+    previous = rng.integers(0, 256, (n + 50, 32), dtype=np.uint8)
+    carried = np.where(np.arange(n) % 3 == 0, np.arange(n) + 10, -1)
+    desc = orb_kf.descriptors.copy()
+    desc[carried >= 0] = previous[carried[carried >= 0]]
+    kf = KeyframeFeatures(orb_kf.keypoints, desc, np.full(n, -1))
+    whole = encode_standalone_keyframe(vocab, kf)
+    payload = encode_standalone_keyframe(vocab, kf, carried=carried)
+    assert HEADER.unpack(payload[: HEADER.size])[1] & 0xF == KIND_STANDALONE_CARRY
+    assert len(payload) < 0.75 * len(whole)  # a third of the features: ~no descriptor bits
+    out = decode_standalone_keyframe(vocab, payload)
+    assert np.array_equal(out.links, carried)
+    assert not out.descriptors[carried >= 0].any()
+    assert fill_carried(out, previous).equals(kf)
+    with pytest.raises(CodecError, match="carries row"):
+        fill_carried(out, previous[:20])
+    # nothing carried: the plain standalone kind
+    assert encode_standalone_keyframe(vocab, kf, carried=np.full(n, -1)) == whole
 
 
 def test_a_standalone_keyframe_is_one_block_that_leaves_the_tables_alone(vocab, orb_kf):

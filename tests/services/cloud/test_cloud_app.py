@@ -371,3 +371,50 @@ def test_one_robot_on_two_edges_is_two_agents_each_corrected_through_its_own_edg
         assert restarted.fusion.superseded_agents == {0}
     finally:
         restarted.close()
+
+
+def test_carried_descriptors_come_from_the_previous_keyframe_also_after_a_restart(tmp_path, vocab):
+    """A keyframe whose features carry descriptors of the robot's previous uplinked keyframe
+    (the edge sends their rows instead) decodes to the same descriptors: from the keyframe
+    just received, or, after a restart, from the atlas; naming a keyframe the cloud does not
+    have is refused with the reason."""
+    from common.codec import FeatureDecoder, encode_standalone_keyframe
+
+    world = make_world(8, n_points=1500)
+    kfs, _ = make_session(world, default_camera(), 0, circle_poses(4, turns=0.05), np.eye(4))
+    first, _ = encode_keyframe_update(kfs[0], "robot", vocab, edge_map_id=7)
+    feats0 = FeatureDecoder(vocab).decode(first.features)
+    rows = [2, 5, 9]
+
+    def carrying(k, prev_id: int):
+        """kfs[k]'s message whose features 0-2 carry rows 2, 5, 9 of kfs[prev_id]'s."""
+        msg, _ = encode_keyframe_update(
+            k, "robot", vocab, edge_map_id=7, previous_keyframe_id=prev_id
+        )
+        feats = FeatureDecoder(vocab).decode(msg.features)
+        desc = feats.descriptors.copy()
+        desc[:3] = feats0.descriptors[rows]
+        feats = dataclasses.replace(feats, descriptors=desc)
+        carried = np.full(len(feats), -1)
+        carried[:3] = rows
+        payload = encode_standalone_keyframe(vocab, feats, None, carried)
+        assert len(payload) < len(encode_standalone_keyframe(vocab, feats))
+        return dataclasses.replace(msg, features=payload), desc
+
+    app = _app(tmp_path, vocab)
+    app.handle("edge-a", first, b"stream", 1)
+    msg, desc = carrying(kfs[1], kfs[0].keyframe_id)
+    app.handle("edge-a", msg, b"stream", 2)  # the keyframe just received
+    assert np.array_equal(app.atlas.keyframe(make_key(0, kfs[1].keyframe_id)).descriptors, desc)
+    app.close()
+    restarted = _app(tmp_path, vocab)
+    try:
+        msg, desc = carrying(kfs[2], kfs[0].keyframe_id)
+        restarted.handle("edge-a", msg, b"stream", 3)  # from the atlas
+        key = make_key(0, kfs[2].keyframe_id)
+        assert np.array_equal(restarted.atlas.keyframe(key).descriptors, desc)
+        msg, _ = carrying(kfs[3], 99)
+        with pytest.raises(UplinkError, match="keyframe 99, which the cloud does not have"):
+            restarted.handle("edge-a", msg, b"stream", 4)
+    finally:
+        restarted.close()

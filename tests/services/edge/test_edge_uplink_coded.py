@@ -130,7 +130,12 @@ def test_messages_are_anchored_on_the_newest_keyframe_the_cloud_has_where_it_is_
         return T
 
     def anchors(msgs: list[Message]) -> set:
-        got = {decode_keyframe_update(m, 0, VOCAB).anchor for m in _of(msgs, KeyframeUpdateCoded)}
+        # (every keyframe here has the same features: each carries the previous one's)
+        desc = s._kf_features[1000].descriptors
+        got = {
+            decode_keyframe_update(m, 0, VOCAB, carried_from=lambda _k: desc).anchor
+            for m in _of(msgs, KeyframeUpdateCoded)
+        }
         got |= {decode_keyframe_poses(m)[0].anchor for m in _of(msgs, KeyframePoses)}
         return {None if a is None else (a.keyframe_id, round(a.T_world_body[0, 3], 4)) for a in got}
 
