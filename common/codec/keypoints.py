@@ -289,12 +289,12 @@ def fit_affine(prev_q: np.ndarray, cur_q: np.ndarray, config: CodecConfig) -> np
 
 
 def _encode_positions(
-    w: BitWriter, prev_q: np.ndarray, cur_q: np.ndarray, config: CodecConfig
+    w: BitWriter, prev_q: np.ndarray, cur_q: np.ndarray, config: CodecConfig, a: np.ndarray
 ) -> None:
-    """One group of survivors: its affine flow model, then per-axis Laplace residuals."""
+    """One group of survivors: its affine flow model ``a`` (:func:`fit_affine`), then
+    per-axis Laplace residuals."""
     if prev_q.shape[0] == 0:
         return
-    a = fit_affine(prev_q, cur_q, config)
     w.put_signed(a, AFFINE_SCALE_INDEX, "side")
     res = cur_q - _affine_predict(prev_q, a, config)
     for axis in range(2):
@@ -319,13 +319,14 @@ def _decode_positions(r: BitReader, prev_q: np.ndarray, config: CodecConfig) -> 
     return q
 
 
-def _position_cost(prev_q: np.ndarray, cur_q: np.ndarray, config: CodecConfig) -> float:
-    """Bits :func:`_encode_positions` would spend on the residuals (their Laplace scales)."""
+def _fit(prev_q: np.ndarray, cur_q: np.ndarray, config: CodecConfig) -> tuple[np.ndarray, float]:
+    """A group's affine flow and a proxy of its residuals' code length (``sum log2(1 + |r|)``,
+    the cost's shape under a Laplace model, without coding them)."""
     if prev_q.shape[0] == 0:
-        return 0.0
-    w = BitWriter()
-    _encode_positions(w, prev_q, cur_q, config)
-    return float(sum(w.bits.values()))
+        return np.zeros(6, np.int64), 0.0
+    a = fit_affine(prev_q, cur_q, config)
+    res = cur_q - _affine_predict(prev_q, a, config)
+    return a, float(np.log2(1.0 + np.abs(res)).sum())
 
 
 def encode_non_keyframe_velocity(
@@ -359,17 +360,18 @@ def encode_non_keyframe_velocity(
         prev_q, cur = tracks_q[survived], cur_q[:n_surv]
         moved = tracks_has_v[survived]
         stepped = prev_q + tracks_v[survived]
-        use = bool(moved.any()) and _position_cost(
-            stepped[moved], cur[moved], config
-        ) + _position_cost(prev_q[~moved], cur[~moved], config) < _position_cost(
-            prev_q, cur, config
-        )
+        a_all, cost_all = _fit(prev_q, cur, config)
+        use = bool(moved.any())
+        if use:
+            a_moved, cost_moved = _fit(stepped[moved], cur[moved], config)
+            a_rest, cost_rest = _fit(prev_q[~moved], cur[~moved], config)
+            use = cost_moved + cost_rest < cost_all
         w.put_bernoulli(np.array([int(use)]), np.array([0.5]), "side")
         if use:
-            _encode_positions(w, stepped[moved], cur[moved], config)
-            _encode_positions(w, prev_q[~moved], cur[~moved], config)
+            _encode_positions(w, stepped[moved], cur[moved], config, a_moved)
+            _encode_positions(w, prev_q[~moved], cur[~moved], config, a_rest)
         else:
-            _encode_positions(w, prev_q, cur, config)
+            _encode_positions(w, prev_q, cur, config, a_all)
         _encode_levels(w, levels[:n_surv], tracks_level[survived], config)
     _encode_new(w, cur_q[n_surv:], levels[n_surv:], config)
 
