@@ -51,7 +51,7 @@ as one adaptive block, and no table update after it (nothing reads them), so it 
 one pass over the bit planes and leaves the decoder's tables untouched."""
 KIND_NON_KEYFRAME_VELOCITY = 5
 """A non-keyframe whose survivors may be predicted by their track's last step
-(``CodecConfig.track_velocity``, :func:`common.codec.keypoints.encode_non_keyframe_velocity`)."""
+(``CodecConfig.track_velocity``, :func:`common.codec.keypoints.encode_non_keyframe`)."""
 KIND_STANDALONE_CARRY = 6
 """A standalone keyframe some of whose features carry the descriptor of a row of the
 receiver's previous keyframe (:func:`encode_standalone_keyframe` with ``carried``): their
@@ -331,22 +331,10 @@ class FeatureEncoder(_Base):
             raise CodecUsageError("tracked keypoints far outside the image")
         st = self.state.copy(descriptors=False)
         w = BitWriter()
-        if cfg.track_velocity:
-            kpc.encode_non_keyframe_velocity(
-                w,
-                nkf.survived,
-                kp,
-                st.tracks_q,
-                st.tracks_level,
-                st.tracks_v,
-                st.tracks_has_v,
-                st.survival_counts,
-                cfg,
-            )
-        else:
-            kpc.encode_non_keyframe(
-                w, nkf.survived, kp, st.tracks_q, st.tracks_level, st.survival_counts, cfg
-            )
+        steps = (st.tracks_v, st.tracks_has_v) if cfg.track_velocity else None
+        kpc.encode_non_keyframe(
+            w, nkf.survived, kp, st.tracks_q, st.tracks_level, st.survival_counts, cfg, steps
+        )
         q = np.floor(kp[:, :2] * cfg.subpixel + 0.5).astype(np.int64)
         self._apply_non_keyframe(st, nkf.survived, q, lev.astype(np.int64))
         return self._finish(
@@ -469,20 +457,10 @@ class FeatureDecoder(_Base):
         self, r: BitReader, st: FeatureCodecState, velocity: bool = False
     ) -> NonKeyframeFeatures:
         cfg = self.config
-        if velocity:
-            survived, q, levels = kpc.decode_non_keyframe_velocity(
-                r,
-                st.tracks_q,
-                st.tracks_level,
-                st.tracks_v,
-                st.tracks_has_v,
-                st.survival_counts,
-                cfg,
-            )
-        else:
-            survived, q, levels = kpc.decode_non_keyframe(
-                r, st.tracks_q, st.tracks_level, st.survival_counts, cfg
-            )
+        steps = (st.tracks_v, st.tracks_has_v) if velocity else None
+        survived, q, levels = kpc.decode_non_keyframe(
+            r, st.tracks_q, st.tracks_level, st.survival_counts, cfg, steps
+        )
         if q.size and (
             q[:, 0].min() < -cfg.image_width * cfg.subpixel
             or q[:, 0].max() >= 2 * cfg.image_width * cfg.subpixel

@@ -329,88 +329,6 @@ def _fit(prev_q: np.ndarray, cur_q: np.ndarray, config: CodecConfig) -> tuple[np
     return a, float(np.log2(1.0 + np.abs(res)).sum())
 
 
-def encode_non_keyframe_velocity(
-    w: BitWriter,
-    survived: np.ndarray,
-    keypoints: np.ndarray,
-    tracks_q: np.ndarray,
-    tracks_level: np.ndarray,
-    tracks_v: np.ndarray,
-    tracks_has_v: np.ndarray,
-    survival_counts: np.ndarray,
-    config: CodecConfig,
-) -> None:
-    """Non-keyframe of kind 5: as :func:`encode_non_keyframe`, but the survivors whose track
-    moved in the last coded frame (``tracks_has_v``) may be predicted from there by their own
-    last step ``tracks_v`` (quarter px) plus an affine correction, when one flag says so (the
-    encoder's choice of the cheaper): parallax makes each track's flow its own, and it
-    changes little from one frame to the next (robot2 of the default dataset: ~5.1 -> ~3.0
-    bits a track)."""
-    n_prev = tracks_q.shape[0]
-    w.put_bernoulli(
-        survived.astype(np.int64), np.full(n_prev, _adaptive_p(survival_counts)), "survival"
-    )
-    survival_counts += [float(survived.sum()), float(n_prev)]
-    n_surv = int(survived.sum())
-    n_new = keypoints.shape[0] - n_surv
-    w.put_count(n_new, "new")
-    cur_q = np.floor(keypoints[:, :2] * config.subpixel + 0.5).astype(np.int64)
-    levels = keypoints[:, 2].astype(np.int64)
-    if n_surv:
-        prev_q, cur = tracks_q[survived], cur_q[:n_surv]
-        moved = tracks_has_v[survived]
-        stepped = prev_q + tracks_v[survived]
-        a_all, cost_all = _fit(prev_q, cur, config)
-        use = bool(moved.any())
-        if use:
-            a_moved, cost_moved = _fit(stepped[moved], cur[moved], config)
-            a_rest, cost_rest = _fit(prev_q[~moved], cur[~moved], config)
-            use = cost_moved + cost_rest < cost_all
-        w.put_bernoulli(np.array([int(use)]), np.array([0.5]), "side")
-        if use:
-            _encode_positions(w, stepped[moved], cur[moved], config, a_moved)
-            _encode_positions(w, prev_q[~moved], cur[~moved], config, a_rest)
-        else:
-            _encode_positions(w, prev_q, cur, config, a_all)
-        _encode_levels(w, levels[:n_surv], tracks_level[survived], config)
-    _encode_new(w, cur_q[n_surv:], levels[n_surv:], config)
-
-
-def decode_non_keyframe_velocity(
-    r: BitReader,
-    tracks_q: np.ndarray,
-    tracks_level: np.ndarray,
-    tracks_v: np.ndarray,
-    tracks_has_v: np.ndarray,
-    survival_counts: np.ndarray,
-    config: CodecConfig,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Inverse of :func:`encode_non_keyframe_velocity`: (survived (P,) bool, positions
-    (N, 2) int64 quarter px, levels (N,))."""
-    n_prev = tracks_q.shape[0]
-    survived = r.get_bernoulli(np.full(n_prev, _adaptive_p(survival_counts))).astype(bool)
-    survival_counts += [float(survived.sum()), float(n_prev)]
-    n_surv = int(survived.sum())
-    n_new = r.get_count(config.max_features - n_surv)
-    q = np.zeros((n_surv + n_new, 2), dtype=np.int64)
-    levels = np.zeros(n_surv + n_new, dtype=np.int64)
-    if n_surv:
-        prev_q = tracks_q[survived]
-        use = bool(r.get_bernoulli(np.array([0.5]))[0])
-        if use:
-            moved = tracks_has_v[survived]
-            stepped = prev_q + tracks_v[survived]
-            q[:n_surv][moved] = _decode_positions(r, stepped[moved], config)
-            q[:n_surv][~moved] = _decode_positions(r, prev_q[~moved], config)
-        else:
-            q[:n_surv] = _decode_positions(r, prev_q, config)
-        levels[:n_surv] = _decode_levels(r, tracks_level[survived], config)
-    _decode_new(r, q[n_surv:], levels[n_surv:], config)
-    if np.abs(q).max(initial=0) > (1 << 40):
-        raise CodecError("decoded keypoint out of range")
-    return survived, q, levels
-
-
 def _encode_levels(
     w: BitWriter, levels: np.ndarray, track_levels: np.ndarray, config: CodecConfig
 ) -> None:
@@ -450,7 +368,14 @@ def encode_non_keyframe(
     tracks_level: np.ndarray,
     survival_counts: np.ndarray,
     config: CodecConfig,
+    steps: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> None:
+    """A non-keyframe's body. Without ``steps`` (kind 2): one affine flow predicts every
+    survivor. With ``steps = (tracks_v, tracks_has_v)`` (kind 5): the survivors whose track
+    moved in the last coded frame may be predicted from there by their own last step
+    (quarter px) plus an affine correction, when one flag says so (the encoder's choice of
+    the cheaper): parallax makes each track's flow its own, and it changes little from one
+    frame to the next (robot2 of the default dataset: ~5.1 -> ~3.0 bits a track)."""
     n_prev = tracks_q.shape[0]
     w.put_bernoulli(
         survived.astype(np.int64), np.full(n_prev, _adaptive_p(survival_counts)), "survival"
@@ -461,23 +386,26 @@ def encode_non_keyframe(
     w.put_count(n_new, "new")
     cur_q = np.floor(keypoints[:, :2] * config.subpixel + 0.5).astype(np.int64)
     levels = keypoints[:, 2].astype(np.int64)
-    prev_q = tracks_q[survived]
     if n_surv:
-        a = fit_affine(prev_q, cur_q[:n_surv], config)
-        w.put_signed(a, AFFINE_SCALE_INDEX, "side")
-        res = cur_q[:n_surv] - _affine_predict(prev_q, a, config)
-        for axis in range(2):
-            si = best_scale_index(res[:, axis], signed=True)
-            w.put_uniform(np.array([si]), N_SCALES, "side")
-            w.put_signed(res[:, axis], si, "keypoint")
-        same = bool(np.array_equal(levels[:n_surv], tracks_level[survived]))
-        w.put_bernoulli(np.array([int(same)]), np.array([0.5]), "side")
-        if not same:
-            w.put_uniform(levels[:n_surv], config.n_levels, "keypoint")
-    if n_new:
-        w.put_uniform(levels[n_surv:], config.n_levels, "new")
-        w.put_uniform(cur_q[n_surv:, 0], config.image_width * config.subpixel, "new")
-        w.put_uniform(cur_q[n_surv:, 1], config.image_height * config.subpixel, "new")
+        prev_q, cur = tracks_q[survived], cur_q[:n_surv]
+        a_all, cost_all = _fit(prev_q, cur, config)
+        use = False
+        if steps is not None:
+            moved = steps[1][survived]
+            stepped = prev_q + steps[0][survived]
+            use = bool(moved.any())
+            if use:
+                a_moved, cost_moved = _fit(stepped[moved], cur[moved], config)
+                a_rest, cost_rest = _fit(prev_q[~moved], cur[~moved], config)
+                use = cost_moved + cost_rest < cost_all
+            w.put_bernoulli(np.array([int(use)]), np.array([0.5]), "side")
+        if use:
+            _encode_positions(w, stepped[moved], cur[moved], config, a_moved)
+            _encode_positions(w, prev_q[~moved], cur[~moved], config, a_rest)
+        else:
+            _encode_positions(w, prev_q, cur, config, a_all)
+        _encode_levels(w, levels[:n_surv], tracks_level[survived], config)
+    _encode_new(w, cur_q[n_surv:], levels[n_surv:], config)
 
 
 def decode_non_keyframe(
@@ -486,8 +414,10 @@ def decode_non_keyframe(
     tracks_level: np.ndarray,
     survival_counts: np.ndarray,
     config: CodecConfig,
+    steps: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Returns (survived (P,) bool, positions (N, 2) int64 quarter px, levels (N,))."""
+    """Inverse of :func:`encode_non_keyframe` (with its ``steps``): (survived (P,) bool,
+    positions (N, 2) int64 quarter px, levels (N,))."""
     n_prev = tracks_q.shape[0]
     survived = r.get_bernoulli(np.full(n_prev, _adaptive_p(survival_counts))).astype(bool)
     survival_counts += [float(survived.sum()), float(n_prev)]
@@ -496,22 +426,17 @@ def decode_non_keyframe(
     q = np.zeros((n_surv + n_new, 2), dtype=np.int64)
     levels = np.zeros(n_surv + n_new, dtype=np.int64)
     if n_surv:
-        a = r.get_signed(6, AFFINE_SCALE_INDEX)
-        if np.abs(a).max() > (1 << 28):
-            raise CodecError("flow model out of range")
-        pred = _affine_predict(tracks_q[survived], a, config)
-        for axis in range(2):
-            si = int(r.get_uniform(1, N_SCALES)[0])
-            q[:n_surv, axis] = pred[:, axis] + r.get_signed(n_surv, si)
-        same = bool(r.get_bernoulli(np.array([0.5]))[0])
-        if same:
-            levels[:n_surv] = tracks_level[survived]
+        prev_q = tracks_q[survived]
+        use = steps is not None and bool(r.get_bernoulli(np.array([0.5]))[0])
+        if use and steps is not None:
+            moved = steps[1][survived]
+            stepped = prev_q + steps[0][survived]
+            q[:n_surv][moved] = _decode_positions(r, stepped[moved], config)
+            q[:n_surv][~moved] = _decode_positions(r, prev_q[~moved], config)
         else:
-            levels[:n_surv] = r.get_uniform(n_surv, config.n_levels)
-    if n_new:
-        levels[n_surv:] = r.get_uniform(n_new, config.n_levels)
-        q[n_surv:, 0] = r.get_uniform(n_new, config.image_width * config.subpixel)
-        q[n_surv:, 1] = r.get_uniform(n_new, config.image_height * config.subpixel)
+            q[:n_surv] = _decode_positions(r, prev_q, config)
+        levels[:n_surv] = _decode_levels(r, tracks_level[survived], config)
+    _decode_new(r, q[n_surv:], levels[n_surv:], config)
     if np.abs(q).max(initial=0) > (1 << 40):
         raise CodecError("decoded keypoint out of range")
     return survived, q, levels
