@@ -128,6 +128,20 @@ def match_links(kf: KeyframeFeatures, prev: KeyframeFeatures) -> KeyframeFeature
     return KeyframeFeatures(kf.keypoints, kf.descriptors, links)
 
 
+def carry_close(
+    kf: KeyframeFeatures, prev: KeyframeFeatures, max_hamming: int = 25
+) -> tuple[KeyframeFeatures, int]:
+    """The robot tracker's rule (``FrontEndConfig.carry_max_hamming``): a linked feature
+    keeps its track's descriptor while its own lies within ``max_hamming`` bits of it."""
+    rows = np.flatnonzero(kf.links >= 0)
+    old = prev.descriptors[kf.links[rows]]
+    dist = np.unpackbits(np.bitwise_xor(old, kf.descriptors[rows]), axis=1).sum(axis=1)
+    keep = dist <= max_hamming
+    desc = kf.descriptors.copy()
+    desc[rows[keep]] = old[keep]
+    return KeyframeFeatures(kf.keypoints, desc, kf.links), int(keep.sum())
+
+
 def run_keyframes(vocab, images, orb, mode: str) -> Tally:
     """``mode``: intra (every 5th frame), all-intra (every frame), inter (continued features
     coded against their track's descriptor, the paper's [55]) or carry (they carry it: the
@@ -140,10 +154,12 @@ def run_keyframes(vocab, images, orb, mode: str) -> Tally:
     n_inter = 0
     for img in images[::step]:
         kf = orb_keyframe(orb, img)
+        carried = 0
         if mode in ("inter", "carry") and prev is not None:
-            kf = enc.carry_descriptors(match_links(kf, prev))
+            kf = match_links(kf, prev)
+            if mode == "carry":
+                kf, carried = carry_close(kf, prev)
         before = enc.state.descriptors.mode_counts[0]
-        carried = int(np.count_nonzero(kf.links >= 0)) if mode == "carry" else 0
         code(enc, dec, kf, tally)
         n_inter += enc.state.descriptors.mode_counts[0] - before + carried
         if mode == "intra":

@@ -58,8 +58,10 @@ receiver's previous keyframe (:func:`encode_standalone_keyframe` with ``carried`
 rows are sent instead of their descriptors (the decoded ``links``; the descriptors are zero
 until :func:`fill_carried`)."""
 KIND_KEYFRAME_CARRY = 4
-"""A keyframe whose features that continue a track with a descriptor carry that descriptor
-(no bits for it; ``CodecConfig.carry_track_descriptors``); the others are coded as in kind 1.
+"""A keyframe whose features that continue a track with a descriptor say, one flag each,
+whether they carry that descriptor (no bits for it; ``CodecConfig.carry_track_descriptors``;
+the robot's tracker decides, ``FrontEndConfig.carry_max_hamming``); the others are coded as
+in kind 1.
 The edge's VIO keeps a map point's first descriptor and binds continued tracks by their link,
 so what a continued feature's new descriptor would tell the edge is what the inter residual
 paid for (~93 of ~170 bits per feature on EuRoC, ``codec.md``)."""
@@ -139,6 +141,25 @@ def _previous_descriptors(
     has_prev[linked] = st.tracks_has_desc[links[linked]]
     prev_desc[linked] = st.tracks_desc[links[linked]]
     return prev_desc, has_prev
+
+
+def _put_flags(w: BitWriter, flags: np.ndarray) -> None:
+    """Binary flags with one probability: their count of ones, then the flags."""
+    ones = int(flags.sum())
+    w.put_count(ones, "mode")
+    if 0 < ones < len(flags):
+        w.put_bernoulli(flags.astype(np.int64), np.full(len(flags), ones / len(flags)), "mode")
+
+
+def _get_flags(r: BitReader, n: int) -> np.ndarray:
+    """Inverse of :func:`_put_flags` for ``n`` flags."""
+    ones = r.get_count(n)
+    if ones in (0, n):
+        return np.full(n, ones == n, dtype=bool)
+    flags = r.get_bernoulli(np.full(n, ones / n)).astype(bool)
+    if int(flags.sum()) != ones:
+        raise CodecError(f"{int(flags.sum())} carried flags where the count says {ones}")
+    return flags
 
 
 def _header(kind: int, seq: int, vocab_fp: int) -> bytes:
@@ -265,14 +286,11 @@ class FeatureEncoder(_Base):
         # (a keyframe continuing no described track is coded as kind 1: the same body)
         carry = self.config.carry_track_descriptors and not standalone and bool(has_prev.any())
         if carry:
-            if not np.array_equal(kf.descriptors[has_prev], prev_desc[has_prev]):
-                raise CodecUsageError(
-                    "with carry_track_descriptors a feature that continues a track with a "
-                    "descriptor must carry it (use FeatureEncoder.carry_descriptors)"
-                )
-            new = ~has_prev
+            same = has_prev & (kf.descriptors == prev_desc).all(axis=1)
+            _put_flags(w, same[has_prev])
+            coded = ~same
             self._desc.encode(
-                w, st.descriptors, kf.descriptors[new], prev_desc[new], has_prev[new], undo
+                w, st.descriptors, kf.descriptors[coded], prev_desc[coded], has_prev[coded], undo
             )
         else:
             self._desc.encode(
@@ -281,18 +299,6 @@ class FeatureEncoder(_Base):
         self._apply_keyframe(st, kf)
         kind = KIND_STANDALONE_KEYFRAME if standalone else KIND_KEYFRAME
         return self._finish(st, w, KIND_KEYFRAME_CARRY if carry else kind)
-
-    def carry_descriptors(self, kf: KeyframeFeatures) -> KeyframeFeatures:
-        """``kf`` with each feature that continues a track with a descriptor given that
-        descriptor (``kf`` itself without ``carry_track_descriptors``): what
-        :meth:`encode_keyframe` codes and the decoder returns, in the encoder's present state."""
-        if not self.config.carry_track_descriptors:
-            return kf
-        self._validate_keyframe(kf)
-        prev_desc, has_prev = _previous_descriptors(self.state, kf.links)
-        desc = kf.descriptors.copy()
-        desc[has_prev] = prev_desc[has_prev]
-        return KeyframeFeatures(kf.keypoints, desc, kf.links)
 
     def encode_non_keyframe(self, nkf: NonKeyframeFeatures) -> bytes:
         cfg = self.config
@@ -433,9 +439,13 @@ class FeatureDecoder(_Base):
         )
         prev_desc, has_prev = _previous_descriptors(st, links)
         if carry:
+            same = np.zeros(len(links), dtype=bool)
+            same[has_prev] = _get_flags(r, int(has_prev.sum()))
             desc = prev_desc
-            new = ~has_prev
-            desc[new] = self._desc.decode(r, st.descriptors, prev_desc[new], has_prev[new], undo)
+            coded = ~same
+            desc[coded] = self._desc.decode(
+                r, st.descriptors, prev_desc[coded], has_prev[coded], undo
+            )
         else:
             desc = self._desc.decode(r, st.descriptors, prev_desc, has_prev, undo, standalone)
         kf = KeyframeFeatures(kp, desc, links.astype(np.int32))

@@ -41,10 +41,11 @@ class CodecConfig:
     max_features: the decoder rejects frames announcing more features (16384).
     descriptor_block: features per adaptation block of the descriptor model (256).
     prior_weight: weight (in samples) of the vocabulary's bit prior (2.0).
-    carry_track_descriptors: a keyframe feature that continues a track with a descriptor
-        carries that descriptor and costs no descriptor bits (True; the receiver decodes
-        either way, the payload's kind says which). False: it is coded against it, intra or
-        inter (XOR residual), whichever is cheaper: the paper's [55].
+    carry_track_descriptors: a keyframe feature that continues a track with a descriptor and
+        has that very descriptor costs a flag and no descriptor bits (True; the receiver
+        decodes either way, the payload's kind says which). False, and for the features
+        whose descriptor differs: coded against it, intra or inter (XOR residual), whichever
+        is cheaper: the paper's [55].
     track_velocity: a non-keyframe may predict each track from its last step plus an affine
         correction (kind 5; True) instead of by one affine flow for all (kind 2). The decoder
         reads either.

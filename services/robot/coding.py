@@ -281,8 +281,7 @@ class FrameCoder:
         kf = KeyframeFeatures(kp, frame.descriptors, links.astype(np.int32))
         order = kf.canonical_order()
         coded = KeyframeFeatures(kf.keypoints[order], kf.descriptors[order], kf.links[order])
-        # A continued track keeps its descriptor (CodecConfig.carry_track_descriptors).
-        return self.encoder.carry_descriptors(coded), frame.track_ids[order].astype(np.int64)
+        return coded, frame.track_ids[order].astype(np.int64)
 
     def _non_keyframe(self, frame: TrackedFrame) -> tuple[NonKeyframeFeatures, np.ndarray]:
         self._check_unique(frame)

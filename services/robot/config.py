@@ -187,10 +187,16 @@ class FrontEndConfig:
     keyframe_association_radius_px: float = 3.0
     """A surviving track continues as the nearest keyframe ORB keypoint within this radius."""
     carry_track_descriptors: bool = True
-    """A keyframe feature that continues a track keeps the descriptor the track got at its
-    first keyframe, and the codec sends none for it (``CodecConfig.carry_track_descriptors``;
-    the map point keeps its first descriptor at the edge anyway). False: the keyframe's own
-    ORB descriptor, coded against the track's (the paper's [55] inter mode)."""
+    """A keyframe feature that continues a track keeps the track's descriptor while its own
+    ORB descriptor lies within ``carry_max_hamming`` bits of it, and the codec sends none for
+    it (``CodecConfig.carry_track_descriptors``); otherwise it takes its own, coded against
+    the track's. False: always its own (the paper's [55] inter mode)."""
+    carry_max_hamming: int = 25
+    """Half the matchers' acceptance (the edge's ``MappingConfig.match_max_hamming`` and the
+    cloud's ``fuse_max_hamming``, 50 bits): by the triangle inequality whatever the feature's
+    own descriptor matches within 25 bits, the carried one matches within 50, so a carried
+    descriptor finds what the current view would (a track seen from far around keeps a stale
+    one otherwise: the mixed-camera team merged less often)."""
     orb_match_max_hamming: int = 64
     """ORB-matching baseline: largest Hamming distance of an accepted match."""
     orb_match_ratio: float = 0.8

@@ -384,12 +384,16 @@ class FrontEnd:
         ids[ib] = cur_ids[ia]
         desc = feats.descriptors
         if self.config.carry_track_descriptors and self._desc is not None and len(ia):
-            # A continued track keeps its descriptor: that of the last keyframe's feature
-            # it continues (tracks born since, by top-up, take the new ORB descriptor).
+            # A continued track keeps its descriptor (that of the last keyframe's feature it
+            # continues) while the new ORB descriptor is close to it; tracks born since, by
+            # top-up, take the new one.
             row = self._kf_index[survived][ia]
-            had = row >= 0
+            had = np.flatnonzero(row >= 0)
+            old = self._desc[row[had]]
+            dist = np.unpackbits(np.bitwise_xor(old, desc[ib[had]]), axis=1).sum(axis=1)
+            keep = dist <= self.config.carry_max_hamming
             desc = desc.copy()
-            desc[ib[had]] = self._desc[row[had]]
+            desc[ib[had[keep]]] = old[keep]
         fresh = ids < 0
         ids[fresh] = self._new_ids(int(fresh.sum()))
         prev_rows = np.flatnonzero(survived)
