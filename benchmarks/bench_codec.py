@@ -42,7 +42,7 @@ from common.codec import (
     quantise_uv,
 )
 from common.codec import keypoints as kpc
-from common.vocabulary import Vocabulary
+from common.vocabulary import Vocabulary, hamming_rows
 from lab.datasets import euroc_micro_path
 
 log = logging.getLogger("bench_codec")
@@ -135,8 +135,7 @@ def carry_close(
     keeps its track's descriptor while its own lies within ``max_hamming`` bits of it."""
     rows = np.flatnonzero(kf.links >= 0)
     old = prev.descriptors[kf.links[rows]]
-    dist = np.unpackbits(np.bitwise_xor(old, kf.descriptors[rows]), axis=1).sum(axis=1)
-    keep = dist <= max_hamming
+    keep = hamming_rows(old, kf.descriptors[rows]) <= max_hamming
     desc = kf.descriptors.copy()
     desc[rows[keep]] = old[keep]
     return KeyframeFeatures(kf.keypoints, desc, kf.links), int(keep.sum())

@@ -88,6 +88,14 @@ def hamming_matrix(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.bitwise_count(a64[:, None, :] ^ b64[None, :, :]).sum(axis=2, dtype=np.int64)
 
 
+def hamming_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Hamming distance ``(N,) int64`` between each row of ``a (N, 32)`` and the same row of
+    ``b (N, 32)``."""
+    a64 = np.ascontiguousarray(a).view(np.uint64)
+    b64 = np.ascontiguousarray(b).view(np.uint64)
+    return np.bitwise_count(a64 ^ b64).sum(axis=1, dtype=np.int64)
+
+
 def _majority(bits: np.ndarray) -> np.ndarray:
     """Bitwise majority of unpacked bits ``(n, 256)`` -> packed ``(32,) uint8`` (ties -> 1)."""
     return np.packbits(2 * bits.sum(axis=0, dtype=np.int64) >= bits.shape[0])

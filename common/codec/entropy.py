@@ -207,6 +207,15 @@ class BitWriter:
         if n > 1:
             self.put_raw(np.array([value - (1 << (n - 1))], dtype=np.uint64), n - 1, part)
 
+    def put_flags(self, flags: np.ndarray, part: str, count_part: str | None = None) -> None:
+        """Binary flags with one probability: their count of ones (tallied as ``count_part``,
+        default ``part``), then the flags unless all or none are set."""
+        ones = int(np.count_nonzero(flags))
+        self.put_count(ones, count_part or part)
+        if 0 < ones < len(flags):
+            p = np.clip(np.full(len(flags), ones / len(flags)), 1e-6, 1 - 1e-6)
+            self.put_bernoulli(np.asarray(flags).astype(np.int32), p, part)
+
     def put_signed(
         self, values: np.ndarray, scale_index: int, part: str, escape_bits: int = 32
     ) -> None:
@@ -302,6 +311,18 @@ class BitReader:
         if value > limit:
             raise CodecError(f"count {value} exceeds the limit {limit}")
         return value
+
+    def get_flags(self, n: int) -> np.ndarray:
+        """Inverse of :meth:`BitWriter.put_flags`: ``(n,)`` bool; CodecError if they
+        disagree with their count."""
+        ones = self.get_count(n)
+        if ones in (0, n):
+            return np.full(n, ones == n, bool)
+        p = np.clip(np.full(n, ones / n), 1e-6, 1 - 1e-6)
+        flags = self.get_bernoulli(p).astype(bool)
+        if int(flags.sum()) != ones:
+            raise CodecError(f"{int(flags.sum())} flags set, {ones} declared")
+        return flags
 
     def get_signed(self, n: int, scale_index: int, escape_bits: int = 32) -> np.ndarray:
         if n == 0:

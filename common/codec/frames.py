@@ -143,25 +143,6 @@ def _previous_descriptors(
     return prev_desc, has_prev
 
 
-def _put_flags(w: BitWriter, flags: np.ndarray) -> None:
-    """Binary flags with one probability: their count of ones, then the flags."""
-    ones = int(flags.sum())
-    w.put_count(ones, "mode")
-    if 0 < ones < len(flags):
-        w.put_bernoulli(flags.astype(np.int64), np.full(len(flags), ones / len(flags)), "mode")
-
-
-def _get_flags(r: BitReader, n: int) -> np.ndarray:
-    """Inverse of :func:`_put_flags` for ``n`` flags."""
-    ones = r.get_count(n)
-    if ones in (0, n):
-        return np.full(n, ones == n, dtype=bool)
-    flags = r.get_bernoulli(np.full(n, ones / n)).astype(bool)
-    if int(flags.sum()) != ones:
-        raise CodecError(f"{int(flags.sum())} carried flags where the count says {ones}")
-    return flags
-
-
 def _header(kind: int, seq: int, vocab_fp: int) -> bytes:
     return HEADER.pack(MAGIC, (VERSION << 4) | kind, seq & 0xFFFF, vocab_fp & 0xFFFF)
 
@@ -287,7 +268,7 @@ class FeatureEncoder(_Base):
         carry = self.config.carry_track_descriptors and not standalone and bool(has_prev.any())
         if carry:
             same = has_prev & (kf.descriptors == prev_desc).all(axis=1)
-            _put_flags(w, same[has_prev])
+            w.put_flags(same[has_prev], "mode")
             coded = ~same
             self._desc.encode(
                 w, st.descriptors, kf.descriptors[coded], prev_desc[coded], has_prev[coded], undo
@@ -440,7 +421,7 @@ class FeatureDecoder(_Base):
         prev_desc, has_prev = _previous_descriptors(st, links)
         if carry:
             same = np.zeros(len(links), dtype=bool)
-            same[has_prev] = _get_flags(r, int(has_prev.sum()))
+            same[has_prev] = r.get_flags(int(has_prev.sum()))
             desc = prev_desc
             coded = ~same
             desc[coded] = self._desc.decode(

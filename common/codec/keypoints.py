@@ -448,14 +448,10 @@ def encode_carried_rows(w: BitWriter, carried: np.ndarray) -> None:
     receiver's previous keyframe (``carried`` (N,) int64, -1: none): their count, a flag per
     feature, then the rows as differences from the previous carried feature's (both lists
     are in canonical order, so continued features keep roughly the same order)."""
-    n = len(carried)
     on = carried >= 0
-    k = int(on.sum())
-    w.put_count(k, "link")
-    if n == 0 or k == 0:
+    w.put_flags(on, "link")
+    if not on.any():
         return
-    p = min(max(k / n, P_MIN), 1.0 - P_MIN)
-    w.put_bernoulli(on.astype(np.int64), np.full(n, p), "link")
     deltas = np.diff(np.concatenate([[-1], carried[on]]))
     si = best_scale_index(deltas, signed=True)
     w.put_uniform(np.array([si]), N_SCALES, "link")
@@ -464,14 +460,11 @@ def encode_carried_rows(w: BitWriter, carried: np.ndarray) -> None:
 
 def decode_carried_rows(r: BitReader, n: int) -> np.ndarray:
     """Inverse of :func:`encode_carried_rows`: (n,) int64, -1 where nothing is carried."""
-    k = r.get_count(n)
+    on = r.get_flags(n)
+    k = int(on.sum())
     out = np.full(n, -1, np.int64)
-    if n == 0 or k == 0:
+    if k == 0:
         return out
-    p = min(max(k / n, P_MIN), 1.0 - P_MIN)
-    on = r.get_bernoulli(np.full(n, p)).astype(bool)
-    if int(on.sum()) != k:
-        raise CodecError(f"{int(on.sum())} carried flags where the count says {k}")
     si = int(r.get_uniform(1, N_SCALES)[0])
     rows = np.cumsum(r.get_signed(k, si)) - 1
     if k and (rows.min() < 0 or rows.max() >= (1 << 24)):

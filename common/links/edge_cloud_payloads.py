@@ -191,7 +191,7 @@ def encode_point_ids(map_point_ids: np.ndarray) -> bytes:
     has = ids >= 0
     w = BitWriter()
     w.put_count(len(ids), "side")
-    _put_flags(w, has)
+    w.put_flags(has, "flags", count_part="side")
     v = ids[has]
     if len(v):
         w.put_count(int(v[0]), "id")
@@ -204,7 +204,7 @@ def decode_point_ids(data: bytes, what: str = "map point ids") -> np.ndarray:
     r = open_sealed(data, POINT_IDS_VERSION, what)
     with _decoding(what):
         n = r.get_count(MAX_ITEMS)
-        has = _get_flags(r, n)
+        has = r.get_flags(n)
         out = np.full(n, -1, np.int64)
         k = int(has.sum())
         if k:
@@ -213,26 +213,6 @@ def decode_point_ids(data: bytes, what: str = "map point ids") -> np.ndarray:
     if np.any(out < -1):
         raise LinkDecodeError(f"{what}: negative map point id")
     return out
-
-
-def _put_flags(w: BitWriter, flags: np.ndarray) -> None:
-    """Binary flags with one probability (its count of ones sent first)."""
-    ones = int(flags.sum())
-    w.put_count(ones, "side")
-    if 0 < ones < len(flags):
-        p = np.full(len(flags), ones / len(flags))
-        w.put_bernoulli(flags.astype(np.int32), np.clip(p, 1e-6, 1 - 1e-6), "flags")
-
-
-def _get_flags(r: BitReader, n: int) -> np.ndarray:
-    ones = r.get_count(n)
-    if ones in (0, n):
-        return np.full(n, ones == n, bool)
-    p = np.clip(np.full(n, ones / n), 1e-6, 1 - 1e-6)
-    flags = r.get_bernoulli(p).astype(bool)
-    if int(flags.sum()) != ones:
-        raise ValueError(f"{int(flags.sum())} flags set, {ones} declared")
-    return flags
 
 
 def encode_points(batch: PointBatch) -> bytes:

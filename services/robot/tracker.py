@@ -35,6 +35,7 @@ import numpy as np
 
 from common.calibration import CameraCalibration, ImuCalibration
 from common.errors import RecslamError
+from common.vocabulary import hamming_rows
 from services.robot.config import FrontEndConfig, PredictionMode, TrackingMode
 from services.robot.imu_prediction import InertialState, MotionPredictor, predict_rotation
 from services.robot.keyframe_decision import KeyframeReason, decide_keyframe
@@ -390,8 +391,7 @@ class FrontEnd:
             row = self._kf_index[survived][ia]
             had = np.flatnonzero(row >= 0)
             old = self._desc[row[had]]
-            dist = np.unpackbits(np.bitwise_xor(old, desc[ib[had]]), axis=1).sum(axis=1)
-            keep = dist <= self.config.carry_max_hamming
+            keep = hamming_rows(old, desc[ib[had]]) <= self.config.carry_max_hamming
             desc = desc.copy()
             desc[ib[had[keep]]] = old[keep]
         fresh = ids < 0
