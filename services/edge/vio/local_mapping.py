@@ -50,41 +50,77 @@ def match_by_projection(
     local map (points of the newest ``match_keyframes`` keyframes) is searched: older, drifted
     structure is the cloud's loop closure to fix, not the local BA's.
     Returns the number of features bound."""
-    if kf.descriptors is None or not vmap.points:
+    if kf.descriptors is None:
         return 0
     free = [
         (t, r)
         for t, r in kf.row_of.items()
         if t not in vmap.track_point and t not in vmap.banned_tracks
     ]
-    if not free:
-        return 0
     seen = {mp.id for t in kf.row_of if (mp := vmap.point_of(t)) is not None}
+    rows = np.array([r for _, r in free], dtype=np.int64)
+    found = search_by_projection(
+        vmap,
+        kf.T_world_body,
+        kf.xy[rows],
+        kf.levels[rows],
+        kf.descriptors[rows],
+        seen,
+        camera,
+        options,
+    )
+    for i, point_id in found:
+        track, row = free[i]
+        vmap.bind_track(track, point_id)
+        vmap.points[point_id].observations[kf.id] = row
+    return len(found)
+
+
+def search_by_projection(
+    vmap: VioMap,
+    T_world_body: np.ndarray,
+    xy: np.ndarray,
+    levels: np.ndarray,
+    descriptors: np.ndarray,
+    exclude: set[int],
+    camera: PinholeUndistorter,
+    options: MappingConfig,
+    radius_scale: float = 1.0,
+) -> list[tuple[int, int]]:
+    """Features (normalised ``xy`` (N, 2), pyramid ``levels`` (N,), ORB ``descriptors``
+    (N, 32)) seen from ``T_world_body`` matched to the local map's points (those of the newest
+    ``match_keyframes`` keyframes, but not ``exclude``'s ids) that project within
+    ``match_radius_px`` × 1.2^level × ``radius_scale`` with a descriptor within
+    ``match_max_hamming`` passing the ratio test; one feature per point (the closest).
+    Pure: nothing in the map changes. Returns [(feature index, point id)]."""
+    if not len(xy) or not vmap.points:
+        return []
     local = {
         mp.id
         for k in vmap.keyframe_list()[-options.match_keyframes - 1 :]
         for t in k.row_of
         if (mp := vmap.point_of(t)) is not None
     }
-    cands = [vmap.points[p] for p in sorted(local - seen) if vmap.points[p].descriptor is not None]
+    cands = [
+        vmap.points[p] for p in sorted(local - exclude) if vmap.points[p].descriptor is not None
+    ]
     if not cands:
-        return 0
-    xy_c, z = project(kf.T_world_body, camera.T_body_cam, np.array([mp.p_world for mp in cands]))
+        return []
+    xy_c, z = project(T_world_body, camera.T_body_cam, np.array([mp.p_world for mp in cands]))
     front = z > options.min_depth_m
     if not np.any(front):
-        return 0
+        return []
     cands = [mp for mp, f in zip(cands, front.tolist(), strict=True) if f]
     xy_c = xy_c[front]
     desc_c = np.stack([d for mp in cands if (d := mp.descriptor) is not None])  # all have one
-    rows = np.array([r for _, r in free])
-    radius = options.match_radius_px * 1.2 ** kf.levels[rows].astype(float) / camera.focal
-    d2 = np.sum((kf.xy[rows][:, None, :] - xy_c[None, :, :]) ** 2, axis=2)
-    best_for_point: dict[int, tuple[int, int]] = {}  # candidate index -> (hamming, free index)
-    for i in range(len(free)):
+    radius = options.match_radius_px * radius_scale * 1.2 ** levels.astype(float) / camera.focal
+    d2 = np.sum((xy[:, None, :] - xy_c[None, :, :]) ** 2, axis=2)
+    best_for_point: dict[int, tuple[int, int]] = {}  # candidate index -> (hamming, feature)
+    for i in range(len(xy)):
         js = np.flatnonzero(d2[i] < radius[i] ** 2)
         if len(js) == 0:
             continue
-        ham = np.unpackbits(np.bitwise_xor(desc_c[js], kf.descriptors[rows[i]]), axis=1).sum(1)
+        ham = np.unpackbits(np.bitwise_xor(desc_c[js], descriptors[i]), axis=1).sum(1)
         order = np.argsort(ham)
         h0 = int(ham[order[0]])
         if h0 > options.match_max_hamming:
@@ -94,12 +130,7 @@ def match_by_projection(
         j = int(js[order[0]])
         if j not in best_for_point or h0 < best_for_point[j][0]:
             best_for_point[j] = (h0, i)
-    for j, (_, i) in best_for_point.items():
-        track, row = free[i]
-        mp = cands[j]
-        vmap.bind_track(track, mp.id)
-        mp.observations[kf.id] = row
-    return len(best_for_point)
+    return [(i, cands[j].id) for j, (_, i) in best_for_point.items()]
 
 
 def triangulate_multiview(T_cam_worlds: np.ndarray, xy: np.ndarray) -> np.ndarray:

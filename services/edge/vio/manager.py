@@ -5,7 +5,8 @@ tracking (IMU-predicted, PnP RANSAC fallback, motion-only optimisation) → on a
 keyframe insertion, association, triangulation, local BA, and the scheduled visual-inertial
 initialisations (first at ``vi_init.first_after_s``, re-runs at ``vi_init.refine_after_s``;
 :mod:`services.edge.vio.vi_schedule`).
-Tracking loss starts a new map (new ``map_id``). Everything runs synchronously in the caller.
+Tracking loss keeps a VI map for ``tracking.recently_lost_s`` while robot keyframes try to
+relocalise in it, then starts a new map (new ``map_id``). Everything runs synchronously.
 """
 
 from __future__ import annotations
@@ -32,9 +33,10 @@ from services.edge.vio.local_mapping import (
     triangulate_new_points,
 )
 from services.edge.vio.mono_init import two_view_geometry
+from services.edge.vio.relocalisation import map_points_of, search_local_map
 from services.edge.vio.state import Keyframe, MapPoint, PinholeUndistorter, VioMap
 from services.edge.vio.time_offset import TimeOffsetTracker
-from services.edge.vio.tracking import ImuPrior, TrackResult, track_frame
+from services.edge.vio.tracking import ImuPrior, TrackResult, track_with_fallback
 from services.edge.vio.types import (
     FrameObservation,
     FrameResult,
@@ -110,6 +112,7 @@ class VioManager(ViInitSchedule):
         self._last_init_reason = ""
         self.last_local_ba: BAStats | None = None
         self._keyframes_since_ba = 0
+        self._lost_since: int | None = None  # first frame of a recently lost run [ns]
         # VI initialisation and its refinements optimise every keyframe and every point.
         self._full_ba_options = replace(self.options.local_ba, max_points=0)
         logger.info("VIO %s options: %s", robot_name, self.options)
@@ -375,6 +378,7 @@ class VioManager(ViInitSchedule):
         self._ref = frame if frame is not None and (own or frame.obs.is_keyframe) else None
         self._last_T = self._prev_T = self._last_v = None
         self._last_bias = None
+        self._lost_since = None
         self.stats.maps_started += 1
 
     # ------------------------------------------------------------------ mono init
@@ -496,35 +500,36 @@ class VioManager(ViInitSchedule):
         has = np.array([mp is not None for mp in mps], dtype=bool)
         P = np.array([mp.p_world for mp in mps if mp is not None]).reshape(-1, 3)
         T_pred, v_pred, prior = self._predict(frame, vmap)
-        res, reason = track_frame(
-            P,
-            frame.xy[has],
-            frame.sigma[has],
-            ids[has],
-            self.camera,
-            self.options.tracking,
-            T_pred,
-            prior,
-            v_pred,
-        )
-        if res is None and prior is not None:
-            # The IMU disagrees with the vision (bad inertial state): track visually alone.
-            logger.debug("%s: IMU-aided tracking failed (%s); visual only", self.name, reason)
-            res, reason = track_frame(
-                P,
-                frame.xy[has],
-                frame.sigma[has],
-                ids[has],
-                self.camera,
-                self.options.tracking,
-                None,
-                None,
-                None,
+        args = (frame.xy, frame.sigma, ids, self.camera, self.options.tracking)
+        res, reason = track_with_fallback(P, has, *args, T_pred, prior, v_pred)
+        if res is None and vmap.vi_initialized and frame.obs.descriptors is not None:
+            seen = {mp.id for mp in mps if mp is not None}
+            found = search_local_map(
+                vmap, frame.obs, frame.xy, seen, T_pred, self.camera, self.options
             )
+            P, has = map_points_of(vmap, ids, found)
+            res, why = track_with_fallback(P, has, *args, T_pred, prior, v_pred)
+            logger.debug("%s: relocalise: %d found by projection: %s", self.name, len(found), why)
         self.stats.track_s.append(time.perf_counter() - t_start)
+        t = frame.obs.timestamp_ns
         if res is None:
+            self._lost_since = t if self._lost_since is None else self._lost_since
+            kept_s = (t - self._lost_since) * 1e-9
+            if vmap.vi_initialized and kept_s < self.options.tracking.recently_lost_s:
+                self.stats.frames_lost_kept += 1
+                why = f"lost: {reason}; map {vmap.map_id} kept for {kept_s:.1f} s (IMU)"
+                return self._result(frame, None, TrackingStatus.LOST, 0, False, why)
             self._start_new_map(frame, reason)
             return self._result(frame, None, TrackingStatus.LOST, 0, False, f"lost: {reason}")
+        if self._lost_since is not None:
+            self.stats.relocalised += 1
+            logger.info(
+                "%s: map %d tracked again after %.1f s lost",
+                self.name,
+                vmap.map_id,
+                (t - self._lost_since) * 1e-9,
+            )
+            self._lost_since = None
         self._prev_T, self._last_T = self._last_T, res.T_world_body
         R_visual = res.T_world_body if res.R_world_body_visual is None else res.R_world_body_visual
         self._time_offset.add_frame(frame.obs.timestamp_ns, R_visual, vmap.map_id)

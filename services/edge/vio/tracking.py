@@ -285,3 +285,26 @@ def track_frame(
         ),
         "",
     )
+
+
+def track_with_fallback(
+    P_world: np.ndarray,
+    has: np.ndarray,
+    xy: np.ndarray,
+    sigma: np.ndarray,
+    ids: np.ndarray,
+    camera: PinholeUndistorter,
+    options: TrackingConfig,
+    T_pred: np.ndarray | None,
+    prior: ImuPrior | None = None,
+    v_pred: np.ndarray | None = None,
+) -> tuple[TrackResult | None, str]:
+    """:func:`track_frame` on a frame's features ``has`` (N,) bool of its ``xy`` (N, 2),
+    ``sigma`` (N,), ``ids`` (N,), whose map points are ``P_world`` (has.sum(), 3): IMU-aided,
+    and if the IMU disagrees with the vision (a bad inertial state), visual alone."""
+    args = (P_world, xy[has], sigma[has], ids[has], camera, options)
+    res, reason = track_frame(*args, T_pred, prior, v_pred)
+    if res is None and prior is not None:
+        logger.debug("IMU-aided tracking failed (%s); visual only", reason)
+        res, reason = track_frame(*args, None, None, None)
+    return res, reason

@@ -114,6 +114,15 @@ class TrackingConfig:
     ransac_iterations: int = 100
     prior_inlier_ratio: float = 0.6  # IMU-predicted pose is trusted (RANSAC skipped) above this
     max_iterations: int = 8  # motion-only optimisation iterations
+    # A VI-initialised map whose tracking fails is kept this long [s] while the IMU predicts
+    # the pose (ORB-SLAM3's RECENTLY_LOST, 5 s there): each robot keyframe meanwhile has its
+    # ORB features searched in the local map by projection from that prediction (window
+    # ``relocalise_radius_scale`` × the mapping's radius) and is tracked again; only then is
+    # a new map started. 0: a failure starts a new map at once. 3 s: longer than the gap
+    # between keyframes at the lowest uplink budgets (~2 s at 50 kbit/s), shorter than the
+    # IMU alone stays within the search window.
+    recently_lost_s: float = 3.0
+    relocalise_radius_scale: float = 2.0
 
 
 @dataclass(frozen=True)
@@ -392,6 +401,8 @@ class VioStats:
     local_ba_s: list[float] = field(default_factory=list)
     vi_init_s: list[float] = field(default_factory=list)
     maps_started: int = 0
+    frames_lost_kept: int = 0  # frames not tracked while their map was kept (recently lost)
+    relocalised: int = 0  # recently lost maps tracked again (by a keyframe's descriptors)
     imu_noise_measured: tuple[float, float] = (float("nan"), float("nan"))
     imu_noise_used: tuple[float, float] = (float("nan"), float("nan"))
     time_offset_ms: float = 0.0  # the offset in use (t_imu = t_cam + offset)

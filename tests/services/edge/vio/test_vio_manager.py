@@ -1,11 +1,19 @@
 """End-to-end VIO on the built-in simulator: accuracy, tracking loss, input validation."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
 from common.geometry import umeyama_alignment
 from services.edge.vio.manager import VioManager
-from services.edge.vio.types import FrameObservation, TrackingStatus, VioError
+from services.edge.vio.types import (
+    FrameObservation,
+    TrackingConfig,
+    TrackingStatus,
+    VioConfig,
+    VioError,
+)
 from sim.vio import SimConfig, evaluate_run, run_sequence, simulate
 
 
@@ -59,30 +67,70 @@ def test_vi_initialisation_recovers_scale_and_gravity(seed):
         assert np.degrees(np.arccos(np.clip(up_est @ up_gt, -1, 1))) < 2.0
 
 
-def test_tracking_loss_starts_a_new_map():
-    seq = simulate(SimConfig(duration_s=6.0, seed=5))
-    vio = VioManager(seq.camera, seq.imu)
+def _lose_tracks(seed: int, options: VioConfig | None, new_descriptors: bool) -> tuple:
+    """6 s of the simulator; from frame 61 (3 s, after VI initialisation; a non-keyframe:
+    the simulator's robot keyframes are every fifth frame) every track is
+    renamed, so nothing links a frame to the map by its tracks any more (a robot's tracker
+    restarted, or a gap no track survived); with ``new_descriptors`` the keyframes' ORB
+    descriptors are replaced by random ones too (another place)."""
+    seq = simulate(SimConfig(duration_s=6.0, seed=seed))
+    vio = VioManager(seq.camera, seq.imu, options)
+    rng = np.random.default_rng(0)
     results = []
     for i, (t, g, a, fr) in enumerate(seq.feed()):
         vio.feed_imu(t, g, a)
-        if i >= 60:  # every track replaced: nothing links the frame to the map any more
+        if i >= 61:
+            desc = fr.descriptors
+            if new_descriptors and desc is not None:
+                desc = rng.integers(0, 256, desc.shape, dtype=np.uint8)
             fr = FrameObservation(
                 fr.timestamp_ns,
                 fr.track_ids + 1_000_000,
                 fr.keypoints_px,
                 fr.levels,
                 fr.is_keyframe,
-                fr.descriptors,
+                desc,
             )
         results.append(vio.feed_frame(fr))
-    assert results[59].map_id == 0
+        if i == 60:
+            assert vio.initialized
+    return vio, results
+
+
+def test_a_keyframe_relocalises_a_recently_lost_map():
+    """The map is kept while the IMU predicts the pose; the next robot keyframe's features are
+    found in the local map by projection (their descriptors) and tracking goes on in map 0."""
+    vio, results = _lose_tracks(5, None, new_descriptors=False)
+    assert results[60].map_id == 0
     lost = [r for r in results if r.status == TrackingStatus.LOST]
-    assert len(lost) == 1
-    assert lost[0].map_id == 1
-    assert lost[0].reason.startswith("lost")
-    assert results[-1].map_id == 1
+    assert lost, "renamed tracks must lose the frame at first"
+    assert all("kept" in r.reason and r.map_id == 0 for r in lost)
+    assert all(r.status == TrackingStatus.TRACKING for r in results[61 + len(lost) :])
+    assert results[-1].map_id == 0 and vio.stats.maps_started == 0  # (counts new maps)
+    assert vio.stats.relocalised == 1 and vio.stats.frames_lost_kept == len(lost)
+    assert len(lost) == 4  # frames 61-64: frame 65, the next robot keyframe, relocalises
+
+
+def test_tracking_loss_starts_a_new_map_after_the_recently_lost_time():
+    options = VioConfig(tracking=replace(TrackingConfig(), recently_lost_s=1.0))
+    vio, results = _lose_tracks(5, options, new_descriptors=True)
+    lost = [r for r in results if r.status == TrackingStatus.LOST]
+    kept = [r for r in lost if "kept" in r.reason]
+    assert kept and all(r.map_id == 0 for r in kept)
+    assert (kept[-1].timestamp_ns - kept[0].timestamp_ns) * 1e-9 < 1.0
+    assert lost[len(kept)].map_id == 1 and "kept" not in lost[len(kept)].reason
+    assert vio.stats.relocalised == 0
     assert vio.current_map is not None and vio.current_map.map_id == 1
     assert len(vio.current_map.keyframes) >= 2  # the new map initialised and grows
+
+
+def test_without_a_recently_lost_time_a_loss_starts_a_new_map_at_once():
+    options = VioConfig(tracking=replace(TrackingConfig(), recently_lost_s=0.0))
+    _, results = _lose_tracks(5, options, new_descriptors=False)
+    lost = [r for r in results if r.status == TrackingStatus.LOST]
+    assert len(lost) == 1
+    assert lost[0].map_id == 1 and lost[0].reason.startswith("lost")
+    assert results[-1].map_id == 1
 
 
 def test_rejects_malformed_frames():
