@@ -344,6 +344,7 @@ class EdgeApp:
                 "time_offset_ms": s.time_offset_ns * 1e-6,
                 "time_offset_sigma_ms": s.time_offset_sigma_ms,
                 "map_id": s.map_id,
+                "vio": dict(s.vio_counts),
                 "failures": list(s.failures),
                 "feedback_sent": s.feedback_sent,
                 "queued": core["queued"],

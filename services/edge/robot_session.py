@@ -108,6 +108,7 @@ class RobotSession(SessionUplink):
         self.frame_s: list[float] = []
         self.track_s: list[float] = []
         self.local_ba_s: list[float] = []
+        self.vio_counts: dict[str, int] = {}  # the VIO's running totals (``WorkResult``)
         self._reset_stream()
         self._kf_features: OrderedDict[int, KeyframeFeatures] = OrderedDict()
         self.imu_uplink = ImuUplink(self.options.imu_history_s)  # the keyframes' IMU
@@ -232,6 +233,8 @@ class RobotSession(SessionUplink):
             out.robot.append(frame_pose(res.result, res.timestamp_ns, self.map_id))
         self.track_s.extend(res.track_s)
         self.local_ba_s.extend(res.local_ba_s)
+        if res.vio_counts is not None:
+            self.vio_counts = dict(res.vio_counts)
         for map_id, deltas in res.point_moves:  # before this frame's (corrected) points
             book = self._sent_points.get(map_id)
             if book is not None:

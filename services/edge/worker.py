@@ -49,6 +49,8 @@ logger = logging.getLogger(__name__)
 MAP_ID_STRIDE = 1000
 """Map ids of a re-initialised VIO start at ``generation * MAP_ID_STRIDE`` (no reuse)."""
 GENERATIONS_PER_RUN = 100
+VIO_COUNTS = ("maps_started", "relocalised", "frames_lost_kept")
+"""The ``VioStats`` counters each :class:`WorkResult` carries (the edge's stats: ``vio``)."""
 """An edge's ``run``-th start for a robot (:meth:`JournalStore.next_run`) begins at generation
 ``run * GENERATIONS_PER_RUN``: the re-run of a restarted edge's maps never takes the map ids
 of the run before (whose maps the cloud holds; the re-run is not the same map)."""
@@ -97,6 +99,9 @@ class WorkResult:
     time_offset_ns: int = 0  # the VIO's camera-IMU offset in use (t_imu = t_cam + offset)
     time_offset_sigma_ms: float = float("nan")  # of its last estimate
     timestamp_ns: int = 0  # the frame's camera time (also when the VIO failed on it)
+    # the VIO's running totals (``VioStats``): maps started after a loss, recently lost maps
+    # tracked again, frames not tracked while their map was kept
+    vio_counts: dict[str, int] | None = None
 
 
 @dataclass(frozen=True)
@@ -226,6 +231,7 @@ class VioRunner:
             time_offset_ns=self.vio.time_offset_ns,
             time_offset_sigma_ms=self.vio.stats.time_offset_sigma_ms,
             timestamp_ns=t_ns,
+            vio_counts={k: getattr(self.vio.stats, k) for k in VIO_COUNTS},
         )
 
 
