@@ -510,17 +510,12 @@ class VioManager(ViInitSchedule):
             P, has = map_points_of(vmap, ids, found)
             res, why = track_with_fallback(P, has, *args, T_pred, prior, v_pred)
             logger.debug("%s: relocalise: %d found by projection: %s", self.name, len(found), why)
+        if res is None and prior is not None and v_pred is not None:
+            return self._bridge(frame, vmap, T_pred, v_pred, prior, reason)
         self.stats.track_s.append(time.perf_counter() - t_start)
         t = frame.obs.timestamp_ns
         if res is None:
-            self._lost_since = t if self._lost_since is None else self._lost_since
-            kept_s = (t - self._lost_since) * 1e-9
-            if vmap.vi_initialized and kept_s < self.options.tracking.recently_lost_s:
-                self.stats.frames_lost_kept += 1
-                why = f"lost: {reason}; map {vmap.map_id} kept for {kept_s:.1f} s (IMU)"
-                return self._result(frame, None, TrackingStatus.LOST, 0, False, why)
-            self._start_new_map(frame, reason)
-            return self._result(frame, None, TrackingStatus.LOST, 0, False, f"lost: {reason}")
+            return self._lose(frame, vmap, reason)
         if self._lost_since is not None:
             self.stats.relocalised += 1
             logger.info(
@@ -557,6 +552,52 @@ class VioManager(ViInitSchedule):
             why += f" ({self._last_init_reason})"
         return self._result(frame, T_out, TrackingStatus.INITIALIZING, n_inl, is_kf, why)
 
+    def _lose(self, frame: _Frame, vmap: VioMap, reason: str) -> FrameResult:
+        """Tracking failed: a VI map is kept for ``recently_lost_s``, then a new map."""
+        t = frame.obs.timestamp_ns
+        self._lost_since = t if self._lost_since is None else self._lost_since
+        kept_s = (t - self._lost_since) * 1e-9
+        if vmap.vi_initialized and kept_s < self.options.tracking.recently_lost_s:
+            self.stats.frames_lost_kept += 1
+            why = f"lost: {reason}; map {vmap.map_id} kept for {kept_s:.1f} s (IMU)"
+            return self._result(frame, None, TrackingStatus.LOST, 0, False, why)
+        self._start_new_map(frame, reason)
+        return self._result(frame, None, TrackingStatus.LOST, 0, False, f"lost: {reason}")
+
+    def _bridge(
+        self,
+        frame: _Frame,
+        vmap: VioMap,
+        T_pred: np.ndarray,
+        v_pred: np.ndarray,
+        prior: ImuPrior,
+        reason: str,
+    ) -> FrameResult:
+        """Too few of the frame's tracks have map points (new ground seen through sparse frames,
+        e.g. under an uplink budget): while the IMU alone holds, the frame becomes a keyframe
+        at the IMU's prediction, its tracks that earlier keyframes saw are triangulated and the
+        visual-inertial local BA refines it (VINS-Mono's sliding window has no other way: its
+        features are triangulated from IMU-propagated poses). Else the map is recently lost."""
+        t = frame.obs.timestamp_ns
+        kf0 = prior.keyframe
+        dt = (t - kf0.timestamp_ns) * 1e-9
+        if (
+            self._lost_since is None
+            and 0 < dt <= self.options.tracking.imu_bridge_s
+            and len(frame.obs.track_ids) >= self.options.tracking.min_inliers
+        ):
+            res = TrackResult(T_pred, v_pred, kf0.bias_accel, kf0.bias_gyro, np.zeros(0), False)
+            kf = self._insert_keyframe(frame, res, vmap, kf0, force_ba=True)
+            n = sum(1 for tr in kf.row_of if vmap.point_of(tr) is not None)
+            if n >= self.options.tracking.min_inliers:
+                self.stats.frames_bridged += 1
+                self._prev_T, self._last_T = self._last_T, kf.T_world_body.copy()
+                self._last_v = kf.v_world.copy()
+                self._last_bias = (kf.bias_accel.copy(), kf.bias_gyro.copy())
+                why = f"IMU-bridged keyframe ({reason}): {n} map points after BA"
+                return self._result(frame, kf.T_world_body, TrackingStatus.TRACKING, n, True, why)
+        return self._lose(frame, vmap, reason)
+
     def _keyframe_due(self, frame: _Frame, last_kf: Keyframe, vmap: VioMap, n_inl: int) -> bool:
         """Robot keyframes, and the VIO's own ones (see ``VioConfig.max_keyframe_interval_s``)."""
         opt = self.options
@@ -572,7 +613,12 @@ class VioManager(ViInitSchedule):
 
     # ------------------------------------------------------------------ local mapping
     def _insert_keyframe(
-        self, frame: _Frame, res: TrackResult, vmap: VioMap, last_kf: Keyframe
+        self,
+        frame: _Frame,
+        res: TrackResult,
+        vmap: VioMap,
+        last_kf: Keyframe,
+        force_ba: bool = False,
     ) -> Keyframe:
         kf = self._new_keyframe(frame, res.T_world_body, last_kf)
         if res.v_world is not None:
@@ -592,6 +638,7 @@ class VioManager(ViInitSchedule):
         self._keyframes_since_ba += 1
         if (
             not frame.obs.is_keyframe
+            and not force_ba
             and self._keyframes_since_ba < self.options.local_ba.every_keyframes
         ):
             self._maybe_vi_init(vmap)

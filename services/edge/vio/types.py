@@ -122,6 +122,12 @@ class TrackingConfig:
     # between keyframes at the lowest uplink budgets (~2 s at 50 kbit/s), shorter than the
     # IMU alone stays within the search window.
     recently_lost_s: float = 3.0
+    # Too few tracks with map points but the IMU recent: a frame within this long [s] of its
+    # map's last keyframe becomes a keyframe at the IMU's prediction, its tracks triangulated
+    # and refined by the visual-inertial local BA (VINS-style), before the map counts as
+    # lost (0: never). 1 s: the IMU's drift with the map's biases stays well within the
+    # pixel noise's weight over that long, and a 50 kbit/s uplink sends a frame every ~0.3 s.
+    imu_bridge_s: float = 1.0
     relocalise_radius_scale: float = 2.0
 
 
@@ -403,6 +409,7 @@ class VioStats:
     maps_started: int = 0
     frames_lost_kept: int = 0  # frames not tracked while their map was kept (recently lost)
     relocalised: int = 0  # recently lost maps tracked again (by a keyframe's descriptors)
+    frames_bridged: int = 0  # frames made keyframes at the IMU's prediction (too few points)
     imu_noise_measured: tuple[float, float] = (float("nan"), float("nan"))
     imu_noise_used: tuple[float, float] = (float("nan"), float("nan"))
     time_offset_ms: float = 0.0  # the offset in use (t_imu = t_cam + offset)
