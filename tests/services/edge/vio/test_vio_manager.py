@@ -133,6 +133,35 @@ def test_without_a_recently_lost_time_a_loss_starts_a_new_map_at_once():
     assert results[-1].map_id == 1
 
 
+def test_a_frame_with_too_few_map_points_is_bridged_by_the_imu():
+    """Most map points gone (as when sparse frames see new ground): the frame is made a
+    keyframe at the IMU's prediction, its tracks that earlier keyframes saw triangulated, and
+    tracking goes on in the same map; the bridged pose moved as the ground truth did."""
+    seq = simulate(SimConfig(duration_s=5.0, seed=5))
+    vio = VioManager(seq.camera, seq.imu)
+    row = {int(t): i for i, t in enumerate(seq.gt_timestamps_ns)}
+    results = []
+    for i, (t, g, a, fr) in enumerate(seq.feed()):
+        vio.feed_imu(t, g, a)
+        if i == 61:
+            vmap = vio.current_map
+            assert vio.initialized and vmap is not None
+            for point_id in list(vmap.points)[: int(0.97 * len(vmap.points))]:
+                vmap.remove_point(point_id)
+        results.append(vio.feed_frame(fr))
+    bridged = results[61]
+    assert bridged.status == TrackingStatus.TRACKING and bridged.map_id == 0
+    assert bridged.reason.startswith("IMU-bridged") and bridged.is_new_keyframe
+    assert vio.stats.frames_bridged == 1 and vio.stats.maps_started == 0
+    assert all(r.status == TrackingStatus.TRACKING for r in results[61:])
+    gt = seq.gt_T_world_body
+    moved_gt = np.linalg.norm(
+        gt[row[results[61].timestamp_ns], :3, 3] - gt[row[results[60].timestamp_ns], :3, 3]
+    )
+    moved = np.linalg.norm(results[61].T_world_body[:3, 3] - results[60].T_world_body[:3, 3])
+    assert abs(moved - moved_gt) < 0.01  # m
+
+
 def test_rejects_malformed_frames():
     with pytest.raises(VioError, match="keypoints_px"):
         FrameObservation(0, np.arange(3), np.zeros((3, 3)), np.zeros(3))
