@@ -125,9 +125,10 @@ class TrackingConfig:
     # Too few tracks with map points but the IMU recent: a frame within this long [s] of its
     # map's last keyframe becomes a keyframe at the IMU's prediction, its tracks triangulated
     # and refined by the visual-inertial local BA (VINS-style), before the map counts as
-    # lost (0: never). 1 s: the IMU's drift with the map's biases stays well within the
-    # pixel noise's weight over that long, and a 50 kbit/s uplink sends a frame every ~0.3 s.
-    imu_bridge_s: float = 1.0
+    # lost (0: never). 2 s: the longest gap an uplink budget leaves after a keyframe (a
+    # 300-feature keyframe holds a 50 kbit/s link ~1.2 s), over which the IMU alone, with
+    # the map's biases, drifts a few cm (0.5 × 0.02 m/s² × (2 s)²): a BA's starting point.
+    imu_bridge_s: float = 2.0
     relocalise_radius_scale: float = 2.0
 
 
