@@ -33,7 +33,14 @@ from common.transport import Delivery, Server, TransportConfig
 from common.vocabulary import Vocabulary
 from services.edge.app import EdgeConfig
 from services.edge.server import EdgeServer, EdgeServiceConfig
-from services.edge.worker import MAP_ID_STRIDE, ProcessWorker, WorkerSpec, WorkItem, WorkResult
+from services.edge.worker import (
+    MAP_ID_STRIDE,
+    VIO_COUNTS,
+    ProcessWorker,
+    WorkerSpec,
+    WorkItem,
+    WorkResult,
+)
 from sim.robot import code_sequence, play, sim_sensors
 from sim.vio import SimConfig, simulate
 
@@ -234,7 +241,7 @@ def test_failing_robot_vio_does_not_disturb_another(vocab, sim_frames) -> None:
     g, b = stats["robots"]["good"], stats["robots"]["bad"]
     assert g["failures"] == [] and g["frames_processed"] == len(frames)
     assert g["state"] == "tracking" and g["map_id"] == 0
-    assert g["vio"] == {"maps_started": 0, "relocalised": 0, "frames_lost_kept": 0}
+    assert g["vio"] == dict.fromkeys(VIO_COUNTS, 0) and "frames_bridged" in g["vio"]
     assert len(b["failures"]) == 2, b["failures"]
     assert "frame 25" in b["failures"][0] and "timestamp 0 not after previous" in b["failures"][0]
     assert "frame 60: VIO process died (exit -9)" in b["failures"][1]
