@@ -138,16 +138,8 @@ class CodecGridOrbExtractor:
     def n_features(self, n: int) -> None:
         self.inner.n_features = n
 
-    def extract(
-        self, image: np.ndarray, mask: np.ndarray | None = None, n_keep: int | None = None
-    ) -> OrbFeatures:
-        return snap_orb_features(self.inner.extract(image, mask, n_keep), self.codec_config)
-
-    def describe_at(
-        self, image: np.ndarray, keypoints_px: np.ndarray, levels: np.ndarray
-    ) -> tuple[OrbFeatures, np.ndarray]:
-        feats, rows = self.inner.describe_at(image, keypoints_px, levels)
-        return snap_orb_features(feats, self.codec_config), rows
+    def extract(self, image: np.ndarray, mask: np.ndarray | None = None) -> OrbFeatures:
+        return snap_orb_features(self.inner.extract(image, mask), self.codec_config)
 
 
 def install_codec_grid(front_end: FrontEnd, config: CodecConfig) -> None:

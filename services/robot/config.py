@@ -186,14 +186,6 @@ class FrontEndConfig:
     """Output keypoints lie on this grid; the tracker continues from the quantised values."""
     keyframe_association_radius_px: float = 3.0
     """A surviving track continues as the nearest keyframe ORB keypoint within this radius."""
-    keyframe_keeps_tracks: bool = False
-    """A keyframe keeps every surviving track as a feature (ORB descriptor computed at its
-    tracked position, ``OrbExtractor.describe_at``) and adds new ORB features only away from
-    them, up to ``orb.n_features`` (VINS / OpenVINS keep their tracks through keyframes too).
-    False: the keyframe's ORB features re-seed the tracks, a track continuing only where one
-    lies within ``keyframe_association_radius_px`` (the paper). An uplink budget's keyframe
-    plan turns it on (keyframes 1-2 s apart at 50 kbit/s: re-seeding kept 45-97 of ~400
-    tracks on map points, and the edge's VIO lost its map)."""
     carry_track_descriptors: bool = True
     """A keyframe feature that continues a track keeps the track's descriptor while its own
     ORB descriptor lies within ``carry_max_hamming`` bits of it, and the codec sends none for

@@ -95,11 +95,8 @@ class OrbExtractor:
             fastThreshold=config.fast_threshold,
         )
 
-    def extract(
-        self, image: np.ndarray, mask: np.ndarray | None = None, n_keep: int | None = None
-    ) -> OrbFeatures:
-        """Detect, distribute and describe ORB features on a uint8 (H, W) image (at most
-        ``n_keep``, default ``n_features``; only where ``mask`` is non-zero)."""
+    def extract(self, image: np.ndarray, mask: np.ndarray | None = None) -> OrbFeatures:
+        """Detect, distribute and describe ORB features on a uint8 (H, W) image."""
         if image.dtype != np.uint8 or image.ndim != 2:
             raise OrbExtractorError(
                 f"ORB needs a uint8 (H, W) grayscale image, got {image.dtype} {image.shape}"
@@ -109,12 +106,19 @@ class OrbExtractor:
         if kps:
             pts = np.array([k.pt for k in kps], dtype=np.float64)
             resp = np.array([k.response for k in kps], dtype=np.float32)
-            n = self.n_features if n_keep is None else n_keep
-            keep = select_grid(pts, resp, image.shape, n, cfg.grid_cols, cfg.grid_rows)
+            keep = select_grid(
+                pts, resp, image.shape, self.n_features, cfg.grid_cols, cfg.grid_rows
+            )
             kps = [kps[i] for i in keep]
             kps, desc = self._orb.compute(image, kps)
         if not kps or desc is None:
-            return _no_features()
+            return OrbFeatures(
+                np.zeros((0, 2)),
+                np.zeros(0, np.uint8),
+                np.zeros(0, np.float32),
+                np.zeros(0, np.float32),
+                np.zeros((0, 32), np.uint8),
+            )
         return OrbFeatures(
             keypoints=np.array([k.pt for k in kps], dtype=np.float64),
             levels=np.array([k.octave & 0xFF for k in kps], dtype=np.uint8),
@@ -122,78 +126,3 @@ class OrbExtractor:
             responses=np.array([k.response for k in kps], dtype=np.float32),
             descriptors=np.ascontiguousarray(desc, dtype=np.uint8),
         )
-
-    def describe_at(
-        self, image: np.ndarray, keypoints_px: np.ndarray, levels: np.ndarray
-    ) -> tuple[OrbFeatures, np.ndarray]:
-        """ORB descriptors of given points (tracked corners): ``keypoints_px`` (N, 2) [px,
-        level 0], ``levels`` (N,) their pyramid levels. Each point's orientation is its
-        patch's intensity centroid at its level (as ORB's own, which OpenCV computes only for
-        the keypoints it detects). Points too near the border to describe are left out:
-        returns (features, (K,) int64 indices into the inputs of those described)."""
-        cfg = self.config
-        n = len(keypoints_px)
-        if n == 0:
-            return _no_features(), np.zeros(0, np.int64)
-        angles = np.zeros(n, np.float32)
-        scales = cfg.scale_factor ** levels.astype(np.float64)
-        for level in np.unique(levels).tolist():
-            rows = np.flatnonzero(levels == level)
-            scaled = image if level == 0 else _level_image(image, float(scales[rows[0]]))
-            angles[rows] = _ic_angles(scaled, keypoints_px[rows] / scales[rows, None])
-        given = [
-            cv2.KeyPoint(float(x), float(y), 31.0 * float(sc), float(a), 0.0, int(lv), i)
-            for i, ((x, y), sc, a, lv) in enumerate(
-                zip(keypoints_px, scales, angles, levels.tolist(), strict=True)
-            )
-        ]
-        kps, desc = self._orb.compute(image, given)
-        if not kps or desc is None:
-            return _no_features(), np.zeros(0, np.int64)
-        index = np.array([k.class_id for k in kps], dtype=np.int64)
-        order = np.argsort(index, kind="stable")  # (OpenCV returns them level by level)
-        index = index[order]
-        feats = OrbFeatures(
-            keypoints=keypoints_px[index].astype(np.float64),
-            levels=levels[index].astype(np.uint8),
-            angles=angles[index],
-            responses=np.zeros(len(index), np.float32),
-            descriptors=np.ascontiguousarray(desc[order], dtype=np.uint8),
-        )
-        return feats, index
-
-
-_PATCH_RADIUS = 15  # ORB's patch (31 px): the intensity centroid's disc
-
-
-def _level_image(image: np.ndarray, scale: float) -> np.ndarray:
-    h, w = image.shape
-    size = (round(w / scale), round(h / scale))
-    return cv2.resize(image, size, interpolation=cv2.INTER_LINEAR)
-
-
-def _ic_angles(image: np.ndarray, pts: np.ndarray) -> np.ndarray:
-    """Intensity-centroid orientation [deg, 0..360) of the disc of radius 15 px around each
-    of ``pts`` (M, 2) [px] on ``image`` (ORB's, Rublee et al. 2011); 0 where the disc leaves
-    the image."""
-    r = _PATCH_RADIUS
-    v, u = np.mgrid[-r : r + 1, -r : r + 1]
-    disc = (u * u + v * v) <= r * r
-    h, w = image.shape
-    out = np.zeros(len(pts), np.float32)
-    for i, (x, y) in enumerate(np.rint(pts).astype(np.int64).tolist()):
-        if r <= x < w - r and r <= y < h - r:
-            patch = image[y - r : y + r + 1, x - r : x + r + 1].astype(np.float64) * disc
-            m10, m01 = float((patch * u).sum()), float((patch * v).sum())
-            out[i] = np.degrees(np.arctan2(m01, m10)) % 360.0
-    return out
-
-
-def _no_features() -> OrbFeatures:
-    return OrbFeatures(
-        np.zeros((0, 2)),
-        np.zeros(0, np.uint8),
-        np.zeros(0, np.float32),
-        np.zeros(0, np.float32),
-        np.zeros((0, 32), np.uint8),
-    )

@@ -224,8 +224,7 @@ class FrontEnd:
     def set_keyframe_plan(self, plan: KeyframePlan | None) -> None:
         """Keyframes within an uplink budget (:mod:`services.robot.uplink_budget`): at most
         ``plan.n_features`` ORB features, at least ``plan.min_interval_s`` apart (unless
-        tracking is lost), at most twice that; the tracked floor scales with the features;
-        keyframes keep their tracks (``keyframe_keeps_tracks``: they are seconds apart).
+        tracking is lost), at most twice that; the tracked floor scales with the features.
         None: the configured rules again."""
         base = self.base_config
         if plan is None:
@@ -241,10 +240,7 @@ class FrontEnd:
                 min_tracked=min(kf.min_tracked, round(kf.min_tracked * n / base.orb.n_features)),
             )
             self.config = dataclasses.replace(
-                base,
-                orb=dataclasses.replace(base.orb, n_features=n),
-                keyframe=keyframe,
-                keyframe_keeps_tracks=True,
+                base, orb=dataclasses.replace(base.orb, n_features=n), keyframe=keyframe
             )
         self.orb.n_features = self.config.orb.n_features
 
@@ -311,14 +307,10 @@ class FrontEnd:
         stats["n_tracked_keyframe"] = n_tracked_kf
         if decision.is_keyframe:
             t_orb = time.perf_counter()
-            pairs = None
-            if cfg.keyframe_keeps_tracks:
-                feats, pairs = self._features_keeping_tracks(image, cur_pts, levels)
-            else:
-                feats = self.orb.extract(image)
+            feats = self.orb.extract(image)
             stats["orb_time_s"] = time.perf_counter() - t_orb
             return self._make_keyframe(
-                timestamp_ns, decision.reason, feats, cur_pts, ids, survived, stats, t_start, pairs
+                timestamp_ns, decision.reason, feats, cur_pts, ids, survived, stats, t_start
             )
         new_pts = np.zeros((0, 2))
         self._lost_since_top_up += n_prev - len(cur_pts)
@@ -383,18 +375,13 @@ class FrontEnd:
         survived: np.ndarray,
         stats: dict[str, object],
         t_start: float,
-        pairs: tuple[np.ndarray, np.ndarray] | None = None,
     ) -> TrackedFrame:
         """Re-seed the track set from the keyframe's ORB features; surviving tracks hand their
-        identity to the nearest ORB keypoint within ``keyframe_association_radius_px``, or
-        to the features ``pairs`` names ((surviving track rows, feature rows))."""
+        identity to the nearest ORB keypoint within ``keyframe_association_radius_px``."""
         n = len(feats)
         kps = quantise(feats.keypoints, self.config.quantisation_px)
         ids = np.full(n, -1, np.int64)
-        if pairs is None:
-            radius = self.config.keyframe_association_radius_px
-            pairs = associate_nearest(cur_pts, kps, radius)
-        ia, ib = pairs
+        ia, ib = associate_nearest(cur_pts, kps, self.config.keyframe_association_radius_px)
         ids[ib] = cur_ids[ia]
         desc = feats.descriptors
         if self.config.carry_track_descriptors and self._desc is not None and len(ia):
@@ -425,25 +412,6 @@ class FrontEnd:
         return self._emit(
             timestamp_ns, True, reason, survived_kf, desc, feats.angles, stats, t_start
         )
-
-    def _features_keeping_tracks(
-        self, image: np.ndarray, cur_pts: np.ndarray, levels: np.ndarray
-    ) -> tuple[OrbFeatures, tuple[np.ndarray, np.ndarray]]:
-        """The keyframe's features when it keeps its tracks (``keyframe_keeps_tracks``): the
-        surviving tracks described where they are (the oldest first, up to ``n_features``),
-        then new ORB features away from them. Returns (features, (track rows, their rows))."""
-        n_max = self.orb.n_features
-        kept, rows = self.orb.describe_at(image, cur_pts, levels)
-        kept, rows = _first(kept, n_max), rows[:n_max]
-        mask = np.full(image.shape, 255, np.uint8)
-        radius = self.config.top_up.min_distance_px
-        for x, y in np.rint(kept.keypoints).astype(int).tolist():
-            cv2.circle(mask, (x, y), radius, 0, -1)
-        new = self.orb.extract(image, mask, n_keep=n_max - len(rows))
-        feats = OrbFeatures(
-            *(np.concatenate([a, b]) for a, b in zip(_fields(kept), _fields(new), strict=True))
-        )
-        return feats, (rows, np.arange(len(rows)))
 
     def _emit(
         self,
@@ -544,11 +512,3 @@ class FrontEnd:
             stats,
             t_start,
         )
-
-
-def _fields(f: OrbFeatures) -> tuple[np.ndarray, ...]:
-    return (f.keypoints, f.levels, f.angles, f.responses, f.descriptors)
-
-
-def _first(f: OrbFeatures, n: int) -> OrbFeatures:
-    return OrbFeatures(*(a[:n] for a in _fields(f)))

@@ -56,22 +56,3 @@ def test_select_grid_round_robin() -> None:
 def test_rejects_colour_image(image: np.ndarray) -> None:
     with pytest.raises(OrbExtractorError):
         OrbExtractor(OrbConfig()).extract(np.dstack([image] * 3))
-
-
-def test_describe_at_reproduces_orbs_own_descriptors(image: np.ndarray) -> None:
-    """Described where ORB detected them (as a tracked corner is), the descriptors and
-    orientations are ORB's own but for sampling (measured: median 9 bits, 1.3 degrees)."""
-    ex = OrbExtractor(OrbConfig())
-    feats = ex.extract(image)
-    again, rows = ex.describe_at(image, feats.keypoints, feats.levels)
-    assert len(rows) > 0.95 * len(feats)  # (the border ones ORB cannot describe are left out)
-    np.testing.assert_array_equal(again.keypoints, feats.keypoints[rows])
-    np.testing.assert_array_equal(again.levels, feats.levels[rows])
-    ham = np.unpackbits(again.descriptors ^ feats.descriptors[rows], axis=1).sum(axis=1)
-    turn = np.abs((again.angles - feats.angles[rows] + 180.0) % 360.0 - 180.0)
-    assert np.median(ham) <= 16 and np.median(turn) < 3.0
-    # A random descriptor pair differs by ~128 bits: these are the same corners.
-    other = np.unpackbits(again.descriptors ^ np.roll(feats.descriptors[rows], 1, 0), axis=1)
-    assert np.median(other.sum(axis=1)) > 80
-    none, empty = ex.describe_at(image, np.zeros((0, 2)), np.zeros(0, np.uint8))
-    assert len(none) == 0 and len(empty) == 0

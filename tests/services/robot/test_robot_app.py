@@ -127,32 +127,6 @@ def test_robot_keeps_the_keypoints_the_edge_decodes(euroc_micro):
     assert len(app._anchors) == 3
 
 
-def test_keyframes_that_keep_their_tracks_decode_at_the_edge(euroc_micro):
-    """``keyframe_keeps_tracks`` (an uplink budget's keyframes): over several keyframes the
-    edge decodes every frame, keyframes continue the previous frame's tracks under the same
-    stream numbers, and what it decodes is what the robot tracks on."""
-    seq = EurocSequence(euroc_micro)
-    vocab = Vocabulary.load()
-    config = FrontEndConfig(
-        keyframe=KeyframeDecisionConfig(max_interval_s=0.2), keyframe_keeps_tracks=True
-    )
-    app = RobotApp(config, seq.cam0, seq.imu, vocab, anchor_frames=3)
-    session = RobotSession("r", seq.cam0, vocab)
-    previous, n_keyframes = None, 0
-    for fr in seq.frames(0, 20):
-        msg = app.process(fr.timestamp_ns, fr.image, fr.imu)
-        item = session.decode(msg)
-        mine = app._anchors[fr.timestamp_ns]
-        assert np.array_equal(mine.numbers, item.obs.track_ids)
-        assert np.array_equal(mine.keypoints_px, item.obs.keypoints_px)
-        if msg.keyframe and previous is not None:
-            n_keyframes += 1
-            kept = np.intersect1d(previous, item.obs.track_ids)
-            assert len(kept) > 0.9 * min(len(previous), config.orb.n_features)
-        previous = item.obs.track_ids
-    assert n_keyframes >= 3
-
-
 def test_coded_feedback_resets_updates_and_forgets(euroc_micro):
     seq = EurocSequence(euroc_micro)
     app = RobotApp(FrontEndConfig(), seq.cam0, seq.imu, Vocabulary.load())

@@ -212,25 +212,3 @@ def test_rejects_bad_input(seq: EurocSequence, frames: list) -> None:
     fe.process(frames[0].image, frames[0].timestamp_ns, frames[0].imu)
     with pytest.raises(FrontEndError, match="increase"):
         fe.process(frames[1].image, frames[0].timestamp_ns, frames[1].imu)
-
-
-def test_a_keyframe_can_keep_every_surviving_track(seq: EurocSequence, frames: list) -> None:
-    """``keyframe_keeps_tracks``: each keyframe keeps all the tracks that survived into it,
-    described where they are, and fills up with new ORB features away from them."""
-    cfg = FrontEndConfig(keyframe_keeps_tracks=True)
-    fe = FrontEnd(cfg, seq.cam0, seq.imu)
-    outs = [fe.process(f.image, f.timestamp_ns, f.imu) for f in frames[:40]]
-    kfs = [i for i, o in enumerate(outs) if o.is_keyframe]
-    assert len(kfs) >= 2
-    for i in kfs[1:]:
-        prev, out = outs[i - 1], outs[i]
-        mask = out.survived_mask_vs_previous
-        kept = prev.track_ids[mask]
-        # every survivor continues (but those at the border, and beyond n_features)
-        assert mask.sum() >= min(0.95 * len(prev), cfg.orb.n_features)
-        np.testing.assert_array_equal(out.track_ids[: len(kept)], kept)
-        assert len(out) <= cfg.orb.n_features and out.descriptors.shape == (len(out), 32)
-        new = out.keypoints[len(kept) :]
-        if len(new):
-            d = np.linalg.norm(new[:, None] - out.keypoints[None, : len(kept)], axis=2)
-            assert d.min() >= cfg.top_up.min_distance_px - 1.0
