@@ -138,8 +138,15 @@ class CodecGridOrbExtractor:
     def n_features(self, n: int) -> None:
         self.inner.n_features = n
 
-    def extract(self, image: np.ndarray, mask: np.ndarray | None = None) -> OrbFeatures:
-        return snap_orb_features(self.inner.extract(image, mask), self.codec_config)
+    def extract(
+        self,
+        image: np.ndarray,
+        mask: np.ndarray | None = None,
+        prefer_px: np.ndarray | None = None,
+        prefer_radius_px: float = 0.0,
+    ) -> OrbFeatures:
+        feats = self.inner.extract(image, mask, prefer_px, prefer_radius_px)
+        return snap_orb_features(feats, self.codec_config)
 
 
 def install_codec_grid(front_end: FrontEnd, config: CodecConfig) -> None:

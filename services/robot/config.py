@@ -186,6 +186,12 @@ class FrontEndConfig:
     """Output keypoints lie on this grid; the tracker continues from the quantised values."""
     keyframe_association_radius_px: float = 3.0
     """A surviving track continues as the nearest keyframe ORB keypoint within this radius."""
+    keyframe_prefers_tracks: bool = False
+    """A keyframe's ORB selection keeps first, for each surviving track, the detected corner
+    within ``keyframe_association_radius_px`` of it (so the track continues), then spreads
+    the rest over the grid. False: the grid alone picks (ORB-SLAM's distribution). An uplink
+    budget's keyframe plan turns it on: its keyframes are 1-2 s apart and ~300 features, and
+    the grid alone continued ~1 track with a map point from one keyframe to the next."""
     carry_track_descriptors: bool = True
     """A keyframe feature that continues a track keeps the track's descriptor while its own
     ORB descriptor lies within ``carry_max_hamming`` bits of it, and the codec sends none for

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+from scipy.spatial import cKDTree
 
 from common.errors import RecslamError
 from services.robot.config import OrbConfig
@@ -95,8 +96,17 @@ class OrbExtractor:
             fastThreshold=config.fast_threshold,
         )
 
-    def extract(self, image: np.ndarray, mask: np.ndarray | None = None) -> OrbFeatures:
-        """Detect, distribute and describe ORB features on a uint8 (H, W) image."""
+    def extract(
+        self,
+        image: np.ndarray,
+        mask: np.ndarray | None = None,
+        prefer_px: np.ndarray | None = None,
+        prefer_radius_px: float = 0.0,
+    ) -> OrbFeatures:
+        """Detect, distribute and describe ORB features on a uint8 (H, W) image. With
+        ``prefer_px`` (M, 2) [px] (tracked points, oldest first), the candidate nearest each
+        within ``prefer_radius_px`` is kept first (one per point, up to ``n_features``), the
+        rest of the budget spread over the grid as usual."""
         if image.dtype != np.uint8 or image.ndim != 2:
             raise OrbExtractorError(
                 f"ORB needs a uint8 (H, W) grayscale image, got {image.dtype} {image.shape}"
@@ -106,9 +116,22 @@ class OrbExtractor:
         if kps:
             pts = np.array([k.pt for k in kps], dtype=np.float64)
             resp = np.array([k.response for k in kps], dtype=np.float32)
-            keep = select_grid(
-                pts, resp, image.shape, self.n_features, cfg.grid_cols, cfg.grid_rows
+            first = np.zeros(0, np.int64)
+            if prefer_px is not None and len(prefer_px) and prefer_radius_px > 0:
+                _, near = cKDTree(pts).query(prefer_px, distance_upper_bound=prefer_radius_px)
+                near = near[near < len(pts)]
+                _, at = np.unique(near, return_index=True)
+                first = near[np.sort(at)][: self.n_features]  # (in the points' order)
+            rest = np.setdiff1d(np.arange(len(pts)), first)
+            pick = select_grid(
+                pts[rest],
+                resp[rest],
+                image.shape,
+                self.n_features - len(first),
+                cfg.grid_cols,
+                cfg.grid_rows,
             )
+            keep = np.concatenate([first, rest[pick]])
             kps = [kps[i] for i in keep]
             kps, desc = self._orb.compute(image, kps)
         if not kps or desc is None:

@@ -224,7 +224,8 @@ class FrontEnd:
     def set_keyframe_plan(self, plan: KeyframePlan | None) -> None:
         """Keyframes within an uplink budget (:mod:`services.robot.uplink_budget`): at most
         ``plan.n_features`` ORB features, at least ``plan.min_interval_s`` apart (unless
-        tracking is lost), at most twice that; the tracked floor scales with the features.
+        tracking is lost), at most twice that; the tracked floor scales with the features; the
+        keyframe's corners continue the tracks first (``keyframe_prefers_tracks``).
         None: the configured rules again."""
         base = self.base_config
         if plan is None:
@@ -240,7 +241,10 @@ class FrontEnd:
                 min_tracked=min(kf.min_tracked, round(kf.min_tracked * n / base.orb.n_features)),
             )
             self.config = dataclasses.replace(
-                base, orb=dataclasses.replace(base.orb, n_features=n), keyframe=keyframe
+                base,
+                orb=dataclasses.replace(base.orb, n_features=n),
+                keyframe=keyframe,
+                keyframe_prefers_tracks=True,
             )
         self.orb.n_features = self.config.orb.n_features
 
@@ -307,7 +311,11 @@ class FrontEnd:
         stats["n_tracked_keyframe"] = n_tracked_kf
         if decision.is_keyframe:
             t_orb = time.perf_counter()
-            feats = self.orb.extract(image)
+            if cfg.keyframe_prefers_tracks:
+                radius = cfg.keyframe_association_radius_px
+                feats = self.orb.extract(image, prefer_px=cur_pts, prefer_radius_px=radius)
+            else:
+                feats = self.orb.extract(image)
             stats["orb_time_s"] = time.perf_counter() - t_orb
             return self._make_keyframe(
                 timestamp_ns, decision.reason, feats, cur_pts, ids, survived, stats, t_start

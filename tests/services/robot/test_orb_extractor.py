@@ -56,3 +56,23 @@ def test_select_grid_round_robin() -> None:
 def test_rejects_colour_image(image: np.ndarray) -> None:
     with pytest.raises(OrbExtractorError):
         OrbExtractor(OrbConfig()).extract(np.dstack([image] * 3))
+
+
+def test_preferred_points_keep_their_corner_first(image: np.ndarray) -> None:
+    """``prefer_px`` (tracked points): each keeps the corner detected within the radius, even
+    where the grid alone would have dropped it; the budget and the spread hold otherwise."""
+    ex = OrbExtractor(OrbConfig(n_features=300))
+    candidates = np.array([k.pt for k in ex._orb.detect(image, None)])  # (oversampled)
+    plain = ex.extract(image)
+    dropped = np.array(
+        [p for p in candidates if np.min(np.linalg.norm(plain.keypoints - p, axis=1)) > 3]
+    )[:100]
+    assert len(dropped) == 100  # corners the grid leaves out at 300 features
+    prefer = dropped + 1.0  # (tracked points: near, not on, their corner)
+    feats = ex.extract(image, prefer_px=prefer, prefer_radius_px=3.0)
+    assert len(feats) == 300
+    d = np.linalg.norm(prefer[:, None] - feats.keypoints[None], axis=2).min(axis=1)
+    assert np.mean(d <= 3.0) > 0.9
+    assert np.linalg.norm(plain.keypoints[:, None] - dropped[None], axis=2).min(0).min() > 3
+    same = ex.extract(image, prefer_px=np.zeros((0, 2)), prefer_radius_px=3.0)
+    np.testing.assert_array_equal(same.keypoints, plain.keypoints)  # nothing preferred
