@@ -5,15 +5,16 @@ tracking (IMU-predicted, PnP RANSAC fallback, motion-only optimisation) → on a
 keyframe insertion, association, triangulation, local BA, and the scheduled visual-inertial
 initialisations (first at ``vi_init.first_after_s``, re-runs at ``vi_init.refine_after_s``;
 :mod:`services.edge.vio.vi_schedule`).
-Tracking loss keeps a VI map for ``tracking.recently_lost_s`` while robot keyframes try to
-relocalise in it, then starts a new map (new ``map_id``). Everything runs synchronously.
+Tracking loss: the IMU bridges short gaps, a VI map is kept a while for robot keyframes to
+relocalise in, then a new map starts (:mod:`services.edge.vio.tracking_loss`). Everything runs
+synchronously in the caller.
 """
 
 from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass, replace
+from dataclasses import replace
 
 import numpy as np
 
@@ -37,6 +38,7 @@ from services.edge.vio.relocalisation import map_points_of, search_local_map
 from services.edge.vio.state import Keyframe, MapPoint, PinholeUndistorter, VioMap
 from services.edge.vio.time_offset import TimeOffsetTracker
 from services.edge.vio.tracking import ImuPrior, TrackResult, track_with_fallback
+from services.edge.vio.tracking_loss import TrackingLoss, VioFrame
 from services.edge.vio.types import (
     FrameObservation,
     FrameResult,
@@ -52,21 +54,7 @@ from services.edge.vio.vi_schedule import ViInitSchedule
 logger = logging.getLogger(__name__)
 
 
-@dataclass(frozen=True, eq=False)
-class _Frame:
-    """A frame as the VIO uses it: ``obs`` the features it can use, ``xy`` (N, 2) their
-    normalised coordinates, ``sigma`` (N,) their noise; ``rows`` (N,) the row of each in the
-    robot's frame when some were left out (None: all, in order) and ``n_rows`` how many that
-    frame has."""
-
-    obs: FrameObservation
-    xy: np.ndarray
-    sigma: np.ndarray
-    rows: np.ndarray | None = None
-    n_rows: int = 0
-
-
-class VioManager(ViInitSchedule):
+class VioManager(ViInitSchedule, TrackingLoss):
     """Monocular-inertial VIO of one robot (ORB-SLAM3-style, gtsam back end)."""
 
     def __init__(
@@ -100,7 +88,7 @@ class VioManager(ViInitSchedule):
         self._map: VioMap | None = None
         self._next_map_id = 0
         self._next_kf_id = 0
-        self._ref: _Frame | None = None
+        self._ref: VioFrame | None = None
         self._last_T: np.ndarray | None = None
         self._prev_T: np.ndarray | None = None
         self._last_t: int | None = None
@@ -182,7 +170,7 @@ class VioManager(ViInitSchedule):
             * self.options.level_scale ** obs.levels.astype(np.float64)
             / self.camera.focal
         )
-        frame = _Frame(obs, xy, sigma, rows, n_rows)
+        frame = VioFrame(obs, xy, sigma, rows, n_rows)
         if self._map is None:
             result = self._initialise_mono(frame)
         else:
@@ -325,7 +313,7 @@ class VioManager(ViInitSchedule):
 
     def _result(
         self,
-        frame: _Frame,
+        frame: VioFrame,
         T: np.ndarray | None,
         status: TrackingStatus,
         n_inl: int,
@@ -336,7 +324,7 @@ class VioManager(ViInitSchedule):
         return FrameResult(frame.obs.timestamp_ns, T, status, self.map_id, n_inl, is_kf, reason)
 
     def _new_keyframe(
-        self, frame: _Frame, T_world_body: np.ndarray, previous: Keyframe | None
+        self, frame: VioFrame, T_world_body: np.ndarray, previous: Keyframe | None
     ) -> Keyframe:
         seg = None
         if previous is not None:
@@ -359,30 +347,8 @@ class VioManager(ViInitSchedule):
         self._next_kf_id += 1
         return kf
 
-    def _start_new_map(self, frame: _Frame | None, reason: str) -> None:
-        if self._map is not None:
-            if self._map.vi_initialized and self._last_bias is not None:
-                self._bias_guess = self._last_bias
-            if self._map.vi_initialized:  # (one that never was never leaves the edge)
-                self._pending_updates.append(self._collect_update(self._map))
-            logger.warning(
-                "%s: map %d lost (%s); starting map %d",
-                self.name,
-                self._map.map_id,
-                reason,
-                self._next_map_id,
-            )
-        self._map = None
-        self._last_init_reason = ""
-        own = self.options.max_keyframe_interval_s > 0
-        self._ref = frame if frame is not None and (own or frame.obs.is_keyframe) else None
-        self._last_T = self._prev_T = self._last_v = None
-        self._last_bias = None
-        self._lost_since = None
-        self.stats.maps_started += 1
-
     # ------------------------------------------------------------------ mono init
-    def _initialise_mono(self, frame: _Frame) -> FrameResult:
+    def _initialise_mono(self, frame: VioFrame) -> FrameResult:
         opt = self.options.mono_init
         st = TrackingStatus.INITIALIZING
         own = self.options.max_keyframe_interval_s
@@ -463,7 +429,7 @@ class VioManager(ViInitSchedule):
 
     # ------------------------------------------------------------------ tracking
     def _predict(
-        self, frame: _Frame, vmap: VioMap
+        self, frame: VioFrame, vmap: VioMap
     ) -> tuple[np.ndarray, np.ndarray | None, ImuPrior | None]:
         """(T_pred, v_pred, ImuPrior | None) for the frame."""
         t = frame.obs.timestamp_ns
@@ -491,7 +457,7 @@ class VioManager(ViInitSchedule):
                 T_pred[:3, :3] = self._last_T[:3, :3] @ integrate_gyro(seg, self._bias_guess[1])
         return T_pred, None, None
 
-    def _track(self, frame: _Frame) -> FrameResult:
+    def _track(self, frame: VioFrame) -> FrameResult:
         vmap = self._map
         assert vmap is not None
         t_start = time.perf_counter()
@@ -552,53 +518,7 @@ class VioManager(ViInitSchedule):
             why += f" ({self._last_init_reason})"
         return self._result(frame, T_out, TrackingStatus.INITIALIZING, n_inl, is_kf, why)
 
-    def _lose(self, frame: _Frame, vmap: VioMap, reason: str) -> FrameResult:
-        """Tracking failed: a VI map is kept for ``recently_lost_s``, then a new map."""
-        t = frame.obs.timestamp_ns
-        self._lost_since = t if self._lost_since is None else self._lost_since
-        kept_s = (t - self._lost_since) * 1e-9
-        if vmap.vi_initialized and kept_s < self.options.tracking.recently_lost_s:
-            self.stats.frames_lost_kept += 1
-            why = f"lost: {reason}; map {vmap.map_id} kept for {kept_s:.1f} s (IMU)"
-            return self._result(frame, None, TrackingStatus.LOST, 0, False, why)
-        self._start_new_map(frame, reason)
-        return self._result(frame, None, TrackingStatus.LOST, 0, False, f"lost: {reason}")
-
-    def _bridge(
-        self,
-        frame: _Frame,
-        vmap: VioMap,
-        T_pred: np.ndarray,
-        v_pred: np.ndarray,
-        prior: ImuPrior,
-        reason: str,
-    ) -> FrameResult:
-        """Too few of the frame's tracks have map points (new ground seen through sparse frames,
-        e.g. under an uplink budget): while the IMU alone holds, the frame becomes a keyframe
-        at the IMU's prediction, its tracks that earlier keyframes saw are triangulated and the
-        visual-inertial local BA refines it (VINS-Mono's sliding window has no other way: its
-        features are triangulated from IMU-propagated poses). Else the map is recently lost."""
-        t = frame.obs.timestamp_ns
-        kf0 = prior.keyframe
-        dt = (t - kf0.timestamp_ns) * 1e-9
-        if (
-            self._lost_since is None
-            and 0 < dt <= self.options.tracking.imu_bridge_s
-            and len(frame.obs.track_ids) >= self.options.tracking.min_inliers
-        ):
-            res = TrackResult(T_pred, v_pred, kf0.bias_accel, kf0.bias_gyro, np.zeros(0), False)
-            kf = self._insert_keyframe(frame, res, vmap, kf0, force_ba=True)
-            n = sum(1 for tr in kf.row_of if vmap.point_of(tr) is not None)
-            if n >= self.options.tracking.min_inliers:
-                self.stats.frames_bridged += 1
-                self._prev_T, self._last_T = self._last_T, kf.T_world_body.copy()
-                self._last_v = kf.v_world.copy()
-                self._last_bias = (kf.bias_accel.copy(), kf.bias_gyro.copy())
-                why = f"IMU-bridged keyframe ({reason}): {n} map points after BA"
-                return self._result(frame, kf.T_world_body, TrackingStatus.TRACKING, n, True, why)
-        return self._lose(frame, vmap, reason)
-
-    def _keyframe_due(self, frame: _Frame, last_kf: Keyframe, vmap: VioMap, n_inl: int) -> bool:
+    def _keyframe_due(self, frame: VioFrame, last_kf: Keyframe, vmap: VioMap, n_inl: int) -> bool:
         """Robot keyframes, and the VIO's own ones (see ``VioConfig.max_keyframe_interval_s``)."""
         opt = self.options
         dt = (frame.obs.timestamp_ns - last_kf.timestamp_ns) * 1e-9
@@ -614,7 +534,7 @@ class VioManager(ViInitSchedule):
     # ------------------------------------------------------------------ local mapping
     def _insert_keyframe(
         self,
-        frame: _Frame,
+        frame: VioFrame,
         res: TrackResult,
         vmap: VioMap,
         last_kf: Keyframe,
