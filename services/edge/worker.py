@@ -49,11 +49,11 @@ logger = logging.getLogger(__name__)
 MAP_ID_STRIDE = 1000
 """Map ids of a re-initialised VIO start at ``generation * MAP_ID_STRIDE`` (no reuse)."""
 GENERATIONS_PER_RUN = 100
-VIO_COUNTS = ("maps_started", "relocalised", "frames_lost_kept", "frames_bridged")
-"""The ``VioStats`` counters each :class:`WorkResult` carries (the edge's stats: ``vio``)."""
 """An edge's ``run``-th start for a robot (:meth:`JournalStore.next_run`) begins at generation
 ``run * GENERATIONS_PER_RUN``: the re-run of a restarted edge's maps never takes the map ids
 of the run before (whose maps the cloud holds; the re-run is not the same map)."""
+VIO_COUNTS = ("maps_started", "relocalised", "frames_lost_kept", "frames_bridged")
+"""The ``VioStats`` counters each :class:`WorkResult` carries (the edge's stats: ``vio``)."""
 
 
 class EdgeWorkerError(RecslamError):

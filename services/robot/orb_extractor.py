@@ -117,19 +117,16 @@ class OrbExtractor:
             pts = np.array([k.pt for k in kps], dtype=np.float64)
             resp = np.array([k.response for k in kps], dtype=np.float32)
             first = np.zeros(0, np.int64)
+            rest = np.arange(len(pts))
             if prefer_px is not None and len(prefer_px) and prefer_radius_px > 0:
                 _, near = cKDTree(pts).query(prefer_px, distance_upper_bound=prefer_radius_px)
                 near = near[near < len(pts)]
                 _, at = np.unique(near, return_index=True)
                 first = near[np.sort(at)][: self.n_features]  # (in the points' order)
-            rest = np.setdiff1d(np.arange(len(pts)), first)
+                rest = np.setdiff1d(rest, first)
+            n_grid = self.n_features - len(first)
             pick = select_grid(
-                pts[rest],
-                resp[rest],
-                image.shape,
-                self.n_features - len(first),
-                cfg.grid_cols,
-                cfg.grid_rows,
+                pts[rest], resp[rest], image.shape, n_grid, cfg.grid_cols, cfg.grid_rows
             )
             keep = np.concatenate([first, rest[pick]])
             kps = [kps[i] for i in keep]

@@ -311,11 +311,9 @@ class FrontEnd:
         stats["n_tracked_keyframe"] = n_tracked_kf
         if decision.is_keyframe:
             t_orb = time.perf_counter()
-            if cfg.keyframe_prefers_tracks:
-                radius = cfg.keyframe_association_radius_px
-                feats = self.orb.extract(image, prefer_px=cur_pts, prefer_radius_px=radius)
-            else:
-                feats = self.orb.extract(image)
+            prefer = cur_pts if cfg.keyframe_prefers_tracks else None
+            radius = cfg.keyframe_association_radius_px
+            feats = self.orb.extract(image, prefer_px=prefer, prefer_radius_px=radius)
             stats["orb_time_s"] = time.perf_counter() - t_orb
             return self._make_keyframe(
                 timestamp_ns, decision.reason, feats, cur_pts, ids, survived, stats, t_start

@@ -34,7 +34,7 @@ from services.edge.vio.local_mapping import (
     triangulate_new_points,
 )
 from services.edge.vio.mono_init import two_view_geometry
-from services.edge.vio.relocalisation import map_points_of, search_local_map
+from services.edge.vio.relocalisation import search_local_map, with_found
 from services.edge.vio.state import Keyframe, MapPoint, PinholeUndistorter, VioMap
 from services.edge.vio.time_offset import TimeOffsetTracker
 from services.edge.vio.tracking import ImuPrior, TrackResult, track_with_fallback
@@ -471,17 +471,17 @@ class VioManager(ViInitSchedule, TrackingLoss):
         if res is None and vmap.vi_initialized and frame.obs.descriptors is not None:
             seen = {mp.id for mp in mps if mp is not None}
             found = search_local_map(
-                vmap, frame.obs, frame.xy, seen, T_pred, self.camera, self.options
+                vmap, frame.obs, frame.xy, has, seen, T_pred, self.camera, self.options
             )
-            P, has = map_points_of(vmap, ids, found)
+            P, has = with_found(vmap, P, has, found)
             res, why = track_with_fallback(P, has, *args, T_pred, prior, v_pred)
             logger.debug("%s: relocalise: %d found by projection: %s", self.name, len(found), why)
-        if res is None and prior is not None and v_pred is not None:
-            return self._bridge(frame, vmap, T_pred, v_pred, prior, reason)
         self.stats.track_s.append(time.perf_counter() - t_start)
-        t = frame.obs.timestamp_ns
         if res is None:
+            if prior is not None and v_pred is not None:
+                return self._bridge(frame, vmap, T_pred, v_pred, prior, reason)
             return self._lose(frame, vmap, reason)
+        t = frame.obs.timestamp_ns
         if self._lost_since is not None:
             self.stats.relocalised += 1
             logger.info(

@@ -22,17 +22,18 @@ def search_local_map(
     vmap: VioMap,
     obs: FrameObservation,
     xy: np.ndarray,
+    has: np.ndarray,
     seen: set[int],
     T_world_body: np.ndarray,
     camera: PinholeUndistorter,
     options: VioConfig,
 ) -> dict[int, int]:
     """The features of ``obs`` (normalised ``xy`` (N, 2); it has descriptors) whose track
-    has no map point, matched to local map points other than ``seen`` projected from
-    ``T_world_body``: {row: point id}."""
+    has no map point (``~has``, (N,) bool), matched to local map points other than ``seen``
+    projected from ``T_world_body``: {row: point id}."""
     if obs.descriptors is None:
         return {}
-    free = np.flatnonzero([vmap.point_of(t) is None for t in obs.track_ids.tolist()])
+    free = np.flatnonzero(~has)
     found = search_by_projection(
         vmap,
         T_world_body,
@@ -47,19 +48,15 @@ def search_local_map(
     return {int(free[i]): point_id for i, point_id in found}
 
 
-def map_points_of(
-    vmap: VioMap, track_ids: np.ndarray, found: dict[int, int]
+def with_found(
+    vmap: VioMap, P_world: np.ndarray, has: np.ndarray, found: dict[int, int]
 ) -> tuple[np.ndarray, np.ndarray]:
-    """(P_world (M, 3), has (N,) bool): the map point of each of a frame's ``track_ids``
-    (N,), that of its track or the one ``found`` for its row."""
-    has = np.zeros(len(track_ids), dtype=bool)
-    rows = []
-    for r, t in enumerate(track_ids.tolist()):
-        mp = vmap.point_of(t)
-        p_world = mp.p_world if mp is not None else None
-        if p_world is None and r in found:
-            p_world = vmap.points[found[r]].p_world
-        if p_world is not None:
-            has[r] = True
-            rows.append(p_world)
-    return np.array(rows).reshape(-1, 3), has
+    """A frame's map points ``P_world`` (has.sum(), 3) of its rows ``has`` (N,) bool, with
+    the points ``found`` for other rows added: (P_world (M, 3), has (N,)), in row order."""
+    P_rows = np.full((len(has), 3), np.nan)
+    P_rows[has] = P_world
+    for row, point_id in found.items():
+        P_rows[row] = vmap.points[point_id].p_world
+    has = has.copy()
+    has[list(found)] = True
+    return P_rows[has], has
