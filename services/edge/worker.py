@@ -52,7 +52,13 @@ GENERATIONS_PER_RUN = 100
 """An edge's ``run``-th start for a robot (:meth:`JournalStore.next_run`) begins at generation
 ``run * GENERATIONS_PER_RUN``: the re-run of a restarted edge's maps never takes the map ids
 of the run before (whose maps the cloud holds; the re-run is not the same map)."""
-VIO_COUNTS = ("maps_started", "relocalised", "frames_lost_kept", "frames_bridged")
+VIO_COUNTS = (
+    "maps_started",
+    "relocalised",
+    "frames_lost_kept",
+    "frames_bridged",
+    "bridged_back",
+)
 """The ``VioStats`` counters each :class:`WorkResult` carries (the edge's stats: ``vio``)."""
 
 

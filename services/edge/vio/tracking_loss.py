@@ -7,7 +7,10 @@ the attributes declared here). In order:
    that long of the map's last keyframe (new ground seen through the sparse frames an uplink
    budget leaves): the frame becomes a keyframe at the IMU's prediction, its tracks that
    earlier keyframes saw are triangulated and the visual-inertial local BA refines it, as
-   VINS-Mono's sliding window does with every frame;
+   VINS-Mono's sliding window does with every frame. A bridge that found too few points
+   leaves its keyframe in the map, and while the map is recently lost the next frame bridges
+   from it (``TrackingConfig.bridge_while_lost``): the tracks the two share are triangulated
+   between their IMU poses, and the map is tracked again without a new map;
 2. **recently lost** (``TrackingConfig.recently_lost_s``, ORB-SLAM3's RECENTLY_LOST): a VI map
    is kept while the IMU predicts; each robot keyframe meanwhile tries to relocalise in it by
    projection (:mod:`services.edge.vio.relocalisation`, called from tracking);
@@ -120,16 +123,25 @@ class TrackingLoss:
         t = frame.obs.timestamp_ns
         kf0 = prior.keyframe
         dt = (t - kf0.timestamp_ns) * 1e-9
+        opt = self.options.tracking
+        lost = self._lost_since is not None
         if (
-            self._lost_since is None
-            and 0 < dt <= self.options.tracking.imu_bridge_s
-            and len(frame.obs.track_ids) >= self.options.tracking.min_inliers
+            (not lost or opt.bridge_while_lost)
+            and 0 < dt <= opt.imu_bridge_s
+            and len(frame.obs.track_ids) >= opt.min_inliers
         ):
             res = TrackResult(T_pred, v_pred, kf0.bias_accel, kf0.bias_gyro, np.zeros(0), False)
             kf = self._insert_keyframe(frame, res, vmap, kf0, force_ba=True)
             n = sum(1 for tr in kf.row_of if vmap.point_of(tr) is not None)
-            if n >= self.options.tracking.min_inliers:
+            if n >= opt.min_inliers:
                 self.stats.frames_bridged += 1
+                if self._lost_since is not None:
+                    lost_s = (t - self._lost_since) * 1e-9
+                    logger.info(
+                        "%s: map %d bridged again after %.1f s lost", self.name, vmap.map_id, lost_s
+                    )
+                    self.stats.bridged_back += 1
+                    self._lost_since = None
                 self._prev_T, self._last_T = self._last_T, kf.T_world_body.copy()
                 self._last_v = kf.v_world.copy()
                 self._last_bias = (kf.bias_accel.copy(), kf.bias_gyro.copy())

@@ -129,6 +129,12 @@ class TrackingConfig:
     # 300-feature keyframe holds a 50 kbit/s link ~1.2 s), over which the IMU alone, with
     # the map's biases, drifts a few cm (0.5 × 0.02 m/s² × (2 s)²): a BA's starting point.
     imu_bridge_s: float = 2.0
+    # While a VI map is recently lost, a frame within ``imu_bridge_s`` of the map's last
+    # keyframe (a bridge keyframe that found too few points counts) is bridged too: a robot
+    # that turned to new ground between two sparse keyframes shares tracks with the failed
+    # bridge's keyframe, which are triangulated between their IMU poses. False: a failed
+    # bridge ends bridging until the map is tracked again (or a new map starts).
+    bridge_while_lost: bool = True
     relocalise_radius_scale: float = 2.0
 
 
@@ -411,6 +417,7 @@ class VioStats:
     frames_lost_kept: int = 0  # frames not tracked while their map was kept (recently lost)
     relocalised: int = 0  # recently lost maps tracked again (by a keyframe's descriptors)
     frames_bridged: int = 0  # frames made keyframes at the IMU's prediction (too few points)
+    bridged_back: int = 0  # recently lost maps tracked again by a bridge
     imu_noise_measured: tuple[float, float] = (float("nan"), float("nan"))
     imu_noise_used: tuple[float, float] = (float("nan"), float("nan"))
     time_offset_ms: float = 0.0  # the offset in use (t_imu = t_cam + offset)

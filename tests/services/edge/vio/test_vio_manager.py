@@ -97,10 +97,13 @@ def _lose_tracks(seed: int, options: VioConfig | None, new_descriptors: bool) ->
     return vio, results
 
 
+NO_LOST_BRIDGE = VioConfig(tracking=replace(TrackingConfig(), bridge_while_lost=False))
+
+
 def test_a_keyframe_relocalises_a_recently_lost_map():
     """The map is kept while the IMU predicts the pose; the next robot keyframe's features are
     found in the local map by projection (their descriptors) and tracking goes on in map 0."""
-    vio, results = _lose_tracks(5, None, new_descriptors=False)
+    vio, results = _lose_tracks(5, NO_LOST_BRIDGE, new_descriptors=False)
     assert results[60].map_id == 0
     lost = [r for r in results if r.status == TrackingStatus.LOST]
     assert lost, "renamed tracks must lose the frame at first"
@@ -112,7 +115,9 @@ def test_a_keyframe_relocalises_a_recently_lost_map():
 
 
 def test_tracking_loss_starts_a_new_map_after_the_recently_lost_time():
-    options = VioConfig(tracking=replace(TrackingConfig(), recently_lost_s=1.0))
+    options = VioConfig(
+        tracking=replace(TrackingConfig(), recently_lost_s=1.0, bridge_while_lost=False)
+    )
     vio, results = _lose_tracks(5, options, new_descriptors=True)
     lost = [r for r in results if r.status == TrackingStatus.LOST]
     kept = [r for r in lost if "kept" in r.reason]
@@ -131,6 +136,38 @@ def test_without_a_recently_lost_time_a_loss_starts_a_new_map_at_once():
     assert len(lost) == 1
     assert lost[0].map_id == 1 and lost[0].reason.startswith("lost")
     assert results[-1].map_id == 1
+
+
+def test_a_recently_lost_map_is_bridged_back_by_the_frames_after_a_failed_bridge():
+    """Every track renamed and the descriptors of another place (nothing to relocalise by):
+    the first frame's bridge finds no track an earlier keyframe saw, but its keyframe stays,
+    and the frames after it bridge from it until their shared tracks, triangulated between
+    IMU poses, hold the map again: no new map, the poses stay with the ground truth. Without
+    (``bridge_while_lost=False``) a new map starts once the recently lost time is over."""
+    vio, results = _lose_tracks(5, None, new_descriptors=True)
+    lost = [r for r in results if r.status == TrackingStatus.LOST]
+    assert lost and all(r.map_id == 0 and "kept" in r.reason for r in lost)
+    back = results[61 + len(lost)]
+    assert back.status == TrackingStatus.TRACKING and back.reason.startswith("IMU-bridged")
+    assert all(
+        r.status == TrackingStatus.TRACKING and r.map_id == 0 for r in results[61 + len(lost) :]
+    )
+    assert vio.stats.maps_started == 0 and vio.stats.bridged_back == 1
+    assert vio.stats.relocalised == 0
+    seq = simulate(SimConfig(duration_s=6.0, seed=5))
+    row = {int(t): i for i, t in enumerate(seq.gt_timestamps_ns)}
+    gt = seq.gt_T_world_body
+    # relative to the last frame tracked before the loss (the map's frame is the VIO's own)
+    T0, G0 = results[60].T_world_body, gt[row[results[60].timestamp_ns]]
+    for r in results[61 + len(lost) :]:
+        moved = r.T_world_body[:3, 3] - T0[:3, 3]
+        moved_gt = gt[row[r.timestamp_ns], :3, 3] - G0[:3, 3]
+        assert abs(np.linalg.norm(moved) - np.linalg.norm(moved_gt)) < 0.05  # m
+    options = VioConfig(
+        tracking=replace(TrackingConfig(), recently_lost_s=1.0, bridge_while_lost=False)
+    )
+    vio, _ = _lose_tracks(5, options, new_descriptors=True)
+    assert vio.stats.maps_started == 1 and vio.stats.bridged_back == 0
 
 
 def test_a_frame_with_too_few_map_points_is_bridged_by_the_imu():
