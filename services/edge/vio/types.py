@@ -115,20 +115,21 @@ class TrackingConfig:
     prior_inlier_ratio: float = 0.6  # IMU-predicted pose is trusted (RANSAC skipped) above this
     max_iterations: int = 8  # motion-only optimisation iterations
     # A VI-initialised map whose tracking fails is kept this long [s] while the IMU predicts
-    # the pose (ORB-SLAM3's RECENTLY_LOST, 5 s there): each robot keyframe meanwhile has its
+    # the pose (ORB-SLAM3's RECENTLY_LOST time, 5 s): each robot keyframe meanwhile has its
     # ORB features searched in the local map by projection from that prediction (window
-    # ``relocalise_radius_scale`` × the mapping's radius) and is tracked again; only then is
-    # a new map started. 0: a failure starts a new map at once. 3 s: longer than the gap
-    # between keyframes at the lowest uplink budgets (~2 s at 50 kbit/s), shorter than the
-    # IMU alone stays within the search window.
-    recently_lost_s: float = 3.0
+    # ``relocalise_radius_scale`` × the mapping's radius) and is tracked again, and frames
+    # within ``imu_bridge_s`` of the map's last keyframe are bridged (``bridge_while_lost``);
+    # only then is a new map started. 0: a failure starts a new map at once. (3 s before
+    # bridging while lost: a 50 kbit/s robot's next frames came 2.5 s later, too late.)
+    recently_lost_s: float = 5.0
     # Too few tracks with map points but the IMU recent: a frame within this long [s] of its
     # map's last keyframe becomes a keyframe at the IMU's prediction, its tracks triangulated
     # and refined by the visual-inertial local BA (VINS-style), before the map counts as
-    # lost (0: never). 2 s: the longest gap an uplink budget leaves after a keyframe (a
-    # 300-feature keyframe holds a 50 kbit/s link ~1.2 s), over which the IMU alone, with
-    # the map's biases, drifts a few cm (0.5 × 0.02 m/s² × (2 s)²): a BA's starting point.
-    imu_bridge_s: float = 2.0
+    # lost (0: never). 3 s: the longest gap an uplink budget leaves between the frames it
+    # sends (at 50 kbit/s the fastest robot's keyframes, ~7 kB, come 1.3-2.6 s apart with
+    # little between), over which the IMU alone, with the map's biases, drifts ~10 cm
+    # (0.5 × 0.02 m/s² × (3 s)² + 0.01 m/s × 3 s): a starting point for the VI local BA.
+    imu_bridge_s: float = 3.0
     # While a VI map is recently lost, a frame within ``imu_bridge_s`` of the map's last
     # keyframe (a bridge keyframe that found too few points counts) is bridged too: a robot
     # that turned to new ground between two sparse keyframes shares tracks with the failed
