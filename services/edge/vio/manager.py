@@ -101,6 +101,7 @@ class VioManager(ViInitSchedule, TrackingLoss):
         self.last_local_ba: BAStats | None = None
         self._keyframes_since_ba = 0
         self._lost_since: int | None = None  # first frame of a recently lost run [ns]
+        self._unheld: set[int] = set()  # bridge keyframes of the map that found too few points
         # VI initialisation and its refinements optimise every keyframe and every point.
         self._full_ba_options = replace(self.options.local_ba, max_points=0)
         logger.info("VIO %s options: %s", robot_name, self.options)

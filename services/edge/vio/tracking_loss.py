@@ -24,6 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from common.calibration import ImuCalibration
 from services.edge.vio.state import Keyframe, VioMap
 from services.edge.vio.tracking import ImuPrior, TrackResult
 from services.edge.vio.types import (
@@ -58,10 +59,12 @@ class TrackingLoss:
     options: VioConfig
     stats: VioStats
     name: str
+    imu_calibration: ImuCalibration
     _map: VioMap | None
     _next_map_id: int
     _ref: VioFrame | None
     _lost_since: int | None
+    _unheld: set[int]
     _last_init_reason: str
     _last_T: np.ndarray | None
     _prev_T: np.ndarray | None
@@ -122,18 +125,23 @@ class TrackingLoss:
         features are triangulated from IMU-propagated poses). Else the map is recently lost."""
         t = frame.obs.timestamp_ns
         kf0 = prior.keyframe
-        dt = (t - kf0.timestamp_ns) * 1e-9
         opt = self.options.tracking
         lost = self._lost_since is not None
+        # IMU-only time: since the newest keyframe the map held (a failed bridge's does not)
+        held = next((k for k in reversed(vmap.keyframe_list()) if k.id not in self._unheld), kf0)
+        imu_only_s = (t - held.timestamp_ns) * 1e-9
         if (
             (not lost or opt.bridge_while_lost)
-            and 0 < dt <= opt.imu_bridge_s
+            and 0 < (t - kf0.timestamp_ns) * 1e-9 <= opt.imu_bridge_s
+            and imu_only_s <= self.imu_only_limit_s()
             and len(frame.obs.track_ids) >= opt.min_inliers
         ):
             res = TrackResult(T_pred, v_pred, kf0.bias_accel, kf0.bias_gyro, np.zeros(0), False)
             kf = self._insert_keyframe(frame, res, vmap, kf0, force_ba=True)
             n = sum(1 for tr in kf.row_of if vmap.point_of(tr) is not None)
-            if n >= opt.min_inliers:
+            if n < opt.min_inliers:
+                self._unheld.add(kf.id)
+            else:
                 self.stats.frames_bridged += 1
                 if self._lost_since is not None:
                     lost_s = (t - self._lost_since) * 1e-9
@@ -148,6 +156,20 @@ class TrackingLoss:
                 why = f"IMU-bridged keyframe ({reason}): {n} map points after BA"
                 return self._result(frame, kf.T_world_body, TrackingStatus.TRACKING, n, True, why)
         return self._lose(frame, vmap, reason)
+
+    def imu_only_limit_s(self) -> float:
+        """How long [s] after the newest keyframe the map held a bridge may still place a
+        keyframe from the IMU alone: while the position the IMU predicts stays within
+        ``TrackingConfig.bridge_max_sigma_m`` (1 sigma) under the accelerometer white noise
+        the VIO weighs it by (``VioStats.imu_noise_used``, else the calibration's), sigma_p =
+        sigma_a * sqrt(t^3 / 3); unbounded when that is 0."""
+        opt = self.options.tracking
+        sigma_a = self.stats.imu_noise_used[1]
+        if not np.isfinite(sigma_a):
+            sigma_a = self.imu_calibration.accel_noise_density
+        if opt.bridge_max_sigma_m <= 0 or sigma_a <= 0:
+            return float("inf")
+        return float((3.0 * (opt.bridge_max_sigma_m / sigma_a) ** 2) ** (1 / 3))
 
     def _start_new_map(self, frame: VioFrame | None, reason: str) -> None:
         if self._map is not None:
@@ -169,4 +191,5 @@ class TrackingLoss:
         self._last_T = self._prev_T = self._last_v = None
         self._last_bias = None
         self._lost_since = None
+        self._unheld = set()
         self.stats.maps_started += 1

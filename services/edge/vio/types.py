@@ -131,11 +131,19 @@ class TrackingConfig:
     # (0.5 × 0.02 m/s² × (3 s)² + 0.01 m/s × 3 s): a starting point for the VI local BA.
     imu_bridge_s: float = 3.0
     # While a VI map is recently lost, a frame within ``imu_bridge_s`` of the map's last
-    # keyframe (a bridge keyframe that found too few points counts) is bridged too: a robot
-    # that turned to new ground between two sparse keyframes shares tracks with the failed
-    # bridge's keyframe, which are triangulated between their IMU poses. False: a failed
-    # bridge ends bridging until the map is tracked again (or a new map starts).
+    # keyframe is bridged too, from the keyframe a failed bridge left (too few points): a
+    # robot that turned to new ground between two sparse keyframes shares tracks with it,
+    # which are triangulated between their IMU poses. False: a failed bridge ends bridging
+    # until the map is tracked again (or a new map starts).
     bridge_while_lost: bool = True
+    # A bridge places its keyframe from the IMU alone only while the position the IMU
+    # predicts since the newest keyframe the map held stays within this [m] (1 sigma, under
+    # the accelerometer noise the VIO weighs the IMU by; 0: no bound): about the window the
+    # map's points are searched in by projection (30 px at 3 m depth). The generator's IMU
+    # (0.002 m/s^2/sqrt(Hz)) bridges for the whole recently lost time; a real MAV's in
+    # flight (~0.1, vibration) ~2 s (the real V2 flights at 50 kbit/s, replayed: chains of
+    # bridges 5-8 s long on their IMU left a robot's VIO 48 cm off).
+    bridge_max_sigma_m: float = 0.2
     relocalise_radius_scale: float = 2.0
 
 
