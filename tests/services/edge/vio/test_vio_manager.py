@@ -170,6 +170,23 @@ def test_a_recently_lost_map_is_bridged_back_by_the_frames_after_a_failed_bridge
     assert vio.stats.maps_started == 1 and vio.stats.bridged_back == 0
 
 
+def test_bridges_stop_where_the_imu_alone_no_longer_holds_the_position():
+    """The IMU-only time a bridge may span follows the accelerometer noise the VIO weighs the
+    IMU by: the generator's (0.002 m/s^2/sqrt(Hz)) ~31 s, a real MAV's in flight (~0.11) ~2 s,
+    for 0.2 m; with a bound too tight for any gap the lost map is not bridged back."""
+    seq = simulate(SimConfig(duration_s=0.3, seed=5))
+    vio = VioManager(seq.camera, seq.imu)
+    vio.stats.imu_noise_used = (1e-4, 0.002)
+    assert 30.0 < vio.imu_only_limit_s() < 32.0
+    vio.stats.imu_noise_used = (4e-3, 0.109)
+    assert 2.0 < vio.imu_only_limit_s() < 2.2
+    tight = VioConfig(
+        tracking=replace(TrackingConfig(), bridge_max_sigma_m=1e-4, recently_lost_s=1.0)
+    )
+    vio, _ = _lose_tracks(5, tight, new_descriptors=True)
+    assert vio.stats.maps_started == 1 and vio.stats.bridged_back == 0
+
+
 def test_a_frame_with_too_few_map_points_is_bridged_by_the_imu():
     """Most map points gone (as when sparse frames see new ground): the frame is made a
     keyframe at the IMU's prediction, its tracks that earlier keyframes saw triangulated, and
