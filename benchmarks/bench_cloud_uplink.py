@@ -36,6 +36,7 @@ import matplotlib.pyplot as plt
 
 from common.codec import KeyframeFeatures
 from common.codec.frames import FeatureDecoder, FeatureEncoder, fill_carried
+from common.links.edge_cloud import KeyframeUpdateCoded
 from common.vocabulary import Vocabulary
 from lab.journal_replay import JournalReplay, cloud_bytes, point_sends, replay_journal
 from lab.links import git_commit
@@ -69,13 +70,13 @@ def keyframe_bits(rep: JournalReplay, vocab: Vocabulary) -> tuple[float, float]:
     last: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # map -> (track numbers, descriptors)
     sent = coded = n = 0
     for m in rep.cloud:
-        if type(m).__name__ != "KeyframeUpdateCoded":
+        if not isinstance(m, KeyframeUpdateCoded):
             continue
-        map_id, feats = int(m.map_id), decoder.decode_detached(m.features)  # type: ignore[attr-defined]
+        map_id, feats = int(m.map_id), decoder.decode_detached(m.features)
         assert isinstance(feats, KeyframeFeatures)
         if (feats.links >= 0).any():
             feats = fill_carried(feats, last[map_id][1])
-        tracks = rep.keyframe_tracks[int(m.timestamp_ns)]  # type: ignore[attr-defined]
+        tracks = rep.keyframe_tracks[int(m.timestamp_ns)]
         links = np.full(len(feats), -1, np.int32)
         if map_id in last and len(tracks) == len(feats):
             row_of = {int(t): i for i, t in enumerate(last[map_id][0])}
@@ -86,7 +87,7 @@ def keyframe_bits(rep: JournalReplay, vocab: Vocabulary) -> tuple[float, float]:
         coded += len(
             enc.encode_keyframe(KeyframeFeatures(feats.keypoints, feats.descriptors, links))
         )
-        sent += len(m.features)  # type: ignore[attr-defined]
+        sent += len(m.features)
         n += len(feats)
         last[map_id] = (tracks, feats.descriptors)
     return 8 * sent / max(n, 1), 8 * coded / max(n, 1)
@@ -113,7 +114,7 @@ def measure(state: Path, robot: str, settle: int, vocab: Vocabulary) -> Row:
     )
     s = max(rep.seconds, 1e-9)
     kbps = {t: 8 * b / s / 1e3 for t, b in cloud_bytes(rep.cloud).items()}
-    feats = sum(len(m.features) for m in rep.cloud if type(m).__name__ == "KeyframeUpdateCoded")  # type: ignore[attr-defined]
+    feats = sum(len(m.features) for m in rep.cloud if isinstance(m, KeyframeUpdateCoded))
     ps = point_sends(rep.cloud)
     standalone, stateful = keyframe_bits(rep, vocab)
     n_robot, red = redundant_keyframes(rep)

@@ -25,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
+from common.links.edge_cloud import MapPointUpdateCoded
 from common.links.edge_cloud_payloads import decode_points
 from common.links.robot_edge import RobotFrame, RobotSensors, RobotSequenceEnd, read_sensors
 from common.protocol.messages import Message, decode_payload, encode_payload
@@ -160,10 +161,10 @@ def point_sends(messages: list[Message]) -> PointSends:
     sends = with_rows = 0
     moves: list[float] = []
     for m in messages:
-        if type(m).__name__ != "MapPointUpdateCoded":
+        if not isinstance(m, MapPointUpdateCoded):
             continue
-        batch = decode_points(m.points)  # type: ignore[attr-defined]
-        map_id = int(m.map_id)  # type: ignore[attr-defined]
+        batch = decode_points(m.points)
+        map_id = int(m.map_id)
         gained = set(batch.observations[:, 0].tolist())
         for pid, p in zip(batch.ids.tolist(), batch.p_world, strict=True):
             key = (map_id, pid)

@@ -12,6 +12,7 @@ import pytest
 
 from common.data.euroc import EurocSequence
 from common.data.synth import SynthConfig, generate_dataset
+from common.links.edge_cloud import KeyframeUpdateCoded
 from common.links.robot_edge import RobotSequenceEnd, sensors_message
 from common.links.sensors import Sensors
 from common.protocol.messages import Message, encode_payload
@@ -61,8 +62,8 @@ def test_replay_gives_every_frame_and_the_cloud_uplink(journaled):
     assert ps.distinct > 100 and ps.sends >= ps.distinct and len(ps.moves_m) > 0
     # every keyframe message names a robot keyframe whose track numbers were kept
     for m in rep.cloud:
-        if type(m).__name__ == "KeyframeUpdateCoded":
-            assert int(m.timestamp_ns) in rep.keyframe_tracks  # type: ignore[attr-defined]
+        if isinstance(m, KeyframeUpdateCoded):
+            assert int(m.timestamp_ns) in rep.keyframe_tracks
 
 
 @pytest.mark.slow
