@@ -81,11 +81,12 @@ def keyframe_bits(rep: JournalReplay, vocab: Vocabulary) -> tuple[float, float]:
         if map_id in last and len(tracks) == len(feats):
             row_of = {int(t): i for i, t in enumerate(last[map_id][0])}
             links = np.array([row_of.get(int(t), -1) for t in tracks], np.int32)
-        enc = encoders.setdefault(map_id, FeatureEncoder(vocab, rep.sessions[0].codec))
-        if map_id not in last:
-            links[:] = -1
+        if map_id not in encoders:  # (a new map: its first keyframe links nothing)
+            encoders[map_id] = FeatureEncoder(vocab, rep.sessions[0].codec)
         coded += len(
-            enc.encode_keyframe(KeyframeFeatures(feats.keypoints, feats.descriptors, links))
+            encoders[map_id].encode_keyframe(
+                KeyframeFeatures(feats.keypoints, feats.descriptors, links)
+            )
         )
         sent += len(m.features)
         n += len(feats)
@@ -95,7 +96,7 @@ def keyframe_bits(rep: JournalReplay, vocab: Vocabulary) -> tuple[float, float]:
 
 def redundant_keyframes(rep: JournalReplay, share: float = 0.9, others: int = 3) -> tuple[int, int]:
     """(robot keyframes, of them redundant by ORB-SLAM's culling rule) in the last VIO map."""
-    vmap = rep.runners[-1].vio._map
+    vmap = rep.runners[-1].vio.current_map
     if vmap is None:
         return 0, 0
     robot = {k.id for k in vmap.keyframe_list() if k.descriptors is not None}

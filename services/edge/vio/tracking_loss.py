@@ -128,7 +128,7 @@ class TrackingLoss:
         opt = self.options.tracking
         lost = self._lost_since is not None
         # IMU-only time: since the newest keyframe the map held (a failed bridge's does not)
-        held = next((k for k in reversed(vmap.keyframe_list()) if k.id not in self._unheld), kf0)
+        held = next((k for k in reversed(vmap.keyframes.values()) if k.id not in self._unheld), kf0)
         imu_only_s = (t - held.timestamp_ns) * 1e-9
         if (
             (not lost or opt.bridge_while_lost)
