@@ -164,7 +164,12 @@ class KeyframeDecisionConfig:
     min_interval_s: float = 0.0
     """Shortest time between keyframes (unless tracking is lost)."""
     lost_tracked: int = 30
-    """Below this many tracks a keyframe is taken regardless of ``min_interval_s``."""
+    """Below this many tracks a keyframe is taken regardless of ``min_interval_s`` ..."""
+    lost_min_interval_s: float = 0.0
+    """... once this long [s] has passed since the last keyframe (0: at once; an uplink
+    budget sets the time the link needs to carry one keyframe, so that a stretch of lost
+    tracking does not send a keyframe per frame: the tracker tops its tracks up with corners
+    on the frames between, and the next keyframe follows when the link has room)."""
     every_frame: bool = False
     """Baseline: every frame is a keyframe (the paper's reference [55] intra mode)."""
 

@@ -215,7 +215,7 @@ class RobotCore:
                 return [PoseOut(dataclasses.replace(pose, flags=flags) if flags else pose)]
             self.frames_sent += 1
             nbytes = len(msg.features) + len(msg.imu)
-            self.uplink.on_sent(now, nbytes, msg.keyframe, event.features)
+            self.uplink.on_sent(now, nbytes, msg.keyframe, event.features, len(msg.imu))
             return [Send(msg)]
         elif isinstance(event, LinkLoad):
             self.uplink.on_link(now, event.outbox_bytes, event.acked_bytes)

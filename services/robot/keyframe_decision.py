@@ -61,7 +61,7 @@ def decide_keyframe(
         )
     if config.every_frame:
         return KeyframeDecision(True, KeyframeReason.EVERY_FRAME)
-    if n_tracked < config.lost_tracked:
+    if n_tracked < config.lost_tracked and dt_since_keyframe_s >= config.lost_min_interval_s:
         return KeyframeDecision(True, KeyframeReason.TRACKING_LOST)
     if dt_since_keyframe_s < config.min_interval_s:
         return KeyframeDecision(False, KeyframeReason.NOT_KEYFRAME)

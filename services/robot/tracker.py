@@ -224,7 +224,7 @@ class FrontEnd:
     def set_keyframe_plan(self, plan: KeyframePlan | None) -> None:
         """Keyframes within an uplink budget (:mod:`services.robot.uplink_budget`): at most
         ``plan.n_features`` ORB features, at least ``plan.min_interval_s`` apart (unless
-        tracking is lost), at most twice that; the tracked floor scales with the features; the
+        tracking is lost; then at least ``plan.lost_min_interval_s``), at most twice that; the tracked floor scales with the features; the
         keyframe's corners continue the tracks first (``keyframe_prefers_tracks``).
         None: the configured rules again."""
         base = self.base_config
@@ -238,6 +238,7 @@ class FrontEnd:
                 kf,
                 min_interval_s=min_s,
                 max_interval_s=max(kf.max_interval_s, 2.0 * min_s),
+                lost_min_interval_s=max(kf.lost_min_interval_s, plan.lost_min_interval_s),
                 min_tracked=min(kf.min_tracked, round(kf.min_tracked * n / base.orb.n_features)),
             )
             self.config = dataclasses.replace(

@@ -60,10 +60,12 @@ non-keyframes only), or an outage (keyframes too)."""
 @dataclass(frozen=True)
 class KeyframePlan:
     """Keyframes that fit the budget: at most ``n_features`` features, at least
-    ``min_interval_s`` apart (``FrontEnd.set_keyframe_plan`` applies it)."""
+    ``min_interval_s`` apart, and at least ``lost_min_interval_s`` apart when tracking is
+    lost (``FrontEnd.set_keyframe_plan`` applies it)."""
 
     n_features: int
     min_interval_s: float
+    lost_min_interval_s: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -86,8 +88,9 @@ class UplinkBudgetConfig:
             framing, acks and the edge's poses on the way back share the link).
         window_s: the sizes and the acknowledgement rate are measured over this long (10 s:
             several keyframes).
-        keyframe_share: share of the planned rate for keyframes (0.6; the rest carries the
-            non-keyframes and the IMU).
+        keyframe_share: share for keyframes of the planned rate the IMU leaves (0.6; the
+            rest carries the non-keyframes). The IMU always goes, so its measured rate comes
+            off first: a real MAV's vibrating IMU costs ~12 kbit/s, twice a clean one's.
         bytes_per_feature: a keyframe's bytes per feature until one was sent (21: ~170
             bits, keypoint ~20 b + ORB descriptor ~150 b under the context model,
             ``codec.md``); then what the keyframes sent in the last ``window_s`` cost (a
@@ -149,7 +152,7 @@ class UplinkBudget:
         self.config = config or UplinkBudgetConfig()
         self.left_out: dict[str, int] = dict.fromkeys(REASONS, 0)
         self.sent_keyframes = self.sent_non_keyframes = 0
-        self._sent: deque[tuple[float, int, bool]] = deque()  # (now, bytes, keyframe)
+        self._sent: deque[tuple[float, int, int, bool]] = deque()  # (now, B, IMU B, keyframe)
         self._kf_sent: deque[tuple[float, int, int]] = deque()  # (now, bytes, features)
         self._last_nkf: float | None = None  # when the last non-keyframe went [s]
         self.link = DeliveryRate(self.config.window_s)  # the link's load and measured rate
@@ -161,13 +164,16 @@ class UplinkBudget:
         bytes acknowledged so far (a running total)."""
         self.link.on_link(now, outbox_bytes, acked_bytes)
 
-    def on_sent(self, now: float, nbytes: int, keyframe: bool, features: int = 0) -> None:
-        """A frame of ``nbytes`` was handed to the link (a keyframe: of ``features``)."""
-        self._sent.append((now, int(nbytes), bool(keyframe)))
+    def on_sent(
+        self, now: float, nbytes: int, keyframe: bool, features: int = 0, imu_bytes: int = 0
+    ) -> None:
+        """A frame of ``nbytes`` was handed to the link (a keyframe: of ``features``), of
+        which ``imu_bytes`` are its IMU samples."""
+        self._sent.append((now, int(nbytes), int(imu_bytes), bool(keyframe)))
         if keyframe:
             self.sent_keyframes += 1
             if features > 0:
-                self._kf_sent.append((now, int(nbytes), int(features)))
+                self._kf_sent.append((now, int(nbytes) - int(imu_bytes), int(features)))
                 while len(self._kf_sent) > 1 and self._kf_sent[0][0] < now - self.config.window_s:
                     self._kf_sent.popleft()
         else:
@@ -201,19 +207,34 @@ class UplinkBudget:
         if rate is None:
             return None
         cfg = self.config
-        share = cfg.keyframe_share * cfg.headroom * rate  # B/s for keyframes
+        share = cfg.keyframe_share * self._left_by_imu(rate)  # B/s for keyframes
         per_feature = self.bytes_per_feature()
         n = share * cfg.keyframe_period_s / per_feature
         # ... and no keyframe holds the frames behind it back longer than max_delay_s
         n = min(n, rate * cfg.headroom * cfg.max_delay_s / per_feature)
         n = max(cfg.min_features, min(max_features, 50 * round(n / 50)))
+        # Even when tracking is lost, no keyframe before the link has carried the last one.
+        lost_s = round(n * per_feature / (cfg.headroom * rate), 1)
         if self.link.outbox_bytes / rate > cfg.max_delay_s:
             # The link is behind (an outage, or a keyframe still going out): no keyframe
             # but those tracking needs (tracking lost), so the backlog the link must drain
             # once it is back holds no more than the map needs.
-            return KeyframePlan(n, math.inf)
+            return KeyframePlan(n, math.inf, lost_s)
         # (in steps of 50 features and 0.1 s: an estimated rate moves a little all the time)
-        return KeyframePlan(n, round(n * per_feature / share, 1))
+        return KeyframePlan(n, round(n * per_feature / share, 1), lost_s)
+
+    def _window_s(self) -> float:
+        """The span [s] the sizes in the window cover (at least 1 s)."""
+        if not self._sent:
+            return 1.0
+        return min(self.config.window_s, max(1.0, self._sent[-1][0] - self._sent[0][0]))
+
+    def _left_by_imu(self, rate: float) -> float:
+        """What the planned rate leaves after the IMU [B/s] (the IMU always goes), at least a
+        tenth of it."""
+        imu = sum(i for _, _, i, _ in self._sent) / self._window_s()
+        planned = self.config.headroom * rate
+        return max(0.1 * planned, planned - imu)
 
     def hold_back(self, now: float) -> str:
         """Why the next frame, unless the tracker makes it a keyframe, is left out (one of
@@ -241,12 +262,11 @@ class UplinkBudget:
     def _choose_rate(self, rate: float) -> float:
         """The highest non-keyframe rate whose bytes fit beside the keyframes'."""
         cfg = self.config
-        kf = [b for _, b, k in self._sent if k]
-        nkf = [b for _, b, k in self._sent if not k]
+        kf = [b - i for _, b, i, k in self._sent if k]
+        nkf = [b - i for _, b, i, k in self._sent if not k]
         if not nkf:
             return cfg.rates_hz[0]
-        span = min(cfg.window_s, max(1.0, self._sent[-1][0] - self._sent[0][0]))
-        left = rate * cfg.headroom - sum(kf) / span
+        left = self._left_by_imu(rate) - sum(kf) / self._window_s()
         size = sum(nkf) / len(nkf)
         for hz in cfg.rates_hz:
             if hz * size <= left:
