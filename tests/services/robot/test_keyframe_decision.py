@@ -54,6 +54,16 @@ def test_fraction_relative_to_keyframe_features() -> None:
     assert decide_keyframe(cfg, 79, 100, 0.1).reason is KeyframeReason.LOW_FRACTION
 
 
+def test_lost_tracking_waits_for_its_own_minimum_interval() -> None:
+    """Under an uplink budget a keyframe for lost tracking waits until the link has carried
+    the last one (``lost_min_interval_s``); the frames between are not keyframes."""
+    cfg = KeyframeDecisionConfig(min_interval_s=2.0, lost_tracked=30, lost_min_interval_s=1.2)
+    assert decide_keyframe(cfg, 0, 300, 0.1).reason is KeyframeReason.NOT_KEYFRAME
+    assert decide_keyframe(cfg, 29, 300, 1.19).reason is KeyframeReason.NOT_KEYFRAME
+    assert decide_keyframe(cfg, 29, 300, 1.2).reason is KeyframeReason.TRACKING_LOST
+    assert decide_keyframe(cfg, 30, 300, 1.5).reason is KeyframeReason.NOT_KEYFRAME
+
+
 @pytest.mark.parametrize(("n", "n_kf", "dt"), [(-1, 10, 0.1), (5, -1, 0.1), (5, 10, -0.1)])
 def test_rejects_invalid_input(n, n_kf, dt) -> None:
     with pytest.raises(KeyframeDecisionError):

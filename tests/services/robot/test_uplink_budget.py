@@ -43,6 +43,28 @@ def test_the_non_keyframe_rate_is_what_the_keyframes_leave():
     assert starved.rate_hz == 5.0  # nothing left beside the keyframes: the lowest rate
 
 
+def test_the_imu_comes_off_the_plan_first():
+    """The IMU always goes: what it costs (measured) is not planned for keyframes or
+    non-keyframes. A vibrating IMU's 1.5 kB/s at 50 kbit/s (5 kB/s planned) leaves 3.5 kB/s,
+    so 300-feature keyframes come further apart, and fewer non-keyframes go."""
+    clean, noisy = (UplinkBudget(UplinkBudgetConfig(budget_kbps=50.0)) for _ in range(2))
+    for k in range(40):  # 5 Hz for 8 s: 300 B of features each, with 150 or 300 B of IMU
+        clean.on_sent(k * 0.2, 450, keyframe=False, imu_bytes=150)
+        noisy.on_sent(k * 0.2, 600, keyframe=False, imu_bytes=300)
+    a, b = clean.keyframe_plan(), noisy.keyframe_plan()
+    assert a is not None and b is not None and a.n_features == b.n_features == 300
+    share = 0.6 * (5000 - 750)  # B/s for keyframes beside the clean IMU
+    assert a.min_interval_s == pytest.approx(300 * 21 / share, abs=0.05)
+    assert b.min_interval_s == pytest.approx(300 * 21 / (0.6 * (5000 - 1500)), abs=0.05)
+    for k in (40, 41):  # two 3 kB keyframes: ~0.7 kB/s over the window
+        for bud, imu in ((clean, 150), (noisy, 300)):
+            bud.on_sent(k * 0.2, 3000 + imu, keyframe=True, features=150, imu_bytes=imu)
+    clean.hold_back(9.0)
+    noisy.hold_back(9.0)
+    assert (clean.rate_hz, noisy.rate_hz) == (10.0, 5.0)  # 3 kB/s fit beside the clean one
+    assert clean.bytes_per_feature() == 20.0  # the keyframes' own bytes, not their IMU's
+
+
 def test_auto_measures_the_rate_only_while_the_link_has_a_backlog():
     b = UplinkBudget(UplinkBudgetConfig(auto=True))
     assert b.rate_Bps() is None and b.hold_back(0.0) == ""  # nothing measured yet: all go
@@ -106,6 +128,8 @@ def test_keyframes_are_planned_to_fit_the_budget(euroc_micro):
     assert slow is not None and slow.n_features == 300
     assert slow.n_features * 21 / slow.min_interval_s <= 0.6 * 0.8 * 6250 * 1.05
     assert 1.5 < slow.min_interval_s < 3.0
+    # lost tracking: a keyframe no sooner than the link carries one (6.3 kB at 5 kB/s)
+    assert slow.lost_min_interval_s == pytest.approx(300 * 21 / 5000, abs=0.05)
     behind = UplinkBudget(UplinkBudgetConfig(budget_kbps=50.0))
     behind.on_link(0.0, 50_000, 0)  # 8 s of backlog (an outage): only keyframes tracking needs
     held = behind.keyframe_plan()
