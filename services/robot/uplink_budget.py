@@ -14,8 +14,7 @@ The link carries two classes of data (the issue's "fresh before complete"):
   bit-exact; only the subset is chosen). Frames left out are counted by reason.
 
 Keyframes are planned to fit (:meth:`UplinkBudget.keyframe_plan`): fewer features and further
-apart at low rates, from what the IMU leaves (it always goes; a real MAV's vibrating IMU costs
-twice a clean one's). Even lost tracking takes a keyframe no sooner than the link has carried
+apart at low rates. Even lost tracking takes a keyframe no sooner than the link has carried
 the last one (a stretch of lost tracking on a real flight otherwise sent a 7 kB keyframe every
 0.1-0.2 s, seconds of backlog at 50 kbit/s; the tracker tops its tracks up with corners on the
 frames between). While the link is behind (an outage), keyframes are held to those tracking
@@ -27,7 +26,9 @@ recognition like any other, when it recognises the place (the frames before the 
 exactly-once in the reliable backlog).
 
 The non-keyframe rate is the highest of ``rates_hz`` whose bytes fit in what the budget leaves
-after the IMU and the keyframes (both measured over the last ``window_s`` of what was sent), with
+after the IMU and the keyframes (the IMU always goes, and what it costs is measured: a real
+MAV's vibrating IMU costs ~12 kbit/s, twice a clean one's; keyframes keep their share, fewer
+of them cost the edge's VIO accuracy) (both measured over the last ``window_s`` of what was sent), with
 ``headroom`` to spare: at 50 kbit/s and ~20 kB keyframes every two seconds nothing is left
 and the rate is the lowest; the backlog rule then drops what would still be late.
 
@@ -92,9 +93,8 @@ class UplinkBudgetConfig:
             framing, acks and the edge's poses on the way back share the link).
         window_s: the sizes and the acknowledgement rate are measured over this long (10 s:
             several keyframes).
-        keyframe_share: share for keyframes of the planned rate the IMU leaves (0.6; the
-            rest carries the non-keyframes). The IMU always goes, so its measured rate comes
-            off first: a real MAV's vibrating IMU costs ~12 kbit/s, twice a clean one's.
+        keyframe_share: share of the planned rate for keyframes (0.6; the rest carries the
+            IMU, measured, and the non-keyframes in what the IMU leaves).
         bytes_per_feature: a keyframe's bytes per feature until one was sent (21: ~170
             bits, keypoint ~20 b + ORB descriptor ~150 b under the context model,
             ``codec.md``); then what the keyframes sent in the last ``window_s`` cost (a
@@ -211,7 +211,7 @@ class UplinkBudget:
         if rate is None:
             return None
         cfg = self.config
-        share = cfg.keyframe_share * self._left_by_imu(rate)  # B/s for keyframes
+        share = cfg.keyframe_share * cfg.headroom * rate  # B/s for keyframes
         per_feature = self.bytes_per_feature()
         n = share * cfg.keyframe_period_s / per_feature
         # ... and no keyframe holds the frames behind it back longer than max_delay_s

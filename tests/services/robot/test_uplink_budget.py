@@ -43,19 +43,15 @@ def test_the_non_keyframe_rate_is_what_the_keyframes_leave():
     assert starved.rate_hz == 5.0  # nothing left beside the keyframes: the lowest rate
 
 
-def test_the_imu_comes_off_the_plan_first():
-    """The IMU always goes: what it costs (measured) is not planned for keyframes or
-    non-keyframes. A vibrating IMU's 1.5 kB/s at 50 kbit/s (5 kB/s planned) leaves 3.5 kB/s,
-    so 300-feature keyframes come further apart, and fewer non-keyframes go."""
+def test_the_imu_comes_off_the_non_keyframes():
+    """The IMU always goes: what it costs (measured) comes off what the keyframes leave for
+    non-keyframes; keyframes keep their share. A vibrating IMU's 1.5 kB/s at 50 kbit/s
+    (5 kB/s planned) leaves fewer non-keyframes than a clean one's 0.75 kB/s."""
     clean, noisy = (UplinkBudget(UplinkBudgetConfig(budget_kbps=50.0)) for _ in range(2))
     for k in range(40):  # 5 Hz for 8 s: 300 B of features each, with 150 or 300 B of IMU
         clean.on_sent(k * 0.2, 450, keyframe=False, imu_bytes=150)
         noisy.on_sent(k * 0.2, 600, keyframe=False, imu_bytes=300)
-    a, b = clean.keyframe_plan(), noisy.keyframe_plan()
-    assert a is not None and b is not None and a.n_features == b.n_features == 300
-    share = 0.6 * (5000 - 750)  # B/s for keyframes beside the clean IMU
-    assert a.min_interval_s == pytest.approx(300 * 21 / share, abs=0.05)
-    assert b.min_interval_s == pytest.approx(300 * 21 / (0.6 * (5000 - 1500)), abs=0.05)
+    assert clean.keyframe_plan() == noisy.keyframe_plan()
     for k in (40, 41):  # two 3 kB keyframes: ~0.7 kB/s over the window
         for bud, imu in ((clean, 150), (noisy, 300)):
             bud.on_sent(k * 0.2, 3000 + imu, keyframe=True, features=150, imu_bytes=imu)
