@@ -26,9 +26,9 @@ recognition like any other, when it recognises the place (the frames before the 
 exactly-once in the reliable backlog).
 
 The non-keyframe rate is the highest of ``rates_hz`` whose bytes fit in what the budget leaves
-after the IMU and the keyframes (the IMU always goes, and what it costs is measured: a real
-MAV's vibrating IMU costs ~12 kbit/s, twice a clean one's; keyframes keep their share, fewer
-of them cost the edge's VIO accuracy) (both measured over the last ``window_s`` of what was sent), with
+after the IMU and the keyframes (all measured over the last ``window_s`` of what was sent;
+the IMU always goes, and a real MAV's vibrating IMU costs ~12 kbit/s, twice a clean one's;
+keyframes keep their share: fewer of them cost the edge's VIO accuracy), with
 ``headroom`` to spare: at 50 kbit/s and ~20 kB keyframes every two seconds nothing is left
 and the rate is the lowest; the backlog rule then drops what would still be late.
 
