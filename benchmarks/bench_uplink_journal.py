@@ -15,6 +15,7 @@ folder itself.
 from __future__ import annotations
 
 import argparse
+import itertools
 import statistics
 from pathlib import Path
 
@@ -52,7 +53,7 @@ def rows(condition: str, run: Path) -> list[str]:
                     continue
                 span = (frames[-1].timestamp_ns - frames[0].timestamp_ns) * 1e-9
                 kf = [m for m in frames if m.keyframe]
-                gaps = [(b.timestamp_ns - a.timestamp_ns) * 1e-9 for a, b in zip(kf, kf[1:])]
+                gaps = [(b.timestamp_ns - a.timestamp_ns) * 1e-9 for a, b in itertools.pairwise(kf)]
                 kbps = [
                     8e-3 * sum(len(m.features) for m in frames if m.keyframe) / span,
                     8e-3 * sum(len(m.features) for m in frames if not m.keyframe) / span,

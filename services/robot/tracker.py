@@ -224,8 +224,9 @@ class FrontEnd:
     def set_keyframe_plan(self, plan: KeyframePlan | None) -> None:
         """Keyframes within an uplink budget (:mod:`services.robot.uplink_budget`): at most
         ``plan.n_features`` ORB features, at least ``plan.min_interval_s`` apart (unless
-        tracking is lost; then at least ``plan.lost_min_interval_s``), at most twice that; the tracked floor scales with the features; the
-        keyframe's corners continue the tracks first (``keyframe_prefers_tracks``).
+        tracking is lost; then at least ``plan.lost_min_interval_s``), at most twice that;
+        the tracked floor scales with the features; the keyframe's corners continue the
+        tracks first (``keyframe_prefers_tracks``).
         None: the configured rules again."""
         base = self.base_config
         if plan is None:
