@@ -264,7 +264,7 @@ class UplinkBudget:
         self.left_out[reason] += 1
 
     def _choose_rate(self, rate: float) -> float:
-        """The highest non-keyframe rate whose bytes fit beside the keyframes'."""
+        """The highest non-keyframe rate whose bytes fit beside the IMU's and the keyframes'."""
         cfg = self.config
         kf = [b - i for _, b, i, k in self._sent if k]
         nkf = [b - i for _, b, i, k in self._sent if not k]
