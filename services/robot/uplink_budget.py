@@ -284,6 +284,7 @@ class UplinkBudget:
             "auto": self.config.auto,
             "rate_kbps": None if rate is None else round(rate * 8e-3, 1),
             "bytes_per_feature": round(self.bytes_per_feature(), 1),
+            "imu_kbps": round(8e-3 * sum(i for _, _, i, _ in self._sent) / self._window_s(), 1),
             "non_keyframe_hz": self.rate_hz,
             "left_out": dict(self.left_out),
             "sent_keyframes": self.sent_keyframes,
