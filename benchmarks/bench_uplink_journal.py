@@ -20,8 +20,7 @@ import statistics
 from pathlib import Path
 
 from common.links.robot_edge import RobotFrame
-from common.protocol.messages import decode_payload
-from services.edge.journal import JournalStore
+from lab.journal_replay import journal_agents, journal_messages
 
 HEADER = (
     "| condition | run | robot | frames sent | keyframes | keyframe kB (median) | "
@@ -41,34 +40,26 @@ def rows(condition: str, run: Path) -> list[str]:
     """One table line per robot journalled in ``run``."""
     out = []
     for state in _state_dirs(run):
-        store = JournalStore(state)
-        try:
-            for agent in store.agents():
-                frames = [
-                    m
-                    for r in store.journal(agent).read()
-                    if isinstance(m := decode_payload(r.type_id, r.payload), RobotFrame)
-                ]
-                if len(frames) < 2:
-                    continue
-                span = (frames[-1].timestamp_ns - frames[0].timestamp_ns) * 1e-9
-                kf = [m for m in frames if m.keyframe]
-                gaps = [(b.timestamp_ns - a.timestamp_ns) * 1e-9 for a, b in itertools.pairwise(kf)]
-                kbps = [
-                    8e-3 * sum(len(m.features) for m in frames if m.keyframe) / span,
-                    8e-3 * sum(len(m.features) for m in frames if not m.keyframe) / span,
-                    8e-3 * sum(len(m.imu) for m in frames) / span,
-                ]
-                size = statistics.median(len(m.features) for m in kf) / 1000 if kf else 0.0
-                gap = f"{statistics.median(gaps):.2f} / {min(gaps):.2f}" if gaps else "–"
-                out.append(
-                    f"| {condition} | {run.name} | {agent} | {len(frames)} | {len(kf)} | "
-                    f"{size:.1f} | {gap} | {sum(g < 1.5 for g in gaps)} | "
-                    + " | ".join(f"{x:.1f}" for x in kbps)
-                    + f" | **{sum(kbps):.1f}** |"
-                )
-        finally:
-            store.close()
+        for agent in journal_agents(state):
+            frames = [m for m in journal_messages(state, agent) if isinstance(m, RobotFrame)]
+            if len(frames) < 2:
+                continue
+            span = (frames[-1].timestamp_ns - frames[0].timestamp_ns) * 1e-9
+            kf = [m for m in frames if m.keyframe]
+            gaps = [(b.timestamp_ns - a.timestamp_ns) * 1e-9 for a, b in itertools.pairwise(kf)]
+            kbps = [
+                8e-3 * sum(len(m.features) for m in kf) / span,
+                8e-3 * sum(len(m.features) for m in frames if not m.keyframe) / span,
+                8e-3 * sum(len(m.imu) for m in frames) / span,
+            ]
+            size = statistics.median(len(m.features) for m in kf) / 1000 if kf else 0.0
+            gap = f"{statistics.median(gaps):.2f} / {min(gaps):.2f}" if gaps else "–"
+            out.append(
+                f"| {condition} | {run.name} | {agent} | {len(frames)} | {len(kf)} | "
+                f"{size:.1f} | {gap} | {sum(g < 1.5 for g in gaps)} | "
+                + " | ".join(f"{x:.1f}" for x in kbps)
+                + f" | **{sum(kbps):.1f}** |"
+            )
     return out
 
 

@@ -76,6 +76,26 @@ class JournalReplay:
         return (self.frames[-1].timestamp_ns - self.frames[0].timestamp_ns) * 1e-9
 
 
+def journal_agents(state_dir: Path | str) -> list[str]:
+    """The robots the edge state folder ``state_dir`` holds journals of."""
+    store = JournalStore(Path(state_dir))
+    try:
+        return store.agents()
+    finally:
+        store.close()
+
+
+def journal_messages(state_dir: Path | str, agent: str) -> list[Message]:
+    """``agent``'s journalled robot -> edge messages in the edge state folder ``state_dir``, in
+    the order the edge accepted them (``JournalError`` for an unreadable journal)."""
+    store = JournalStore(Path(state_dir))
+    try:
+        records = store.journal(agent).read()
+    finally:
+        store.close()
+    return [decode_payload(rec.type_id, rec.payload) for rec in records]
+
+
 def replay_journal(
     state_dir: Path | str,
     agent: str,
@@ -88,16 +108,10 @@ def replay_journal(
     defaults). Raises ``JournalError`` for an unreadable journal, ``CodecError`` for a frame
     that does not decode (the edge would have refused it)."""
     vocab = vocabulary or Vocabulary.load()
-    store = JournalStore(Path(state_dir))
-    try:
-        records = store.journal(agent).read()
-    finally:
-        store.close()
     out = JournalReplay(agent)
     sess: RobotSession | None = None
     runner: VioRunner | None = None
-    for rec in records:
-        msg = decode_payload(rec.type_id, rec.payload)
+    for msg in journal_messages(state_dir, agent):
         if isinstance(msg, RobotSensors):
             sensors = read_sensors(msg)
             sess = RobotSession(agent, sensors.camera, vocab, session)

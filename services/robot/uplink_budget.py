@@ -156,7 +156,8 @@ class UplinkBudget:
         self.config = config or UplinkBudgetConfig()
         self.left_out: dict[str, int] = dict.fromkeys(REASONS, 0)
         self.sent_keyframes = self.sent_non_keyframes = 0
-        self._sent: deque[tuple[float, int, int, bool]] = deque()  # (now, B, IMU B, keyframe)
+        # (now, feature bytes, IMU bytes, keyframe) of each frame sent in the last window_s
+        self._sent: deque[tuple[float, int, int, bool]] = deque()
         self._kf_sent: deque[tuple[float, int, int]] = deque()  # (now, bytes, features)
         self._last_nkf: float | None = None  # when the last non-keyframe went [s]
         self.link = DeliveryRate(self.config.window_s)  # the link's load and measured rate
@@ -173,11 +174,12 @@ class UplinkBudget:
     ) -> None:
         """A frame of ``nbytes`` was handed to the link (a keyframe: of ``features``), of
         which ``imu_bytes`` are its IMU samples."""
-        self._sent.append((now, int(nbytes), int(imu_bytes), bool(keyframe)))
+        own = int(nbytes) - int(imu_bytes)
+        self._sent.append((now, own, int(imu_bytes), bool(keyframe)))
         if keyframe:
             self.sent_keyframes += 1
             if features > 0:
-                self._kf_sent.append((now, int(nbytes) - int(imu_bytes), int(features)))
+                self._kf_sent.append((now, own, int(features)))
                 while len(self._kf_sent) > 1 and self._kf_sent[0][0] < now - self.config.window_s:
                     self._kf_sent.popleft()
         else:
@@ -233,12 +235,15 @@ class UplinkBudget:
             return 1.0
         return min(self.config.window_s, max(1.0, self._sent[-1][0] - self._sent[0][0]))
 
+    def _imu_Bps(self) -> float:
+        """What the IMU cost over the window [B/s]."""
+        return sum(i for _, _, i, _ in self._sent) / self._window_s()
+
     def _left_by_imu(self, rate: float) -> float:
         """What the planned rate leaves after the IMU [B/s] (the IMU always goes), at least a
         tenth of it."""
-        imu = sum(i for _, _, i, _ in self._sent) / self._window_s()
         planned = self.config.headroom * rate
-        return max(0.1 * planned, planned - imu)
+        return max(0.1 * planned, planned - self._imu_Bps())
 
     def hold_back(self, now: float) -> str:
         """Why the next frame, unless the tracker makes it a keyframe, is left out (one of
@@ -266,8 +271,8 @@ class UplinkBudget:
     def _choose_rate(self, rate: float) -> float:
         """The highest non-keyframe rate whose bytes fit beside the IMU's and the keyframes'."""
         cfg = self.config
-        kf = [b - i for _, b, i, k in self._sent if k]
-        nkf = [b - i for _, b, i, k in self._sent if not k]
+        kf = [b for _, b, _, k in self._sent if k]
+        nkf = [b for _, b, _, k in self._sent if not k]
         if not nkf:
             return cfg.rates_hz[0]
         left = self._left_by_imu(rate) - sum(kf) / self._window_s()
@@ -284,7 +289,7 @@ class UplinkBudget:
             "auto": self.config.auto,
             "rate_kbps": None if rate is None else round(rate * 8e-3, 1),
             "bytes_per_feature": round(self.bytes_per_feature(), 1),
-            "imu_kbps": round(8e-3 * sum(i for _, _, i, _ in self._sent) / self._window_s(), 1),
+            "imu_kbps": round(8e-3 * self._imu_Bps(), 1),
             "non_keyframe_hz": self.rate_hz,
             "left_out": dict(self.left_out),
             "sent_keyframes": self.sent_keyframes,
